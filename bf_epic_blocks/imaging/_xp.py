@@ -1,0 +1,52 @@
+"""Array-namespace helpers: one code path for NumPy and CuPy.
+
+CuPy is optional: nothing here imports it unless it is installed, and a CuPy array can only
+come from a caller who has it.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+try:  # CuPy is an optional extra ("gpu"); the package works without it.
+    import cupy as _cupy
+except Exception:  # pragma: no cover - depends on the machine
+    _cupy = None
+
+
+def cupy_or_none():
+    """The cupy module when it imports, else None."""
+    return _cupy
+
+
+def gpu_available() -> bool:
+    """True when CuPy imports and at least one CUDA device answers."""
+    if _cupy is None:
+        return False
+    try:
+        return _cupy.cuda.runtime.getDeviceCount() > 0
+    except Exception:
+        return False
+
+
+def get_xp(*arrays):
+    """The array module (numpy or cupy) that owns ``arrays`` (numpy for host arrays/scalars)."""
+    if _cupy is not None:
+        return _cupy.get_array_module(*arrays)
+    return np
+
+
+def is_device_array(a) -> bool:
+    return _cupy is not None and isinstance(a, _cupy.ndarray)
+
+
+def to_numpy(a):
+    """Copy a CuPy array to the host; pass NumPy arrays through."""
+    if is_device_array(a):
+        return a.get()
+    return np.asarray(a)
+
+
+def asarray_like(a, like):
+    """``a`` as an array in the same namespace as ``like``."""
+    xp = get_xp(like)
+    return xp.asarray(a)

@@ -1,0 +1,147 @@
+"""Pixel sets: where the imager looks.
+
+Every pixel is a direction (l, m) with l East and m North (direction cosines); n = sqrt(1-l^2-m^2)
+is computed in float64 by :func:`n_from_lm` in a form that stays accurate at the horizon.
+
+Regular grids (:class:`LMGrid`): an N x N grid with cell ``2 / N * fov_scale`` in l and m,
+centres ``l_i = (i - N//2) * cell`` (so index N//2 is the zenith, as an FFT grid), images indexed
+``[m_index, l_index]`` (rows North, columns East, both increasing). Only the pixels strictly above
+the horizon (l^2 + m^2 < 1) are imaged; :meth:`LMGrid.to_image` puts values back on the 2-D grid
+with NaN outside.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._xp import get_xp
+
+
+def n_from_lm(l, m):
+    """n = sqrt(1 - l^2 - m^2) in float64, accurate near the horizon.
+
+    ``1 - l^2 - m^2`` loses everything near n ~ 0 when formed naively in float32; in float64 we
+    use ``(1 - r)(1 + r)`` with r = sqrt(l^2 + m^2), which keeps the relative accuracy of the small
+    factor (1 - r).
+    """
+    xp = get_xp(l, m)
+    l = xp.asarray(l, dtype=xp.float64)
+    m = xp.asarray(m, dtype=xp.float64)
+    r = xp.hypot(l, m)
+    return xp.sqrt(xp.clip((1.0 - r) * (1.0 + r), 0.0, None))
+
+
+def check_lm(pixels_lm):
+    """Validate a (npix, 2) l, m array (host or device); returns it as float64.
+
+    Raises ValueError naming the first pixel with l^2 + m^2 > 1 (below the horizon).
+    """
+    xp = get_xp(pixels_lm)
+    lm = xp.asarray(pixels_lm, dtype=xp.float64)
+    if lm.ndim != 2 or lm.shape[1] != 2:
+        raise ValueError(f"pixels_lm must be shaped (npix, 2) [l East, m North]; got shape {tuple(lm.shape)}")
+    if lm.shape[0] == 0:
+        raise ValueError("pixels_lm is empty: at least one pixel is needed")
+    r2 = lm[:, 0] ** 2 + lm[:, 1] ** 2
+    bad = r2 > 1.0
+    if bool(xp.any(bad)) or not bool(xp.all(xp.isfinite(r2))):
+        idx = int(xp.argmax(bad | ~xp.isfinite(r2)))
+        l, m = float(lm[idx, 0]), float(lm[idx, 1])
+        raise ValueError(
+            f"pixel {idx} at (l, m) = ({l:.6g}, {m:.6g}) is below the horizon or not finite "
+            f"(l^2 + m^2 = {l * l + m * m:.6g} > 1); direction cosines must satisfy l^2 + m^2 <= 1")
+    return lm
+
+
+@dataclass(frozen=True)
+class LMGrid:
+    """A regular N x N (l, m) grid of which only the pixels above the horizon are imaged.
+
+    Attributes
+    ----------
+    size : int            N, pixels per side.
+    cell : float          grid step in l and m (direction cosine units).
+    lm : (npix, 2) float64 array of the kept pixels, in row-major [m_index, l_index] order.
+    mask : (N, N) bool    True where a pixel is kept (indexed [m_index, l_index]).
+    """
+
+    size: int
+    cell: float
+    lm: np.ndarray = field(repr=False)
+    mask: np.ndarray = field(repr=False)
+
+    @property
+    def npix(self) -> int:
+        return int(self.lm.shape[0])
+
+    @property
+    def axis(self) -> np.ndarray:
+        """Pixel-centre coordinates along l (columns) and m (rows): (i - N//2) * cell."""
+        return (np.arange(self.size) - self.size // 2) * self.cell
+
+    def to_image(self, values):
+        """Scatter (..., npix) values back onto (..., N, N) [m, l] images, NaN outside the kept set."""
+        xp = get_xp(values)
+        values = xp.asarray(values)
+        if values.shape[-1] != self.npix:
+            raise ValueError(f"expected a last axis of {self.npix} pixels, got shape {tuple(values.shape)}")
+        dtype = values.dtype if values.dtype.kind in "fc" else xp.float64
+        out = xp.full(values.shape[:-1] + (self.size * self.size,), xp.nan, dtype=dtype)
+        out[..., xp.asarray(np.flatnonzero(self.mask))] = values
+        return out.reshape(values.shape[:-1] + (self.size, self.size))
+
+
+def lm_grid(size: int, *, cell: float | None = None, horizon_margin: float = 0.0) -> LMGrid:
+    """A regular all-sky (or narrower) grid.
+
+    Parameters
+    ----------
+    size : int   N pixels per side (>= 2).
+    cell : float step in l and m; default 2 / N, i.e. the grid spans the whole sky l, m in [-1, 1).
+    horizon_margin : float  keep only pixels with sqrt(l^2+m^2) < 1 - horizon_margin.
+    """
+    if int(size) != size or size < 2:
+        raise ValueError(f"grid size must be an integer >= 2, got {size!r}")
+    size = int(size)
+    cell = 2.0 / size if cell is None else float(cell)
+    if not (cell > 0):
+        raise ValueError(f"grid cell must be positive, got {cell!r}")
+    ax = (np.arange(size) - size // 2) * cell
+    mm, ll = np.meshgrid(ax, ax, indexing="ij")
+    mask = np.hypot(ll, mm) < 1.0 - horizon_margin
+    lm = np.stack([ll[mask], mm[mask]], axis=-1)
+    if lm.shape[0] == 0:
+        raise ValueError("the grid has no pixel above the horizon")
+    return LMGrid(size=size, cell=cell, lm=lm, mask=mask)
+
+
+def lm_list(pixels_lm) -> np.ndarray:
+    """An arbitrary list of (l, m) directions, validated; returns (npix, 2) float64."""
+    return check_lm(np.atleast_2d(np.asarray(pixels_lm, dtype=np.float64)))
+
+
+def lm_from_azalt(az_deg, alt_deg) -> np.ndarray:
+    """(npix, 2) direction cosines from azimuth (deg, North through East) and altitude (deg).
+
+    l = cos(alt) sin(az), m = cos(alt) cos(az). Altitude must be in [0, 90] degrees.
+    """
+    az = np.deg2rad(np.atleast_1d(np.asarray(az_deg, dtype=np.float64)))
+    alt_d = np.atleast_1d(np.asarray(alt_deg, dtype=np.float64))
+    if az.shape != alt_d.shape:
+        raise ValueError(f"azimuth and altitude must have the same shape, got {az.shape} and {alt_d.shape}")
+    bad = (alt_d < 0) | (alt_d > 90) | ~np.isfinite(alt_d)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise ValueError(f"altitude {alt_d[i]!r} deg at index {i} is outside [0, 90]: the pixel is below the horizon")
+    alt = np.deg2rad(alt_d)
+    return np.stack([np.cos(alt) * np.sin(az), np.cos(alt) * np.cos(az)], axis=-1)
+
+
+def azalt_from_lm(pixels_lm):
+    """Inverse of :func:`lm_from_azalt`: (az_deg, alt_deg) arrays for (npix, 2) l, m."""
+    lm = np.asarray(pixels_lm, dtype=np.float64)
+    n = n_from_lm(lm[:, 0], lm[:, 1])
+    az = np.rad2deg(np.arctan2(lm[:, 0], lm[:, 1])) % 360.0
+    alt = np.rad2deg(np.arctan2(n, np.hypot(lm[:, 0], lm[:, 1])))
+    return az, alt

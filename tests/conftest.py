@@ -1,0 +1,25 @@
+import os
+import sys
+
+import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+
+from bf_epic_blocks.imaging._xp import cupy_or_none, gpu_available  # noqa: E402
+
+HAVE_GPU = gpu_available()
+
+
+def _xp_params():
+    import numpy
+    params = [pytest.param(numpy, id="numpy")]
+    params.append(pytest.param(cupy_or_none(), id="cupy",
+                               marks=[pytest.mark.gpu,
+                                      pytest.mark.skipif(not HAVE_GPU, reason="needs CuPy and a CUDA device")]))
+    return params
+
+
+@pytest.fixture(params=_xp_params())
+def xp(request):
+    """The array namespace under test: numpy always, cupy on a GPU machine."""
+    return request.param
