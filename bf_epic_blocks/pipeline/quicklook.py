@@ -1,0 +1,166 @@
+"""PNG quicklooks of all-sky images, drawn as seen lying on the ground looking up.
+
+The sky is shown North up and East LEFT (the l axis reversed), as a sky map or a photograph of the
+sky taken looking up; axes are labelled 'l (East)' and 'm (North)' and the cardinal points N, E, S, W
+are marked just outside the horizon circle (l^2 + m^2 = 1). Pixels below the horizon (NaN) are
+drawn dark grey. Colour limits default to the (1, 99.5) percentiles of the finite pixels, so one
+very bright source does not wash out the rest.
+
+Matplotlib is used through its object API with the Agg canvas (no pyplot, no display, no global
+backend change), so these functions are safe in headless pipelines and threads.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..imaging._xp import to_numpy
+
+__all__ = ["quicklook_png", "quicklook_grid_png"]
+
+_MARKER_COLOUR = "cyan"  # far from every colour of the sequential maps used for the sky
+
+
+def _extent(grid):
+    """imshow extent [l_left, l_right, m_bottom, m_top] of pixel edges (before the l reversal)."""
+    ax = grid.axis
+    h = 0.5 * float(grid.cell)
+    return [ax[0] - h, ax[-1] + h, ax[0] - h, ax[-1] + h]
+
+
+def _limits(images, vmin, vmax, pct):
+    vals = np.concatenate([np.asarray(a, dtype=np.float64).ravel() for a in images])
+    vals = vals[np.isfinite(vals)]
+    if vals.size == 0:
+        lo, hi = 0.0, 1.0
+    else:
+        lo, hi = np.percentile(vals, pct)
+    lo = float(lo) if vmin is None else float(vmin)
+    hi = float(hi) if vmax is None else float(vmax)
+    if not hi > lo:  # a constant image: open the range so the colour map is defined
+        hi = lo + (abs(lo) if lo else 1.0)
+    return lo, hi
+
+
+def _check_image(image, grid, what="image"):
+    a = np.asarray(to_numpy(image))
+    if a.ndim != 2 or a.shape != (grid.size, grid.size):
+        raise ValueError(f"{what} must be shaped (N, N) = ({grid.size}, {grid.size}) [m, l]; got {a.shape}")
+    if not np.isrealobj(a):
+        raise TypeError(f"{what} must be real, got dtype {a.dtype}")
+    return a
+
+
+def _draw_sky(ax, image, grid, *, cmap, lo, hi, sources, horizon, label_sources=True, cardinal=True,
+              axis_labels=True):
+    from matplotlib import colormaps
+    from matplotlib.patches import Circle
+    cm = colormaps[cmap].with_extremes(bad="0.2")
+    ext = _extent(grid)
+    im = ax.imshow(np.ma.masked_invalid(image), origin="lower", extent=ext, cmap=cm, vmin=lo, vmax=hi,
+                   interpolation="nearest")
+    r = max(1.08, max(abs(e) for e in ext))
+    ax.set_xlim(r, -r)  # l reversed: East on the LEFT, as the sky looks from below
+    ax.set_ylim(-r, r)
+    ax.set_aspect("equal")
+    if horizon:
+        ax.add_patch(Circle((0.0, 0.0), 1.0, fill=False, color="white", lw=0.8, alpha=0.8))
+    if cardinal:
+        for txt, x, y in (("N", 0.0, 1.04), ("S", 0.0, -1.04), ("E", 1.04, 0.0), ("W", -1.04, 0.0)):
+            ax.text(x, y, txt, color="black", ha="center", va="center", fontsize=9, fontweight="bold",
+                    bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8))
+    if axis_labels:
+        ax.set_xlabel("l (East)  \u2190 East is left")
+        ax.set_ylabel("m (North)")
+    for label, l, m in sources or ():
+        if not (np.isfinite(l) and np.isfinite(m)):
+            continue
+        ax.plot([l], [m], marker="o", ms=11, mfc="none", mec=_MARKER_COLOUR, mew=1.2)
+        if label_sources:
+            ax.annotate(str(label), (l, m), xytext=(7, 7), textcoords="offset points", color=_MARKER_COLOUR,
+                        fontsize=8, fontweight="bold")
+    return im
+
+
+def _save(fig, path, dpi):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    FigureCanvasAgg(fig)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi, format="png")
+    return str(path)
+
+
+def quicklook_png(path, image, grid, *, title=None, sources=None, horizon=True, cmap="inferno", vmin=None,
+                  vmax=None, pct=(1.0, 99.5), colorbar=True, units="power (uncalibrated)", dpi=110,
+                  size_in=6.0) -> str:
+    """Write one all-sky image as a PNG; returns the path.
+
+    image : (N, N) [m, l] real array (NumPy or CuPy), NaN below the horizon; grid : its LMGrid.
+    sources : [(label, l, m), ...] drawn as labelled open circles (NaN l/m skipped: below horizon).
+    vmin, vmax : colour limits; each defaults to the ``pct`` percentile of the finite pixels.
+    colorbar : draw a colour bar labelled ``units``. Orientation: North up, East left.
+    """
+    from matplotlib.figure import Figure
+    img = _check_image(image, grid)
+    lo, hi = _limits([img], vmin, vmax, pct)
+    fig = Figure(figsize=(size_in + (1.2 if colorbar else 0.0), size_in))
+    ax = fig.add_subplot(1, 1, 1)
+    im = _draw_sky(ax, img, grid, cmap=cmap, lo=lo, hi=hi, sources=sources, horizon=horizon)
+    if title:
+        ax.set_title(title, fontsize=10)
+    if colorbar:
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label=units)
+    fig.tight_layout()  # (constrained layout clips the m label of an equal-aspect axes here)
+    return _save(fig, path, dpi)
+
+
+def quicklook_grid_png(path, cube, grid, freq_hz, *, title=None, sources=None, horizon=True, cmap="inferno",
+                       vmin=None, vmax=None, pct=(1.0, 99.5), shared_scale=True, max_panels=16, ncols=None,
+                       units="power (uncalibrated)", dpi=90, panel_in=2.6) -> str:
+    """Write a grid of per-channel all-sky images as one PNG; returns the path.
+
+    cube : (nchan, N, N) [chan, m, l] real array; freq_hz : (nchan,) channel centres (Hz), used as
+    panel titles. At most ``max_panels`` channels are drawn, evenly spaced over the band (first and
+    last included). shared_scale : one colour scale (and bar) for all panels, else one per panel.
+    sources : [(label, l, m), ...] marked in every panel (labels on the first panel only).
+    """
+    from matplotlib.figure import Figure
+    c = np.asarray(to_numpy(cube))
+    if c.ndim != 3 or c.shape[1:] != (grid.size, grid.size):
+        raise ValueError(f"cube must be shaped (nchan, N, N) = (nchan, {grid.size}, {grid.size}) [chan, m, l]; "
+                         f"got {c.shape}")
+    f = np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))
+    if f.size != c.shape[0]:
+        raise ValueError(f"cube has {c.shape[0]} channels but freq_hz has {f.size}")
+    if int(max_panels) < 1:
+        raise ValueError(f"max_panels must be >= 1, got {max_panels!r}")
+    nchan = c.shape[0]
+    sel = np.unique(np.round(np.linspace(0, nchan - 1, min(nchan, int(max_panels)))).astype(int))
+    n = sel.size
+    ncols = int(ncols) if ncols else int(np.ceil(np.sqrt(n)))
+    nrows = int(np.ceil(n / ncols))
+    fig = Figure(figsize=(panel_in * ncols + (1.0 if shared_scale else 0.0), panel_in * nrows + (0.4 if title else 0.0)),
+                 layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    shared = _limits([c[k] for k in sel], vmin, vmax, pct) if shared_scale else None
+    im = None
+    for j, ax in enumerate(axes.ravel()):
+        if j >= n:
+            ax.set_axis_off()
+            continue
+        k = int(sel[j])
+        lo, hi = shared if shared_scale else _limits([c[k]], vmin, vmax, pct)
+        im = _draw_sky(ax, c[k], grid, cmap=cmap, lo=lo, hi=hi, sources=sources, horizon=horizon,
+                       label_sources=(j == 0), cardinal=True, axis_labels=False)
+        ax.set_title(f"ch {k}: {f[k] / 1e6:.3f} MHz", fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if not shared_scale:
+            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    if title:
+        fig.suptitle(f"{title}   (North up, East left)", fontsize=10)
+    if shared_scale and im is not None:
+        fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.03, pad=0.02, label=units)
+    return _save(fig, path, dpi)

@@ -1,0 +1,292 @@
+"""Pipeline YAML schema: defaults, overrides, path resolution and one clear message per problem."""
+from __future__ import annotations
+
+import textwrap
+
+import pytest
+
+from bf_epic_blocks.pipeline import config as cfgmod
+from bf_epic_blocks.pipeline.config import ConfigError, load_config, parse_device
+
+REALISTIC = textwrap.dedent("""\
+    name: lwasv_tbf_allsky
+    station:
+      name: lwasv
+      flags:
+        - {stand: 256, pol: both}   # the outrigger
+        - {stand: 10, pol: X}
+        - 42
+    source:
+      kind: tbf
+      path: data/capture.tbf
+      gulp_nframe: 512
+    calibration:
+      cable: true
+      gains_table: cal/gains.npz
+      pattern: dipole
+    imager:
+      kind: dft
+      grid: {size: 128}
+      accumulate_frames: 512
+      products: stokes
+      remove_autocorr: true
+      method: covariance
+      precision: fp32
+    device: gpu:1
+    output:
+      dir: out/tbf
+      fits: true
+      png: true
+      table: false
+    """)
+
+
+@pytest.fixture
+def yaml_dir(tmp_path):
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "capture.tbf").write_bytes(b"\0" * 16)
+    (tmp_path / "cal").mkdir()
+    (tmp_path / "cal" / "gains.npz").write_bytes(b"PK")
+    p = tmp_path / "pipe.yaml"
+    p.write_text(REALISTIC)
+    return tmp_path
+
+
+def _problems(text, overrides=(), **kw):
+    with pytest.raises(ConfigError) as ei:
+        load_config(text, overrides, **kw)
+    return ei.value.problems, str(ei.value)
+
+
+def test_realistic_file_validates_and_resolves_paths(yaml_dir, monkeypatch):
+    monkeypatch.chdir("/")  # relative paths must follow the YAML file, not the working directory
+    cfg = load_config(yaml_dir / "pipe.yaml")
+    assert cfg["name"] == "lwasv_tbf_allsky"
+    assert cfg["source"] == {"kind": "tbf", "path": str((yaml_dir / "data" / "capture.tbf").resolve()),
+                             "gulp_nframe": 512}
+    assert cfg["calibration"]["gains_table"] == str((yaml_dir / "cal" / "gains.npz").resolve())
+    assert cfg["station"]["flags"] == [{"stand": 256, "pol": "both"}, {"stand": 10, "pol": "X"},
+                                       {"stand": 42, "pol": "both"}]
+    assert cfg["station"]["ssmif"] is None
+    assert cfg["imager"]["products"] == ["I", "Q", "U", "V"]  # preset resolved
+    assert cfg["imager"]["grid"] == {"size": 128, "cell": None} and cfg["imager"]["track"] is None
+    assert cfg["imager"]["epsilon"] == 1e-4
+    assert cfg["device"] == "gpu:1"
+    assert cfg["output"] == {"dir": "out/tbf", "fits": True, "png": True, "table": False,
+                             "prefix": "lwasv_tbf_allsky"}
+
+
+def test_minimal_simulated_defaults():
+    cfg = load_config("source: {kind: simulated}")
+    src = cfg["source"]
+    assert src["start"] == "2024-01-01T06:00:00" and src["duration_s"] == 2.0
+    assert src["channels"] == {"first": 2960, "count": 16, "width_hz": 25000.0}
+    assert src["channels"]["first"] * src["channels"]["width_hz"] == 74.0e6
+    assert src["sources"] == ["CygA", "CasA", "TauA", "VirA"]
+    assert (src["noise_power"], src["seed"], src["quantize"]) == (1000.0, 1, True)
+    assert cfg["station"] == {"name": "lwasv", "ssmif": None, "flags": []}
+    assert cfg["calibration"] == {"cable": True, "gains_table": None, "pattern": "dipole"}
+    im = cfg["imager"]
+    assert im["kind"] == "dft" and im["grid"] == {"size": 64, "cell": None}
+    assert (im["accumulate_frames"], im["products"], im["method"], im["precision"]) == (1024, ["I"], "auto", "fp32")
+    assert cfg["device"] == "cpu"
+    assert cfg["name"] == "pipeline" and cfg["output"]["dir"] == "output/pipeline"
+
+
+def test_name_defaults_to_file_stem(tmp_path):
+    p = tmp_path / "my_sky.yml"
+    p.write_text("source: {kind: simulated}\n")
+    cfg = load_config(str(p))
+    assert cfg["name"] == "my_sky" and cfg["output"]["prefix"] == "my_sky" and cfg["output"]["dir"] == "output/my_sky"
+
+
+def test_overrides_parse_yaml_values(yaml_dir):
+    cfg = load_config(yaml_dir / "pipe.yaml", ["imager.grid.size=32", "imager.products=[XX, YY]",
+                                                "device=cpu", "output.table=true", "imager.epsilon=1e-3"])
+    assert cfg["imager"]["grid"]["size"] == 32
+    assert cfg["imager"]["products"] == ["XX", "YY"]
+    assert cfg["device"] == "cpu" and cfg["output"]["table"] is True
+    assert cfg["imager"]["epsilon"] == 1e-3
+
+
+def test_override_switches_grid_to_track(yaml_dir):
+    cfg = load_config(yaml_dir / "pipe.yaml", ["imager.grid=null", "imager.track.source=CygA",
+                                                "imager.track.fov_deg=5"])
+    assert cfg["imager"]["grid"] is None
+    assert cfg["imager"]["track"] == {"source": "CygA", "size": 16, "fov_deg": 5.0, "update_s": 10.0}
+
+
+def test_bad_override_syntax():
+    probs, _ = _problems("source: {kind: simulated}", ["imager.grid.size"])
+    assert probs == ["--set 'imager.grid.size': expected key.path=value"]
+    probs, _ = _problems("source: {kind: simulated}\ndevice: cpu", ["device.index=1"])
+    assert "device is 'cpu', not a mapping" in probs[0]
+
+
+def test_unknown_key_suggests_closest():
+    probs, msg = _problems("source: {kind: simulated}\nimager: {grdi: {size: 32}}")
+    assert len(probs) == 1
+    assert probs[0].startswith("imager.grdi: unknown key; did you mean 'grid'?")
+    probs, _ = _problems("source: {kind: simulated}\noutptu: {dir: x}")
+    assert probs[0].startswith("outptu: unknown key; did you mean 'output'?")
+    probs, _ = _problems("source: {kind: simulated, durations: 3}")
+    assert probs[0].startswith("source.durations: unknown key; did you mean 'duration_s'?")
+
+
+def test_key_of_the_other_source_kind_is_explained(yaml_dir):
+    probs, _ = _problems("source: {kind: simulated, path: x.tbf}")
+    assert probs == ["source.path: only used when source.kind is 'tbf' (kind is 'simulated')"]
+
+
+def test_wrong_type_message_matches_operator_expectation():
+    probs, msg = _problems("source: {kind: simulated}\nimager: {grid: {size: abc}}")
+    assert probs == ["imager.grid.size: expected an integer >= 2, got 'abc'"]
+    assert "imager.grid.size: expected an integer >= 2, got 'abc'" in msg
+    probs, _ = _problems("source: {kind: simulated}\nimager: {remove_autocorr: 'yes'}")
+    assert probs == ["imager.remove_autocorr: expected true or false, got 'yes'"]
+    probs, _ = _problems("source: {kind: simulated}\nimager: {accumulate_frames: true}")
+    assert probs[0].startswith("imager.accumulate_frames: expected an integer >= 1")  # bool is not an int
+
+
+def test_missing_files_are_errors(tmp_path):
+    p = tmp_path / "p.yaml"
+    p.write_text("source: {kind: tbf, path: nope.tbf}\nstation: {ssmif: ssmif.txt}\n"
+                 "calibration: {gains_table: g.npz}\n")
+    probs, msg = _problems(p)
+    assert len(probs) == 3
+    assert any(s.startswith("source.path: TBF file 'nope.tbf' not found") and str(tmp_path) in s for s in probs)
+    assert any(s.startswith("station.ssmif: SSMIF file 'ssmif.txt' not found") for s in probs)
+    assert any(s.startswith("calibration.gains_table: gains table 'g.npz' not found") for s in probs)
+    assert msg.startswith(f"{p}: 3 problems")
+    probs, _ = _problems("source: {kind: tbf}")
+    assert probs == ["source.path: missing required key (the path of TBF file)"]
+    (tmp_path / "g.txt").write_text("x")
+    probs, _ = _problems("source: {kind: simulated}\ncalibration: {gains_table: g.txt}", base_dir=tmp_path)
+    assert "must end in .npz or .yaml or .yml" in probs[0]
+
+
+def test_missing_config_file():
+    probs, _ = _problems("/nonexistent/pipe.yaml")
+    assert "config file not found" in probs[0]
+
+
+@pytest.mark.parametrize("text, path, expect", [
+    ("imager: {accumulate_frames: 0}", "imager.accumulate_frames", "expected an integer >= 1, got 0"),
+    ("imager: {grid: {size: 1}}", "imager.grid.size", "expected an integer >= 2, got 1"),
+    ("imager: {grid: {cell: -0.1}}", "imager.grid.cell", "expected a number > 0, got -0.1"),
+    ("imager: {epsilon: 0.5}", "imager.epsilon", "expected a number in (0, 0.1], got 0.5"),
+    ("imager: {epsilon: 0}", "imager.epsilon", "expected a number in (0, 0.1], got 0"),
+    ("source: {kind: simulated, channels: {count: 0}}", "source.channels.count", "expected an integer >= 1, got 0"),
+    ("source: {kind: simulated, duration_s: 0}", "source.duration_s", "expected a number > 0, got 0"),
+    ("source: {kind: simulated, duration_s: .nan}", "source.duration_s", "expected a number > 0, got nan"),
+    ("source: {kind: simulated, noise_power: -1}", "source.noise_power", "expected a number >= 0, got -1"),
+    ("device: 'gpu:-1'", "device", "expected 'cpu', 'gpu' or 'gpu:N'"),
+    ("device: tpu", "device", "expected 'cpu', 'gpu' or 'gpu:N'"),
+    ("device: 3", "device", "expected 'cpu', 'gpu' or 'gpu:N'"),
+    ("imager: {products: [I, Z]}", "imager.products", "unknown polarisation product 'Z'"),
+    ("imager: {products: [I, I]}", "imager.products", "repeat"),
+    ("imager: {kind: fft}", "imager.kind", "expected one of 'dft', 'wstack', 'moff'"),
+    ("imager: {precision: fp16}", "imager.precision", "expected one of 'fp32', 'fp64'"),
+    ("station: {name: lwa2}", "station.name", "expected one of 'lwasv', 'lwana', 'lwa1'"),
+    ("station: {flags: [{stand: 0}]}", "station.flags[0].stand", "expected an integer >= 1, got 0"),
+    ("station: {flags: [{stand: 3, pol: Z}]}", "station.flags[0].pol", "expected one of 'X', 'Y', 'both'"),
+    ("source: {kind: simulated, start: yesterday}", "source.start", "expected an ISO UTC time string"),
+    ("source: {kind: simulated, start: '2024-13-45T99:00:00'}", "source.start", "expected an ISO UTC time string"),
+    ("source: {kind: simulated, start: 12}", "source.start", "expected an ISO UTC time string"),
+    ("source: {kind: sim}", "source.kind", "expected one of 'simulated', 'tbf', got 'sim'"),
+    ("source: {kind: simulated, sources: [cyga]}", "source.sources[0]", "unknown source 'cyga' (did you mean 'CygA'?)"),
+    ("source: {kind: simulated, sources: [{name: X, ra_deg: 400, dec_deg: 0, flux_jy: 1}]}",
+     "source.sources[0].ra_deg", "expected a number in [0, 360), got 400"),
+    ("name: 'a b'", "name", "expected a name without spaces or slashes"),
+])
+def test_impossible_or_malformed_values(text, path, expect):
+    if "source:" not in text:
+        text = "source: {kind: simulated}\n" + text
+    probs, _ = _problems(text)
+    assert len(probs) == 1, probs
+    assert probs[0].startswith(f"{path}: "), probs
+    assert expect in probs[0], probs
+
+
+def test_grid_and_track_are_exclusive():
+    probs, _ = _problems("source: {kind: simulated}\nimager: {grid: {size: 32}, track: {source: CygA}}")
+    assert len(probs) == 1 and probs[0].startswith("imager: give exactly one of imager.grid")
+
+
+def test_custom_sources_match_the_sky_module():
+    cfg = load_config("source: {kind: simulated, sources: [CasA, {name: S1, ra_deg: 10, dec_deg: -5, flux_jy: 50,"
+                      " spectral_index: -0.7}]}")
+    assert cfg["source"]["sources"] == ["CasA", {"name": "S1", "ra_deg": 10.0, "dec_deg": -5.0, "flux_jy": 50.0,
+                                                 "spectral_index": -0.7}]
+    sky = pytest.importorskip("bf_epic_blocks.pipeline.sky")
+    src = sky.resolve_sources(cfg["source"]["sources"])  # the validated entries are what sky accepts
+    assert [s.name for s in src] == ["CasA", "S1"] and src[1].spectral_index == -0.7
+    probs, _ = _problems("source: {kind: simulated, sources: [{name: S1, ra_deg: 1, dec_deg: 1, flux_jy: 1, "
+                         "spectral_indx: 1}]}")
+    assert probs[0].startswith("source.sources[0].spectral_indx: unknown key; did you mean 'spectral_index'?")
+
+
+def test_track_rules():
+    cfg = load_config("source: {kind: simulated, sources: [{name: Src1, ra_deg: 10, dec_deg: 20, flux_jy: 5}]}\n"
+                      "imager: {track: {source: Src1, size: 8}}")
+    assert cfg["imager"]["track"]["source"] == "Src1" and cfg["imager"]["grid"] is None
+    probs, _ = _problems("source: {kind: simulated}\nimager: {track: {source: CygB}}")
+    assert probs[0].startswith("imager.track.source: unknown source 'CygB'; did you mean 'CygA'?")
+    probs, _ = _problems("source: {kind: simulated}\nimager: {kind: moff, track: {source: CygA}}")
+    assert probs[0].startswith("imager.track: a tracked patch needs the dft imager")
+
+
+def test_accumulation_must_fit_in_duration():
+    probs, _ = _problems("source: {kind: simulated, duration_s: 0.01}")  # 250 frames < 1024
+    assert probs[0].startswith("imager.accumulate_frames: 1024 frames (40.96 ms")
+    assert "no image would be produced" in probs[0]
+    load_config("source: {kind: simulated, duration_s: 0.04096}")  # exactly one image is fine
+
+
+def test_station_name_or_ssmif(tmp_path):
+    (tmp_path / "s.txt").write_text("x")
+    cfg = load_config("source: {kind: simulated}\nstation: {ssmif: s.txt}", base_dir=tmp_path)
+    assert cfg["station"]["name"] is None and cfg["station"]["ssmif"] == str((tmp_path / "s.txt").resolve())
+    probs, _ = _problems("source: {kind: simulated}\nstation: {name: lwasv, ssmif: s.txt}", base_dir=tmp_path)
+    assert probs == ["station: give either station.name or station.ssmif, not both"]
+
+
+def test_all_problems_reported_together(yaml_dir):
+    probs, msg = _problems(yaml_dir / "pipe.yaml", ["imager.grid.size=abc", "device=gpu:x", "imager.kind=fft",
+                                                     "output.pngs=false"])
+    assert len(probs) == 4
+    assert {p.split(":")[0] for p in probs} == {"imager.grid.size", "device", "imager.kind", "output.pngs"}
+    for p in probs:
+        assert f"  - {p}" in msg
+
+
+def test_yaml_structure_errors():
+    assert "not valid YAML" in _problems("source: [")[0][0]
+    assert "top level must be a mapping" in _problems("- a\n- b\n")[0][0]
+    assert _problems("")[0] == ["source: missing required key (a source mapping)"]
+    assert _problems("source: {}")[0] == ["source.kind: missing required key (one of 'simulated', 'tbf')"]
+    with pytest.raises(ValueError):  # ConfigError is a ValueError
+        load_config("source: 3")
+
+
+def test_yaml_timestamps_and_null_pattern():
+    cfg = load_config("source: {kind: simulated, start: 2024-03-01 12:30:00}\ncalibration: {pattern: none}")
+    assert cfg["source"]["start"] == "2024-03-01T12:30:00" and cfg["calibration"]["pattern"] == "none"
+    cfg = load_config("source: {kind: simulated, start: 2024-03-01T12:30:00+02:00}")
+    assert cfg["source"]["start"] == "2024-03-01T10:30:00"  # converted to UTC
+
+
+def test_parse_device():
+    assert parse_device("cpu") == ("cpu", None)
+    assert parse_device("gpu") == ("gpu", 0)
+    assert parse_device("gpu:3") == ("gpu", 3)
+    for bad in ("gpu:", "gpu:-1", "cuda", None, 0):
+        with pytest.raises(ValueError):
+            parse_device(bad)
+
+
+def test_docstring_documents_every_schema_key():
+    doc = cfgmod.__doc__
+    for path in cfgmod.schema_keys():
+        leaf = path.split(".")[-1]
+        assert f"{leaf}:" in doc, f"schema key {path} is not documented in the module docstring"
