@@ -1,0 +1,329 @@
+"""Simulated-sky antenna electric fields (the F-engine output an LWA station would record).
+
+Data model (docs/CONVENTIONS.md, PHYSICS.md), for channel frequency nu, antenna a at r_a (East,
+North, Up metres) and polarisation p (0 = X = N-S, 1 = Y = E-W)::
+
+    X[t, c, a, p] = sqrt(G[c, a, p]) exp(-2 pi i nu_c tau[c, a, p])
+                    * sum_s B[c, s, p] E_s,p(t, c) exp(sigma 2 pi i nu_c (s_hat . r_a) / c0)
+                    + noise[t, c, a, p]
+
+* Each source s is unpolarised: E_s,X and E_s,Y are independent circular complex Gaussians, each of
+  power S_s(nu) / 2, so that I = XX + YY = S_s (flux density units, "Jy", no further scale) in an
+  image normalised as the imaging operator is (a unit point source gives 1). Samples are
+  independent across time, channel and source.
+* ``S_s(nu) = flux_jy * (nu / ref_freq_hz) ** spectral_index`` (ref 74 MHz for the catalogue).
+* sigma = +1 (LSL convention) by default; sigma = -1 is there to demonstrate the mirrored sky.
+* Cable terms are optional: ``cable_delay_s`` tau and ``cable_gain`` G (power), each broadcastable to
+  (nchan, nant, npol). :meth:`StationTable.cable_delay_s` returns (nstand, 2, nchan): pass
+  ``np.moveaxis(station.cable_delay_s(f), -1, 0)`` (same for the gain).
+* ``noise``: independent circular complex Gaussian per (t, c, a, p) of power ``noise_power``
+  (same units), added after the cable terms as in PHYSICS.md.
+* ``B``: optional antenna voltage pattern, identical for all antennas (default 1).
+* The sky is frozen: source directions are computed once, at ``time``, and held for the whole
+  simulated stretch (1024 samples at 25 kHz are 41 ms, during which the sky turns by 0.0002 deg).
+
+Randomness: ``numpy.random.SeedSequence(seed)`` spawns one stream for the source signals and one for
+the noise, so a given seed gives the same sky signals whatever ``noise_power`` is.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from ..conventions import SPEED_OF_LIGHT_M_S
+
+__all__ = ["KNOWN_SOURCES", "Source", "SourceDirections", "resolve_source", "resolve_sources",
+           "source_directions", "simulate_efield", "quantize_ci4", "REF_FREQ_HZ"]
+
+log = logging.getLogger(__name__)
+
+REF_FREQ_HZ = 74e6
+
+
+@dataclass(frozen=True)
+class Source:
+    """A point source. Exactly one position form: ICRS (ra_deg, dec_deg), topocentric (az_deg,
+    alt_deg; azimuth North through East), or direction cosines (l, m; above the horizon)."""
+    name: str
+    flux_jy: float
+    spectral_index: float = 0.0
+    ref_freq_hz: float = REF_FREQ_HZ
+    ra_deg: float | None = None
+    dec_deg: float | None = None
+    az_deg: float | None = None
+    alt_deg: float | None = None
+    l: float | None = None
+    m: float | None = None
+
+    @property
+    def frame(self) -> str:
+        """'icrs', 'altaz' or 'lm'."""
+        return "icrs" if self.ra_deg is not None else ("altaz" if self.az_deg is not None else "lm")
+
+    def flux_at(self, freq_hz) -> np.ndarray:
+        """Flux density (Jy) at ``freq_hz`` (power law about ref_freq_hz)."""
+        return self.flux_jy * (np.asarray(freq_hz, np.float64) / self.ref_freq_hz) ** self.spectral_index
+
+
+#: Bright northern A-team sources: ICRS (J2000) positions; 74 MHz flux densities and spectral
+#: indices are rough (tens of per cent: Cas A fades ~1%/yr, the spectra curve), for simulation only.
+KNOWN_SOURCES: dict[str, Source] = {
+    "CygA": Source("CygA", 17000.0, -0.58, ra_deg=299.8681525, dec_deg=40.7339156),
+    "CasA": Source("CasA", 17000.0, -0.72, ra_deg=350.8500000, dec_deg=58.8150000),
+    "TauA": Source("TauA", 1800.0, -0.27, ra_deg=83.6330833, dec_deg=22.0145000),
+    "VirA": Source("VirA", 2100.0, -0.86, ra_deg=187.7059308, dec_deg=12.3911233),
+}
+
+
+def _key(name: str) -> str:
+    return "".join(ch for ch in name.lower() if ch.isalnum())
+
+
+_BY_KEY = {_key(k): v for k, v in KNOWN_SOURCES.items()}
+_DICT_KEYS = {"name", "flux_jy", "spectral_index", "ref_freq_hz", "ra_deg", "dec_deg", "az_deg",
+              "alt_deg", "l", "m"}
+
+
+def resolve_source(spec) -> Source:
+    """A :class:`Source` from a catalogue name ('CygA', 'Cyg A', 'cyga', 'cyg-a'), a Source, or a dict
+    ``{name, flux_jy, ra_deg, dec_deg}`` (or ``az_deg, alt_deg`` or ``l, m`` instead of ra/dec;
+    optional ``spectral_index`` (default 0), ``ref_freq_hz`` (default 74e6))."""
+    if isinstance(spec, Source):
+        return spec
+    if isinstance(spec, str):
+        try:
+            return _BY_KEY[_key(spec)]
+        except KeyError:
+            raise ValueError(f"unknown source {spec!r}; known: {', '.join(KNOWN_SOURCES)}, or give a dict "
+                             "{name, flux_jy, ra_deg, dec_deg}") from None
+    if not isinstance(spec, Mapping):
+        raise TypeError(f"a source must be a name, a Source or a dict, got {type(spec).__name__}")
+    unknown = set(spec) - _DICT_KEYS
+    if unknown:
+        raise ValueError(f"source {spec.get('name', spec)!r}: unknown key(s) {sorted(unknown)}; "
+                         f"allowed: {sorted(_DICT_KEYS)}")
+    name = str(spec.get("name", "source"))
+    if "flux_jy" not in spec:
+        raise ValueError(f"source {name!r}: missing flux_jy")
+    forms = [f for f in (("ra_deg", "dec_deg"), ("az_deg", "alt_deg"), ("l", "m")) if any(k in spec for k in f)]
+    if len(forms) != 1 or not all(k in spec for k in forms[0]):
+        raise ValueError(f"source {name!r}: give exactly one position pair: (ra_deg, dec_deg), "
+                         f"(az_deg, alt_deg) or (l, m); got keys {sorted(spec)}")
+    vals = {k: float(spec[k]) for k in forms[0]}
+    flux = float(spec["flux_jy"])
+    if not math.isfinite(flux) or flux < 0:
+        raise ValueError(f"source {name!r}: flux_jy must be finite and >= 0, got {spec['flux_jy']!r}")
+    if "dec_deg" in vals and not -90 <= vals["dec_deg"] <= 90:
+        raise ValueError(f"source {name!r}: dec_deg must be in [-90, 90], got {vals['dec_deg']}")
+    if "l" in vals and vals["l"] ** 2 + vals["m"] ** 2 > 1:
+        raise ValueError(f"source {name!r}: l^2 + m^2 must be <= 1, got l={vals['l']}, m={vals['m']}")
+    return Source(name, flux, float(spec.get("spectral_index", 0.0)),
+                  float(spec.get("ref_freq_hz", REF_FREQ_HZ)), **vals)
+
+
+def resolve_sources(sources) -> list[Source]:
+    """:func:`resolve_source` on each entry (a single name/dict/Source is accepted too)."""
+    if isinstance(sources, (str, Mapping, Source)):
+        sources = [sources]
+    return [resolve_source(s) for s in sources]
+
+
+class SourceDirections(tuple):
+    """``(l, m, alt)`` float64 arrays (alt in radians) of the sources above the horizon.
+
+    Unpacks as a 3-tuple; also carries ``az`` (rad, North through East), ``n`` (= sin alt, float64),
+    ``sources`` (the kept :class:`Source` objects, same order) and ``dropped`` (names of sources at or
+    below the horizon).
+    """
+
+    def __new__(cls, l, m, alt, az, n, sources, dropped):
+        self = super().__new__(cls, (l, m, alt))
+        self.az, self.n, self.sources, self.dropped = az, n, list(sources), list(dropped)
+        return self
+
+    @property
+    def l(self):
+        return self[0]
+
+    @property
+    def m(self):
+        return self[1]
+
+    @property
+    def alt(self):
+        return self[2]
+
+    @property
+    def names(self) -> list[str]:
+        return [s.name for s in self.sources]
+
+
+def source_directions(sources, time=None, location=None) -> SourceDirections:
+    """Direction cosines of ``sources`` seen from ``location`` (astropy EarthLocation) at ``time``.
+
+    ICRS sources go through astropy ``AltAz`` (no refraction); l = cos(alt) sin(az) (East),
+    m = cos(alt) cos(az) (North). Sources with alt <= 0 are dropped, listed in ``.dropped`` and logged.
+    ``time``/``location`` are needed only for ICRS sources.
+    """
+    srcs = resolve_sources(sources)
+    nsrc = len(srcs)
+    alt = np.zeros(nsrc)
+    az = np.zeros(nsrc)
+    icrs = [i for i, s in enumerate(srcs) if s.frame == "icrs"]
+    if icrs:
+        if time is None or location is None:
+            raise ValueError(f"sources {[srcs[i].name for i in icrs]} have ICRS positions: "
+                             "source_directions needs time (astropy Time or ISO string) and location (EarthLocation)")
+        from astropy import units as u
+        from astropy.coordinates import AltAz, SkyCoord
+        from astropy.time import Time
+        t = time if isinstance(time, Time) else Time(time, scale="utc")
+        if not t.isscalar:
+            raise ValueError("source_directions: time must be a single instant (the sky is frozen)")
+        c = SkyCoord(ra=[srcs[i].ra_deg for i in icrs] * u.deg, dec=[srcs[i].dec_deg for i in icrs] * u.deg,
+                     frame="icrs")
+        aa = c.transform_to(AltAz(obstime=t, location=location))
+        alt[icrs] = aa.alt.to_value(u.rad)
+        az[icrs] = aa.az.to_value(u.rad)
+    for i, s in enumerate(srcs):
+        if s.frame == "altaz":
+            alt[i], az[i] = math.radians(s.alt_deg), math.radians(s.az_deg)
+    l = np.cos(alt) * np.sin(az)
+    m = np.cos(alt) * np.cos(az)
+    n = np.sin(alt)
+    for i, s in enumerate(srcs):
+        if s.frame == "lm":
+            rho = math.hypot(s.l, s.m)
+            l[i], m[i] = s.l, s.m
+            # (1 - rho)(1 + rho) keeps n accurate near the horizon
+            n[i] = math.sqrt(max(0.0, (1.0 - rho) * (1.0 + rho)))
+            alt[i] = math.atan2(n[i], rho)
+            az[i] = math.atan2(s.l, s.m) % (2 * math.pi)
+    keep = alt > 0
+    dropped = [s.name for s, k in zip(srcs, keep) if not k]
+    if dropped:
+        log.info("sources below the horizon dropped: %s", ", ".join(dropped))
+    return SourceDirections(l[keep], m[keep], alt[keep], az[keep], n[keep],
+                            [s for s, k in zip(srcs, keep) if k], dropped)
+
+
+def _cable_factor(cable_delay_s, cable_gain, freq_hz, nchan, nant, npol):
+    shape = (nchan, nant, npol)
+    hint = "pass np.moveaxis(station.cable_delay_s(freq_hz), -1, 0) (station order is (nstand, 2, nchan))"
+    out = np.ones(shape, np.complex128)
+    if cable_delay_s is not None:
+        tau = np.asarray(cable_delay_s, np.float64)
+        try:
+            tau = np.broadcast_to(tau, shape)
+        except ValueError:
+            raise ValueError(f"cable_delay_s: expected shape broadcastable to (nchan, nant, npol) = {shape}, "
+                             f"got {tau.shape}; {hint}") from None
+        out *= np.exp(-2j * np.pi * freq_hz[:, None, None] * tau)
+    if cable_gain is not None:
+        g = np.asarray(cable_gain, np.float64)
+        try:
+            g = np.broadcast_to(g, shape)
+        except ValueError:
+            raise ValueError(f"cable_gain: expected shape broadcastable to (nchan, nant, npol) = {shape}, "
+                             f"got {g.shape}; {hint.replace('delay_s', 'gain')}") from None
+        if np.any(g < 0) or not np.all(np.isfinite(g)):
+            raise ValueError("cable_gain: expected finite power gains >= 0")
+        out *= np.sqrt(g)
+    return out
+
+
+def simulate_efield(xyz_m, freq_hz, ntime: int, *, sources, time=None, location=None,
+                    cable_delay_s=None, cable_gain=None, noise_power: float = 1.0, seed: int = 0,
+                    sigma: int = +1, pattern=None, return_directions: bool = False):
+    """Simulated antenna voltages, complex128 (ntime, nchan, nant, npol=2). See the module docstring.
+
+    Parameters
+    ----------
+    xyz_m : (nant, 3) East, North, Up metres (one row per stand; both pols share it).
+    freq_hz : (nchan,) channel frequencies, Hz.
+    ntime : number of time samples.
+    sources : names / dicts / :class:`Source` (see :func:`resolve_source`); below-horizon ones dropped.
+    time, location : astropy Time (or ISO UTC string) and EarthLocation, for ICRS sources.
+    cable_delay_s, cable_gain : tau (s) and power gain G, broadcastable to (nchan, nant, npol), or None.
+    noise_power : receiver noise power per (antenna, pol, channel, sample), >= 0 (flux units).
+    seed : random seed (deterministic output).
+    sigma : geometric sign, +1 (LSL, default) or -1.
+    pattern : None (isotropic), an array broadcastable to (nchan, nsrc, npol) of voltage gains for the
+        kept sources, or a callable ``pattern(l, m, freq_hz) -> that array``.
+    return_directions : also return the :class:`SourceDirections` used.
+    """
+    xyz = np.asarray(xyz_m, np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"xyz_m: expected shape (nant, 3) East/North/Up metres, got {xyz.shape}")
+    f = np.atleast_1d(np.asarray(freq_hz, np.float64))
+    if f.ndim != 1 or f.size == 0 or np.any(~np.isfinite(f)) or np.any(f <= 0):
+        raise ValueError(f"freq_hz: expected a 1-D array of positive frequencies in Hz, got shape {f.shape}")
+    if isinstance(ntime, bool) or not isinstance(ntime, (int, np.integer)) or ntime < 1:
+        raise ValueError(f"ntime: expected an integer >= 1, got {ntime!r}")
+    if sigma not in (1, -1):
+        raise ValueError(f"sigma: expected +1 or -1, got {sigma!r}")
+    if not (np.isfinite(noise_power) and noise_power >= 0):
+        raise ValueError(f"noise_power: expected a finite value >= 0, got {noise_power!r}")
+    ntime, nchan, nant, npol = int(ntime), f.size, xyz.shape[0], 2
+    dirs = source_directions(sources, time, location)
+    nsrc = len(dirs.sources)
+    sky_ss, noise_ss = np.random.SeedSequence(seed).spawn(2)
+    sky_rng, noise_rng = np.random.default_rng(sky_ss), np.random.default_rng(noise_ss)
+
+    x = np.zeros((nchan, npol, ntime, nant), np.complex128)
+    if nsrc:
+        # per-source per-pol power S(nu)/2 -> amplitude of each real component sqrt(S/4)
+        flux = np.stack([s.flux_at(f) for s in dirs.sources], axis=1)            # (nchan, nsrc)
+        amp = np.sqrt(flux / 4.0)[:, :, None] * np.ones(npol)                    # (nchan, nsrc, npol)
+        if pattern is not None:
+            b = pattern(dirs.l, dirs.m, f) if callable(pattern) else pattern
+            try:
+                b = np.broadcast_to(np.asarray(b), (nchan, nsrc, npol))
+            except ValueError:
+                raise ValueError(f"pattern: expected voltage gains broadcastable to (nchan, nsrc, npol) = "
+                                 f"{(nchan, nsrc, npol)}, got {np.shape(b)}") from None
+            amp = amp * b
+        e = sky_rng.standard_normal((2, nchan, npol, ntime, nsrc))
+        e = (e[0] + 1j * e[1]) * np.transpose(amp, (0, 2, 1))[:, :, None, :]    # (nchan, npol, ntime, nsrc)
+        s_dot_r = np.stack([dirs.l, dirs.m, dirs.n], axis=1) @ xyz.T             # (nsrc, nant) metres
+        # cycles = nu * path / c in float64, then the phase; no precision is lost before exp()
+        phase = np.exp(sigma * 2j * np.pi * (f[:, None, None] / SPEED_OF_LIGHT_M_S) * s_dot_r[None])
+        x += e @ phase[:, None, :, :]                                             # (nchan, npol, ntime, nant)
+    x = np.ascontiguousarray(np.transpose(x, (2, 0, 3, 1)))                       # (ntime, nchan, nant, npol)
+    if cable_delay_s is not None or cable_gain is not None:
+        x *= _cable_factor(cable_delay_s, cable_gain, f, nchan, nant, npol)[None]
+    if noise_power > 0:
+        nz = noise_rng.standard_normal((2, ntime, nchan, nant, npol))
+        x += math.sqrt(noise_power / 2.0) * (nz[0] + 1j * nz[1])
+    return (x, dirs) if return_directions else x
+
+
+def quantize_ci4(efield, rms_target: float = 2.0, *, scale: float | None = None):
+    """Quantise complex voltages to packed 4-bit (ci4) bytes, as an LWA F-engine delivers them.
+
+    ``q = clip(round(efield * scale), -8, 7)`` on the real and imaginary parts separately, packed
+    high nibble = real, low nibble = imaginary (:func:`bf_epic_blocks.io.tbf.pack_ci4`).
+    ``scale`` defaults to ``rms_target / rms`` with rms the root-mean-square of the real and imaginary
+    parts together (so the quantised parts have rms ~ rms_target 4-bit units); pass a fixed ``scale``
+    to quantise consecutive gulps alike. Returns ``(packed uint8 same shape, scale)``; recover
+    ``unpack_ci4(packed) / scale``. An all-zero input with no ``scale`` gives scale 1.
+    """
+    from ..io.tbf import pack_ci4
+    x = np.asarray(efield)
+    if not np.iscomplexobj(x):
+        raise TypeError(f"quantize_ci4 expects complex voltages, got dtype {x.dtype}")
+    if scale is None:
+        if not (np.isfinite(rms_target) and rms_target > 0):
+            raise ValueError(f"rms_target: expected a positive number of 4-bit units, got {rms_target!r}")
+        rms = math.sqrt(float(np.mean(x.real.astype(np.float64) ** 2 + x.imag.astype(np.float64) ** 2)) / 2.0) \
+            if x.size else 0.0
+        scale = rms_target / rms if rms > 0 else 1.0
+    elif not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale: expected a positive finite number, got {scale!r}")
+    re = np.clip(np.rint(x.real * scale), -8, 7)
+    im = np.clip(np.rint(x.imag * scale), -8, 7)
+    return pack_ci4(re + 1j * im), float(scale)
