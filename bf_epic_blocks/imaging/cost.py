@@ -37,3 +37,20 @@ def choose_method(ntime: int, nant: int, npix: int, npol: int = 1, nblk: int | N
     """'direct' or 'covariance', whichever needs fewer CMACs (ties go to covariance)."""
     c = route_cmacs(ntime, nant, npix, npol, nblk)
     return "direct" if c["direct"] < c["covariance"] else "covariance"
+
+
+#: Effective complex multiply-add rates (CMAC/s) of the two routes, measured with
+#: tools/bench_dft.py on case P (fp32) on 2026-11-21: GPU = one NVIDIA H200 (CuPy 14, 16 channels x
+#: 2 pols), CPU = 2 cores of an AMD EPYC (NumPy 2.4 + OpenBLAS, one channel-pol). ``bf-epic plan``
+#: divides operation counts by these to predict run time; re-measure for other machines.
+MEASURED_RATES_CMAC_S = {
+    ("gpu", "covariance"): 4.8e12,
+    ("gpu", "direct"): 4.2e12,
+    ("cpu", "covariance"): 1.5e10,
+    ("cpu", "direct"): 1.35e10,
+}
+
+
+def predict_seconds(cmacs: float, device: str, method: str) -> float:
+    """Predicted run time (s) of ``cmacs`` complex multiply-adds by ``method`` on 'cpu' or 'gpu'."""
+    return float(cmacs) / MEASURED_RATES_CMAC_S[(device, method)]

@@ -1,0 +1,10 @@
+"""The blocks room: thin Bifrost blocks over the math in :mod:`bf_epic_blocks.imaging`.
+
+They run unchanged inside real Bifrost (when ``import bifrost`` works) or on the package's own ring
+runtime (:mod:`bf_epic_blocks.runtime`); :mod:`._compat` picks. Header keys: docs/HEADERS.md.
+"""
+from ._compat import HAVE_BIFROST, RUNTIME, bfp  # noqa: F401
+from .array_io import ArraySinkBlock, ArraySourceBlock, array_sink, array_source  # noqa: F401
+from .calfold import CalFoldBlock, cal_fold  # noqa: F401
+from .dft_imager import DFTImagerBlock, dft_imager  # noqa: F401
+from .headers import efield_header, efield_layout  # noqa: F401

@@ -1,0 +1,137 @@
+"""The import layer: real Bifrost when it imports, else the package's own runtime.
+
+Blocks are written once against ``bfp`` (= ``bifrost.pipeline`` or
+:mod:`bf_epic_blocks.runtime.pipeline`, same names and hooks) and read/write span data only
+through :func:`span_array`, so the same code runs on both.
+
+* ``BIFROST_IMPORTABLE`` -- ``import bifrost`` works here.
+* ``HAVE_BIFROST`` -- real Bifrost is the runtime in use (importable, and the environment
+  variable ``BF_EPIC_RUNTIME`` is not ``builtin``; ``BF_EPIC_RUNTIME=builtin`` forces ours).
+* ``bf`` -- the ``bifrost`` module when in use, else None.
+* ``bfp`` -- exposes Pipeline, block_scope, get_default_pipeline, SourceBlock, TransformBlock,
+  SinkBlock, MultiTransformBlock.
+
+Span data forms (see :mod:`bf_epic_blocks.runtime.dtypes`): host spaces give NumPy arrays
+(complex integers as Bifrost's structured dtypes), 'cuda' gives CuPy arrays ('ci4' as uint8,
+'ci8'/'ci16' as the component type with a trailing (re, im) axis of 2). Always decode complex
+data with :func:`unpack_complex`.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+
+import numpy as np
+
+from ..runtime.dtypes import (  # noqa: F401  (re-exported)
+    unpack_complex, pack_ci4, pack_complex, storage_dtype, SUPPORTED_DTYPES,
+)
+from ..runtime import pipeline as _builtin_pipeline
+from ..runtime import ring as _builtin_ring
+
+try:
+    import bifrost as _bifrost  # not on PyPI; present only on Bifrost machines
+    BIFROST_IMPORTABLE = True
+except Exception:  # pragma: no cover - depends on the machine
+    _bifrost = None
+    BIFROST_IMPORTABLE = False
+
+RUNTIME_ENV = 'BF_EPIC_RUNTIME'
+HAVE_BIFROST = BIFROST_IMPORTABLE and os.environ.get(RUNTIME_ENV, '').lower() != 'builtin'
+
+if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost
+    import bifrost.pipeline as bfp
+    bf = _bifrost
+else:
+    bfp = _builtin_pipeline
+    bf = None
+
+RUNTIME = 'bifrost' if HAVE_BIFROST else 'builtin'
+
+_OUR_SPANS = (_builtin_ring.ReadSpan, _builtin_ring.WriteSpan)
+
+
+def space_of(obj):
+    """Memory space ('system', 'cuda_host', 'cuda'...) of a ring, span, sequence or block."""
+    if hasattr(obj, 'orings') and getattr(obj, 'orings', None):
+        obj = obj.orings[0]
+    for attr in ('space',):
+        val = getattr(obj, attr, None)
+        if isinstance(val, str):
+            return val
+    ring = getattr(obj, 'ring', None)
+    if ring is not None and isinstance(getattr(ring, 'space', None), str):
+        return ring.space
+    raise TypeError(f"cannot tell the memory space of {type(obj).__name__}; expected a ring, "
+                    "span, sequence or block")
+
+
+def _bf_cuda_to_cupy(data):  # pragma: no cover - needs real Bifrost and a GPU
+    """Zero-copy CuPy view of a real-Bifrost 'cuda' array; structured complex-integer types
+    become plain arrays (ci4 -> uint8, pairs -> trailing axis of 2) since CuPy has none."""
+    import cupy as cp
+    dt = np.dtype(data.dtype)
+    if not dt.names:
+        return data.as_cupy()
+    shape, strides = tuple(data.shape), tuple(data.strides)
+    comp = dt.fields[dt.names[0]][0]
+    if len(dt.names) == 1:
+        plain = np.dtype(np.uint8)
+    else:
+        plain = comp
+        shape, strides = shape + (2,), strides + (comp.itemsize,)
+    extent = plain.itemsize + sum((n - 1) * s for n, s in zip(shape, strides) if n > 0)
+    mem = cp.cuda.UnownedMemory(int(data.ctypes.data), int(extent), data)
+    return cp.ndarray(shape, plain, memptr=cp.cuda.MemoryPointer(mem, 0), strides=strides)
+
+
+def span_array(span):
+    """The span's data as a NumPy array (host spaces) or a CuPy array ('cuda'), zero-copy.
+
+    Shape ringlets + [nframe] + frame (plus a trailing 2 for pair types on 'cuda'); writable
+    for write spans."""
+    if isinstance(span, _OUR_SPANS):
+        return span.data
+    space = space_of(span)  # pragma: no cover - real Bifrost spans
+    if space == 'cuda':
+        return _bf_cuda_to_cupy(span.data)
+    return np.asarray(span.data)
+
+
+def stream_context():
+    """Context to run CuPy work on Bifrost's CUDA stream (real Bifrost with CUDA);
+    a null context otherwise (our runtime synchronises the current stream at commits)."""
+    if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost
+        try:
+            import cupy as cp
+            return cp.cuda.ExternalStream(bf.device.get_stream())
+        except Exception:
+            pass
+    return contextlib.nullcontext()
+
+
+def to_numpy(a):
+    """A NumPy copy of a CuPy array; NumPy arrays pass through."""
+    if type(a).__module__.startswith('cupy'):
+        return a.get()
+    return np.asarray(a)
+
+
+def assign_storage(dst, src):
+    """``dst[...] = src`` for span arrays in a storage form, copying raw bytes when the two
+    differ only in the structured field types (e.g. Bifrost's ci4 're_im' int8 vs uint8)."""
+    if type(dst).__module__.startswith('cupy') and not type(src).__module__.startswith('cupy'):
+        import cupy as cp
+        src = cp.asarray(src)
+    if dst.dtype == src.dtype or not (dst.dtype.names or src.dtype.names):
+        dst[...] = src
+        return dst
+    if dst.dtype.itemsize != src.dtype.itemsize or dst.shape != src.shape:
+        raise ValueError(f"cannot store {src.dtype} {src.shape} into {dst.dtype} {dst.shape}")
+    dst.view(np.uint8)[...] = src.view(np.uint8)
+    return dst
+
+
+__all__ = ['HAVE_BIFROST', 'BIFROST_IMPORTABLE', 'RUNTIME', 'RUNTIME_ENV', 'bf', 'bfp',
+           'span_array', 'space_of', 'stream_context', 'to_numpy', 'assign_storage',
+           'unpack_complex', 'pack_ci4', 'pack_complex', 'storage_dtype', 'SUPPORTED_DTYPES']

@@ -1,0 +1,222 @@
+"""Array source and sink blocks (for tests, notebooks and small jobs).
+
+Written against ``_compat.bfp`` only, so they run on real Bifrost and on our runtime.
+
+* :class:`ArraySourceBlock` feeds in-memory arrays as sequences: each array is shaped
+  (ntime, ...) with the FRAME AXIS FIRST, then the tensor's other axes in order (ringlets, then
+  the frame shape); it is written in gulps of ``gulp_nframe`` frames, the last one short.
+  The header's ``_tensor['dtype']`` decides the stored type: complex input into a 'ci4',
+  'ci8' or 'ci16' ring is rounded/clipped and packed.
+* :class:`ArraySinkBlock` collects every sequence: ``headers`` (list of dicts),
+  ``result(i)`` / ``arrays`` -- NumPy arrays, frame axis first like the source's input
+  (copied from the device for 'cuda'); ``result(i, as_complex=True)`` decodes complex types.
+  Frames lost to overruns (``guarantee=False``) are stored as zeros and counted in
+  ``nframe_skipped`` (one count per sequence).
+"""
+from __future__ import annotations
+
+import copy
+import time
+
+import numpy as np
+
+from ._compat import bfp, span_array, space_of, to_numpy, assign_storage, pack_complex, \
+    unpack_complex, storage_dtype
+
+_NP_TO_BF = {np.dtype(k): v for k, v in [
+    (np.int8, 'i8'), (np.int16, 'i16'), (np.int32, 'i32'), (np.int64, 'i64'),
+    (np.uint8, 'u8'), (np.uint16, 'u16'), (np.uint32, 'u32'), (np.uint64, 'u64'),
+    (np.float16, 'f16'), (np.float32, 'f32'), (np.float64, 'f64'),
+    (np.complex64, 'cf32'), (np.complex128, 'cf64')]}
+
+
+def _split(shape):
+    i = list(shape).index(-1)
+    return list(shape[:i]), list(shape[i + 1:])
+
+
+def _prepare(array, header, index, space):
+    """Validate one (array, header) pair; return (frames_first_storage_array, header)."""
+    arr = to_numpy(array)
+    if arr.ndim < 1:
+        raise ValueError(f"sequence {index}: the array needs a frame axis first, got a scalar")
+    hdr = copy.deepcopy(header) if header is not None else {}
+    if not isinstance(hdr, dict):
+        raise TypeError(f"sequence {index}: header must be a dict, got {type(header).__name__}")
+    tensor = hdr.setdefault('_tensor', {})
+    if 'dtype' not in tensor:
+        if arr.dtype not in _NP_TO_BF:
+            raise ValueError(f"sequence {index}: cannot infer a Bifrost dtype from "
+                             f"{arr.dtype}; give header['_tensor']['dtype']")
+        tensor['dtype'] = _NP_TO_BF[arr.dtype]
+    tensor.setdefault('shape', [-1] + list(arr.shape[1:]))
+    dtype = tensor['dtype']
+    shape = tensor['shape']
+    if not isinstance(shape, (list, tuple)) or list(shape).count(-1) != 1:
+        raise ValueError(f"sequence {index}: header['_tensor']['shape'] must contain exactly "
+                         f"one -1, got {shape!r}")
+    ringlet, frame = _split(shape)
+    sdt, extra = storage_dtype(dtype, 'cuda' if space == 'cuda' else 'system')
+    raw = (arr.dtype.names is not None or
+           (dtype == 'ci4' and arr.dtype.itemsize == 1 and arr.dtype.kind in 'iu'))
+    expect = tuple(ringlet) + tuple(frame)
+    if tuple(arr.shape[1:]) != expect:
+        raise ValueError(f"sequence {index}: array shape {arr.shape} does not match the "
+                         f"header tensor shape {list(shape)}; expected (ntime,) + "
+                         f"{expect} (frame axis first, then ringlets, then frame axes)")
+    if raw:   # already in a packed/structured form: keep the bytes
+        if arr.dtype.itemsize != sdt.itemsize * (2 if extra else 1):
+            raise ValueError(f"sequence {index}: {arr.dtype} data cannot be {dtype!r} samples")
+        stored = arr.view(np.uint8) if dtype == 'ci4' else arr
+        if extra:  # structured pairs -> plain (..., 2) on 'cuda'
+            stored = np.ascontiguousarray(arr).view(sdt).reshape(arr.shape + extra)
+        elif stored.dtype != sdt:
+            stored = np.ascontiguousarray(stored).view(sdt)
+    else:
+        stored = pack_complex(arr, dtype, 'cuda' if space == 'cuda' else 'system', xp=np)
+    hdr.setdefault('name', f'array_{index}')
+    return stored, hdr
+
+
+class _ArrayReader:
+    def __init__(self, frames, header):
+        self.frames, self.header, self.pos = frames, header, 0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        pass
+
+
+class ArraySourceBlock(bfp.SourceBlock):
+    """Feed arrays as sequences.
+
+    Args:
+        arrays: one array or a list of arrays, each (ntime, ...) with the frame axis first.
+        headers: one header dict or a list (one per array). Missing ``name`` -> 'array_<i>'
+            (suffixed '_<i>' when one dict serves several arrays), ``time_tag`` -> the
+            sequence index, ``_tensor`` -> inferred from a plain NumPy array
+            (shape [-1] + array.shape[1:]).
+        gulp_nframe: frames per gulp (the last gulp of a sequence may be short).
+        space: output ring space, 'system' (default) or 'cuda'.
+    """
+
+    def __init__(self, arrays, headers, gulp_nframe, space='system', *args, **kwargs):
+        if isinstance(arrays, (list, tuple)):
+            arrays = list(arrays)
+        else:
+            arrays = [arrays]
+        if isinstance(headers, dict) or headers is None:
+            shared = headers
+            headers = []
+            for i in range(len(arrays)):
+                h = copy.deepcopy(shared) if shared is not None else {}
+                if len(arrays) > 1 and 'name' in h:
+                    h['name'] = f"{h['name']}_{i}"
+                headers.append(h)
+        headers = list(headers)
+        if len(headers) != len(arrays):
+            raise ValueError(f"got {len(arrays)} arrays but {len(headers)} headers; give one "
+                             "header per array or a single dict")
+        super().__init__(list(range(len(arrays))), gulp_nframe, space, *args, **kwargs)
+        self._items = [_prepare(a, h, i, space) for i, (a, h) in
+                       enumerate(zip(arrays, headers))]
+
+    def create_reader(self, sourcename):
+        frames, hdr = self._items[sourcename]
+        return _ArrayReader(frames, hdr)
+
+    def on_sequence(self, reader, sourcename):
+        return [copy.deepcopy(reader.header)]
+
+    def on_data(self, reader, ospans):
+        ospan = ospans[0]
+        n = min(ospan.nframe, reader.frames.shape[0] - reader.pos)
+        if n <= 0:
+            return [0]
+        dst = span_array(ospan)
+        nring = len(_split(reader.header['_tensor']['shape'])[0])
+        chunk = reader.frames[reader.pos:reader.pos + n]
+        if nring:
+            chunk = np.moveaxis(chunk, 0, nring)
+        index = (slice(None),) * nring + (slice(0, n),)
+        assign_storage(dst[index], np.ascontiguousarray(chunk))
+        reader.pos += n
+        return [n]
+
+
+class ArraySinkBlock(bfp.SinkBlock):
+    """Collect every sequence of ``iring`` into NumPy arrays (frame axis first).
+
+    Args:
+        iring: the input Ring or Block.
+        delay_s: seconds to sleep after each gulp (to make a slow reader in tests).
+        guarantee (keyword, from SinkBlock): False makes an overrunnable reader; lost frames
+            become zeros in the result and are counted in ``nframe_skipped``.
+    """
+
+    def __init__(self, iring, delay_s=0.0, *args, **kwargs):
+        super().__init__(iring, *args, **kwargs)
+        self.delay_s = float(delay_s)
+        self.headers = []
+        self.nframe_skipped = []
+        self._chunks = []
+        self._nring = 0
+
+    def on_sequence(self, iseq):
+        hdr = copy.deepcopy(iseq.header)
+        self.headers.append(hdr)
+        self.nframe_skipped.append(0)
+        self._chunks.append([])
+        self._nring = len(_split(hdr['_tensor']['shape'])[0])
+
+    def on_data(self, ispan):
+        data = to_numpy(span_array(ispan))
+        if self._nring:
+            data = np.moveaxis(data, self._nring, 0)
+        self._chunks[-1].append(np.array(data, copy=True))
+        if self.delay_s > 0:
+            time.sleep(self.delay_s)
+
+    def on_skip(self, islices, ospans):
+        islice = islices[0]
+        n = islice.stop - islice.start
+        hdr = self.headers[-1]
+        ringlet, frame = _split(hdr['_tensor']['shape'])
+        space = space_of(self.irings[0])
+        sdt, extra = storage_dtype(hdr['_tensor']['dtype'],
+                                   'cuda' if space == 'cuda' else 'system')
+        self._chunks[-1].append(np.zeros((n,) + tuple(ringlet) + tuple(frame) + extra, sdt))
+        self.nframe_skipped[-1] += n
+
+    def result(self, i=0, as_complex=False):
+        """Sequence ``i`` as one NumPy array, frame axis first (``as_complex``: complex64)."""
+        if not -len(self.headers) <= i < len(self.headers):
+            raise IndexError(f"sequence {i} not collected; have {len(self.headers)}")
+        hdr = self.headers[i]
+        chunks = self._chunks[i]
+        if chunks:
+            out = np.concatenate(chunks, axis=0)
+        else:
+            ringlet, frame = _split(hdr['_tensor']['shape'])
+            sdt, extra = storage_dtype(hdr['_tensor']['dtype'], 'system')
+            out = np.zeros((0,) + tuple(ringlet) + tuple(frame) + extra, sdt)
+        if as_complex:
+            out = unpack_complex(out, hdr['_tensor']['dtype'], xp=np)
+        return out
+
+    @property
+    def arrays(self):
+        """Every sequence's array, in order."""
+        return [self.result(i) for i in range(len(self.headers))]
+
+
+def array_source(arrays, headers, gulp_nframe, space='system', *args, **kwargs):
+    """Factory for :class:`ArraySourceBlock`."""
+    return ArraySourceBlock(arrays, headers, gulp_nframe, space, *args, **kwargs)
+
+
+def array_sink(iring, delay_s=0.0, *args, **kwargs):
+    """Factory for :class:`ArraySinkBlock`."""
+    return ArraySinkBlock(iring, delay_s, *args, **kwargs)

@@ -1,0 +1,146 @@
+"""CalFoldBlock: fold the direction-independent terms into the voltages; carry the pattern on.
+
+Design: the block *multiplies the voltages* (cf32 out) by the cable correction A_c = exp(+2 pi i nu
+tau) / sqrt(G) and the current calibration solution A_s, and zeroes flagged antennas exactly. It
+writes the flags into the output header's ``station.flags`` so the imager drops those antennas
+from D (and from N_A). Since sum_a D[k,a] (w_a x_a) = sum_a (D[k,a] w_a) x_a, imaging the folded
+voltages equals imaging the raw ones with D * A_c * A_s (tests/test_blocks.py proves it).
+Voltages are per-sample, so a solution switches at exactly the frame whose time tag reaches its
+``valid_from``, inside a gulp if need be. The direction-dependent pattern (A_i) cannot be folded
+into voltages, so its name goes into the header (``calibration.pattern``) for the imager.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..imaging import patterns
+from ..imaging.calibration import GainTable, apply_direction_independent, cable_weights
+from . import _compat
+from ._compat import bfp, span_array, unpack_complex
+from .headers import derived_header, efield_layout
+
+log = logging.getLogger(__name__)
+
+
+class CalFoldBlock(bfp.TransformBlock):
+    """Direction-independent calibration (cable terms, time-variable gains, flags) on E-field gulps.
+
+    Parameters
+    ----------
+    iring : input ring or block; E-field header as docs/HEADERS.md (labels time, freq, station, pol).
+    cable : True (use the header's ``station.cable_delay_s``/``cable_gain``, shaped (nstand, npol,
+            nchan)), False (none), or a complex array (nchan|1, nstand, npol|1) of weights.
+    gains : None, a :class:`GainTable`, or the path of an .npz gain table (time-variable A_s).
+    flags : None or bool (nstand, npol) / (nstand,) extra flags (True = bad).
+    pattern : None, a registered pattern name ("dipole"), or a callable ``fn(pixels_lm, freq_hz,
+              npol)``; it is registered and its name written to the header for the imager.
+    Output: dtype 'cf32', same labels; header ``calibration`` records what was applied.
+    ``stats``: frames, frames_before_first_solution, flagged antenna-pols.
+    """
+
+    def __init__(self, iring, cable=True, gains=None, flags=None, pattern=None, *args, **kwargs):
+        super().__init__(iring, *args, **kwargs)
+        self.cable = cable
+        self.gains = GainTable.load(gains) if isinstance(gains, str) else gains
+        self.extra_flags = flags
+        if callable(pattern):
+            name = f"user:{getattr(pattern, '__module__', '')}.{getattr(pattern, '__qualname__', id(pattern))}"
+            patterns.register_pattern(name, pattern)
+            pattern = name
+        elif pattern is not None:
+            patterns.get_pattern(pattern)  # fail now for an unknown name
+        self.pattern = pattern
+        self.cal_stats = {"frames": 0, "frames_before_first_solution": 0, "flagged": 0}
+
+    def define_valid_input_spaces(self):
+        return "any"
+
+    def on_sequence(self, iseq):
+        ihdr = iseq.header
+        lay = efield_layout(ihdr, "CalFoldBlock")
+        nchan, nstand, npol = lay["nchan"], lay["nstand"], lay["npol"]
+        flags = lay["flags"].copy()
+        if self.extra_flags is not None:
+            ef = np.asarray(self.extra_flags, dtype=bool)
+            ef = ef[:, None] if ef.ndim == 1 else ef
+            if ef.shape[0] != nstand:
+                raise ValueError(f"CalFoldBlock: flags cover {ef.shape[0]} stations, the data have {nstand}")
+            flags |= np.broadcast_to(ef, (nstand, npol))
+        st = ihdr["station"]
+        applied = {"cable": False, "gain_table": None, "pattern": self.pattern}
+        if self.cable is True:
+            if "cable_delay_s" not in st or "cable_gain" not in st:
+                raise ValueError("CalFoldBlock: cable=True needs station.cable_delay_s and station.cable_gain "
+                                 "(nstand, npol, nchan) in the header; pass cable=False or explicit weights")
+            w = cable_weights(np.asarray(st["cable_delay_s"])[:, :npol], np.asarray(st["cable_gain"])[:, :npol],
+                              lay["freq_hz"])
+            applied["cable"] = True
+        elif self.cable is False or self.cable is None:
+            w = np.ones((nchan, nstand, npol), np.complex128)
+        else:
+            w = np.asarray(self.cable, dtype=np.complex128)
+            if w.ndim != 3:
+                raise ValueError(f"CalFoldBlock: explicit cable weights must be (nchan|1, nstand, npol|1), got {w.shape}")
+            w = np.broadcast_to(w, (nchan, nstand, npol))
+            applied["cable"] = "explicit"
+        flags |= np.all(w == 0, axis=0)
+        if self.gains is not None:
+            self.gains.check_shape(nchan, nstand, npol)
+            flags |= self.gains.flags(nstand, npol)
+            applied["gain_table"] = {"nsol": int(len(self.gains.valid_from)),
+                                     "valid_from": [int(v) for v in self.gains.valid_from]}
+        xp = self._xp(iseq)
+        self._w = xp.asarray(np.where(flags[None], 0, w).astype(np.complex64))
+        self._live = xp.asarray(~flags)
+        self._lay = lay
+        self._next_frame = 0
+        self.cal_stats["flagged"] = int(flags.sum())
+        ohdr = derived_header(ihdr)
+        ohdr["_tensor"]["dtype"] = "cf32"
+        ohdr["station"]["flags"] = flags.tolist()
+        for k in ("cable_delay_s", "cable_gain"):
+            if applied["cable"] and k in ohdr["station"]:
+                ohdr["station"].pop(k)  # applied: must not be applied twice downstream
+        ohdr["calibration"] = {**ihdr.get("calibration", {}), **applied, "flagged": int(flags.sum())}
+        log.info("CalFoldBlock %s: cable=%s, gain table=%s, %d antenna-pols flagged, pattern=%s",
+                 ihdr.get("name"), applied["cable"], bool(self.gains), int(flags.sum()), self.pattern)
+        return ohdr
+
+    def _xp(self, iseq):
+        space = _compat.space_of(self.irings[0]) if hasattr(self, "irings") else "system"
+        if space == "cuda":
+            import cupy
+            return cupy
+        return np
+
+    def on_data(self, ispan, ospan):
+        idata = span_array(ispan)
+        n = idata.shape[0]
+        first = getattr(ispan, "frame_offset", self._next_frame)
+        with _compat.stream_context():
+            x = unpack_complex(idata, self._lay["dtype"])
+            out = span_array(ospan)
+            if self.gains is None:
+                out[:n] = apply_direction_independent(x, self._w, self._live)
+            else:
+                tag0 = self._lay["time_tag"] + first * self._lay["ticks_per_frame"]
+                for s, e, i in self.gains.segments(tag0, self._lay["ticks_per_frame"], n):
+                    if i < 0:
+                        self.cal_stats["frames_before_first_solution"] += e - s
+                    g = self.gains.solution(i, like=x)
+                    out[s:e] = apply_direction_independent(x[s:e], self._w, self._live, g)
+        self._next_frame = first + n
+        self.cal_stats["frames"] += n
+        return n
+
+    def on_sequence_end(self, iseq):
+        if self.cal_stats["frames_before_first_solution"]:
+            log.warning("CalFoldBlock: %d frames came before the first calibration solution and got unit gains",
+                        self.cal_stats["frames_before_first_solution"])
+
+
+def cal_fold(iring, cable=True, gains=None, flags=None, pattern=None, *args, **kwargs):
+    """Factory for :class:`CalFoldBlock`."""
+    return CalFoldBlock(iring, cable, gains, flags, pattern, *args, **kwargs)

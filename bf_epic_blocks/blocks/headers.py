@@ -1,0 +1,125 @@
+"""Reading and writing the sequence headers our blocks share (documented in docs/HEADERS.md).
+
+Pure functions on header dicts: the blocks call them from ``on_sequence`` so that a bad header
+fails there, before any data moves, with a TypeError/ValueError saying what was expected.
+"""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from ..imaging.calibration import FS_HZ
+
+EFIELD_LABELS = ("time", "freq", "station", "pol")
+EFIELD_DTYPES = ("ci4", "ci8", "ci16", "cf32", "cf64")
+
+
+def _tensor(hdr, who):
+    t = hdr.get("_tensor")
+    if not isinstance(t, dict) or "shape" not in t or "dtype" not in t:
+        raise TypeError(f"{who}: the header has no valid '_tensor' (with 'dtype' and 'shape')")
+    return t
+
+
+def efield_layout(hdr, who="block"):
+    """Validate an E-field header; returns a dict with nchan, nstand, npol, dtype, freq_hz (nchan,),
+    dt_s, ticks_per_frame, time_tag, xyz_m (nstand, 3) float64 and flags (nstand, npol) bool.
+
+    Expected: labels ['time', 'freq', 'station', 'pol'] (in that order), shape [-1, nchan, nstand, npol],
+    dtype one of ci4/ci8/ci16/cf32/cf64, channel frequencies in ``freq_hz`` or the 'freq' scale
+    [first centre Hz, step Hz], the station table in ``station`` (``xyz_m``, optional ``flags``).
+    """
+    t = _tensor(hdr, who)
+    labels = list(t.get("labels") or [])
+    if labels != list(EFIELD_LABELS):
+        raise ValueError(f"{who}: expected E-field axes labelled {list(EFIELD_LABELS)}, got {labels or 'no labels'}")
+    shape = list(t["shape"])
+    if len(shape) != 4 or shape[0] != -1:
+        raise ValueError(f"{who}: expected _tensor shape [-1, nchan, nstation, npol], got {shape}")
+    dtype = t["dtype"]
+    if dtype not in EFIELD_DTYPES:
+        raise TypeError(f"{who}: E-field dtype must be one of {EFIELD_DTYPES}, got {dtype!r}")
+    _, nchan, nstand, npol = shape
+    if npol not in (1, 2):
+        raise ValueError(f"{who}: npol must be 1 or 2, got {npol}")
+    scales = list(t.get("scales") or [None] * 4)
+    if "freq_hz" in hdr:
+        freq = np.asarray(hdr["freq_hz"], dtype=np.float64)
+    elif scales[1] is not None:
+        f0, df = scales[1]
+        freq = f0 + df * np.arange(nchan)
+    else:
+        raise ValueError(f"{who}: no channel frequencies: give header 'freq_hz' or _tensor scales[1] = [f0_hz, df_hz]")
+    if freq.shape != (nchan,) or not np.all(freq > 0):
+        raise ValueError(f"{who}: channel frequencies must be {nchan} positive values in Hz, got {freq.shape}")
+    if scales[0] is not None:
+        dt_s = float(scales[0][1])
+    elif nchan > 1:
+        dt_s = 1.0 / abs(float(freq[1] - freq[0]))
+    elif "chan_bw_hz" in hdr:
+        dt_s = 1.0 / float(hdr["chan_bw_hz"])
+    else:
+        raise ValueError(f"{who}: cannot tell the sample time: give _tensor scales[0] = [t0_s, dt_s]")
+    st = hdr.get("station")
+    if not isinstance(st, dict) or "xyz_m" not in st:
+        raise ValueError(f"{who}: the header needs a 'station' table with 'xyz_m' (nstation x 3 metres ENU)")
+    xyz = np.asarray(st["xyz_m"], dtype=np.float64)
+    if xyz.shape != (nstand, 3):
+        raise ValueError(f"{who}: station xyz_m is shaped {xyz.shape}; the data have {nstand} stations, expected ({nstand}, 3)")
+    flags = np.zeros((nstand, npol), bool)
+    if st.get("flags") is not None:
+        f = np.asarray(st["flags"], dtype=bool)
+        if f.ndim == 1:
+            f = f[:, None]
+        try:
+            flags = np.broadcast_to(f, (nstand, npol)).copy()
+        except ValueError:
+            raise ValueError(f"{who}: station flags shaped {f.shape} do not fit ({nstand}, {npol})") from None
+    return {"nchan": nchan, "nstand": nstand, "npol": npol, "dtype": dtype, "freq_hz": freq,
+            "dt_s": dt_s, "ticks_per_frame": int(round(dt_s * FS_HZ)), "time_tag": int(hdr.get("time_tag", 0)),
+            "xyz_m": xyz, "flags": flags}
+
+
+def efield_header(name, time_tag, freq_hz, dt_s, station, dtype="ci4", npol=2, t0_s=None, **extra):
+    """A valid E-field sequence header (for sources and tests).
+
+    station : dict with at least ``xyz_m`` (nstand, 3); optional ``flags``, ``name``, location keys,
+    ``cable_delay_s``/``cable_gain`` (nstand, npol, nchan).
+    """
+    freq = np.asarray(freq_hz, dtype=np.float64)
+    nstand = len(station["xyz_m"])
+    df = float(freq[1] - freq[0]) if len(freq) > 1 else 1.0 / dt_s
+    t0 = float(time_tag) / FS_HZ if t0_s is None else float(t0_s)
+    hdr = {
+        "name": name,
+        "time_tag": int(time_tag),
+        "_tensor": {"dtype": dtype, "shape": [-1, len(freq), nstand, npol],
+                    "labels": list(EFIELD_LABELS), "scales": [[t0, float(dt_s)], [float(freq[0]), df], None, None],
+                    "units": ["s", "Hz", None, None]},
+        "freq_hz": [float(v) for v in freq],
+        "station": _jsonable(station),
+    }
+    hdr.update(_jsonable(extra))
+    return hdr
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj)
+    return obj
+
+
+def derived_header(hdr):
+    """A deep copy of ``hdr`` for an output sequence (headers must never be shared between rings)."""
+    return copy.deepcopy(hdr)

@@ -1,0 +1,164 @@
+"""ImageWriterBlock: image sequences to FITS / pixel tables / PNG quicklooks on disk.
+
+A sink for the imagers' output (docs/HEADERS.md): grids become FITS cubes with a zenith-centred SIN
+WCS (one file per integration; channels with uneven spacing are split into runs of even spacing)
+and an all-sky PNG of the channel-mean of the first product; pixel lists and tracked patches
+become pixel tables (FITS binary tables) and a small PNG of the patch. The writing itself lives
+in :mod:`bf_epic_blocks.pipeline.fits_out` and :mod:`bf_epic_blocks.pipeline.quicklook`.
+"""
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+
+from ..imaging.calibration import FS_HZ
+from ..imaging.pixels import LMGrid
+from ._compat import bfp, span_array, to_numpy
+
+log = logging.getLogger(__name__)
+
+
+def _even_runs(freq_hz):
+    """Index runs [(start, stop)] over which the channel spacing is constant."""
+    f = np.asarray(freq_hz)
+    if len(f) < 3:
+        return [(0, len(f))]
+    d = np.diff(f)
+    cuts = np.flatnonzero(~np.isclose(d[1:], d[:-1], rtol=1e-9, atol=1e-3)) + 2
+    edges = [0, *cuts.tolist(), len(f)]
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+class ImageWriterBlock(bfp.SinkBlock):
+    """Write each output frame (one integration) of an imager.
+
+    outdir, prefix : where and under which name; fits / png / table : what to write.
+    location : astropy EarthLocation of the station (default: from the header's station lat/lon).
+    label_sources : catalogue sources (plus the Sun) drawn on the PNGs when above the horizon.
+    ``written`` lists the files written.
+    """
+
+    def __init__(self, iring, outdir, prefix="image", fits=True, png=True, table=False, location=None,
+                 label_sources=True, *args, **kwargs):
+        super().__init__(iring, *args, **kwargs)
+        self.outdir, self.prefix = str(outdir), prefix
+        self.do_fits, self.do_png, self.do_table = fits, png, table
+        self.location, self.label_sources = location, label_sources
+        self.written = []
+        self.frames = 0
+
+    def on_sequence(self, iseq):
+        from astropy.coordinates import EarthLocation
+        hdr = iseq.header
+        self.hdr = hdr
+        os.makedirs(self.outdir, exist_ok=True)
+        st = hdr.get("station", {})
+        loc = self.location
+        if loc is None and "lat_deg" in st:
+            loc = EarthLocation.from_geodetic(st["lon_deg"], st["lat_deg"], st.get("elev_m", 0.0))
+        if loc is None:
+            raise ValueError("ImageWriterBlock: no station location: give location= or a header station with lat/lon")
+        self.loc = loc
+        self.freq = np.asarray(hdr.get("freq_hz"), dtype=np.float64)
+        self.products = list(hdr["pol_products"])
+        pix = hdr["pixels"]
+        self.grid = None
+        if pix["kind"] == "grid":
+            from ..imaging.pixels import lm_grid
+            self.grid = lm_grid(pix["size"], cell=pix["cell"])
+        self.int_ticks = int(hdr["imager"]["integration_ticks"])
+        self.seq_index = getattr(self, "seq_index", -1) + 1
+        self.frames_in_seq = 0
+
+    def _time(self, j):
+        from ..io.tbf import time_tag_to_time
+        return time_tag_to_time(int(self.hdr["time_tag"]) + j * self.int_ticks)
+
+    def _labels(self, t):
+        if not self.label_sources:
+            return None
+        from ..pipeline.fits_out import icrs_to_lm
+        from ..pipeline.sky import KNOWN_SOURCES
+        names, ra, dec = [], [], []
+        for s in KNOWN_SOURCES.values():
+            names.append(s.name)
+            ra.append(s.ra_deg)
+            dec.append(s.dec_deg)
+        try:
+            from astropy.coordinates import get_body
+            sun = get_body("sun", t, self.loc).icrs
+            names.append("Sun")
+            ra.append(float(sun.ra.deg))
+            dec.append(float(sun.dec.deg))
+        except Exception:  # the ephemeris is optional decoration
+            pass
+        lm, alt = icrs_to_lm(np.array(ra), np.array(dec), t, self.loc)
+        return [(n, float(l), float(m)) for n, (l, m), a in zip(names, lm, alt) if np.isfinite(a) and a > 0]
+
+    def on_data(self, ispan):
+        from ..pipeline import fits_out, quicklook
+        data = to_numpy(span_array(ispan))
+        imager = self.hdr["imager"]
+        common = dict(method=f"{imager['kind']}:{imager['method']}", precision=imager["precision"],
+                      telescope=self.hdr.get("station", {}).get("name"),
+                      int_time_s=self.int_ticks / FS_HZ, nantenna=imager.get("nant_used"))
+        for k in range(data.shape[0]):
+            j = self.frames_in_seq
+            t = self._time(j)
+            stem = os.path.join(self.outdir, f"{self.prefix}_s{self.seq_index:02d}_i{j:04d}")
+            frame = data[k]
+            if self.grid is not None:
+                if self.do_fits:
+                    runs = _even_runs(self.freq)
+                    for r, (a, b) in enumerate(runs):
+                        path = f"{stem}.fits" if len(runs) == 1 else f"{stem}_r{r}.fits"
+                        width = float(self.freq[1] - self.freq[0]) if len(self.freq) > 1 else None
+                        self.written += fits_out.write_fits_image(
+                            path, frame[a:b], self.grid, self.freq[a:b], self.products, t, self.loc,
+                            chan_width_hz=width if b - a == 1 else None, **common)
+                if self.do_png:
+                    mean = np.nanmean(frame[:, 0], axis=0) if np.any(np.isfinite(frame[:, 0])) else frame[0, 0]
+                    title = (f"{self.hdr.get('station', {}).get('name', '')} {self.products[0]}  {t.isot[:19]} UTC  "
+                             f"{self.freq.min() / 1e6:.2f}-{self.freq.max() / 1e6:.2f} MHz")
+                    self.written.append(quicklook.quicklook_png(f"{stem}.png", mean, self.grid, title=title,
+                                                                sources=self._labels(t)))
+            else:
+                lm = np.asarray(self.hdr["pixels"]["lm"])
+                if self.hdr["pixels"]["kind"] == "track" and hasattr(self, "pixel_source"):
+                    lm = np.asarray(self.pixel_source(int(self.hdr["time_tag"]) + j * self.int_ticks))
+                if self.do_table or self.do_fits:
+                    self.written.append(fits_out.write_pixel_table(f"{stem}_pixels.fits", frame, lm, self.freq,
+                                                                   self.products, t, self.loc, **common))
+                if self.do_png:
+                    self.written.append(_patch_png(f"{stem}.png", frame, lm, self.products, t))
+            self.frames_in_seq += 1
+            self.frames += 1
+
+
+def _patch_png(path, frame, lm, products, t):
+    """A small PNG of a square pixel patch (tracking), channel mean of the first product."""
+    from matplotlib.figure import Figure
+    n = int(round(np.sqrt(lm.shape[0])))
+    vals = np.nanmean(frame[:, 0], axis=0)
+    fig = Figure(figsize=(4.6, 4))
+    ax = fig.add_subplot(1, 1, 1)
+    if n * n == lm.shape[0]:
+        im = ax.imshow(vals.reshape(n, n), origin="lower", cmap="inferno")
+        ax.set_xlabel("patch x (towards East)")
+        ax.set_ylabel("patch y (towards North / up)")
+    else:
+        im = ax.scatter(lm[:, 0], lm[:, 1], c=vals, cmap="inferno")
+        ax.invert_xaxis()
+        ax.set_xlabel("l (East)")
+        ax.set_ylabel("m (North)")
+    ax.set_title(f"{products[0]} {t.isot[:19]} UTC", fontsize=9)
+    fig.colorbar(im, ax=ax, label="power (uncalibrated)")
+    fig.savefig(path, dpi=90)
+    return path
+
+
+def image_writer(iring, outdir, *args, **kwargs):
+    """Factory for :class:`ImageWriterBlock`."""
+    return ImageWriterBlock(iring, outdir, *args, **kwargs)

@@ -1,0 +1,186 @@
+"""Source blocks that put LWA E-fields on a ring: a TBF file reader and a simulated sky.
+
+Both write E-field sequences as docs/HEADERS.md defines them (labels time, freq, station, pol; the
+station table, with its cable terms for the channels, in ``station``), so CalFoldBlock and the
+imagers read them without knowing where they came from. Optional ``progress`` (a callable taking
+the number of frames just written) lets a CLI drive a progress bar.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import warnings
+
+import numpy as np
+
+from ..imaging.calibration import FS_HZ
+from ._compat import assign_storage, bfp, span_array
+from .headers import efield_header
+
+log = logging.getLogger(__name__)
+
+
+class _Reader(contextlib.AbstractContextManager):
+    """A plain state holder; SourceBlock wants a context manager per source name."""
+
+    def __init__(self, **state):
+        self.__dict__.update(state)
+
+    def __exit__(self, *exc):
+        return False
+
+
+class TBFSourceBlock(bfp.SourceBlock):
+    """Read LWA TBF files (ADP or NDP), one sequence per file, 'ci4' gulps (time, freq, station, pol).
+
+    station : a :class:`~bf_epic_blocks.pipeline.station.StationTable`, a station name, or None
+              (the station the file's frame id names: ADP -> lwasv, NDP -> lwana).
+    Missing frames are zero-filled and counted (``tbf_stats``); a truncated last frame ends the
+    file cleanly with a warning; a bad sync word raises TBFError with its byte offset.
+    """
+
+    def __init__(self, paths, gulp_nframe, station=None, progress=None, space="system", *args, **kwargs):
+        paths = [paths] if isinstance(paths, (str, bytes)) or hasattr(paths, "__fspath__") else list(paths)
+        super().__init__([str(p) for p in paths], gulp_nframe, space, *args, **kwargs)
+        self.station, self.progress = station, progress
+        self.tbf_stats = {"frames_read": 0, "frames_missing": 0, "time_gaps": 0, "truncated_bytes": 0, "samples": 0}
+
+    def create_reader(self, sourcename):
+        from ..io.tbf import iter_tbf_gulps, scan_tbf
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            info = scan_tbf(sourcename)
+        for w in caught:
+            log.warning("%s: %s", sourcename, w.message)
+        return _Reader(info=info, it=iter_tbf_gulps(sourcename, self.gulp_nframe, info=info), path=sourcename)
+
+    def _station(self, info):
+        from ..pipeline.station import StationTable, load_station
+        st = self.station
+        if st is None:
+            st = load_station(info.station_hint)
+        elif not isinstance(st, StationTable):
+            st = load_station(st)
+        if st.nstand != info.nstand:
+            raise ValueError(f"TBF file has {info.nstand} stands but station {st.name!r} has {st.nstand}; "
+                             "name the right station (a TBF file from this station?)")
+        return st
+
+    def on_sequence(self, reader, sourcename):
+        info = reader.info
+        st = self._station(info)
+        freq = np.asarray(info.freq_hz, dtype=np.float64)
+        hdr = efield_header(f"tbf:{sourcename}", int(info.time_tags[0]), freq, 1.0 / info.chan_bw_hz,
+                            st.to_header(freq), dtype="ci4", npol=2, chan_bw_hz=float(info.chan_bw_hz),
+                            tbf={"path": sourcename, "engine": info.engine, "channels": [int(c) for c in info.channels]})
+        reader.expected_tag = int(info.time_tags[0])
+        reader.sample_ticks = int(round(FS_HZ / info.chan_bw_hz))
+        log.info("TBF %s: %s, %d stands, %d channels (%.3f-%.3f MHz), %d time samples", sourcename, info.engine,
+                 info.nstand, len(freq), freq.min() / 1e6, freq.max() / 1e6, info.ntime)
+        return [hdr]
+
+    def on_data(self, reader, ospans):
+        try:
+            chunk = next(reader.it)
+        except StopIteration:
+            return [0]
+        n = chunk.data.shape[0]
+        for k in ("frames_read", "frames_missing", "time_gaps", "truncated_bytes"):
+            self.tbf_stats[k] += int(chunk.stats.get(k, 0))
+        self.tbf_stats["samples"] += n
+        if self.tbf_stats["frames_missing"]:
+            log.debug("TBF: %d frames missing so far (zero-filled)", self.tbf_stats["frames_missing"])
+        dst = span_array(ospans[0])
+        assign_storage(dst[:n], _as_storage(chunk.data, dst.dtype))
+        if self.progress:
+            self.progress(n)
+        return [n]
+
+
+def _as_storage(packed_u8, dtype):
+    """Packed ci4 bytes in the ring's storage form (structured 're_im' on the host, plain uint8 on GPU)."""
+    a = np.ascontiguousarray(packed_u8)
+    return a.view(dtype) if np.dtype(dtype) != a.dtype and np.dtype(dtype).itemsize == 1 else a
+
+
+class SimSkySourceBlock(bfp.SourceBlock):
+    """Simulated LWA voltages for a sky of point sources plus receiver noise (one sequence).
+
+    station : StationTable (positions, cable terms and flags come from it; the simulated cables
+              delay and scale the voltages exactly as the data model says).
+    freq_hz : channel centres; ``start`` : astropy Time (or ISO string); ``duration_s`` : length.
+    sources, noise_power, seed : as :func:`bf_epic_blocks.pipeline.sky.simulate_efield`; the sky is
+              recomputed for each gulp's start time; gulp g uses seed (seed, g) so runs repeat exactly.
+    quantize : True writes 'ci4' scaled like an F-engine (rms 2 units; scale fixed by the first
+              gulp), False writes 'cf32'.
+    """
+
+    def __init__(self, station, freq_hz, start, duration_s, sources, gulp_nframe, noise_power=1000.0, seed=1,
+                 quantize=True, cable=True, progress=None, space="system", *args, **kwargs):
+        super().__init__(["simulated-sky"], gulp_nframe, space, *args, **kwargs)
+        from astropy.time import Time
+        self.station, self.freq_hz = station, np.asarray(freq_hz, dtype=np.float64)
+        self.start = Time(start, scale="utc")
+        width = abs(self.freq_hz[1] - self.freq_hz[0]) if len(self.freq_hz) > 1 else 25e3
+        self.dt_s = 1.0 / width
+        self.nframe = int(round(duration_s / self.dt_s))
+        if self.nframe < 1:
+            raise ValueError(f"duration_s={duration_s} is shorter than one sample ({self.dt_s} s)")
+        self.sources, self.noise_power, self.seed = sources, float(noise_power), int(seed)
+        self.quantize, self.cable, self.progress = quantize, cable, progress
+        self.scale = None
+
+    def create_reader(self, sourcename):
+        return _Reader(pos=0)
+
+    def on_sequence(self, reader, sourcename):
+        from ..io.tbf import time_tag_to_time  # noqa: F401  (same time-tag convention as TBF)
+        st = self.station
+        self.time_tag0 = int(round(self.start.unix * FS_HZ))
+        hdr = efield_header("simulated-sky", self.time_tag0, self.freq_hz, self.dt_s, st.to_header(self.freq_hz),
+                            dtype="ci4" if self.quantize else "cf32", npol=2, t0_s=float(self.start.unix),
+                            simulation={"sources": [str(s) if not isinstance(s, dict) else s.get("name", "custom")
+                                                    for s in self.sources],
+                                        "noise_power": self.noise_power, "seed": self.seed, "start": self.start.isot})
+        if self.cable:
+            self._delay = np.moveaxis(st.cable_delay_s(self.freq_hz), -1, 0)
+            self._gain = np.moveaxis(st.cable_gain(self.freq_hz), -1, 0)
+        else:
+            self._delay = self._gain = None
+        return [hdr]
+
+    def on_data(self, reader, ospans):
+        from ..pipeline.sky import quantize_ci4, simulate_efield
+        dst = span_array(ospans[0])
+        n = min(dst.shape[0], self.nframe - reader.pos)
+        if n <= 0:
+            return [0]
+        t = self.start + (reader.pos * self.dt_s) * _seconds()
+        gulp_index = reader.pos // max(1, self.gulp_nframe)
+        x = simulate_efield(self.station.xyz_m, self.freq_hz, n, sources=self.sources, time=t,
+                            location=self.station.location, cable_delay_s=self._delay, cable_gain=self._gain,
+                            noise_power=self.noise_power, seed=[self.seed, gulp_index])
+        if self.quantize:
+            packed, self.scale = quantize_ci4(x, scale=self.scale)
+            assign_storage(dst[:n], _as_storage(packed, dst.dtype))
+        else:
+            assign_storage(dst[:n], x.astype(np.complex64))
+        reader.pos += n
+        if self.progress:
+            self.progress(n)
+        return [n]
+
+
+def _seconds():
+    import astropy.units as u
+    return u.s
+
+
+def tbf_source(paths, gulp_nframe, *args, **kwargs):
+    """Factory for :class:`TBFSourceBlock`."""
+    return TBFSourceBlock(paths, gulp_nframe, *args, **kwargs)
+
+
+def sim_sky_source(station, freq_hz, start, duration_s, sources, gulp_nframe, *args, **kwargs):
+    """Factory for :class:`SimSkySourceBlock`."""
+    return SimSkySourceBlock(station, freq_hz, start, duration_s, sources, gulp_nframe, *args, **kwargs)

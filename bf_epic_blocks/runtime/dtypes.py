@@ -1,0 +1,164 @@
+"""Bifrost data-type strings, their storage in ring memory, and complex pack/unpack helpers.
+
+Bifrost names types by kind and bits: 'i8', 'u16', 'f32', 'cf32', 'ci4', 'ci8', 'ci16'...
+For complex types the bits are *per component*: 'ci4' is ONE byte per complex sample
+(4-bit two's-complement nibbles, high nibble = real, low nibble = imaginary), 'ci8' is two
+int8, 'ci16' two int16, 'cf32' is numpy complex64.
+
+Storage (what a span's ``data`` holds):
+
+* 'system' / 'cuda_host' (NumPy), as real Bifrost shows them: 'ci4' -> structured
+  ``[('re_im', u1)]`` (same shape as the tensor), 'ci8'/'ci16'/'ci32'/'cf16' -> structured
+  ``[('re', T), ('im', T)]`` (same shape), everything else the plain NumPy dtype.
+* 'cuda' (CuPy has no structured dtypes): 'ci4' -> plain uint8 (same shape); the pair types
+  -> plain component dtype with one extra trailing axis of length 2 (re, im).
+
+:func:`unpack_complex` accepts every one of these forms (and real Bifrost's ci4 with an int8
+'re_im' field), on NumPy or CuPy, and returns complex64.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+# name -> (kind, component numpy dtype)
+#   kind 'plain': stored as the numpy dtype; 'nibble': ci4; 'pair': structured (re, im)
+_TYPES = {
+    'i8': ('plain', np.int8), 'i16': ('plain', np.int16), 'i32': ('plain', np.int32),
+    'i64': ('plain', np.int64),
+    'u8': ('plain', np.uint8), 'u16': ('plain', np.uint16), 'u32': ('plain', np.uint32),
+    'u64': ('plain', np.uint64),
+    'f16': ('plain', np.float16), 'f32': ('plain', np.float32), 'f64': ('plain', np.float64),
+    'cf32': ('plain', np.complex64), 'cf64': ('plain', np.complex128),
+    'ci4': ('nibble', np.uint8),
+    'ci8': ('pair', np.int8), 'ci16': ('pair', np.int16), 'ci32': ('pair', np.int32),
+    'cf16': ('pair', np.float16),
+}
+SUPPORTED_DTYPES = tuple(_TYPES)
+HOST_SPACES = ('system', 'cuda_host')
+SPACES = ('system', 'cuda_host', 'cuda')
+
+
+def _check_name(dtype_str):
+    if not isinstance(dtype_str, str) or dtype_str not in _TYPES:
+        raise ValueError(f"unknown Bifrost dtype {dtype_str!r}; expected one of "
+                         f"{', '.join(SUPPORTED_DTYPES)}")
+    return _TYPES[dtype_str]
+
+
+def itemsize_bytes(dtype_str) -> int:
+    """Bytes per element of the tensor (ci4: 1, ci8: 2, cf32: 8...)."""
+    kind, comp = _check_name(dtype_str)
+    return np.dtype(comp).itemsize * (2 if kind == 'pair' else 1)
+
+
+def is_complex(dtype_str) -> bool:
+    return dtype_str.startswith('c')
+
+
+def storage_dtype(dtype_str, space='system'):
+    """``(numpy_dtype, extra_trailing_shape)`` used to hold ``dtype_str`` in ``space``."""
+    kind, comp = _check_name(dtype_str)
+    if space not in SPACES:
+        raise ValueError(f"unknown memory space {space!r}; expected one of {SPACES}")
+    if kind == 'plain':
+        return np.dtype(comp), ()
+    if space == 'cuda':
+        return np.dtype(comp), ((2,) if kind == 'pair' else ())
+    if kind == 'nibble':
+        return np.dtype([('re_im', np.uint8)]), ()
+    return np.dtype([('re', comp), ('im', comp)]), ()
+
+
+def _xp_of(a, xp=None):
+    if xp is not None:
+        return xp
+    mod = type(a).__module__
+    if mod.startswith('cupy'):
+        import cupy
+        return cupy
+    return np
+
+
+def _nibbles_to_complex(b, xp):
+    """uint8 bytes -> complex64: high nibble real, low nibble imag, two's complement."""
+    b = b.astype(xp.int16)
+    re = ((b >> 4) ^ 8) - 8           # sign-extend a 4-bit field: (x ^ 8) - 8
+    im = ((b & 0x0F) ^ 8) - 8
+    out = re.astype(xp.float32) + 1j * im.astype(xp.float32)
+    return out.astype(xp.complex64)
+
+
+def unpack_complex(data, dtype_str, xp=None):
+    """Complex64 values of a span array of Bifrost type ``dtype_str``.
+
+    ``data``: NumPy or CuPy array in any storage form described in the module docstring
+    (structured or plain; for plain pair types the trailing axis of length 2 is (re, im) and
+    is removed). Real types are simply cast. Vectorised; stays on the array's device.
+    """
+    kind, comp = _check_name(dtype_str)
+    xp = _xp_of(data, xp)
+    names = getattr(data.dtype, 'names', None)
+    if kind == 'nibble':
+        if names:
+            if len(names) != 1:
+                raise TypeError(f"ci4 data has fields {names}; expected one 're_im' field")
+            data = data[names[0]]
+        if data.dtype.itemsize != 1:
+            raise TypeError(f"ci4 data must be one byte per sample, got dtype {data.dtype}")
+        return _nibbles_to_complex(data.view(xp.uint8), xp)
+    if kind == 'pair':
+        if names:
+            if set(names) != {'re', 'im'}:
+                raise TypeError(f"{dtype_str} data has fields {names}; expected 're', 'im'")
+            re, im = data['re'], data['im']
+        else:
+            if data.ndim == 0 or data.shape[-1] != 2:
+                raise TypeError(f"plain {dtype_str} data must end with an axis of length 2 "
+                                f"(re, im); got shape {tuple(data.shape)}")
+            re, im = data[..., 0], data[..., 1]
+        out = re.astype(xp.float32) + 1j * im.astype(xp.float32)
+        return out.astype(xp.complex64)
+    return data.astype(xp.complex64)
+
+
+def pack_ci4(values, xp=None):
+    """Complex values -> ci4 bytes (uint8, same shape): round, clip to [-8, 7], high nibble =
+    real, low nibble = imaginary, two's complement. NumPy or CuPy in, same module out."""
+    xp = _xp_of(values, xp)
+    values = xp.asarray(values)
+    re = xp.clip(xp.rint(values.real), -8, 7).astype(xp.int16)
+    im = xp.clip(xp.rint(values.imag), -8, 7).astype(xp.int16) if xp.iscomplexobj(values) \
+        else xp.zeros(values.shape, xp.int16)
+    return (((re & 0x0F) << 4) | (im & 0x0F)).astype(xp.uint8)
+
+
+def pack_complex(values, dtype_str, space='system', xp=None):
+    """Values -> an array in the ring storage form of ``dtype_str`` for ``space``.
+
+    Complex integers are rounded and clipped to the component range; real types take the
+    real part only if the input is complex (an error: data would be lost)."""
+    kind, comp = _check_name(dtype_str)
+    xp = _xp_of(values, xp)
+    values = xp.asarray(values)
+    sdt, extra = storage_dtype(dtype_str, space)
+    if kind == 'nibble':
+        packed = pack_ci4(values, xp)
+        return packed if space == 'cuda' else packed.view(sdt)
+    if kind == 'pair':
+        cdt = np.dtype(comp)
+        if cdt.kind == 'i':
+            info = np.iinfo(cdt)
+            def conv(v):
+                return xp.clip(xp.rint(v), info.min, info.max).astype(cdt)
+        else:
+            def conv(v):
+                return v.astype(cdt)
+        re = conv(values.real)
+        im = conv(values.imag) if xp.iscomplexobj(values) else xp.zeros(values.shape, cdt)
+        plain = xp.stack([re, im], axis=-1)
+        if space == 'cuda':
+            return plain
+        return xp.ascontiguousarray(plain).view(sdt)[..., 0]
+    if xp.iscomplexobj(values) and not np.issubdtype(sdt, np.complexfloating):
+        raise TypeError(f"complex data cannot be stored as real dtype {dtype_str!r}")
+    return values.astype(sdt)

@@ -1,0 +1,615 @@
+"""Tests of the built-in Bifrost-compatible runtime, the import layer and the array blocks."""
+import copy
+import math
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from bf_epic_blocks.runtime import pipeline as rtp
+from bf_epic_blocks.runtime.dtypes import unpack_complex, pack_ci4, pack_complex
+from bf_epic_blocks.runtime.header import validate_header, HeaderError
+from bf_epic_blocks.runtime.ring import Ring
+from bf_epic_blocks.blocks import _compat
+from bf_epic_blocks.blocks.array_io import ArraySourceBlock, ArraySinkBlock, array_source, \
+    array_sink
+
+bfp = rtp  # the runtime under test, whatever _compat picked
+
+
+def _gpu():
+    try:
+        import cupy
+        return cupy.cuda.runtime.getDeviceCount() > 0
+    except Exception:
+        return False
+
+
+HAS_GPU = _gpu()
+
+
+def hdr(name='seq', dtype='f32', shape=(-1, 3), time_tag=0, **extra):
+    h = {'name': name, 'time_tag': time_tag,
+         '_tensor': {'dtype': dtype, 'shape': list(shape)}}
+    for key in ('labels', 'scales', 'units'):
+        if key in extra:
+            h['_tensor'][key] = extra.pop(key)
+    h.update(extra)
+    return h
+
+
+def run_with_timeout(p, timeout=15.0):
+    """Run ``p`` in a thread; fail (instead of hanging the suite) if it does not finish."""
+    box = {}
+
+    def target():
+        try:
+            p.run()
+        except BaseException as exc:  # noqa: BLE001
+            box['exc'] = exc
+    t = threading.Thread(target=target, daemon=True)
+    t.start()
+    t.join(timeout)
+    assert not t.is_alive(), "pipeline hung"
+    if 'exc' in box:
+        raise box['exc']
+
+
+class Scale(bfp.TransformBlock):
+    """out = k * in, optionally sleeping per gulp (a slow block)."""
+
+    def __init__(self, iring, k=2, delay_s=0.0, *args, **kwargs):
+        super().__init__(iring, *args, **kwargs)
+        self.k, self.delay_s = k, delay_s
+
+    def on_sequence(self, iseq):
+        return copy.deepcopy(iseq.header)
+
+    def on_data(self, ispan, ospan):
+        ospan.data[...] = ispan.data if self.k == 1 else self.k * ispan.data
+        if self.delay_s:
+            time.sleep(self.delay_s)
+
+
+class MovingSum(bfp.TransformBlock):
+    """FIR-like: out[t] = sum_{k<=W-1} in[t + k] using W-1 frames of overlap (valid mode)."""
+
+    def __init__(self, iring, window, *args, **kwargs):
+        super().__init__(iring, *args, **kwargs)
+        self.window = window
+        self.span_sizes = []
+
+    def define_input_overlap_nframe(self, iseq):
+        return self.window - 1
+
+    def on_sequence(self, iseq):
+        return copy.deepcopy(iseq.header)
+
+    def on_data(self, ispan, ospan):
+        n, w = ispan.nframe, self.window
+        self.span_sizes.append((ispan.nframe, ospan.nframe))
+        acc = np.zeros_like(ispan.data[:n - w + 1])
+        for k in range(w):
+            acc += ispan.data[k:n - w + 1 + k]
+        ospan.data[:n - w + 1] = acc
+        # return None: the runtime commits span - output overlap = n - (w - 1)
+
+
+class Decimate4(bfp.TransformBlock):
+    """Sum every 4 frames within a gulp (a short last group sums what is there)."""
+
+    def define_output_nframes(self, input_nframe):
+        return math.ceil(input_nframe / 4)
+
+    def on_sequence(self, iseq):
+        return copy.deepcopy(iseq.header)
+
+    def on_data(self, ispan, ospan):
+        for j in range(ospan.nframe):
+            ospan.data[j] = ispan.data[4 * j:4 * j + 4].sum(axis=0)
+
+
+class Boom(bfp.TransformBlock):
+    def __init__(self, iring, at_gulp=2, where='on_data', *args, **kwargs):
+        super().__init__(iring, *args, **kwargs)
+        self.at_gulp, self.where, self.count = at_gulp, where, 0
+
+    def on_sequence(self, iseq):
+        if self.where == 'on_sequence':
+            raise KeyError('no such axis')
+        return copy.deepcopy(iseq.header)
+
+    def on_data(self, ispan, ospan):
+        self.count += 1
+        if self.count > self.at_gulp:
+            raise ValueError('boom')
+        ospan.data[...] = ispan.data
+
+
+# --------------------------------------------------------------------------------------------
+# ring behaviour
+# --------------------------------------------------------------------------------------------
+
+class TimedSource(ArraySourceBlock):
+    def on_data(self, reader, ospans):
+        ret = super().on_data(reader, ospans)
+        if ret == [0]:
+            self.t_end = time.monotonic()
+        return ret
+
+
+def test_guaranteed_reader_loses_nothing_and_backpressures():
+    x = np.arange(400 * 4, dtype=np.int32).reshape(400, 4)
+    with bfp.Pipeline() as p:
+        src = TimedSource(x, hdr(dtype='i32', shape=(-1, 4)), gulp_nframe=8)
+        mid = Scale(src, k=3)
+        sink = ArraySinkBlock(mid, delay_s=0.004)   # 50 gulps x 4 ms >> the source's time
+        t0 = time.monotonic()
+        run_with_timeout(p)
+        t_all = time.monotonic() - t0
+    np.testing.assert_array_equal(sink.result(0), 3 * x)
+    assert mid.stats['nframe_skipped'] == 0 and sink.stats['nframe_skipped'] == 0
+    assert mid.stats['nframe_read'] == 400 and sink.stats['nframe_read'] == 400
+    # Back-pressure: the rings hold a few gulps only, so the source cannot finish before the
+    # sink has taken most of the data (unbounded buffering would end it within milliseconds).
+    cap = mid.orings[0].capacity
+    assert cap < 400 and src.orings[0].capacity < 400
+    assert src.t_end - t0 > 0.5 * 0.004 * (50 - 2 * cap // 8 - 4), (src.t_end - t0, t_all)
+
+
+def test_unguaranteed_reader_skips_are_counted_and_zero_filled():
+    n = 400
+    x = 1 + np.arange(n * 2, dtype=np.float32).reshape(n, 2)   # no zeros in the input
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, hdr(shape=(-1, 2)), gulp_nframe=4)
+        slow = Scale(src, k=2, delay_s=0.01, guarantee=False)
+        sink = ArraySinkBlock(slow)
+        run_with_timeout(p)
+    out = sink.result(0)
+    assert out.shape == x.shape      # frame counts stay consistent: every input frame -> one
+    zero = np.all(out == 0, axis=1)
+    good = np.all(out == 2 * x, axis=1)
+    assert np.all(zero | good)
+    assert slow.stats['nframe_skipped'] > 0
+    assert zero.sum() == slow.stats['nframe_skipped']
+    assert good.sum() == slow.stats['nframe_read']
+    assert slow.stats['nframe_written'] == n
+
+
+def test_unguaranteed_sink_on_skip_records_zeros():
+    n = 300
+    x = 1 + np.arange(n, dtype=np.float64).reshape(n, 1)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, hdr(dtype='f64', shape=(-1, 1)), gulp_nframe=5)
+        sink = ArraySinkBlock(src, delay_s=0.01, guarantee=False)
+        run_with_timeout(p)
+    out = sink.result(0)
+    assert out.shape == x.shape
+    assert sink.nframe_skipped[0] == sink.stats['nframe_skipped'] > 0
+    lost = out[:, 0] == 0
+    assert lost.sum() == sink.nframe_skipped[0]
+    np.testing.assert_array_equal(out[~lost], x[~lost])
+
+
+def test_overlap_moving_sum_and_short_last_gulp():
+    rng = np.random.default_rng(1)
+    n, w, gulp = 55, 4, 10
+    x = rng.normal(size=(n, 3))
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, hdr(dtype='f64'), gulp_nframe=gulp)
+        fir = MovingSum(src, w)
+        sink = ArraySinkBlock(fir)
+        run_with_timeout(p)
+    truth = np.stack([np.convolve(x[:, c], np.ones(w), mode='valid') for c in range(3)], 1)
+    out = sink.result(0)
+    assert out.shape == truth.shape == (n - w + 1, 3)
+    np.testing.assert_allclose(out, truth, rtol=1e-12, atol=1e-12)
+    # spans of gulp + overlap frames every gulp frames, the last one short
+    assert fir.span_sizes == [(13, 13)] * 5 + [(5, 5)]
+    assert sink.headers[0]['gulp_nframe'] == gulp
+    # the reader asked for ceil((gulp + overlap) * 3) frames of ring
+    assert src.orings[0].capacity >= 3 * (gulp + w - 1)
+
+
+def test_several_sequences_keep_headers_and_data():
+    rng = np.random.default_rng(2)
+    arrays = [rng.normal(size=(17, 2)).astype(np.float32),
+              rng.normal(size=(3, 5)).astype(np.float32),
+              np.zeros((0, 2), np.float32),
+              rng.normal(size=(40, 2, 3)).astype(np.float32)]
+    headers = [hdr('a', shape=(-1, 2), time_tag=10, labels=['time', 'x'],
+                   scales=[[0.0, 0.5], None], units=['s', None], extra={'k': [1, 2]}),
+               hdr('b', shape=(-1, 5), time_tag=20),
+               hdr('empty', shape=(-1, 2), time_tag=30),
+               # a ringlet axis before the frame axis: arrays stay frame-axis-first
+               hdr('c', shape=(2, -1, 3), time_tag=40)]
+    arrays[3] = rng.normal(size=(40, 2, 3)).astype(np.float32)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(arrays, headers, gulp_nframe=6)
+        mid = Scale(src, k=-1)
+        sink = ArraySinkBlock(mid)
+        run_with_timeout(p)
+    assert [h['name'] for h in sink.headers] == ['a', 'b', 'empty', 'c']
+    assert [h['time_tag'] for h in sink.headers] == [10, 20, 30, 40]
+    assert sink.headers[0]['extra'] == {'k': [1, 2]}
+    assert sink.headers[0]['_tensor']['scales'] == [[0.0, 0.5], None]
+    assert all(h['gulp_nframe'] == 6 for h in sink.headers)
+    for a, got in zip(arrays, sink.arrays):
+        np.testing.assert_array_equal(got, -a)
+    assert mid.stats['nsequence'] == 4
+
+
+def test_define_output_nframes_decimation():
+    rng = np.random.default_rng(3)
+    n, gulp = 50, 12
+    x = rng.integers(-100, 100, size=(n, 2)).astype(np.int64)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, hdr(dtype='i64', shape=(-1, 2)), gulp_nframe=gulp)
+        dec = Decimate4(src)
+        sink = ArraySinkBlock(dec)
+        run_with_timeout(p)
+    # gulps of 12 frames -> 3 outputs each; the short last gulp (2 frames) -> 1 output
+    truth = np.concatenate([x[:48].reshape(12, 4, 2).sum(1), x[48:].sum(0, keepdims=True)])
+    np.testing.assert_array_equal(sink.result(0), truth)
+    assert sink.headers[0]['gulp_nframe'] == 3
+
+
+def in_fresh_thread(fn, timeout=15.0):
+    """Run ``fn`` in a new thread: it gets its own default pipeline (thread-local), so blocks
+    other test modules left in this thread's default pipeline cannot interfere."""
+    box = {}
+
+    def target():
+        try:
+            fn()
+        except BaseException as exc:  # noqa: BLE001
+            box['exc'] = exc
+    t = threading.Thread(target=target, daemon=True)
+    t.start()
+    t.join(timeout)
+    assert not t.is_alive(), "hung"
+    if 'exc' in box:
+        raise box['exc']
+
+
+def test_block_scope_and_default_pipeline():
+    in_fresh_thread(_block_scope_and_default_pipeline)
+
+
+def _block_scope_and_default_pipeline():
+    x = np.arange(30, dtype=np.float32).reshape(30, 1)
+    src = ArraySourceBlock(x, hdr(shape=(-1, 1)), gulp_nframe=10)   # default pipeline
+    with bfp.block_scope(gulp_nframe=4, buffer_factor=5):
+        mid = Scale(src, k=1)
+    sink = array_sink(mid)
+    assert mid.gulp_nframe == 4 and mid.buffer_factor == 5 and sink.gulp_nframe is None
+    p = bfp.get_default_pipeline()
+    assert p.blocks == [src, mid, sink]
+    p.run()
+    assert bfp.get_default_pipeline() is not p       # a fresh default afterwards
+    np.testing.assert_array_equal(sink.result(0), x)
+    assert sink.headers[0]['gulp_nframe'] == 4
+    assert src.orings[0].capacity >= 20            # ceil(4 * 5)
+    with pytest.raises(RuntimeError, match='already run'):
+        p.run()
+
+
+def test_bad_block_arguments():
+    with bfp.Pipeline():
+        src = array_source(np.zeros((4, 1)), hdr(dtype='f64', shape=(-1, 1)), 2)
+        with pytest.raises(TypeError):
+            Scale(src, bogus_keyword=1)
+        with pytest.raises(ValueError, match='gulp_nframe'):
+            Scale(src, gulp_nframe=0)
+
+        class GpuOnly(Scale):
+            def define_valid_input_spaces(self):
+                return ('cuda',)
+
+        class BareString(Scale):
+            def define_valid_input_spaces(self):
+                return 'cuda'
+        with pytest.raises(ValueError, match="space 'system'"):
+            GpuOnly(src)
+        with pytest.raises(TypeError, match='bare string'):
+            BareString(src)
+        with pytest.raises(TypeError, match='Block or a Ring'):
+            Scale(np.zeros(3))
+
+
+# --------------------------------------------------------------------------------------------
+# errors and shutdown
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('where', ['on_data', 'on_sequence'])
+def test_exception_in_block_reaches_run_without_hanging(where):
+    x = np.ones((20000, 8), np.float32)   # far more than any ring: the source must be woken
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, hdr(shape=(-1, 8)), gulp_nframe=16)
+        Boom(src, at_gulp=2, where=where, name='bad')
+        ArraySinkBlock(Scale(src), delay_s=0.001)
+    t0 = time.monotonic()
+    with pytest.raises(rtp.PipelineError, match=r"block 'bad' \(Boom\) failed") as info:
+        run_with_timeout(p)
+    assert time.monotonic() - t0 < 10
+    cause = info.value.__cause__
+    assert isinstance(cause, ValueError if where == 'on_data' else KeyError)
+    assert info.value.block_name == 'bad'
+
+
+def test_exception_in_source_wakes_downstream():
+    class BadSource(ArraySourceBlock):
+        def on_data(self, reader, ospans):
+            if reader.pos >= 8:
+                raise OSError('disk gone')
+            return super().on_data(reader, ospans)
+    with bfp.Pipeline() as p:
+        BadSource(np.ones((100, 1)), hdr(dtype='f64', shape=(-1, 1)), 4, name='src')
+        ArraySinkBlock(Scale(p.blocks[0]))
+    with pytest.raises(rtp.PipelineError, match=r"block 'src' \(BadSource\).*disk gone"):
+        run_with_timeout(p)
+
+
+def test_bad_output_header_is_reported():
+    class BadHeader(Scale):
+        def on_sequence(self, iseq):
+            h = copy.deepcopy(iseq.header)
+            h['_tensor']['shape'] = [4, 3]
+            return h
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(np.ones((10, 3)), hdr(dtype='f64'), 5)
+        ArraySinkBlock(BadHeader(src, name='hdr'))
+    with pytest.raises(rtp.PipelineError, match="block 'hdr'.*exactly one -1") as info:
+        run_with_timeout(p)
+    assert isinstance(info.value.__cause__, HeaderError)
+
+
+# --------------------------------------------------------------------------------------------
+# headers
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('mutate, match', [
+    (lambda h: h.pop('name'), "'name'"),
+    (lambda h: h.update(time_tag=-1), "time_tag"),
+    (lambda h: h.update(time_tag=1.5), "time_tag"),
+    (lambda h: h.update(time_tag=True), "time_tag"),
+    (lambda h: h.pop('_tensor'), "_tensor"),
+    (lambda h: h['_tensor'].update(dtype='c64'), "unknown Bifrost dtype"),
+    (lambda h: h['_tensor'].update(shape=[3, 4]), "exactly one -1"),
+    (lambda h: h['_tensor'].update(shape=[-1, -1]), "exactly one -1"),
+    (lambda h: h['_tensor'].update(shape=[-1, 0]), ">= 1"),
+    (lambda h: h['_tensor'].update(labels=['time']), "one entry per axis"),
+    (lambda h: h['_tensor'].update(labels=['t', 't']), "unique"),
+    (lambda h: h['_tensor'].update(scales=[None, [1.0]]), "offset, step"),
+    (lambda h: h['_tensor'].update(units=[None, 3]), "str or None"),
+    (lambda h: h.update(bad=np.arange(3)), "JSON"),
+    (lambda h: h.update(gulp_nframe=-2), "gulp_nframe"),
+])
+def test_header_validation_errors(mutate, match):
+    h = hdr(labels=['time', 'x'])
+    mutate(h)
+    with pytest.raises(HeaderError, match=match):
+        validate_header(h)
+    assert issubclass(HeaderError, ValueError)
+
+
+def test_header_round_trip_is_json():
+    h = hdr(scales=None, note=(1, 2))
+    out = validate_header(h)
+    assert out['note'] == [1, 2] and out is not h
+
+
+def test_duplicate_sequence_name_rejected():
+    r = Ring()
+    with r.begin_writing() as w:
+        with w.begin_sequence(hdr('a'), 4):
+            pass
+        with pytest.raises(ValueError, match='already used'):
+            w.begin_sequence(hdr('a'), 4)
+
+
+# --------------------------------------------------------------------------------------------
+# data types
+# --------------------------------------------------------------------------------------------
+
+CI4_TABLE = [(0x00, 0 + 0j), (0x7F, 7 - 1j), (0x80, -8 + 0j), (0x9E, -7 - 2j),
+             (0x11, 1 + 1j), (0xF0, -1 + 0j), (0x0F, 0 - 1j), (0x88, -8 - 8j),
+             (0x77, 7 + 7j), (0x3C, 3 - 4j)]
+
+
+def test_ci4_unpack_table_and_all_forms():
+    b = np.array([t[0] for t in CI4_TABLE], np.uint8)
+    want = np.array([t[1] for t in CI4_TABLE], np.complex64)
+    for form in (b, b.view([('re_im', 'u1')]), b.view(np.int8).view([('re_im', 'i1')])):
+        got = unpack_complex(form, 'ci4')
+        assert got.dtype == np.complex64
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(pack_ci4(want), b)
+
+
+def test_ci4_round_trip_all_bytes_and_clipping():
+    allb = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    np.testing.assert_array_equal(pack_ci4(unpack_complex(allb, 'ci4')), allb)
+    # round half to even, then clip to [-8, 7]
+    v = np.array([9.6 - 8.6j, -20 + 0.4j, 2.5 + 1.5j])
+    np.testing.assert_array_equal(pack_ci4(v), np.array([0x78, 0x80, 0x22], np.uint8))
+
+
+def test_ci8_ci16_forms():
+    v = np.array([1 - 2j, -128 + 127j, 300 - 300j, 0.4 + 0.6j])
+    s = pack_complex(v, 'ci8')
+    assert s.dtype.names == ('re', 'im') and s.dtype['re'] == np.int8
+    np.testing.assert_array_equal(s['re'], [1, -128, 127, 0])
+    np.testing.assert_array_equal(s['im'], [-2, 127, -128, 1])
+    want = np.array([1 - 2j, -128 + 127j, 127 - 128j, 0 + 1j], np.complex64)
+    np.testing.assert_array_equal(unpack_complex(s, 'ci8'), want)
+    plain = pack_complex(v, 'ci8', space='cuda', xp=np)       # CuPy form, built on host
+    assert plain.shape == (4, 2) and plain.dtype == np.int8
+    np.testing.assert_array_equal(unpack_complex(plain, 'ci8'), want)
+    s16 = pack_complex(v, 'ci16')
+    np.testing.assert_array_equal(unpack_complex(s16, 'ci16'),
+                                  np.array([1 - 2j, -128 + 127j, 300 - 300j, 1j], np.complex64))
+    with pytest.raises(TypeError, match='length 2'):
+        unpack_complex(np.zeros((3, 3), np.int8), 'ci8')
+    with pytest.raises(ValueError, match='unknown Bifrost dtype'):
+        unpack_complex(s, 'ci9')
+
+
+@pytest.mark.parametrize('dtype', ['ci4', 'ci8', 'cf32'])
+def test_complex_through_pipeline(dtype):
+    rng = np.random.default_rng(4)
+    z = (rng.normal(size=(21, 3, 2)) + 1j * rng.normal(size=(21, 3, 2))) * 3
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(z, hdr(dtype=dtype, shape=(-1, 3, 2)), gulp_nframe=4)
+        sink = ArraySinkBlock(src)
+        run_with_timeout(p)
+    got = sink.result(0, as_complex=True)
+    if dtype == 'ci4':
+        want = np.clip(np.rint(z.real), -8, 7) + 1j * np.clip(np.rint(z.imag), -8, 7)
+    elif dtype == 'ci8':
+        want = np.rint(z.real) + 1j * np.rint(z.imag)
+    else:
+        want = z.astype(np.complex64)
+    np.testing.assert_array_equal(got, want.astype(np.complex64))
+    if dtype == 'ci4':  # stored as Bifrost shows it: one byte per sample, structured 're_im'
+        assert sink.result(0).dtype == np.dtype([('re_im', 'u1')])
+
+
+# --------------------------------------------------------------------------------------------
+# import layer
+# --------------------------------------------------------------------------------------------
+
+def test_compat_helpers_on_builtin_runtime():
+    spans = {}
+
+    class Peek(bfp.SinkBlock):
+        def on_sequence(self, iseq):
+            spans['seq_space'] = _compat.space_of(iseq)
+
+        def on_data(self, ispan):
+            spans['arr'] = _compat.span_array(ispan)
+            spans['space'] = _compat.space_of(ispan)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(np.ones((4, 2), np.float32), hdr(shape=(-1, 2)), 4)
+        Peek(src)
+        run_with_timeout(p)
+    assert isinstance(spans['arr'], np.ndarray) and spans['arr'].shape == (4, 2)
+    assert spans['space'] == spans['seq_space'] == 'system' == _compat.space_of(src)
+    with _compat.stream_context():
+        pass
+    for name in ('Pipeline', 'block_scope', 'SourceBlock', 'TransformBlock', 'SinkBlock',
+                 'get_default_pipeline'):
+        assert hasattr(_compat.bfp, name)
+
+
+_FAKE_BIFROST = {
+    'bifrost/__init__.py': "",
+    'bifrost/pipeline.py': "".join(f"class {n}:\n    pass\n" for n in (
+        'Pipeline', 'SourceBlock', 'TransformBlock', 'SinkBlock', 'MultiTransformBlock'))
+    + "def block_scope(**kw): pass\ndef get_default_pipeline(): pass\nFAKE = True\n",
+}
+
+
+@pytest.mark.parametrize('env, want', [('', True), ('builtin', False)])
+def test_compat_prefers_bifrost_unless_forced(tmp_path, env, want):
+    for rel, text in _FAKE_BIFROST.items():
+        f = tmp_path / rel
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_text(text)
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    # Load _compat alone (not the blocks package, whose other modules need a real Bifrost).
+    code = ("import importlib.util, sys, types\n"
+            "import bf_epic_blocks\n"
+            "pkg = types.ModuleType('bf_epic_blocks.blocks')\n"
+            f"pkg.__path__ = [{os.path.join(repo, 'bf_epic_blocks', 'blocks')!r}]\n"
+            "sys.modules['bf_epic_blocks.blocks'] = pkg\n"
+            "spec = importlib.util.spec_from_file_location('bf_epic_blocks.blocks._compat',"
+            " pkg.__path__[0] + '/_compat.py')\n"
+            "c = importlib.util.module_from_spec(spec); spec.loader.exec_module(c)\n"
+            "print(c.HAVE_BIFROST, c.BIFROST_IMPORTABLE, hasattr(c.bfp, 'FAKE'))\n")
+    envd = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), repo]),
+                BF_EPIC_RUNTIME=env)
+    out = subprocess.run([sys.executable, '-c', code], env=envd, capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == [str(want), 'True', str(want)]
+
+
+# --------------------------------------------------------------------------------------------
+# 'cuda' space
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.skipif(HAS_GPU, reason='a GPU is present')
+def test_cuda_space_without_gpu_is_a_clear_error():
+    with pytest.raises(ValueError, match="space 'cuda' needs CuPy"):
+        Ring(space='cuda')
+    with bfp.Pipeline():
+        with pytest.raises(ValueError, match="space 'cuda'"):
+            ArraySourceBlock(np.zeros((2, 1)), hdr(dtype='f64', shape=(-1, 1)), 1,
+                             space='cuda')
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason='needs CuPy and a CUDA device')
+@pytest.mark.parametrize('dtype', ['ci4', 'ci8', 'cf32', 'f32'])
+def test_cuda_space_pipeline(dtype):
+    import cupy as cp
+    rng = np.random.default_rng(5)
+    z = (rng.normal(size=(37, 4)) + 1j * rng.normal(size=(37, 4))) * 3
+    if dtype == 'f32':
+        z = z.real
+
+    class GpuCopy(bfp.TransformBlock):
+        def define_valid_input_spaces(self):
+            return ('cuda',)
+
+        def on_sequence(self, iseq):
+            return copy.deepcopy(iseq.header)
+
+        def on_data(self, ispan, ospan):
+            src, dst = _compat.span_array(ispan), _compat.span_array(ospan)
+            assert isinstance(src, cp.ndarray) and isinstance(dst, cp.ndarray)
+            dst[...] = src
+
+    class ToHost(bfp.TransformBlock):
+        def __init__(self, iring, *args, **kwargs):
+            super().__init__(iring, *args, **kwargs)
+            self.orings = [self.create_ring(space='system')]
+
+        def on_sequence(self, iseq):
+            h = copy.deepcopy(iseq.header)
+            h['_tensor']['dtype'] = 'cf32'
+            return h
+
+        def on_data(self, ispan, ospan):
+            ospan.data[...] = cp.asnumpy(unpack_complex(ispan.data, dtype))
+
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(z, hdr(dtype=dtype, shape=(-1, 4)), gulp_nframe=8, space='cuda')
+        g = GpuCopy(src, gpu=0)
+        sink_dev = ArraySinkBlock(g)
+        sink_host = ArraySinkBlock(ToHost(g))
+        run_with_timeout(p, 60)
+    want = pack_complex(z, dtype, space='system')
+    want_c = unpack_complex(want, dtype) if dtype != 'f32' else z.astype(np.complex64)
+    np.testing.assert_array_equal(sink_dev.result(0, as_complex=True), want_c)
+    np.testing.assert_array_equal(sink_host.result(0), want_c)
+
+
+def test_block_whose_constructor_raises_leaves_the_pipeline():
+    class Picky(Scale):
+        def __init__(self, iring, *args, **kwargs):
+            super().__init__(iring, *args, **kwargs)
+            raise ValueError('bad parameter')
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(np.ones((4, 1)), hdr(dtype='f64', shape=(-1, 1)), 2)
+        with pytest.raises(ValueError, match='bad parameter'):
+            Picky(src)
+        sink = ArraySinkBlock(src)
+    assert p.blocks == [src, sink]
+    run_with_timeout(p)
+    np.testing.assert_array_equal(sink.result(0), np.ones((4, 1)))
