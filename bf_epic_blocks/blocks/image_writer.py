@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import warnings
 
 import numpy as np
 
@@ -21,14 +22,18 @@ log = logging.getLogger(__name__)
 
 
 def _even_runs(freq_hz):
-    """Index runs [(start, stop)] over which the channel spacing is constant."""
-    f = np.asarray(freq_hz)
-    if len(f) < 3:
-        return [(0, len(f))]
-    d = np.diff(f)
-    cuts = np.flatnonzero(~np.isclose(d[1:], d[:-1], rtol=1e-9, atol=1e-3)) + 2
-    edges = [0, *cuts.tolist(), len(f)]
-    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    """Index runs [(start, stop)] over which the channel spacing is constant (a FITS FREQ axis each)."""
+    f = np.asarray(freq_hz, dtype=np.float64)
+    runs, start = [], 0
+    while start < len(f):
+        stop = start + 1
+        if stop < len(f):
+            step = f[stop] - f[start]
+            while stop < len(f) and np.isclose(f[stop] - f[stop - 1], step, rtol=1e-9, atol=1e-3):
+                stop += 1
+        runs.append((start, stop))
+        start = stop
+    return runs
 
 
 class ImageWriterBlock(bfp.SinkBlock):
@@ -86,16 +91,17 @@ class ImageWriterBlock(bfp.SinkBlock):
             names.append(s.name)
             ra.append(s.ra_deg)
             dec.append(s.dec_deg)
-        try:
-            from astropy.coordinates import get_body
-            sun = get_body("sun", t, self.loc).icrs
-            names.append("Sun")
-            ra.append(float(sun.ra.deg))
-            dec.append(float(sun.dec.deg))
-        except Exception:  # the ephemeris is optional decoration
-            pass
         lm, alt = icrs_to_lm(np.array(ra), np.array(dec), t, self.loc)
-        return [(n, float(l), float(m)) for n, (l, m), a in zip(names, lm, alt) if np.isfinite(a) and a > 0]
+        out = [(n, float(l), float(m)) for n, (l, m), a in zip(names, lm, alt) if np.isfinite(a) and a > 0]
+        try:  # the Sun is near: go to AltAz directly (via ICRS would add a parallax of degrees)
+            from astropy.coordinates import AltAz, get_body
+            sun = get_body("sun", t, self.loc).transform_to(AltAz(obstime=t, location=self.loc))
+            if sun.alt.deg > 0:
+                alt_r, az_r = sun.alt.rad, sun.az.rad
+                out.append(("Sun", float(np.cos(alt_r) * np.sin(az_r)), float(np.cos(alt_r) * np.cos(az_r))))
+        except Exception as e:  # decoration only
+            log.debug("no Sun position: %s", e)
+        return out
 
     def on_data(self, ispan):
         from ..pipeline import fits_out, quicklook
@@ -110,20 +116,22 @@ class ImageWriterBlock(bfp.SinkBlock):
             stem = os.path.join(self.outdir, f"{self.prefix}_s{self.seq_index:02d}_i{j:04d}")
             frame = data[k]
             if self.grid is not None:
-                if self.do_fits:
-                    runs = _even_runs(self.freq)
-                    for r, (a, b) in enumerate(runs):
-                        path = f"{stem}.fits" if len(runs) == 1 else f"{stem}_r{r}.fits"
-                        width = float(self.freq[1] - self.freq[0]) if len(self.freq) > 1 else None
+                runs = _even_runs(self.freq)
+                width = float(self.freq[1] - self.freq[0]) if len(self.freq) > 1 else None
+                for r, (a, b) in enumerate(runs):
+                    rstem = stem if len(runs) == 1 else f"{stem}_r{r}"
+                    if self.do_fits:
                         self.written += fits_out.write_fits_image(
-                            path, frame[a:b], self.grid, self.freq[a:b], self.products, t, self.loc,
+                            f"{rstem}.fits", frame[a:b], self.grid, self.freq[a:b], self.products, t, self.loc,
                             chan_width_hz=width if b - a == 1 else None, **common)
-                if self.do_png:
-                    mean = np.nanmean(frame[:, 0], axis=0) if np.any(np.isfinite(frame[:, 0])) else frame[0, 0]
-                    title = (f"{self.hdr.get('station', {}).get('name', '')} {self.products[0]}  {t.isot[:19]} UTC  "
-                             f"{self.freq.min() / 1e6:.2f}-{self.freq.max() / 1e6:.2f} MHz")
-                    self.written.append(quicklook.quicklook_png(f"{stem}.png", mean, self.grid, title=title,
-                                                                sources=self._labels(t)))
+                    if self.do_png:  # channel mean of the first product, one PNG per FITS file
+                        with np.errstate(all="ignore"), warnings.catch_warnings():
+                            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels below the horizon
+                            mean = np.nanmean(frame[a:b, 0], axis=0)
+                        title = (f"{self.hdr.get('station', {}).get('name', '')} {self.products[0]}  {t.isot[:19]} UTC  "
+                                 f"{self.freq[a] / 1e6:.2f}-{self.freq[b - 1] / 1e6:.2f} MHz")
+                        self.written.append(quicklook.quicklook_png(f"{rstem}.png", mean, self.grid, title=title,
+                                                                    sources=self._labels(t)))
             else:
                 lm = np.asarray(self.hdr["pixels"]["lm"])
                 if self.hdr["pixels"]["kind"] == "track" and hasattr(self, "pixel_source"):

@@ -33,7 +33,8 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       quantize: bool                 (default true)
       # kind: tbf
       path: path to a TBF file       (required, must exist)
-      gulp_nframe: int >= 1          (default 1024; a frame = one time sample)
+      # either kind
+      gulp_nframe: int >= 1          (default 1024; frames (time samples) per ring gulp)
     calibration:
       cable: bool                    (default true)
       gains_table: path to a .npz / .yaml / .yml table (default null = none; must exist)
@@ -515,7 +516,8 @@ IMAGER_TRACK = Section({
     "update_s": Key(Float(0.0, lo_open=True), 10.0),
 }, what="a track mapping {source, size, fov_deg, update_s}")
 
-SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf"), REQUIRED)}
+SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf"), REQUIRED),
+                 "gulp_nframe": Key(Int(1), 1024)}
 SOURCE_SIMULATED = {
     "start": Key(TimeStr(), DEFAULT_START),
     "duration_s": Key(Float(0.0, lo_open=True), 2.0),
@@ -531,7 +533,6 @@ SOURCE_SIMULATED = {
 }
 SOURCE_TBF = {
     "path": Key(File("TBF file"), REQUIRED),
-    "gulp_nframe": Key(Int(1), 1024),
 }
 
 

@@ -1,0 +1,271 @@
+"""Turn a validated pipeline configuration (:mod:`.config`) into a block graph, plan it, run it.
+
+    source (TBF file | simulated sky) -> CalFoldBlock -> imager (DFT | w-stacking | MOFF) -> ImageWriterBlock
+
+The station table from LSL is what joins the configuration to the blocks: the sources put its
+positions, flags and cable terms (for the channels in use) into the sequence header, CalFoldBlock
+applies the cable terms and flags, the imager builds its operator from the positions.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..imaging import cost
+from ..imaging.calibration import FS_HZ
+from ..imaging.pixels import lm_grid
+
+log = logging.getLogger("bf_epic_blocks")
+
+
+@dataclass
+class Graph:
+    """The blocks of one pipeline and what they will do."""
+    pipeline: object
+    source: object
+    calfold: object
+    imager: object
+    writer: object
+    nframe_total: int | None
+    station: object
+    outdir: str
+    extra: dict = field(default_factory=dict)
+
+
+def load_station_for(cfg):
+    """The StationTable the configuration names, with the YAML flags added."""
+    from .station import load_station
+    st_cfg = cfg["station"]
+    name = st_cfg.get("ssmif") or st_cfg.get("name")
+    return load_station(name, extra_flags=st_cfg.get("flags") or None)
+
+
+def channel_freqs(cfg):
+    ch = cfg["source"]["channels"]
+    return (ch["first"] + np.arange(ch["count"])) * ch["width_hz"]
+
+
+def tracking_pixels(source, size, fov_deg, update_s, location):
+    """A function time_tag -> (size*size, 2) l, m of a square patch centred on ``source``.
+
+    The patch lies in the plane tangent to the source's direction (x towards increasing azimuth,
+    i.e. East for a source in the North, y towards the zenith), cell = fov / size. The centre is
+    recomputed every ``update_s`` seconds of data (time tags are quantised to that step), so the
+    imager rebuilds its operator only that often. Raises ValueError when the source or part of the
+    patch is below the horizon.
+    """
+    from ..io.tbf import time_tag_to_time
+    from .sky import resolve_source, source_directions
+    src = resolve_source(source)
+    step = max(1, int(round(update_s * FS_HZ)))
+    cell = math.radians(fov_deg) / size
+    off = (np.arange(size) - size // 2) * cell
+    oy, ox = np.meshgrid(off, off, indexing="ij")
+    cache = {}
+
+    def pixels(time_tag):
+        key = int(time_tag) // step
+        if key in cache:
+            return cache[key]
+        t = time_tag_to_time(key * step)
+        d = source_directions([src], t, location)
+        if len(d.sources) == 0:
+            raise ValueError(f"tracked source {src.name} is below the horizon at {t.isot} UTC")
+        s = np.array([d.l[0], d.m[0], d.n[0]])
+        e1 = np.array([s[1], -s[0], 0.0])
+        e1 = e1 / np.linalg.norm(e1) if np.linalg.norm(e1) > 1e-9 else np.array([1.0, 0.0, 0.0])
+        e2 = np.cross(e1, s)
+        v = s[None, None, :] + ox[..., None] * e1 + oy[..., None] * e2
+        v /= np.linalg.norm(v, axis=-1, keepdims=True)
+        if np.any(v[..., 2] <= 0):
+            raise ValueError(f"part of the {fov_deg} deg patch around {src.name} is below the horizon at {t.isot} UTC")
+        lm = v[..., :2].reshape(-1, 2)
+        cache.clear()
+        cache[key] = lm
+        return lm
+
+    pixels.source = src
+    return pixels
+
+
+def _pixels(cfg, station):
+    im = cfg["imager"]
+    if im.get("track"):
+        tr = im["track"]
+        return tracking_pixels(tr["source"] if not isinstance(tr["source"], dict) else tr["source"],
+                               tr["size"], tr["fov_deg"], tr["update_s"], station.location)
+    g = im["grid"]
+    return lm_grid(g["size"], cell=g.get("cell"))
+
+
+def _device(cfg):
+    dev = cfg["device"]
+    if dev == "cpu":
+        return "cpu", None
+    idx = int(dev.split(":")[1])
+    from ..imaging._xp import gpu_available
+    if not gpu_available():
+        raise RuntimeError(f"device {dev!r} asked for, but CuPy or a CUDA GPU is not available here; "
+                           "use device: cpu (or --set device=cpu)")
+    import cupy
+    cupy.cuda.Device(idx).use()
+    return "gpu", idx
+
+
+def build_graph(cfg, progress=None):
+    """Blocks for ``cfg`` inside a new Pipeline (not yet run)."""
+    from ..blocks import CalFoldBlock, DFTImagerBlock, bfp
+    from ..blocks.image_writer import ImageWriterBlock
+    from ..blocks.sources import SimSkySourceBlock, TBFSourceBlock
+    from ..imaging.calibration import GainTable
+
+    dev, _ = _device(cfg)
+    space = "cuda" if dev == "gpu" else "system"
+    station = load_station_for(cfg)
+    src_cfg, im = cfg["source"], cfg["imager"]
+    gulp = int(src_cfg["gulp_nframe"])
+    outdir = cfg["output"]["dir"]
+    with bfp.Pipeline() as p:
+        if src_cfg["kind"] == "tbf":
+            from ..io.tbf import scan_tbf
+            info = scan_tbf(src_cfg["path"])
+            nframe_total = int(info.ntime)
+            source = TBFSourceBlock(src_cfg["path"], gulp, station=station, progress=progress, space=space)
+        else:
+            freq = channel_freqs(cfg)
+            source = SimSkySourceBlock(station, freq, src_cfg["start"], src_cfg["duration_s"], src_cfg["sources"],
+                                       gulp, noise_power=src_cfg["noise_power"], seed=src_cfg["seed"],
+                                       quantize=src_cfg["quantize"], progress=progress, space=space)
+            nframe_total = source.nframe
+        cal = cfg["calibration"]
+        gains = cal.get("gains_table")
+        if gains:
+            gains = GainTable.load(gains)
+        pattern = None if cal.get("pattern") in (None, "none") else cal["pattern"]
+        calfold = CalFoldBlock(source, cable=bool(cal["cable"]), gains=gains, pattern=pattern)
+        pixels = _pixels(cfg, station)
+        common = dict(products=im["products"], remove_autocorr=im["remove_autocorr"])
+        if im["kind"] == "dft":
+            imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], method=im["method"],
+                                    precision=im["precision"], **common)
+        else:
+            from ..blocks.wstack import WStackBlock
+            imager = WStackBlock(calfold, pixels, im["accumulate_frames"], epsilon=im["epsilon"],
+                                 moff=(im["kind"] == "moff"), **common)
+        out = cfg["output"]
+        writer = ImageWriterBlock(imager, outdir, prefix=out["prefix"], fits=out["fits"], png=out["png"],
+                                  table=out["table"], location=station.location)
+        if callable(pixels) and not hasattr(pixels, "lm"):
+            writer.pixel_source = pixels
+    return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir)
+
+
+def run(cfg, show_progress=None):
+    """Build and run the pipeline; returns a summary dict (files written, frame counts, timing)."""
+    bar = None
+    if show_progress is None:
+        show_progress = sys.stderr.isatty()
+    progress = None
+    if show_progress:
+        from tqdm import tqdm
+        bar = tqdm(total=None, unit="frame", desc=cfg["name"], unit_scale=True)
+        progress = bar.update
+    t0 = time.perf_counter()
+    g = build_graph(cfg, progress=progress)
+    if bar is not None:
+        bar.total = g.nframe_total
+        bar.refresh()
+    log.info("running %s: %s source -> calfold -> %s imager -> %s", cfg["name"], cfg["source"]["kind"],
+             cfg["imager"]["kind"], g.outdir)
+    try:
+        g.pipeline.run()
+    finally:
+        if bar is not None:
+            bar.close()
+    wall = time.perf_counter() - t0
+    src_stats = getattr(g.source, "tbf_stats", None) or {}
+    img = getattr(g.imager, "img_stats", {})
+    frames_read = src_stats.get("samples", g.nframe_total)
+    skipped = sum(int(getattr(b, "stats", {}).get("frames_skipped", 0) or 0)
+                  for b in (g.calfold, g.imager, g.writer) if isinstance(getattr(b, "stats", None), dict))
+    summary = {
+        "name": cfg["name"], "outdir": g.outdir, "files": list(g.writer.written), "wall_s": wall,
+        "frames_read": int(frames_read or 0), "frames_imaged": int(img.get("frames_imaged", 0)),
+        "frames_dropped_partial": int(img.get("frames_dropped_partial", 0)), "frames_skipped": skipped,
+        "images": int(img.get("images", 0)), "tbf": src_stats, "calibration": getattr(g.calfold, "cal_stats", {}),
+    }
+    log.info("%s: frames read %d, imaged %d, skipped %d, dropped (partial integration) %d; %d images, "
+             "%d files in %s (%.1f s)", cfg["name"], summary["frames_read"], summary["frames_imaged"],
+             summary["frames_skipped"], summary["frames_dropped_partial"], summary["images"],
+             len(summary["files"]), g.outdir, wall)
+    if src_stats.get("frames_missing"):
+        log.warning("%d TBF frames were missing and zero-filled", src_stats["frames_missing"])
+    return summary
+
+
+def plan(cfg):
+    """What the pipeline would do, without running it: a dict and a printable text."""
+    from ..io.tbf import scan_tbf
+    station = load_station_for(cfg)
+    src, im = cfg["source"], cfg["imager"]
+    if src["kind"] == "tbf":
+        info = scan_tbf(src["path"])
+        freq, dt = np.asarray(info.freq_hz), 1.0 / info.chan_bw_hz
+        ntotal = int(info.ntime)
+    else:
+        freq = channel_freqs(cfg)
+        dt = 1.0 / src["channels"]["width_hz"]
+        ntotal = int(round(src["duration_s"] / dt))
+    nchan = len(freq)
+    pixels = _pixels(cfg, station)
+    if hasattr(pixels, "npix"):
+        npix, pix_txt = pixels.npix, f"{pixels.size}x{pixels.size} grid, {pixels.npix} pixels above the horizon kept"
+    else:
+        npix, pix_txt = im["track"]["size"] ** 2, f"{im['track']['size']}^2 patch tracking {im['track']['source']}"
+    flags = station.flags
+    nant_pol = int((~flags).sum())
+    nstand_any = int((~flags).any(axis=1).sum())
+    from ..imaging.products import needs_cross, resolve_products
+    prods = resolve_products(2, im["products"])
+    nblk = sum([any(p in ("XX", "I", "Q") for p in prods), any(p in ("YY", "I", "Q") for p in prods),
+                needs_cross(prods)])
+    acc = int(im["accumulate_frames"])
+    gulp = int(src["gulp_nframe"])
+    dev = "gpu" if cfg["device"].startswith("gpu") else "cpu"
+    per_image = cost.route_cmacs(acc, nstand_any, npix, 2, nblk)
+    per_gulp = {k: v * nchan * gulp / acc for k, v in per_image.items()}
+    bytes_ = cost.route_bytes(gulp, nstand_any, npix, 2, 8 if im["precision"] == "fp32" else 16)
+    chosen = im["method"] if im["method"] != "auto" else cost.choose_method(acc, nstand_any, npix, 2, nblk)
+    t_gulp = cost.predict_seconds(per_gulp[chosen], dev, chosen) if im["kind"] == "dft" else float("nan")
+    rt = gulp * dt / t_gulp if t_gulp == t_gulp else float("nan")
+    d = {"station": station.name, "stands": station.nstand, "stands_used": nstand_any, "antenna_pols_used": nant_pol,
+         "flagged_antenna_pols": int(flags.sum()), "pixels": npix, "pixels_text": pix_txt, "nchan": nchan,
+         "freq_mhz": [float(freq.min() / 1e6), float(freq.max() / 1e6)], "frames_total": ntotal,
+         "gulp_nframe": gulp, "accumulate_frames": acc, "images": ntotal // acc, "products": list(prods),
+         "cmac_per_gulp": per_gulp, "bytes_per_channel": bytes_, "method": chosen, "imager": im["kind"],
+         "device": cfg["device"], "predicted_gulp_s": t_gulp, "gulp_duration_s": gulp * dt, "realtime_factor": rt}
+    lines = [
+        f"pipeline {cfg['name']}: {src['kind']} source, {im['kind']} imager on {cfg['device']}",
+        f"  station {station.name}: {station.nstand} stands, {nstand_any} used, {int(flags.sum())} antenna-pols flagged",
+        f"  channels: {nchan} ({d['freq_mhz'][0]:.3f}-{d['freq_mhz'][1]:.3f} MHz); {ntotal} frames "
+        f"({ntotal * dt:.3f} s); {ntotal // acc} images of {acc} frames",
+        f"  pixels: {pix_txt}",
+        f"  products: {', '.join(prods)}",
+        f"  per {gulp}-frame gulp (all channels): direct {per_gulp['direct']:.3e} CMAC, "
+        f"covariance {per_gulp['covariance']:.3e} CMAC",
+        f"  working set per channel: direct {bytes_['direct'] / 2**20:.1f} MiB, covariance "
+        f"{bytes_['covariance'] / 2**20:.1f} MiB",
+        f"  method: {chosen}" + (" (auto: fewer operations)" if im["method"] == "auto" else ""),
+    ]
+    if im["kind"] == "dft":
+        lines.append(f"  predicted on {dev}: {t_gulp * 1e3:.2f} ms per gulp of {gulp * dt * 1e3:.2f} ms of data "
+                     f"-> real-time factor {rt:.2f} (rates measured on the README's machines)")
+    else:
+        lines.append("  (run time of the w-stacking/MOFF imagers: see tools/bench_wstack.py)")
+    return d, "\n".join(lines)
