@@ -187,7 +187,8 @@ def test_bad_headers_name_the_problem(scene):
         run_pipeline(X, nost, 8, 8, s["lm"], cable=False)
     with pytest.raises(Exception, match=r"cable_delay_s"):
         run_pipeline(X, hdr, 8, 8, s["lm"], cable=True)
-    with pytest.raises(ValueError, match="accumulate must be a positive integer"):
-        DFTImagerBlock(ArraySourceBlock(X, hdr, 8), s["lm"], 0)
-    with pytest.raises(ValueError, match="below the horizon"):
-        DFTImagerBlock(ArraySourceBlock(X, hdr, 8), [[0.9, 0.9]], 4)
+    with bfp.Pipeline():
+        with pytest.raises(ValueError, match="accumulate must be a positive integer"):
+            DFTImagerBlock(ArraySourceBlock(X, hdr, 8), s["lm"], 0)
+        with pytest.raises(ValueError, match="below the horizon"):
+            DFTImagerBlock(ArraySourceBlock(X, hdr, 8), [[0.9, 0.9]], 4)

@@ -8,3 +8,4 @@ from .array_io import ArraySinkBlock, ArraySourceBlock, array_sink, array_source
 from .calfold import CalFoldBlock, cal_fold  # noqa: F401
 from .dft_imager import DFTImagerBlock, dft_imager  # noqa: F401
 from .headers import efield_header, efield_layout  # noqa: F401
+from .wstack import WStackBlock, wstack  # noqa: F401

@@ -39,6 +39,8 @@ class DFTImagerBlock(bfp.TransformBlock):
     Output: float32 frames of one image each; header ``imager`` and ``pixels`` say what they are.
     """
 
+    imager_kind = "dft"
+
     def __init__(self, iring, pixels, accumulate, products=None, remove_autocorr=False, method="auto",
                  precision="fp32", pattern=None, *args, **kwargs):
         super().__init__(iring, *args, **kwargs)
@@ -76,6 +78,7 @@ class DFTImagerBlock(bfp.TransformBlock):
                                pattern=B, precision=self.precision)
         self._acc = self._op.accumulator(self.products, remove_autocorr=self.remove_autocorr,
                                          method=self.method, ntime_hint=self.accumulate)
+        self._nant_used, self._npix = self._op.nant, self._op.npix
         self._lm = np.asarray(lm)
         self.img_stats["operator_builds"] += 1
 
@@ -124,13 +127,13 @@ class DFTImagerBlock(bfp.TransformBlock):
             self._scatter = None
         ohdr["_tensor"] = {"dtype": "f32", "shape": shape, "labels": labels, "scales": scales, "units": units}
         ohdr["pol_products"] = list(self._acc.products)
-        ohdr["imager"] = {"kind": "dft", "method": self._acc.method, "precision": self.precision,
+        ohdr["imager"] = {"kind": self.imager_kind, "method": self._acc.method, "precision": self.precision,
                           "products": list(self._acc.products), "accumulate_frames": self.accumulate,
-                          "remove_autocorr": bool(self.remove_autocorr), "nant_used": int(self._op.nant),
+                          "remove_autocorr": bool(self.remove_autocorr), "nant_used": int(self._nant_used),
                           "pattern": self._pattern_name,
                           "integration_ticks": self.accumulate * lay["ticks_per_frame"]}
-        log.info("DFTImagerBlock %s: %d pixels, %d antennas used, %s route, %s, %d frames per image",
-                 ihdr.get("name"), self._op.npix, self._op.nant, self._acc.method, self.precision, self.accumulate)
+        log.info(type(self).__name__ + " %s: %d pixels, %d antennas used, %s route, %s, %d frames per image",
+                 ihdr.get("name"), self._npix, self._nant_used, self._acc.method, self.precision, self.accumulate)
         return ohdr
 
     # --------------------------------------------------------------- per gulp

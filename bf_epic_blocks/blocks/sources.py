@@ -142,6 +142,11 @@ class SimSkySourceBlock(bfp.SourceBlock):
                             simulation={"sources": [str(s) if not isinstance(s, dict) else s.get("name", "custom")
                                                     for s in self.sources],
                                         "noise_power": self.noise_power, "seed": self.seed, "start": self.start.isot})
+        from ..pipeline.sky import source_directions
+        d = source_directions(self.sources, self.start, st.location)
+        log.info("simulated sky at %s UTC: %s above the horizon%s", self.start.isot[:19],
+                 ", ".join(f"{n} (alt {np.degrees(a):.1f} deg)" for n, a in zip(d.names, d.alt)) or "no source",
+                 f"; below: {', '.join(d.dropped)}" if d.dropped else "")
         if self.cable:
             self._delay = np.moveaxis(st.cable_delay_s(self.freq_hz), -1, 0)
             self._gain = np.moveaxis(st.cable_gain(self.freq_hz), -1, 0)

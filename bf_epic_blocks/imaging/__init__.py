@@ -12,10 +12,12 @@ plus :class:`DFTOperator` (build once, image many gulps), pixel-set helpers (:fu
 from . import cost
 from .dft import DFTOperator, ImageAccumulator, dirty_image, geometric_operator, geometric_phase_cycles
 from .pixels import LMGrid, azalt_from_lm, check_lm, lm_from_azalt, lm_grid, lm_list, n_from_lm
+from .moff import moff_image
 from .products import resolve_products
+from .wstack import GriddedAccumulator, cov_wgrid_image, wstack_image
 
 __all__ = [
     "DFTOperator", "ImageAccumulator", "LMGrid", "azalt_from_lm", "check_lm", "cost", "dirty_image",
     "geometric_operator", "geometric_phase_cycles", "lm_from_azalt", "lm_grid", "lm_list", "n_from_lm",
-    "resolve_products",
+    "resolve_products", "wstack_image", "cov_wgrid_image", "moff_image", "GriddedAccumulator",
 ]

@@ -38,6 +38,18 @@ class Graph:
     extra: dict = field(default_factory=dict)
 
 
+def _scan(path):
+    """scan_tbf with its warnings (a truncated last frame) sent to the log instead of stderr."""
+    import warnings
+    from ..io.tbf import scan_tbf
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        info = scan_tbf(path)
+    for w in caught:
+        log.warning("%s", w.message)
+    return info
+
+
 def load_station_for(cfg):
     """The StationTable the configuration names, with the YAML flags added."""
     from .station import load_station
@@ -125,6 +137,9 @@ def build_graph(cfg, progress=None):
     from ..blocks.sources import SimSkySourceBlock, TBFSourceBlock
     from ..imaging.calibration import GainTable
 
+    if cfg["imager"]["kind"] != "dft" and cfg["calibration"].get("pattern") not in (None, "none"):
+        raise ValueError(f"calibration.pattern: the {cfg['imager']['kind']} imager cannot fold an antenna pattern "
+                         f"({cfg['calibration']['pattern']!r}); set calibration.pattern: none or use imager.kind: dft")
     dev, _ = _device(cfg)
     space = "cuda" if dev == "gpu" else "system"
     station = load_station_for(cfg)
@@ -133,8 +148,7 @@ def build_graph(cfg, progress=None):
     outdir = cfg["output"]["dir"]
     with bfp.Pipeline() as p:
         if src_cfg["kind"] == "tbf":
-            from ..io.tbf import scan_tbf
-            info = scan_tbf(src_cfg["path"])
+            info = _scan(src_cfg["path"])
             nframe_total = int(info.ntime)
             source = TBFSourceBlock(src_cfg["path"], gulp, station=station, progress=progress, space=space)
         else:
@@ -211,11 +225,10 @@ def run(cfg, show_progress=None):
 
 def plan(cfg):
     """What the pipeline would do, without running it: a dict and a printable text."""
-    from ..io.tbf import scan_tbf
     station = load_station_for(cfg)
     src, im = cfg["source"], cfg["imager"]
     if src["kind"] == "tbf":
-        info = scan_tbf(src["path"])
+        info = _scan(src["path"])
         freq, dt = np.asarray(info.freq_hz), 1.0 / info.chan_bw_hz
         ntotal = int(info.ntime)
     else:

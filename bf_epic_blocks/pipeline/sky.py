@@ -206,7 +206,7 @@ def source_directions(sources, time=None, location=None) -> SourceDirections:
     keep = alt > 0
     dropped = [s.name for s, k in zip(srcs, keep) if not k]
     if dropped:
-        log.info("sources below the horizon dropped: %s", ", ".join(dropped))
+        log.debug("sources below the horizon dropped: %s", ", ".join(dropped))
     return SourceDirections(l[keep], m[keep], alt[keep], az[keep], n[keep],
                             [s for s, k in zip(srcs, keep) if k], dropped)
 

@@ -1,0 +1,147 @@
+"""The station-to-FITS path through the bf-epic CLI: YAMLs, real TBF files, WCS placement, tracking."""
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("astropy")
+from bf_epic_blocks.pipeline.offline import configure_offline  # noqa: E402
+
+configure_offline()
+pytest.importorskip("lsl")
+
+from bf_epic_blocks.pipeline import cli  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+PIPES = REPO / "pipelines"
+DATA = REPO.parent / "shared" / "data" / "lwa"
+need_data = pytest.mark.skipif(not (DATA / "lwasv-adp-tbf.dat").exists(), reason=f"real LWA data not found at {DATA}")
+FAST = ["--set", "source.duration_s=0.1", "--set", "imager.accumulate_frames=2500", "--set",
+        "source.channels.count=4", "--no-progress", "-q"]
+
+
+def read_fits(path):
+    from astropy.io import fits
+    from astropy.wcs import WCS
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # astropy fills lat/lon from OBSGEO (FITSFixedWarning)
+        with fits.open(path) as h:
+            return h[0].data.copy(), WCS(h[0].header), dict(h[0].header)
+
+
+def test_every_pipeline_yaml_validates(capsys):
+    for f in sorted(PIPES.glob("*.yaml")):
+        if "tbf" in f.name and not DATA.exists():
+            continue
+        assert cli.main(["validate", str(f)]) == 0, f
+    assert "valid" in capsys.readouterr().out
+
+
+def test_validation_errors_name_the_key(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("source: {kind: tbf, path: nowhere.dat}\nimager: {grid: {size: abc}, acumulate_frames: 3}\n"
+                   "device: gpu:x\n")
+    assert cli.main(["validate", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "source.path" in err and "imager.grid.size" in err and "acumulate_frames" in err
+    assert "accumulate_frames" in err  # the suggestion
+    assert "device" in err
+
+
+def test_plan_reports_the_scene(capsys):
+    assert cli.main(["plan", str(PIPES / "lwasv_sim_allsky.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "3205 pixels above the horizon" in out and "method: covariance" in out
+    assert "real-time factor" in out and "254 used" in out
+
+
+def test_simulated_demo_puts_cyg_a_on_its_pixel(tmp_path):
+    """Stokes I's brightest pixel, read back with astropy.wcs, is within one pixel of Cyg A."""
+    from astropy.coordinates import SkyCoord
+    out = tmp_path / "demo"
+    assert cli.main(["run", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", f"output.dir={out}", *FAST]) == 0
+    fits_files = sorted(out.glob("*.fits"))
+    pngs = sorted(out.glob("*.png"))
+    assert len(fits_files) == 1 and len(pngs) == 1 and pngs[0].stat().st_size > 20000
+    data, wcs, hdr = read_fits(fits_files[0])
+    assert data.shape == (1, 4, 64, 64) and hdr["CTYPE1"] == "RA---SIN" and hdr["CTYPE3"] == "FREQ"
+    assert hdr["CTYPE4"] == "STOKES" and hdr["CRVAL4"] == 1 and "DATE-OBS" in hdr and hdr["TELESCOP"]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN corners below the horizon
+        img = np.nanmean(data[0], axis=0)
+    j, i = np.unravel_index(np.nanargmax(img), img.shape)
+    sky = wcs.celestial.pixel_to_world(i, j)
+    cyg = SkyCoord(299.8681525, 40.7339156, unit="deg")
+    assert sky.separation(cyg).deg < abs(hdr["CDELT1"]) * 1.5
+
+
+@need_data
+@pytest.mark.parametrize("yaml_name,expect_runs", [("lwasv_tbf_allsky.yaml", 1), ("lwana_tbf_allsky.yaml", 2)])
+def test_real_tbf_files_image(tmp_path, yaml_name, expect_runs):
+    out = tmp_path / "tbf"
+    assert cli.main(["run", str(PIPES / yaml_name), "--set", f"output.dir={out}", "--no-progress", "-q"]) == 0
+    fits_files = sorted(out.glob("*.fits"))
+    assert len(fits_files) == expect_runs  # LWA-NA's two channel blocks: one FITS per even-spaced run
+    for f in fits_files:
+        data, wcs, hdr = read_fits(f)
+        assert np.isfinite(data[..., 32, 32]).all() and np.isnan(data[..., 0, 0]).all()
+
+
+@need_data
+def test_lwana_tbf_shows_cas_a_at_52_mhz(tmp_path):
+    """Real data pin the sign: the 52 MHz block of the LWA-NA capture peaks within 10 deg of Cas A."""
+    from astropy.coordinates import SkyCoord
+    out = tmp_path / "na"
+    assert cli.main(["run", str(PIPES / "lwana_tbf_allsky.yaml"), "--set", f"output.dir={out}",
+                     "--set", "imager.remove_autocorr=true", "--no-progress", "-q"]) == 0
+    data, wcs, hdr = read_fits(sorted(out.glob("*_r1.fits"))[0])
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        img = np.nanmean(data[0], axis=0)
+    j, i = np.unravel_index(np.nanargmax(img), img.shape)
+    sep = wcs.celestial.pixel_to_world(i, j).separation(SkyCoord(350.85, 58.815, unit="deg")).deg
+    assert sep < 10, sep
+
+
+@need_data
+def test_corrupt_tbf_is_a_clear_error(tmp_path, capsys):
+    raw = bytearray((DATA / "lwana-ndp-tbf.dat").read_bytes())
+    raw[2 * 1560:2 * 1560 + 4] = b"\x00\x00\x00\x00"
+    bad = tmp_path / "bad.dat"
+    bad.write_bytes(bytes(raw))
+    assert cli.main(["run", str(PIPES / "lwana_tbf_allsky.yaml"), "--set", f"source.path={bad}",
+                     "--set", f"output.dir={tmp_path / 'o'}", "--no-progress", "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "offset 3120" in err
+
+
+def test_tracking_follows_cyg_a(tmp_path):
+    from bf_epic_blocks.pipeline.fits_out import read_pixel_table
+    out = tmp_path / "track"
+    args = ["run", str(PIPES / "lwasv_track_cyga.yaml"), "--set", f"output.dir={out}",
+            "--set", "source.duration_s=0.2", "--set", "imager.accumulate_frames=2500",
+            "--set", "source.channels.count=2", "--set", "imager.track.update_s=0.1",
+            "--set", "imager.track.size=12", "--no-progress", "-q"]
+    assert cli.main(args) == 0
+    tables = sorted(out.glob("*_pixels.fits"))
+    assert len(tables) == 2
+    t0, t1 = (read_pixel_table(t) for t in tables)
+    lm0, lm1 = (np.column_stack([t["l"], t["m"]]) for t in (t0, t1))
+    assert not np.allclose(lm0, lm1), "the patch must move with the source"
+    centre = 6 * 12 + 6
+    for t, lm in ((t0, lm0), (t1, lm1)):
+        vals = t["values"][:, 0].mean(axis=0)  # Stokes I, channel mean, (npix,)
+        k = int(np.argmax(vals))
+        assert k == centre or np.hypot(*(lm[k] - lm[centre])) < 0.02, "Cyg A stays at the patch centre"
+    assert sorted(out.glob("*.png"))
+
+
+def test_gpu_request_without_gpu_is_clear(tmp_path, capsys):
+    from bf_epic_blocks.imaging._xp import gpu_available
+    if gpu_available():
+        pytest.skip("this machine has a GPU")
+    assert cli.main(["run", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", "device=gpu",
+                     "--set", f"output.dir={tmp_path}", *FAST]) == 1
+    assert "CuPy or a CUDA GPU is not available" in capsys.readouterr().err
