@@ -10,9 +10,9 @@ BIN := $(VENV)/bin
 setup: $(VENV)/.installed
 
 $(VENV)/.installed: setup.cfg pyproject.toml
-	bash tools/install_system_deps.sh
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
+	PYTHON=$(BIN)/python bash tools/install_system_deps.sh
 	$(BIN)/python -m pip install -q -e '.[test]'
 	touch $@
 

@@ -73,3 +73,25 @@ def test_wstack_block_rejects_what_it_cannot_do(scene):
             s2 = ArraySourceBlock(X.astype(np.complex64), hdr, 16)
             WStackBlock(CalFoldBlock(s2, cable=False, pattern="dipole"), imaging.lm_grid(16), 4)
             p.run()
+
+
+def test_zenith_phased_moff_drops_only_w_n_minus_1(scene):
+    """MOFF on zenith-phased voltages = the DFT with the w (n - 1) term dropped: exact at the zenith,
+    wrong away from it (the seed paper's wide-field error)."""
+    xyz, freq, X = scene
+    grid = imaging.lm_grid(32)
+    got = imaging.moff_image(X, xyz, freq, grid, epsilon=1e-6, products=("I",), phase_zenith=True)
+    C = 299792458.0
+    Xz = X * np.exp(-2j * np.pi * freq[None, :, None, None] / C * xyz[None, None, :, 2:3])
+    ref = brute_image(Xz, xyz * [1, 1, 0], freq, grid.lm, ("I",))
+    assert np.max(np.abs(got - ref)) / ref.max() <= 4e-6
+    # a source at the zenith keeps its exact peak; one 60 deg out does not
+    g = imaging.lm_grid(64)
+    for az, alt, exact_expected in ((0.0, 90.0, True), (90.0, 30.0, False)):
+        (l, m), = imaging.lm_from_azalt([az], [alt])
+        Xs = point_source_efield(xyz, freq, l, m, 1.0, 8, npol=2)
+        approx = imaging.moff_image(Xs, xyz, freq, g, epsilon=1e-6, products=("XX",), phase_zenith=True)
+        exact = imaging.dirty_image(Xs, xyz, freq, g.lm, products=("XX",), precision="fp64")
+        k = int(np.argmin(np.hypot(g.lm[:, 0] - l, g.lm[:, 1] - m)))
+        err = abs(approx[0, 0, k] - exact[0, 0, k]) / exact[0, 0, k]
+        assert (err < 1e-5) if exact_expected else (err > 1e-2), (az, alt, err)

@@ -303,9 +303,21 @@ class FieldPlan:
 # ----------------------------------------------------------------------------- plan cache
 # Plans depend only on geometry, frequency, grid and accuracy, which a pipeline keeps fixed, so
 # they are cached (keyed by the exact bytes of the point coordinates); the cache holds at most
-# _CACHE_NNZ gridding-matrix entries in all and forgets the oldest plans first.
+# _cache_nnz(xp) gridding-matrix entries in all and forgets the oldest plans first. The cap must hold
+# one plan per channel of a pipeline, or every gulp rebuilds them all (seconds, on the host): on the
+# GPU it is a quarter of the device memory (~12 bytes an entry), on the host 40 M entries.
 _CACHE: "dict[tuple, FieldPlan]" = {}
 _CACHE_NNZ = 40_000_000
+
+
+def _cache_nnz(xp):
+    if xp.__name__ == "cupy":
+        try:
+            total = xp.cuda.runtime.memGetInfo()[1]
+            return max(_CACHE_NNZ, int(0.25 * total / 12))
+        except Exception:
+            pass
+    return _CACHE_NNZ
 
 
 def get_plan(uvw, grid: LMGrid, *, epsilon, sigma, use_w, direct, xp, dtype) -> FieldPlan:
@@ -319,7 +331,8 @@ def get_plan(uvw, grid: LMGrid, *, epsilon, sigma, use_w, direct, xp, dtype) -> 
         plan = FieldPlan(uvw, grid, epsilon=epsilon, sigma=sigma, use_w=use_w, direct=direct, xp=xp, dtype=dtype)
     _CACHE[key] = plan                                  # (re)insert as the newest
     total = sum(p.nnz for p in _CACHE.values())
-    while total > _CACHE_NNZ and len(_CACHE) > 1:
+    cap = _cache_nnz(xp)
+    while total > cap and len(_CACHE) > 1:
         oldest = next(iter(_CACHE))
         total -= _CACHE.pop(oldest).nnz
     return plan
