@@ -51,7 +51,7 @@ class TBFSourceBlock(bfp.SourceBlock):
             warnings.simplefilter("always")
             info = scan_tbf(sourcename)
         for w in caught:
-            log.warning("%s: %s", sourcename, w.message)
+            log.warning("%s", w.message)
         return _Reader(info=info, it=iter_tbf_gulps(sourcename, self.gulp_nframe, info=info), path=sourcename)
 
     def _station(self, info):

@@ -38,14 +38,15 @@ class Graph:
     extra: dict = field(default_factory=dict)
 
 
-def _scan(path):
-    """scan_tbf with its warnings (a truncated last frame) sent to the log instead of stderr."""
+def _scan(path, report=True):
+    """scan_tbf with its warnings (a truncated last frame) sent to the log instead of stderr
+    (``report=False``: not at all, when the source block will report them itself)."""
     import warnings
     from ..io.tbf import scan_tbf
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         info = scan_tbf(path)
-    for w in caught:
+    for w in caught if report else ():
         log.warning("%s", w.message)
     return info
 
@@ -148,7 +149,7 @@ def build_graph(cfg, progress=None):
     outdir = cfg["output"]["dir"]
     with bfp.Pipeline() as p:
         if src_cfg["kind"] == "tbf":
-            info = _scan(src_cfg["path"])
+            info = _scan(src_cfg["path"], report=False)
             nframe_total = int(info.ntime)
             source = TBFSourceBlock(src_cfg["path"], gulp, station=station, progress=progress, space=space)
         else:
