@@ -2,8 +2,7 @@
 """Benchmark: exact DFT vs E-field w-stacking vs covariance + w-gridding vs MOFF.
 
 Case (PHYSICS.md, case P): 256 LWA-SV-like antennas (LSL's lwasv stands when ``lsl`` imports, else
-a generated layout: 255 stands within ~55 m, z spread ~1 m, plus the outrigger ~293 m West, 10 m
-up), 1024 time samples at 74 MHz, all-sky N x N grids. CPU: one channel, one polarisation.
+the look-alike of tools/cases.py), 1024 time samples at 74 MHz, all-sky N x N grids. CPU: one channel, one polarisation.
 GPU: 16 channels x 2 polarisations (XX, YY). The data are a few incoherent point sources plus noise.
 
 Errors: max |I - I_ref| / max I_ref over a subset of pixels (200 random kept pixels plus the pixel
@@ -27,31 +26,16 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from cases import lwasv_like_layout, reference_image  # noqa: E402
 
 from bf_epic_blocks.imaging.moff import moff_image  # noqa: E402
-from bf_epic_blocks.imaging.pixels import lm_grid, n_from_lm  # noqa: E402
+from bf_epic_blocks.imaging.pixels import lm_grid  # noqa: E402
 from bf_epic_blocks.imaging.wstack import cov_wgrid_image, get_plan, work_dtype, wstack_image  # noqa: E402
 
 C = 299792458.0
 FREQ0 = 74e6
 LEVELS = (1e-2, 1e-4, 1e-6)
-
-
-def lwasv_positions(nant: int, rng) -> tuple[np.ndarray, str]:
-    """(nant, 3) East/North/Up metres; LSL's LWA-SV stands when available."""
-    try:
-        from lsl.common import stations
-        st = stations.lwasv
-        xyz = np.array([[a.stand.x, a.stand.y, a.stand.z] for a in st.antennas[::2]], np.float64)
-        if xyz.shape[0] >= nant:
-            return xyz[:nant], "lsl stations.lwasv"
-    except Exception:
-        pass
-    ncore = nant - 1
-    r = 55.0 * np.sqrt(rng.uniform(size=ncore))
-    th = rng.uniform(0, 2 * np.pi, ncore)
-    core = np.c_[r * np.cos(th), 1.1 * r * np.sin(th), rng.normal(scale=0.4, size=ncore)]
-    return np.vstack([core, [-293.0, 0.0, 10.0]]), "generated LWA-SV-like (255 core + outrigger)"
 
 
 def simulate(xyz, freqs, ntime, npol, rng, srcs):
@@ -63,20 +47,6 @@ def simulate(xyz, freqs, ntime, npol, rng, srcs):
             amp = (rng.normal(size=(ntime, len(s))) + 1j * rng.normal(size=(ntime, len(s)))) * np.linspace(1, 0.3, len(s))
             noise = 0.3 * (rng.normal(size=(ntime, xyz.shape[0])) + 1j * rng.normal(size=(ntime, xyz.shape[0])))
             out[:, c, :, p] = amp @ ph.T + noise
-    return out
-
-
-def reference(efield, xyz, freqs, lm):
-    """float64 brute-force DFT image (nchan, npol, nsub) on the subset lm."""
-    T, nc, A, npol = efield.shape
-    n = np.asarray(n_from_lm(lm[:, 0], lm[:, 1]))
-    out = np.empty((nc, npol, lm.shape[0]))
-    for c in range(nc):
-        D = np.exp(-2j * np.pi * freqs[c] / C * (np.outer(lm[:, 0], xyz[:, 0]) + np.outer(lm[:, 1], xyz[:, 1])
-                                                  + np.outer(n, xyz[:, 2]))) / A
-        for p in range(npol):
-            F = D @ efield[:, c, :, p].astype(np.complex128).T
-            out[c, p] = (np.abs(F) ** 2).mean(1)
     return out
 
 
@@ -124,7 +94,7 @@ def main(argv=None):
     if args.quick:
         args.sizes, args.ntime, args.eps, args.repeat = [32, 64], 128, [1e-2, 1e-4], 1
     rng = np.random.default_rng(0)
-    xyz, layout = lwasv_positions(args.nant, rng)
+    xyz, layout = lwasv_like_layout(args.nant)
     if args.device == "gpu":
         import cupy as xp
         nchan, npol = 16, 2
@@ -147,7 +117,7 @@ def main(argv=None):
         sub = rng.choice(grid.npix, size=min(200, grid.npix), replace=False)
         near = [int(np.argmin(np.hypot(*(grid.lm - s).T))) for s in srcs]
         sub = np.unique(np.r_[sub, near])
-        ref = reference(efield_h, xyz, freqs, grid.lm[sub])
+        ref = reference_image(efield_h, xyz, freqs, grid.lm[sub], tuple((p, p) for p in range(npol)))
         peak = ref.max()
         cases = []
         for eps in args.eps:

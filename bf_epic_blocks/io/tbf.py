@@ -70,11 +70,10 @@ _HEADER_DTYPE = np.dtype([("sync", ">u4"), ("id_count", ">u4"), ("second", ">u4"
                           ("first_chan", ">i2"), ("nstand", ">i2"), ("time_tag", ">i8")])
 assert _HEADER_DTYPE.itemsize == HEADER_BYTES
 
-# Lookup table byte -> complex value: the vectorised unpack (one gather, no bit twiddling per sample).
+# Lookup table byte -> (re, im) int8 for the integer unpack.
 _NIB = np.arange(16, dtype=np.int16)
 _NIB = np.where(_NIB >= 8, _NIB - 16, _NIB)
 _B = np.arange(256)
-_LUT_C64 = (_NIB[_B >> 4] + 1j * _NIB[_B & 0xF]).astype(np.complex64)
 _LUT_I8 = np.stack([_NIB[_B >> 4], _NIB[_B & 0xF]], axis=-1).astype(np.int8)  # (256, 2) re, im
 
 
@@ -95,7 +94,9 @@ def unpack_ci4(packed, dtype=np.complex64):
 
     High nibble = real, low nibble = imaginary, both 4-bit two's complement (-8..7).
     ``dtype``: a complex dtype (complex64/complex128), or ``'int8'`` to get int8 ``(..., 2)`` (re, im).
+    The complex decoding is the ring runtime's (:func:`bf_epic_blocks.runtime.dtypes.unpack_complex`).
     """
+    from ..runtime.dtypes import unpack_complex
     packed = np.asarray(packed)
     if packed.dtype != np.uint8:
         raise TypeError(f"unpack_ci4 expects uint8 packed ci4 bytes, got dtype {packed.dtype}")
@@ -103,7 +104,7 @@ def unpack_ci4(packed, dtype=np.complex64):
         return _LUT_I8[packed]
     if np.dtype(dtype).kind != "c":
         raise TypeError(f"unpack_ci4: dtype must be complex64, complex128 or int8, got {dtype}")
-    return _LUT_C64[packed].astype(dtype, copy=False)
+    return unpack_complex(packed, "ci4").astype(dtype, copy=False)
 
 
 def pack_ci4(values) -> np.ndarray:
@@ -119,9 +120,8 @@ def pack_ci4(values) -> np.ndarray:
         if part.size and (np.any(part != np.round(part)) or part.min() < -8 or part.max() > 7):
             raise ValueError(f"pack_ci4: {name} parts must be integers in -8..7 "
                              f"(got range {part.min()}..{part.max()})")
-    r = re.astype(np.int16) & 0xF
-    i = im.astype(np.int16) & 0xF
-    return ((r << 4) | i).astype(np.uint8)
+    from ..runtime.dtypes import pack_ci4 as _pack  # the one packer; this wrapper only refuses to round
+    return _pack(re + 1j * im)
 
 
 def time_tag_to_time(time_tag):
