@@ -6,6 +6,7 @@ from bf_epic_blocks import imaging
 from bf_epic_blocks.blocks import (ArraySinkBlock, ArraySourceBlock, CalFoldBlock, DFTImagerBlock, bfp,
                                    efield_header)
 from bf_epic_blocks.imaging.calibration import FS_HZ, GainTable, cable_weights
+from bf_epic_blocks.blocks import _compat
 from bf_epic_blocks.runtime.dtypes import pack_ci4
 from truth import point_source_efield
 
@@ -192,3 +193,31 @@ def test_bad_headers_name_the_problem(scene):
             DFTImagerBlock(ArraySourceBlock(X, hdr, 8), s["lm"], 0)
         with pytest.raises(ValueError, match="below the horizon"):
             DFTImagerBlock(ArraySourceBlock(X, hdr, 8), [[0.9, 0.9]], 4)
+
+
+@pytest.mark.bifrost
+@pytest.mark.skipif(not _compat.HAVE_BIFROST, reason="needs real Bifrost (import bifrost) as the runtime")
+def test_real_bifrost_pipeline_matches_core(scene):
+    """Inside real Bifrost: ArraySource -> CalFold -> DFTImager -> ArraySink equals dirty_image."""
+    import bifrost.pipeline
+    assert _compat.HAVE_BIFROST and _compat.RUNTIME == "bifrost"
+    assert issubclass(bfp.Pipeline, bifrost.pipeline.Pipeline)
+    assert issubclass(DFTImagerBlock, bifrost.pipeline.TransformBlock)
+    s = scene
+    X = s["ints"][:96]
+    hdr = efield_header("rb", 0, s["freq"], DT, station(s), dtype="ci4")
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(pack_ci4(X), hdr, gulp_nframe=40)  # short last gulp of 16
+        cal = CalFoldBlock(src, cable=True)
+        img = DFTImagerBlock(cal, s["lm"], 48, products="stokes")
+        sink = ArraySinkBlock(img)
+        assert isinstance(p, bifrost.pipeline.Pipeline)
+        p.run()
+    w = cable_weights(s["delay"], s["gain"], s["freq"]) * ~s["flags"][None]
+    ref = np.stack([imaging.dirty_image(X[j * 48:(j + 1) * 48].astype(np.complex128), s["xyz"], s["freq"],
+                                        s["lm"], weights=w, precision="fp64", products="stokes")
+                    for j in range(2)])
+    got = sink.result(0)
+    assert got.shape == ref.shape == (2, 3, 4, len(s["lm"]))
+    assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= 1e-6
+    assert sink.headers[0]["_tensor"]["labels"] == ["time", "freq", "pol", "pixel"]

@@ -9,7 +9,10 @@ through :func:`span_array`, so the same code runs on both.
   variable ``BF_EPIC_RUNTIME`` is not ``builtin``; ``BF_EPIC_RUNTIME=builtin`` forces ours).
 * ``bf`` -- the ``bifrost`` module when in use, else None.
 * ``bfp`` -- exposes Pipeline, block_scope, get_default_pipeline, SourceBlock, TransformBlock,
-  SinkBlock, MultiTransformBlock.
+  SinkBlock, MultiTransformBlock. On real Bifrost it is ``bifrost.pipeline``'s namespace with
+  ``Pipeline`` subclassed so that ``run()`` raises a failed block's error as
+  :class:`bf_epic_blocks.runtime.pipeline.PipelineError` (plain Bifrost only ends that block's
+  thread); ``PipelineError`` is the failure type on both runtimes.
 
 Span data forms (see :mod:`bf_epic_blocks.runtime.dtypes`): host spaces give NumPy arrays
 (complex integers as Bifrost's structured dtypes), 'cuda' gives CuPy arrays ('ci4' as uint8,
@@ -20,6 +23,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
+import types
 
 import numpy as np
 
@@ -40,8 +45,56 @@ RUNTIME_ENV = 'BF_EPIC_RUNTIME'
 HAVE_BIFROST = BIFROST_IMPORTABLE and os.environ.get(RUNTIME_ENV, '').lower() != 'builtin'
 
 if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost
-    import bifrost.pipeline as bfp
+    import bifrost.pipeline as _bf_pipeline
     bf = _bifrost
+
+    class Pipeline(_bf_pipeline.Pipeline):
+        """``bifrost.pipeline.Pipeline`` whose ``run()`` raises a block's failure.
+
+        Real Bifrost only ends the failing block's thread: ``run()`` returns normally (failure
+        after start-up) or raises ``PipelineInitError`` naming the block but not the error. Here
+        every block's ``run`` is wrapped: the first exception is kept, the other blocks are told
+        to shut down (they poll their shutdown events), and ``run()`` then raises our runtime's
+        :class:`~bf_epic_blocks.runtime.pipeline.PipelineError` (block name + original message,
+        original as ``__cause__``), as our runtime does."""
+
+        def run(self):
+            self._bf_epic_failure = None
+            lock = threading.Lock()
+
+            def catching(block, run):
+                def wrapped():
+                    try:
+                        run()
+                    except Exception as exc:  # reported by Pipeline.run below, not the thread
+                        with lock:
+                            if self._bf_epic_failure is None:
+                                self._bf_epic_failure = (block, exc)
+                        for b in self.blocks:
+                            b.shutdown()
+                        # blocks still waiting for start-up to finish must see the shutdown
+                        self.all_blocks_finished_initializing_event.set()
+                return wrapped
+
+            for block in self.blocks:
+                block.run = catching(block, block.run)
+            init_error = None
+            try:
+                super().run()
+            except getattr(_bf_pipeline, 'PipelineInitError', ()) as exc:
+                init_error = exc
+            for t in getattr(self, 'threads', ()):  # let the failing thread record its error
+                t.join(self.shutdown_timeout)
+            if self._bf_epic_failure is not None:
+                block, exc = self._bf_epic_failure
+                raise _builtin_pipeline.PipelineError(block, exc) from exc
+            if init_error is not None:
+                raise init_error
+
+    # bifrost.pipeline's names, with Pipeline replaced by the subclass above
+    bfp = types.ModuleType('bf_epic_blocks.blocks._compat.bfp', _bf_pipeline.__doc__)
+    bfp.__dict__.update({k: v for k, v in vars(_bf_pipeline).items() if not k.startswith('__')})
+    bfp.Pipeline = Pipeline
 else:
     bfp = _builtin_pipeline
     bf = None
