@@ -95,3 +95,17 @@ def test_zenith_phased_moff_drops_only_w_n_minus_1(scene):
         k = int(np.argmin(np.hypot(g.lm[:, 0] - l, g.lm[:, 1] - m)))
         err = abs(approx[0, 0, k] - exact[0, 0, k]) / exact[0, 0, k]
         assert (err < 1e-5) if exact_expected else (err > 1e-2), (az, alt, err)
+
+
+def test_covariance_gridder_accumulates_across_calls(scene):
+    """R summed over several calls and gridded once = one call on all samples (and = the DFT)."""
+    xyz, freq, X = scene
+    grid = imaging.lm_grid(32)
+    g = imaging.CovarianceGridder(xyz, freq, grid, 2, epsilon=1e-6, products="stokes", remove_autocorr=True)
+    for chunk in np.array_split(X, 5):
+        g.add(chunk)
+    assert g.ntime == X.shape[0]
+    whole = imaging.cov_wgrid_image(X, xyz, freq, grid, epsilon=1e-6, products="stokes", remove_autocorr=True)
+    ref = brute_image(X, xyz, freq, grid.lm, ("I", "Q", "U", "V"), remove_autocorr=True)
+    assert np.max(np.abs(g.image() - whole)) / np.abs(ref).max() <= 1e-6
+    assert np.max(np.abs(g.image() - ref)) / np.abs(ref).max() <= 4e-6

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..imaging.pixels import LMGrid
-from ..imaging.wstack import GriddedAccumulator
+from ..imaging.wstack import gridded_accumulator
 from .dft_imager import DFTImagerBlock
 
 
@@ -52,10 +52,10 @@ class WStackBlock(DFTImagerBlock):
             route = "moff"
         elif route == "auto":
             route = "covariance" if self.accumulate >= lay["nstand"] else "efield"
-        self._acc = GriddedAccumulator(xp.asarray(lay["xyz_m"]), xp.asarray(lay["freq_hz"]), self.pixels,
-                                       lay["npol"], route=route, epsilon=self.epsilon, products=self.products,
-                                       remove_autocorr=self.remove_autocorr,
-                                       weights=xp.asarray(live[None].astype(np.complex128)))
+        self._acc = gridded_accumulator(lay["xyz_m"], lay["freq_hz"], self.pixels, lay["npol"], route=route,
+                                        epsilon=self.epsilon, products=self.products,
+                                        remove_autocorr=self.remove_autocorr,
+                                        weights=live[None].astype(np.complex128), xp=xp)
         self._nant_used, self._npix = int(live.any(axis=1).sum()), self.pixels.npix
         self._lm = np.asarray(lm)
         self.img_stats["operator_builds"] += 1

@@ -82,6 +82,7 @@ import numpy as np
 
 from ..conventions import SPEED_OF_LIGHT_M_S
 from ._xp import get_xp, to_numpy
+from .dft import _as_freqs, _as_positions, _broadcast_weights
 from .kernels import ESKernel, es_fourier, es_params, good_fft_size, spread_weights
 from .pixels import LMGrid, n_from_lm
 from .products import combine, needs_cross, resolve_products
@@ -354,33 +355,16 @@ def _check_inputs(efield, xyz_m, freq_hz, grid, weights):
     T, C, A, npol = efield.shape
     if T < 1:
         raise ValueError("efield has no time samples (ntime = 0)")
-    xyz = np.asarray(to_numpy(xyz_m), dtype=np.float64)
+    # the same checks as the exact DFT (host copies: plans are built on the host)
+    xyz = _as_positions(to_numpy(xyz_m), np)
     if xyz.shape != (A, 3):
         raise ValueError(f"xyz_m must be shaped (nant, 3) = ({A}, 3) metres East, North, Up; got {xyz.shape}")
-    freq = np.atleast_1d(np.asarray(to_numpy(freq_hz), dtype=np.float64))
+    freq = _as_freqs(to_numpy(freq_hz), np)
     if freq.shape != (C,):
         raise ValueError(f"freq_hz must have one frequency per channel ({C}); got shape {freq.shape}")
-    if not np.all(np.isfinite(freq)) or np.any(freq <= 0):
-        raise ValueError("freq_hz must be positive and finite (Hz)")
-    if not np.all(np.isfinite(xyz)):
-        raise ValueError("xyz_m contains non-finite positions")
     if not isinstance(grid, LMGrid):
         raise TypeError(f"grid must be an LMGrid (bf_epic_blocks.imaging.pixels.lm_grid), got {type(grid).__name__}")
-    if weights is None:
-        wts = np.ones((C, A, npol), np.complex128)
-    else:
-        wts = np.asarray(to_numpy(weights)).astype(np.complex128)
-        if wts.ndim == 1:
-            wts = wts[None, :, None]
-        try:
-            if wts.ndim != 3:
-                raise ValueError
-            wts = np.broadcast_to(wts, (C, A, npol))
-        except ValueError:
-            raise ValueError(f"weights must be shaped (nant,) or broadcastable to (nchan, nant, npol) = "
-                             f"({C}, {A}, {npol}); got {wts.shape}") from None
-        if not np.all(np.isfinite(wts)):
-            raise ValueError("weights contain non-finite values (use 0 to flag an antenna)")
+    wts = _broadcast_weights(None if weights is None else to_numpy(weights), C, A, npol, np)
     return xp, xyz, freq, wts
 
 
@@ -490,85 +474,139 @@ def _ducc_grid(uvw, V, grid, epsilon, nthreads):
     return out
 
 
+class CovarianceGridder:
+    """Covariance + w-gridding for one array, channel set, grid and accuracy: accumulate X X^H over
+    any number of calls, grid the visibilities once per image.
+
+    ``add(efield)`` sums R = X X^H (weights and 1/N_A folded in) per channel and polarisation pair;
+    ``image()`` grids the baselines a < b of R / T (w-gridding to ``epsilon``) and adds the
+    autocorrelations as a constant unless ``remove_autocorr``; ``reset()`` starts a new integration.
+    ``backend``: 'ducc0' (CPU, needs ``pip install ducc0``, an even grid size >= 32), 'xp' (our
+    FieldPlan on the visibilities: NumPy or CuPy) or 'auto' (ducc0 for NumPy input when usable,
+    else 'xp'). Other arguments as :func:`wstack_image`.
+    """
+
+    method = "covariance"
+
+    def __init__(self, xyz_m, freq_hz, grid, npol, *, xp=np, epsilon=1e-4, products=None, remove_autocorr=False,
+                 weights=None, backend="auto", sigma=2.0, direct="auto", nthreads=None):
+        probe = np.zeros((1, np.atleast_1d(to_numpy(freq_hz)).size, len(to_numpy(xyz_m)), npol), np.complex64)
+        _, self.xyz, self.freq, self.wts = _check_inputs(probe, xyz_m, freq_hz, grid, weights)
+        self.xp, self.grid, self.npol = xp, grid, npol
+        self.products = names = resolve_products(npol, products)
+        self.cross = needs_cross(names)
+        self.want_yy = npol == 2 and any(p in ("YY", "I", "Q") for p in names)
+        self.pols = [0, 1] if npol == 2 and (self.want_yy or self.cross) else [0]
+        if backend not in ("auto", "ducc0", "xp"):
+            raise ValueError(f"backend must be 'auto', 'ducc0' or 'xp'; got {backend!r}")
+        ducc_ok = xp is np and grid.size % 2 == 0 and grid.size >= 32
+        if backend == "auto":
+            try:
+                import ducc0  # noqa: F401 - availability probe
+                backend = "ducc0" if ducc_ok else "xp"
+            except ImportError:
+                backend = "xp"
+        if backend == "ducc0" and not ducc_ok:
+            raise ValueError("backend='ducc0' needs NumPy input and an even grid size >= 32 "
+                             f"(got {'CuPy' if xp is not np else 'NumPy'} input, size {grid.size})")
+        self.backend, self.epsilon, self.sigma, self.direct = backend, epsilon, sigma, direct
+        self.remove_autocorr = remove_autocorr
+        self.nthreads = nthreads or os.cpu_count() or 1
+        self.cdt = work_dtype(epsilon)
+        self.rdt = np.float32 if self.cdt == np.complex64 else np.float64
+        # per channel: the antennas kept and their scales w_a / N_A (pols in use)
+        self._keep, self._scale = [], []
+        for c in range(len(self.freq)):
+            scale = _pol_scales(self.wts[c])
+            keep = np.flatnonzero(np.any(scale[:, self.pols] != 0, axis=1))
+            self._keep.append(keep)
+            self._scale.append(xp.asarray(scale[keep][:, self.pols].astype(self.cdt)))
+        self.reset()
+
+    def reset(self):
+        self.ntime = 0
+        self._R = None
+
+    def add(self, efield):
+        """Accumulate (ntime, nchan, nant, npol) complex voltages (in this gridder's namespace)."""
+        xp = self.xp
+        T = int(efield.shape[0])
+        if T == 0:
+            return
+        if self._R is None:
+            self._R = [dict() for _ in self.freq]
+        for c, keep in enumerate(self._keep):
+            # covariance in complex128 when asked for high accuracy; one GEMM per pol pair
+            Xs = efield[:, c][:, xp.asarray(keep)][:, :, self.pols].astype(self.cdt) * self._scale[c][None]
+            Xp = [xp.ascontiguousarray(Xs[:, :, i].T) for i in range(len(self.pols))]   # (A', T)
+            pairs = [(i, i) for i in range(len(self.pols))] + ([(0, 1)] if self.cross else [])
+            for i, j in pairs:
+                r = Xp[i] @ Xp[j].conj().T
+                self._R[c][(i, j)] = r if (i, j) not in self._R[c] else self._R[c][(i, j)] + r
+        self.ntime += T
+
+    def image(self):
+        """(nchan, nprod, grid.npix) image of the samples accumulated so far."""
+        if self.ntime == 0:
+            raise ValueError("no samples were accumulated: cannot form an image from zero time samples")
+        xp, grid, C = self.xp, self.grid, len(self.freq)
+        xx = xp.zeros((C, grid.npix), self.rdt)
+        yy = xp.zeros((C, grid.npix), self.rdt) if self.want_yy else None
+        xy = xp.zeros((C, grid.npix), self.cdt) if self.cross else None
+        for c, keep in enumerate(self._keep):
+            R = {k: v / self.ntime for k, v in self._R[c].items()}
+            ia, ib = np.triu_indices(keep.size, k=1)
+            ia_x, ib_x = xp.asarray(ia), xp.asarray(ib)
+            cols, diag = [], []
+            for i in range(len(self.pols)):
+                cols.append(2.0 * R[(i, i)][ia_x, ib_x])
+                diag.append(xp.trace(R[(i, i)]).real)
+            if self.cross:
+                Rxy = R[(0, 1)]
+                rab, rba = Rxy[ia_x, ib_x], Rxy[ib_x, ia_x].conj()
+                cols.append(rab + rba)
+                cols.append(-1j * (rab - rba))
+                diag.append(xp.trace(Rxy))
+            V = xp.stack(cols, axis=1)                                         # (nbl, ncols)
+            uvw = (self.xyz[keep][ia] - self.xyz[keep][ib]) * (self.freq[c] / SPEED_OF_LIGHT_M_S)
+            if uvw.shape[0] == 0:
+                img = xp.zeros((grid.npix, V.shape[1]), self.rdt)
+            elif self.backend == "ducc0":
+                img = _ducc_grid(uvw, np.asarray(V), grid, self.epsilon, self.nthreads)
+            else:
+                plan = get_plan(uvw, grid, epsilon=self.epsilon, sigma=self.sigma, use_w=True, direct=self.direct,
+                                xp=xp, dtype=self.cdt)
+                img = plan.apply(V).real
+            add = 0.0 if self.remove_autocorr else 1.0
+            xx[c] = img[:, 0] + add * diag[0]
+            k = 1
+            if len(self.pols) == 2:
+                if self.want_yy:
+                    yy[c] = img[:, 1] + add * diag[1]
+                k = 2
+            if self.cross:
+                xy[c] = (img[:, k] + 1j * img[:, k + 1]) + add * diag[-1]
+        return combine(self.products, xx, yy, xy)
+
+    result = image
+
+
 def cov_wgrid_image(efield, xyz_m, freq_hz, grid: LMGrid, *, epsilon=1e-4, products=None,
                     remove_autocorr=False, weights=None, backend="auto", sigma=2.0, direct="auto",
                     nthreads=None):
     """Covariance + w-gridding image, (nchan, nprod, grid.npix), = the DFT image to ~epsilon.
 
     R = X X^H / T per channel (weights and 1/N_A folded in), baselines a < b gridded with
-    w-gridding, autocorrelations added as a constant (dropped if ``remove_autocorr``).
-    ``backend``: 'ducc0' (CPU, needs ``pip install ducc0``, an even grid size >= 32), 'xp' (our
-    FieldPlan on the visibilities: NumPy or CuPy) or 'auto' (ducc0 for NumPy input when usable,
-    else 'xp'). Other arguments as :func:`wstack_image`.
+    w-gridding, autocorrelations added as a constant (dropped if ``remove_autocorr``); see
+    :class:`CovarianceGridder` (which also accumulates R over several calls) for ``backend``.
+    Other arguments as :func:`wstack_image`.
     """
-    xp, xyz, freq, wts = _check_inputs(efield, xyz_m, freq_hz, grid, weights)
-    T, C, A, npol = efield.shape
-    names = resolve_products(npol, products)
-    cross = needs_cross(names)
-    want_yy = npol == 2 and any(p in ("YY", "I", "Q") for p in names)
-    pols = [0, 1] if npol == 2 and (want_yy or cross) else [0]
-    if backend not in ("auto", "ducc0", "xp"):
-        raise ValueError(f"backend must be 'auto', 'ducc0' or 'xp'; got {backend!r}")
-    ducc_ok = xp is np and grid.size % 2 == 0 and grid.size >= 32
-    if backend == "auto":
-        try:
-            import ducc0  # noqa: F401 - availability probe
-            backend = "ducc0" if ducc_ok else "xp"
-        except ImportError:
-            backend = "xp"
-    if backend == "ducc0" and not ducc_ok:
-        raise ValueError("backend='ducc0' needs NumPy input and an even grid size >= 32 "
-                         f"(got {'CuPy' if xp is not np else 'NumPy'} input, size {grid.size})")
-    cdt = work_dtype(epsilon)
-    rdt = np.float32 if cdt == np.complex64 else np.float64
-    nthreads = nthreads or os.cpu_count() or 1
-    xx = xp.zeros((C, grid.npix), rdt)
-    yy = xp.zeros((C, grid.npix), rdt) if want_yy else None
-    xy = xp.zeros((C, grid.npix), cdt) if cross else None
-    for c in range(C):
-        scale = _pol_scales(wts[c])
-        keep = np.flatnonzero(np.any(scale[:, pols] != 0, axis=1))
-        Ak = keep.size
-        # covariance in complex128 when asked for high accuracy; one GEMM per pol pair
-        gdt = np.complex128 if cdt == np.complex128 else np.complex64
-        Xs = efield[:, c][:, xp.asarray(keep)][:, :, pols].astype(gdt) * xp.asarray(scale[keep][:, pols].astype(gdt))[None]
-        Xp = [xp.ascontiguousarray(Xs[:, :, i].T) for i in range(len(pols))]   # (A', T)
-        R = {}
-        for i in range(len(pols)):
-            R[(i, i)] = (Xp[i] @ Xp[i].conj().T) / T
-        if cross:
-            R[(0, 1)] = (Xp[0] @ Xp[1].conj().T) / T
-        ia, ib = np.triu_indices(Ak, k=1)
-        ia_x, ib_x = xp.asarray(ia), xp.asarray(ib)
-        cols, diag = [], []
-        for i in range(len(pols)):
-            cols.append(2.0 * R[(i, i)][ia_x, ib_x])
-            diag.append(xp.trace(R[(i, i)]).real)
-        if cross:
-            Rxy = R[(0, 1)]
-            rab, rba = Rxy[ia_x, ib_x], Rxy[ib_x, ia_x].conj()
-            cols.append(rab + rba)
-            cols.append(-1j * (rab - rba))
-            diag.append(xp.trace(Rxy))
-        V = xp.stack(cols, axis=1)                                         # (nbl, ncols)
-        uvw = (xyz[keep][ia] - xyz[keep][ib]) * (freq[c] / SPEED_OF_LIGHT_M_S)
-        if uvw.shape[0] == 0:
-            img = xp.zeros((grid.npix, V.shape[1]), rdt)
-        elif backend == "ducc0":
-            img = _ducc_grid(uvw, np.asarray(V), grid, epsilon, nthreads)
-        else:
-            plan = get_plan(uvw, grid, epsilon=epsilon, sigma=sigma, use_w=True, direct=direct, xp=xp, dtype=cdt)
-            img = plan.apply(V).real
-        add = 0.0 if remove_autocorr else 1.0
-        xx[c] = img[:, 0] + add * diag[0]
-        k = 1
-        if len(pols) == 2:
-            if want_yy:
-                yy[c] = img[:, 1] + add * diag[1]
-            k = 2
-        if cross:
-            xy[c] = (img[:, k] + 1j * img[:, k + 1]) + add * diag[-1]
-    return combine(names, xx, yy, xy)
+    xp, _, _, _ = _check_inputs(efield, xyz_m, freq_hz, grid, weights)
+    g = CovarianceGridder(xyz_m, freq_hz, grid, efield.shape[3], xp=xp, epsilon=epsilon, products=products,
+                          remove_autocorr=remove_autocorr, weights=weights, backend=backend, sigma=sigma,
+                          direct=direct, nthreads=nthreads)
+    g.add(efield)
+    return g.image()
 
 
 class GriddedAccumulator:
@@ -578,14 +616,15 @@ class GriddedAccumulator:
     ``products``, ``method``). The imagers return time means, which are linear in the samples, so
     the mean over the integration is the sample-weighted mean of per-call images: exact.
 
-    route : 'efield' (:func:`wstack_image`), 'covariance' (:func:`cov_wgrid_image`) or 'moff'
-    (:func:`~.moff.moff_image`).
+    route : 'efield' (:func:`wstack_image`) or 'moff' (:func:`~.moff.moff_image`); for
+    'covariance' use :class:`CovarianceGridder` (it sums X X^H and grids once per image), which
+    :func:`gridded_accumulator` picks.
     """
 
     def __init__(self, xyz_m, freq_hz, grid, npol, *, route="efield", epsilon=1e-4, products=None,
                  remove_autocorr=False, weights=None):
         from .moff import moff_image
-        fns = {"efield": wstack_image, "covariance": cov_wgrid_image, "moff": moff_image}
+        fns = {"efield": wstack_image, "moff": moff_image}
         if route not in fns:
             raise ValueError(f"route must be one of {tuple(fns)}, got {route!r}")
         self._fn, self.method = fns[route], route
@@ -610,3 +649,14 @@ class GriddedAccumulator:
         if self.ntime == 0:
             raise ValueError("no samples were accumulated: cannot form an image from zero time samples")
         return (self._sum / self.ntime).astype(self._sum.dtype, copy=False)
+
+
+def gridded_accumulator(xyz_m, freq_hz, grid, npol, *, route="efield", epsilon=1e-4, products=None,
+                        remove_autocorr=False, weights=None, xp=np):
+    """The accumulator for a gridded route: :class:`CovarianceGridder` for 'covariance' (R summed
+    over the integration, gridded once), :class:`GriddedAccumulator` for 'efield' and 'moff'."""
+    if route == "covariance":
+        return CovarianceGridder(xyz_m, freq_hz, grid, npol, xp=xp, epsilon=epsilon, products=products,
+                                 remove_autocorr=remove_autocorr, weights=weights)
+    return GriddedAccumulator(xyz_m, freq_hz, grid, npol, route=route, epsilon=epsilon, products=products,
+                              remove_autocorr=remove_autocorr, weights=weights)
