@@ -254,7 +254,9 @@ def plan(cfg):
     dev = "gpu" if cfg["device"].startswith("gpu") else "cpu"
     per_image = cost.route_cmacs(acc, nstand_any, npix, 2, nblk)
     per_gulp = {k: v * nchan * gulp / acc for k, v in per_image.items()}
-    bytes_ = cost.route_bytes(gulp, nstand_any, npix, 2, 8 if im["precision"] == "fp32" else 16)
+    bytes_ = {k: v * nchan for k, v in
+              cost.route_bytes(gulp, nstand_any, npix, 2, 8 if im["precision"] == "fp32" else 16).items()}
+    input_bytes = gulp * nchan * station.nstand * 2  # ci4: one byte per complex sample
     chosen = im["method"] if im["method"] != "auto" else cost.choose_method(acc, nstand_any, npix, 2, nblk)
     t_gulp = cost.predict_seconds(per_gulp[chosen], dev, chosen) if im["kind"] == "dft" else float("nan")
     rt = gulp * dt / t_gulp if t_gulp == t_gulp else float("nan")
@@ -262,7 +264,7 @@ def plan(cfg):
          "flagged_antenna_pols": int(flags.sum()), "pixels": npix, "pixels_text": pix_txt, "nchan": nchan,
          "freq_mhz": [float(freq.min() / 1e6), float(freq.max() / 1e6)], "frames_total": ntotal,
          "gulp_nframe": gulp, "accumulate_frames": acc, "images": ntotal // acc, "products": list(prods),
-         "cmac_per_gulp": per_gulp, "bytes_per_channel": bytes_, "method": chosen, "imager": im["kind"],
+         "cmac_per_gulp": per_gulp, "bytes_per_gulp": bytes_, "input_bytes_per_gulp": input_bytes, "method": chosen, "imager": im["kind"],
          "device": cfg["device"], "predicted_gulp_s": t_gulp, "gulp_duration_s": gulp * dt, "realtime_factor": rt}
     lines = [
         f"pipeline {cfg['name']}: {src['kind']} source, {im['kind']} imager on {cfg['device']}",
@@ -273,8 +275,8 @@ def plan(cfg):
         f"  products: {', '.join(prods)}",
         f"  per {gulp}-frame gulp (all channels): direct {per_gulp['direct']:.3e} CMAC, "
         f"covariance {per_gulp['covariance']:.3e} CMAC",
-        f"  working set per channel: direct {bytes_['direct'] / 2**20:.1f} MiB, covariance "
-        f"{bytes_['covariance'] / 2**20:.1f} MiB",
+        f"  bytes per gulp: input {input_bytes / 2**20:.1f} MiB (ci4); working set direct "
+        f"{bytes_['direct'] / 2**20:.1f} MiB, covariance {bytes_['covariance'] / 2**20:.1f} MiB",
         f"  method: {chosen}" + (" (auto: fewer operations)" if im["method"] == "auto" else ""),
     ]
     if im["kind"] == "dft":
