@@ -16,42 +16,13 @@ import json
 import os
 import platform
 import sys
-import time
 
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import lwasv_like_layout, reference_image, sky_efield  # noqa: E402
+from cases import lwasv_like_layout, reference_image, sky_efield, timer  # noqa: E402
 
 from bf_epic_blocks import imaging  # noqa: E402
-
-
-def timer(xp):
-    if xp.__name__ == "cupy":
-        import cupy as cp
-
-        def run(fn, repeat):
-            fn()
-            cp.cuda.Device().synchronize()
-            start, stop = cp.cuda.Event(), cp.cuda.Event()
-            times = []
-            for _ in range(repeat):
-                start.record()
-                fn()
-                stop.record()
-                stop.synchronize()
-                times.append(cp.cuda.get_elapsed_time(start, stop) / 1e3)
-            return float(np.median(times))
-    else:
-        def run(fn, repeat):
-            fn()
-            times = []
-            for _ in range(repeat):
-                t = time.perf_counter()
-                fn()
-                times.append(time.perf_counter() - t)
-            return float(np.median(times))
-    return run
 
 
 def machine(xp):
@@ -92,7 +63,7 @@ def main(argv=None):
     blocks = ((0, 0), (1, 1)) if npol == 2 else ((0, 0),)
     ref = reference_image(X, xyz, freq, grid.lm[sub], blocks)
     Xd, xyzd, fd, lmd = (xp.asarray(v) for v in (X, xyz, freq, grid.lm))
-    run = timer(xp)
+    run = timer(a.device)
     rows = []
     print(f"# bench_dft: device={a.device} nant={len(xyz)} ({layout}) npix={grid.npix} ntime={a.ntime} "
           f"nchan={nchan} npol={npol}")
@@ -103,8 +74,8 @@ def main(argv=None):
             img = op.image(Xd, method=method)
             got = imaging._xp.to_numpy(img)[:, :, sub]
             err = float(np.max(np.abs(got - ref)) / np.max(np.abs(ref)))
-            t_gulp = run(lambda: op.image(Xd, method=method), repeat)
-            t_cold = run(lambda: imaging.dirty_image(Xd, xyzd, fd, lmd, method=method, precision=precision),
+            t_gulp, _ = run(lambda: op.image(Xd, method=method), repeat)
+            t_cold, _ = run(lambda: imaging.dirty_image(Xd, xyzd, fd, lmd, method=method, precision=precision),
                          max(2, repeat // 4))
             chosen = op.accumulator(method=method, ntime_hint=a.ntime).method
             rt = (a.ntime * 40e-6) / t_gulp  # LWA-SV: 25 kHz channels, 40 us per sample

@@ -20,14 +20,13 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cases import lwasv_like_layout, reference_image  # noqa: E402
+from cases import lwasv_like_layout, reference_image, timer  # noqa: E402
 
 from bf_epic_blocks.imaging.moff import moff_image  # noqa: E402
 from bf_epic_blocks.imaging.pixels import lm_grid  # noqa: E402
@@ -48,34 +47,6 @@ def simulate(xyz, freqs, ntime, npol, rng, srcs):
             noise = 0.3 * (rng.normal(size=(ntime, xyz.shape[0])) + 1j * rng.normal(size=(ntime, xyz.shape[0])))
             out[:, c, :, p] = amp @ ph.T + noise
     return out
-
-
-def timer(device):
-    if device == "gpu":
-        import cupy as cp
-
-        def run(fn, repeat):
-            fn()
-            cp.cuda.Device().synchronize()
-            ts = []
-            for _ in range(repeat):
-                a, b = cp.cuda.Event(), cp.cuda.Event()
-                a.record()
-                out = fn()
-                b.record()
-                b.synchronize()
-                ts.append(cp.cuda.get_elapsed_time(a, b) / 1e3)
-            return float(np.median(ts)), out
-    else:
-        def run(fn, repeat):
-            fn()
-            ts = []
-            for _ in range(repeat):
-                t0 = time.perf_counter()
-                out = fn()
-                ts.append(time.perf_counter() - t0)
-            return float(np.median(ts)), out
-    return run
 
 
 def main(argv=None):

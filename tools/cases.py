@@ -3,6 +3,8 @@
 Case P (the seed paper's table): 256 antennas laid out like LWA-SV, a 64 x 64 all-sky grid of which
 the ~3,205 pixels above the horizon are imaged, 1,024 samples, 16 channels x 2 pols.
 """
+import time
+
 import numpy as np
 
 C = 299792458.0
@@ -58,3 +60,32 @@ def reference_image(X, xyz, freq_hz, lm, blocks=((0, 0), (1, 1))):
             G = D @ X[:, c, :, q].T
             out[c, i] = (F * np.conj(G)).mean(axis=1).real
     return out
+
+
+def timer(device):
+    """run(fn, repeat) -> (median seconds, last result): one warm-up call first; CUDA events on the GPU."""
+    if device == "gpu":
+        import cupy as cp
+
+        def run(fn, repeat):
+            fn()
+            cp.cuda.Device().synchronize()
+            ts = []
+            for _ in range(repeat):
+                a, b = cp.cuda.Event(), cp.cuda.Event()
+                a.record()
+                out = fn()
+                b.record()
+                b.synchronize()
+                ts.append(cp.cuda.get_elapsed_time(a, b) / 1e3)
+            return float(np.median(ts)), out
+    else:
+        def run(fn, repeat):
+            fn()
+            ts = []
+            for _ in range(repeat):
+                t0 = time.perf_counter()
+                out = fn()
+                ts.append(time.perf_counter() - t0)
+            return float(np.median(ts)), out
+    return run

@@ -102,9 +102,7 @@ class DFTImagerBlock(bfp.TransformBlock):
         self._frame = 0
         self._int_start = 0
         nprod = len(self._acc.products)
-        t = ihdr["_tensor"]
-        dt = lay["dt_s"]
-        t0 = (t.get("scales") or [[lay["time_tag"] / 196e6, dt]])[0][0] if (t.get("scales") or [None])[0] else lay["time_tag"] / 196e6
+        dt, t0 = lay["dt_s"], lay["t0_s"]
         f = lay["freq_hz"]
         fscale = [float(f[0]), float(f[1] - f[0]) if len(f) > 1 else 0.0]
         ohdr = derived_header(ihdr)

@@ -24,7 +24,7 @@ def _tensor(hdr, who):
 
 def efield_layout(hdr, who="block"):
     """Validate an E-field header; returns a dict with nchan, nstand, npol, dtype, freq_hz (nchan,),
-    dt_s, ticks_per_frame, time_tag, xyz_m (nstand, 3) float64 and flags (nstand, npol) bool.
+    dt_s, t0_s, ticks_per_frame, time_tag, xyz_m (nstand, 3) float64 and flags (nstand, npol) bool.
 
     Expected: labels ['time', 'freq', 'station', 'pol'] (in that order), shape [-1, nchan, nstand, npol],
     dtype one of ci4/ci8/ci16/cf32/cf64, channel frequencies in ``freq_hz`` or the 'freq' scale
@@ -53,6 +53,7 @@ def efield_layout(hdr, who="block"):
         raise ValueError(f"{who}: no channel frequencies: give header 'freq_hz' or _tensor scales[1] = [f0_hz, df_hz]")
     if freq.shape != (nchan,) or not np.all(freq > 0):
         raise ValueError(f"{who}: channel frequencies must be {nchan} positive values in Hz, got {freq.shape}")
+    t0_s = float(scales[0][0]) if scales[0] is not None else int(hdr.get("time_tag", 0)) / FS_HZ
     if scales[0] is not None:
         dt_s = float(scales[0][1])
     elif nchan > 1:
@@ -77,7 +78,7 @@ def efield_layout(hdr, who="block"):
         except ValueError:
             raise ValueError(f"{who}: station flags shaped {f.shape} do not fit ({nstand}, {npol})") from None
     return {"nchan": nchan, "nstand": nstand, "npol": npol, "dtype": dtype, "freq_hz": freq,
-            "dt_s": dt_s, "ticks_per_frame": int(round(dt_s * FS_HZ)), "time_tag": int(hdr.get("time_tag", 0)),
+            "dt_s": dt_s, "t0_s": t0_s, "ticks_per_frame": int(round(dt_s * FS_HZ)), "time_tag": int(hdr.get("time_tag", 0)),
             "xyz_m": xyz, "flags": flags}
 
 

@@ -42,15 +42,17 @@ class ImageWriterBlock(bfp.SinkBlock):
     outdir, prefix : where and under which name; fits / png / table : what to write.
     location : astropy EarthLocation of the station (default: from the header's station lat/lon).
     label_sources : catalogue sources (plus the Sun) drawn on the PNGs when above the horizon.
+    pixels_fn : for tracked patches, the imager's ``pixels(time_tag)`` function, so each pixel
+                table carries the directions of its own integration (the header has the first).
     ``written`` lists the files written.
     """
 
     def __init__(self, iring, outdir, prefix="image", fits=True, png=True, table=False, location=None,
-                 label_sources=True, *args, **kwargs):
+                 label_sources=True, pixels_fn=None, *args, **kwargs):
         super().__init__(iring, *args, **kwargs)
         self.outdir, self.prefix = str(outdir), prefix
         self.do_fits, self.do_png, self.do_table = fits, png, table
-        self.location, self.label_sources = location, label_sources
+        self.location, self.label_sources, self.pixels_fn = location, label_sources, pixels_fn
         self.written = []
         self.frames = 0
 
@@ -134,8 +136,8 @@ class ImageWriterBlock(bfp.SinkBlock):
                                                                     sources=self._labels(t)))
             else:
                 lm = np.asarray(self.hdr["pixels"]["lm"])
-                if self.hdr["pixels"]["kind"] == "track" and hasattr(self, "pixel_source"):
-                    lm = np.asarray(self.pixel_source(int(self.hdr["time_tag"]) + j * self.int_ticks))
+                if self.hdr["pixels"]["kind"] == "track" and self.pixels_fn is not None:
+                    lm = np.asarray(self.pixels_fn(int(self.hdr["time_tag"]) + j * self.int_ticks))
                 if self.do_table or self.do_fits:
                     self.written.append(fits_out.write_pixel_table(f"{stem}_pixels.fits", frame, lm, self.freq,
                                                                    self.products, t, self.loc, **common))

@@ -134,7 +134,6 @@ class SimSkySourceBlock(bfp.SourceBlock):
         return _Reader(pos=0)
 
     def on_sequence(self, reader, sourcename):
-        from ..io.tbf import time_tag_to_time  # noqa: F401  (same time-tag convention as TBF)
         st = self.station
         self.time_tag0 = int(round(self.start.unix * FS_HZ))
         hdr = efield_header("simulated-sky", self.time_tag0, self.freq_hz, self.dt_s, st.to_header(self.freq_hz),
@@ -155,12 +154,14 @@ class SimSkySourceBlock(bfp.SourceBlock):
         return [hdr]
 
     def on_data(self, reader, ospans):
+        from astropy.time import TimeDelta
+
         from ..pipeline.sky import quantize_ci4, simulate_efield
         dst = span_array(ospans[0])
         n = min(dst.shape[0], self.nframe - reader.pos)
         if n <= 0:
             return [0]
-        t = self.start + (reader.pos * self.dt_s) * _seconds()
+        t = self.start + TimeDelta(reader.pos * self.dt_s, format="sec")
         gulp_index = reader.pos // max(1, self.gulp_nframe)
         x = simulate_efield(self.station.xyz_m, self.freq_hz, n, sources=self.sources, time=t,
                             location=self.station.location, cable_delay_s=self._delay, cable_gain=self._gain,
@@ -174,11 +175,6 @@ class SimSkySourceBlock(bfp.SourceBlock):
         if self.progress:
             self.progress(n)
         return [n]
-
-
-def _seconds():
-    import astropy.units as u
-    return u.s
 
 
 def tbf_source(paths, gulp_nframe, *args, **kwargs):

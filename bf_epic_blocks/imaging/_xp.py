@@ -44,9 +44,3 @@ def to_numpy(a):
     if is_device_array(a):
         return a.get()
     return np.asarray(a)
-
-
-def asarray_like(a, like):
-    """``a`` as an array in the same namespace as ``like``."""
-    xp = get_xp(like)
-    return xp.asarray(a)

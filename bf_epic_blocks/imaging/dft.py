@@ -192,7 +192,8 @@ class DFTOperator:
         n_live = live.sum(axis=1)  # (nchan, npol): N_A per channel and pol
         self.n_live = n_live
         self.dead = n_live == 0
-        if bool(xp.any(self.dead)):
+        self.any_dead = bool(xp.any(self.dead))  # host flag: result() needs no device sync per image
+        if self.any_dead:
             log.warning("%d channel-pol combinations have every antenna flagged; their images are NaN",
                         int(self.dead.sum()))
         scale = xp.where(self.dead, 0.0, 1.0 / xp.maximum(n_live, 1))
@@ -366,7 +367,7 @@ class ImageAccumulator:
         xy = get.get((0, 1))
         out = combine(self.products, xx.real if xx is not None else None,
                       yy.real if yy is not None else None, xy).astype(op.rdtype, copy=False)
-        if bool(xp.any(op.dead)):
+        if op.any_dead:
             for k, name in enumerate(self.products):
                 pols = {"XX": (0,), "YY": (1,)}.get(name, tuple(range(op.npol)))
                 bad = xp.any(op.dead[:, list(pols)], axis=1)

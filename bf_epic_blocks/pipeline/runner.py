@@ -13,7 +13,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -35,7 +35,6 @@ class Graph:
     nframe_total: int | None
     station: object
     outdir: str
-    extra: dict = field(default_factory=dict)
 
 
 def _scan(path, report=True):
@@ -175,9 +174,8 @@ def build_graph(cfg, progress=None):
                                  moff=(im["kind"] == "moff"), **common)
         out = cfg["output"]
         writer = ImageWriterBlock(imager, outdir, prefix=out["prefix"], fits=out["fits"], png=out["png"],
-                                  table=out["table"], location=station.location)
-        if callable(pixels) and not hasattr(pixels, "lm"):
-            writer.pixel_source = pixels
+                                  table=out["table"], location=station.location,
+                                  pixels_fn=pixels if callable(pixels) else None)
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir)
 
 

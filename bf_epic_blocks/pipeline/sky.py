@@ -212,6 +212,8 @@ def source_directions(sources, time=None, location=None) -> SourceDirections:
 
 
 def _cable_factor(cable_delay_s, cable_gain, freq_hz, nchan, nant, npol):
+    # Deliberately not imaging.calibration.cable_weights inverted: the simulator corrupts the
+    # voltages from the data model on its own, so tests of CalFoldBlock check against independent code.
     shape = (nchan, nant, npol)
     hint = "pass np.moveaxis(station.cable_delay_s(freq_hz), -1, 0) (station order is (nstand, 2, nchan))"
     out = np.ones(shape, np.complex128)

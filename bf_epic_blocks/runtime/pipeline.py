@@ -591,17 +591,8 @@ class MultiTransformBlock(Block):
                                   "defines no on_skip(islices, ospans)")
 
 
-class TransformBlock(MultiTransformBlock):
-    """One input, one output ring (in the input's space unless ``self.orings`` is replaced).
-
-    Hooks: ``on_sequence(iseq)`` -> output header; ``on_data(ispan, ospan)`` -> frames to
-    commit (None = all but the output overlap); ``define_output_nframes(n)``;
-    ``define_input_overlap_nframe(iseq)``; ``define_valid_input_spaces()``;
-    ``on_sequence_end(iseq)``; ``on_skip(islice, ospan)`` (default: zero-fill ``ospan``)."""
-
-    def __init__(self, iring, *args, **kwargs):
-        super().__init__([iring], *args, **kwargs)
-        self.iring = self.irings[0]
+class _OneInput:
+    """The single-input hooks TransformBlock and SinkBlock share (Bifrost's defaults)."""
 
     def _define_valid_input_spaces(self):
         return [self.define_valid_input_spaces()]
@@ -615,6 +606,25 @@ class TransformBlock(MultiTransformBlock):
     def define_input_overlap_nframe(self, iseq):
         return 0
 
+    def _on_sequence_end(self, iseqs):
+        return [self.on_sequence_end(iseqs[0])]
+
+    def on_sequence_end(self, iseq):
+        pass
+
+
+class TransformBlock(_OneInput, MultiTransformBlock):
+    """One input, one output ring (in the input's space unless ``self.orings`` is replaced).
+
+    Hooks: ``on_sequence(iseq)`` -> output header; ``on_data(ispan, ospan)`` -> frames to
+    commit (None = all but the output overlap); ``define_output_nframes(n)``;
+    ``define_input_overlap_nframe(iseq)``; ``define_valid_input_spaces()``;
+    ``on_sequence_end(iseq)``; ``on_skip(islice, ospan)`` (default: zero-fill ``ospan``)."""
+
+    def __init__(self, iring, *args, **kwargs):
+        super().__init__([iring], *args, **kwargs)
+        self.iring = self.irings[0]
+
     def _define_output_nframes(self, input_nframes):
         return [self.define_output_nframes(input_nframes[0])]
 
@@ -626,12 +636,6 @@ class TransformBlock(MultiTransformBlock):
 
     def on_sequence(self, iseq):
         raise NotImplementedError
-
-    def _on_sequence_end(self, iseqs):
-        return [self.on_sequence_end(iseqs[0])]
-
-    def on_sequence_end(self, iseq):
-        pass
 
     def _on_data(self, ispans, ospans):
         return [self.on_data(ispans[0], ospans[0])]
@@ -647,7 +651,7 @@ class TransformBlock(MultiTransformBlock):
         ospan.data[...] = 0
 
 
-class SinkBlock(MultiTransformBlock):
+class SinkBlock(_OneInput, MultiTransformBlock):
     """One input, no outputs. Hooks: ``on_sequence(iseq)``, ``on_data(ispan)``,
     ``on_sequence_end(iseq)``; with guarantee=False also ``on_skip(islices, ospans)``."""
 
@@ -655,18 +659,6 @@ class SinkBlock(MultiTransformBlock):
         super().__init__([iring], *args, **kwargs)
         self.orings = []
         self.iring = self.irings[0]
-
-    def _define_valid_input_spaces(self):
-        return [self.define_valid_input_spaces()]
-
-    def define_valid_input_spaces(self):
-        return 'any'
-
-    def _define_input_overlap_nframe(self, iseqs):
-        return [self.define_input_overlap_nframe(iseqs[0])]
-
-    def define_input_overlap_nframe(self, iseq):
-        return 0
 
     def _define_output_nframes(self, input_nframes):
         return []
@@ -677,12 +669,6 @@ class SinkBlock(MultiTransformBlock):
 
     def on_sequence(self, iseq):
         raise NotImplementedError
-
-    def _on_sequence_end(self, iseqs):
-        return [self.on_sequence_end(iseqs[0])]
-
-    def on_sequence_end(self, iseq):
-        pass
 
     def _on_data(self, ispans, ospans):
         self.on_data(ispans[0])
