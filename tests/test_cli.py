@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("astropy")
-from bf_epic_blocks.pipeline.offline import configure_offline  # noqa: E402
+from bf_epic_blocks.station.offline import configure_offline  # noqa: E402
 
 configure_offline()
 pytest.importorskip("lsl")
@@ -118,7 +118,7 @@ def test_corrupt_tbf_is_a_clear_error(tmp_path, capsys):
 
 
 def test_tracking_follows_cyg_a(tmp_path):
-    from bf_epic_blocks.pipeline.fits_out import read_pixel_table
+    from bf_epic_blocks.io.fits import read_pixel_table
     out = tmp_path / "track"
     args = ["run", str(PIPES / "lwasv_track_cyga.yaml"), "--set", f"output.dir={out}",
             "--set", "source.duration_s=0.2", "--set", "imager.accumulate_frames=2500",

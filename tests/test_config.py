@@ -218,7 +218,7 @@ def test_custom_sources_match_the_sky_module():
                       " spectral_index: -0.7}]}")
     assert cfg["source"]["sources"] == ["CasA", {"name": "S1", "ra_deg": 10.0, "dec_deg": -5.0, "flux_jy": 50.0,
                                                  "spectral_index": -0.7}]
-    sky = pytest.importorskip("bf_epic_blocks.pipeline.sky")
+    sky = pytest.importorskip("bf_epic_blocks.sky")
     src = sky.resolve_sources(cfg["source"]["sources"])  # the validated entries are what sky accepts
     assert [s.name for s in src] == ["CasA", "S1"] and src[1].spectral_index == -0.7
     probs, _ = _problems("source: {kind: simulated, sources: [{name: S1, ra_deg: 1, dec_deg: 1, flux_jy: 1, "

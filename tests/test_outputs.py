@@ -15,9 +15,9 @@ from astropy.utils import iers  # noqa: E402
 from astropy.wcs import WCS  # noqa: E402
 
 from bf_epic_blocks.imaging.pixels import azalt_from_lm, lm_from_azalt, lm_grid  # noqa: E402
-from bf_epic_blocks.pipeline import fits_out  # noqa: E402
-from bf_epic_blocks.pipeline.fits_out import (  # noqa: E402
-    icrs_to_lm, image_wcs, read_pixel_table, write_fits_image, write_pixel_table, zenith_icrs)
+from bf_epic_blocks.io import fits as fits_out  # noqa: E402
+from bf_epic_blocks.io.fits import image_wcs, read_pixel_table, write_fits_image, write_pixel_table  # noqa: E402
+from bf_epic_blocks.sky import icrs_to_lm, zenith_icrs  # noqa: E402
 
 # LWA-SV (approximately) and a time when Cyg A is high in the sky there.
 LOC = EarthLocation.from_geodetic(-106.885783 * u.deg, 34.348358 * u.deg, 1477.8 * u.m)
@@ -238,7 +238,7 @@ def _bright_centroid(rgba):
 
 
 def test_quicklook_east_left_north_up(tmp_path):
-    from bf_epic_blocks.pipeline.quicklook import quicklook_png
+    from bf_epic_blocks.io.quicklook import quicklook_png
     grid = lm_grid(32)
     img = np.zeros((32, 32), np.float32)
     ax = grid.axis
@@ -254,7 +254,7 @@ def test_quicklook_east_left_north_up(tmp_path):
 
 
 def test_quicklook_full_render(tmp_path):
-    from bf_epic_blocks.pipeline.quicklook import quicklook_grid_png, quicklook_png
+    from bf_epic_blocks.io.quicklook import quicklook_grid_png, quicklook_png
     grid = lm_grid(64)
     cube, lm_cyg, (iy, ix) = _cyga_cube(grid, nchan=6, products=("I",))
     lm_z = (0.0, 0.0)

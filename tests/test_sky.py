@@ -7,7 +7,7 @@ from astropy.coordinates import AltAz, EarthLocation, SkyCoord
 from astropy.time import Time
 
 from bf_epic_blocks.io.tbf import unpack_ci4
-from bf_epic_blocks.pipeline.sky import (KNOWN_SOURCES, quantize_ci4, resolve_source, simulate_efield,
+from bf_epic_blocks.sky import (KNOWN_SOURCES, quantize_ci4, resolve_source, simulate_efield,
                                          source_directions)
 
 C = 299792458.0
@@ -149,10 +149,10 @@ def test_cable_terms_round_trip(xyz):
 
 
 def test_with_lsl_station_cable_model():
-    from bf_epic_blocks.pipeline.offline import configure_offline
+    from bf_epic_blocks.station.offline import configure_offline
     configure_offline()
     pytest.importorskip("lsl")
-    from bf_epic_blocks.pipeline.station import load_station
+    from bf_epic_blocks.station import load_station
     st = load_station("lwasv")
     f = np.array([74e6])
     kw = dict(sources=["CygA"], time="2024-07-01T06:00:00", location=st.location, noise_power=0.0, seed=4)

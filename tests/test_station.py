@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bf_epic_blocks.pipeline.offline import configure_offline
+from bf_epic_blocks.station.offline import configure_offline
 
 configure_offline()          # before lsl is imported anywhere in this module
 lsl = pytest.importorskip("lsl", reason="LSL not installed (pip install lsl; see tools/install_system_deps.sh)")
 from lsl.common import stations as lsl_stations  # noqa: E402
 
-from bf_epic_blocks.pipeline.station import StationTable, load_station  # noqa: E402
+from bf_epic_blocks.station import StationTable, load_station  # noqa: E402
 
 FREQS = np.array([38e6, 58.7e6, 74e6])
 
@@ -153,7 +153,7 @@ def test_configure_offline_in_fresh_process(tmp_path):
     """A fresh interpreter: LSL must read our lsl.cfg (telemetry off, long refresh age)."""
     env = {k: v for k, v in os.environ.items() if k != "LSLCONFIGDIR"}
     env.update(XDG_CACHE_HOME=str(tmp_path), HOME=str(tmp_path))
-    code = ("from bf_epic_blocks.pipeline.offline import configure_offline as c\n"
+    code = ("from bf_epic_blocks.station.offline import configure_offline as c\n"
             "d = c(); assert c() == d\n"
             "from lsl.config import LSL_CONFIG as L\n"
             "from astropy.utils import iers\n"

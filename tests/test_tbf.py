@@ -115,7 +115,7 @@ def test_ci4_roundtrip_all_values():
 @pytest.mark.parametrize("name", ["lwasv", "lwana"])
 def test_lsl_antenna_order_matches_tbf_axes(name):
     """antenna k = stand index k // 2, pol k % 2 -- LSL's order and the (nstand, 2) axes of the reader."""
-    from bf_epic_blocks.pipeline.offline import configure_offline
+    from bf_epic_blocks.station.offline import configure_offline
     configure_offline()   # before lsl is imported: LSL reads its config folder at import
     pytest.importorskip("lsl")
     from lsl.common import stations

@@ -14,7 +14,7 @@ def lwasv_like_layout(nant=256, seed=1):
     """(nant, 3) ENU metres: LWA-SV stand positions from LSL when it imports, else a look-alike
     (a 100 m x 110 m ellipse, z scatter ~0.3 m, the last stand an outrigger 293 m West, 10 m up)."""
     try:
-        from bf_epic_blocks.pipeline.offline import configure_offline
+        from bf_epic_blocks.station.offline import configure_offline
         configure_offline()
         from lsl.common import stations
         st = stations.lwasv

@@ -4,7 +4,7 @@ A sink for the imagers' output (docs/HEADERS.md): grids become FITS cubes with a
 WCS (one file per integration; channels with uneven spacing are split into runs of even spacing)
 and an all-sky PNG of the channel-mean of the first product; pixel lists and tracked patches
 become pixel tables (FITS binary tables) and a small PNG of the patch. The writing itself lives
-in :mod:`bf_epic_blocks.pipeline.fits_out` and :mod:`bf_epic_blocks.pipeline.quicklook`.
+in :mod:`bf_epic_blocks.io.fits` and :mod:`bf_epic_blocks.io.quicklook`.
 """
 from __future__ import annotations
 
@@ -86,8 +86,7 @@ class ImageWriterBlock(bfp.SinkBlock):
     def _labels(self, t):
         if not self.label_sources:
             return None
-        from ..pipeline.fits_out import icrs_to_lm
-        from ..pipeline.sky import KNOWN_SOURCES
+        from ..sky import KNOWN_SOURCES, icrs_to_lm
         names, ra, dec = [], [], []
         for s in KNOWN_SOURCES.values():
             names.append(s.name)
@@ -106,7 +105,7 @@ class ImageWriterBlock(bfp.SinkBlock):
         return out
 
     def on_data(self, ispan):
-        from ..pipeline import fits_out, quicklook
+        from ..io import fits as fits_out, quicklook
         data = to_numpy(span_array(ispan))
         imager = self.hdr["imager"]
         common = dict(method=f"{imager['kind']}:{imager['method']}", precision=imager["precision"],

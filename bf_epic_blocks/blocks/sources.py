@@ -33,7 +33,7 @@ class _Reader(contextlib.AbstractContextManager):
 class TBFSourceBlock(bfp.SourceBlock):
     """Read LWA TBF files (ADP or NDP), one sequence per file, 'ci4' gulps (time, freq, station, pol).
 
-    station : a :class:`~bf_epic_blocks.pipeline.station.StationTable`, a station name, or None
+    station : a :class:`~bf_epic_blocks.station.StationTable`, a station name, or None
               (the station the file's frame id names: ADP -> lwasv, NDP -> lwana).
     Missing frames are zero-filled and counted (``tbf_stats``); a truncated last frame ends the
     file cleanly with a warning; a bad sync word raises TBFError with its byte offset.
@@ -55,7 +55,7 @@ class TBFSourceBlock(bfp.SourceBlock):
         return _Reader(info=info, it=iter_tbf_gulps(sourcename, self.gulp_nframe, info=info), path=sourcename)
 
     def _station(self, info):
-        from ..pipeline.station import StationTable, load_station
+        from ..station.tables import StationTable, load_station
         st = self.station
         if st is None:
             st = load_station(info.station_hint)
@@ -109,7 +109,7 @@ class SimSkySourceBlock(bfp.SourceBlock):
     station : StationTable (positions, cable terms and flags come from it; the simulated cables
               delay and scale the voltages exactly as the data model says).
     freq_hz : channel centres; ``start`` : astropy Time (or ISO string); ``duration_s`` : length.
-    sources, noise_power, seed : as :func:`bf_epic_blocks.pipeline.sky.simulate_efield`; the sky is
+    sources, noise_power, seed : as :func:`bf_epic_blocks.sky.simulate_efield`; the sky is
               recomputed for each gulp's start time; gulp g uses seed (seed, g) so runs repeat exactly.
     quantize : True writes 'ci4' scaled like an F-engine (rms 2 units; scale fixed by the first
               gulp), False writes 'cf32'.
@@ -141,7 +141,7 @@ class SimSkySourceBlock(bfp.SourceBlock):
                             simulation={"sources": [str(s) if not isinstance(s, dict) else s.get("name", "custom")
                                                     for s in self.sources],
                                         "noise_power": self.noise_power, "seed": self.seed, "start": self.start.isot})
-        from ..pipeline.sky import source_directions
+        from ..sky import source_directions
         d = source_directions(self.sources, self.start, st.location)
         log.info("simulated sky at %s UTC: %s above the horizon%s", self.start.isot[:19],
                  ", ".join(f"{n} (alt {np.degrees(a):.1f} deg)" for n, a in zip(d.names, d.alt)) or "no source",
@@ -156,7 +156,7 @@ class SimSkySourceBlock(bfp.SourceBlock):
     def on_data(self, reader, ospans):
         from astropy.time import TimeDelta
 
-        from ..pipeline.sky import quantize_ci4, simulate_efield
+        from ..sky import quantize_ci4, simulate_efield
         dst = span_array(ospans[0])
         n = min(dst.shape[0], self.nframe - reader.pos)
         if n <= 0:

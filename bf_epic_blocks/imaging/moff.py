@@ -3,7 +3,7 @@
 :func:`moff_image` equals, to ~epsilon, the exact DFT image of the same data with every antenna's
 z set to 0: the antenna heights (the w term) are ignored, which is the wide-field error the seed
 paper measures (14-34 % of the peak for a +-1 m z spread at 74 MHz). It shares the gridding machinery
-of :mod:`.wstack` (ES kernel, oversampled FFT grid, periodic wrapping of antennas beyond the grid's
+of :mod:`.fieldgrid` (ES kernel, oversampled FFT grid, periodic wrapping of antennas beyond the grid's
 Nyquist limit, which is exact at the image pixels) with a single plane and no w-kernel.
 
 Two flavours, because the voltages are not phased to any centre (PHYSICS.md):
@@ -21,7 +21,7 @@ import math
 from ..conventions import SIGMA, SPEED_OF_LIGHT_M_S
 from ._xp import get_xp
 from .pixels import LMGrid
-from .wstack import _field_image
+from .fieldgrid import field_image
 
 __all__ = ["moff_image"]
 
@@ -40,6 +40,6 @@ def moff_image(efield, xyz_m, freq_hz, grid: LMGrid, *, epsilon=1e-4, products=N
         cyc = f[:, None] * z[None, :] / SPEED_OF_LIGHT_M_S
         cyc = cyc - xp.rint(cyc)
         efield = efield * xp.exp((-SIGMA * 2j * math.pi) * cyc)[None, :, :, None].astype(efield.dtype)
-    return _field_image(efield, xyz_m, freq_hz, grid, epsilon=epsilon, products=products,
+    return field_image(efield, xyz_m, freq_hz, grid, epsilon=epsilon, products=products,
                         remove_autocorr=remove_autocorr, weights=weights, sigma=sigma, use_w=False,
                         direct=None)

@@ -111,7 +111,7 @@ def pack_ci4(values) -> np.ndarray:
     """Pack complex values with integer real/imag parts in -8..7 into ci4 bytes (uint8, same shape).
 
     Raises ValueError for non-integer or out-of-range parts (round and clip first; see
-    :func:`bf_epic_blocks.pipeline.sky.quantize_ci4`).
+    :func:`bf_epic_blocks.sky.quantize_ci4`).
     """
     v = np.asarray(values)
     re = np.real(v)

@@ -1,5 +1,5 @@
-"""Pipeline room: YAML pipeline configs, LSL station metadata, simulated sky, FITS/PNG outputs, CLI.
+"""The pipeline room: YAML pipeline configs, config -> graph of blocks, and the ``bf-epic`` CLI.
 
-Modules: :mod:`.config` (schema + validation), :mod:`.fits_out` (FITS cubes and pixel tables),
-:mod:`.quicklook` (PNG quicklooks); the others are added as the pipeline grows.
+Modules: :mod:`.config` (schema and validation), :mod:`.runner` (plan and run a validated config as
+a graph of blocks), :mod:`.cli`. Nothing below this room imports it.
 """

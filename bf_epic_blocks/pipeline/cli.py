@@ -55,7 +55,7 @@ def main(argv=None):
         parser.print_help()
         return 0
     _setup_logging(args)
-    from .offline import configure_offline
+    from ..station.offline import configure_offline
     configure_offline()
     from .config import ConfigError, load_config
     try:

@@ -26,7 +26,7 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       sources: list of catalogue names (CygA, CasA, TauA, VirA) or
                {name: str, ra_deg: float in [0, 360), dec_deg: float in [-90, 90], flux_jy: float >= 0,
                 spectral_index: float (optional), ref_freq_hz: float > 0 (optional)}
-                                     (as bf_epic_blocks.pipeline.sky.resolve_source takes them)
+                                     (as bf_epic_blocks.sky.resolve_source takes them)
                                      (default [CygA, CasA, TauA, VirA])
       noise_power: float >= 0        (default 1000.0)
       seed: int                      (default 1)

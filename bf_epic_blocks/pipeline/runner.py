@@ -52,7 +52,7 @@ def _scan(path, report=True):
 
 def load_station_for(cfg):
     """The StationTable the configuration names, with the YAML flags added."""
-    from .station import load_station
+    from ..station import load_station
     st_cfg = cfg["station"]
     name = st_cfg.get("ssmif") or st_cfg.get("name")
     return load_station(name, extra_flags=st_cfg.get("flags") or None)
@@ -73,7 +73,7 @@ def tracking_pixels(source, size, fov_deg, update_s, location):
     patch is below the horizon.
     """
     from ..io.tbf import time_tag_to_time
-    from .sky import resolve_source, source_directions
+    from ..sky import resolve_source, source_directions
     src = resolve_source(source)
     step = max(1, int(round(update_s * FS_HZ)))
     cell = math.radians(fov_deg) / size

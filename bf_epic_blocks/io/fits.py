@@ -52,104 +52,14 @@ from pathlib import Path
 import numpy as np
 
 from ..imaging._xp import to_numpy
-from ..imaging.pixels import azalt_from_lm, lm_from_azalt
 from ..imaging.products import VALID as VALID_PRODUCTS
+from ..imaging.pixels import azalt_from_lm
+from ..sky.catalogue import as_location, as_time, lm_to_icrs, north_angle_deg, zenith_icrs
 
-__all__ = ["STOKES_CODES", "image_wcs", "write_fits_image", "write_pixel_table", "read_pixel_table",
-           "zenith_icrs", "north_angle_deg", "lm_to_icrs", "icrs_to_lm", "as_time", "as_location"]
+__all__ = ["STOKES_CODES", "image_wcs", "write_fits_image", "write_pixel_table", "read_pixel_table"]
 
 #: FITS STOKES axis codes (Greisen & Calabretta 2002).
 STOKES_CODES = {"I": 1, "Q": 2, "U": 3, "V": 4, "XX": -5, "YY": -6, "XY": -7, "YX": -8}
-
-
-# ---------------------------------------------------------------------------------------------
-# Time, place and frames
-# ---------------------------------------------------------------------------------------------
-def _iers_offline():
-    """Context in which astropy uses its bundled IERS tables instead of downloading (offline)."""
-    from astropy.utils import iers
-    return iers.conf.set_temp("auto_download", False)
-
-
-def as_time(time):
-    """An astropy Time (UTC) from a Time, ISO string or datetime."""
-    from astropy.time import Time
-    if isinstance(time, Time):
-        if not time.isscalar:
-            raise ValueError(f"expected a single time, got an array of shape {time.shape}")
-        return time
-    try:
-        return Time(time, scale="utc")
-    except Exception as e:
-        raise ValueError(f"time must be an astropy Time or an ISO UTC string, got {time!r} ({e})") from None
-
-
-def as_location(location):
-    """An astropy EarthLocation from an EarthLocation or (lon_deg, lat_deg, height_m)."""
-    import astropy.units as u
-    from astropy.coordinates import EarthLocation
-    if isinstance(location, EarthLocation):
-        return location
-    try:
-        lon, lat, h = (float(x) for x in location)
-    except Exception:
-        raise TypeError(f"location must be an astropy EarthLocation or (lon_deg, lat_deg, height_m), "
-                        f"got {location!r}") from None
-    return EarthLocation.from_geodetic(lon * u.deg, lat * u.deg, h * u.m)
-
-
-def _altaz_frame(time, location):
-    from astropy.coordinates import AltAz
-    return AltAz(obstime=as_time(time), location=as_location(location))  # pressure 0: no refraction
-
-
-def zenith_icrs(time, location) -> tuple[float, float]:
-    """(ra_deg, dec_deg) in ICRS of the local zenith at ``time``."""
-    import astropy.units as u
-    from astropy.coordinates import SkyCoord
-    with _iers_offline():
-        z = SkyCoord(az=0 * u.deg, alt=90 * u.deg, frame=_altaz_frame(time, location)).icrs
-    return float(z.ra.deg), float(z.dec.deg)
-
-
-def north_angle_deg(time, location) -> float:
-    """Position angle (deg, East of ICRS North) of local North (+m) as seen at the zenith."""
-    import astropy.units as u
-    from astropy.coordinates import SkyCoord
-    frame = _altaz_frame(time, location)
-    d = 0.05  # deg: a short step keeps aberration's non-rotation part negligible in the angle
-    with _iers_offline():
-        c = SkyCoord(az=[0.0, 0.0] * u.deg, alt=[90.0, 90.0 - d] * u.deg, frame=frame).icrs
-    return float(c[0].position_angle(c[1]).deg)
-
-
-def lm_to_icrs(pixels_lm, time, location):
-    """ICRS (ra_deg, dec_deg) arrays for (npix, 2) direction cosines (l East, m North)."""
-    import astropy.units as u
-    from astropy.coordinates import SkyCoord
-    az, alt = azalt_from_lm(np.asarray(pixels_lm, dtype=np.float64).reshape(-1, 2))
-    with _iers_offline():
-        c = SkyCoord(az=az * u.deg, alt=alt * u.deg, frame=_altaz_frame(time, location)).icrs
-    return np.asarray(c.ra.deg), np.asarray(c.dec.deg)
-
-
-def icrs_to_lm(ra_deg, dec_deg, time, location):
-    """Direction cosines (l, m) and altitude (deg) of ICRS positions; l, m are NaN below the horizon.
-
-    Returns (lm (n, 2) float64, alt_deg (n,)).
-    """
-    import astropy.units as u
-    from astropy.coordinates import SkyCoord
-    ra = np.atleast_1d(np.asarray(ra_deg, dtype=np.float64))
-    dec = np.atleast_1d(np.asarray(dec_deg, dtype=np.float64))
-    with _iers_offline():
-        aa = SkyCoord(ra=ra * u.deg, dec=dec * u.deg, frame="icrs").transform_to(_altaz_frame(time, location))
-    az, alt = np.asarray(aa.az.deg), np.asarray(aa.alt.deg)
-    lm = np.full((alt.size, 2), np.nan)
-    up = alt >= 0
-    if np.any(up):
-        lm[up] = lm_from_azalt(az[up], alt[up])
-    return lm, alt
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """Keep LSL and astropy off the network.
 
-Call :func:`configure_offline` before anything imports ``lsl`` (``bf_epic_blocks.pipeline.station``
+Call :func:`configure_offline` before anything imports ``lsl`` (``bf_epic_blocks.station``
 does so itself). It is idempotent and cheap after the first call.
 
 Why:
@@ -64,7 +64,7 @@ def _lsl_version() -> str | None:
 
 
 def _cfg_text() -> str:
-    lines = ["# LSL Configuration File (written by bf_epic_blocks.pipeline.offline)"]
+    lines = ["# LSL Configuration File (written by bf_epic_blocks.station.offline)"]
     v = _lsl_version()
     if v is not None:
         # A matching version line stops LSL from rewriting the file at exit.

@@ -1,0 +1,15 @@
+"""The sky: catalogue sources and their directions (astropy), and the simulated E-field generator.
+
+* :mod:`.catalogue` -- :class:`Source`, :data:`KNOWN_SOURCES`, :func:`source_directions` and the
+  time/place/frame helpers (ICRS <-> (l, m)) the writers use.
+* :mod:`.efield` -- :func:`simulate_efield` (F-engine voltages of a point-source sky, PHYSICS.md's
+  data model) and :func:`quantize_ci4`.
+"""
+from .catalogue import (KNOWN_SOURCES, REF_FREQ_HZ, Source, SourceDirections, as_location, as_time,
+                        icrs_to_lm, lm_to_icrs, north_angle_deg, resolve_source, resolve_sources,
+                        source_directions, zenith_icrs)
+from .efield import quantize_ci4, simulate_efield
+
+__all__ = ["KNOWN_SOURCES", "REF_FREQ_HZ", "Source", "SourceDirections", "as_location", "as_time",
+           "icrs_to_lm", "lm_to_icrs", "north_angle_deg", "resolve_source", "resolve_sources",
+           "source_directions", "zenith_icrs", "quantize_ci4", "simulate_efield"]

@@ -1,0 +1,281 @@
+"""Sky sources and where they are: the catalogue, and directions with astropy.
+
+* :class:`Source` / :data:`KNOWN_SOURCES` / :func:`resolve_source`: point sources by name (Cyg A,
+  Cas A, Tau A, Vir A) or by ICRS, topocentric or (l, m) position, with a power-law spectrum.
+* :func:`source_directions`: their direction cosines (l East, m North, n Up; PHYSICS.md) seen from
+  a station at a time, through astropy ``AltAz`` (no refraction).
+* Time, place and frames for the image writers: :func:`as_time`, :func:`as_location`,
+  :func:`zenith_icrs`, :func:`north_angle_deg`, :func:`lm_to_icrs`, :func:`icrs_to_lm`.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from ..imaging.pixels import azalt_from_lm, lm_from_azalt
+
+__all__ = ["KNOWN_SOURCES", "Source", "SourceDirections", "resolve_source", "resolve_sources",
+           "source_directions", "REF_FREQ_HZ", "zenith_icrs", "north_angle_deg", "lm_to_icrs", "icrs_to_lm",
+           "as_time", "as_location"]
+
+log = logging.getLogger(__name__)
+
+REF_FREQ_HZ = 74e6
+
+
+@dataclass(frozen=True)
+class Source:
+    """A point source. Exactly one position form: ICRS (ra_deg, dec_deg), topocentric (az_deg,
+    alt_deg; azimuth North through East), or direction cosines (l, m; above the horizon)."""
+    name: str
+    flux_jy: float
+    spectral_index: float = 0.0
+    ref_freq_hz: float = REF_FREQ_HZ
+    ra_deg: float | None = None
+    dec_deg: float | None = None
+    az_deg: float | None = None
+    alt_deg: float | None = None
+    l: float | None = None
+    m: float | None = None
+
+    @property
+    def frame(self) -> str:
+        """'icrs', 'altaz' or 'lm'."""
+        return "icrs" if self.ra_deg is not None else ("altaz" if self.az_deg is not None else "lm")
+
+    def flux_at(self, freq_hz) -> np.ndarray:
+        """Flux density (Jy) at ``freq_hz`` (power law about ref_freq_hz)."""
+        return self.flux_jy * (np.asarray(freq_hz, np.float64) / self.ref_freq_hz) ** self.spectral_index
+
+
+#: Bright northern A-team sources: ICRS (J2000) positions; 74 MHz flux densities and spectral
+#: indices are rough (tens of per cent: Cas A fades ~1%/yr, the spectra curve), for simulation only.
+KNOWN_SOURCES: dict[str, Source] = {
+    "CygA": Source("CygA", 17000.0, -0.58, ra_deg=299.8681525, dec_deg=40.7339156),
+    "CasA": Source("CasA", 17000.0, -0.72, ra_deg=350.8500000, dec_deg=58.8150000),
+    "TauA": Source("TauA", 1800.0, -0.27, ra_deg=83.6330833, dec_deg=22.0145000),
+    "VirA": Source("VirA", 2100.0, -0.86, ra_deg=187.7059308, dec_deg=12.3911233),
+}
+
+
+def _key(name: str) -> str:
+    return "".join(ch for ch in name.lower() if ch.isalnum())
+
+
+_BY_KEY = {_key(k): v for k, v in KNOWN_SOURCES.items()}
+_DICT_KEYS = {"name", "flux_jy", "spectral_index", "ref_freq_hz", "ra_deg", "dec_deg", "az_deg",
+              "alt_deg", "l", "m"}
+
+
+def resolve_source(spec) -> Source:
+    """A :class:`Source` from a catalogue name ('CygA', 'Cyg A', 'cyga', 'cyg-a'), a Source, or a dict
+    ``{name, flux_jy, ra_deg, dec_deg}`` (or ``az_deg, alt_deg`` or ``l, m`` instead of ra/dec;
+    optional ``spectral_index`` (default 0), ``ref_freq_hz`` (default 74e6))."""
+    if isinstance(spec, Source):
+        return spec
+    if isinstance(spec, str):
+        try:
+            return _BY_KEY[_key(spec)]
+        except KeyError:
+            raise ValueError(f"unknown source {spec!r}; known: {', '.join(KNOWN_SOURCES)}, or give a dict "
+                             "{name, flux_jy, ra_deg, dec_deg}") from None
+    if not isinstance(spec, Mapping):
+        raise TypeError(f"a source must be a name, a Source or a dict, got {type(spec).__name__}")
+    unknown = set(spec) - _DICT_KEYS
+    if unknown:
+        raise ValueError(f"source {spec.get('name', spec)!r}: unknown key(s) {sorted(unknown)}; "
+                         f"allowed: {sorted(_DICT_KEYS)}")
+    name = str(spec.get("name", "source"))
+    if "flux_jy" not in spec:
+        raise ValueError(f"source {name!r}: missing flux_jy")
+    forms = [f for f in (("ra_deg", "dec_deg"), ("az_deg", "alt_deg"), ("l", "m")) if any(k in spec for k in f)]
+    if len(forms) != 1 or not all(k in spec for k in forms[0]):
+        raise ValueError(f"source {name!r}: give exactly one position pair: (ra_deg, dec_deg), "
+                         f"(az_deg, alt_deg) or (l, m); got keys {sorted(spec)}")
+    vals = {k: float(spec[k]) for k in forms[0]}
+    flux = float(spec["flux_jy"])
+    if not math.isfinite(flux) or flux < 0:
+        raise ValueError(f"source {name!r}: flux_jy must be finite and >= 0, got {spec['flux_jy']!r}")
+    if "dec_deg" in vals and not -90 <= vals["dec_deg"] <= 90:
+        raise ValueError(f"source {name!r}: dec_deg must be in [-90, 90], got {vals['dec_deg']}")
+    if "l" in vals and vals["l"] ** 2 + vals["m"] ** 2 > 1:
+        raise ValueError(f"source {name!r}: l^2 + m^2 must be <= 1, got l={vals['l']}, m={vals['m']}")
+    return Source(name, flux, float(spec.get("spectral_index", 0.0)),
+                  float(spec.get("ref_freq_hz", REF_FREQ_HZ)), **vals)
+
+
+def resolve_sources(sources) -> list[Source]:
+    """:func:`resolve_source` on each entry (a single name/dict/Source is accepted too)."""
+    if isinstance(sources, (str, Mapping, Source)):
+        sources = [sources]
+    return [resolve_source(s) for s in sources]
+
+
+class SourceDirections(tuple):
+    """``(l, m, alt)`` float64 arrays (alt in radians) of the sources above the horizon.
+
+    Unpacks as a 3-tuple; also carries ``az`` (rad, North through East), ``n`` (= sin alt, float64),
+    ``sources`` (the kept :class:`Source` objects, same order) and ``dropped`` (names of sources at or
+    below the horizon).
+    """
+
+    def __new__(cls, l, m, alt, az, n, sources, dropped):
+        self = super().__new__(cls, (l, m, alt))
+        self.az, self.n, self.sources, self.dropped = az, n, list(sources), list(dropped)
+        return self
+
+    @property
+    def l(self):
+        return self[0]
+
+    @property
+    def m(self):
+        return self[1]
+
+    @property
+    def alt(self):
+        return self[2]
+
+    @property
+    def names(self) -> list[str]:
+        return [s.name for s in self.sources]
+
+
+def source_directions(sources, time=None, location=None) -> SourceDirections:
+    """Direction cosines of ``sources`` seen from ``location`` (astropy EarthLocation) at ``time``.
+
+    ICRS sources go through astropy ``AltAz`` (no refraction); l = cos(alt) sin(az) (East),
+    m = cos(alt) cos(az) (North). Sources with alt <= 0 are dropped, listed in ``.dropped`` and logged.
+    ``time``/``location`` are needed only for ICRS sources.
+    """
+    srcs = resolve_sources(sources)
+    nsrc = len(srcs)
+    alt = np.zeros(nsrc)
+    az = np.zeros(nsrc)
+    icrs = [i for i, s in enumerate(srcs) if s.frame == "icrs"]
+    if icrs:
+        if time is None or location is None:
+            raise ValueError(f"sources {[srcs[i].name for i in icrs]} have ICRS positions: "
+                             "source_directions needs time (astropy Time or ISO string) and location (EarthLocation)")
+        from astropy import units as u
+        from astropy.coordinates import AltAz, SkyCoord
+        from astropy.time import Time
+        t = time if isinstance(time, Time) else Time(time, scale="utc")
+        if not t.isscalar:
+            raise ValueError("source_directions: time must be a single instant (the sky is frozen)")
+        c = SkyCoord(ra=[srcs[i].ra_deg for i in icrs] * u.deg, dec=[srcs[i].dec_deg for i in icrs] * u.deg,
+                     frame="icrs")
+        aa = c.transform_to(AltAz(obstime=t, location=location))
+        alt[icrs] = aa.alt.to_value(u.rad)
+        az[icrs] = aa.az.to_value(u.rad)
+    for i, s in enumerate(srcs):
+        if s.frame == "altaz":
+            alt[i], az[i] = math.radians(s.alt_deg), math.radians(s.az_deg)
+    l = np.cos(alt) * np.sin(az)
+    m = np.cos(alt) * np.cos(az)
+    n = np.sin(alt)
+    for i, s in enumerate(srcs):
+        if s.frame == "lm":
+            rho = math.hypot(s.l, s.m)
+            l[i], m[i] = s.l, s.m
+            # (1 - rho)(1 + rho) keeps n accurate near the horizon
+            n[i] = math.sqrt(max(0.0, (1.0 - rho) * (1.0 + rho)))
+            alt[i] = math.atan2(n[i], rho)
+            az[i] = math.atan2(s.l, s.m) % (2 * math.pi)
+    keep = alt > 0
+    dropped = [s.name for s, k in zip(srcs, keep) if not k]
+    if dropped:
+        log.debug("sources below the horizon dropped: %s", ", ".join(dropped))
+    return SourceDirections(l[keep], m[keep], alt[keep], az[keep], n[keep],
+                            [s for s, k in zip(srcs, keep) if k], dropped)
+
+
+def _iers_offline():
+    """Context in which astropy uses its bundled IERS tables instead of downloading (offline)."""
+    from astropy.utils import iers
+    return iers.conf.set_temp("auto_download", False)
+
+
+def as_time(time):
+    """An astropy Time (UTC) from a Time, ISO string or datetime."""
+    from astropy.time import Time
+    if isinstance(time, Time):
+        if not time.isscalar:
+            raise ValueError(f"expected a single time, got an array of shape {time.shape}")
+        return time
+    try:
+        return Time(time, scale="utc")
+    except Exception as e:
+        raise ValueError(f"time must be an astropy Time or an ISO UTC string, got {time!r} ({e})") from None
+
+
+def as_location(location):
+    """An astropy EarthLocation from an EarthLocation or (lon_deg, lat_deg, height_m)."""
+    import astropy.units as u
+    from astropy.coordinates import EarthLocation
+    if isinstance(location, EarthLocation):
+        return location
+    try:
+        lon, lat, h = (float(x) for x in location)
+    except Exception:
+        raise TypeError(f"location must be an astropy EarthLocation or (lon_deg, lat_deg, height_m), "
+                        f"got {location!r}") from None
+    return EarthLocation.from_geodetic(lon * u.deg, lat * u.deg, h * u.m)
+
+
+def _altaz_frame(time, location):
+    from astropy.coordinates import AltAz
+    return AltAz(obstime=as_time(time), location=as_location(location))  # pressure 0: no refraction
+
+
+def zenith_icrs(time, location) -> tuple[float, float]:
+    """(ra_deg, dec_deg) in ICRS of the local zenith at ``time``."""
+    import astropy.units as u
+    from astropy.coordinates import SkyCoord
+    with _iers_offline():
+        z = SkyCoord(az=0 * u.deg, alt=90 * u.deg, frame=_altaz_frame(time, location)).icrs
+    return float(z.ra.deg), float(z.dec.deg)
+
+
+def north_angle_deg(time, location) -> float:
+    """Position angle (deg, East of ICRS North) of local North (+m) as seen at the zenith."""
+    import astropy.units as u
+    from astropy.coordinates import SkyCoord
+    frame = _altaz_frame(time, location)
+    d = 0.05  # deg: a short step keeps aberration's non-rotation part negligible in the angle
+    with _iers_offline():
+        c = SkyCoord(az=[0.0, 0.0] * u.deg, alt=[90.0, 90.0 - d] * u.deg, frame=frame).icrs
+    return float(c[0].position_angle(c[1]).deg)
+
+
+def lm_to_icrs(pixels_lm, time, location):
+    """ICRS (ra_deg, dec_deg) arrays for (npix, 2) direction cosines (l East, m North)."""
+    import astropy.units as u
+    from astropy.coordinates import SkyCoord
+    az, alt = azalt_from_lm(np.asarray(pixels_lm, dtype=np.float64).reshape(-1, 2))
+    with _iers_offline():
+        c = SkyCoord(az=az * u.deg, alt=alt * u.deg, frame=_altaz_frame(time, location)).icrs
+    return np.asarray(c.ra.deg), np.asarray(c.dec.deg)
+
+
+def icrs_to_lm(ra_deg, dec_deg, time, location):
+    """Direction cosines (l, m) and altitude (deg) of ICRS positions; l, m are NaN below the horizon.
+
+    Returns (lm (n, 2) float64, alt_deg (n,)).
+    """
+    import astropy.units as u
+    from astropy.coordinates import SkyCoord
+    ra = np.atleast_1d(np.asarray(ra_deg, dtype=np.float64))
+    dec = np.atleast_1d(np.asarray(dec_deg, dtype=np.float64))
+    with _iers_offline():
+        aa = SkyCoord(ra=ra * u.deg, dec=dec * u.deg, frame="icrs").transform_to(_altaz_frame(time, location))
+    az, alt = np.asarray(aa.az.deg), np.asarray(aa.alt.deg)
+    lm = np.full((alt.size, 2), np.nan)
+    up = alt >= 0
+    if np.any(up):
+        lm[up] = lm_from_azalt(az[up], alt[up])
+    return lm, alt
