@@ -203,7 +203,10 @@ def test_errors_name_the_problem(scene):
     with pytest.raises(ValueError, match="method must be one of"):
         imaging.dirty_image(X, xyz, freq, lm, method="fast")
     with pytest.raises(ValueError, match="precision must be one of"):
-        imaging.dirty_image(X, xyz, freq, lm, precision="fp16")
+        imaging.dirty_image(X, xyz, freq, lm, precision="fp8")
+    if isinstance(X, np.ndarray):   # the CPU has no tensor cores: a clear error, not a silent fp32
+        with pytest.raises(ValueError, match="needs tensor cores"):
+            imaging.dirty_image(X, xyz, freq, lm, precision="fp16")
     with pytest.raises(ValueError, match="needs two polarisations"):
         imaging.dirty_image(X[..., :1], xyz, freq, lm, products="stokes")
     with pytest.raises(TypeError, match="must be complex"):

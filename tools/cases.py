@@ -46,20 +46,40 @@ def sky_efield(xyz, freq_hz, ntime, npol=2, nsrc=4, seed=2, dtype=np.complex64):
     return X.astype(dtype)
 
 
-def reference_image(X, xyz, freq_hz, lm, blocks=((0, 0), (1, 1))):
-    """float64 XX/YY (or given blocks) image on a (small) pixel subset, straight from the definition."""
-    X = np.asarray(X, dtype=np.complex128)
+def quantise4(X, rms=2.0):
+    """4-bit F-engine voltages: (re, im) int8 pairs in -8..7, shape X.shape + (2,), rms ~``rms`` units."""
+    s = rms / np.sqrt(np.mean(np.abs(X) ** 2) / 2)
+    q = np.stack([np.clip(np.rint(X.real * s), -8, 7), np.clip(np.rint(X.imag * s), -8, 7)], axis=-1)
+    return q.astype(np.int8)
+
+
+def pairs_to_complex(q, dtype=np.complex64):
+    return (q[..., 0].astype(np.float32) + 1j * q[..., 1].astype(np.float32)).astype(dtype)
+
+
+def reference_image(X, xyz, freq_hz, lm, blocks=((0, 0), (1, 1)), accumulate=None):
+    """float64 XX/YY (or given blocks) image on a (small) pixel subset, straight from the definition.
+
+    X complex (T, C, A, P) or int8 (re, im) pairs; (C, nblk, npix), or (T // N, C, nblk, npix) with
+    ``accumulate=N`` (one image per N samples)."""
+    X = np.asarray(X)
+    if X.dtype.kind == "i":
+        X = X[..., 0].astype(np.float64) + 1j * X[..., 1]
+    X = X.astype(np.complex128)
+    T = X.shape[0]
+    N = T if accumulate is None else int(accumulate)
+    g = T // N
     l, m = lm[:, 0], lm[:, 1]
     n = np.sqrt(1 - l * l - m * m)
-    out = np.zeros((len(freq_hz), len(blocks), len(lm)))
+    out = np.zeros((g, len(freq_hz), len(blocks), len(lm)))
     for c, nu in enumerate(freq_hz):
         D = np.exp(-2j * np.pi * nu / C * (np.outer(l, xyz[:, 0]) + np.outer(m, xyz[:, 1]) + np.outer(n, xyz[:, 2])))
         D /= len(xyz)
         for i, (p, q) in enumerate(blocks):
-            F = D @ X[:, c, :, p].T
-            G = D @ X[:, c, :, q].T
-            out[c, i] = (F * np.conj(G)).mean(axis=1).real
-    return out
+            F = (D @ X[:g * N, c, :, p].T).reshape(len(lm), g, N)
+            G = (D @ X[:g * N, c, :, q].T).reshape(len(lm), g, N)
+            out[:, c, i] = (F * np.conj(G)).mean(axis=2).real.T
+    return out[0] if accumulate is None else out
 
 
 def timer(device):

@@ -5,7 +5,7 @@ correlation blocks (XX, YY: one each; any cross product adds the XY block):
 
 * direct:      F = D X            npol * npix * nant * ntime
                |F|^2 and F_X F_Y^*  nblk * npix * ntime   (elementwise, counted as CMACs)
-* covariance:  R = X X^H / T      (npol * nant)^2 * ntime   (the full pol-stacked Gram matrix)
+* covariance:  R = X X^H / T      nblk * nant^2 * ntime      (only the pol blocks the products need)
                D R                nblk * npix * nant^2
                diag(D R D^H)      nblk * npix * nant        (elementwise)
 
@@ -21,7 +21,7 @@ def route_cmacs(ntime: int, nant: int, npix: int, npol: int = 1, nblk: int | Non
     """CMAC counts per channel for one image of ``ntime`` samples: {'direct': n, 'covariance': n}."""
     nblk = npol if nblk is None else nblk
     direct = npol * npix * nant * ntime + nblk * npix * ntime
-    covariance = (npol * nant) ** 2 * ntime + nblk * npix * nant * nant + nblk * npix * nant
+    covariance = nblk * nant ** 2 * ntime + nblk * npix * nant * nant + nblk * npix * nant
     return {"direct": int(direct), "covariance": int(covariance)}
 
 

@@ -35,26 +35,25 @@ import numpy as np
 from ..conventions import SIGMA, SPEED_OF_LIGHT_M_S
 from . import cost
 from ._xp import get_xp
+from .gemm import PRECISIONS, check_precision, cmatmul, int_gram, split_tf32
+from .reduce import group_power, row_dot
 from .pixels import check_lm, n_from_lm
 from .products import combine, needs_cross, resolve_products
 
 log = logging.getLogger(__name__)
 
-PRECISIONS = {
-    "fp64": (np.float64, np.complex128),
-    "fp32": (np.float32, np.complex64),
-}
 METHODS = ("auto", "direct", "covariance")
 
-# Working-set cap for one chunk of intermediate results (bytes). Bounds host memory on 2-core
-# CI machines; on the GPU whole gulps of case P fit well below it.
-_CHUNK_BYTES = 256 * 2**20
+# Working-set cap for one chunk of intermediate results (bytes): bounds host memory on 2-core CI
+# machines; on the GPU a whole gulp of case P (F is 840 MB for the direct route) is one chunk.
+_CHUNK_BYTES = {"numpy": 256 * 2**20, "cupy": 2 * 2**30}
 
 
 def _check_precision(precision):
+    """(real, complex) dtypes of a precision name, wherever it can run (see :mod:`.gemm`)."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {tuple(PRECISIONS)}, got {precision!r}")
-    return PRECISIONS[precision]
+    return PRECISIONS[precision][:2]
 
 
 def _as_positions(xyz_m, xp):
@@ -148,6 +147,11 @@ def _check_pattern(pattern, nchan, npix, nant, npol, xp):
     return b
 
 
+def _is_int_pairs(efield):
+    """Integer voltages as (..., 2) (re, im) pairs: int8/int16 with a trailing axis of length 2."""
+    return efield.dtype.kind == "i" and efield.ndim == 5 and efield.shape[-1] == 2
+
+
 class DFTOperator:
     """The imaging operator D for one array, channel set and pixel set, built once, applied often.
 
@@ -160,15 +164,21 @@ class DFTOperator:
     weights : complex, optional  (nant,) or broadcastable (nchan|1, nant, npol|1): folded
                                  direction-independent gains (cable, calibration); 0 = flagged.
     pattern : complex, optional  broadcastable (nchan|1, npix, nant|1, npol|1) voltage pattern B.
-    precision : "fp32" | "fp64"  operator and arithmetic precision (phases always float64).
+    precision : str              GEMM precision, one of :data:`.gemm.PRECISIONS` (fp64, fp32,
+                                 tf32x3, tf32, fp16, bf16; the last four need a GPU). Phases are
+                                 always formed in float64; the operator is stored as complex64
+                                 (complex128 for fp64) and rounded by the GEMM as the mode says.
 
     The arrays live where ``xyz_m``/``pixels_lm`` live (pass CuPy arrays to build on the GPU).
+    Voltages given to :meth:`image` may be complex (ntime, nchan, nant, npol) or integer pairs
+    (ntime, nchan, nant, npol, 2) int8 (re, im), as unpacked from ci4/ci8: the covariance route
+    then forms X X^H exactly in integer arithmetic and applies the weights to it afterwards.
     """
 
     def __init__(self, xyz_m, freq_hz, pixels_lm, *, npol=1, weights=None, pattern=None, precision="fp32"):
-        self.rdtype, self.cdtype = _check_precision(precision)
-        self.precision = precision
         xp = get_xp(xyz_m, pixels_lm)
+        self.rdtype, self.cdtype = check_precision(precision, xp)
+        self.precision = precision
         self.xp = xp
         xyz = _as_positions(xyz_m, xp)
         f = _as_freqs(freq_hz, xp)
@@ -196,14 +206,23 @@ class DFTOperator:
         if self.any_dead:
             log.warning("%d channel-pol combinations have every antenna flagged; their images are NaN",
                         int(self.dead.sum()))
-        scale = xp.where(self.dead, 0.0, 1.0 / xp.maximum(n_live, 1))
-        wn = w * scale[:, None, :]
-        self.data_weights = wn.astype(self.cdtype)          # (nchan, nant, npol)
-        self.data_live = live                                # exact-zero mask for partial flags
+        # Channels with every antenna of every pol flagged cost nothing: they are left out of the
+        # GEMMs and come back as NaN images.
+        chan_live = ~xp.all(self.dead, axis=1)
+        self.chan_index = None if bool(xp.all(chan_live)) else xp.flatnonzero(chan_live)
+        if self.chan_index is not None and int(self.chan_index.shape[0]) == 0:
+            raise ValueError("every channel has every antenna flagged: there is nothing to image")
+        # 1/N_A is applied to the image (norm), not to the data, so that integer voltages with
+        # unit weights stay integers (exact in fp16/tf32 and in integer covariances).
+        self.norm = xp.where(self.dead, 0.0, 1.0 / xp.maximum(n_live, 1))       # (nchan, npol) float64
+        self.data_weights = w.astype(self.cdtype)                                # (nchan, nant, npol)
+        self.weights128 = w                                                      # for integer covariances
+        self.data_live = live
         self.partial_flags = not bool(xp.all(live))
+        self.unit_weights = bool(xp.all((w == 0) | (w == 1)))
         self.xyz_m = xyz[self.keep_index]
 
-        G = geometric_operator(self.xyz_m, f, lm, precision)  # (nchan, npix, nant)
+        G = geometric_operator(self.xyz_m, f, lm, "fp64" if precision == "fp64" else "fp32")  # (nchan, npix, nant)
         b = _check_pattern(pattern, nchan, npix, nant_in, npol, xp)
         self.pixel_pattern = None                             # (nchan|1, npix, npol|1) or None
         if b is not None and b.shape[2] != 1:
@@ -216,51 +235,138 @@ class DFTOperator:
             if b is not None:
                 self.pixel_pattern = b[:, :, 0, :].astype(self.cdtype)
         self.shared_geometry = self.G.shape[1] == 1
+        self._derived = {}
+
+    # ------------------------------------------------------------------ operator forms
+    def live_G(self, pol):
+        """Operator of pol ``pol`` (0 when shared) for the live channels: (nchan_live, npix, nant)."""
+        key = ("G", pol)
+        if key not in self._derived:
+            g = self.G[:, 0 if self.shared_geometry else pol]
+            if self.chan_index is not None:
+                g = g[self.chan_index]
+            self._derived[key] = self.xp.ascontiguousarray(g)
+        return self._derived[key]
+
+    def gemm(self, pol, rhs, *, out=None, rhs_exact=False):
+        """D_pol @ rhs at the operator's precision: (nchan_live, npix, nant) @ (nchan_live, nant, n)."""
+        a = self.live_G(pol)
+        split = None
+        if self.precision == "tf32x3":  # the operator is split into tf32 hi + lo once, not per gulp
+            key = ("split", pol)
+            if key not in self._derived:
+                self._derived[key] = split_tf32(a)
+            split = self._derived[key]
+        return cmatmul(a, rhs, self.precision, out=out, b_exact=rhs_exact, a_split=split)
+
+    def chunk_bytes(self):
+        return _CHUNK_BYTES.get(self.xp.__name__, _CHUNK_BYTES["numpy"])
 
     # ------------------------------------------------------------------ data preparation
-    def prepare(self, efield):
-        """Weighted, flag-zeroed voltages in operator precision, shaped (nchan, npol, nant, ntime).
-
-        efield : complex (ntime, nchan, nant_in, npol) in the operator's namespace.
-        """
+    def _check_efield(self, efield):
         xp = self.xp
         if get_xp(efield) is not xp:
             raise TypeError("efield and the operator live in different array namespaces "
                             f"({type(efield).__module__} vs {xp.__name__}); move one of them")
-        if efield.ndim != 4:
-            raise ValueError("efield must be shaped (ntime, nchan, nant, npol); got shape " + str(tuple(efield.shape)))
-        t, c, a, p = efield.shape
+        ints = _is_int_pairs(efield)
+        if efield.ndim != (5 if ints else 4):
+            raise ValueError("efield must be shaped (ntime, nchan, nant, npol) complex, or (ntime, nchan, nant, "
+                             "npol, 2) integer (re, im) pairs; got shape " + str(tuple(efield.shape))
+                             + f" dtype {efield.dtype}")
+        t, c, a, p = efield.shape[:4]
         if (c, a, p) != (self.nchan, self.nant_in, self.npol):
             raise ValueError(f"efield shape {tuple(efield.shape)} does not match the operator: expected "
                              f"(ntime, {self.nchan}, {self.nant_in}, {self.npol}) = (ntime, nchan, nant, npol)")
-        if efield.dtype.kind != "c":
-            raise TypeError(f"efield must be complex, got dtype {efield.dtype}; unpack ci4/ci8 first")
-        x = efield if self.all_kept else efield[:, :, self.keep_index, :]
+        if not ints and efield.dtype.kind != "c":
+            raise TypeError(f"efield must be complex or integer (re, im) pairs, got dtype {efield.dtype} with "
+                            f"shape {tuple(efield.shape)}; unpack ci4/ci8 first")
+        return ints
+
+    def _select(self, x):
+        """Kept antennas and live channels of (T, C, A, P[, 2]) data."""
+        if not self.all_kept:
+            x = x[:, :, self.keep_index]
+        if self.chan_index is not None:
+            x = x[:, self.chan_index]
+        return x
+
+    def prepare(self, efield):
+        """Weighted, flag-zeroed complex voltages, shaped (nchan_live, npol, nant, ntime).
+
+        efield : complex (ntime, nchan, nant_in, npol) or integer pairs (..., 2), in the operator's
+        namespace. The weights are applied, 1/N_A is not (see :attr:`norm`).
+        """
+        xp = self.xp
+        ints = self._check_efield(efield)
+        x = self._select(efield)
+        if ints:
+            x = x[..., 0].astype(self.rdtype) + 1j * x[..., 1].astype(self.rdtype)
         x = x.astype(self.cdtype, copy=False)
+        live, w = self.data_live, self.data_weights
+        if self.chan_index is not None:
+            live, w = live[self.chan_index], w[self.chan_index]
         if self.partial_flags:  # exact zeros first: 0 * NaN would poison the image
-            x = xp.where(self.data_live[None], x, 0)
-        x = x * self.data_weights[None]
+            x = xp.where(live[None], x, 0)
+        if not self.unit_weights:
+            x = x * w[None]
         # (T, C, A, P) -> (C, P, A, T): antennas x time matrices per channel-pol for the GEMMs.
         return xp.ascontiguousarray(x.transpose(1, 3, 2, 0))
 
+    def prepare_int(self, efield, pols):
+        """Integer voltages for exact covariances: int8 (nchan_live, len(pols) * 2 * nant, ntime).
+
+        Rows are [Re x_p; Im x_p] for each p in ``pols``; flagged antennas are zeroed, weights are
+        NOT applied (they multiply the covariance afterwards). ``efield``: integer pairs.
+        """
+        xp = self.xp
+        x = self._select(efield)                       # (T, C, A, P, 2)
+        if x.dtype != xp.int8:
+            if xp is not np or int(abs(x).max(initial=0)) > 127:  # pragma: no branch
+                raise TypeError(f"exact covariances take int8 (re, im) voltages (4- or 8-bit data); got {x.dtype}")
+            x = x.astype(xp.int8)
+        if self.partial_flags:
+            live = self.data_live if self.chan_index is None else self.data_live[self.chan_index]
+            x = x * live[None, :, :, :, None].astype(xp.int8)
+        x = x[:, :, :, list(pols)]                      # (T, C, A, P', 2)
+        # -> (C, P', 2, A, T): per channel the rows [Re x_p0; Im x_p0; Re x_p1; ...]
+        z = x.transpose(1, 3, 4, 2, 0)
+        c = z.shape[0]
+        return xp.ascontiguousarray(z).reshape(c, -1, z.shape[-1])
+
+    # ------------------------------------------------------------------ imaging
     def accumulator(self, products=None, *, remove_autocorr=False, method="auto", ntime_hint=1024):
         """A fresh :class:`ImageAccumulator` for integrations that span several calls."""
         return ImageAccumulator(self, products, remove_autocorr=remove_autocorr, method=method,
                                 ntime_hint=ntime_hint)
 
-    def image(self, efield, products=None, *, remove_autocorr=False, method="auto"):
-        """One image from all samples of ``efield``: (nchan, nprod, npix), real, operator precision."""
-        acc = self.accumulator(products, remove_autocorr=remove_autocorr, method=method,
-                               ntime_hint=int(efield.shape[0]))
-        acc.add(efield)
-        return acc.result()
+    def image(self, efield, products=None, *, remove_autocorr=False, method="auto", accumulate=None):
+        """Images of ``efield``.
+
+        accumulate : None -> one image from all samples, (nchan, nprod, npix); an integer N ->
+            one image per N consecutive samples, (ntime // N, nchan, nprod, npix), computed in one
+            batched pass (direct route: one GEMM for the whole gulp, |F|^2 summed per group);
+            trailing samples that do not fill an integration are not imaged.
+        Real images in the operator's precision (float32, float64 for fp64).
+        """
+        ntime = int(efield.shape[0])
+        if accumulate is None:
+            acc = self.accumulator(products, remove_autocorr=remove_autocorr, method=method, ntime_hint=ntime)
+            acc.add(efield)
+            return acc.result()
+        n = int(accumulate)
+        if n != accumulate or n < 1:
+            raise ValueError(f"accumulate must be a positive integer number of samples, got {accumulate!r}")
+        acc = self.accumulator(products, remove_autocorr=remove_autocorr, method=method, ntime_hint=n)
+        return acc.images(efield, n)
 
 
 class ImageAccumulator:
     """Running sums for one integration; ``add`` gulps of voltages, ``result`` the image.
 
     ``method`` is fixed for the integration ("auto" is resolved from ``ntime_hint``): the direct
-    route keeps per-pixel sums of |F|^2 (and F_X F_Y^*), the covariance route keeps X X^H.
+    route keeps per-pixel sums of |F|^2 (and F_X F_Y^*), the covariance route keeps X X^H (only
+    the polarisation blocks the products need; exactly, in integers, for integer voltages).
+    :meth:`images` makes one image per N samples of a gulp in one batched pass.
     """
 
     def __init__(self, op: DFTOperator, products=None, *, remove_autocorr=False, method="auto", ntime_hint=1024):
@@ -278,172 +384,318 @@ class ImageAccumulator:
         if self.cross:
             blocks.append((0, 1))
         self.blocks = blocks
+        self.pols = sorted({p for b in blocks for p in b})
         if method == "auto":
             method = cost.choose_method(int(ntime_hint), op.nant, op.npix, op.npol, len(blocks))
         self.method = method
         self.remove_autocorr = bool(remove_autocorr)
+        self.nchan_live = op.nchan if op.chan_index is None else int(op.chan_index.shape[0])
         self.reset()
 
     def reset(self):
-        xp, op = self.op.xp, self.op
         self.ntime = 0
-        if self.method == "covariance":
-            pa = op.npol * op.nant
-            self._R = xp.zeros((op.nchan, pa, pa), dtype=op.cdtype)
-        else:
-            self._S = xp.zeros((op.nchan, len(self.blocks), op.npix), dtype=op.cdtype)
-            self._auto = xp.zeros((op.nchan, len(self.blocks), op.nant), dtype=op.cdtype)
+        self._S = None      # direct: (C', nblk, K) sums of |F|^2 / F_p F_q^*
+        self._auto = None   # direct: (C', nblk, A) sums of x_p x_q^*
+        self._R = None      # covariance, complex input: (C', nblk, A, A)
+        self._W = None      # covariance, integer input: (C', r, r) int32 (GPU) / float64 (CPU) Gram sums
+        self._W64 = None    # GPU: int64 bank the int32 sums are flushed to before they could overflow
+        self._wn = 0        # samples in the int32 sums
 
+    # ------------------------------------------------------------------ accumulation
     def add(self, efield):
-        """Accumulate complex voltages (ntime, nchan, nant, npol) into the integration."""
+        """Accumulate voltages (ntime, nchan, nant, npol) complex, or integer (re, im) pairs."""
         if efield.shape[0] == 0:
             return
-        x = self.op.prepare(efield)  # (C, P, A, T)
-        self.ntime += int(x.shape[-1])
+        ints = self.op._check_efield(efield)
         if self.method == "covariance":
-            self._add_covariance(x)
+            if ints:
+                if self._R is not None:
+                    raise TypeError("one integration cannot mix complex and integer voltages")
+                self._add_int_covariance(self.op.prepare_int(efield, self.pols))
+            else:
+                if self._W is not None:
+                    raise TypeError("one integration cannot mix complex and integer voltages")
+                self._add_covariance(self.op.prepare(efield))
         else:
-            self._add_direct(x)
+            self._add_direct(self.op.prepare(efield), exact=ints and self.op.unit_weights)
+        self.ntime += int(efield.shape[0])
 
-    def _add_covariance(self, x):
-        xp = self.op.xp
+    def _fields(self, x, exact):
+        """Yield (channel slice, F (c, P', K, t) chunk, time offset) of the beamformed fields."""
+        op, xp = self.op, self.op.xp
         c, p, a, t = x.shape
-        y = x.reshape(c, p * a, t)
-        self._R += xp.matmul(y, xp.conj(y).swapaxes(1, 2))
-
-    def _add_direct(self, x):
-        xp, op = self.op.xp, self.op
-        c, p, a, t = x.shape
-        itemsize = np.dtype(op.cdtype).itemsize
-        # Chunk channels and time so one F block stays under _CHUNK_BYTES.
-        per_chan_t = op.npix * p * itemsize
-        tchunk = max(1, min(t, _CHUNK_BYTES // max(1, per_chan_t)))
-        cchunk = max(1, min(c, _CHUNK_BYTES // max(1, per_chan_t * tchunk)))
+        per_chan_t = op.npix * len(self.pols) * np.dtype(op.cdtype).itemsize
+        tchunk = max(1, min(t, op.chunk_bytes() // max(1, per_chan_t)))
+        cchunk = max(1, min(c, op.chunk_bytes() // max(1, per_chan_t * tchunk)))
         for c0 in range(0, c, cchunk):
             cs = slice(c0, min(c, c0 + cchunk))
             for t0 in range(0, t, tchunk):
                 xs = x[cs, :, :, t0:t0 + tchunk]
+                nc, nt = xs.shape[0], xs.shape[-1]
                 if op.shared_geometry:
-                    nt = xs.shape[-1]
-                    rhs = xs.transpose(0, 2, 1, 3).reshape(xs.shape[0], a, p * nt)
-                    F = xp.matmul(op.G[cs, 0], rhs).reshape(xs.shape[0], op.npix, p, nt)
-                    F = F.transpose(0, 2, 1, 3)  # (c, P, K, t)
+                    # both pols in one GEMM: (c, K, A) @ (c, A, P' t)
+                    rhs = xs[:, self.pols].transpose(0, 2, 1, 3).reshape(nc, a, len(self.pols) * nt)
+                    F = self._gemm_chunk(0, cs, rhs, exact).reshape(nc, op.npix, len(self.pols), nt)
+                    yield cs, F.transpose(0, 2, 1, 3), t0
                 else:
-                    F = xp.matmul(op.G[cs], xs)  # (c, P, K, A) @ (c, P, A, t)
-                for i, (pp, qq) in enumerate(self.blocks):
-                    if pp == qq:
-                        Fp = F[:, pp]
-                        self._S[cs, i] += (Fp.real ** 2 + Fp.imag ** 2).sum(axis=-1)
-                    else:
-                        self._S[cs, i] += (F[:, pp] * xp.conj(F[:, qq])).sum(axis=-1)
+                    F = xp.stack([self._gemm_chunk(pp, cs, xs[:, pp], exact) for pp in self.pols], axis=1)
+                    yield cs, F, t0
+
+    def _gemm_chunk(self, pol, cs, rhs, exact):
+        op = self.op
+        if cs.start == 0 and cs.stop == self.nchan_live:
+            return op.gemm(pol, rhs, rhs_exact=exact)
+        g = op.live_G(pol)[cs]
+        return cmatmul(g, rhs, op.precision, b_exact=exact)
+
+    def _block_sums(self, F, n):
+        """(c, nblk, K, groups) sums over groups of n samples of the block products of F (c, P', K, t)."""
+        xp = self.op.xp
+        idx = {p: i for i, p in enumerate(self.pols)}
+        out = []
+        for pp, qq in self.blocks:
+            if pp == qq:
+                out.append(group_power(F[:, idx[pp]], None, n).astype(self.op.cdtype))
+            else:
+                out.append(group_power(F[:, idx[pp]], F[:, idx[qq]], n))
+        return xp.stack(out, axis=1)
+
+    def _auto_sums(self, x, n):
+        """(c, nblk, A, groups): sums over groups of n samples of x_p conj(x_q) per antenna."""
+        xp = self.op.xp
+        return xp.stack([group_power(x[:, pp], x[:, qq] if pp != qq else None, n).astype(self.op.cdtype)
+                         for pp, qq in self.blocks], axis=1)
+
+    def _add_direct(self, x, exact=False):
+        op, xp = self.op, self.op.xp
+        if self._S is None:
+            self._S = xp.zeros((self.nchan_live, len(self.blocks), op.npix), dtype=op.cdtype)
+            self._auto = xp.zeros((self.nchan_live, len(self.blocks), op.nant), dtype=op.cdtype)
+        for cs, F, _ in self._fields(x, exact):
+            self._S[cs] += self._block_sums(F, None)[..., 0]
         if self.remove_autocorr:
-            for i, (pp, qq) in enumerate(self.blocks):
-                self._auto[:, i] += (x[:, pp] * xp.conj(x[:, qq])).sum(axis=-1)
+            self._auto += self._auto_sums(x, None)[..., 0]
+
+    def _add_covariance(self, x):
+        op, xp = self.op, self.op.xp
+        c, p, a, t = x.shape
+        if self._R is None:
+            self._R = xp.zeros((c, len(self.blocks), a, a), dtype=op.cdtype)
+        prec = "fp64" if op.precision == "fp64" else "fp32"   # the data are not integers: R in fp32
+        for i, (pp, qq) in enumerate(self.blocks):
+            xq_h = xp.ascontiguousarray(xp.conj(x[:, qq]).swapaxes(1, 2))
+            self._R[:, i] += cmatmul(x[:, pp], xq_h, prec)
+
+    # int32 sums of 4/8-bit products: a sample adds at most 2 * 128^2 to an entry
+    _INT32_SAMPLES = (2**31 - 1) // (2 * 128 * 128)
+
+    def _add_int_covariance(self, z):
+        xp = self.op.xp
+        t = z.shape[-1]
+        if xp is np:
+            step = (2**24 - 1) // (2 * 128 * 128)     # float32 sums stay exact below 2^24
+            if self._W is None:
+                self._W = np.zeros((z.shape[0], z.shape[1], z.shape[1]), np.float64)
+            for t0 in range(0, t, step):
+                int_gram(z[..., t0:t0 + step], out=self._W, accumulate=True)
+            return
+        if self._W is not None and self._wn + t > self._INT32_SAMPLES:
+            self._W64 = self._W.astype(xp.int64) if self._W64 is None else self._W64 + self._W
+            self._W, self._wn = None, 0
+        self._W = int_gram(z, out=self._W, accumulate=self._W is not None)
+        self._wn += t
+
+    # ------------------------------------------------------------------ results
+    def images(self, efield, n):
+        """One image per ``n`` consecutive samples of ``efield``: (ntime // n, nchan, nprod, npix).
+
+        Independent of (and leaving untouched) any integration in progress. Direct route: one batched
+        pass; covariance route: one exact covariance per group (chosen only for long groups)."""
+        op, xp = self.op, self.op.xp
+        ints = op._check_efield(efield)
+        g = int(efield.shape[0]) // n
+        if g == 0:
+            return xp.zeros((0, op.nchan, len(self.products), op.npix), op.rdtype)
+        efield = efield[:g * n]
+        if self.method == "covariance":
+            out = []
+            sub = ImageAccumulator(op, self.products, remove_autocorr=self.remove_autocorr, method="covariance")
+            for i in range(g):
+                sub.add(efield[i * n:(i + 1) * n])
+                out.append(sub.result())
+                sub.reset()
+            return xp.stack(out)
+        x = op.prepare(efield)
+        exact = ints and op.unit_weights
+        S = xp.zeros((self.nchan_live, len(self.blocks), op.npix, g), dtype=op.cdtype)
+        for cs, F, t0 in self._fields(x, exact):
+            nt = F.shape[-1]
+            # chunks hold whole groups when possible; a group split across chunks is summed in two parts
+            if t0 % n == 0 and nt % n == 0:
+                S[cs, :, :, t0 // n:(t0 + nt) // n] += self._block_sums(F, n)
+            else:
+                for j in range(t0 // n, min(g, -(-(t0 + nt) // n))):
+                    lo, hi = max(j * n, t0) - t0, min((j + 1) * n, t0 + nt) - t0
+                    S[cs, :, :, j] += self._block_sums(F[..., lo:hi], None)[..., 0]
+        corr = xp.moveaxis(S, -1, 0)                                      # (g, C', nblk, K)
+        if self.remove_autocorr:
+            auto = xp.moveaxis(self._auto_sums(x, n), -1, 0)             # (g, C', nblk, A)
+            corr = corr - self._autocorr_term(auto)
+        return self._finish(corr / n)
 
     def result(self):
         """The image (nchan, nprod, npix), real, in the operator's precision; NaN where all antennas of a
         contributing channel-pol are flagged. Raises if nothing was accumulated."""
         if self.ntime == 0:
             raise ValueError("no samples were accumulated: cannot form an image from zero time samples")
-        xp, op = self.op.xp, self.op
         if self.method == "covariance":
             corr = self._image_covariance()
         else:
             corr = self._S
             if self.remove_autocorr:
                 corr = corr - self._autocorr_term(self._auto)
-        corr = corr / self.ntime  # (C, nblk, K)
+        return self._finish(corr / self.ntime)
+
+    def _finish(self, corr):
+        """(..., C', nblk, K) complex correlations (unnormalised) -> (..., nchan, nprod, K) products."""
+        xp, op = self.op.xp, self.op
+        norm = op.norm if op.chan_index is None else op.norm[op.chan_index]        # (C', P)
+        scale = xp.stack([norm[:, pp] * norm[:, qq] for pp, qq in self.blocks], axis=1)  # (C', nblk)
+        corr = corr * scale[..., None].astype(op.rdtype)
         if op.pixel_pattern is not None:
-            B = op.pixel_pattern  # (C|1, K, P|1)
+            B = op.pixel_pattern if op.chan_index is None or op.pixel_pattern.shape[0] == 1 \
+                else op.pixel_pattern[op.chan_index]                            # (C'|1, K, P|1)
             bw = []
             for pp, qq in self.blocks:
                 bp = B[:, :, min(pp, B.shape[2] - 1)]
                 bq = B[:, :, min(qq, B.shape[2] - 1)]
                 bw.append(bp * xp.conj(bq))
             corr = corr * xp.stack(bw, axis=1)
-        get = {blk: corr[:, i] for i, blk in enumerate(self.blocks)}
-        xx = get.get((0, 0))
-        yy = get.get((1, 1))
-        xy = get.get((0, 1))
+        get = {blk: corr[..., i, :] for i, blk in enumerate(self.blocks)}
+        xx, yy, xy = get.get((0, 0)), get.get((1, 1)), get.get((0, 1))
         out = combine(self.products, xx.real if xx is not None else None,
                       yy.real if yy is not None else None, xy).astype(op.rdtype, copy=False)
+        if op.chan_index is not None:
+            full = xp.full(out.shape[:-3] + (op.nchan,) + out.shape[-2:], xp.nan, dtype=op.rdtype)
+            full[..., op.chan_index, :, :] = out
+            out = full
         if op.any_dead:
             for k, name in enumerate(self.products):
                 pols = {"XX": (0,), "YY": (1,)}.get(name, tuple(range(op.npol)))
                 bad = xp.any(op.dead[:, list(pols)], axis=1)
-                out[bad, k, :] = xp.nan
+                out[..., bad, k, :] = xp.nan
         return out
 
     def _autocorr_term(self, auto):
-        """sum_a D^p_ka conj(D^q_ka) sum_t x_ap conj(x_aq): (C, nblk, K); data already weighted."""
+        """sum_a D^p_ka conj(D^q_ka) sum_t x_ap conj(x_aq): (..., C', nblk, K); data already weighted."""
         xp, op = self.op.xp, self.op
         if op.shared_geometry:  # |G| = 1: the term is the same for every pixel
-            return xp.broadcast_to(auto.sum(axis=-1)[:, :, None], auto.shape[:2] + (op.npix,))
+            s = auto.sum(axis=-1)
+            return xp.broadcast_to(s[..., None], s.shape + (op.npix,))
         terms = []
         for i, (pp, qq) in enumerate(self.blocks):
-            gg = op.G[:, pp] * xp.conj(op.G[:, qq])  # (C, K, A)
-            terms.append(xp.matmul(gg, auto[:, i, :, None])[..., 0])
-        return xp.stack(terms, axis=1)
+            gg = op.live_G(pp) * xp.conj(op.live_G(qq))  # (C', K, A)
+            terms.append(xp.matmul(gg, auto[..., i, :, None])[..., 0])
+        return xp.stack(terms, axis=-2)
+
+    def _covariance_blocks(self):
+        """Weighted covariance blocks (C', nblk, A, A) complex, unnormalised, from the running sums."""
+        xp, op = self.op.xp, self.op
+        if self._W is None and self._W64 is None:
+            return self._R
+        W = self._W64 if self._W is None else (self._W if self._W64 is None else self._W64 + self._W)
+        a = op.nant
+        idx = {p: i for i, p in enumerate(self.pols)}
+        w = op.weights128 if op.chan_index is None else op.weights128[op.chan_index]   # (C', A, P)
+        dt = np.float64 if op.precision == "fp64" else np.float32
+        blocks = []
+        for pp, qq in self.blocks:
+            rp, rq = 2 * a * idx[pp], 2 * a * idx[qq]
+            RR = W[:, rp:rp + a, rq:rq + a]
+            RI = W[:, rp:rp + a, rq + a:rq + 2 * a]
+            IR = W[:, rp + a:rp + 2 * a, rq:rq + a]
+            II = W[:, rp + a:rp + 2 * a, rq + a:rq + 2 * a]
+            # x_p x_q^H = (Re_p Re_q + Im_p Im_q) + i (Im_p Re_q - Re_p Im_q), exact in integers
+            re = (RR + II).astype(dt)
+            im = (IR - RI).astype(dt)
+            r = re + 1j * im
+            if not op.unit_weights:
+                r = (w[:, :, pp, None] * r) * xp.conj(w[:, None, :, qq])
+            blocks.append(r.astype(op.cdtype))
+        return xp.stack(blocks, axis=1)
 
     def _image_covariance(self):
+        """(C', nblk, K): Re diag(D_p R_pq D_q^H) (complex for XY), minus the autocorrelations if asked."""
         xp, op = self.op.xp, self.op
-        R = self._R
-        a = op.nant
-        if self.remove_autocorr:
-            R = R.copy()
-            idx = xp.arange(R.shape[-1])
-            R[:, idx, idx] = 0
-            if len(self.blocks) and op.npol == 2:
-                # the X-Y diagonal (same antenna, cross pol) is an autocorrelation term as well
-                R[:, idx[:a], idx[:a] + a] = 0
-                R[:, idx[:a] + a, idx[:a]] = 0
-        nblk = len(self.blocks)
+        R = self._covariance_blocks()                         # (C', nblk, A, A)
+        c, nblk, a, _ = R.shape
         itemsize = np.dtype(op.cdtype).itemsize
-        cchunk = max(1, min(op.nchan, _CHUNK_BYTES // max(1, op.npix * nblk * a * itemsize)))
-        out = xp.empty((op.nchan, nblk, op.npix), dtype=op.cdtype)
-        for c0 in range(0, op.nchan, cchunk):
-            cs = slice(c0, min(op.nchan, c0 + cchunk))
-            Rc = R[cs]
-            nc = Rc.shape[0]
+        cchunk = max(1, min(c, op.chunk_bytes() // max(1, op.npix * nblk * a * itemsize)))
+        out = xp.empty((c, nblk, op.npix), dtype=op.cdtype)
+        for c0 in range(0, c, cchunk):
+            cs = slice(c0, min(c, c0 + cchunk))
+            nc = cs.stop - cs.start
             if op.shared_geometry:
-                G = op.G[cs, 0]  # (c, K, A)
-                rhs = xp.concatenate([Rc[:, pp * a:(pp + 1) * a, qq * a:(qq + 1) * a] for pp, qq in self.blocks],
-                                     axis=2)  # (c, A, nblk*A)
-                M = xp.matmul(G, rhs).reshape(nc, op.npix, nblk, a)
-                out[cs] = (M * xp.conj(G)[:, :, None, :]).sum(axis=-1).transpose(0, 2, 1)
+                rhs = R[cs].transpose(0, 2, 1, 3).reshape(nc, a, nblk * a)      # [R_b0 | R_b1 | ...]
+                M = self._gemm_chunk(0, cs, rhs, False).reshape(nc, op.npix, nblk, a)
+                G = op.live_G(0)[cs]
+                out[cs] = row_dot(M, G[:, :, None, :]).transpose(0, 2, 1)
             else:
                 for i, (pp, qq) in enumerate(self.blocks):
-                    M = xp.matmul(op.G[cs, pp], Rc[:, pp * a:(pp + 1) * a, qq * a:(qq + 1) * a])
-                    out[cs, i] = (M * xp.conj(op.G[cs, qq])).sum(axis=-1)
+                    M = self._gemm_chunk(pp, cs, xp.ascontiguousarray(R[cs, i]), False)
+                    out[cs, i] = row_dot(M, op.live_G(qq)[cs])
+        if self.remove_autocorr:   # the diagonal's contribution, subtracted: R itself is not copied
+            diag = xp.diagonal(R, axis1=-2, axis2=-1)            # (C', nblk, A): x_ap conj(x_aq) sums
+            out = out - self._autocorr_term(diag)
         return out
 
 
 def dirty_image(efield, xyz_m, freq_hz, pixels_lm, *, remove_autocorr=False, method="auto",
-                precision="fp32", products=None, weights=None, pattern=None):
+                precision=None, products=None, weights=None, pattern=None, accumulate=None, tolerance=None):
     """E-field DFT image: the time mean of |sum_a D[k, a] x_a(t)|^2 (see module docstring).
 
     Parameters
     ----------
-    efield : complex (ntime, nchan, nant, npol), NumPy or CuPy; calibrated voltages.
+    efield : complex (ntime, nchan, nant, npol), NumPy or CuPy (or anything ``asarray`` takes);
+             calibrated voltages. Integer (re, im) pairs (ntime, nchan, nant, npol, 2) int8 are
+             taken as they are (the covariance route then forms X X^H exactly).
     xyz_m : (nant, 3) East/North/Up metres.   freq_hz : (nchan,) Hz.
     pixels_lm : (npix, 2) direction cosines (l East, m North); l^2 + m^2 > 1 is a ValueError.
     remove_autocorr : subtract the autocorrelation term exactly.
     method : "direct" (D X then |.|^2), "covariance" (Re diag(D R D^H)), or "auto" (cheaper by
              :func:`bf_epic_blocks.imaging.cost.choose_method`).
-    precision : "fp32" (fp32 operator and data, float64 phases) or "fp64".
+    precision : one of :data:`bf_epic_blocks.imaging.gemm.PRECISIONS` ("fp64", "fp32", and on a
+             GPU "tf32x3", "tf32", "fp16", "bf16"; phases are always formed in float64). Default
+             "fp32" (or the tolerance's pick).
+    tolerance : an accuracy target instead of a mode: the largest acceptable error (max |I - I_exact|
+             / max I_exact); the fastest route x precision whose measured bound holds on this device
+             is used (:func:`bf_epic_blocks.imaging.plan.choose`). An explicit ``method`` (other than
+             "auto") or ``precision`` given with it restricts the choice, and is an error if it
+             cannot meet the tolerance.
     products : None (npol=1: XX; npol=2: XX, YY), "stokes" (I, Q, U, V), "linear", "full", or
                a list of names from XX, YY, XY, YX, XYi, YXi, I, Q, U, V.
     weights : complex (nant,) or (nchan|1, nant, npol|1); 0 drops the antenna from the operator.
     pattern : complex (nchan|1, npix, nant|1, npol|1) voltage pattern folded into D.
+    accumulate : None (one image) or N: one image per N consecutive samples.
 
     Returns
     -------
-    float (nchan, nprod, npix) in the namespace of ``efield``, fp32 or fp64 per ``precision``.
+    float (nchan, nprod, npix) -- or (ntime // N, nchan, nprod, npix) with ``accumulate=N`` -- in
+    the namespace of ``efield``, float32 (float64 for precision "fp64").
     """
     xp = get_xp(efield)
-    if efield.ndim != 4:
+    efield = xp.asarray(efield)
+    if efield.ndim not in (4, 5):
         raise ValueError("efield must be shaped (ntime, nchan, nant, npol); got shape " + str(tuple(efield.shape)))
+    if tolerance is not None:
+        from .plan import choose
+        npix = int(xp.asarray(pixels_lm).shape[0])
+        nt = int(efield.shape[0]) if accumulate is None else int(accumulate)
+        pick = choose(tolerance, xp=xp, ntime=nt, nant=int(efield.shape[2]), npix=npix, npol=int(efield.shape[3]),
+                      products=products, method=method, precision=precision)
+        method, precision = pick.method, pick.precision
+    precision = "fp32" if precision is None else precision
     op = DFTOperator(xp.asarray(xyz_m), xp.asarray(freq_hz), xp.asarray(pixels_lm), npol=int(efield.shape[3]),
                      weights=None if weights is None else xp.asarray(weights),
                      pattern=None if pattern is None else xp.asarray(pattern), precision=precision)
-    return op.image(efield, products, remove_autocorr=remove_autocorr, method=method)
+    return op.image(efield, products, remove_autocorr=remove_autocorr, method=method, accumulate=accumulate)

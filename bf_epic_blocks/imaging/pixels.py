@@ -92,7 +92,8 @@ class LMGrid:
         return out.reshape(values.shape[:-1] + (self.size, self.size))
 
 
-def lm_grid(size: int, *, cell: float | None = None, horizon_margin: float = 0.0) -> LMGrid:
+def lm_grid(size: int, *, cell: float | None = None, horizon_margin: float = 0.0,
+            min_elevation_deg: float = 0.0) -> LMGrid:
     """A regular all-sky (or narrower) grid.
 
     Parameters
@@ -100,7 +101,11 @@ def lm_grid(size: int, *, cell: float | None = None, horizon_margin: float = 0.0
     size : int   N pixels per side (>= 2).
     cell : float step in l and m; default 2 / N, i.e. the grid spans the whole sky l, m in [-1, 1).
     horizon_margin : float  keep only pixels with sqrt(l^2+m^2) < 1 - horizon_margin.
+    min_elevation_deg : float  keep only pixels at or above this elevation (n >= sin(el)): a dipole
+        has almost no gain near the horizon, so those pixels are not worth imaging.
     """
+    if not (0.0 <= float(min_elevation_deg) < 90.0):
+        raise ValueError(f"min_elevation_deg must be in [0, 90) degrees, got {min_elevation_deg!r}")
     if int(size) != size or size < 2:
         raise ValueError(f"grid size must be an integer >= 2, got {size!r}")
     size = int(size)
@@ -109,7 +114,10 @@ def lm_grid(size: int, *, cell: float | None = None, horizon_margin: float = 0.0
         raise ValueError(f"grid cell must be positive, got {cell!r}")
     ax = (np.arange(size) - size // 2) * cell
     mm, ll = np.meshgrid(ax, ax, indexing="ij")
-    mask = np.hypot(ll, mm) < 1.0 - horizon_margin
+    rho = np.hypot(ll, mm)
+    mask = rho < 1.0 - horizon_margin
+    if min_elevation_deg > 0:
+        mask &= rho <= np.cos(np.radians(float(min_elevation_deg)))   # rho = cos(elevation)
     lm = np.stack([ll[mask], mm[mask]], axis=-1)
     if lm.shape[0] == 0:
         raise ValueError("the grid has no pixel above the horizon")

@@ -1,0 +1,222 @@
+"""The precision ladder, batched short integrations, exact integer covariances and the tolerance
+planner, against independent float64 truth (tests/truth.py)."""
+import numpy as np
+import pytest
+
+from bf_epic_blocks import imaging
+from bf_epic_blocks.imaging import plan
+from bf_epic_blocks.imaging.dft import DFTOperator
+from bf_epic_blocks.imaging.gemm import PRECISIONS, precision_available
+from truth import brute_fields, brute_image, point_source_efield
+
+C = 299792458.0
+
+
+def to_np(a):
+    return a.get() if hasattr(a, "get") else np.asarray(a)
+
+
+def rel_err(got, ref):
+    return float(np.nanmax(np.abs(to_np(got) - ref)) / np.nanmax(np.abs(ref)))
+
+
+def quantise4(x, rms=2.0):
+    """4-bit (re, im) integer pairs (int8, values -8..7) of complex voltages, as an F-engine gives."""
+    s = rms / np.sqrt(np.mean(np.abs(x) ** 2) / 2)
+    q = np.stack([np.clip(np.rint(x.real * s), -8, 7), np.clip(np.rint(x.imag * s), -8, 7)], axis=-1)
+    return q.astype(np.int8)
+
+
+def as_complex(q):
+    return q[..., 0].astype(np.float64) + 1j * q[..., 1]
+
+
+@pytest.fixture(scope="module")
+def sky_scene():
+    """Realistic data: an LWA-like 48-antenna layout (z scatter, one outrigger), noise plus three
+    sources, quantised to 4 bits; 2 channels, 2 pols, 192 samples; an all-sky 20x20 grid."""
+    rng = np.random.default_rng(7)
+    r = 50 * np.sqrt(rng.random(48))
+    th = 2 * np.pi * rng.random(48)
+    xyz = np.stack([r * np.cos(th), 1.1 * r * np.sin(th), rng.normal(0, 0.4, 48)], axis=1)
+    xyz[-1] = [-293.0, 5.0, 10.0]
+    freq = np.array([60e6, 74e6])
+    T = 192
+    X = (rng.normal(size=(T, 2, 48, 2)) + 1j * rng.normal(size=(T, 2, 48, 2))) / np.sqrt(2)
+    for l, m, p in ((0.3, -0.2, 3.0), (-0.5, 0.4, 2.0), (0.05, 0.7, 1.0)):
+        X = X + point_source_efield(xyz, freq, l, m, p, T, npol=2, rng=rng)
+    lm = imaging.lm_grid(20).lm
+    return xyz, freq, quantise4(X), lm
+
+
+@pytest.fixture(scope="module")
+def hard_scene():
+    """A 5 km baseline at 88 MHz, pixels at n ~ 1e-4 (the horizon), and a point source 60 dB above
+    the noise (4-bit quantisation cannot hold 60 dB, so these voltages stay complex)."""
+    rng = np.random.default_rng(11)
+    xyz = np.concatenate([rng.normal(0, 30, (15, 3)) * [1, 1, 0.05], [[4000.0, -3000.0, 12.0]]])
+    freq = np.array([88e6])
+    T = 64
+    X = 1e-3 * (rng.normal(size=(T, 1, 16, 2)) + 1j * rng.normal(size=(T, 1, 16, 2)))
+    X = X + point_source_efield(xyz, freq, 0.6, 0.8 * np.sqrt(1 - 1e-8) * 0.9999, 1.0, T, npol=2, rng=rng)
+    ang = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    r = np.sqrt(1 - 1e-8)                       # n = 1e-4
+    lm = np.concatenate([np.stack([r * np.cos(ang), r * np.sin(ang)], 1), imaging.lm_grid(8).lm])
+    return xyz, freq, X, lm
+
+
+def _bound(xp, method, precision):
+    dev = "gpu" if xp.__name__ == "cupy" else "cpu"
+    rows = [r for r in plan.load_table()["rows"] if (r["device"], r["method"], r["precision"]) ==
+            (dev, method, precision)]
+    assert rows, f"the shipped table has no bound for {(dev, method, precision)}"
+    return rows[0]["bound"]
+
+
+@pytest.mark.parametrize("method", ["direct", "covariance"])
+def test_every_precision_within_its_stated_bound(xp, sky_scene, hard_scene, method):
+    prods = ("I", "Q", "U", "V")
+    for name, (xyz, freq, X, lm) in (("sky 4-bit", sky_scene), ("5 km horizon 60 dB", hard_scene)):
+        Xc = as_complex(X) if X.dtype == np.int8 else X
+        ref = brute_image(Xc, xyz, freq, lm, prods)
+        inputs = [xp.asarray(X)] if X.dtype != np.int8 else [xp.asarray(X), xp.asarray(Xc.astype(np.complex64))]
+        for precision in PRECISIONS:
+            if not precision_available(precision, xp):
+                continue
+            for x in inputs:
+                img = imaging.dirty_image(x, xp.asarray(xyz), xp.asarray(freq), xp.asarray(lm), method=method,
+                                          precision=precision, products=prods)
+                err = rel_err(img, ref)
+                assert err <= _bound(xp, method, precision), (name, precision, str(x.dtype), err)
+                assert np.all(np.isfinite(to_np(img)))
+
+
+def test_integer_covariance_is_exact(xp, sky_scene):
+    """X X^H from 4-bit integers equals the float64 X X^H exactly (bitwise after conversion)."""
+    xyz, freq, X, lm = sky_scene
+    op = DFTOperator(xp.asarray(xyz), xp.asarray(freq), xp.asarray(lm), npol=2, precision="fp64")
+    acc = op.accumulator(("I", "U"), method="covariance")
+    acc.add(xp.asarray(X[:100]))
+    acc.add(xp.asarray(X[100:]))       # two calls: the integer sums carry over exactly
+    R = to_np(acc._covariance_blocks())   # (nchan, nblk, A, A) for blocks XX, YY, XY
+    Xc = as_complex(X)
+    for i, (p, q) in enumerate(acc.blocks):
+        for c in range(2):
+            ref = Xc[:, c, :, p].T @ np.conj(Xc[:, c, :, q])
+            assert np.array_equal(R[c, i], ref), (p, q, c)
+
+
+@pytest.mark.parametrize("n", [1, 16, 1000, 7])
+def test_accumulate_n_equals_n_sample_images(xp, n):
+    """One batched call with accumulate=N equals N-sample images of the float64 sum; trailing
+    samples that do not fill an integration are not imaged."""
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(0, 20, (10, 3)) * [1, 1, 0.1]
+    freq = np.array([50e6, 70e6])
+    T = 2000 if n == 1000 else 100 + 3   # 103 samples: 7 does not divide it, nor does 16
+    X = rng.normal(size=(T, 2, 10, 2)) + 1j * rng.normal(size=(T, 2, 10, 2))
+    X += point_source_efield(xyz, freq, 0.2, 0.1, 2.0, T, npol=2, rng=rng)
+    lm = imaging.lm_grid(6).lm
+    prods = ("XX", "YY", "U", "V")
+    F = brute_fields(X, xyz, freq, lm)                   # (T, C, K, P) float64
+    g = T // n
+    Fg = F[:g * n].reshape(g, n, *F.shape[1:])
+    xx = (np.abs(Fg[..., 0]) ** 2).mean(1)
+    yy = (np.abs(Fg[..., 1]) ** 2).mean(1)
+    xy = (Fg[..., 0] * np.conj(Fg[..., 1])).mean(1)
+    ref = np.stack([xx, yy, 2 * xy.real, -2 * xy.imag], axis=2)       # (g, C, nprod, K)
+    for method in ("direct", "covariance") if n >= 16 else ("direct",):
+        img = imaging.dirty_image(xp.asarray(X), xp.asarray(xyz), xp.asarray(freq), xp.asarray(lm),
+                                  products=prods, method=method, precision="fp64", accumulate=n)
+        assert img.shape == (g, 2, 4, len(lm))
+        assert rel_err(img, ref) < 1e-12, (method, rel_err(img, ref))
+    op = DFTOperator(xp.asarray(xyz), xp.asarray(freq), xp.asarray(lm), npol=2, precision="fp32")
+    img32 = op.image(xp.asarray(X.astype(np.complex64)), prods, accumulate=n)
+    assert rel_err(img32, ref) < 1e-5
+
+
+def test_accumulate_with_autocorr_removed_and_flags(xp):
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(0, 20, (9, 3)) * [1, 1, 0.1]
+    freq = np.array([50e6, 60e6, 70e6])
+    X = rng.normal(size=(64, 3, 9, 2)) + 1j * rng.normal(size=(64, 3, 9, 2))
+    lm = imaging.lm_grid(6).lm
+    w = np.ones((3, 9, 2), complex) * np.exp(1j * rng.random((3, 9, 2)))
+    w[:, 2, 0] = 0                 # one antenna-pol flagged
+    w[1] = 0                       # a whole channel flagged: it costs nothing and images as NaN
+    op = DFTOperator(xp.asarray(xyz), xp.asarray(freq), xp.asarray(lm), npol=2, weights=xp.asarray(w),
+                     precision="fp64")
+    assert op.chan_index is not None and to_np(op.chan_index).tolist() == [0, 2]
+    img = to_np(op.image(xp.asarray(X), ("XX", "YY", "U"), remove_autocorr=True, accumulate=16))
+    assert img.shape == (4, 3, 3, len(lm)) and np.all(np.isnan(img[:, 1]))
+    for j in range(4):
+        ref = brute_image(X[16 * j:16 * (j + 1)], xyz, freq, lm, ("XX", "YY", "U"), remove_autocorr=True,
+                          weights=w)
+        live = [0, 2]
+        assert np.allclose(img[j][live], ref[live], rtol=0, atol=1e-12 * np.max(np.abs(ref[live])))
+
+
+def test_remove_autocorr_does_not_touch_the_covariance(xp, sky_scene):
+    xyz, freq, X, lm = sky_scene
+    Xc = xp.asarray(as_complex(X).astype(np.complex64))
+    op = DFTOperator(xp.asarray(xyz), xp.asarray(freq), xp.asarray(lm), npol=2)
+    acc = op.accumulator(("I",), method="covariance", remove_autocorr=True)
+    acc.add(Xc)
+    before = to_np(acc._R).copy()
+    img = acc.result()
+    assert np.array_equal(to_np(acc._R), before)
+    ref = brute_image(as_complex(X), xyz, freq, lm, ("I",), remove_autocorr=True)
+    assert rel_err(img, ref) < 1e-5
+
+
+def test_tolerance_never_picks_a_mode_whose_bound_exceeds_it():
+    class FakeCupy:  # choose() looks only at the namespace's name
+        __name__ = "cupy"
+    for xp in (np, FakeCupy):
+        for tol in (1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-9, 1e-12):
+            for ntime in (16, 1024, 25000):
+                try:
+                    p = plan.choose(tol, xp=xp, ntime=ntime)
+                except ValueError as e:
+                    assert "no route x precision" in str(e)
+                    continue
+                assert p.bound <= tol and p.predicted_s > 0
+                assert precision_available(p.precision, xp)
+        # explicit choices are honoured
+        assert plan.choose(1e-3, xp=xp, method="direct").method == "direct"
+        assert plan.choose(1e-3, xp=xp, precision="fp64").precision == "fp64"
+    with pytest.raises(ValueError, match="no route x precision"):
+        plan.choose(1e-30)
+    with pytest.raises(ValueError, match="tolerance must be a positive number"):
+        plan.choose(-1)
+    # the CPU never gets a tensor-core mode
+    assert plan.choose(1e-1, xp=np).precision in ("fp32", "fp64")
+
+
+def test_tolerance_through_the_api(sky_scene):
+    xyz, freq, X, lm = sky_scene
+    ref = brute_image(as_complex(X), xyz, freq, lm, ("I",))
+    img = imaging.dirty_image(as_complex(X), xyz, freq, lm, products=("I",), tolerance=1e-4)
+    assert rel_err(img, ref) <= 1e-4
+    with pytest.raises(ValueError, match="meets tolerance"):
+        imaging.dirty_image(as_complex(X), xyz, freq, lm, tolerance=1e-9, precision="fp32")
+
+
+def test_array_likes_are_accepted():
+    rng = np.random.default_rng(1)
+    xyz = rng.normal(0, 10, (5, 3))
+    X = rng.normal(size=(4, 1, 5, 1)) + 1j * rng.normal(size=(4, 1, 5, 1))
+    lm = [[0.0, 0.0], [0.1, 0.2]]
+    got = imaging.dirty_image(X.tolist(), xyz.tolist(), [70e6], lm)
+    assert np.allclose(got, imaging.dirty_image(X, xyz, np.array([70e6]), np.array(lm)))
+
+
+def test_min_elevation_drops_pixels_near_the_horizon():
+    full = imaging.lm_grid(32)
+    cut = imaging.lm_grid(32, min_elevation_deg=20)
+    n = np.sqrt(1 - (cut.lm ** 2).sum(1))
+    assert cut.npix < full.npix and np.all(n >= np.sin(np.radians(20)) - 1e-12)
+    kept_n = np.sqrt(1 - (full.lm ** 2).sum(1))
+    assert cut.npix == int(np.sum(kept_n >= np.sin(np.radians(20))))
+    with pytest.raises(ValueError, match="min_elevation_deg"):
+        imaging.lm_grid(32, min_elevation_deg=95)
