@@ -220,3 +220,39 @@ def test_min_elevation_drops_pixels_near_the_horizon():
     assert cut.npix == int(np.sum(kept_n >= np.sin(np.radians(20))))
     with pytest.raises(ValueError, match="min_elevation_deg"):
         imaging.lm_grid(32, min_elevation_deg=95)
+
+
+@pytest.mark.parametrize("precision, tol", [("tf32x3", 1e-6), ("tf32", 2e-3), ("fp16", 2e-3), ("bf16", 2e-2)])
+def test_stacked_real_form_equals_the_complex_product(xp, precision, tol):
+    """[[Dr, -Di], [Di, Dr]] @ [Br; Bi] = [Re DB; Im DB] at the mode's rounding (NumPy: emulated)."""
+    from bf_epic_blocks.imaging.gemm import stack_operator, stack_rhs, stacked_matmul
+    rng = np.random.default_rng(8)
+    d = (rng.normal(size=(3, 20, 12)) + 1j * rng.normal(size=(3, 20, 12))).astype(np.complex64)
+    b = (rng.normal(size=(3, 12, 9)) + 1j * rng.normal(size=(3, 12, 9))).astype(np.complex64)
+    out = to_np(stacked_matmul(stack_operator(xp.asarray(d), precision), stack_rhs(xp.asarray(b), precision),
+                               precision))
+    ref = d.astype(np.complex128) @ b.astype(np.complex128)
+    got = out[:, :20] + 1j * out[:, 20:]
+    assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) < tol
+
+
+def test_reductions_read_both_layouts(xp):
+    """block_corr and row_dot give the same sums from complex and stacked GEMM outputs."""
+    from bf_epic_blocks.imaging.reduce import block_corr, row_dot
+    rng = np.random.default_rng(9)
+    F = (rng.normal(size=(2, 7, 2 * 48)) + 1j * rng.normal(size=(2, 7, 2 * 48))).astype(np.complex64)
+    S = np.stack([F.real, F.imag], axis=1).astype(np.float32)          # (c, 2, K, n)
+    blocks = [(0, 0), (1, 1), (0, 1)]
+    Fr = F.reshape(2, 7, 2, 48).astype(np.complex128)
+    ref = np.stack([(Fr[:, :, p].reshape(2, 7, 3, 16) * np.conj(Fr[:, :, q].reshape(2, 7, 3, 16))).sum(-1)
+                    for p, q in blocks], axis=1)
+    for arr, stacked in ((F, False), (S, True)):
+        got = to_np(block_corr(xp.asarray(arr), blocks, 16, npol=2, stacked=stacked))
+        assert got.shape == (2, 3, 7, 3) and np.allclose(got, ref, rtol=1e-5, atol=1e-4)
+    D = (rng.normal(size=(2, 7, 40)) + 1j * rng.normal(size=(2, 7, 40))).astype(np.complex64)
+    M = (rng.normal(size=(2, 7, 80)) + 1j * rng.normal(size=(2, 7, 80))).astype(np.complex64)
+    ref = np.stack([(M[:, :, b * 40:(b + 1) * 40] * np.conj(D)).sum(-1) for b in range(2)], axis=1)
+    Ms = np.stack([M.real, M.imag], axis=1).astype(np.float32)
+    for arr, stacked in ((M, False), (Ms, True)):
+        got = to_np(row_dot(xp.asarray(arr), xp.asarray(D), 2, stacked=stacked))
+        assert got.shape == (2, 2, 7) and np.allclose(got, ref, rtol=1e-5, atol=1e-4)

@@ -35,8 +35,9 @@ import numpy as np
 from ..conventions import SIGMA, SPEED_OF_LIGHT_M_S
 from . import cost
 from ._xp import get_xp
-from .gemm import PRECISIONS, check_precision, cmatmul, int_gram, split_tf32
-from .reduce import group_power, row_dot
+from .gemm import (PRECISIONS, STACKED, check_precision, cmatmul, int_gram, pow2_scale, stack_operator, stack_rhs,
+                   stacked_matmul)
+from .reduce import block_corr, group_power, row_dot
 from .pixels import check_lm, n_from_lm
 from .products import combine, needs_cross, resolve_products
 
@@ -248,16 +249,41 @@ class DFTOperator:
             self._derived[key] = self.xp.ascontiguousarray(g)
         return self._derived[key]
 
-    def gemm(self, pol, rhs, *, out=None, rhs_exact=False):
-        """D_pol @ rhs at the operator's precision: (nchan_live, npix, nant) @ (nchan_live, nant, n)."""
-        a = self.live_G(pol)
-        split = None
-        if self.precision == "tf32x3":  # the operator is split into tf32 hi + lo once, not per gulp
-            key = ("split", pol)
+    @property
+    def stacked(self) -> bool:
+        """Whether GEMMs run in the stacked real form (tensor-core modes, :mod:`.gemm`)."""
+        return self.precision in STACKED and self.xp.__name__ == "cupy"
+
+    def _operator_parts(self, pol, cs):
+        """The operator in the form the precision's GEMM takes, for a channel slice of the live channels."""
+        if self.stacked:
+            key = ("stack", pol)
             if key not in self._derived:
-                self._derived[key] = split_tf32(a)
-            split = self._derived[key]
-        return cmatmul(a, rhs, self.precision, out=out, b_exact=rhs_exact, a_split=split)
+                self._derived[key] = stack_operator(self.live_G(pol), self.precision)
+            return [p[cs] for p in self._derived[key]]
+        return [self.live_G(pol)[cs]]
+
+    def field_gemm(self, pol, rhs, cs=slice(None), *, exact=False):
+        """D_pol @ rhs for live channels ``cs``: rhs complex (c, nant, n).
+
+        Returns ``(F, stacked, scale)``: F complex (c, npix, n), or float32 (c, 2, npix, n) [re; im]
+        in the stacked (tensor-core) modes; products of F must be multiplied by ``scale**2``
+        (a device scalar, or None for 1) -- fp16 operands are scaled by a power of two into range.
+        ``exact``: rhs is exact in the mode (integer voltages with unit weights).
+        """
+        parts = self._operator_parts(pol, cs)
+        if not self.stacked:
+            return cmatmul(parts[0], rhs, self.precision), False, None
+        s = pow2_scale(rhs) if self.precision == "fp16" else None
+        F = stacked_matmul(parts, stack_rhs(rhs, self.precision, s), self.precision, b_exact=exact)
+        return F.reshape(F.shape[0], 2, F.shape[1] // 2, F.shape[2]), True, (None if s is None else 1.0 / s)
+
+    def field_gemm_complex(self, pol, rhs, cs=slice(None), *, exact=False):
+        """As :meth:`field_gemm`, always complex (c, npix, n) with the scale applied (rare paths)."""
+        F, stacked, scale = self.field_gemm(pol, rhs, cs, exact=exact)
+        if stacked:
+            F = F[:, 0] + 1j * F[:, 1]
+        return F if scale is None else F * scale
 
     def chunk_bytes(self):
         return _CHUNK_BYTES.get(self.xp.__name__, _CHUNK_BYTES["numpy"])
@@ -421,7 +447,10 @@ class ImageAccumulator:
         self.ntime += int(efield.shape[0])
 
     def _fields(self, x, exact):
-        """Yield (channel slice, F (c, P', K, t) chunk, time offset) of the beamformed fields."""
+        """Yield (channel slice, t0, F, stacked, scale) chunks of the beamformed fields.
+
+        F: complex (c, K, P' t) or stacked float32 (c, 2, K, P' t), columns p' * t + time (p' over
+        ``self.pols``); see :meth:`DFTOperator.field_gemm` for ``stacked`` and ``scale``."""
         op, xp = self.op, self.op.xp
         c, p, a, t = x.shape
         per_chan_t = op.npix * len(self.pols) * np.dtype(op.cdtype).itemsize
@@ -435,30 +464,18 @@ class ImageAccumulator:
                 if op.shared_geometry:
                     # both pols in one GEMM: (c, K, A) @ (c, A, P' t)
                     rhs = xs[:, self.pols].transpose(0, 2, 1, 3).reshape(nc, a, len(self.pols) * nt)
-                    F = self._gemm_chunk(0, cs, rhs, exact).reshape(nc, op.npix, len(self.pols), nt)
-                    yield cs, F.transpose(0, 2, 1, 3), t0
-                else:
-                    F = xp.stack([self._gemm_chunk(pp, cs, xs[:, pp], exact) for pp in self.pols], axis=1)
-                    yield cs, F, t0
+                    yield (cs, t0) + op.field_gemm(0, rhs, cs, exact=exact)
+                else:   # antenna-dependent pattern: one operator per pol (a rarer, slower path)
+                    F = xp.concatenate([op.field_gemm_complex(pp, xp.ascontiguousarray(xs[:, pp]), cs, exact=exact)
+                                        for pp in self.pols], axis=-1)
+                    yield cs, t0, F, False, None
 
-    def _gemm_chunk(self, pol, cs, rhs, exact):
-        op = self.op
-        if cs.start == 0 and cs.stop == self.nchan_live:
-            return op.gemm(pol, rhs, rhs_exact=exact)
-        g = op.live_G(pol)[cs]
-        return cmatmul(g, rhs, op.precision, b_exact=exact)
-
-    def _block_sums(self, F, n):
-        """(c, nblk, K, groups) sums over groups of n samples of the block products of F (c, P', K, t)."""
-        xp = self.op.xp
+    def _block_sums(self, F, stacked, scale, n):
+        """(c, nblk, K, T // n) sums over groups of n samples of the block products of F."""
         idx = {p: i for i, p in enumerate(self.pols)}
-        out = []
-        for pp, qq in self.blocks:
-            if pp == qq:
-                out.append(group_power(F[:, idx[pp]], None, n).astype(self.op.cdtype))
-            else:
-                out.append(group_power(F[:, idx[pp]], F[:, idx[qq]], n))
-        return xp.stack(out, axis=1)
+        blocks = [(idx[pp], idx[qq]) for pp, qq in self.blocks]
+        s = block_corr(F, blocks, n, npol=len(self.pols), stacked=stacked)
+        return s if scale is None else s * (scale * scale)
 
     def _auto_sums(self, x, n):
         """(c, nblk, A, groups): sums over groups of n samples of x_p conj(x_q) per antenna."""
@@ -471,8 +488,9 @@ class ImageAccumulator:
         if self._S is None:
             self._S = xp.zeros((self.nchan_live, len(self.blocks), op.npix), dtype=op.cdtype)
             self._auto = xp.zeros((self.nchan_live, len(self.blocks), op.nant), dtype=op.cdtype)
-        for cs, F, _ in self._fields(x, exact):
-            self._S[cs] += self._block_sums(F, None)[..., 0]
+        for cs, _, F, stacked, scale in self._fields(x, exact):
+            t = F.shape[-1] // len(self.pols)
+            self._S[cs] += self._block_sums(F, stacked, scale, t)[..., 0]
         if self.remove_autocorr:
             self._auto += self._auto_sums(x, None)[..., 0]
 
@@ -528,15 +546,17 @@ class ImageAccumulator:
         x = op.prepare(efield)
         exact = ints and op.unit_weights
         S = xp.zeros((self.nchan_live, len(self.blocks), op.npix, g), dtype=op.cdtype)
-        for cs, F, t0 in self._fields(x, exact):
-            nt = F.shape[-1]
-            # chunks hold whole groups when possible; a group split across chunks is summed in two parts
+        for cs, t0, F, stacked, scale in self._fields(x, exact):
+            nt = F.shape[-1] // len(self.pols)
             if t0 % n == 0 and nt % n == 0:
-                S[cs, :, :, t0 // n:(t0 + nt) // n] += self._block_sums(F, n)
-            else:
+                S[cs, :, :, t0 // n:(t0 + nt) // n] += self._block_sums(F, stacked, scale, n)
+            else:   # a group split across time chunks (CPU memory cap): sum its parts one by one
+                Fc = F[:, 0] + 1j * F[:, 1] if stacked else F
+                Fc = Fc.reshape(Fc.shape[0], op.npix, len(self.pols), nt)
                 for j in range(t0 // n, min(g, -(-(t0 + nt) // n))):
                     lo, hi = max(j * n, t0) - t0, min((j + 1) * n, t0 + nt) - t0
-                    S[cs, :, :, j] += self._block_sums(F[..., lo:hi], None)[..., 0]
+                    part = Fc[..., lo:hi].reshape(Fc.shape[0], op.npix, -1)
+                    S[cs, :, :, j] += self._block_sums(part, False, scale, hi - lo)[..., 0]
         corr = xp.moveaxis(S, -1, 0)                                      # (g, C', nblk, K)
         if self.remove_autocorr:
             auto = xp.moveaxis(self._auto_sums(x, n), -1, 0)             # (g, C', nblk, A)
@@ -637,13 +657,13 @@ class ImageAccumulator:
             nc = cs.stop - cs.start
             if op.shared_geometry:
                 rhs = R[cs].transpose(0, 2, 1, 3).reshape(nc, a, nblk * a)      # [R_b0 | R_b1 | ...]
-                M = self._gemm_chunk(0, cs, rhs, False).reshape(nc, op.npix, nblk, a)
-                G = op.live_G(0)[cs]
-                out[cs] = row_dot(M, G[:, :, None, :]).transpose(0, 2, 1)
+                M, stacked, scale = op.field_gemm(0, rhs, cs)
+                r = row_dot(M, op.live_G(0)[cs], nblk, stacked=stacked)
+                out[cs] = r if scale is None else r * scale
             else:
                 for i, (pp, qq) in enumerate(self.blocks):
-                    M = self._gemm_chunk(pp, cs, xp.ascontiguousarray(R[cs, i]), False)
-                    out[cs, i] = row_dot(M, op.live_G(qq)[cs])
+                    M = op.field_gemm_complex(pp, xp.ascontiguousarray(R[cs, i]), cs)
+                    out[cs, i] = row_dot(M, op.live_G(qq)[cs], 1)[:, 0]
         if self.remove_autocorr:   # the diagonal's contribution, subtracted: R itself is not copied
             diag = xp.diagonal(R, axis1=-2, axis2=-1)            # (C', nblk, A): x_ap conj(x_aq) sums
             out = out - self._autocorr_term(diag)

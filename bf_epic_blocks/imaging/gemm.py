@@ -12,11 +12,20 @@ name         what the GEMM does                                                 
              tf32), A_hi B_hi + A_hi B_lo + A_lo B_hi in tf32 with fp32 accumulation:
              ~fp32 accuracy at tensor-core speed (B_lo is skipped when B is exact in
              tf32, e.g. 4-bit voltages or integer covariances below 2^11)
-``tf32``     complex64 operands rounded to tf32 (10-bit mantissa), fp32 accumulation GPU (tensor cores)
-``fp16``     operands rounded to fp16 (10-bit mantissa, 5-bit exponent), fp32        GPU (tensor cores)
-             accumulation; 4-bit voltages are exact in fp16
+``tf32``     operands rounded to tf32 (10-bit mantissa), fp32 accumulation           GPU (tensor cores)
+``fp16``     operands rounded to fp16 (10-bit mantissa, 5-bit exponent: the caller   GPU (tensor cores)
+             scales them into range), fp32 accumulation; as accurate as tf32 at twice
+             the rate; 4-bit voltages are exact in fp16
 ``bf16``     operands rounded to bf16 (7-bit mantissa), fp32 accumulation            GPU (tensor cores)
 ===========  =====================================================================  ===============
+
+The tensor-core modes are real GEMMs on the stacked form of the complex product
+(:func:`stack_operator`, :func:`stack_rhs`, :func:`stacked_matmul`): for D = Dr + i Di and
+B = Br + i Bi, ``[[Dr, -Di], [Di, Dr]] @ [Br; Bi] = [Re DB; Im DB]``, the same four real products
+as a complex GEMM, on operands stored in the mode's own type (fp16, bf16 or fp32 for tf32), with an
+fp32 result whose first half of rows is the real part and second half the imaginary part.
+(cuBLAS' complex GEMM ignores the fp16/bf16 compute types and runs them as tf32, measured on an
+H100: the stacked form is what gives real fp16/bf16 tensor-core products.)
 
 and, for the covariance route only, :func:`int_gram`: R = Z Z^T of integer voltages (4- or
 8-bit) summed in int32 on the GPU's integer tensor cores (in float32 on the CPU, exact while the
@@ -38,7 +47,8 @@ import numpy as np
 from ._xp import get_xp
 
 __all__ = ["PRECISIONS", "PrecisionUnavailable", "check_precision", "cmatmul", "int_gram", "split_tf32",
-           "round_tf32", "precision_available"]
+           "round_tf32", "precision_available", "STACKED", "stack_operator", "stack_rhs", "stacked_matmul",
+           "to_bf16", "pow2_scale"]
 
 
 class PrecisionUnavailable(ValueError):
@@ -55,8 +65,12 @@ PRECISIONS = {
     "bf16": (np.float32, np.complex64, True),
 }
 
+#: modes computed as stacked real GEMMs (everything on tensor cores)
+STACKED = ("tf32x3", "tf32", "fp16", "bf16")
+
 # cuBLAS enums (cublas_api.h / library_types.h); CuPy's binding takes them as ints.
 _CUDA_C_32F, _CUDA_C_64F, _CUDA_R_8I, _CUDA_R_32I = 4, 5, 3, 10
+_CUDA_R_32F, _CUDA_R_16F, _CUDA_R_16BF = 0, 2, 14
 _COMPUTE = {"fp64": 70, "fp32": 68, "tf32": 77, "tf32x3": 77, "fp16": 74, "bf16": 75}  # CUBLAS_COMPUTE_*
 _COMPUTE_32I = 72
 _OP_N, _OP_T = 0, 1
@@ -207,4 +221,130 @@ def int_gram(z, out=None, accumulate=False):
                                 z.data.ptr, _CUDA_R_8I, t, r * t, z.data.ptr, _CUDA_R_8I, t, r * t,
                                 beta.ctypes.data, out.data.ptr, _CUDA_R_32I, r, r * r, nb, _COMPUTE_32I,
                                 _GEMM_DEFAULT)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Stacked real GEMMs for the tensor-core modes
+# ------------------------------------------------------------------------------------------------
+def to_bf16(a):
+    """float32 -> bfloat16 bits (uint16 array, round to nearest even): CuPy has no bfloat16 dtype,
+    cuBLAS reads these bits as CUDA_R_16BF."""
+    xp = get_xp(a)
+    u = xp.ascontiguousarray(a, dtype=xp.float32).view(xp.uint32)
+    return ((u + xp.uint32(0x7FFF) + ((u >> 16) & xp.uint32(1))) >> 16).astype(xp.uint16)
+
+
+def _bf16_to_float(b):
+    xp = get_xp(b)
+    return (b.astype(xp.uint32) << 16).view(xp.float32)
+
+
+def _store(a, precision):
+    """float32 array -> the storage of ``precision``'s operands (fp16, bf16 bits, or float32)."""
+    xp = get_xp(a)
+    if precision == "fp16":
+        return a.astype(xp.float16)
+    if precision == "bf16":
+        return to_bf16(a)
+    return xp.ascontiguousarray(a, dtype=xp.float32)
+
+
+def stack_operator(g, precision):
+    """Stacked real form of a complex operator batch (b, m, k) -> list of (b, 2m, 2k) operands:
+    ``[[Dr, -Di], [Di, Dr]]`` in the storage of ``precision``; for tf32x3 the [hi, lo] pair."""
+    xp = get_xp(g)
+    b, m, k = g.shape
+    s = xp.empty((b, 2 * m, 2 * k), xp.float32)
+    s[:, :m, :k] = g.real
+    s[:, :m, k:] = -g.imag
+    s[:, m:, :k] = g.imag
+    s[:, m:, k:] = g.real
+    if precision == "tf32x3":
+        return list(split_tf32(s))
+    return [_store(s, precision)]
+
+
+def stack_rhs(b, precision, scale=None):
+    """Stacked real form of a complex right-hand side (batch, k, n) -> list of (batch, 2k, n):
+    ``[Br; Bi]`` (times ``scale``) in the storage of ``precision``; for tf32x3 [hi, lo]."""
+    xp = get_xp(b)
+    nb, k, n = b.shape
+    s = xp.empty((nb, 2 * k, n), xp.float32)
+    if scale is None:
+        s[:, :k] = b.real
+        s[:, k:] = b.imag
+    else:
+        s[:, :k] = b.real * scale
+        s[:, k:] = b.imag * scale
+    if precision == "tf32x3":
+        return list(split_tf32(s))
+    return [_store(s, precision)]
+
+
+def pow2_scale(b):
+    """A power of two s (0-d array, no host sync) with max |Re b|, |Im b| * s in [0.5, 1]: scaling by it
+    is exact and brings fp16 operands into range (fp16 overflows above 65504)."""
+    xp = get_xp(b)
+    m = xp.maximum(xp.abs(b.real).max(), xp.abs(b.imag).max())
+    m = xp.where(m > 0, m, 1)
+    return xp.exp2(-xp.ceil(xp.log2(m))).astype(xp.float32)
+
+
+def _stored_to_float(a):
+    xp = get_xp(a)
+    if a.dtype == xp.uint16:
+        return _bf16_to_float(a)
+    return a.astype(xp.float32)
+
+
+def _cublas_rgemm(a, b, c, precision, beta):
+    """c = a @ b (+ beta c), row-major real batches: operands in ``precision``'s storage, fp32 out."""
+    import cupy as cp
+    from cupy_backends.cuda.libs import cublas
+    atype = {"fp16": _CUDA_R_16F, "bf16": _CUDA_R_16BF}.get(precision, _CUDA_R_32F)
+    compute = _COMPUTE["tf32"] if precision in ("tf32", "tf32x3") else _COMPUTE["fp32"]
+    batch = max(a.shape[0], b.shape[0])
+    m, k = a.shape[1:]
+    n = b.shape[2]
+    alpha = np.array(1, np.float32)
+    beta_ = np.array(beta, np.float32)
+    sa = 0 if a.shape[0] == 1 else m * k
+    sb = 0 if b.shape[0] == 1 else k * n
+    handle = cp.cuda.device.get_cublas_handle()
+    cublas.gemmStridedBatchedEx(handle, _OP_N, _OP_N, n, m, k, alpha.ctypes.data,
+                                b.data.ptr, atype, n, sb, a.data.ptr, atype, k, sa,
+                                beta_.ctypes.data, c.data.ptr, _CUDA_R_32F, n, m * n, batch, compute, _GEMM_DEFAULT)
+    return c
+
+
+def stacked_matmul(a_parts, b_parts, precision, *, out=None, b_exact=False):
+    """[Re; Im] of the complex product, float32 (batch, 2m, n), from :func:`stack_operator` and
+    :func:`stack_rhs` parts. tf32x3: a_hi b_hi + a_hi b_lo + a_lo b_hi (b_lo skipped if ``b_exact``).
+
+    NumPy (for tests of the layout only; the CPU has no tensor cores): float32 products of the
+    operands rounded to the mode, which is what the tensor cores compute up to summation order.
+    """
+    xp = get_xp(a_parts[0], b_parts[0])
+    a0, b0 = a_parts[0], b_parts[0]
+    batch = max(a0.shape[0], b0.shape[0])
+    shape = (batch, a0.shape[1], b0.shape[2])
+    if xp is np:
+        def rnd(x):
+            x = _stored_to_float(x)
+            return round_tf32(x) if precision in ("tf32", "tf32x3") else x
+        terms = [(0, 0)] + ([] if precision != "tf32x3" else ([(1, 0)] + ([] if b_exact else [(0, 1)])))
+        res = sum(np.matmul(rnd(a_parts[i]), rnd(b_parts[j])) for i, j in terms)
+        if out is None:
+            return res.astype(np.float32)
+        out[...] = res
+        return out
+    if out is None:
+        out = xp.empty(shape, xp.float32)
+    if precision != "tf32x3":
+        return _cublas_rgemm(a0, b0, out, precision, 0)
+    _cublas_rgemm(a_parts[1], b0, out, precision, 0)      # small terms first
+    if not b_exact:
+        _cublas_rgemm(a0, b_parts[1], out, precision, 1)
+    _cublas_rgemm(a0, b0, out, precision, 1)
     return out

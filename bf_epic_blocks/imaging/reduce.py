@@ -1,14 +1,18 @@
-"""The elementwise reductions that follow the imager's GEMMs, one pass each over the GEMM output.
+"""The reductions that follow the imager's GEMMs: one pass over the GEMM output each.
 
-* :func:`group_power` -- direct route: sum over groups of N consecutive samples of |F|^2 or
-  F_p F_q^*, so a whole gulp gives one image per N samples without a Python loop.
-* :func:`row_dot` -- covariance route: diag(M D^H)_k = sum_a M[k, a] conj(D[k, a]), the image of
-  M = D R without forming D R D^H.
+* :func:`block_corr` -- direct route: for each polarisation block (p, q), the sum over groups of N
+  consecutive samples of F_p conj(F_q) (|F_p|^2 when p = q), so a whole gulp gives one image per
+  N samples without a Python loop and without temporaries the size of F.
+* :func:`row_dot` -- covariance route: I_k = sum_a M[k, a] conj(D[k, a]) for M = D R, the image
+  without forming D R D^H.
 
-On the GPU each is one CuPy ``ReductionKernel`` (map, then sum over the last axis): it reads the
-GEMM output once and writes only the (small) result, instead of the three or four temporaries
-that ``(F.real**2 + F.imag**2).sum(-1)`` makes. On the CPU the same functions use NumPy.
-The CUDA source of each kernel is the string beside it.
+Both read the GEMM output in either layout the GEMMs produce (:mod:`.gemm`):
+
+* ``complex``: complex (c, K, n) -- fp64/fp32 GEMMs;
+* ``stacked``: float32 (c, 2, K, n), real parts then imaginary parts -- the tensor-core modes.
+
+On the GPU each is one CUDA kernel (source below, launched through CuPy's RawKernel); on the CPU the
+same sums in NumPy.
 """
 from __future__ import annotations
 
@@ -16,32 +20,174 @@ import numpy as np
 
 from ._xp import get_xp
 
-__all__ = ["group_power", "row_dot"]
+__all__ = ["block_corr", "row_dot", "group_power"]
+
+# F element (row r = (c, k), column j) sits at F[c*sc + k*sk + j*es] (real) and + im_off (imag).
+# One thread per output (c, b, k, g): consecutive threads take consecutive groups g of one row,
+# so a warp reads one contiguous stretch of the row.
+_BLOCK_CORR_SRC = r"""
+extern "C" __global__ void bf_block_corr(
+    const float* __restrict__ F, float* __restrict__ out_re, float* __restrict__ out_im,
+    const int C, const int K, const int T, const int n, const int G, const int nblk,
+    const int* __restrict__ bp, const int* __restrict__ bq,
+    const long long sc, const long long sk, const long long im_off, const int es)
+{
+    long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    long long total = (long long)C * nblk * K * G;
+    if (idx >= total) return;
+    int g = (int)(idx % G);
+    long long r = idx / G;
+    int k = (int)(r % K); r /= K;
+    int b = (int)(r % nblk);
+    int c = (int)(r / nblk);
+    int p = bp[b], q = bq[b];
+    const float* row = F + c * sc + k * sk;
+    const float* fp = row + ((long long)p * T + (long long)g * n) * es;
+    const float* fq = row + ((long long)q * T + (long long)g * n) * es;
+    float sr = 0.f, si = 0.f;
+    if (p == q) {
+        for (int t = 0; t < n; ++t) {
+            float a = fp[(long long)t * es], ai = fp[(long long)t * es + im_off];
+            sr += a * a + ai * ai;
+        }
+    } else {
+        for (int t = 0; t < n; ++t) {
+            float a = fp[(long long)t * es], ai = fp[(long long)t * es + im_off];
+            float b2 = fq[(long long)t * es], bi = fq[(long long)t * es + im_off];
+            sr += a * b2 + ai * bi;
+            si += ai * b2 - a * bi;
+        }
+    }
+    out_re[idx] = sr;
+    out_im[idx] = si;
+}
+"""
+
+# One warp per (c, k): lanes stride over the antennas, a shuffle reduction per block b.
+# M element (c, k, b*A + a) at M[c*msc + k*msk + (b*A + a)*mes] (+ m_im for the imaginary part);
+# D (complex64, (c, K, A)) at D[2*((c*K + k)*A + a)].
+_ROW_DOT_SRC = r"""
+extern "C" __global__ void bf_row_dot(
+    const float* __restrict__ M, const float* __restrict__ D, float* __restrict__ out_re,
+    float* __restrict__ out_im, const int C, const int K, const int A, const int nblk,
+    const long long msc, const long long msk, const long long m_im, const int mes)
+{
+    long long warp = ((long long)blockIdx.x * blockDim.x + threadIdx.x) >> 5;
+    int lane = threadIdx.x & 31;
+    if (warp >= (long long)C * K) return;
+    int c = (int)(warp / K), k = (int)(warp % K);
+    const float* mrow = M + c * msc + k * msk;
+    const float* drow = D + 2 * ((long long)c * K + k) * A;
+    for (int b = 0; b < nblk; ++b) {
+        float sr = 0.f, si = 0.f;
+        for (int a = lane; a < A; a += 32) {
+            long long j = ((long long)b * A + a) * mes;
+            float mr = mrow[j], mi = mrow[j + m_im];
+            float dr = drow[2 * a], di = drow[2 * a + 1];
+            sr += mr * dr + mi * di;          // Re(m conj(d))
+            si += mi * dr - mr * di;          // Im(m conj(d))
+        }
+        for (int o = 16; o > 0; o >>= 1) {
+            sr += __shfl_down_sync(0xffffffff, sr, o);
+            si += __shfl_down_sync(0xffffffff, si, o);
+        }
+        if (lane == 0) {
+            long long oi = ((long long)c * nblk + b) * K + k;
+            out_re[oi] = sr;
+            out_im[oi] = si;
+        }
+    }
+}
+"""
 
 _KERNELS = {}
 
 
-def _kernel(name):
-    """Build the CuPy kernels on first use (CuPy is optional)."""
-    if not _KERNELS:
+def _raw(name):
+    if name not in _KERNELS:
         import cupy as cp
-        # |x|^2 summed over the reduced axis (thrust complex: norm() is the squared magnitude)
-        for cdt, rdt in (("complex64", "float32"), ("complex128", "float64")):
-            _KERNELS["power", cdt] = cp.ReductionKernel(f"{cdt} x", f"{rdt} y", "norm(x)", "a + b", "y = a",
-                                                        "0", f"bf_group_power_{cdt}")
-        # x conj(y) summed over the reduced axis
-        _KERNELS["cross"] = cp.ReductionKernel("T x, T y", "T z", "x * conj(y)", "a + b", "z = a", "0",
-                                               "bf_group_cross")
+        src = {"bf_block_corr": _BLOCK_CORR_SRC, "bf_row_dot": _ROW_DOT_SRC}[name]
+        _KERNELS[name] = cp.RawKernel(src, name)
     return _KERNELS[name]
 
 
-def group_power(fp, fq=None, n=None):
-    """Sums over groups of ``n`` samples along the last axis.
+def _layout(F, K, stacked):
+    """(sc, sk, im_off, es, n) in float elements for a complex (c, K, n) or stacked (c, 2, K, n) array."""
+    n = F.shape[-1]
+    if stacked:
+        return 2 * K * n, n, K * n, 1, n
+    return 2 * K * n, 2 * n, 1, 2, n
 
-    fp, fq : complex (..., ntime) beamformed fields of polarisations p and q (fq None: p = q).
-    n : samples per group (default: all); ntime // n groups, trailing samples ignored.
-    Returns (..., ntime // n): float sum |fp|^2 (real dtype of fp) when fq is None, else the
-    complex sum fp conj(fq).
+
+def block_corr(F, blocks, n, *, npol, stacked=False):
+    """Sums over groups of ``n`` samples of F_p conj(F_q) for each block (p, q) of ``blocks``.
+
+    F : complex (c, K, npol * T) or float32 stacked (c, 2, K, npol * T); column j = p * T + t
+        (p indexing the polarisations present in F).
+    Returns complex (c, nblk, K, T // n); trailing samples that do not fill a group are ignored.
+    """
+    xp = get_xp(F)
+    c = F.shape[0]
+    K = F.shape[-2]
+    T = F.shape[-1] // npol
+    g = T // n
+    if xp is np:
+        Fc = F[:, 0] + 1j * F[:, 1] if stacked else F
+        Fc = Fc.reshape(c, K, npol, T)[..., :g * n].reshape(c, K, npol, g, n)
+        out = [(Fc[:, :, p] * np.conj(Fc[:, :, q])).sum(-1) if p != q else
+               (Fc[:, :, p].real ** 2 + Fc[:, :, p].imag ** 2).sum(-1) for p, q in blocks]
+        return np.stack(out, axis=1).astype(np.complex128 if F.dtype in (np.complex128, np.float64) else np.complex64)
+    F = xp.ascontiguousarray(F)
+    if F.dtype == xp.complex128:     # fp64: keep double precision, reduce with CuPy
+        Fc = F.reshape(c, K, npol, T)[..., :g * n].reshape(c, K, npol, g, n)
+        return xp.stack([(Fc[:, :, p] * xp.conj(Fc[:, :, q])).sum(-1) for p, q in blocks], axis=1)
+    fl = F.view(xp.float32) if F.dtype == xp.complex64 else F
+    sc, sk, im_off, es, _ = _layout(F, K, stacked)
+    nblk = len(blocks)
+    out_re = xp.empty((c, nblk, K, g), xp.float32)
+    out_im = xp.empty_like(out_re)
+    bp = xp.asarray([p for p, _ in blocks], xp.int32)
+    bq = xp.asarray([q for _, q in blocks], xp.int32)
+    total = c * nblk * K * g
+    threads = 256
+    _raw("bf_block_corr")(((total + threads - 1) // threads,), (threads,),
+                          (fl, out_re, out_im, np.int32(c), np.int32(K), np.int32(T), np.int32(n), np.int32(g),
+                           np.int32(nblk), bp, bq, np.int64(sc), np.int64(sk), np.int64(im_off), np.int32(es)))
+    return out_re + 1j * out_im
+
+
+def row_dot(M, D, nblk, *, stacked=False):
+    """I[c, b, k] = sum_a M[c, k, b * A + a] conj(D[c, k, a]).
+
+    M : complex (c, K, nblk * A) or float32 stacked (c, 2, K, nblk * A);  D : complex (c, K, A).
+    Returns complex (c, nblk, K).
+    """
+    xp = get_xp(M, D)
+    c, K, A = D.shape
+    if xp is np or M.dtype == xp.complex128:
+        Mc = M[:, 0] + 1j * M[:, 1] if stacked else M
+        Mc = Mc.reshape(c, K, nblk, A)
+        return (Mc * xp.conj(D)[:, :, None, :]).sum(-1).transpose(0, 2, 1)
+    M = xp.ascontiguousarray(M)
+    D = xp.ascontiguousarray(D, dtype=xp.complex64)
+    fl = M.view(xp.float32) if M.dtype == xp.complex64 else M
+    sc, sk, im_off, es, _ = _layout(M, K, stacked)
+    out_re = xp.empty((c, nblk, K), xp.float32)
+    out_im = xp.empty_like(out_re)
+    threads = 256
+    nwarps = c * K
+    _raw("bf_row_dot")(((nwarps * 32 + threads - 1) // threads,), (threads,),
+                       (fl, D.view(xp.float32), out_re, out_im, np.int32(c), np.int32(K), np.int32(A),
+                        np.int32(nblk), np.int64(sc), np.int64(sk), np.int64(im_off), np.int32(es)))
+    return out_re + 1j * out_im
+
+
+def group_power(fp, fq=None, n=None):
+    """Sums over groups of ``n`` samples along the last axis (any array namespace).
+
+    fp, fq : complex (..., ntime) fields of polarisations p and q (fq None: p = q).
+    Returns (..., ntime // n): float sum |fp|^2 (fq None) or complex sum fp conj(fq).
+    Used for small arrays (autocorrelation sums); the beamformed fields go through :func:`block_corr`.
     """
     xp = get_xp(fp)
     t = fp.shape[-1]
@@ -49,22 +195,6 @@ def group_power(fp, fq=None, n=None):
     g = t // n
     shp = fp.shape[:-1] + (g, n)
     fp = fp[..., :g * n].reshape(shp)
-    if fq is not None:
-        fq = fq[..., :g * n].reshape(shp)
-    if xp is np:
-        if fq is None:
-            return (fp.real ** 2 + fp.imag ** 2).sum(axis=-1)
-        return (fp * np.conj(fq)).sum(axis=-1)
     if fq is None:
-        return _kernel(("power", np.dtype(fp.dtype).name))(fp, axis=-1)
-    return _kernel("cross")(fp, fq, axis=-1)
-
-
-def row_dot(m, d):
-    """sum_a m[..., a] conj(d[..., a]) over the last axis; ``d`` broadcasts against ``m``.
-
-    m : complex (..., nant), d : complex broadcastable to m. Returns complex (...)."""
-    xp = get_xp(m, d)
-    if xp is np:
-        return (m * np.conj(d)).sum(axis=-1)
-    return _kernel("cross")(m, d, axis=-1)
+        return (fp.real ** 2 + fp.imag ** 2).sum(axis=-1)
+    return (fp * xp.conj(fq[..., :g * n].reshape(shp))).sum(axis=-1)
