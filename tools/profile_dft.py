@@ -28,7 +28,7 @@ def summarise(path):
         lines = [ln for ln in fh if ln.startswith('"')]
     for r in csv.DictReader(lines):
         if r.get("Metric Name") == "gpu__time_duration.sum":
-            rows.append((r["Kernel Name"][:70], float(r["Metric Value"]) / 1e3))
+            rows.append((r["Kernel Name"][:70], float(r["Metric Value"].replace(",", "")) / 1e3))
     total = sum(t for _, t in rows)
     for name, us in rows:
         print(f"  {us:9.1f} us {100 * us / total:5.1f}%  {name}")
@@ -58,7 +58,15 @@ def main(argv=None):
     def call():
         return op.image(X, method=a.route, accumulate=a.accumulate)
     t, _ = timer("gpu")(call, 10)
-    print(f"# {a.route} {a.precision} {a.input} accumulate={a.accumulate} grid={a.grid}: {t * 1e3:.3f} ms")
+    import time
+    cp.cuda.Device().synchronize()
+    t0 = time.perf_counter()
+    for _ in range(10):
+        call()
+    t_host = (time.perf_counter() - t0) / 10          # host time to issue one call (launch-bound if ~ t)
+    cp.cuda.Device().synchronize()
+    print(f"# {a.route} {a.precision} {a.input} accumulate={a.accumulate} grid={a.grid}: {t * 1e3:.3f} ms "
+          f"(host issue time {t_host * 1e3:.3f} ms)")
     cp.cuda.Device().synchronize()
     cp.cuda.profiler.start()
     call()
