@@ -7,6 +7,7 @@ import pytest
 
 from bf_epic_blocks.pipeline import config as cfgmod
 from bf_epic_blocks.pipeline.config import ConfigError, load_config, parse_device
+from bf_epic_blocks.pipeline.yaml_schema import key_lines
 
 REALISTIC = textwrap.dedent("""\
     name: lwasv_tbf_allsky
@@ -126,26 +127,26 @@ def test_bad_override_syntax():
 def test_unknown_key_suggests_closest():
     probs, msg = _problems("source: {kind: simulated}\nimager: {grdi: {size: 32}}")
     assert len(probs) == 1
-    assert probs[0].startswith("imager.grdi: unknown key; did you mean 'grid'?")
+    assert probs[0].startswith("imager.grdi (line 2): unknown key; did you mean 'grid'?")
     probs, _ = _problems("source: {kind: simulated}\noutptu: {dir: x}")
-    assert probs[0].startswith("outptu: unknown key; did you mean 'output'?")
+    assert probs[0].startswith("outptu (line 2): unknown key; did you mean 'output'?")
     probs, _ = _problems("source: {kind: simulated, durations: 3}")
-    assert probs[0].startswith("source.durations: unknown key; did you mean 'duration_s'?")
+    assert probs[0].startswith("source.durations (line 1): unknown key; did you mean 'duration_s'?")
 
 
 def test_key_of_the_other_source_kind_is_explained(yaml_dir):
     probs, _ = _problems("source: {kind: simulated, path: x.tbf}")
-    assert probs == ["source.path: only used when source.kind is 'tbf' (kind is 'simulated')"]
+    assert probs == ["source.path (line 1): only used when source.kind is 'tbf' (kind is 'simulated')"]
 
 
 def test_wrong_type_message_matches_operator_expectation():
     probs, msg = _problems("source: {kind: simulated}\nimager: {grid: {size: abc}}")
-    assert probs == ["imager.grid.size: expected an integer >= 2, got 'abc'"]
-    assert "imager.grid.size: expected an integer >= 2, got 'abc'" in msg
+    assert probs == ["imager.grid.size (line 2): expected an integer >= 2, got 'abc'"]
+    assert "imager.grid.size (line 2): expected an integer >= 2, got 'abc'" in msg
     probs, _ = _problems("source: {kind: simulated}\nimager: {remove_autocorr: 'yes'}")
-    assert probs == ["imager.remove_autocorr: expected true or false, got 'yes'"]
+    assert probs == ["imager.remove_autocorr (line 2): expected true or false, got 'yes'"]
     probs, _ = _problems("source: {kind: simulated}\nimager: {accumulate_frames: true}")
-    assert probs[0].startswith("imager.accumulate_frames: expected an integer >= 1")  # bool is not an int
+    assert probs[0].startswith("imager.accumulate_frames (line 2): expected an integer >= 1")  # bool is not an int
 
 
 def test_missing_files_are_errors(tmp_path):
@@ -154,9 +155,10 @@ def test_missing_files_are_errors(tmp_path):
                  "calibration: {gains_table: g.npz}\n")
     probs, msg = _problems(p)
     assert len(probs) == 3
-    assert any(s.startswith("source.path: TBF file 'nope.tbf' not found") and str(tmp_path) in s for s in probs)
-    assert any(s.startswith("station.ssmif: SSMIF file 'ssmif.txt' not found") for s in probs)
-    assert any(s.startswith("calibration.gains_table: gains table 'g.npz' not found") for s in probs)
+    assert any(s.startswith("source.path (line 1): TBF file 'nope.tbf' not found") and str(tmp_path) in s
+               for s in probs)
+    assert any(s.startswith("station.ssmif (line 2): SSMIF file 'ssmif.txt' not found") for s in probs)
+    assert any(s.startswith("calibration.gains_table (line 3): gains table 'g.npz' not found") for s in probs)
     assert msg.startswith(f"{p}: 3 problems")
     probs, _ = _problems("source: {kind: tbf}")
     assert probs == ["source.path: missing required key (the path of TBF file)"]
@@ -204,13 +206,13 @@ def test_impossible_or_malformed_values(text, path, expect):
         text = "source: {kind: simulated}\n" + text
     probs, _ = _problems(text)
     assert len(probs) == 1, probs
-    assert probs[0].startswith(f"{path}: "), probs
+    assert probs[0].startswith(f"{path} (line {text.count(chr(10)) + 1}): "), probs  # the key is on the last line
     assert expect in probs[0], probs
 
 
 def test_grid_and_track_are_exclusive():
     probs, _ = _problems("source: {kind: simulated}\nimager: {grid: {size: 32}, track: {source: CygA}}")
-    assert len(probs) == 1 and probs[0].startswith("imager: give exactly one of imager.grid")
+    assert len(probs) == 1 and probs[0].startswith("imager (line 2): give exactly one of imager.grid")
 
 
 def test_custom_sources_match_the_sky_module():
@@ -223,7 +225,7 @@ def test_custom_sources_match_the_sky_module():
     assert [s.name for s in src] == ["CasA", "S1"] and src[1].spectral_index == -0.7
     probs, _ = _problems("source: {kind: simulated, sources: [{name: S1, ra_deg: 1, dec_deg: 1, flux_jy: 1, "
                          "spectral_indx: 1}]}")
-    assert probs[0].startswith("source.sources[0].spectral_indx: unknown key; did you mean 'spectral_index'?")
+    assert probs[0].startswith("source.sources[0].spectral_indx (line 1): unknown key; did you mean 'spectral_index'?")
 
 
 def test_track_rules():
@@ -231,14 +233,14 @@ def test_track_rules():
                       "imager: {track: {source: Src1, size: 8}}")
     assert cfg["imager"]["track"]["source"] == "Src1" and cfg["imager"]["grid"] is None
     probs, _ = _problems("source: {kind: simulated}\nimager: {track: {source: CygB}}")
-    assert probs[0].startswith("imager.track.source: unknown source 'CygB'; did you mean 'CygA'?")
+    assert probs[0].startswith("imager.track.source (line 2): unknown source 'CygB'; did you mean 'CygA'?")
     probs, _ = _problems("source: {kind: simulated}\nimager: {kind: moff, track: {source: CygA}}")
-    assert probs[0].startswith("imager.track: a tracked patch needs the dft imager")
+    assert probs[0].startswith("imager.track (line 2): a tracked patch needs the dft imager")
 
 
 def test_accumulation_must_fit_in_duration():
     probs, _ = _problems("source: {kind: simulated, duration_s: 0.01}")  # 250 frames < 1024
-    assert probs[0].startswith("imager.accumulate_frames: 1024 frames (40.96 ms")
+    assert probs[0].startswith("imager.accumulate_frames: 1024 frames (40.96 ms")  # the default: no line
     assert "no image would be produced" in probs[0]
     load_config("source: {kind: simulated, duration_s: 0.04096}")  # exactly one image is fine
 
@@ -248,7 +250,7 @@ def test_station_name_or_ssmif(tmp_path):
     cfg = load_config("source: {kind: simulated}\nstation: {ssmif: s.txt}", base_dir=tmp_path)
     assert cfg["station"]["name"] is None and cfg["station"]["ssmif"] == str((tmp_path / "s.txt").resolve())
     probs, _ = _problems("source: {kind: simulated}\nstation: {name: lwasv, ssmif: s.txt}", base_dir=tmp_path)
-    assert probs == ["station: give either station.name or station.ssmif, not both"]
+    assert probs == ["station (line 2): give either station.name or station.ssmif, not both"]
 
 
 def test_all_problems_reported_together(yaml_dir):
@@ -290,3 +292,71 @@ def test_docstring_documents_every_schema_key():
     for path in cfgmod.schema_keys():
         leaf = path.split(".")[-1]
         assert f"{leaf}:" in doc, f"schema key {path} is not documented in the module docstring"
+
+
+LINES = textwrap.dedent("""\
+    name: lines                  # line 1
+    station:
+      name: lwasv
+      flags:
+        - 3
+        - {stand: 0, pol: X}     # line 6: stand < 1
+    source:
+      kind: simulated
+      duration_s: 0.01           # line 9: too short for accumulate_frames (line 17)
+      channels:
+        count: 4
+        widht_hz: 25000          # line 12: unknown key
+    imager:
+      grid:
+        size: abc                # line 15
+        cell: 0.05
+      accumulate_frames: 1024    # line 17
+      products: [I, Z]           # line 18
+    device: gpu:x                # line 19
+    """)
+
+
+def test_messages_give_the_yaml_line_of_the_key(tmp_path):
+    p = tmp_path / "lines.yaml"
+    p.write_text(LINES)
+    probs, msg = _problems(p)
+    assert sorted(probs) == sorted([
+        "station.flags[1].stand (line 6): expected an integer >= 1, got 0",
+        "source.channels.widht_hz (line 12): unknown key; did you mean 'width_hz'? "
+        "(valid keys here: first, count, width_hz)",
+        "imager.grid.size (line 15): expected an integer >= 2, got 'abc'",
+        next(s for s in probs if s.startswith("imager.products (line 18): unknown polarisation product 'Z'")),
+        "device (line 19): expected 'cpu', 'gpu' or 'gpu:N' (N >= 0 the GPU index), got 'gpu:x'",
+        next(s for s in probs if s.startswith("imager.accumulate_frames (line 17): 1024 frames")),  # cross-check
+    ]), probs
+    assert msg.startswith(f"{p}: 6 problems") and "  - imager.grid.size (line 15): " in msg
+
+
+def test_overridden_keys_have_no_line():
+    # --set replaces the value written on line 15 (and everything under imager.grid): no line for it
+    probs, _ = _problems(LINES.replace("widht_hz", "width_hz"), ["imager.grid={size: 1}", "device=tpu"])
+    assert "imager.grid.size: expected an integer >= 2, got 1" in probs
+    assert "device: expected 'cpu', 'gpu' or 'gpu:N' (N >= 0 the GPU index), got 'tpu'" in probs
+    assert "station.flags[1].stand (line 6): expected an integer >= 1, got 0" in probs  # untouched keys keep theirs
+    # a key the file does not have, and one created by an override: no line either
+    probs, _ = _problems("source: {kind: simulated}", ["imager.grdi.size=3"])
+    assert probs[0].startswith("imager.grdi: unknown key")
+
+
+def test_key_lines_of_block_flow_lists_and_merges():
+    text = textwrap.dedent("""\
+        base: &b
+          x: 1
+          y: 2
+        top:
+          <<: *b
+          y: 3
+          z: [a, {w: 1}]
+        """)
+    lines = key_lines(text)
+    assert lines["base"] == 1 and lines["base.x"] == 2 and lines["top"] == 4
+    assert lines["top.x"] == 2  # merged from the anchor
+    assert lines["top.y"] == 6  # the mapping's own key wins over the merged one, as in loading
+    assert lines["top.z"] == 7 and lines["top.z[1]"] == 7 and lines["top.z[1].w"] == 7
+    assert key_lines("a: [") == {} and key_lines("") == {}
