@@ -245,14 +245,39 @@ def test_reductions_read_both_layouts(xp):
     blocks = [(0, 0), (1, 1), (0, 1)]
     Fr = F.reshape(2, 7, 2, 48).astype(np.complex128)
     ref = np.stack([(Fr[:, :, p].reshape(2, 7, 3, 16) * np.conj(Fr[:, :, q].reshape(2, 7, 3, 16))).sum(-1)
-                    for p, q in blocks], axis=1)
+                    for p, q in blocks], axis=1)                         # (c, nblk, K, g)
+    ref = np.moveaxis(ref, -1, 0)                                        # (g, c, nblk, K)
     for arr, stacked in ((F, False), (S, True)):
-        got = to_np(block_corr(xp.asarray(arr), blocks, 16, npol=2, stacked=stacked))
-        assert got.shape == (2, 3, 7, 3) and np.allclose(got, ref, rtol=1e-5, atol=1e-4)
+        got = to_np(block_corr(xp.asarray(arr), blocks, 16, npol=2, stacked=stacked, scale=2.0))
+        assert got.shape == (3, 2, 3, 7) and np.allclose(got, 2 * ref, rtol=1e-5, atol=1e-4)
     D = (rng.normal(size=(2, 7, 40)) + 1j * rng.normal(size=(2, 7, 40))).astype(np.complex64)
     M = (rng.normal(size=(2, 7, 80)) + 1j * rng.normal(size=(2, 7, 80))).astype(np.complex64)
     ref = np.stack([(M[:, :, b * 40:(b + 1) * 40] * np.conj(D)).sum(-1) for b in range(2)], axis=1)
     Ms = np.stack([M.real, M.imag], axis=1).astype(np.float32)
     for arr, stacked in ((M, False), (Ms, True)):
-        got = to_np(row_dot(xp.asarray(arr), xp.asarray(D), 2, stacked=stacked))
-        assert got.shape == (2, 2, 7) and np.allclose(got, ref, rtol=1e-5, atol=1e-4)
+        got = to_np(row_dot(xp.asarray(arr), xp.asarray(D), 2, stacked=stacked, scale=0.5))
+        assert got.shape == (2, 2, 7) and np.allclose(got, 0.5 * ref, rtol=1e-5, atol=1e-4)
+
+
+@pytest.mark.parametrize("method", ["direct", "covariance"])
+def test_integer_input_with_weights_flags_and_autocorr_removed(xp, sky_scene, method):
+    """Integer voltages with complex weights, a flagged antenna-pol and a flagged channel, the
+    autocorrelations removed, every product: against the float64 sum (both the fast layout kernels
+    and the weighted covariance are exercised)."""
+    xyz, freq, X, lm = sky_scene
+    xyz, X = xyz[-20:], X[:96, :, -20:]      # a smaller array (outrigger kept): the brute autocorrelation is slow
+    rng = np.random.default_rng(12)
+    w = np.exp(1j * rng.random((2, 20, 2))) * rng.uniform(0.5, 1.5, (2, 20, 2))
+    w[:, 5, 1] = 0
+    prods = ("XX", "YY", "XY", "V")
+    ref = brute_image(as_complex(X), xyz, freq, lm, prods, remove_autocorr=True, weights=w)
+    for precision in ("fp64", "fp32"):
+        img = imaging.dirty_image(xp.asarray(X), xp.asarray(xyz), xp.asarray(freq), xp.asarray(lm), method=method,
+                                  precision=precision, products=prods, remove_autocorr=True, weights=xp.asarray(w))
+        assert rel_err(img, ref) < (1e-11 if precision == "fp64" else 2e-6), (precision, rel_err(img, ref))
+    unit = np.ones((2, 20, 2))
+    unit[:, 7, 0] = 0
+    ref = brute_image(as_complex(X), xyz, freq, lm, prods, weights=unit)
+    img = imaging.dirty_image(xp.asarray(X), xp.asarray(xyz), xp.asarray(freq), xp.asarray(lm), method=method,
+                              precision="fp64", products=prods, weights=xp.asarray(unit))
+    assert rel_err(img, ref) < 1e-11

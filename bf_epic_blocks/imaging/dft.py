@@ -35,8 +35,9 @@ import numpy as np
 from ..conventions import SIGMA, SPEED_OF_LIGHT_M_S
 from . import cost
 from ._xp import get_xp
-from .gemm import (PRECISIONS, STACKED, check_precision, cmatmul, int_gram, pow2_scale, stack_operator, stack_rhs,
-                   stacked_matmul)
+from .gemm import (PRECISIONS, STACKED, check_precision, cmatmul, int_gram, pow2_scale, split_tf32, stack_operator,
+                   stack_rhs, stacked_matmul)
+from .layout import cov_rhs, direct_rhs, gram_rows
 from .reduce import block_corr, group_power, row_dot
 from .pixels import check_lm, n_from_lm
 from .products import combine, needs_cross, resolve_products
@@ -148,6 +149,36 @@ def _check_pattern(pattern, nchan, npix, nant, npol, xp):
     return b
 
 
+class _Selection:
+    """What an operator keeps of the input: channels, antennas and live (unflagged) antenna-pols,
+    as host/NumPy-or-CuPy index arrays for the layout kernels (:mod:`.layout`)."""
+
+    def __init__(self, xp, chan, ant, live, nchan, nant):
+        self.xp = xp
+        self.chan = chan                      # None (all) or index array of live channels
+        self.ant = ant                        # None (all) or index array of kept antennas
+        self.live = live                      # None (nothing flagged) or (C', A', P) mask
+        self.chan_list = None if chan is None else [int(v) for v in (chan.get() if hasattr(chan, "get") else chan)]
+        self.ant_list = None if ant is None else [int(v) for v in (ant.get() if hasattr(ant, "get") else ant)]
+        self.nchan, self.nant = nchan, nant
+        self._dev = {}
+
+    def device_index(self, which, n):
+        if which not in self._dev:
+            idx = getattr(self, which)
+            self._dev[which] = (self.xp.arange(n, dtype=self.xp.int32) if idx is None
+                                else self.xp.asarray(idx, dtype=self.xp.int32))
+        return self._dev[which]
+
+    def device_live(self, pols, C, A):
+        key = ("live", tuple(pols))
+        if key not in self._dev:
+            xp = self.xp
+            self._dev[key] = (xp.ones((C, A, len(pols)), xp.uint8) if self.live is None
+                              else xp.ascontiguousarray(self.live[:, :, list(pols)].astype(xp.uint8)))
+        return self._dev[key]
+
+
 def _is_int_pairs(efield):
     """Integer voltages as (..., 2) (re, im) pairs: int8/int16 with a trailing axis of length 2."""
     return efield.dtype.kind == "i" and efield.ndim == 5 and efield.shape[-1] == 2
@@ -222,6 +253,13 @@ class DFTOperator:
         self.partial_flags = not bool(xp.all(live))
         self.unit_weights = bool(xp.all((w == 0) | (w == 1)))
         self.xyz_m = xyz[self.keep_index]
+        live_sel = live if self.chan_index is None else live[self.chan_index]
+        self.sel = _Selection(xp, self.chan_index, None if self.all_kept else self.keep_index,
+                              live_sel if self.partial_flags else None, nchan, nant_in)
+        # fp16 covariance operands: R' = w R w^H / T <= 2 * 127^2 * max|w|^2, scaled by a power of two
+        # into fp16's range (chosen once, on the host, from the weights)
+        wmax = float(xp.abs(w).max())
+        self.cov_scale = 2.0 ** -math.ceil(math.log2(wmax * wmax)) if self.precision == "fp16" and wmax > 0 else 1.0
 
         G = geometric_operator(self.xyz_m, f, lm, "fp64" if precision == "fp64" else "fp32")  # (nchan, npix, nant)
         b = _check_pattern(pattern, nchan, npix, nant_in, npol, xp)
@@ -277,6 +315,17 @@ class DFTOperator:
         s = pow2_scale(rhs) if self.precision == "fp16" else None
         F = stacked_matmul(parts, stack_rhs(rhs, self.precision, s), self.precision, b_exact=exact)
         return F.reshape(F.shape[0], 2, F.shape[1] // 2, F.shape[2]), True, (None if s is None else 1.0 / s)
+
+    def field_gemm_parts(self, pol, parts, cs=slice(None), *, exact=False):
+        """D_pol @ rhs with rhs already in the GEMM's operand form: a list of stacked parts (tensor-core
+        modes; [hi, lo] for tf32x3) or [complex rhs]. Returns (F, stacked) as :meth:`field_gemm`."""
+        ops = self._operator_parts(pol, cs)
+        if not self.stacked:
+            return cmatmul(ops[0], parts[0], self.precision), False
+        if self.precision == "tf32x3" and len(parts) == 1:
+            parts = list(split_tf32(parts[0])) if not exact else [parts[0]]
+        F = stacked_matmul(ops, parts, self.precision, b_exact=exact or len(parts) == 1)
+        return F.reshape(F.shape[0], 2, F.shape[1] // 2, F.shape[2]), True
 
     def field_gemm_complex(self, pol, rhs, cs=slice(None), *, exact=False):
         """As :meth:`field_gemm`, always complex (c, npix, n) with the scale applied (rare paths)."""
@@ -338,27 +387,6 @@ class DFTOperator:
         # (T, C, A, P) -> (C, P, A, T): antennas x time matrices per channel-pol for the GEMMs.
         return xp.ascontiguousarray(x.transpose(1, 3, 2, 0))
 
-    def prepare_int(self, efield, pols):
-        """Integer voltages for exact covariances: int8 (nchan_live, len(pols) * 2 * nant, ntime).
-
-        Rows are [Re x_p; Im x_p] for each p in ``pols``; flagged antennas are zeroed, weights are
-        NOT applied (they multiply the covariance afterwards). ``efield``: integer pairs.
-        """
-        xp = self.xp
-        x = self._select(efield)                       # (T, C, A, P, 2)
-        if x.dtype != xp.int8:
-            if xp is not np or int(abs(x).max(initial=0)) > 127:  # pragma: no branch
-                raise TypeError(f"exact covariances take int8 (re, im) voltages (4- or 8-bit data); got {x.dtype}")
-            x = x.astype(xp.int8)
-        if self.partial_flags:
-            live = self.data_live if self.chan_index is None else self.data_live[self.chan_index]
-            x = x * live[None, :, :, :, None].astype(xp.int8)
-        x = x[:, :, :, list(pols)]                      # (T, C, A, P', 2)
-        # -> (C, P', 2, A, T): per channel the rows [Re x_p0; Im x_p0; Re x_p1; ...]
-        z = x.transpose(1, 3, 4, 2, 0)
-        c = z.shape[0]
-        return xp.ascontiguousarray(z).reshape(c, -1, z.shape[-1])
-
     # ------------------------------------------------------------------ imaging
     def accumulator(self, products=None, *, remove_autocorr=False, method="auto", ntime_hint=1024):
         """A fresh :class:`ImageAccumulator` for integrations that span several calls."""
@@ -399,6 +427,7 @@ class ImageAccumulator:
         if method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {method!r}")
         self.op = op
+        xp = op.xp
         self.products = resolve_products(op.npol, products)
         self.cross = needs_cross(self.products)
         # Correlation blocks (p, q): the auto-pols we need, plus XY if any cross product is asked.
@@ -416,14 +445,25 @@ class ImageAccumulator:
         self.method = method
         self.remove_autocorr = bool(remove_autocorr)
         self.nchan_live = op.nchan if op.chan_index is None else int(op.chan_index.shape[0])
+        # Static per-block factors of the image, made once: 1/(N_p N_q) (C', nblk, 1), and the
+        # antenna-independent pattern B_p conj(B_q) (C'|1, nblk, K) if there is one.
+        norm = op.norm if op.chan_index is None else op.norm[op.chan_index]
+        self._blkscale = xp.stack([norm[:, p] * norm[:, q] for p, q in blocks], axis=1)[..., None].astype(op.rdtype)
+        self._bw = None
+        if op.pixel_pattern is not None:
+            B = op.pixel_pattern if op.chan_index is None or op.pixel_pattern.shape[0] == 1 \
+                else op.pixel_pattern[op.chan_index]                                 # (C'|1, K, P|1)
+            self._bw = xp.stack([B[:, :, min(p, B.shape[2] - 1)] * xp.conj(B[:, :, min(q, B.shape[2] - 1)])
+                                 for p, q in blocks], axis=1)
+        self._bidx = [(self.pols.index(p), self.pols.index(q)) for p, q in blocks]
         self.reset()
 
     def reset(self):
         self.ntime = 0
-        self._S = None      # direct: (C', nblk, K) sums of |F|^2 / F_p F_q^*
+        self._S = None      # direct: (C', nblk, K) sums of F_p F_q^*
         self._auto = None   # direct: (C', nblk, A) sums of x_p x_q^*
         self._R = None      # covariance, complex input: (C', nblk, A, A)
-        self._W = None      # covariance, integer input: (C', r, r) int32 (GPU) / float64 (CPU) Gram sums
+        self._W = None      # covariance, integer input: (C', R, R) int32 (GPU) / float64 (CPU) Gram sums
         self._W64 = None    # GPU: int64 bank the int32 sums are flushed to before they could overflow
         self._wn = 0        # samples in the int32 sums
 
@@ -432,19 +472,61 @@ class ImageAccumulator:
         """Accumulate voltages (ntime, nchan, nant, npol) complex, or integer (re, im) pairs."""
         if efield.shape[0] == 0:
             return
-        ints = self.op._check_efield(efield)
+        op = self.op
+        ints = op._check_efield(efield)
         if self.method == "covariance":
             if ints:
                 if self._R is not None:
                     raise TypeError("one integration cannot mix complex and integer voltages")
-                self._add_int_covariance(self.op.prepare_int(efield, self.pols))
+                self._add_int_covariance(gram_rows(efield, op.sel))
             else:
-                if self._W is not None:
+                if self._W is not None or self._W64 is not None:
                     raise TypeError("one integration cannot mix complex and integer voltages")
-                self._add_covariance(self.op.prepare(efield))
+                self._add_covariance(op.prepare(efield))
         else:
-            self._add_direct(self.op.prepare(efield), exact=ints and self.op.unit_weights)
+            sums, auto = self._direct_sums(efield, ints, int(efield.shape[0]))
+            if self._S is None:
+                self._S, self._auto = sums[0], (None if auto is None else auto[0])
+            else:
+                self._S += sums[0]
+                if auto is not None:
+                    self._auto += auto[0]
         self.ntime += int(efield.shape[0])
+
+    def _direct_sums(self, efield, ints, n):
+        """Direct route over one gulp: ((g, C', nblk, K) sums over groups of n samples of F_p F_q^*,
+        (g, C', nblk, A) autocorrelation sums or None), g = ntime // n."""
+        op, xp = self.op, self.op.xp
+        t = int(efield.shape[0])
+        g = t // n
+        per_chan = op.npix * len(self.pols) * t * np.dtype(op.cdtype).itemsize
+        fast = ints and op.unit_weights and op.shared_geometry and per_chan <= op.chunk_bytes()
+        x = op.prepare(efield) if (self.remove_autocorr or not fast) else None
+        auto = xp.moveaxis(self._auto_sums(x, n), -1, 0) if self.remove_autocorr else None
+        S = xp.zeros((g, self.nchan_live, len(self.blocks), op.npix), dtype=op.cdtype)
+        if fast:
+            # integer voltages straight into the GEMM's operand form: one transpose kernel, no copies
+            rhs = direct_rhs(efield, op.sel, self.pols, op.precision, op.stacked)
+            cchunk = max(1, min(self.nchan_live, op.chunk_bytes() // per_chan))
+            for c0 in range(0, self.nchan_live, cchunk):
+                cs = slice(c0, min(self.nchan_live, c0 + cchunk))
+                F, stacked = op.field_gemm_parts(0, [rhs[cs]], cs, exact=True)
+                S[:, cs] = block_corr(F, self._bidx, n, npol=len(self.pols), stacked=stacked)
+            return S, auto
+        for cs, t0, F, stacked, scale in self._fields(x, ints and op.unit_weights):
+            nt = F.shape[-1] // len(self.pols)
+            sc = None if scale is None else scale * scale
+            if t0 % n == 0 and nt % n == 0:
+                S[t0 // n:(t0 + nt) // n, cs] += block_corr(F, self._bidx, n, npol=len(self.pols), stacked=stacked,
+                                                            scale=sc)
+            else:   # a group split across time chunks (CPU memory cap): sum its parts one by one
+                Fc = F[:, 0] + 1j * F[:, 1] if stacked else F
+                Fc = Fc.reshape(Fc.shape[0], op.npix, len(self.pols), nt)
+                for j in range(t0 // n, min(g, -(-(t0 + nt) // n))):
+                    lo, hi = max(j * n, t0) - t0, min((j + 1) * n, t0 + nt) - t0
+                    part = xp.ascontiguousarray(Fc[..., lo:hi]).reshape(Fc.shape[0], op.npix, -1)
+                    S[j, cs] += block_corr(part, self._bidx, hi - lo, npol=len(self.pols), scale=sc)[0]
+        return S, auto
 
     def _fields(self, x, exact):
         """Yield (channel slice, t0, F, stacked, scale) chunks of the beamformed fields.
@@ -470,29 +552,11 @@ class ImageAccumulator:
                                         for pp in self.pols], axis=-1)
                     yield cs, t0, F, False, None
 
-    def _block_sums(self, F, stacked, scale, n):
-        """(c, nblk, K, T // n) sums over groups of n samples of the block products of F."""
-        idx = {p: i for i, p in enumerate(self.pols)}
-        blocks = [(idx[pp], idx[qq]) for pp, qq in self.blocks]
-        s = block_corr(F, blocks, n, npol=len(self.pols), stacked=stacked)
-        return s if scale is None else s * (scale * scale)
-
     def _auto_sums(self, x, n):
         """(c, nblk, A, groups): sums over groups of n samples of x_p conj(x_q) per antenna."""
         xp = self.op.xp
         return xp.stack([group_power(x[:, pp], x[:, qq] if pp != qq else None, n).astype(self.op.cdtype)
                          for pp, qq in self.blocks], axis=1)
-
-    def _add_direct(self, x, exact=False):
-        op, xp = self.op, self.op.xp
-        if self._S is None:
-            self._S = xp.zeros((self.nchan_live, len(self.blocks), op.npix), dtype=op.cdtype)
-            self._auto = xp.zeros((self.nchan_live, len(self.blocks), op.nant), dtype=op.cdtype)
-        for cs, _, F, stacked, scale in self._fields(x, exact):
-            t = F.shape[-1] // len(self.pols)
-            self._S[cs] += self._block_sums(F, stacked, scale, t)[..., 0]
-        if self.remove_autocorr:
-            self._auto += self._auto_sums(x, None)[..., 0]
 
     def _add_covariance(self, x):
         op, xp = self.op, self.op.xp
@@ -543,25 +607,10 @@ class ImageAccumulator:
                 out.append(sub.result())
                 sub.reset()
             return xp.stack(out)
-        x = op.prepare(efield)
-        exact = ints and op.unit_weights
-        S = xp.zeros((self.nchan_live, len(self.blocks), op.npix, g), dtype=op.cdtype)
-        for cs, t0, F, stacked, scale in self._fields(x, exact):
-            nt = F.shape[-1] // len(self.pols)
-            if t0 % n == 0 and nt % n == 0:
-                S[cs, :, :, t0 // n:(t0 + nt) // n] += self._block_sums(F, stacked, scale, n)
-            else:   # a group split across time chunks (CPU memory cap): sum its parts one by one
-                Fc = F[:, 0] + 1j * F[:, 1] if stacked else F
-                Fc = Fc.reshape(Fc.shape[0], op.npix, len(self.pols), nt)
-                for j in range(t0 // n, min(g, -(-(t0 + nt) // n))):
-                    lo, hi = max(j * n, t0) - t0, min((j + 1) * n, t0 + nt) - t0
-                    part = Fc[..., lo:hi].reshape(Fc.shape[0], op.npix, -1)
-                    S[cs, :, :, j] += self._block_sums(part, False, scale, hi - lo)[..., 0]
-        corr = xp.moveaxis(S, -1, 0)                                      # (g, C', nblk, K)
-        if self.remove_autocorr:
-            auto = xp.moveaxis(self._auto_sums(x, n), -1, 0)             # (g, C', nblk, A)
-            corr = corr - self._autocorr_term(auto)
-        return self._finish(corr / n)
+        S, auto = self._direct_sums(efield, ints, n)                        # (g, C', nblk, K)
+        if auto is not None:
+            S = S - self._autocorr_term(auto)
+        return self._finish(S, 1.0 / n)
 
     def result(self):
         """The image (nchan, nprod, npix), real, in the operator's precision; NaN where all antennas of a
@@ -569,28 +618,18 @@ class ImageAccumulator:
         if self.ntime == 0:
             raise ValueError("no samples were accumulated: cannot form an image from zero time samples")
         if self.method == "covariance":
-            corr = self._image_covariance()
-        else:
-            corr = self._S
-            if self.remove_autocorr:
-                corr = corr - self._autocorr_term(self._auto)
-        return self._finish(corr / self.ntime)
+            return self._finish(self._image_covariance(), 1.0)   # already divided by ntime
+        corr = self._S
+        if self.remove_autocorr:
+            corr = corr - self._autocorr_term(self._auto)
+        return self._finish(corr, 1.0 / self.ntime)
 
-    def _finish(self, corr):
-        """(..., C', nblk, K) complex correlations (unnormalised) -> (..., nchan, nprod, K) products."""
+    def _finish(self, corr, factor):
+        """(..., C', nblk, K) complex correlation sums, times ``factor`` -> (..., nchan, nprod, K) products."""
         xp, op = self.op.xp, self.op
-        norm = op.norm if op.chan_index is None else op.norm[op.chan_index]        # (C', P)
-        scale = xp.stack([norm[:, pp] * norm[:, qq] for pp, qq in self.blocks], axis=1)  # (C', nblk)
-        corr = corr * scale[..., None].astype(op.rdtype)
-        if op.pixel_pattern is not None:
-            B = op.pixel_pattern if op.chan_index is None or op.pixel_pattern.shape[0] == 1 \
-                else op.pixel_pattern[op.chan_index]                            # (C'|1, K, P|1)
-            bw = []
-            for pp, qq in self.blocks:
-                bp = B[:, :, min(pp, B.shape[2] - 1)]
-                bq = B[:, :, min(qq, B.shape[2] - 1)]
-                bw.append(bp * xp.conj(bq))
-            corr = corr * xp.stack(bw, axis=1)
+        corr = corr * (self._blkscale * op.rdtype(factor))
+        if self._bw is not None:
+            corr = corr * self._bw
         get = {blk: corr[..., i, :] for i, blk in enumerate(self.blocks)}
         xx, yy, xy = get.get((0, 0)), get.get((1, 1)), get.get((0, 1))
         out = combine(self.products, xx.real if xx is not None else None,
@@ -618,56 +657,82 @@ class ImageAccumulator:
             terms.append(xp.matmul(gg, auto[..., i, :, None])[..., 0])
         return xp.stack(terms, axis=-2)
 
+    def _gram(self):
+        """The integer Gram sums W (C', R, R) (int32/int64 on the GPU, float64 on the CPU) or None."""
+        if self._W64 is None:
+            return self._W
+        return self._W64 if self._W is None else self._W64 + self._W
+
+    def _int_weights(self):
+        op = self.op
+        return op.weights128 if op.chan_index is None else op.weights128[op.chan_index]   # (C', A, P)
+
     def _covariance_blocks(self):
-        """Weighted covariance blocks (C', nblk, A, A) complex, unnormalised, from the running sums."""
-        xp, op = self.op.xp, self.op
-        if self._W is None and self._W64 is None:
+        """Weighted covariance blocks (C', nblk, A, A) complex, unnormalised (sums over time)."""
+        W = self._gram()
+        if W is None:
             return self._R
-        W = self._W64 if self._W is None else (self._W if self._W64 is None else self._W64 + self._W)
-        a = op.nant
-        idx = {p: i for i, p in enumerate(self.pols)}
-        w = op.weights128 if op.chan_index is None else op.weights128[op.chan_index]   # (C', A, P)
-        dt = np.float64 if op.precision == "fp64" else np.float32
-        blocks = []
-        for pp, qq in self.blocks:
-            rp, rq = 2 * a * idx[pp], 2 * a * idx[qq]
-            RR = W[:, rp:rp + a, rq:rq + a]
-            RI = W[:, rp:rp + a, rq + a:rq + 2 * a]
-            IR = W[:, rp + a:rp + 2 * a, rq:rq + a]
-            II = W[:, rp + a:rp + 2 * a, rq + a:rq + 2 * a]
-            # x_p x_q^H = (Re_p Re_q + Im_p Im_q) + i (Im_p Re_q - Re_p Im_q), exact in integers
-            re = (RR + II).astype(dt)
-            im = (IR - RI).astype(dt)
-            r = re + 1j * im
-            if not op.unit_weights:
-                r = (w[:, :, pp, None] * r) * xp.conj(w[:, None, :, qq])
-            blocks.append(r.astype(op.cdtype))
-        return xp.stack(blocks, axis=1)
+        op, xp = self.op, self.op.xp
+        rhs = cov_rhs(W, self._int_weights(), self.blocks, op.npol, "fp64" if op.precision == "fp64" else "fp32",
+                      False, unit=op.unit_weights)                               # (C', A, nblk A)
+        c, a = rhs.shape[0], rhs.shape[1]
+        return xp.ascontiguousarray(rhs.reshape(c, a, len(self.blocks), a).transpose(0, 2, 1, 3))
 
     def _image_covariance(self):
-        """(C', nblk, K): Re diag(D_p R_pq D_q^H) (complex for XY), minus the autocorrelations if asked."""
+        """(C', nblk, K): Re diag(D_p R_pq D_q^H) / ntime (complex for XY), minus the autocorrelations if asked."""
         xp, op = self.op.xp, self.op
-        R = self._covariance_blocks()                         # (C', nblk, A, A)
-        c, nblk, a, _ = R.shape
+        W = self._gram()
+        nblk, a = len(self.blocks), op.nant
         itemsize = np.dtype(op.cdtype).itemsize
+        c = self.nchan_live
         cchunk = max(1, min(c, op.chunk_bytes() // max(1, op.npix * nblk * a * itemsize)))
-        out = xp.empty((c, nblk, op.npix), dtype=op.cdtype)
-        for c0 in range(0, c, cchunk):
-            cs = slice(c0, min(c, c0 + cchunk))
-            nc = cs.stop - cs.start
-            if op.shared_geometry:
-                rhs = R[cs].transpose(0, 2, 1, 3).reshape(nc, a, nblk * a)      # [R_b0 | R_b1 | ...]
-                M, stacked, scale = op.field_gemm(0, rhs, cs)
-                r = row_dot(M, op.live_G(0)[cs], nblk, stacked=stacked)
-                out[cs] = r if scale is None else r * scale
-            else:
-                for i, (pp, qq) in enumerate(self.blocks):
-                    M = op.field_gemm_complex(pp, xp.ascontiguousarray(R[cs, i]), cs)
-                    out[cs, i] = row_dot(M, op.live_G(qq)[cs], 1)[:, 0]
+        out = xp.empty((c, nblk, op.npix), dtype=xp.complex128 if op.precision == "fp64" else xp.complex64)
+        if W is not None and op.shared_geometry:
+            # exact integer sums straight into the GEMM's operand form (weights, 1/T and the fp16
+            # range scale applied in the same pass)
+            s = op.cov_scale
+            rhs = cov_rhs(W, self._int_weights(), self.blocks, op.npol, op.precision, op.stacked,
+                          scale=s / self.ntime, unit=op.unit_weights)
+            for c0 in range(0, c, cchunk):
+                cs = slice(c0, min(c, c0 + cchunk))
+                M, stacked = op.field_gemm_parts(0, [rhs[cs]], cs)
+                out[cs] = row_dot(M, op.live_G(0)[cs], nblk, stacked=stacked, scale=None if s == 1 else 1.0 / s)
+        else:
+            R = self._covariance_blocks()                         # (C', nblk, A, A) sums
+            for c0 in range(0, c, cchunk):
+                cs = slice(c0, min(c, c0 + cchunk))
+                nc = cs.stop - cs.start
+                if op.shared_geometry:
+                    rhs = R[cs].transpose(0, 2, 1, 3).reshape(nc, a, nblk * a)      # [R_b0 | R_b1 | ...]
+                    M, stacked, scale = op.field_gemm(0, rhs, cs)
+                    out[cs] = row_dot(M, op.live_G(0)[cs], nblk, stacked=stacked, scale=scale)
+                else:
+                    for i, (pp, qq) in enumerate(self.blocks):
+                        M = op.field_gemm_complex(pp, xp.ascontiguousarray(R[cs, i]), cs)
+                        out[cs, i] = row_dot(M, op.live_G(qq)[cs], 1)[:, 0]
+            out = out / self.ntime
         if self.remove_autocorr:   # the diagonal's contribution, subtracted: R itself is not copied
-            diag = xp.diagonal(R, axis1=-2, axis2=-1)            # (C', nblk, A): x_ap conj(x_aq) sums
-            out = out - self._autocorr_term(diag)
+            out = out - self._autocorr_term(self._covariance_diag()) / self.ntime
         return out
+
+    def _covariance_diag(self):
+        """(C', nblk, A): the weighted same-antenna terms sum_t w_p x_ap conj(w_q x_aq)."""
+        xp, op = self.op.xp, self.op
+        W = self._gram()
+        if W is None:
+            return xp.diagonal(self._R, axis1=-2, axis2=-1)
+        c, r, _ = W.shape
+        a, P = op.nant, op.npol
+        d = W.reshape(c, a, P * 2, a, P * 2)
+        d = d[:, xp.arange(a), :, xp.arange(a), :]            # (A, C', 2P, 2P): same-antenna blocks
+        d = xp.moveaxis(d, 0, 1).astype(xp.float64)             # (C', A, 2P, 2P)
+        w = self._int_weights()
+        out = []
+        for p, q in self.blocks:
+            re = d[:, :, 2 * p, 2 * q] + d[:, :, 2 * p + 1, 2 * q + 1]
+            im = d[:, :, 2 * p + 1, 2 * q] - d[:, :, 2 * p, 2 * q + 1]
+            out.append((re + 1j * im) * w[:, :, p] * xp.conj(w[:, :, q]))
+        return xp.stack(out, axis=1).astype(op.cdtype)
 
 
 def dirty_image(efield, xyz_m, freq_hz, pixels_lm, *, remove_autocorr=False, method="auto",

@@ -27,11 +27,12 @@ __all__ = ["block_corr", "row_dot", "group_power"]
 # so a warp reads one contiguous stretch of the row.
 _BLOCK_CORR_SRC = r"""
 extern "C" __global__ void bf_block_corr(
-    const float* __restrict__ F, float* __restrict__ out_re, float* __restrict__ out_im,
+    const float* __restrict__ F, float2* __restrict__ out, const float* __restrict__ scale,
     const int C, const int K, const int T, const int n, const int G, const int nblk,
     const int* __restrict__ bp, const int* __restrict__ bq,
     const long long sc, const long long sk, const long long im_off, const int es)
 {
+    // output: complex64 (G, C, nblk, K), times *scale
     long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     long long total = (long long)C * nblk * K * G;
     if (idx >= total) return;
@@ -58,8 +59,8 @@ extern "C" __global__ void bf_block_corr(
             si += ai * b2 - a * bi;
         }
     }
-    out_re[idx] = sr;
-    out_im[idx] = si;
+    float s = *scale;
+    out[(((long long)g * C + c) * nblk + b) * K + k] = make_float2(sr * s, si * s);
 }
 """
 
@@ -68,10 +69,11 @@ extern "C" __global__ void bf_block_corr(
 # D (complex64, (c, K, A)) at D[2*((c*K + k)*A + a)].
 _ROW_DOT_SRC = r"""
 extern "C" __global__ void bf_row_dot(
-    const float* __restrict__ M, const float* __restrict__ D, float* __restrict__ out_re,
-    float* __restrict__ out_im, const int C, const int K, const int A, const int nblk,
+    const float* __restrict__ M, const float* __restrict__ D, float2* __restrict__ out,
+    const float* __restrict__ scale, const int C, const int K, const int A, const int nblk,
     const long long msc, const long long msk, const long long m_im, const int mes)
 {
+    // output: complex64 (C, nblk, K), times *scale
     long long warp = ((long long)blockIdx.x * blockDim.x + threadIdx.x) >> 5;
     int lane = threadIdx.x & 31;
     if (warp >= (long long)C * K) return;
@@ -92,9 +94,8 @@ extern "C" __global__ void bf_row_dot(
             si += __shfl_down_sync(0xffffffff, si, o);
         }
         if (lane == 0) {
-            long long oi = ((long long)c * nblk + b) * K + k;
-            out_re[oi] = sr;
-            out_im[oi] = si;
+            float s = *scale;
+            out[((long long)c * nblk + b) * K + k] = make_float2(sr * s, si * s);
         }
     }
 }
@@ -119,45 +120,52 @@ def _layout(F, K, stacked):
     return 2 * K * n, 2 * n, 1, 2, n
 
 
-def block_corr(F, blocks, n, *, npol, stacked=False):
-    """Sums over groups of ``n`` samples of F_p conj(F_q) for each block (p, q) of ``blocks``.
+def _scale_ptr(xp, scale):
+    """A float32 device array holding ``scale`` (a device scalar, a number, or None = 1)."""
+    if scale is None:
+        return xp.ones(1, xp.float32)
+    return xp.asarray(scale, dtype=xp.float32).reshape(1)
+
+
+def block_corr(F, blocks, n, *, npol, stacked=False, scale=None):
+    """Sums over groups of ``n`` samples of F_p conj(F_q) for each block (p, q) of ``blocks``, times ``scale``.
 
     F : complex (c, K, npol * T) or float32 stacked (c, 2, K, npol * T); column j = p * T + t
         (p indexing the polarisations present in F).
-    Returns complex (c, nblk, K, T // n); trailing samples that do not fill a group are ignored.
+    Returns complex (T // n, c, nblk, K) (complex64; complex128 for complex128 F); trailing samples
+    that do not fill a group are ignored.
     """
     xp = get_xp(F)
     c = F.shape[0]
     K = F.shape[-2]
     T = F.shape[-1] // npol
     g = T // n
-    if xp is np:
+    if xp is np or F.dtype == xp.complex128:   # NumPy, or fp64 on the GPU: plain array code
         Fc = F[:, 0] + 1j * F[:, 1] if stacked else F
         Fc = Fc.reshape(c, K, npol, T)[..., :g * n].reshape(c, K, npol, g, n)
-        out = [(Fc[:, :, p] * np.conj(Fc[:, :, q])).sum(-1) if p != q else
-               (Fc[:, :, p].real ** 2 + Fc[:, :, p].imag ** 2).sum(-1) for p, q in blocks]
-        return np.stack(out, axis=1).astype(np.complex128 if F.dtype in (np.complex128, np.float64) else np.complex64)
+        out = xp.stack([(Fc[:, :, p] * xp.conj(Fc[:, :, q])).sum(-1) if p != q else
+                        (Fc[:, :, p].real ** 2 + Fc[:, :, p].imag ** 2).sum(-1) for p, q in blocks], axis=1)
+        out = xp.moveaxis(out, -1, 0)
+        out = out.astype(xp.complex128 if F.dtype in (xp.complex128, xp.float64) else xp.complex64)
+        return out if scale is None else out * scale
     F = xp.ascontiguousarray(F)
-    if F.dtype == xp.complex128:     # fp64: keep double precision, reduce with CuPy
-        Fc = F.reshape(c, K, npol, T)[..., :g * n].reshape(c, K, npol, g, n)
-        return xp.stack([(Fc[:, :, p] * xp.conj(Fc[:, :, q])).sum(-1) for p, q in blocks], axis=1)
     fl = F.view(xp.float32) if F.dtype == xp.complex64 else F
     sc, sk, im_off, es, _ = _layout(F, K, stacked)
     nblk = len(blocks)
-    out_re = xp.empty((c, nblk, K, g), xp.float32)
-    out_im = xp.empty_like(out_re)
+    out = xp.empty((g, c, nblk, K), xp.complex64)
     bp = xp.asarray([p for p, _ in blocks], xp.int32)
     bq = xp.asarray([q for _, q in blocks], xp.int32)
     total = c * nblk * K * g
     threads = 256
     _raw("bf_block_corr")(((total + threads - 1) // threads,), (threads,),
-                          (fl, out_re, out_im, np.int32(c), np.int32(K), np.int32(T), np.int32(n), np.int32(g),
-                           np.int32(nblk), bp, bq, np.int64(sc), np.int64(sk), np.int64(im_off), np.int32(es)))
-    return out_re + 1j * out_im
+                          (fl, out, _scale_ptr(xp, scale), np.int32(c), np.int32(K), np.int32(T), np.int32(n),
+                           np.int32(g), np.int32(nblk), bp, bq, np.int64(sc), np.int64(sk), np.int64(im_off),
+                           np.int32(es)))
+    return out
 
 
-def row_dot(M, D, nblk, *, stacked=False):
-    """I[c, b, k] = sum_a M[c, k, b * A + a] conj(D[c, k, a]).
+def row_dot(M, D, nblk, *, stacked=False, scale=None):
+    """I[c, b, k] = scale * sum_a M[c, k, b * A + a] conj(D[c, k, a]).
 
     M : complex (c, K, nblk * A) or float32 stacked (c, 2, K, nblk * A);  D : complex (c, K, A).
     Returns complex (c, nblk, K).
@@ -167,19 +175,19 @@ def row_dot(M, D, nblk, *, stacked=False):
     if xp is np or M.dtype == xp.complex128:
         Mc = M[:, 0] + 1j * M[:, 1] if stacked else M
         Mc = Mc.reshape(c, K, nblk, A)
-        return (Mc * xp.conj(D)[:, :, None, :]).sum(-1).transpose(0, 2, 1)
+        out = (Mc * xp.conj(D)[:, :, None, :]).sum(-1).transpose(0, 2, 1)
+        return out if scale is None else out * scale
     M = xp.ascontiguousarray(M)
     D = xp.ascontiguousarray(D, dtype=xp.complex64)
     fl = M.view(xp.float32) if M.dtype == xp.complex64 else M
     sc, sk, im_off, es, _ = _layout(M, K, stacked)
-    out_re = xp.empty((c, nblk, K), xp.float32)
-    out_im = xp.empty_like(out_re)
+    out = xp.empty((c, nblk, K), xp.complex64)
     threads = 256
     nwarps = c * K
     _raw("bf_row_dot")(((nwarps * 32 + threads - 1) // threads,), (threads,),
-                       (fl, D.view(xp.float32), out_re, out_im, np.int32(c), np.int32(K), np.int32(A),
+                       (fl, D.view(xp.float32), out, _scale_ptr(xp, scale), np.int32(c), np.int32(K), np.int32(A),
                         np.int32(nblk), np.int64(sc), np.int64(sk), np.int64(im_off), np.int32(es)))
-    return out_re + 1j * out_im
+    return out
 
 
 def group_power(fp, fq=None, n=None):

@@ -1,0 +1,265 @@
+"""Integer voltages into GEMM operands, in one pass each (NumPy, or a CUDA kernel through CuPy).
+
+F-engine voltages arrive as 4- or 8-bit integers, (re, im) int8 pairs shaped (T, C, A, P, 2) after
+ci4/ci8 unpacking: time outermost, the layout of a ring gulp. The GEMMs want antennas x time
+matrices per channel. The functions here do the transpose together with everything else that must
+happen on the way -- channel and antenna selection, zeroing flagged antenna-pols, the stacked
+[re; im] split and the conversion to the GEMM's operand type -- so the data are read once and
+written once (a 32 x 32 tile transpose through shared memory on the GPU):
+
+* :func:`gram_rows` -- int8 rows for the exact covariance ``int_gram`` (rows in the input's own
+  (antenna, pol, re/im) order, time padded to a multiple of 16 with zeros);
+* :func:`direct_rhs` -- the direct route's right-hand side: complex (C', A', P' T), or stacked
+  [Re; Im] (C', 2 A', P' T) in fp16 / bf16 bits / float32 for the tensor-core modes;
+* :func:`cov_rhs` -- from the integer Gram sums W to the covariance route's right-hand side
+  [R_b0 | R_b1 | ...] (weights, and a scale, applied), complex or stacked, in the same types.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ._xp import get_xp
+
+__all__ = ["gram_rows", "direct_rhs", "cov_rhs", "TPAD"]
+
+TPAD = 16   # time padding of gram_rows (cuBLAS' integer kernels want multiples of 4; 16 keeps rows aligned)
+
+_COMMON = r"""
+#include <cuda_fp16.h>
+typedef signed char i8;
+__device__ __forceinline__ void put(double v, float* p) { *p = (float)v; }
+__device__ __forceinline__ void put(double v, double* p) { *p = v; }
+__device__ __forceinline__ void put(double v, __half* p) { *p = __float2half_rn((float)v); }
+__device__ __forceinline__ void put(double v, i8* p) { *p = (i8)v; }
+__device__ __forceinline__ void put(double v, unsigned short* p) {   // bfloat16 bits, round to nearest even
+    unsigned int u = __float_as_uint((float)v);
+    *p = (unsigned short)((u + 0x7FFFu + ((u >> 16) & 1u)) >> 16);
+}
+"""
+
+# Tile transpose: input element (t, c, a, p, h) of the int8 pairs, with c = chan[c'], a = ant[a'],
+# p = pols[p']; r' = (a' * P' + p') * 2 + h enumerates one channel's selected values. A block of
+# 32 x 8 threads moves a 32 (t) x 32 (r') tile: coalesced reads along r', coalesced writes along t.
+# Output offset: c' osc + a' osa + p' osp + h osh + t ost.
+_TRANSPOSE = _COMMON + r"""
+extern "C" __global__ void NAME(
+    const i8* __restrict__ x, OUT_T* __restrict__ out,
+    const int T, const int Cin, const int Ain, const int P,
+    const int C, const int A, const int Pp, const int Tout,
+    const int* __restrict__ chan, const int* __restrict__ ant, const int* __restrict__ pols,
+    const unsigned char* __restrict__ live,
+    const long long osc, const long long osa, const long long osp, const long long osh, const long long ost)
+{
+    __shared__ float tile[32][33];
+    const int R = A * Pp * 2;
+    const int c = blockIdx.z;
+    const int r0 = blockIdx.x * 32, t0 = blockIdx.y * 32;
+    const int tx = threadIdx.x, ty = threadIdx.y;
+    const int cin = chan[c];
+    for (int j = ty; j < 32; j += 8) {
+        int t = t0 + j, r = r0 + tx;
+        float v = 0.f;
+        if (t < T && r < R) {
+            int h = r & 1, q = r >> 1, pp = q % Pp, a = q / Pp;
+            if (live[((long long)c * A + a) * Pp + pp])
+                v = (float)x[((((long long)t * Cin + cin) * Ain + ant[a]) * P + pols[pp]) * 2 + h];
+        }
+        tile[j][tx] = v;
+    }
+    __syncthreads();
+    for (int j = ty; j < 32; j += 8) {
+        int r = r0 + j, t = t0 + tx;
+        if (r < R && t < Tout) {
+            int h = r & 1, q = r >> 1, pp = q % Pp, a = q / Pp;
+            put(tile[tx][j], out + c * osc + a * osa + pp * osp + h * osh + t * ost);
+        }
+    }
+}
+"""
+
+# Covariance right-hand side from the integer Gram sums W (c, R, R), rows r = (a * P + p) * 2 + h
+# (all pols of the input): for block b = (p, q) and antennas a, a2
+#   R_pq[a, a2] = W[(a,p,0),(a2,q,0)] + W[(a,p,1),(a2,q,1)] + i (W[(a,p,1),(a2,q,0)] - W[(a,p,0),(a2,q,1)])
+# times w_p[a] conj(w_q[a2]) * scale, written to out at c osc + a osa + (b A + a2) oes (+ o_im: imag).
+_COV_RHS = _COMMON + r"""
+extern "C" __global__ void NAME(
+    const int* __restrict__ W, OUT_T* __restrict__ out, const double* __restrict__ w,
+    const int C, const int A, const int P, const int nblk,
+    const int* __restrict__ bp, const int* __restrict__ bq, const float scale, const int unit,
+    const long long osc, const long long osa, const long long oes, const long long o_im)
+{
+    long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    long long total = (long long)C * A * nblk * A;
+    if (idx >= total) return;
+    int a2 = (int)(idx % A); long long r = idx / A;
+    int b = (int)(r % nblk); r /= nblk;
+    int a = (int)(r % A); int c = (int)(r / A);
+    int p = bp[b], q = bq[b];
+    long long R = (long long)A * P * 2;
+    const int* Wc = W + (long long)c * R * R;
+    long long ra = ((long long)a * P + p) * 2, rb = ((long long)a2 * P + q) * 2;
+    // int64 sums: exact, then double (exact below 2^53)
+    double re = (double)((long long)Wc[ra * R + rb] + (long long)Wc[(ra + 1) * R + rb + 1]);
+    double im = (double)((long long)Wc[(ra + 1) * R + rb] - (long long)Wc[ra * R + rb + 1]);
+    if (!unit) {   // w_p[a] R conj(w_q[a2]); w is complex128 (c, A, P) as double pairs
+        const double* wa = w + 2 * (((long long)c * A + a) * P + p);
+        const double* wb = w + 2 * (((long long)c * A + a2) * P + q);
+        double xr = wa[0] * re - wa[1] * im, xi = wa[0] * im + wa[1] * re;       // w_a * R
+        re = xr * wb[0] + xi * wb[1];                                            // * conj(w_b)
+        im = xi * wb[0] - xr * wb[1];
+    }
+    OUT_T* o = out + c * osc + a * osa + ((long long)b * A + a2) * oes;
+    put(re * scale, o);
+    put(im * scale, o + o_im);
+}
+"""
+
+_OUT_TYPES = {"int8": "i8", "float16": "__half", "bfloat16": "unsigned short", "float32": "float",
+              "float64": "double"}
+_KERNELS = {}
+
+
+def _kernel(kind, out_type):
+    key = (kind, out_type)
+    if key not in _KERNELS:
+        import cupy as cp
+        name = f"bf_{kind}_{out_type}"
+        src = {"transpose": _TRANSPOSE, "cov_rhs": _COV_RHS}[kind]
+        src = src.replace("NAME", name).replace("OUT_T", _OUT_TYPES[out_type])
+        _KERNELS[key] = cp.RawKernel(src, name)
+    return _KERNELS[key]
+
+
+def _storage(precision, xp):
+    """(array dtype, kernel output type name) of a precision's stacked operands."""
+    return {"fp16": (xp.float16, "float16"), "bf16": (xp.uint16, "bfloat16")}.get(precision, (xp.float32, "float32"))
+
+
+def _select_np(pairs, sel, pols):
+    """NumPy: (T, C', A', P', 2) float32 of the selected channels, antennas, pols; flagged ones zeroed."""
+    x = pairs
+    if sel.ant is not None:
+        x = x[:, :, sel.ant]
+    if sel.chan is not None:
+        x = x[:, sel.chan]
+    x = x[:, :, :, list(pols)].astype(np.float32)
+    if sel.live is not None:
+        x = x * sel.live[None, :, :, list(pols), None]
+    return x
+
+
+def _transpose_gpu(pairs, sel, pols, out, out_type, T, Tout, strides):
+    import cupy as cp
+    Tin, Cin, Ain, P, _ = pairs.shape
+    C = Cin if sel.chan is None else len(sel.chan_list)
+    A = Ain if sel.ant is None else len(sel.ant_list)
+    Pp = len(pols)
+    chan = sel.device_index("chan", C)
+    ant = sel.device_index("ant", A)
+    polsd = cp.asarray(list(pols), cp.int32)
+    live = sel.device_live(pols, C, A)
+    R = A * Pp * 2
+    grid = ((R + 31) // 32, (Tout + 31) // 32, C)
+    _kernel("transpose", out_type)(grid, (32, 8), (
+        cp.ascontiguousarray(pairs), out, np.int32(T), np.int32(Cin), np.int32(Ain), np.int32(P), np.int32(C),
+        np.int32(A), np.int32(Pp), np.int32(Tout), chan, ant, polsd, live,
+        *(np.int64(s) for s in strides)))
+    return out
+
+
+def gram_rows(pairs, sel):
+    """int8 (C', A' P 2, Tp): per channel the rows (antenna, pol, re/im) over time, flagged values
+    zeroed, time zero-padded to Tp = a multiple of :data:`TPAD` (zero samples change no sum).
+    ``sel``: the operator's selection (kept channels and antennas, live mask); all pols are kept."""
+    xp = get_xp(pairs)
+    T, _, _, P, _ = pairs.shape
+    pols = tuple(range(P))
+    if xp is np:
+        x = _select_np(pairs, sel, pols)                    # (T, C', A', P, 2)
+        C, A = x.shape[1], x.shape[2]
+        return np.ascontiguousarray(x.transpose(1, 2, 3, 4, 0)).reshape(C, A * P * 2, T).astype(np.int8)
+    C = pairs.shape[1] if sel.chan is None else len(sel.chan_list)
+    A = pairs.shape[2] if sel.ant is None else len(sel.ant_list)
+    Tp = -(-T // TPAD) * TPAD
+    out = xp.empty((C, A * P * 2, Tp), xp.int8)
+    return _transpose_gpu(pairs, sel, pols, out, "int8", T, Tp,
+                          (A * P * 2 * Tp, P * 2 * Tp, 2 * Tp, Tp, 1))
+
+
+def direct_rhs(pairs, sel, pols, precision, stacked):
+    """The direct route's right-hand side from integer pairs (unit weights: values stay integers).
+
+    stacked False: complex (C', A', P' T) (complex64; complex128 for fp64), columns p' T + t.
+    stacked True: [Re; Im] (C', 2 A', P' T) in the precision's operand storage (fp16, bf16 bits,
+    float32). NumPy always returns the complex form.
+    """
+    xp = get_xp(pairs)
+    T = pairs.shape[0]
+    Pp = len(pols)
+    cdt = xp.complex128 if precision == "fp64" else xp.complex64
+    if xp is np:
+        x = _select_np(pairs, sel, pols)                    # (T, C', A', P', 2)
+        z = (x[..., 0] + 1j * x[..., 1]).astype(cdt)
+        C, A = z.shape[1], z.shape[2]
+        return np.ascontiguousarray(z.transpose(1, 2, 3, 0)).reshape(C, A, Pp * T)
+    C = pairs.shape[1] if sel.chan is None else len(sel.chan_list)
+    A = pairs.shape[2] if sel.ant is None else len(sel.ant_list)
+    if stacked:
+        dt, name = _storage(precision, xp)
+        out = xp.empty((C, 2 * A, Pp * T), dt)
+        return _transpose_gpu(pairs, sel, pols, out, name, T, T, (2 * A * Pp * T, Pp * T, T, A * Pp * T, 1))
+    out = xp.empty((C, A, Pp * T), cdt)
+    fl = out.view(xp.float64 if cdt == xp.complex128 else xp.float32)
+    _transpose_gpu(pairs, sel, pols, fl, "float64" if cdt == xp.complex128 else "float32", T, T,
+                   (2 * A * Pp * T, 2 * Pp * T, 2 * T, 1, 2))
+    return out
+
+
+def cov_rhs(W, weights, blocks, npol_in, precision, stacked, scale=1.0, unit=False):
+    """[R_b0 | R_b1 | ...] * scale from integer Gram sums, weights applied.
+
+    W : (C', R, R) int32 (GPU) or float64 (CPU) sums of :func:`gram_rows` products, R = A (npol_in) 2.
+    weights : complex (C', A, npol_in);  blocks : (p, q) pairs;  unit : weights are all 0/1 (skip them;
+    flagged antennas are already zero in W).
+    Returns complex (C', A, nblk A) (complex64, complex128 for fp64) or stacked (C', 2 A, nblk A) in
+    the precision's operand storage.
+    """
+    xp = get_xp(W)
+    C, R, _ = W.shape
+    A = R // (2 * npol_in)
+    nblk = len(blocks)
+    cdt = xp.complex128 if precision == "fp64" else xp.complex64
+    if xp is np or W.dtype != xp.int32:
+        Wr = W.reshape(C, A, npol_in, 2, A, npol_in, 2)
+        cols = []
+        for p, q in blocks:
+            re = Wr[:, :, p, 0, :, q, 0] + Wr[:, :, p, 1, :, q, 1]
+            im = Wr[:, :, p, 1, :, q, 0] - Wr[:, :, p, 0, :, q, 1]
+            r = re + 1j * im
+            if not unit:
+                r = weights[:, :, p, None] * r * xp.conj(weights[:, None, :, q])
+            cols.append(r * scale)
+        rhs = xp.concatenate(cols, axis=2).astype(cdt)
+        if stacked:
+            from .gemm import stack_rhs
+            return stack_rhs(rhs, precision)[0]
+        return rhs
+    import cupy as cp
+    w = cp.ascontiguousarray(weights, dtype=cp.complex128).view(cp.float64)
+    bp = cp.asarray([p for p, _ in blocks], cp.int32)
+    bq = cp.asarray([q for _, q in blocks], cp.int32)
+    total = C * A * nblk * A
+    if stacked:
+        dt, name = _storage(precision, xp)
+        out = xp.empty((C, 2 * A, nblk * A), dt)
+        strides = (2 * A * nblk * A, nblk * A, 1, A * nblk * A)
+        target = out
+    else:
+        out = xp.empty((C, A, nblk * A), cdt)
+        name = "float64" if cdt == xp.complex128 else "float32"
+        target = out.view(xp.float64 if cdt == xp.complex128 else xp.float32)
+        strides = (2 * A * nblk * A, 2 * nblk * A, 2, 1)
+    _kernel("cov_rhs", name)(((total + 255) // 256,), (256,), (
+        cp.ascontiguousarray(W), target, w, np.int32(C), np.int32(A), np.int32(npol_in), np.int32(nblk), bp, bq,
+        np.float64(scale), np.int32(1 if unit else 0), *(np.int64(s) for s in strides)))
+    return out
