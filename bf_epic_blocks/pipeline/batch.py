@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import logging
 import os
+import sys
 import time
 import traceback
 import uuid
@@ -155,6 +156,7 @@ def run_batch(cfg: dict, inputs, client, *, progress: bool = False) -> list[Task
                     results.append(TaskResult(f, seconds=r.get("seconds", 0.0), error=r["error"],
                                               outdir=c["output"]["dir"], detail=r.get("detail")))
                     bar.update()
+                    bar.write(f"bf-epic batch: {f}: {r['error']}", file=sys.stderr)
                     continue
                 n = r["nblocks"]
                 if n > 1:
@@ -174,7 +176,7 @@ def run_batch(cfg: dict, inputs, client, *, progress: bool = False) -> list[Task
                                           r.get("files", []), r.get("detail")))
                 bar.update()
                 if r.get("error"):
-                    bar.write(f"bf-epic batch: {f} block {k}: {r['error']}")
+                    bar.write(f"bf-epic batch: {f} block {k}: {r['error']}", file=sys.stderr)
     finally:
         bar.close()
     results.sort(key=lambda t: (order[t.file], -1 if t.block is None else t.block))
