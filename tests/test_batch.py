@@ -136,6 +136,15 @@ def test_batch_starts_its_own_local_cluster(pipeline, tmp_path, capsys):
     assert rc == 1 and "0 of 1 tasks succeeded" in out and "bad sync word" in out, out
 
 
+def test_batch_yaml_path_need_not_exist(cluster, tmp_path, capsys):
+    p = tmp_path / "nopath.yaml"
+    p.write_text(YAML % "not-here.dat")  # source.path is replaced by the inputs
+    rc = cli.main(["batch", str(p), "--inputs", str(tmp_path / "missing.dat"), str(NA), "--scheduler",
+                   cluster.scheduler_address, "--set", f"output.dir={tmp_path / 'o'}", *QUIET])
+    out = capsys.readouterr().out
+    assert rc == 1 and "2 of 3 tasks succeeded" in out and "FileNotFoundError" in out, out
+
+
 def test_batch_argument_errors(pipeline, tmp_path, capsys):
     twin = tmp_path / "twin"
     twin.mkdir()

@@ -71,7 +71,16 @@ def main(argv=None):
     configure_offline()
     from .config import ConfigError, load_config
     try:
-        cfg = load_config(args.file, args.overrides)
+        overrides = list(args.overrides)
+        if args.command == "batch":  # the YAML's own source.path need not exist: validate against an input
+            first = next((f for f in args.inputs if Path(f).is_file()), args.inputs[0])
+            overrides.insert(0, f"source.path={json.dumps(str(Path(first).expanduser().resolve()))}")
+        try:
+            cfg = load_config(args.file, overrides)
+        except ConfigError:
+            if len(overrides) == len(args.overrides):
+                raise
+            cfg = load_config(args.file, args.overrides)  # the YAML's own problem, or not a TBF source (below)
     except ConfigError as e:
         print(f"bf-epic: invalid pipeline: {e}", file=sys.stderr)
         return 2
