@@ -64,7 +64,7 @@ def test_realistic_file_validates_and_resolves_paths(yaml_dir, monkeypatch):
     cfg = load_config(yaml_dir / "pipe.yaml")
     assert cfg["name"] == "lwasv_tbf_allsky"
     assert cfg["source"] == {"kind": "tbf", "path": str((yaml_dir / "data" / "capture.tbf").resolve()),
-                             "gulp_nframe": 512}
+                             "gulp_nframe": 512, "channel_block": None}
     assert cfg["calibration"]["gains_table"] == str((yaml_dir / "cal" / "gains.npz").resolve())
     assert cfg["station"]["flags"] == [{"stand": 256, "pol": "both"}, {"stand": 10, "pol": "X"},
                                        {"stand": 42, "pol": "both"}]

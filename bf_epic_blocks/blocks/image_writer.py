@@ -21,8 +21,11 @@ from ._compat import bfp, span_array, to_numpy
 log = logging.getLogger(__name__)
 
 
-def _even_runs(freq_hz):
-    """Index runs [(start, stop)] over which the channel spacing is constant (a FITS FREQ axis each)."""
+def channel_runs(freq_hz):
+    """Index runs [(start, stop)] over which the channel spacing is constant (a FITS FREQ axis each).
+
+    These are the channel blocks the writer puts in separate files (``_r<index>`` when more than one).
+    """
     f = np.asarray(freq_hz, dtype=np.float64)
     runs, start = [], 0
     while start < len(f):
@@ -36,6 +39,9 @@ def _even_runs(freq_hz):
     return runs
 
 
+_even_runs = channel_runs
+
+
 class ImageWriterBlock(bfp.SinkBlock):
     """Write each output frame (one integration) of an imager.
 
@@ -44,15 +50,18 @@ class ImageWriterBlock(bfp.SinkBlock):
     label_sources : catalogue sources (plus the Sun) drawn on the PNGs when above the horizon.
     pixels_fn : for tracked patches, the imager's ``pixels(time_tag)`` function, so each pixel
                 table carries the directions of its own integration (the header has the first).
+    run_index : when the input holds only channel block ``run_index`` of a larger channel set (see
+                :func:`channel_runs`), name its files ``_r<run_index>`` as the whole set's would be.
     ``written`` lists the files written.
     """
 
     def __init__(self, iring, outdir, prefix="image", fits=True, png=True, table=False, location=None,
-                 label_sources=True, pixels_fn=None, *args, **kwargs):
+                 label_sources=True, pixels_fn=None, *args, run_index=None, **kwargs):
         super().__init__(iring, *args, **kwargs)
         self.outdir, self.prefix = str(outdir), prefix
         self.do_fits, self.do_png, self.do_table = fits, png, table
         self.location, self.label_sources, self.pixels_fn = location, label_sources, pixels_fn
+        self.run_index = run_index
         self.written = []
         self.frames = 0
 
@@ -119,8 +128,15 @@ class ImageWriterBlock(bfp.SinkBlock):
             if self.grid is not None:
                 runs = _even_runs(self.freq)
                 width = float(self.freq[1] - self.freq[0]) if len(self.freq) > 1 else None
+                if self.run_index is not None:  # one block of a larger set: name and width as in the set
+                    if len(runs) != 1:
+                        raise ValueError(f"ImageWriterBlock: run_index={self.run_index} given, but the channels "
+                                         f"are {len(runs)} runs of even spacing, not one")
+                    if width is None:
+                        width = self.hdr.get("chan_bw_hz")
                 for r, (a, b) in enumerate(runs):
-                    rstem = stem if len(runs) == 1 else f"{stem}_r{r}"
+                    rstem = (stem if len(runs) == 1 and self.run_index is None
+                             else f"{stem}_r{r if self.run_index is None else self.run_index}")
                     if self.do_fits:
                         self.written += fits_out.write_fits_image(
                             f"{rstem}.fits", frame[a:b], self.grid, self.freq[a:b], self.products, t, self.loc,

@@ -35,14 +35,18 @@ class TBFSourceBlock(bfp.SourceBlock):
 
     station : a :class:`~bf_epic_blocks.station.StationTable`, a station name, or None
               (the station the file's frame id names: ADP -> lwasv, NDP -> lwana).
+    channels : None (all) or an index range ``(start, stop)`` into the file's channels (frequency
+               order): only those channels go on the ring (a channel block, as ``bf-epic batch`` uses).
     Missing frames are zero-filled and counted (``tbf_stats``); a truncated last frame ends the
     file cleanly with a warning; a bad sync word raises TBFError with its byte offset.
     """
 
-    def __init__(self, paths, gulp_nframe, station=None, progress=None, space="system", *args, **kwargs):
+    def __init__(self, paths, gulp_nframe, station=None, progress=None, space="system", *args, channels=None,
+                 **kwargs):
         paths = [paths] if isinstance(paths, (str, bytes)) or hasattr(paths, "__fspath__") else list(paths)
         super().__init__([str(p) for p in paths], gulp_nframe, space, *args, **kwargs)
         self.station, self.progress = station, progress
+        self.channels = None if channels is None else slice(int(channels[0]), int(channels[1]))
         self.tbf_stats = {"frames_read": 0, "frames_missing": 0, "time_gaps": 0, "truncated_bytes": 0, "samples": 0}
 
     def create_reader(self, sourcename):
@@ -69,10 +73,15 @@ class TBFSourceBlock(bfp.SourceBlock):
     def on_sequence(self, reader, sourcename):
         info = reader.info
         st = self._station(info)
-        freq = np.asarray(info.freq_hz, dtype=np.float64)
+        sel = reader.sel = self.channels if self.channels is not None else slice(None)
+        freq = np.asarray(info.freq_hz, dtype=np.float64)[sel]
+        if freq.size == 0 or (self.channels is not None and self.channels.stop > info.nchan):
+            raise ValueError(f"channels {self.channels.start}:{self.channels.stop} asked for, but TBF file "
+                             f"{sourcename} has {info.nchan} channels (0:{info.nchan})")
         hdr = efield_header(f"tbf:{sourcename}", int(info.time_tags[0]), freq, 1.0 / info.chan_bw_hz,
                             st.to_header(freq), dtype="ci4", npol=2, chan_bw_hz=float(info.chan_bw_hz),
-                            tbf={"path": sourcename, "engine": info.engine, "channels": [int(c) for c in info.channels]})
+                            tbf={"path": sourcename, "engine": info.engine,
+                                 "channels": [int(c) for c in info.channels[sel]]})
         reader.expected_tag = int(info.time_tags[0])
         reader.sample_ticks = int(round(FS_HZ / info.chan_bw_hz))
         log.info("TBF %s: %s, %d stands, %d channels (%.3f-%.3f MHz), %d time samples", sourcename, info.engine,
@@ -91,7 +100,7 @@ class TBFSourceBlock(bfp.SourceBlock):
         if self.tbf_stats["frames_missing"]:
             log.debug("TBF: %d frames missing so far (zero-filled)", self.tbf_stats["frames_missing"])
         dst = span_array(ospans[0])
-        assign_storage(dst[:n], _as_storage(chunk.data, dst.dtype))
+        assign_storage(dst[:n], _as_storage(chunk.data[:, reader.sel], dst.dtype))
         if self.progress:
             self.progress(n)
         return [n]

@@ -3,10 +3,13 @@
     bf-epic validate FILE [--set key=value ...]
     bf-epic plan FILE [--set key=value ...]
     bf-epic run FILE [--set key=value ...] [--no-progress] [-v|-q]
+    bf-epic batch FILE --inputs TBF [TBF ...] [--scheduler tcp://HOST:PORT] [--workers N] [--set ...]
 
 Errors in the YAML (unknown keys, wrong types, missing files, impossible parameters) are reported
 with the key's dotted path and exit status 2; errors while running exit with status 1 and one line
-naming the block and the problem (``-v`` shows the traceback).
+naming the block and the problem (``-v`` shows the traceback). ``batch`` runs ``run`` on every input
+file x channel block on a Dask cluster (:mod:`.batch`), prints a summary table and exits with
+status 1 when any task failed.
 """
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ import argparse
 import json
 import logging
 import sys
+from pathlib import Path
 
 from .. import __version__
 
@@ -28,16 +32,24 @@ def build_parser():
     for name, help_ in (("validate", "check a pipeline YAML and print the resolved configuration"),
                         ("plan", "print what the pipeline would do: pixels, antennas, operation counts, "
                                  "method, predicted real-time factor"),
-                        ("run", "run the pipeline and write FITS/PNG outputs")):
+                        ("run", "run the pipeline and write FITS/PNG outputs"),
+                        ("batch", "run the pipeline on many TBF files (one task per file x channel block) "
+                                  "on a Dask distributed cluster; outputs in output.dir/<file stem>/")):
         s = sub.add_parser(name, help=help_, description=help_)
         s.add_argument("file", help="pipeline YAML (see pipelines/)")
         s.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                        help="override a key, e.g. --set imager.grid.size=128 (repeatable)")
         s.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
         s.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
-        if name == "run":
+        if name in ("run", "batch"):
             s.add_argument("--no-progress", action="store_true", help="no progress bar")
             s.add_argument("--summary-json", metavar="PATH", help="also write the run summary as JSON")
+        if name == "batch":
+            s.add_argument("--inputs", nargs="+", required=True, metavar="TBF", help="TBF files to image")
+            s.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                           help="a running dask.distributed scheduler (default: a LocalCluster on 127.0.0.1)")
+            s.add_argument("--workers", type=int, metavar="N",
+                           help="worker processes of the LocalCluster (default: one per CPU core)")
         if name in ("validate", "plan"):
             s.add_argument("--json", action="store_true", help="print JSON instead of text")
     return p
@@ -59,7 +71,16 @@ def main(argv=None):
     configure_offline()
     from .config import ConfigError, load_config
     try:
-        cfg = load_config(args.file, args.overrides)
+        overrides = list(args.overrides)
+        if args.command == "batch":  # the YAML's own source.path need not exist: validate against an input
+            first = next((f for f in args.inputs if Path(f).is_file()), args.inputs[0])
+            overrides.insert(0, f"source.path={json.dumps(str(Path(first).expanduser().resolve()))}")
+        try:
+            cfg = load_config(args.file, overrides)
+        except ConfigError:
+            if len(overrides) == len(args.overrides):
+                raise
+            cfg = load_config(args.file, args.overrides)  # the YAML's own problem, or not a TBF source (below)
     except ConfigError as e:
         print(f"bf-epic: invalid pipeline: {e}", file=sys.stderr)
         return 2
@@ -75,6 +96,8 @@ def main(argv=None):
             d, text = plan(cfg)
             print(json.dumps(d, indent=2, default=float) if args.json else text)
             return 0
+        if args.command == "batch":
+            return _batch(args, cfg)
         from .runner import run
         summary = run(cfg, show_progress=False if args.no_progress else None)
         if args.summary_json:
@@ -92,6 +115,40 @@ def main(argv=None):
             log.exception("failed")
         print(f"bf-epic: {args.command} failed: {e}", file=sys.stderr)
         return 1
+
+
+def _batch(args, cfg):
+    """``bf-epic batch``: 0 when every task succeeded, 1 when one failed, 2 for bad arguments."""
+    try:
+        from .batch import dask_client, format_table, run_batch, summary_dict, task_configs
+        import distributed  # noqa: F401  (the optional extra)
+    except ImportError as e:
+        print(f"bf-epic: batch needs dask.distributed ({e}): pip install 'bf_epic_blocks[batch]'", file=sys.stderr)
+        return 2
+    if args.workers is not None and args.workers < 1:
+        print(f"bf-epic: --workers must be >= 1, got {args.workers}", file=sys.stderr)
+        return 2
+    try:
+        task_configs(cfg, args.inputs)  # checks the source kind and the stems before any cluster starts
+    except ValueError as e:
+        print(f"bf-epic: batch: {e}", file=sys.stderr)
+        return 2
+    show = sys.stderr.isatty() and not args.no_progress
+    if not args.verbose:  # dask logs every connection at INFO on its own logger level
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+    with dask_client(args.scheduler, args.workers) as client:
+        log.info("batch of %d files on %s", len(args.inputs), client.scheduler.address)
+        results = run_batch(cfg, args.inputs, client, progress=show)
+    if args.verbose:
+        for t in results:
+            if t.detail:
+                log.error("%s block %s:\n%s", t.file, t.block, t.detail)
+    if args.summary_json:
+        with open(args.summary_json, "w") as fh:
+            json.dump(summary_dict(results), fh, indent=2, default=str)
+    print(format_table(results))
+    print(f"outputs in {Path(cfg['output']['dir']).expanduser().resolve()}/<file stem>/")
+    return 0 if all(t.ok for t in results) else 1
 
 
 def _yaml(cfg):

@@ -13,7 +13,8 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
 
     name: str                        (default: the YAML file's stem, or 'pipeline' for inline text)
     station:                         exactly one of name / ssmif (default name: lwasv)
-      name: lwasv | lwana | lwa1
+      name: lwasv | lwana | lwa1 | auto (auto: the station the TBF file's frame id names, ADP -> lwasv,
+                                     NDP -> lwana; TBF sources only; lets one YAML serve both in a batch)
       ssmif: path to an SSMIF file   (must exist)
       flags: list of {stand: int >= 1, pol: X | Y | both (default both)}, or bare stand numbers
                                      (default [])
@@ -36,6 +37,9 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       quantize: bool                 (default true)
       # kind: tbf
       path: path to a TBF file       (required, must exist)
+      channel_block: int >= 0        (default null = all channels; image only this block of the file's
+                                     channels: the runs of evenly spaced channels that bf-epic run writes
+                                     to separate FITS files, ``_r<index>``; ``bf-epic batch`` sets it)
       # either kind
       gulp_nframe: int >= 1          (default 1024; frames (time samples) per ring gulp)
     calibration:
@@ -293,6 +297,7 @@ SOURCE_SIMULATED = {
 }
 SOURCE_TBF = {
     "path": Key(File("TBF file"), REQUIRED),
+    "channel_block": Key(Int(0), None),
 }
 
 
@@ -324,7 +329,7 @@ class SourceSection(Section):
 SCHEMA = Section({
     "name": Key(Str(r"[^/\\\s]+", "a name without spaces or slashes"), None),
     "station": Key(Section({
-        "name": Key(Choice(*STATIONS), None),
+        "name": Key(Choice(*STATIONS, "auto"), None),
         "ssmif": Key(File("SSMIF file"), None),
         "flags": Key(FlagList(), []),
     }, post=_station_post, what="a station mapping"), {}),
@@ -501,6 +506,10 @@ def _fill_and_cross_check(cfg: dict, default_name: str, ctx: Context) -> None:
             out["prefix"] = cfg["name"]
 
     src, im = cfg["source"], cfg["imager"]
+    st = cfg["station"]
+    if is_valid(st) and is_valid(src) and st.get("name") == "auto" and src["kind"] != "tbf":
+        ctx.error("station.name", "'auto' takes the station from a TBF file's frame id; with a "
+                                  f"{src['kind']} source name the station (lwasv, lwana, lwa1)")
     if is_valid(src) and is_valid(im) and src["kind"] == "simulated" and is_valid(src["duration_s"]) \
             and is_valid(src["channels"]) and is_valid(src["channels"]["width_hz"]) \
             and is_valid(im["accumulate_frames"]):

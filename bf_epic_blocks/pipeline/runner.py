@@ -51,10 +51,12 @@ def _scan(path, report=True):
 
 
 def load_station_for(cfg):
-    """The StationTable the configuration names, with the YAML flags added."""
+    """The StationTable the configuration names, with the YAML flags added (``auto``: the TBF file's)."""
     from ..station import load_station
     st_cfg = cfg["station"]
     name = st_cfg.get("ssmif") or st_cfg.get("name")
+    if name == "auto":
+        name = _scan(cfg["source"]["path"], report=False).station_hint
     return load_station(name, extra_flags=st_cfg.get("flags") or None)
 
 
@@ -106,6 +108,20 @@ def tracking_pixels(source, size, fov_deg, update_s, location):
     return pixels
 
 
+def channel_block_range(cfg, info):
+    """(start, stop, run_index, nruns) of ``source.channel_block`` in a TBF file's channels, or None
+    for all channels. Raises ValueError for a block the file does not have."""
+    from ..blocks.image_writer import channel_runs
+    k = cfg["source"].get("channel_block")
+    if k is None:
+        return None
+    runs = channel_runs(info.freq_hz)
+    if k >= len(runs):
+        raise ValueError(f"source.channel_block: {k} asked for, but {cfg['source']['path']} has {len(runs)} "
+                         f"channel block(s) (runs of evenly spaced channels: {runs})")
+    return runs[k][0], runs[k][1], k, len(runs)
+
+
 def _pixels(cfg, station):
     im = cfg["imager"]
     if im.get("track"):
@@ -146,11 +162,14 @@ def build_graph(cfg, progress=None):
     src_cfg, im = cfg["source"], cfg["imager"]
     gulp = int(src_cfg["gulp_nframe"])
     outdir = cfg["output"]["dir"]
+    block = None  # a channel block of a TBF file (source.channel_block), or all channels
     with bfp.Pipeline() as p:
         if src_cfg["kind"] == "tbf":
             info = _scan(src_cfg["path"], report=False)
             nframe_total = int(info.ntime)
-            source = TBFSourceBlock(src_cfg["path"], gulp, station=station, progress=progress, space=space)
+            block = channel_block_range(cfg, info)
+            source = TBFSourceBlock(src_cfg["path"], gulp, station=station, progress=progress, space=space,
+                                    channels=block[:2] if block else None)
         else:
             freq = channel_freqs(cfg)
             source = SimSkySourceBlock(station, freq, src_cfg["start"], src_cfg["duration_s"], src_cfg["sources"],
@@ -175,7 +194,8 @@ def build_graph(cfg, progress=None):
         out = cfg["output"]
         writer = ImageWriterBlock(imager, outdir, prefix=out["prefix"], fits=out["fits"], png=out["png"],
                                   table=out["table"], location=station.location,
-                                  pixels_fn=pixels if callable(pixels) else None)
+                                  pixels_fn=pixels if callable(pixels) else None,
+                                  run_index=block[2] if block and block[3] > 1 else None)
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir)
 
 
@@ -229,6 +249,9 @@ def plan(cfg):
     if src["kind"] == "tbf":
         info = _scan(src["path"])
         freq, dt = np.asarray(info.freq_hz), 1.0 / info.chan_bw_hz
+        block = channel_block_range(cfg, info)
+        if block:
+            freq = freq[block[0]:block[1]]
         ntotal = int(info.ntime)
     else:
         freq = channel_freqs(cfg)
