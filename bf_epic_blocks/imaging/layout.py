@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._xp import get_xp
+from .reduce import device_ints
 
 __all__ = ["gram_rows", "direct_rhs", "cov_rhs", "TPAD"]
 
@@ -55,23 +56,32 @@ extern "C" __global__ void NAME(
     const int c = blockIdx.z;
     const int r0 = blockIdx.x * 32, t0 = blockIdx.y * 32;
     const int tx = threadIdx.x, ty = threadIdx.y;
-    const int cin = chan[c];
-    for (int j = ty; j < 32; j += 8) {
-        int t = t0 + j, r = r0 + tx;
-        float v = 0.f;
-        if (t < T && r < R) {
+    const long long tstride = (long long)Cin * Ain * P * 2;      // bytes between samples
+    // load: this thread's column r = r0 + tx is fixed; decode it (and its gathers) once
+    {
+        const int r = r0 + tx;
+        bool ok = r < R;
+        long long base = 0;
+        if (ok) {
             int h = r & 1, q = r >> 1, pp = q % Pp, a = q / Pp;
-            if (live[((long long)c * A + a) * Pp + pp])
-                v = (float)x[((((long long)t * Cin + cin) * Ain + ant[a]) * P + pols[pp]) * 2 + h];
+            ok = live[((long long)c * A + a) * Pp + pp] != 0;
+            base = (((long long)chan[c] * Ain + ant[a]) * P + pols[pp]) * 2 + h;
         }
-        tile[j][tx] = v;
+        for (int j = ty; j < 32; j += 8) {
+            int t = t0 + j;
+            tile[j][tx] = (ok && t < T) ? (float)x[(long long)t * tstride + base] : 0.f;
+        }
     }
     __syncthreads();
+    // store: this thread's time t = t0 + tx is fixed; rows r0 + j
+    const int t = t0 + tx;
+    if (t >= Tout) return;
+    OUT_T* ot = out + c * osc + t * ost;
     for (int j = ty; j < 32; j += 8) {
-        int r = r0 + j, t = t0 + tx;
-        if (r < R && t < Tout) {
+        int r = r0 + j;
+        if (r < R) {
             int h = r & 1, q = r >> 1, pp = q % Pp, a = q / Pp;
-            put(tile[tx][j], out + c * osc + a * osa + pp * osp + h * osh + t * ost);
+            put(tile[tx][j], ot + a * osa + pp * osp + h * osh);
         }
     }
 }
@@ -85,7 +95,7 @@ _COV_RHS = _COMMON + r"""
 extern "C" __global__ void NAME(
     const int* __restrict__ W, OUT_T* __restrict__ out, const double* __restrict__ w,
     const int C, const int A, const int P, const int nblk,
-    const int* __restrict__ bp, const int* __restrict__ bq, const float scale, const int unit,
+    const int* __restrict__ bp, const int* __restrict__ bq, const double scale, const int unit,
     const long long osc, const long long osa, const long long oes, const long long o_im)
 {
     long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
@@ -156,7 +166,7 @@ def _transpose_gpu(pairs, sel, pols, out, out_type, T, Tout, strides):
     Pp = len(pols)
     chan = sel.device_index("chan", C)
     ant = sel.device_index("ant", A)
-    polsd = cp.asarray(list(pols), cp.int32)
+    polsd = device_ints(cp, pols)
     live = sel.device_live(pols, C, A)
     R = A * Pp * 2
     grid = ((R + 31) // 32, (Tout + 31) // 32, C)
@@ -246,8 +256,8 @@ def cov_rhs(W, weights, blocks, npol_in, precision, stacked, scale=1.0, unit=Fal
         return rhs
     import cupy as cp
     w = cp.ascontiguousarray(weights, dtype=cp.complex128).view(cp.float64)
-    bp = cp.asarray([p for p, _ in blocks], cp.int32)
-    bq = cp.asarray([q for _, q in blocks], cp.int32)
+    bp = device_ints(cp, [p for p, _ in blocks])
+    bq = device_ints(cp, [q for _, q in blocks])
     total = C * A * nblk * A
     if stacked:
         dt, name = _storage(precision, xp)

@@ -27,7 +27,7 @@ __all__ = ["block_corr", "row_dot", "group_power"]
 # so a warp reads one contiguous stretch of the row.
 _BLOCK_CORR_SRC = r"""
 extern "C" __global__ void bf_block_corr(
-    const float* __restrict__ F, float2* __restrict__ out, const float* __restrict__ scale,
+    const float* __restrict__ F, float2* __restrict__ out, const float* __restrict__ scale, const float sval,
     const int C, const int K, const int T, const int n, const int G, const int nblk,
     const int* __restrict__ bp, const int* __restrict__ bq,
     const long long sc, const long long sk, const long long im_off, const int es)
@@ -46,7 +46,40 @@ extern "C" __global__ void bf_block_corr(
     const float* fp = row + ((long long)p * T + (long long)g * n) * es;
     const float* fq = row + ((long long)q * T + (long long)g * n) * es;
     float sr = 0.f, si = 0.f;
-    if (p == q) {
+    if (es == 1 && (n & 3) == 0 && (T & 3) == 0 && (im_off & 3) == 0 && (sk & 3) == 0 && (sc & 3) == 0) {
+        // stacked layout, aligned: 16-byte loads (the GEMM output is 256-byte aligned)
+        const float4* pr = reinterpret_cast<const float4*>(fp);
+        const float4* pi = reinterpret_cast<const float4*>(fp + im_off);
+        const float4* qr = reinterpret_cast<const float4*>(fq);
+        const float4* qi = reinterpret_cast<const float4*>(fq + im_off);
+        for (int t = 0; t < (n >> 2); ++t) {
+            float4 a = pr[t], ai = pi[t];
+            if (p == q) {
+                sr += a.x * a.x + a.y * a.y + a.z * a.z + a.w * a.w
+                    + ai.x * ai.x + ai.y * ai.y + ai.z * ai.z + ai.w * ai.w;
+            } else {
+                float4 b2 = qr[t], bi = qi[t];
+                sr += a.x * b2.x + a.y * b2.y + a.z * b2.z + a.w * b2.w
+                    + ai.x * bi.x + ai.y * bi.y + ai.z * bi.z + ai.w * bi.w;
+                si += ai.x * b2.x + ai.y * b2.y + ai.z * b2.z + ai.w * b2.w
+                    - a.x * bi.x - a.y * bi.y - a.z * bi.z - a.w * bi.w;
+            }
+        }
+    } else if (es == 2 && (n & 1) == 0 && (T & 1) == 0 && (sk & 3) == 0 && (sc & 3) == 0) {
+        // complex layout, aligned: 16-byte loads of two complex values
+        const float4* pv = reinterpret_cast<const float4*>(fp);
+        const float4* qv = reinterpret_cast<const float4*>(fq);
+        for (int t = 0; t < (n >> 1); ++t) {
+            float4 a = pv[t];
+            if (p == q) {
+                sr += a.x * a.x + a.y * a.y + a.z * a.z + a.w * a.w;
+            } else {
+                float4 b2 = qv[t];
+                sr += a.x * b2.x + a.y * b2.y + a.z * b2.z + a.w * b2.w;
+                si += a.y * b2.x - a.x * b2.y + a.w * b2.z - a.z * b2.w;
+            }
+        }
+    } else if (p == q) {
         for (int t = 0; t < n; ++t) {
             float a = fp[(long long)t * es], ai = fp[(long long)t * es + im_off];
             sr += a * a + ai * ai;
@@ -59,7 +92,7 @@ extern "C" __global__ void bf_block_corr(
             si += ai * b2 - a * bi;
         }
     }
-    float s = *scale;
+    float s = sval * (scale ? *scale : 1.f);
     out[(((long long)g * C + c) * nblk + b) * K + k] = make_float2(sr * s, si * s);
 }
 """
@@ -70,7 +103,7 @@ extern "C" __global__ void bf_block_corr(
 _ROW_DOT_SRC = r"""
 extern "C" __global__ void bf_row_dot(
     const float* __restrict__ M, const float* __restrict__ D, float2* __restrict__ out,
-    const float* __restrict__ scale, const int C, const int K, const int A, const int nblk,
+    const float* __restrict__ scale, const float sval, const int C, const int K, const int A, const int nblk,
     const long long msc, const long long msk, const long long m_im, const int mes)
 {
     // output: complex64 (C, nblk, K), times *scale
@@ -94,7 +127,7 @@ extern "C" __global__ void bf_row_dot(
             si += __shfl_down_sync(0xffffffff, si, o);
         }
         if (lane == 0) {
-            float s = *scale;
+            float s = sval * (scale ? *scale : 1.f);
             out[((long long)c * nblk + b) * K + k] = make_float2(sr * s, si * s);
         }
     }
@@ -120,11 +153,23 @@ def _layout(F, K, stacked):
     return 2 * K * n, 2 * n, 1, 2, n
 
 
-def _scale_ptr(xp, scale):
-    """A float32 device array holding ``scale`` (a device scalar, a number, or None = 1)."""
-    if scale is None:
-        return xp.ones(1, xp.float32)
-    return xp.asarray(scale, dtype=xp.float32).reshape(1)
+def _scale_args(xp, scale):
+    """(pointer, value) kernel arguments for ``scale``: a device scalar (read on the device: no host
+    sync), a number, or None = 1. Small host->device copies would stall the host on every call."""
+    if scale is None or isinstance(scale, (int, float, np.floating)):
+        return np.uint64(0), np.float32(1.0 if scale is None else scale)
+    return xp.asarray(scale, dtype=xp.float32).reshape(1), np.float32(1.0)
+
+
+_INDEX_CACHE = {}
+
+
+def device_ints(xp, values):
+    """A cached int32 device array of ``values`` (a tuple): made once, not copied on every call."""
+    key = (xp.__name__, tuple(values))
+    if key not in _INDEX_CACHE:
+        _INDEX_CACHE[key] = xp.asarray(list(values), dtype=xp.int32)
+    return _INDEX_CACHE[key]
 
 
 def block_corr(F, blocks, n, *, npol, stacked=False, scale=None):
@@ -153,12 +198,12 @@ def block_corr(F, blocks, n, *, npol, stacked=False, scale=None):
     sc, sk, im_off, es, _ = _layout(F, K, stacked)
     nblk = len(blocks)
     out = xp.empty((g, c, nblk, K), xp.complex64)
-    bp = xp.asarray([p for p, _ in blocks], xp.int32)
-    bq = xp.asarray([q for _, q in blocks], xp.int32)
+    bp = device_ints(xp, [p for p, _ in blocks])
+    bq = device_ints(xp, [q for _, q in blocks])
     total = c * nblk * K * g
     threads = 256
     _raw("bf_block_corr")(((total + threads - 1) // threads,), (threads,),
-                          (fl, out, _scale_ptr(xp, scale), np.int32(c), np.int32(K), np.int32(T), np.int32(n),
+                          (fl, out, *_scale_args(xp, scale), np.int32(c), np.int32(K), np.int32(T), np.int32(n),
                            np.int32(g), np.int32(nblk), bp, bq, np.int64(sc), np.int64(sk), np.int64(im_off),
                            np.int32(es)))
     return out
@@ -185,7 +230,7 @@ def row_dot(M, D, nblk, *, stacked=False, scale=None):
     threads = 256
     nwarps = c * K
     _raw("bf_row_dot")(((nwarps * 32 + threads - 1) // threads,), (threads,),
-                       (fl, D.view(xp.float32), out, _scale_ptr(xp, scale), np.int32(c), np.int32(K), np.int32(A),
+                       (fl, D.view(xp.float32), out, *_scale_args(xp, scale), np.int32(c), np.int32(K), np.int32(A),
                         np.int32(nblk), np.int64(sc), np.int64(sk), np.int64(im_off), np.int32(es)))
     return out
 
