@@ -15,7 +15,7 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       flags: list of {stand: int >= 1, pol: X | Y | both (default both)}, or bare stand numbers
                                      (default [])
     source:
-      kind: simulated | tbf          (required)
+      kind: simulated | tbf | udp    (required)
       # kind: simulated
       start: ISO UTC time string     (default '2024-01-01T06:00:00'; checked with astropy Time)
       duration_s: float > 0          (default 2.0)
@@ -33,6 +33,15 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       quantize: bool                 (default true)
       # kind: tbf
       path: path to a TBF file       (required, must exist)
+      # kind: udp (live packets; the station is station.name / ssmif and must match the packets)
+      address: IP address to listen on (default 127.0.0.1)
+      port: int >= 0                 (required; 0 = an ephemeral port)
+      format: tbf | tbx              (default tbf)
+      buffer_s: float > 0            (default 0.05; reordering window, seconds of data)
+      idle_timeout_s: float > 0      (default 2.0; no packet for this long ends the sequence)
+      start_timeout_s: float > 0     (default null = wait for the first packet forever)
+      rcvbuf_mb: float > 0           (default 64; socket receive buffer asked for, MiB)
+      sequences: int >= 0            (default 1; streams to image before stopping, 0 = until stopped)
       # either kind
       gulp_nframe: int >= 1          (default 1024; frames (time samples) per ring gulp)
     calibration:
@@ -516,7 +525,7 @@ IMAGER_TRACK = Section({
     "update_s": Key(Float(0.0, lo_open=True), 10.0),
 }, what="a track mapping {source, size, fov_deg, update_s}")
 
-SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf"), REQUIRED),
+SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf", "udp"), REQUIRED),
                  "gulp_nframe": Key(Int(1), 1024)}
 SOURCE_SIMULATED = {
     "start": Key(TimeStr(), DEFAULT_START),
@@ -534,13 +543,23 @@ SOURCE_SIMULATED = {
 SOURCE_TBF = {
     "path": Key(File("TBF file"), REQUIRED),
 }
+SOURCE_UDP = {  # live capture (bf_epic_blocks.io.udp); station from station.name / ssmif
+    "address": Key(Str(r"\S+", "an IP address to listen on"), "127.0.0.1"),
+    "port": Key(Int(0), REQUIRED),
+    "format": Key(Choice("tbf", "tbx"), "tbf"),
+    "buffer_s": Key(Float(0.0, lo_open=True), 0.05),
+    "idle_timeout_s": Key(Float(0.0, lo_open=True), 2.0),
+    "start_timeout_s": Key(Float(0.0, lo_open=True), None),
+    "rcvbuf_mb": Key(Float(0.0, lo_open=True), 64.0),
+    "sequences": Key(Int(0), 1),
+}
 
 
 class SourceSection(Section):
     """source: the keys allowed depend on source.kind."""
 
     def __init__(self):
-        super().__init__({**SOURCE_COMMON, **SOURCE_SIMULATED, **SOURCE_TBF}, what="a source mapping")
+        super().__init__({**SOURCE_COMMON, **SOURCE_SIMULATED, **SOURCE_TBF, **SOURCE_UDP}, what="a source mapping")
 
     def check(self, v, path, ctx, **_):
         if v is None:
@@ -550,13 +569,14 @@ class SourceSection(Section):
             return _INVALID
         kind = _run(SOURCE_COMMON["kind"].check, v["kind"], _join(path, "kind"), ctx) if v.get("kind") is not None else None
         if kind is None:
-            ctx.error(_join(path, "kind"), "missing required key (one of 'simulated', 'tbf')")
+            ctx.error(_join(path, "kind"), "missing required key (one of 'simulated', 'tbf', 'udp')")
             return _INVALID
         if kind is _INVALID:
             return _INVALID
-        mine, other, other_kind = ((SOURCE_SIMULATED, SOURCE_TBF, "tbf") if kind == "simulated"
-                                   else (SOURCE_TBF, SOURCE_SIMULATED, "simulated"))
-        elsewhere = {k: f"only used when source.kind is {other_kind!r} (kind is {kind!r})" for k in other}
+        kinds = {"simulated": SOURCE_SIMULATED, "tbf": SOURCE_TBF, "udp": SOURCE_UDP}
+        mine = kinds[kind]
+        elsewhere = {k: f"only used when source.kind is {o!r} (kind is {kind!r})"
+                     for o, keys in kinds.items() if o != kind for k in keys if k not in mine}
         return super().check(v, path, ctx, allowed={**SOURCE_COMMON, **mine}, elsewhere=elsewhere)
 
 
