@@ -193,7 +193,7 @@ def test_missing_config_file():
     ("source: {kind: simulated, start: yesterday}", "source.start", "expected an ISO UTC time string"),
     ("source: {kind: simulated, start: '2024-13-45T99:00:00'}", "source.start", "expected an ISO UTC time string"),
     ("source: {kind: simulated, start: 12}", "source.start", "expected an ISO UTC time string"),
-    ("source: {kind: sim}", "source.kind", "expected one of 'simulated', 'tbf', got 'sim'"),
+    ("source: {kind: sim}", "source.kind", "expected one of 'simulated', 'tbf', 'udp', got 'sim'"),
     ("source: {kind: simulated, sources: [cyga]}", "source.sources[0]", "unknown source 'cyga' (did you mean 'CygA'?)"),
     ("source: {kind: simulated, sources: [{name: X, ra_deg: 400, dec_deg: 0, flux_jy: 1}]}",
      "source.sources[0].ra_deg", "expected a number in [0, 360), got 400"),
@@ -264,7 +264,7 @@ def test_yaml_structure_errors():
     assert "not valid YAML" in _problems("source: [")[0][0]
     assert "top level must be a mapping" in _problems("- a\n- b\n")[0][0]
     assert _problems("")[0] == ["source: missing required key (a source mapping)"]
-    assert _problems("source: {}")[0] == ["source.kind: missing required key (one of 'simulated', 'tbf')"]
+    assert _problems("source: {}")[0] == ["source.kind: missing required key (one of 'simulated', 'tbf', 'udp')"]
     with pytest.raises(ValueError):  # ConfigError is a ValueError
         load_config("source: 3")
 
