@@ -28,6 +28,24 @@ DATA = REPO.parent / "shared" / "data" / "lwa"
 need_data = pytest.mark.skipif(not (DATA / "lwasv-adp-tbf.dat").exists(), reason=f"real LWA data not found at {DATA}")
 LOOPBACK = "127.0.0.1"
 NDP_TICKS = 8192
+#: Replay speed of the generated captures (x real time): ~20k packets/s, so that every test's packets
+#: fit a default-sized socket buffer even while the receiver waits for the GIL (no kernel drops).
+RATE = 0.25
+
+
+def without_kernel_drops(run, rate=RATE, attempts=3):
+    """``run(rate)`` -> (capture stats, result), repeated at half the rate while the kernel dropped
+    datagrams (socket buffer full: an overloaded machine, a small net.core.rmem_max). Exact counts
+    can only be asserted for runs the kernel did not touch; if every attempt lost packets there,
+    the test is skipped saying so (the receiver itself counted them: stats['kernel_drops'])."""
+    drops = []
+    for _ in range(attempts):
+        stats, result = run(rate)
+        if stats["kernel_drops"] == 0:
+            return result
+        drops.append((rate, stats["kernel_drops"]))
+        rate /= 2
+    pytest.skip(f"the kernel dropped packets on every attempt (rate, drops): {drops}; machine overloaded?")
 
 
 def gen_capture(path, ntime, nstand=8, nchan=36, first=600, seed=0, shuffle_within=0, frame_id=5):
@@ -93,22 +111,37 @@ def test_choose_drops_exact_and_reproducible():
         choose_drops(10, 1.5, 1)
 
 
-def test_capture_reorders_and_counts_exactly_the_dropped_frames(tmp_path):
-    """3000 samples x 3 blocks, shuffled within 8 samples, 1% dropped: data = file minus those frames."""
-    path = tmp_path / "gen.tbf"
-    ntime, nblock = 3000, 3
-    data, order = gen_capture(path, ntime, shuffle_within=8, seed=1)
-    with UDPCapture(LOOPBACK, 0, "tbf", gulp_nframe=512, buffer_s=0.002, idle_timeout_s=0.3,
+def capture_replay(path, rate, before=(), during=(), gulp=512, **replay_kw):
+    """Replay ``path`` into a fresh capture on an ephemeral loopback port (garbage ``before`` the
+    stream and ``during`` it); returns (stats, (infos, data, end event, ReplayResult))."""
+    with UDPCapture(LOOPBACK, 0, "tbf", gulp_nframe=gulp, buffer_s=0.002, idle_timeout_s=0.3,
                     start_timeout_s=5) as cap:
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for g in before:
+            tx.sendto(g, (LOOPBACK, cap.port))
         cap.start()
         res = {}
-        th = threading.Thread(target=lambda: res.update(r=replay(path, LOOPBACK, cap.port, rate=1.0, drop=0.01,
-                                                                 seed=11)))
+        th = threading.Thread(target=lambda: res.update(r=replay(path, LOOPBACK, cap.port, rate=rate, **replay_kw)))
         th.start()
+        if during:
+            deadline = time.monotonic() + 5
+            while cap.stats["frames_used"] < 30 and time.monotonic() < deadline:  # the stream has begun
+                time.sleep(0.001)
+            for g in during:
+                tx.sendto(g, (LOOPBACK, cap.port))
+        tx.close()
         infos, got, end = drain(cap)
         th.join()
-    r = res["r"]
-    assert r.sent == ntime * nblock - 90 and len(r.dropped) == 90
+    return cap.stats, (infos, got, end, res["r"], cap.stats)
+
+
+def test_capture_reorders_and_counts_exactly_the_dropped_frames(tmp_path):
+    """2000 samples x 3 blocks, shuffled within 8 samples, 1% dropped: data = file minus those frames."""
+    path = tmp_path / "gen.tbf"
+    ntime, nblock = 2000, 3
+    data, order = gen_capture(path, ntime, shuffle_within=8, seed=1)
+    infos, got, end, r, s = without_kernel_drops(lambda rate: capture_replay(path, rate, drop=0.01, seed=11))
+    assert r.sent == ntime * nblock - 60 and len(r.dropped) == 60
     t_idx, b_idx = file_frame_cells(order, nblock, ntime * nblock)
     dt, db = t_idx[r.dropped], b_idx[r.dropped]
     assert 0 not in dt and ntime - 1 not in dt  # first/last sample intact: the time axis is the file's
@@ -118,9 +151,8 @@ def test_capture_reorders_and_counts_exactly_the_dropped_frames(tmp_path):
     assert len(infos) == 1 and infos[0].nchan == 36 and infos[0].layout.nstand == 8
     assert infos[0].time_tag0 == 1_700_000_000 * FS_HZ
     assert np.array_equal(got, expected.reshape(data.shape))
-    s = cap.stats
     assert s["packets"] == r.sent and s["frames_used"] == r.sent
-    assert s["frames_missing"] == len(r.dropped) == 90
+    assert s["frames_missing"] == len(r.dropped) == 60
     assert s["samples"] == ntime and s["frames_late"] == s["frames_duplicate"] == 0 and not s["garbage"]
     # and the file reader agrees: the same file without the dropped frames
     raw = path.read_bytes()
@@ -129,7 +161,7 @@ def test_capture_reorders_and_counts_exactly_the_dropped_frames(tmp_path):
     keep[r.dropped] = False
     (tmp_path / "kept.tbf").write_bytes(b"".join(raw[i * fb:(i + 1) * fb] for i in np.flatnonzero(keep)))
     d = read_tbf(tmp_path / "kept.tbf")
-    assert np.array_equal(d.data, got) and d.stats["frames_missing"] == 90
+    assert np.array_equal(d.data, got) and d.stats["frames_missing"] == 60
 
 
 def test_garbage_is_counted_by_reason_and_ignored(tmp_path):
@@ -146,59 +178,66 @@ def test_garbage_is_counted_by_reason_and_ignored(tmp_path):
     during += [good[:12] + struct.pack(">h", 601) + good[14:]] * 4        # channel off the 12-channel blocks
     during += [good[:16] + struct.pack(">q", struct.unpack(">q", good[16:24])[0] + 1) + good[24:]] * 3  # off grid
     during += [good + b"\x00"] * 2                                        # one byte too many
-    with UDPCapture(LOOPBACK, 0, "tbf", gulp_nframe=128, buffer_s=0.002, idle_timeout_s=0.3,
-                    start_timeout_s=5) as cap:
-        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        for g in before:
-            tx.sendto(g, (LOOPBACK, cap.port))
-        cap.start()
-        res = {}
-        th = threading.Thread(target=lambda: res.update(r=replay(path, LOOPBACK, cap.port, rate=1.0)))
-        th.start()
-        time.sleep(0.005)
-        for g in during:
-            tx.sendto(g, (LOOPBACK, cap.port))
-        tx.close()
-        infos, got, _ = drain(cap)
-        th.join()
+    infos, got, end, r, s = without_kernel_drops(
+        lambda rate: capture_replay(path, rate, before=before, during=during, gulp=128))
     assert np.array_equal(got, data)
-    s = cap.stats
     assert sum(s["garbage"].values()) == len(before) + len(during)
     assert s["garbage"]["frame_id"] == 6 and s["garbage"]["channel"] == 4 and s["garbage"]["time_grid"] == 3
-    assert s["packets"] == len(before) + len(during) + res["r"].sent and s["frames_missing"] == 0
+    assert s["packets"] == len(before) + len(during) + r.sent and s["frames_missing"] == 0
 
 
 def test_idle_timeout_ends_the_sequence_and_a_new_stream_starts_another(tmp_path):
-    """A replay stopped half-way ends the sequence after the idle timeout; the next replay is sequence 2."""
+    """A replay stopped part-way ends the sequence after the idle timeout; the next replay is sequence 2."""
     path = tmp_path / "gen.tbf"
     data, _ = gen_capture(path, 2000, seed=4)
-    with UDPCapture(LOOPBACK, 0, "tbf", gulp_nframe=256, buffer_s=0.002, idle_timeout_s=0.25,
-                    start_timeout_s=5, max_sequences=2) as cap:
+
+    def run(rate):
+        with UDPCapture(LOOPBACK, 0, "tbf", gulp_nframe=256, buffer_s=0.002, idle_timeout_s=0.25,
+                        start_timeout_s=5, max_sequences=2) as cap:
+            cap.start()
+            stop = threading.Event()
+            res = {}
+            th = threading.Thread(target=lambda: res.update(r=replay(path, LOOPBACK, cap.port, rate=rate,
+                                                                     stop=stop)))
+            th.start()
+            time.sleep(0.1 * RATE / rate)  # a part of the 0.084 s / rate replay
+            stop.set()
+            th.join()
+            t_stop = time.monotonic()
+            first = drain(cap)
+            t_end = time.monotonic() - t_stop
+            replay(path, LOOPBACK, cap.port, rate=rate)
+            second = drain(cap)
+            last = cap.next_event(2.0)
+        return cap.stats, (first, t_end, res["r"].sent, second, last, cap.stats)
+
+    (infos, got, end), t_end, sent, (infos2, got2, end2), last, stats = without_kernel_drops(run)
+    assert end[0] == "end" and 0.2 < t_end < 1.5
+    n = -(-sent // 3)  # the last sample may be partial: its missing blocks are zero-filled, counted
+    assert 0 < sent < 6000 and got.shape[0] == n
+    want = data[:n].copy().reshape(n, 3, -1)
+    want[n - 1, sent - 3 * (n - 1):] = 0
+    assert np.array_equal(got, want.reshape(got.shape))
+    assert [i.index for i in infos2] == [1] and np.array_equal(got2, data)
+    assert stats["frames_missing"] == 3 * n - sent
+    assert last[0] == "closed" and "all sequences" in last[1]
+    assert stats["sequences"] == 2
+
+
+def test_kernel_drops_are_counted(tmp_path):
+    """Datagrams the kernel drops (socket buffer full) are counted: received + kernel drops = sent."""
+    from bf_epic_blocks.io.udp import socket_drops
+    path = tmp_path / "gen.tbf"
+    gen_capture(path, 100, seed=3)
+    with UDPCapture(LOOPBACK, 0, "tbf", rcvbuf_bytes=4096, gulp_nframe=64, buffer_s=0.002, idle_timeout_s=0.2,
+                    start_timeout_s=5) as cap:
+        if socket_drops(cap.sock) is None:
+            pytest.skip("no /proc/net/udp drop counter here")
+        r = replay(path, LOOPBACK, cap.port, rate=1000.0)  # nobody receives yet: the tiny buffer overflows
         cap.start()
-        stop = threading.Event()
-        res = {}
-        th = threading.Thread(target=lambda: res.update(r=replay(path, LOOPBACK, cap.port, rate=0.25, stop=stop)))
-        th.start()
-        time.sleep(0.15)  # ~900 samples of the 2000 at 0.25x
-        stop.set()
-        th.join()
-        t_stop = time.monotonic()
-        infos, got, end = drain(cap)
-        t_end = time.monotonic() - t_stop
-        assert end[0] == "end" and 0.2 < t_end < 1.5
-        sent = res["r"].sent
-        n = -(-sent // 3)  # the last sample may be partial: its missing blocks are zero-filled, counted
-        assert 0 < sent < 6000 and got.shape[0] == n
-        want = data[:n].copy().reshape(n, 3, -1)
-        want[n - 1, sent - 3 * (n - 1):] = 0
-        assert np.array_equal(got, want.reshape(got.shape))
-        assert cap.stats["frames_missing"] == 3 * n - sent
-        replay(path, LOOPBACK, cap.port, rate=5.0)
-        infos2, got2, end2 = drain(cap)
-        assert [i.index for i in infos2] == [1] and np.array_equal(got2, data)
-        ev = cap.next_event(2.0)
-        assert ev[0] == "closed" and "all sequences" in ev[1]
-    assert cap.stats["sequences"] == 2
+        drain(cap)
+    s = cap.stats
+    assert s["kernel_drops"] > 0 and s["packets"] + s["kernel_drops"] == r.sent == 300
 
 
 def test_replay_refuses_non_loopback_and_tbx_hook_is_clear(tmp_path):
@@ -240,7 +279,7 @@ def common_sets(outdir, gulp, acc, size=16):
             "--set", f"source.gulp_nframe={gulp}", "--set", f"imager.accumulate_frames={acc}"]
 
 
-def run_live(tmp_path, station, capture, rate, gulp, acc, drop=0.0, seed=None, garbage=(), tag="udp"):
+def run_live(tmp_path, station, capture, rate, gulp, acc, drop=0.0, seed=None, garbage=(), tag="udp"):  # noqa: PLR0913
     """Build the live pipeline on an ephemeral port, replay ``capture`` into it, run it to the end."""
     sets = ["--set", f"station.name={station}", "--set", "source.port=0", "--set", "source.idle_timeout_s=0.3",
             "--set", "source.start_timeout_s=10", "--set", "source.buffer_s=0.002",
@@ -264,6 +303,10 @@ def run_live(tmp_path, station, capture, rate, gulp, acc, drop=0.0, seed=None, g
     return g, res["r"], time.monotonic() - t0
 
 
+def live_stats(run):
+    return run[0].source.udp_stats, run
+
+
 def run_file(tmp_path, station, capture, gulp, acc, tag="file"):
     sets = ["--set", f"station.name={station}", "--set", f"source.path={capture}", *common_sets(tmp_path / tag, gulp, acc)]
     cfg = load_config(PIPES / "lwasv_tbf_allsky.yaml", sets[1::2])
@@ -278,7 +321,8 @@ def test_real_file_replayed_gives_the_images_of_reading_it(tmp_path, fname, stat
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the LWA-SV file's truncated last frame
         ref = run_file(tmp_path, station, capture, 1, 1)
-    g, r, wall = run_live(tmp_path, station, capture, rate, 1, 1)
+    g, r, wall = without_kernel_drops(lambda rt: live_stats(run_live(tmp_path, station, capture, rt, 1, 1,
+                                                                     tag=f"udp{rt}")), rate=rate)
     live, want = fits_data(g.writer.written), fits_data(ref["files"])
     assert len(live) == len(want) >= 1
     for a, b in zip(live, want):
@@ -295,7 +339,8 @@ def test_generated_capture_with_drops_and_garbage_through_the_pipeline(tmp_path)
     ntime, nblock = 1200, 2
     data, _ = gen_capture(path, ntime, nstand=64, nchan=24, first=2176, seed=6, shuffle_within=4)
     garbage = [b"\x12" * n for n in (10, 1560, 3000)] * 7
-    g, r, wall = run_live(tmp_path, "lwana", path, 2.0, ntime, 300, drop=0.01, seed=5, garbage=garbage)
+    g, r, wall = without_kernel_drops(lambda rt: live_stats(run_live(
+        tmp_path, "lwana", path, rt, ntime, 300, drop=0.01, seed=5, garbage=garbage, tag=f"udp{rt}")), rate=2 * RATE)
     assert len(r.dropped) == 24 and r.sent == ntime * nblock - 24
     raw, fb = path.read_bytes(), 24 + 12 * 64 * 2
     keep = np.ones(ntime * nblock, bool)
@@ -337,15 +382,20 @@ def test_slow_imager_never_stalls_the_socket(tmp_path):
 
     path = tmp_path / "gen.tbf"
     data, _ = gen_capture(path, 3000, nstand=64, nchan=24, first=2176, seed=8)
-    with bfp.Pipeline() as p:
-        src = UDPSourceBlock(LOOPBACK, 0, 64, station="lwana", buffer_s=0.002, idle_timeout_s=0.3,
-                             start_timeout_s=10)
-        sink = Slow(src, guarantee=False)
-    res = {}
-    th = threading.Thread(target=lambda: res.update(r=replay(path, LOOPBACK, src.port, rate=1.0)))
-    th.start()
-    p.run()
-    th.join()
+
+    def run(rate):
+        with bfp.Pipeline() as p:
+            src = UDPSourceBlock(LOOPBACK, 0, 64, station="lwana", buffer_s=0.002, idle_timeout_s=0.3,
+                                 start_timeout_s=10)
+            sink = Slow(src, guarantee=False)
+        res = {}
+        th = threading.Thread(target=lambda: res.update(r=replay(path, LOOPBACK, src.port, rate=rate)))
+        th.start()
+        p.run()
+        th.join()
+        return src.udp_stats, (src, sink, res)
+
+    src, sink, res = without_kernel_drops(run, rate=2 * RATE)
     s = src.udp_stats
     assert s["packets"] == res["r"].sent == 6000 and s["frames_missing"] == 0 and s["samples"] == 3000
     assert src.stats["nframe_written"] == 3000
@@ -356,13 +406,17 @@ def test_slow_imager_never_stalls_the_socket(tmp_path):
 def test_cli_replay_prints_what_it_dropped(tmp_path, capsys):
     path = tmp_path / "gen.tbf"
     data, _ = gen_capture(path, 500, seed=9)
-    with UDPCapture(LOOPBACK, 0, "tbf", gulp_nframe=500, buffer_s=0.002, idle_timeout_s=0.3,
-                    start_timeout_s=5) as cap:
-        cap.start()
-        assert cli.main(["replay", str(path), "--to", f"127.0.0.1:{cap.port}", "--rate", "5", "--drop", "0.01",
-                         "--seed", "3", "-q"]) == 0
-        _, got, _ = drain(cap)
-    out = capsys.readouterr().out
+
+    def run(rate):
+        with UDPCapture(LOOPBACK, 0, "tbf", gulp_nframe=500, buffer_s=0.002, idle_timeout_s=0.3,
+                        start_timeout_s=5) as cap:
+            cap.start()
+            assert cli.main(["replay", str(path), "--to", f"127.0.0.1:{cap.port}", "--rate", str(rate),
+                             "--drop", "0.01", "--seed", "3", "-q"]) == 0
+            drain(cap)
+        return cap.stats, (cap, capsys.readouterr().out)
+
+    cap, out = without_kernel_drops(run, rate=2 * RATE)
     want = choose_drops(1500, 0.01, 3)
     assert f"sent {1500 - 15}, dropped 15 (seed 3)" in out
     assert "dropped frame indices (file order): " + " ".join(map(str, want)) in out

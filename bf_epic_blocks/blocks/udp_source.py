@@ -42,8 +42,8 @@ class UDPSourceBlock(bfp.SourceBlock):
     Parameters
     ----------
     address, port : where to listen (port 0 = an ephemeral port; read ``block.port``). The socket
-        is bound when the block is built, so packets sent before the pipeline runs are kept (up to
-        the socket's receive buffer).
+        is bound and the capture thread started when the block is built, so packets sent before the
+        pipeline runs are kept (ordered and queued, up to the capture's queue of gulps).
     gulp_nframe : time samples per gulp.
     fmt : 'tbf' or 'tbx' (see :func:`bf_epic_blocks.io.udp.packet_format`).
     station : a StationTable, a station name, or None (the one the frame id names).
@@ -63,6 +63,9 @@ class UDPSourceBlock(bfp.SourceBlock):
                                   rcvbuf_bytes=rcvbuf_bytes, extra_report=self._skip_report,
                                   max_sequences=int(sequences) or None)
         self.address, self.port = self.capture.address, self.capture.port
+        # receive from now on: packets sent while the rest of the pipeline starts are ordered and
+        # queued (up to the capture's queue), not left to overflow the socket buffer
+        self.capture.start()
         self.station, self.progress, self.nsequences = station, progress, int(sequences)
         self.udp_stats = self.capture.stats
         self._info = None

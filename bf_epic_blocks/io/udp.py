@@ -44,6 +44,7 @@ import dataclasses
 import ipaddress
 import logging
 import math
+import os
 import socket
 import struct
 import threading
@@ -219,8 +220,24 @@ class SequenceInfo:
         return len(self.blocks) * self.layout.chans_per_frame
 
 
+def socket_drops(sock):
+    """Datagrams the kernel dropped on this UDP socket (its receive buffer was full), from
+    /proc/net/udp (Linux); None where that is not available."""
+    try:
+        ino = str(os.fstat(sock.fileno()).st_ino)
+        for name in ("/proc/net/udp", "/proc/net/udp6"):
+            with open(name) as fh:
+                for line in fh.readlines()[1:]:
+                    f = line.split()
+                    if len(f) > 12 and f[9] == ino:
+                        return int(f[12])
+    except (OSError, ValueError):
+        pass
+    return None
+
+
 def _new_stats():
-    return dict(packets=0, bytes=0, frames_used=0, frames_late=0, frames_duplicate=0,
+    return dict(packets=0, bytes=0, kernel_drops=0, frames_used=0, frames_late=0, frames_duplicate=0,
                 frames_unknown_block=0, frames_missing=0, samples=0, samples_overflow=0, sequences=0,
                 garbage=collections.Counter())
 
@@ -245,7 +262,8 @@ class UDPCapture:
     array uint8 (n, nchan, nstand, 2) packed ci4 and t_index its first sample in the sequence,
     ``("gap", t_index, n)`` (n samples the consumer was too slow to take: write zeros),
     ``("end", reason)``, and ``("closed", reason)`` once the capture has stopped.
-    ``stats`` (cumulative): packets, bytes, frames_used, frames_late, frames_duplicate,
+    ``stats`` (cumulative): packets, bytes, kernel_drops (datagrams the kernel dropped because the
+    socket buffer was full; Linux, updated once a second and at each sequence end), frames_used, frames_late, frames_duplicate,
     frames_unknown_block, frames_missing, samples, samples_overflow, sequences, garbage (by reason).
     """
 
@@ -357,6 +375,7 @@ class UDPCapture:
         learn = None                # list of (tt, fc, payload bytes) while learning
         layout = None
         lo = hi = 0               # time-tag range seen while learning
+        grid0 = ticks = hbytes = 0  # the stream's time grid and header size (from its layout)
         t_start = time.monotonic()
         last_valid = None
         self._next_log = time.monotonic() + (self.log_interval_s or 1e30)
@@ -393,16 +412,17 @@ class UDPCapture:
                     continue
                 layout = got
                 learn = []
+                grid0, ticks, hbytes = layout.time_tag0, layout.sample_ticks, layout.header_bytes
             got = fmt.parse(buf, n, layout)
             if isinstance(got, str):
                 stats["garbage"][got] += 1
                 continue
             tt, fc = got
-            if (tt - layout.time_tag0) % layout.sample_ticks:
+            if (tt - grid0) % ticks:
                 stats["garbage"]["time_grid"] += 1
                 continue
             last_valid = time.monotonic()
-            payload = mv[layout.header_bytes:n]
+            payload = mv[hbytes:n]
             if learn is not None:
                 learn.append((tt, fc, bytes(payload)))
                 lo, hi = (tt, tt) if len(learn) == 1 else (min(lo, tt), max(hi, tt))
@@ -417,6 +437,7 @@ class UDPCapture:
                     return "all sequences received"
                 seq = None
                 layout = dataclasses.replace(layout, time_tag0=tt)
+                grid0 = tt
                 learn = [(tt, fc, bytes(payload))]
                 lo = hi = tt
 
@@ -442,11 +463,20 @@ class UDPCapture:
         if seq is None and learn:
             seq = self._begin(layout, learn)
         if seq is not None:
+            self.kernel_drops()
             seq.flush_all()
             self._emit(("end", why))
             log.info("%s: sequence %d ended (%s): %d samples", self.label, seq.info.index, why, seq.emitted)
 
+    def kernel_drops(self):
+        """Update and return ``stats['kernel_drops']`` (0 where the kernel does not say)."""
+        n = socket_drops(self.sock)
+        if n is not None:
+            self.stats["kernel_drops"] = n
+        return self.stats["kernel_drops"]
+
     def _log_line(self, force=False):
+        self.kernel_drops()
         s, p = self.stats, self._last_logged
         now = time.monotonic()
         self._next_log = now + (self.log_interval_s or 1e30)
@@ -461,9 +491,10 @@ class UDPCapture:
             except Exception:  # noqa: BLE001 - a report must never stop the receiver
                 extra = {}
         more = "".join(f", {k} {v}" for k, v in extra.items())
-        log.info("%s: +%d packets (%.1f MB), %d frames used, %d garbage, %d late, %d duplicate; %d frames "
-                 "missing (zero-filled); %d samples out, %d overflowed%s | total %d packets, %d garbage %s",
-                 self.label, d["packets"], d["bytes"] / 1e6, d["frames_used"], dg, d["frames_late"],
+        log.info("%s: +%d packets (%.1f MB), %d dropped by the kernel, %d frames used, %d garbage, %d late, "
+                 "%d duplicate; %d frames missing (zero-filled); %d samples out, %d overflowed%s | total %d packets, "
+                 "%d garbage %s", self.label, d["packets"], d["bytes"] / 1e6, d["kernel_drops"], d["frames_used"], dg,
+                 d["frames_late"],
                  d["frames_duplicate"], d["frames_missing"], d["samples"], d["samples_overflow"], more,
                  s["packets"], sum(s["garbage"].values()), dict(s["garbage"]) or "")
         self._last_logged = dict(s, garbage=s["garbage"].copy())
@@ -483,8 +514,12 @@ class _Assembly:
         self.nslot = 2 * nwin
         self.nblock = len(info.blocks)
         self.block_index = {int(b): i for i, b in enumerate(info.blocks)}
-        self.slots = np.zeros((self.nslot, self.nblock, lay.payload_bytes), np.uint8)
-        self.have = np.zeros((self.nslot, self.nblock), bool)
+        self.pbytes = lay.payload_bytes
+        self.slots = np.zeros((self.nslot, self.nblock, self.pbytes), np.uint8)
+        self._slots_mv = memoryview(self.slots.reshape(-1))  # per-frame copies without NumPy overhead
+        self._have = bytearray(self.nslot * self.nblock)
+        self.have = np.frombuffer(self._have, np.uint8).reshape(self.nslot, self.nblock)
+        self.tt0, self.ticks = int(info.time_tag0), lay.sample_ticks
         self.base = 0           # time index of the oldest open slot
         self.hi = 0             # 1 + the largest time index seen
         self.chunk = None       # the gulp being filled
@@ -494,12 +529,13 @@ class _Assembly:
         self.frame_shape = (info.nchan, lay.nstand, 2)
 
     def insert(self, tt, fc, payload):
+        """Put one frame (payload: bytes-like of payload_bytes) into its slot; 'resync' on a big jump."""
         st = self.cap.stats
         bi = self.block_index.get(fc)
         if bi is None:
             st["frames_unknown_block"] += 1
             return None
-        ti = (tt - self.info.time_tag0) // self.info.layout.sample_ticks
+        ti = (tt - self.tt0) // self.ticks
         if ti < self.base:
             st["frames_late"] += 1
             return None
@@ -507,12 +543,13 @@ class _Assembly:
             if ti - self.hi > self.max_jump:
                 return "resync"
             self.flush_to(ti - self.nwin + 1)
-        slot = ti % self.nslot
-        if self.have[slot, bi]:
+        cell = (ti % self.nslot) * self.nblock + bi
+        if self._have[cell]:
             st["frames_duplicate"] += 1
             return None
-        self.slots[slot, bi] = np.frombuffer(payload, np.uint8)
-        self.have[slot, bi] = True
+        off = cell * self.pbytes
+        self._slots_mv[off:off + self.pbytes] = payload
+        self._have[cell] = 1
         st["frames_used"] += 1
         if ti >= self.hi:
             self.hi = ti + 1
@@ -531,7 +568,7 @@ class _Assembly:
             st["frames_missing"] += int(n * self.nblock - np.count_nonzero(self.have[sl]))
             self.chunk[self.chunk_n:self.chunk_n + n] = self.slots[sl].reshape((n,) + self.frame_shape)
             self.slots[sl] = 0
-            self.have[sl] = False
+            self.have[sl] = 0
             self.chunk_n += n
             self.base += n
             st["samples"] += n
@@ -612,20 +649,24 @@ def replay(path, host, port, rate=1.0, drop=0.0, seed=None, fmt="tbf", allow_rem
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, int(sndbuf_bytes))
         addr = (host, int(port))
-        t0 = time.perf_counter()
+        fb = frames.shape[1] if nframe else 0
+        flat = memoryview(np.ascontiguousarray(frames).reshape(-1)) if nframe else None  # no copy for a memmap
+        due_s, keep_l = due.tolist(), keep.tolist()  # plain Python: per-packet NumPy indexing is slow
+        send, clock, sleep = sock.sendto, time.perf_counter, time.sleep
+        t0 = clock()
         for i in range(nframe):
             if stop is not None and stop.is_set():
                 break
-            wait = due[i] - (time.perf_counter() - t0)
+            wait = due_s[i] - (clock() - t0)
             if wait > 1e-3:
-                time.sleep(wait)
-            if keep[i]:
+                sleep(wait)
+            if keep_l[i]:
                 while True:
                     try:
-                        sock.sendto(frames[i], addr)
+                        send(flat[i * fb:(i + 1) * fb], addr)
                         break
                     except BlockingIOError:  # the local send buffer is full: let it drain
-                        time.sleep(1e-4)
+                        sleep(1e-4)
                 sent += 1
         wall = time.perf_counter() - t0
     finally:
