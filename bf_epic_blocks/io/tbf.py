@@ -258,7 +258,8 @@ def _open_frames(path) -> tuple[np.memmap | np.ndarray, dict]:
     frame_id = int(h["id_count"]) >> 24
     if frame_id not in FRAME_KINDS:
         raise TBFError(f"{path}: at byte offset 0 (frame 0): frame id {frame_id} is not a TBF frame id "
-                       f"(expected 1 = ADP or 5 = NDP)", 0)
+                       f"(expected 1 = ADP or 5 = NDP)" + ("; it is a TBX frame id: read it with "
+                       "bf_epic_blocks.io.tbx (source.kind: tbx or file)" if frame_id == 8 else ""), 0)
     nstand = int(h["nstand"])
     if nstand == 0 and frame_id == 1:
         nstand = 256  # old ADP firmware left the field at 0

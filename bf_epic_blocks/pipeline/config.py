@@ -15,7 +15,7 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       flags: list of {stand: int >= 1, pol: X | Y | both (default both)}, or bare stand numbers
                                      (default [])
     source:
-      kind: simulated | tbf | udp    (required)
+      kind: simulated | tbf | tbx | file | udp (required; file = TBF or TBX, told by the frame id)
       # kind: simulated
       start: ISO UTC time string     (default '2024-01-01T06:00:00'; checked with astropy Time)
       duration_s: float > 0          (default 2.0)
@@ -31,8 +31,8 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       noise_power: float >= 0        (default 1000.0)
       seed: int                      (default 1)
       quantize: bool                 (default true)
-      # kind: tbf
-      path: path to a TBF file       (required, must exist)
+      # kind: tbf, tbx or file
+      path: path to a TBF / TBX file (required, must exist)
       # kind: udp (live packets; the station is station.name / ssmif and must match the packets)
       address: IP address to listen on (default 127.0.0.1)
       port: int >= 0                 (required; 0 = an ephemeral port)
@@ -525,7 +525,7 @@ IMAGER_TRACK = Section({
     "update_s": Key(Float(0.0, lo_open=True), 10.0),
 }, what="a track mapping {source, size, fov_deg, update_s}")
 
-SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf", "udp"), REQUIRED),
+SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf", "tbx", "file", "udp"), REQUIRED),
                  "gulp_nframe": Key(Int(1), 1024)}
 SOURCE_SIMULATED = {
     "start": Key(TimeStr(), DEFAULT_START),
@@ -553,6 +553,11 @@ SOURCE_UDP = {  # live capture (bf_epic_blocks.io.udp); station from station.nam
     "rcvbuf_mb": Key(Float(0.0, lo_open=True), 64.0),
     "sequences": Key(Int(0), 1),
 }
+SOURCE_TBX = {"path": Key(File("TBX file"), REQUIRED)}
+SOURCE_FILE = {"path": Key(File("TBF or TBX capture file"), REQUIRED)}
+#: source.kind -> the keys it takes besides SOURCE_COMMON
+SOURCE_KINDS = {"simulated": SOURCE_SIMULATED, "tbf": SOURCE_TBF, "tbx": SOURCE_TBX, "file": SOURCE_FILE,
+                "udp": SOURCE_UDP}
 
 
 class SourceSection(Section):
@@ -569,14 +574,18 @@ class SourceSection(Section):
             return _INVALID
         kind = _run(SOURCE_COMMON["kind"].check, v["kind"], _join(path, "kind"), ctx) if v.get("kind") is not None else None
         if kind is None:
-            ctx.error(_join(path, "kind"), "missing required key (one of 'simulated', 'tbf', 'udp')")
+            ctx.error(_join(path, "kind"), "missing required key (one of "
+                                           + ", ".join(repr(k) for k in SOURCE_KINDS) + ")")
             return _INVALID
         if kind is _INVALID:
             return _INVALID
-        kinds = {"simulated": SOURCE_SIMULATED, "tbf": SOURCE_TBF, "udp": SOURCE_UDP}
-        mine = kinds[kind]
-        elsewhere = {k: f"only used when source.kind is {o!r} (kind is {kind!r})"
-                     for o, keys in kinds.items() if o != kind for k in keys if k not in mine}
+        mine = SOURCE_KINDS[kind]
+        users = {}
+        for other_kind, keys in SOURCE_KINDS.items():
+            for k in keys:
+                if k not in mine:
+                    users.setdefault(k, []).append(repr(other_kind))
+        elsewhere = {k: f"only used when source.kind is {' or '.join(u)} (kind is {kind!r})" for k, u in users.items()}
         return super().check(v, path, ctx, allowed={**SOURCE_COMMON, **mine}, elsewhere=elsewhere)
 
 

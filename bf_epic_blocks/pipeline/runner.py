@@ -1,6 +1,6 @@
 """Turn a validated pipeline configuration (:mod:`.config`) into a block graph, plan it, run it.
 
-    source (TBF file | simulated sky) -> CalFoldBlock -> imager (DFT | w-stacking | MOFF) -> ImageWriterBlock
+    source (TBF / TBX file | simulated sky) -> CalFoldBlock -> imager (DFT | w-stacking | MOFF) -> ImageWriterBlock
 
 The station table from LSL is what joins the configuration to the blocks: the sources put its
 positions, flags and cable terms (for the channels in use) into the sequence header, CalFoldBlock
@@ -37,14 +37,24 @@ class Graph:
     outdir: str
 
 
-def _scan(path, report=True):
-    """scan_tbf with its warnings (a truncated last frame) sent to the log instead of stderr
+def capture_format(src_cfg):
+    """'tbf' or 'tbx' for a file source (``source.kind: file`` is told by the file's frame id); None otherwise."""
+    kind = src_cfg["kind"]
+    if kind == "file":
+        from ..io.formats import detect_format
+        return detect_format(src_cfg["path"])
+    return kind if kind in ("tbf", "tbx") else None
+
+
+def _scan(path, report=True, fmt="tbf"):
+    """scan_tbf / scan_tbx with its warnings (a truncated last frame) sent to the log instead of stderr
     (``report=False``: not at all, when the source block will report them itself)."""
     import warnings
     from ..io.tbf import scan_tbf
+    from ..io.tbx import scan_tbx
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        info = scan_tbf(path)
+        info = (scan_tbx if fmt == "tbx" else scan_tbf)(path)
     for w in caught if report else ():
         log.warning("%s", w.message)
     return info
@@ -134,7 +144,7 @@ def build_graph(cfg, progress=None):
     """Blocks for ``cfg`` inside a new Pipeline (not yet run)."""
     from ..blocks import CalFoldBlock, DFTImagerBlock, bfp
     from ..blocks.image_writer import ImageWriterBlock
-    from ..blocks.sources import SimSkySourceBlock, TBFSourceBlock
+    from ..blocks.sources import SimSkySourceBlock, TBFSourceBlock, TBXSourceBlock
     from ..imaging.calibration import GainTable
 
     if cfg["imager"]["kind"] != "dft" and cfg["calibration"].get("pattern") not in (None, "none"):
@@ -147,10 +157,12 @@ def build_graph(cfg, progress=None):
     gulp = int(src_cfg["gulp_nframe"])
     outdir = cfg["output"]["dir"]
     with bfp.Pipeline() as p:
-        if src_cfg["kind"] == "tbf":
-            info = _scan(src_cfg["path"], report=False)
+        fmt = capture_format(src_cfg)
+        if fmt is not None:
+            info = _scan(src_cfg["path"], report=False, fmt=fmt)
             nframe_total = int(info.ntime)
-            source = TBFSourceBlock(src_cfg["path"], gulp, station=station, progress=progress, space=space)
+            block = TBXSourceBlock if fmt == "tbx" else TBFSourceBlock
+            source = block(src_cfg["path"], gulp, station=station, progress=progress, space=space)
         elif src_cfg["kind"] == "udp":
             from ..blocks.udp_source import UDPSourceBlock
             nframe_total = None
@@ -231,7 +243,8 @@ def run(cfg, show_progress=None):
              summary["frames_skipped"], summary["frames_dropped_partial"], summary["images"],
              len(summary["files"]), g.outdir, wall)
     if src_stats.get("frames_missing"):
-        log.warning("%d TBF frames were missing and zero-filled", src_stats["frames_missing"])
+        log.warning("%d %s frames were missing and zero-filled", src_stats["frames_missing"],
+                    getattr(g.source, "fmt", "TBF").upper())
     return summary
 
 
@@ -241,9 +254,10 @@ def plan(cfg):
     src, im = cfg["source"], cfg["imager"]
     if src["kind"] == "udp":
         raise ValueError("plan: a udp source learns its channels from the packets; plan a capture file of the "
-                         "same stream (source.kind: tbf) instead")
-    if src["kind"] == "tbf":
-        info = _scan(src["path"])
+                         "same stream (source.kind: file) instead")
+    fmt = capture_format(src)
+    if fmt is not None:
+        info = _scan(src["path"], fmt=fmt)
         freq, dt = np.asarray(info.freq_hz), 1.0 / info.chan_bw_hz
         ntotal = int(info.ntime)
     else:
