@@ -2,8 +2,8 @@
 
 Packet formats are plug-ins (:class:`PacketFormat`): each knows how to recognise its frames, what a
 stream's layout is (frame size, stands, channels per frame, channel width) and how to list the frames
-of a file for the replayer. ``tbf`` is built in (one TBF frame per datagram, the layout of
-:mod:`bf_epic_blocks.io.tbf`); ``tbx`` plugs in through :func:`packet_format` (see there).
+of a file for the replayer. One frame per datagram: ``tbf`` (:class:`TBFPackets`, the layout of
+:mod:`bf_epic_blocks.io.tbf`) and ``tbx`` (:class:`TBXPackets`, the layout of :mod:`bf_epic_blocks.io.tbx`).
 
 :class:`UDPCapture` receives on its own thread and assembles frames into time samples:
 
@@ -55,12 +55,12 @@ import numpy as np
 
 from .tbf import CHANNELS_PER_FRAME, FRAME_KINDS, FS_HZ, HEADER_BYTES, SYNC_WORD, _open_frames
 
-__all__ = ["PacketFormat", "TBFPackets", "StreamLayout", "SequenceInfo", "UDPCapture", "ReplayResult",
+__all__ = ["PacketFormat", "TBFPackets", "TBXPackets", "StreamLayout", "SequenceInfo", "UDPCapture", "ReplayResult",
            "packet_format", "replay", "parse_host_port", "PACKET_FORMATS"]
 
 log = logging.getLogger(__name__)
 
-#: Names accepted by :func:`packet_format` (``tbx`` needs :mod:`bf_epic_blocks.io.tbx`).
+#: Names accepted by :func:`packet_format`.
 PACKET_FORMATS = ("tbf", "tbx")
 
 
@@ -161,24 +161,64 @@ class TBFPackets(PacketFormat):
         return mm, tt
 
 
-def packet_format(name: str) -> PacketFormat:
-    """The :class:`PacketFormat` called ``name`` ('tbf', or 'tbx' when :mod:`.tbx` provides one).
+_TBX_HDR = struct.Struct(">IIIIHHq")  # sync, id<<24|count, second, first chan, nstand, nchan, time tag
 
-    The TBX hook: :mod:`bf_epic_blocks.io.tbx` plugs in by defining ``TBXPackets`` (a
-    :class:`PacketFormat` subclass, ``name = 'tbx'``); until it does, 'tbx' raises a clear error.
+
+class TBXPackets(PacketFormat):
+    """TBX frames (NDP, id 8) as UDP payloads; layout as :mod:`bf_epic_blocks.io.tbx`.
+
+    The header is decoded with :mod:`struct` rather than :func:`~bf_epic_blocks.io.tbx.parse_tbx_header`
+    (NumPy per packet is several times slower); the tests check both agree through the file reader.
+    """
+    name = "tbx"
+
+    def probe(self, buf, n):
+        from .tbx import CHAN_BW_HZ, FRAME_ID, HEADER_BYTES as TBX_HEADER
+        if n < TBX_HEADER:
+            return "size"
+        sync, idc, _, fc, ns, nc, tt = _TBX_HDR.unpack_from(buf, 0)
+        if sync != SYNC_WORD:
+            return "sync"
+        if idc >> 24 != FRAME_ID:
+            return "frame_id"
+        if ns <= 0 or nc <= 0:
+            return "nstand"
+        fb = TBX_HEADER + nc * ns * 2
+        if n != fb:
+            return "size"
+        hint = {64: "lwana", 256: "lwasv"}.get(ns, "lwana" if ns <= 64 else "lwasv")  # as io.tbx's station hint
+        return StreamLayout("tbx", FRAME_ID, ns, ns, nc, TBX_HEADER, fb, CHAN_BW_HZ, "NDP", hint, fc, tt)
+
+    def parse(self, buf, n, layout):
+        if n != layout.frame_bytes:
+            return "size"
+        sync, idc, _, fc, ns, nc, tt = _TBX_HDR.unpack_from(buf, 0)
+        if sync != SYNC_WORD:
+            return "sync"
+        if idc >> 24 != layout.frame_id:
+            return "frame_id"
+        if ns != layout.nstand or nc != layout.chans_per_frame:
+            return "nstand"
+        if (fc - layout.first_chan0) % layout.chans_per_frame:
+            return "channel"
+        return tt, fc
+
+    def file_frames(self, path):
+        from .tbx import _open_frames as open_tbx
+        mm, _, _ = open_tbx(path)
+        tt = np.ascontiguousarray(mm[:, 20:28]).view(">i8").ravel().astype(np.int64)
+        return mm, tt
+
+
+def packet_format(name: str) -> PacketFormat:
+    """The :class:`PacketFormat` called ``name``: 'tbf' (:class:`TBFPackets`) or 'tbx' (:class:`TBXPackets`).
+
+    Another format plugs in as a :class:`PacketFormat` subclass added here (probe, parse, file_frames).
     """
     if name == "tbf":
         return TBFPackets()
     if name == "tbx":
-        try:
-            from . import tbx
-        except ImportError:
-            tbx = None
-        cls = getattr(tbx, "TBXPackets", None)
-        if cls is None:
-            raise ValueError("format 'tbx': this installation has no TBX packet parser yet "
-                             "(bf_epic_blocks.io.tbx.TBXPackets); use format 'tbf'")
-        return cls()
+        return TBXPackets()
     raise ValueError(f"unknown packet format {name!r}; expected one of {PACKET_FORMATS}")
 
 

@@ -3,7 +3,7 @@
     bf-epic validate FILE [--set key=value ...]
     bf-epic plan FILE [--set key=value ...]
     bf-epic run FILE [--set key=value ...] [--no-progress] [-v|-q]
-    bf-epic replay FILE --to 127.0.0.1:PORT [--rate R] [--drop F] [--seed N] [--format tbf|tbx]
+    bf-epic replay FILE --to 127.0.0.1:PORT [--rate R] [--drop F] [--seed N] [--format auto|tbf|tbx]
 
 Errors in the YAML (unknown keys, wrong types, missing files, impossible parameters) are reported
 with the key's dotted path and exit status 2; errors while running exit with status 1 and one line
@@ -51,7 +51,8 @@ def build_parser():
     r.add_argument("--drop", type=float, default=0.0, metavar="F",
                    help="fraction of packets not sent: exactly round(F * frames), chosen by --seed")
     r.add_argument("--seed", type=int, default=None, help="seed of the drop choice (reproducible runs)")
-    r.add_argument("--format", default="tbf", choices=("tbf", "tbx"), help="frame format of the file")
+    r.add_argument("--format", default="auto", choices=("auto", "tbf", "tbx"),
+                   help="frame format of the file (default: told by the first frame's id)")
     r.add_argument("--allow-remote", action="store_true", help="allow a non-loopback destination")
     r.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
     r.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
@@ -59,15 +60,17 @@ def build_parser():
 
 
 def _replay(args):
+    from ..io.formats import detect_format
     from ..io.udp import parse_host_port, replay
     try:
         host, port = parse_host_port(args.to)
-        res = replay(args.file, host, port, rate=args.rate, drop=args.drop, seed=args.seed, fmt=args.format,
+        fmt = detect_format(args.file) if args.format == "auto" else args.format
+        res = replay(args.file, host, port, rate=args.rate, drop=args.drop, seed=args.seed, fmt=fmt,
                      allow_remote=args.allow_remote)
     except (OSError, ValueError) as e:
         print(f"bf-epic: replay failed: {e}", file=sys.stderr)
         return 2
-    print(f"replayed {args.file} to {host}:{port}: {res.nframe} frames, sent {res.sent}, dropped "
+    print(f"replayed {args.file} ({fmt.upper()}) to {host}:{port}: {res.nframe} frames, sent {res.sent}, dropped "
           f"{len(res.dropped)} (seed {args.seed}); {res.data_s:.4f} s of data in {res.wall_s:.3f} s "
           f"(asked {args.rate:g}x real time)")
     if res.dropped:
