@@ -4,6 +4,7 @@ Truth: the file reader. A capture replayed as packets must give exactly the samp
 reading the file gives; with packets dropped, exactly what reading the file without those frames
 gives (the reader zero-fills missing frames), with the missing count equal to the number dropped.
 """
+import os
 import socket
 import struct
 import threading
@@ -305,7 +306,8 @@ def common_sets(outdir, gulp, acc, size=16):
 
 def run_live(tmp_path, station, capture, rate, gulp, acc, drop=0.0, seed=None, garbage=(), tag="udp", fmt="tbf"):
     """Build the live pipeline on an ephemeral port, replay ``capture`` into it, run it to the end."""
-    sets = ["--set", f"station.name={station}", "--set", "source.port=0", "--set", f"source.format={fmt}", "--set", "source.idle_timeout_s=0.3",
+    sets = ["--set", f"station.name={station}", "--set", "source.port=0", "--set", f"source.format={fmt}",
+            "--set", "source.idle_timeout_s=0.3",
             "--set", "source.start_timeout_s=10", "--set", "source.buffer_s=0.002",
             *common_sets(tmp_path / tag, gulp, acc)]
     cfg = load_config(PIPES / "lwasv_udp_live.yaml", sets[1::2])
@@ -345,7 +347,8 @@ TBX_REAL = REPO / "tests" / "data" / "lwana-ndp-tbx.dat"
 @pytest.mark.parametrize("rate", [1.0, 5.0])
 @pytest.mark.parametrize("capture,station,fmt", [(DATA / "lwasv-adp-tbf.dat", "lwasv", "tbf"),
                                                  (DATA / "lwana-ndp-tbf.dat", "lwana", "tbf"),
-                                                 (TBX_REAL, "lwana", "tbx")], ids=["lwasv-tbf", "lwana-tbf", "lwana-tbx"])
+                                                 (TBX_REAL, "lwana", "tbx")],
+                         ids=["lwasv-tbf", "lwana-tbf", "lwana-tbx"])
 def test_real_file_replayed_gives_the_images_of_reading_it(tmp_path, capture, station, fmt, rate):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the LWA-SV file's truncated last frame
@@ -464,3 +467,42 @@ def test_udp_config_keys_are_checked():
     assert "source.path: only used when source.kind is 'tbf'" in msg and "source.format" in msg
     with pytest.raises(ConfigError, match="source.port: missing required key"):
         load_config("source: {kind: udp}\n")
+
+
+@need_data
+def test_operator_flow_bf_epic_run_then_replay(tmp_path):
+    """`bf-epic run <live yaml>` in its own process, `bf-epic replay` into the port it logs; the run ends by
+    itself after the idle timeout with the images of the file."""
+    import re
+    import subprocess
+    import sys
+    capture = DATA / "lwana-ndp-tbf.dat"
+    out = tmp_path / "live"
+    cmd = [sys.executable, "-m", "bf_epic_blocks.pipeline.cli", "run", str(PIPES / "lwasv_udp_live.yaml"),
+           "--no-progress", "--set", "station.name=lwana", "--set", "source.port=0",
+           "--set", "source.idle_timeout_s=0.5",
+           "--set", "source.start_timeout_s=30", *common_sets(out, 1, 1)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+                            env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        port, lines = None, []
+        deadline = time.monotonic() + 60
+        while port is None and time.monotonic() < deadline:
+            line = proc.stderr.readline()
+            if not line:
+                break
+            lines.append(line)
+            m = re.search(r"udp 127\.0\.0\.1:(\d+) \[tbf\]: listening", line)
+            port = int(m.group(1)) if m else None
+        assert port, "".join(lines)
+        assert cli.main(["replay", str(capture), "--to", f"127.0.0.1:{port}", "-q"]) == 0
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, stderr
+    assert "frames read 1, imaged 1, skipped 0" in stdout
+    ref = run_file(tmp_path, "lwana", capture, 1, 1)
+    live = fits_data([str(p) for p in out.glob("*.fits")])
+    want = fits_data(ref["files"])
+    assert len(live) == len(want) == 2 and all(np.array_equal(a, b, equal_nan=True) for a, b in zip(live, want))

@@ -303,7 +303,8 @@ class UDPCapture:
     ``("gap", t_index, n)`` (n samples the consumer was too slow to take: write zeros),
     ``("end", reason)``, and ``("closed", reason)`` once the capture has stopped.
     ``stats`` (cumulative): packets, bytes, kernel_drops (datagrams the kernel dropped because the
-    socket buffer was full; Linux, updated once a second and at each sequence end), frames_used, frames_late, frames_duplicate,
+    socket buffer was full; Linux, updated once a second and at each sequence end), frames_used,
+    frames_late, frames_duplicate,
     frames_unknown_block, frames_missing, samples, samples_overflow, sequences, garbage (by reason).
     """
 
@@ -330,9 +331,10 @@ class UDPCapture:
             raise OSError(f"cannot receive UDP on {address}:{port}: {e}") from e
         self.address, self.port = self.sock.getsockname()[:2]
         self.rcvbuf_granted = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
-        if self.rcvbuf_granted < int(rcvbuf_bytes):
-            log.info("udp %s:%d: receive buffer %.1f MiB granted of %.1f MiB asked (raise net.core.rmem_max "
-                     "for more)", self.address, self.port, self.rcvbuf_granted / 2**20, int(rcvbuf_bytes) / 2**20)
+        self.stats = _new_stats()
+        log.info("%s: listening; receive buffer %.1f MiB%s", self.label, self.rcvbuf_granted / 2**20,
+                 "" if self.rcvbuf_granted >= int(rcvbuf_bytes) else
+                 f" (asked {int(rcvbuf_bytes) / 2**20:.1f} MiB: raise net.core.rmem_max for more)")
         self.sock.settimeout(min(0.05, self.idle_timeout_s / 4))
         self.stats = _new_stats()
         self._events = collections.deque()
