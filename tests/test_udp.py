@@ -64,8 +64,9 @@ def gen_capture(path, ntime, nstand=8, nchan=36, first=600, seed=0, shuffle_with
     return data, order
 
 
-def drain(cap, timeout=10.0):
-    """Collect a capture's events until its sequence ends: (list of SequenceInfo, data (ntime, ...))."""
+def drain(cap, timeout=10.0, gaps=None):
+    """Collect a capture's events until its sequence ends: (list of SequenceInfo, data (ntime, ...)).
+    ``gaps``: a list to collect (t_index, n) of gap events in (their samples become zeros), else a gap fails."""
     infos, chunks, t_next = [], [], 0
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -79,7 +80,12 @@ def drain(cap, timeout=10.0):
             chunks.append(ev[2].copy())
             t_next += ev[2].shape[0]
         elif ev[0] == "gap":
-            raise AssertionError(f"consumer overflow: {ev}")
+            if gaps is None:
+                raise AssertionError(f"consumer overflow: {ev}")
+            assert ev[1] == t_next
+            gaps.append(ev[1:])
+            chunks.append(np.zeros((ev[2],) + chunks[0].shape[1:], np.uint8))
+            t_next += ev[2]
         elif ev[0] in ("end", "closed"):
             return infos, (np.concatenate(chunks) if chunks else None), ev
     raise AssertionError("capture did not end in time")
@@ -252,6 +258,28 @@ def test_idle_timeout_ends_the_sequence_and_a_new_stream_starts_another(tmp_path
     assert stats["sequences"] == 2
 
 
+def test_a_consumer_that_falls_behind_gets_counted_gaps_not_a_stalled_socket(tmp_path):
+    """The capture's queue holds ~2 gulps here; a consumer that reads nothing until the stream is over
+    gets the first gulps and then gaps (zeros, counted in samples_overflow) in the right places."""
+    path = tmp_path / "gen.tbf"
+    data, _ = gen_capture(path, 1000, seed=7)
+
+    def run(rate):
+        with UDPCapture(LOOPBACK, 0, "tbf", gulp_nframe=100, buffer_s=0.002, idle_timeout_s=0.3, start_timeout_s=5,
+                        max_queue_bytes=1) as cap:
+            cap.start()
+            r = replay(path, LOOPBACK, cap.port, rate=rate)
+            time.sleep(0.5)  # the stream has ended by now: everything was received, nothing consumed
+            gaps = []
+            out = drain(cap, gaps=gaps)
+        return cap.stats, (out, gaps, r, cap.stats)
+
+    (infos, got, end), gaps, r, s = without_kernel_drops(run)
+    assert s["packets"] == r.sent == 3000 and s["frames_missing"] == 0 and s["samples"] == 1000
+    assert gaps and s["samples_overflow"] == sum(n for _, n in gaps) == 1000 - 2 * 100
+    assert got.shape == data.shape and np.array_equal(got[:200], data[:200]) and not got[200:].any()
+
+
 def test_kernel_drops_are_counted(tmp_path):
     """Datagrams the kernel drops (socket buffer full) are counted: received + kernel drops = sent."""
     from bf_epic_blocks.io.udp import socket_drops
@@ -393,24 +421,10 @@ def test_generated_capture_with_drops_and_garbage_through_the_pipeline(tmp_path)
 
 
 def test_slow_imager_never_stalls_the_socket(tmp_path):
-    """A reader that cannot keep up skips (counted) while the capture keeps receiving every packet."""
-    from bf_epic_blocks.blocks import bfp
+    """A reader that cannot keep up skips (counted) while the capture keeps receiving every packet;
+    the frames it did read are the file's, the skipped ones zeros."""
+    from bf_epic_blocks.blocks import ArraySinkBlock, bfp
     from bf_epic_blocks.blocks.udp_source import UDPSourceBlock
-
-    class Slow(bfp.SinkBlock):
-        def __init__(self, iring, *args, **kwargs):
-            super().__init__(iring, *args, **kwargs)
-            self.read = 0
-
-        def on_sequence(self, iseq):
-            pass
-
-        def on_data(self, ispan):
-            self.read += ispan.data.shape[0]
-            time.sleep(0.05)  # a slow imager: 50 ms per 64-sample gulp (64 samples of data = 2.7 ms)
-
-        def on_skip(self, islices, ospans):
-            pass
 
     path = tmp_path / "gen.tbf"
     data, _ = gen_capture(path, 3000, nstand=64, nchan=24, first=2176, seed=8)
@@ -419,7 +433,8 @@ def test_slow_imager_never_stalls_the_socket(tmp_path):
         with bfp.Pipeline() as p:
             src = UDPSourceBlock(LOOPBACK, 0, 64, station="lwana", buffer_s=0.002, idle_timeout_s=0.3,
                                  start_timeout_s=10)
-            sink = Slow(src, guarantee=False)
+            # a slow imager: 50 ms per 64-sample gulp (64 samples of data last 2.7 ms)
+            sink = ArraySinkBlock(src, delay_s=0.05, guarantee=False)
         res = {}
         th = threading.Thread(target=lambda: res.update(r=replay(path, LOOPBACK, src.port, rate=rate)))
         th.start()
@@ -431,8 +446,38 @@ def test_slow_imager_never_stalls_the_socket(tmp_path):
     s = src.udp_stats
     assert s["packets"] == res["r"].sent == 6000 and s["frames_missing"] == 0 and s["samples"] == 3000
     assert src.stats["nframe_written"] == 3000
-    skipped = sink.stats["nframe_skipped"]
-    assert skipped > 0 and sink.read + skipped == 3000
+    skipped = sink.nframe_skipped[0]
+    assert skipped > 0 and skipped == sink.stats["nframe_skipped"]
+    got = sink.result().view(np.uint8).reshape(data.shape)
+    zero = ~got.reshape(3000, -1).any(axis=1)
+    assert zero.sum() == skipped and np.array_equal(got[~zero], data[~zero])
+
+
+def test_source_block_behind_a_guaranteed_reader_writes_counted_zeros(tmp_path):
+    """Misuse: a guaranteed slow reader holds the source block back; the capture still receives every
+    packet, and the gulps the block could not take in time reach the ring as zeros (counted)."""
+    from bf_epic_blocks.blocks import ArraySinkBlock, bfp
+    from bf_epic_blocks.blocks.udp_source import UDPSourceBlock
+
+    path = tmp_path / "gen.tbf"
+    data, _ = gen_capture(path, 1000, nstand=64, nchan=24, first=2176, seed=13)
+
+    def run(rate):
+        with bfp.Pipeline() as p:
+            src = UDPSourceBlock(LOOPBACK, 0, 50, station="lwana", buffer_s=0.002, idle_timeout_s=0.3,
+                                 start_timeout_s=10, max_queue_bytes=1)
+            sink = ArraySinkBlock(src, delay_s=0.03)
+        replay(path, LOOPBACK, src.port, rate=rate)
+        p.run()
+        return src.udp_stats, (src, sink)
+
+    src, sink = without_kernel_drops(run)
+    s = src.udp_stats
+    got = sink.result().view(np.uint8).reshape(data.shape)
+    assert s["packets"] == 2000 and s["frames_missing"] == 0 and s["samples_overflow"] > 0
+    zero = ~got.reshape(1000, -1).any(axis=1)
+    assert zero.sum() == s["samples_overflow"]
+    assert np.array_equal(got[~zero], data[~zero])
 
 
 def test_cli_replay_prints_what_it_dropped(tmp_path, capsys):

@@ -47,20 +47,22 @@ class UDPSourceBlock(bfp.SourceBlock):
     gulp_nframe : time samples per gulp.
     fmt : 'tbf' or 'tbx' (see :func:`bf_epic_blocks.io.udp.packet_format`).
     station : a StationTable, a station name, or None (the one the frame id names).
-    buffer_s, idle_timeout_s, start_timeout_s, rcvbuf_bytes : as :class:`UDPCapture`.
+    buffer_s, idle_timeout_s, start_timeout_s, rcvbuf_bytes, max_queue_bytes : as :class:`UDPCapture`
+        (gulps this block was too slow to take become zeros, counted in ``udp_stats['samples_overflow']``).
     sequences : streams to receive before the block ends (0 = until the pipeline is stopped).
     ``udp_stats``: the capture's counters (packets, frames_missing, garbage, ...), kept current.
     """
 
     def __init__(self, address, port, gulp_nframe, fmt="tbf", station=None, buffer_s=0.05, idle_timeout_s=1.0,
-                 start_timeout_s=None, rcvbuf_bytes=64 << 20, sequences=1, progress=None, space="system",
-                 *args, **kwargs):
+                 start_timeout_s=None, rcvbuf_bytes=64 << 20, sequences=1, max_queue_bytes=256 << 20, progress=None,
+                 space="system", *args, **kwargs):
         if isinstance(sequences, bool) or int(sequences) != sequences or sequences < 0:
             raise ValueError(f"sequences must be an integer >= 0 (0 = until stopped), got {sequences!r}")
         super().__init__(self._names(), gulp_nframe, space, *args, **kwargs)
         self.capture = UDPCapture(address, port, fmt, gulp_nframe=self.gulp_nframe, buffer_s=buffer_s,
                                   idle_timeout_s=idle_timeout_s, start_timeout_s=start_timeout_s,
-                                  rcvbuf_bytes=rcvbuf_bytes, extra_report=self._skip_report,
+                                  rcvbuf_bytes=rcvbuf_bytes, max_queue_bytes=max_queue_bytes,
+                                  extra_report=self._skip_report,
                                   max_sequences=int(sequences) or None)
         self.address, self.port = self.capture.address, self.capture.port
         # receive from now on: packets sent while the rest of the pipeline starts are ordered and

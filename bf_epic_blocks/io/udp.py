@@ -22,7 +22,7 @@ of a file for the replayer. One frame per datagram: ``tbf`` (:class:`TBFPackets`
 * A forward jump of more than ``resync_s`` of data ends the sequence and starts a new one at the
   new time (a restarted stream); no valid packet for ``idle_timeout_s`` ends the sequence.
 * The socket is never stalled: the thread only receives and copies, and hands finished gulps to the
-  consumer through a bounded queue. If the consumer falls more than ``max_queue`` gulps behind,
+  consumer through a bounded queue. If the consumer falls more than ``max_queue_bytes`` behind,
   a gulp is replaced by a "gap" marker (its samples counted in ``samples_overflow``) so that the
   time axis stays exact; losses further down are the ring's (unguaranteed readers skip).
 * Once a second the thread logs what it received, lost (missing, late, garbage) and, when the
@@ -294,7 +294,9 @@ class UDPCapture:
     idle_timeout_s : no valid frame for this long (wall clock) ends the sequence.
     resync_s : a forward jump of more than this (data time) ends the sequence and starts another.
     rcvbuf_bytes : SO_RCVBUF asked for (the kernel may grant less: ``self.rcvbuf_granted``).
-    max_queue : gulps the consumer may lag before gulps become counted gaps.
+    max_queue_bytes : how far (bytes of gulps; at least 2 gulps) the consumer may lag before gulps
+        become counted gaps.
+    max_learn_frames : learning ends after this many frames even if the time has not advanced buffer_s.
     extra_report : callable -> dict of extra counts for the once-a-second log line (e.g. skipped).
     log_interval_s : seconds between log lines (None: no periodic log).
 
@@ -310,7 +312,8 @@ class UDPCapture:
 
     def __init__(self, address="127.0.0.1", port=0, fmt="tbf", gulp_nframe=1024, buffer_s=0.05,
                  idle_timeout_s=1.0, start_timeout_s=None, resync_s=1.0, rcvbuf_bytes=64 << 20,
-                 max_queue=64, extra_report=None, log_interval_s=1.0, max_sequences=None):
+                 max_queue_bytes=256 << 20, extra_report=None, log_interval_s=1.0, max_sequences=None,
+                 max_learn_frames=1 << 18):
         self.fmt = packet_format(fmt) if isinstance(fmt, str) else fmt
         if int(gulp_nframe) < 1:
             raise ValueError(f"gulp_nframe must be >= 1, got {gulp_nframe!r}")
@@ -320,7 +323,8 @@ class UDPCapture:
         self.gulp = int(gulp_nframe)
         self.buffer_s, self.idle_timeout_s, self.resync_s = float(buffer_s), float(idle_timeout_s), float(resync_s)
         self.start_timeout_s = start_timeout_s
-        self.max_queue, self.extra_report, self.log_interval_s = int(max_queue), extra_report, log_interval_s
+        self.max_queue_bytes, self.extra_report = int(max_queue_bytes), extra_report
+        self.log_interval_s, self.max_learn_frames = log_interval_s, int(max_learn_frames)
         self.max_sequences = max_sequences
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
@@ -336,9 +340,9 @@ class UDPCapture:
                  "" if self.rcvbuf_granted >= int(rcvbuf_bytes) else
                  f" (asked {int(rcvbuf_bytes) / 2**20:.1f} MiB: raise net.core.rmem_max for more)")
         self.sock.settimeout(min(0.05, self.idle_timeout_s / 4))
-        self.stats = _new_stats()
         self._events = collections.deque()
         self._ndata_queued = 0
+        self._bytes_queued = 0
         self._cv = threading.Condition()
         self._stop = threading.Event()
         self._thread = None
@@ -367,6 +371,7 @@ class UDPCapture:
             ev = self._events.popleft()
             if ev[0] == "data":
                 self._ndata_queued -= 1
+                self._bytes_queued -= ev[2].nbytes
             return ev
 
     def close(self, timeout=5.0):
@@ -388,12 +393,14 @@ class UDPCapture:
     # ---------------------------------------------------------------- receiver side
     def _emit(self, ev):
         with self._cv:
-            if ev[0] == "data" and self._ndata_queued >= self.max_queue:
+            if ev[0] == "data" and self._ndata_queued >= 2 and \
+                    self._bytes_queued + ev[2].nbytes > self.max_queue_bytes:
                 n = ev[2].shape[0]
                 self.stats["samples_overflow"] += n
                 ev = ("gap", ev[1], n)
             elif ev[0] == "data":
                 self._ndata_queued += 1
+                self._bytes_queued += ev[2].nbytes
             self._events.append(ev)
             self._cv.notify_all()
 
@@ -468,7 +475,7 @@ class UDPCapture:
             if learn is not None:
                 learn.append((tt, fc, bytes(payload)))
                 lo, hi = (tt, tt) if len(learn) == 1 else (min(lo, tt), max(hi, tt))
-                if (hi - lo) // layout.sample_ticks >= self._nwin(layout):
+                if (hi - lo) // ticks >= self._nwin(layout) or len(learn) >= self.max_learn_frames:
                     seq = self._begin(layout, learn)
                     learn = None
                 continue
