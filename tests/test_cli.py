@@ -26,7 +26,7 @@ def read_fits(path):
     from astropy.io import fits
     from astropy.wcs import WCS
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # astropy fills lat/lon from OBSGEO (FITSFixedWarning)
+        warnings.simplefilter("error")  # no FITSFixedWarning: OBSGEO-L/B/H are written beside X/Y/Z
         with fits.open(path) as h:
             return h[0].data.copy(), WCS(h[0].header), dict(h[0].header)
 

@@ -136,7 +136,7 @@ def test_unknown_key_suggests_closest():
 
 def test_key_of_the_other_source_kind_is_explained(yaml_dir):
     probs, _ = _problems("source: {kind: simulated, path: x.tbf}")
-    assert probs == ["source.path (line 1): only used when source.kind is 'tbf' (kind is 'simulated')"]
+    assert probs == ["source.path (line 1): only used when source.kind is 'tbf' or 'tbx' or 'file' (kind is 'simulated')"]
 
 
 def test_wrong_type_message_matches_operator_expectation():
@@ -195,7 +195,7 @@ def test_missing_config_file():
     ("source: {kind: simulated, start: yesterday}", "source.start", "expected an ISO UTC time string"),
     ("source: {kind: simulated, start: '2024-13-45T99:00:00'}", "source.start", "expected an ISO UTC time string"),
     ("source: {kind: simulated, start: 12}", "source.start", "expected an ISO UTC time string"),
-    ("source: {kind: sim}", "source.kind", "expected one of 'simulated', 'tbf', got 'sim'"),
+    ("source: {kind: sim}", "source.kind", "expected one of 'simulated', 'tbf', 'tbx', 'file', 'udp', got 'sim'"),
     ("source: {kind: simulated, sources: [cyga]}", "source.sources[0]", "unknown source 'cyga' (did you mean 'CygA'?)"),
     ("source: {kind: simulated, sources: [{name: X, ra_deg: 400, dec_deg: 0, flux_jy: 1}]}",
      "source.sources[0].ra_deg", "expected a number in [0, 360), got 400"),
@@ -266,7 +266,7 @@ def test_yaml_structure_errors():
     assert "not valid YAML" in _problems("source: [")[0][0]
     assert "top level must be a mapping" in _problems("- a\n- b\n")[0][0]
     assert _problems("")[0] == ["source: missing required key (a source mapping)"]
-    assert _problems("source: {}")[0] == ["source.kind: missing required key (one of 'simulated', 'tbf')"]
+    assert _problems("source: {}")[0] == ["source.kind: missing required key (one of 'simulated', 'tbf', 'tbx', 'file', 'udp')"]
     with pytest.raises(ValueError):  # ConfigError is a ValueError
         load_config("source: 3")
 

@@ -22,8 +22,6 @@ from bf_epic_blocks.sky import icrs_to_lm, zenith_icrs  # noqa: E402
 # LWA-SV (approximately) and a time when Cyg A is high in the sky there.
 LOC = EarthLocation.from_geodetic(-106.885783 * u.deg, 34.348358 * u.deg, 1477.8 * u.m)
 TIME = Time("2024-01-01T20:00:00", scale="utc")
-# astropy.wcs notes that it derived OBSGEO-L/B/H from the X/Y/Z we write (astropy issue #10365).
-pytestmark = pytest.mark.filterwarnings("ignore:.*'obsfix' made the change 'Set OBSGEO")
 CYGA = SkyCoord(ra=299.868152 * u.deg, dec=40.733916 * u.deg, frame="icrs")
 
 
@@ -102,9 +100,7 @@ def test_fits_cube_brightest_pixel_is_cyga(tmp_path):
         assert data.shape == (2, 3, 64, 64) and data.dtype == np.dtype(">f4")
         np.testing.assert_array_equal(data, np.transpose(cube, (1, 0, 2, 3)))  # NaN-safe compare
         with warnings.catch_warnings():
-            warnings.simplefilter("error")  # the header must read back without fix-up warnings ...
-            # ... except astropy's notice that it derived OBSGEO-L/B/H from X/Y/Z (astropy #10365)
-            warnings.filterwarnings("ignore", message=".*'obsfix' made the change 'Set OBSGEO-[LBH]")
+            warnings.simplefilter("error")  # the header reads back without fix-up warnings (FITSFixedWarning)
             w = WCS(hdr)
     assert w.wcs.ctype[0] == "RA---SIN" and w.wcs.ctype[1] == "DEC--SIN"
     assert list(w.wcs.ctype) == ["RA---SIN", "DEC--SIN", "FREQ", "STOKES"]
@@ -136,6 +132,18 @@ def test_fits_cube_brightest_pixel_is_cyga(tmp_path):
     assert hdr["CRVAL3"] == 74e6 and hdr["CDELT3"] == 25e3
     geo = np.array([hdr["OBSGEO-X"], hdr["OBSGEO-Y"], hdr["OBSGEO-Z"]])
     np.testing.assert_allclose(geo, [v.to_value(u.m) for v in LOC.to_geocentric()], atol=1e-3)
+    # L/B/H on the IAU 1976 ellipsoid (WCS Paper VII): the same place as WGS84's to 1e-6 deg, 3 m lower;
+    # going back to X/Y/Z with that ellipsoid's closed form gives the written X/Y/Z to 1 mm
+    assert hdr["OBSGEO-L"] == pytest.approx(LOC.lon.deg, abs=1e-9)
+    assert hdr["OBSGEO-B"] == pytest.approx(LOC.lat.deg, abs=1e-6)
+    assert -4 < hdr["OBSGEO-H"] - LOC.height.to_value(u.m) < -2
+    a, f = 6378140.0, 1 / 298.2577
+    e2 = (2 - f) * f
+    lon, lat, h = np.deg2rad(hdr["OBSGEO-L"]), np.deg2rad(hdr["OBSGEO-B"]), hdr["OBSGEO-H"]
+    n = a / np.sqrt(1 - e2 * np.sin(lat) ** 2)
+    xyz = [(n + h) * np.cos(lat) * np.cos(lon), (n + h) * np.cos(lat) * np.sin(lon), (n * (1 - e2) + h) * np.sin(lat)]
+    np.testing.assert_allclose(xyz, geo, atol=1e-3)
+    np.testing.assert_allclose(w.wcs.obsgeo, [*geo, hdr["OBSGEO-L"], hdr["OBSGEO-B"], hdr["OBSGEO-H"]], atol=1e-6)
     assert np.isnan(data[0, 0, 0, 0])  # corner is below the horizon
 
 

@@ -1,4 +1,4 @@
-"""Source blocks that put LWA E-fields on a ring: a TBF file reader and a simulated sky.
+"""Source blocks that put LWA E-fields on a ring: TBF and TBX file readers and a simulated sky.
 
 Both write E-field sequences as docs/HEADERS.md defines them (labels time, freq, station, pol; the
 station table, with its cable terms for the channels, in ``station``), so CalFoldBlock and the
@@ -41,6 +41,18 @@ class TBFSourceBlock(bfp.SourceBlock):
     file cleanly with a warning; a bad sync word raises TBFError with its byte offset.
     """
 
+    fmt = "tbf"  # the header key and name prefix; subclasses for other capture formats change it
+
+    @staticmethod
+    def _scan(path):
+        from ..io.tbf import scan_tbf
+        return scan_tbf(path)
+
+    @staticmethod
+    def _iter(path, gulp_nframe, info):
+        from ..io.tbf import iter_tbf_gulps
+        return iter_tbf_gulps(path, gulp_nframe, info=info)
+
     def __init__(self, paths, gulp_nframe, station=None, progress=None, space="system", *args, channels=None,
                  **kwargs):
         paths = [paths] if isinstance(paths, (str, bytes)) or hasattr(paths, "__fspath__") else list(paths)
@@ -50,13 +62,12 @@ class TBFSourceBlock(bfp.SourceBlock):
         self.tbf_stats = {"frames_read": 0, "frames_missing": 0, "time_gaps": 0, "truncated_bytes": 0, "samples": 0}
 
     def create_reader(self, sourcename):
-        from ..io.tbf import iter_tbf_gulps, scan_tbf
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            info = scan_tbf(sourcename)
+            info = self._scan(sourcename)
         for w in caught:
             log.warning("%s", w.message)
-        return _Reader(info=info, it=iter_tbf_gulps(sourcename, self.gulp_nframe, info=info), path=sourcename)
+        return _Reader(info=info, it=self._iter(sourcename, self.gulp_nframe, info), path=sourcename)
 
     def _station(self, info):
         from ..station.tables import StationTable, load_station
@@ -66,8 +77,8 @@ class TBFSourceBlock(bfp.SourceBlock):
         elif not isinstance(st, StationTable):
             st = load_station(st)
         if st.nstand != info.nstand:
-            raise ValueError(f"TBF file has {info.nstand} stands but station {st.name!r} has {st.nstand}; "
-                             "name the right station (a TBF file from this station?)")
+            raise ValueError(f"{self.fmt.upper()} file has {info.nstand} stands but station {st.name!r} has {st.nstand}; "
+                             f"name the right station (a {self.fmt.upper()} file from this station?)")
         return st
 
     def on_sequence(self, reader, sourcename):
@@ -76,15 +87,15 @@ class TBFSourceBlock(bfp.SourceBlock):
         sel = reader.sel = self.channels if self.channels is not None else slice(None)
         freq = np.asarray(info.freq_hz, dtype=np.float64)[sel]
         if freq.size == 0 or (self.channels is not None and self.channels.stop > info.nchan):
-            raise ValueError(f"channels {self.channels.start}:{self.channels.stop} asked for, but TBF file "
-                             f"{sourcename} has {info.nchan} channels (0:{info.nchan})")
-        hdr = efield_header(f"tbf:{sourcename}", int(info.time_tags[0]), freq, 1.0 / info.chan_bw_hz,
+            raise ValueError(f"channels {self.channels.start}:{self.channels.stop} asked for, but {self.fmt.upper()} "
+                             f"file {sourcename} has {info.nchan} channels (0:{info.nchan})")
+        hdr = efield_header(f"{self.fmt}:{sourcename}", int(info.time_tags[0]), freq, 1.0 / info.chan_bw_hz,
                             st.to_header(freq), dtype="ci4", npol=2, chan_bw_hz=float(info.chan_bw_hz),
-                            tbf={"path": sourcename, "engine": info.engine,
-                                 "channels": [int(c) for c in info.channels[sel]]})
+                            **{self.fmt: {"path": sourcename, "engine": info.engine,
+                                          "channels": [int(c) for c in info.channels[sel]]}})
         reader.expected_tag = int(info.time_tags[0])
         reader.sample_ticks = int(round(FS_HZ / info.chan_bw_hz))
-        log.info("TBF %s: %s, %d stands, %d channels (%.3f-%.3f MHz), %d time samples", sourcename, info.engine,
+        log.info(self.fmt.upper() + " %s: %s, %d stands, %d channels (%.3f-%.3f MHz), %d time samples", sourcename, info.engine,
                  info.nstand, len(freq), freq.min() / 1e6, freq.max() / 1e6, info.ntime)
         return [hdr]
 
@@ -98,12 +109,44 @@ class TBFSourceBlock(bfp.SourceBlock):
             self.tbf_stats[k] += int(chunk.stats.get(k, 0))
         self.tbf_stats["samples"] += n
         if self.tbf_stats["frames_missing"]:
-            log.debug("TBF: %d frames missing so far (zero-filled)", self.tbf_stats["frames_missing"])
+            log.debug("%s: %d frames missing so far (zero-filled)", self.fmt.upper(), self.tbf_stats["frames_missing"])
         dst = span_array(ospans[0])
         assign_storage(dst[:n], _as_storage(chunk.data[:, reader.sel], dst.dtype))
         if self.progress:
             self.progress(n)
         return [n]
+
+
+class TBXSourceBlock(TBFSourceBlock):
+    """Read LWA TBX files (NDP transient buffer, frame id 8), one sequence per file, 'ci4' gulps.
+
+    Same parameters, header layout and counting as :class:`TBFSourceBlock` (the counts are in
+    ``tbf_stats``, also reachable as ``tbx_stats``); the header carries ``tbx`` = {path, engine,
+    channels} instead of ``tbf``. With ``station=None`` the station is the NDP station with the
+    file's stand count (64 -> lwana, 256 -> lwasv). Reader: :mod:`bf_epic_blocks.io.tbx`.
+    """
+
+    fmt = "tbx"
+
+    @staticmethod
+    def _scan(path):
+        from ..io.tbx import scan_tbx
+        return scan_tbx(path)
+
+    @staticmethod
+    def _iter(path, gulp_nframe, info):
+        from ..io.tbx import iter_tbx_gulps
+        return iter_tbx_gulps(path, gulp_nframe, info=info)
+
+    @property
+    def tbx_stats(self):
+        return self.tbf_stats
+
+
+def capture_source_class(path):
+    """The source block class for a capture file, by its first frame id: TBFSourceBlock or TBXSourceBlock."""
+    from ..io.formats import detect_format
+    return {"tbf": TBFSourceBlock, "tbx": TBXSourceBlock}[detect_format(path)]
 
 
 def _as_storage(packed_u8, dtype):
@@ -189,6 +232,21 @@ class SimSkySourceBlock(bfp.SourceBlock):
 def tbf_source(paths, gulp_nframe, *args, **kwargs):
     """Factory for :class:`TBFSourceBlock`."""
     return TBFSourceBlock(paths, gulp_nframe, *args, **kwargs)
+
+
+def tbx_source(paths, gulp_nframe, *args, **kwargs):
+    """Factory for :class:`TBXSourceBlock`."""
+    return TBXSourceBlock(paths, gulp_nframe, *args, **kwargs)
+
+
+def file_source(paths, gulp_nframe, *args, **kwargs):
+    """A TBF or TBX source block, chosen by the frame id of the (first) file; all files must share it."""
+    paths = [paths] if isinstance(paths, (str, bytes)) or hasattr(paths, "__fspath__") else list(paths)
+    classes = {capture_source_class(p) for p in paths}
+    if len(classes) != 1:
+        raise ValueError(f"file_source: the files mix capture formats ({sorted(c.fmt for c in classes)}); "
+                         "give one source per format")
+    return classes.pop()(paths, gulp_nframe, *args, **kwargs)
 
 
 def sim_sky_source(station, freq_hz, start, duration_s, sources, gulp_nframe, *args, **kwargs):

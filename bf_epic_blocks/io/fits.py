@@ -165,6 +165,17 @@ def image_wcs(grid, freq_hz, products, time, location, *, chan_width_hz=None):
     return w
 
 
+#: The IAU 1976 ellipsoid of FITS WCS Paper VII: equatorial radius (m) and flattening.
+IAU1976_A_M, IAU1976_F = 6378140.0, 1.0 / 298.2577
+
+
+def _geodetic_iau1976(x, y, z):
+    """Geocentric X, Y, Z (m) -> longitude, latitude (deg), height (m) on the IAU 1976 ellipsoid (erfa)."""
+    import erfa
+    elong, phi, h = erfa.gc2gde(IAU1976_A_M, IAU1976_F, np.array([x, y, z], dtype=np.float64))
+    return float(np.degrees(elong)), float(np.degrees(phi)), float(h)
+
+
 def _common_header(hdr, time, location, *, method, precision, telescope, int_time_s, nantenna, extra_header):
     t, loc = as_time(time), as_location(location)
     hdr["DATE-OBS"] = (t.utc.isot, "UTC start of the integration")
@@ -176,9 +187,13 @@ def _common_header(hdr, time, location, *, method, precision, telescope, int_tim
     hdr["OBSGEO-X"] = (x, "[m] station geocentric X")
     hdr["OBSGEO-Y"] = (y, "[m] station geocentric Y")
     hdr["OBSGEO-Z"] = (z, "[m] station geocentric Z")
-    # Only X/Y/Z: FITS 4.0 allows one set per HDU. astropy.wcs then says 'obsfix' set OBSGEO-L/B/H
-    # (a harmless FITSFixedWarning, astropy issue #10365); writing L/B/H too makes wcslib complain
-    # that its own geodetic conversion disagrees with astropy's WGS84 by ~3 m.
+    # L/B/H beside X/Y/Z, so that astropy.wcs has nothing to fill in (it would say so with a
+    # FITSFixedWarning). WCS Paper VII (and wcslib's consistency check, 1 m) puts them on the IAU 1976
+    # ellipsoid, not WGS84: on WGS84 the same point is 3 m higher and wcslib calls the pair inconsistent.
+    lon, lat, h = _geodetic_iau1976(x, y, z)
+    hdr["OBSGEO-L"] = (lon, "[deg] station longitude (IAU 1976 ellipsoid)")
+    hdr["OBSGEO-B"] = (lat, "[deg] station latitude (IAU 1976 ellipsoid)")
+    hdr["OBSGEO-H"] = (h, "[m] station height (IAU 1976 ellipsoid)")
     hdr["ORIGIN"] = ("bf_epic_blocks", "E-field DFT imaging blocks")
     if method is not None:
         hdr["IMAGER"] = (str(method), "imaging method")

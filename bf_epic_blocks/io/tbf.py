@@ -53,7 +53,7 @@ import numpy as np
 
 __all__ = ["TBFData", "TBFInfo", "TBFError", "TBFWarning", "read_tbf", "iter_tbf_gulps", "scan_tbf",
            "unpack_ci4", "pack_ci4", "time_tag_to_time", "SYNC_WORD", "FS_HZ", "CHANNELS_PER_FRAME",
-           "HEADER_BYTES", "FRAME_KINDS"]
+           "HEADER_BYTES", "FRAME_KINDS", "write_tbf"]
 
 SYNC_WORD = 0xDEC0DE5C
 #: Sampling clock of the LWA digitisers; time tags count its ticks since the Unix epoch.
@@ -258,7 +258,8 @@ def _open_frames(path) -> tuple[np.memmap | np.ndarray, dict]:
     frame_id = int(h["id_count"]) >> 24
     if frame_id not in FRAME_KINDS:
         raise TBFError(f"{path}: at byte offset 0 (frame 0): frame id {frame_id} is not a TBF frame id "
-                       f"(expected 1 = ADP or 5 = NDP)", 0)
+                       f"(expected 1 = ADP or 5 = NDP)" + ("; it is a TBX frame id: read it with "
+                       "bf_epic_blocks.io.tbx (source.kind: tbx or file)" if frame_id == 8 else ""), 0)
     nstand = int(h["nstand"])
     if nstand == 0 and frame_id == 1:
         nstand = 256  # old ADP firmware left the field at 0
@@ -379,3 +380,44 @@ def read_tbf(path) -> TBFData:
     """Read a whole TBF file into one :class:`TBFData` (see the module docstring for the layout)."""
     info = scan_tbf(path, warn=True)
     return next(iter_tbf_gulps(path, max(info.ntime, 1), info=info))
+
+
+def write_tbf(path, data, first_channel, time_tag0, *, frame_id=5, time_step=None, order=None) -> int:
+    """Write packed ci4 samples as a TBF file (for tests, demos and the replayer); returns frames written.
+
+    data : uint8 (ntime, nchan, nstand, 2) packed ci4 (see :func:`pack_ci4`); nchan a multiple of 12.
+    first_channel : channel index of data[:, 0]; the file holds blocks first_channel + 12 k.
+    time_tag0 : time tag of sample 0; sample t has time_tag0 + t * time_step (default one sample:
+        FS_HZ / channel width of ``frame_id``).
+    frame_id : 1 (ADP) or 5 (NDP). ``order`` : optional permutation of the ntime * nblock frames
+        (time-major: frame i is sample i // nblock, block i % nblock), to write them out of order.
+    The header's frame count and second count are filled as the F-engine would (count = frame
+    index mod 2^24, second = time tag // FS_HZ); :func:`read_tbf` reads the file back exactly.
+    """
+    data = np.asarray(data)
+    if data.dtype != np.uint8 or data.ndim != 4 or data.shape[3] != 2 or data.shape[1] % CHANNELS_PER_FRAME:
+        raise ValueError(f"write_tbf: data must be uint8 (ntime, 12*k, nstand, 2), got {data.dtype} {data.shape}")
+    if frame_id not in FRAME_KINDS:
+        raise ValueError(f"write_tbf: frame_id must be one of {sorted(FRAME_KINDS)}, got {frame_id!r}")
+    ntime, nchan, nstand, _ = data.shape
+    nblock = nchan // CHANNELS_PER_FRAME
+    step = int(round(FS_HZ / FRAME_KINDS[frame_id][2])) if time_step is None else int(time_step)
+    n = ntime * nblock
+    hdr = np.zeros(n, _HEADER_DTYPE)
+    t = np.repeat(np.arange(ntime), nblock)
+    b = np.tile(np.arange(nblock), ntime)
+    tags = int(time_tag0) + t.astype(np.int64) * step
+    hdr["sync"] = SYNC_WORD
+    hdr["id_count"] = (frame_id << 24) | (np.arange(n) % (1 << 24))
+    hdr["second"] = tags // FS_HZ
+    hdr["first_chan"] = int(first_channel) + b * CHANNELS_PER_FRAME
+    hdr["nstand"] = nstand
+    hdr["time_tag"] = tags
+    frames = np.empty((n, HEADER_BYTES + CHANNELS_PER_FRAME * nstand * 2), np.uint8)
+    frames[:, :HEADER_BYTES] = hdr.view(np.uint8).reshape(n, HEADER_BYTES)
+    frames[:, HEADER_BYTES:] = data.reshape(ntime, nblock, -1).reshape(n, -1)
+    if order is not None:
+        frames = frames[np.asarray(order)]
+    with open(path, "wb") as fh:
+        fh.write(frames.tobytes())
+    return n

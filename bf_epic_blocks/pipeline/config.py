@@ -19,7 +19,7 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       flags: list of {stand: int >= 1, pol: X | Y | both (default both)}, or bare stand numbers
                                      (default [])
     source:
-      kind: simulated | tbf          (required)
+      kind: simulated | tbf | tbx | file | udp (required; file = TBF or TBX, told by the frame id)
       # kind: simulated
       start: ISO UTC time string     (default '2024-01-01T06:00:00'; checked with astropy Time)
       duration_s: float > 0          (default 2.0)
@@ -35,11 +35,20 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       noise_power: float >= 0        (default 1000.0)
       seed: int                      (default 1)
       quantize: bool                 (default true)
-      # kind: tbf
-      path: path to a TBF file       (required, must exist)
-      channel_block: int >= 0        (default null = all channels; image only this block of the file's
-                                     channels: the runs of evenly spaced channels that bf-epic run writes
-                                     to separate FITS files, ``_r<index>``; ``bf-epic batch`` sets it)
+      # kind: tbf, tbx or file
+      path: path to a TBF / TBX file (required, must exist)
+      channel_block: int >= 0        (tbf only; default null = all channels; image only this block of the
+                                     file's channels: the runs of evenly spaced channels that bf-epic run
+                                     writes to separate FITS files, ``_r<index>``; ``bf-epic batch`` sets it)
+      # kind: udp (live packets; the station is station.name / ssmif and must match the packets)
+      address: IP address to listen on (default 127.0.0.1)
+      port: int >= 0                 (required; 0 = an ephemeral port)
+      format: tbf | tbx              (default tbf)
+      buffer_s: float > 0            (default 0.05; reordering window, seconds of data)
+      idle_timeout_s: float > 0      (default 2.0; no packet for this long ends the sequence)
+      start_timeout_s: float > 0     (default null = wait for the first packet forever)
+      rcvbuf_mb: float > 0           (default 64; socket receive buffer asked for, MiB)
+      sequences: int >= 0            (default 1; streams to image before stopping, 0 = until stopped)
       # either kind
       gulp_nframe: int >= 1          (default 1024; frames (time samples) per ring gulp)
     calibration:
@@ -280,7 +289,7 @@ IMAGER_TRACK = Section({
     "update_s": Key(Float(0.0, lo_open=True), 10.0),
 }, what="a track mapping {source, size, fov_deg, update_s}")
 
-SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf"), REQUIRED),
+SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf", "tbx", "file", "udp"), REQUIRED),
                  "gulp_nframe": Key(Int(1), 1024)}
 SOURCE_SIMULATED = {
     "start": Key(TimeStr(), DEFAULT_START),
@@ -299,13 +308,28 @@ SOURCE_TBF = {
     "path": Key(File("TBF file"), REQUIRED),
     "channel_block": Key(Int(0), None),
 }
+SOURCE_UDP = {  # live capture (bf_epic_blocks.io.udp); station from station.name / ssmif
+    "address": Key(Str(r"\S+", "an IP address to listen on"), "127.0.0.1"),
+    "port": Key(Int(0), REQUIRED),
+    "format": Key(Choice("tbf", "tbx"), "tbf"),
+    "buffer_s": Key(Float(0.0, lo_open=True), 0.05),
+    "idle_timeout_s": Key(Float(0.0, lo_open=True), 2.0),
+    "start_timeout_s": Key(Float(0.0, lo_open=True), None),
+    "rcvbuf_mb": Key(Float(0.0, lo_open=True), 64.0),
+    "sequences": Key(Int(0), 1),
+}
+SOURCE_TBX = {"path": Key(File("TBX file"), REQUIRED)}
+SOURCE_FILE = {"path": Key(File("TBF or TBX capture file"), REQUIRED)}
+#: source.kind -> the keys it takes besides SOURCE_COMMON
+SOURCE_KINDS = {"simulated": SOURCE_SIMULATED, "tbf": SOURCE_TBF, "tbx": SOURCE_TBX, "file": SOURCE_FILE,
+                "udp": SOURCE_UDP}
 
 
 class SourceSection(Section):
     """source: the keys allowed depend on source.kind."""
 
     def __init__(self):
-        super().__init__({**SOURCE_COMMON, **SOURCE_SIMULATED, **SOURCE_TBF}, what="a source mapping")
+        super().__init__({**SOURCE_COMMON, **SOURCE_SIMULATED, **SOURCE_TBF, **SOURCE_UDP}, what="a source mapping")
 
     def check(self, v, path, ctx, **_):
         if v is None:
@@ -316,13 +340,18 @@ class SourceSection(Section):
         kind = (run_check(SOURCE_COMMON["kind"].check, v["kind"], join_path(path, "kind"), ctx)
                 if v.get("kind") is not None else None)
         if kind is None:
-            ctx.error(join_path(path, "kind"), "missing required key (one of 'simulated', 'tbf')")
+            ctx.error(join_path(path, "kind"), "missing required key (one of "
+                                           + ", ".join(repr(k) for k in SOURCE_KINDS) + ")")
             return INVALID
         if kind is INVALID:
             return INVALID
-        mine, other, other_kind = ((SOURCE_SIMULATED, SOURCE_TBF, "tbf") if kind == "simulated"
-                                   else (SOURCE_TBF, SOURCE_SIMULATED, "simulated"))
-        elsewhere = {k: f"only used when source.kind is {other_kind!r} (kind is {kind!r})" for k in other}
+        mine = SOURCE_KINDS[kind]
+        users = {}
+        for other_kind, keys in SOURCE_KINDS.items():
+            for k in keys:
+                if k not in mine:
+                    users.setdefault(k, []).append(repr(other_kind))
+        elsewhere = {k: f"only used when source.kind is {' or '.join(u)} (kind is {kind!r})" for k, u in users.items()}
         return super().check(v, path, ctx, allowed={**SOURCE_COMMON, **mine}, elsewhere=elsewhere)
 
 

@@ -1,6 +1,6 @@
 """Turn a validated pipeline configuration (:mod:`.config`) into a block graph, plan it, run it.
 
-    source (TBF file | simulated sky) -> CalFoldBlock -> imager (DFT | w-stacking | MOFF) -> ImageWriterBlock
+    source (TBF / TBX file | simulated sky) -> CalFoldBlock -> imager (DFT | w-stacking | MOFF) -> ImageWriterBlock
 
 The station table from LSL is what joins the configuration to the blocks: the sources put its
 positions, flags and cable terms (for the channels in use) into the sequence header, CalFoldBlock
@@ -37,14 +37,24 @@ class Graph:
     outdir: str
 
 
-def _scan(path, report=True):
-    """scan_tbf with its warnings (a truncated last frame) sent to the log instead of stderr
+def capture_format(src_cfg):
+    """'tbf' or 'tbx' for a file source (``source.kind: file`` is told by the file's frame id); None otherwise."""
+    kind = src_cfg["kind"]
+    if kind == "file":
+        from ..io.formats import detect_format
+        return detect_format(src_cfg["path"])
+    return kind if kind in ("tbf", "tbx") else None
+
+
+def _scan(path, report=True, fmt="tbf"):
+    """scan_tbf / scan_tbx with its warnings (a truncated last frame) sent to the log instead of stderr
     (``report=False``: not at all, when the source block will report them itself)."""
     import warnings
     from ..io.tbf import scan_tbf
+    from ..io.tbx import scan_tbx
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        info = scan_tbf(path)
+        info = (scan_tbx if fmt == "tbx" else scan_tbf)(path)
     for w in caught if report else ():
         log.warning("%s", w.message)
     return info
@@ -150,7 +160,7 @@ def build_graph(cfg, progress=None):
     """Blocks for ``cfg`` inside a new Pipeline (not yet run)."""
     from ..blocks import CalFoldBlock, DFTImagerBlock, bfp
     from ..blocks.image_writer import ImageWriterBlock
-    from ..blocks.sources import SimSkySourceBlock, TBFSourceBlock
+    from ..blocks.sources import SimSkySourceBlock, TBFSourceBlock, TBXSourceBlock
     from ..imaging.calibration import GainTable
 
     if cfg["imager"]["kind"] != "dft" and cfg["calibration"].get("pattern") not in (None, "none"):
@@ -164,12 +174,22 @@ def build_graph(cfg, progress=None):
     outdir = cfg["output"]["dir"]
     block = None  # a channel block of a TBF file (source.channel_block), or all channels
     with bfp.Pipeline() as p:
-        if src_cfg["kind"] == "tbf":
-            info = _scan(src_cfg["path"], report=False)
+        fmt = capture_format(src_cfg)
+        if fmt is not None:
+            info = _scan(src_cfg["path"], report=False, fmt=fmt)
             nframe_total = int(info.ntime)
             block = channel_block_range(cfg, info)
-            source = TBFSourceBlock(src_cfg["path"], gulp, station=station, progress=progress, space=space,
-                                    channels=block[:2] if block else None)
+            cls = TBXSourceBlock if fmt == "tbx" else TBFSourceBlock
+            source = cls(src_cfg["path"], gulp, station=station, progress=progress, space=space,
+                         channels=block[:2] if block else None)
+        elif src_cfg["kind"] == "udp":
+            from ..blocks.udp_source import UDPSourceBlock
+            nframe_total = None
+            source = UDPSourceBlock(src_cfg["address"], src_cfg["port"], gulp, fmt=src_cfg["format"], station=station,
+                                    buffer_s=src_cfg["buffer_s"], idle_timeout_s=src_cfg["idle_timeout_s"],
+                                    start_timeout_s=src_cfg["start_timeout_s"],
+                                    rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20), sequences=src_cfg["sequences"],
+                                    progress=progress, space=space)
         else:
             freq = channel_freqs(cfg)
             source = SimSkySourceBlock(station, freq, src_cfg["start"], src_cfg["duration_s"], src_cfg["sources"],
@@ -181,7 +201,10 @@ def build_graph(cfg, progress=None):
         if gains:
             gains = GainTable.load(gains)
         pattern = None if cal.get("pattern") in (None, "none") else cal["pattern"]
-        calfold = CalFoldBlock(source, cable=bool(cal["cable"]), gains=gains, pattern=pattern)
+        # live packets must never wait for the imager: CalFoldBlock reads them unguaranteed and
+        # counts the frames it could not keep up with (stats['nframe_skipped']; zeros go on)
+        live = {"guarantee": False} if src_cfg["kind"] == "udp" else {}
+        calfold = CalFoldBlock(source, cable=bool(cal["cable"]), gains=gains, pattern=pattern, **live)
         pixels = _pixels(cfg, station)
         common = dict(products=im["products"], remove_autocorr=im["remove_autocorr"])
         if im["kind"] == "dft":
@@ -222,10 +245,10 @@ def run(cfg, show_progress=None):
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0
-    src_stats = getattr(g.source, "tbf_stats", None) or {}
+    src_stats = getattr(g.source, "tbf_stats", None) or getattr(g.source, "udp_stats", None) or {}
     img = getattr(g.imager, "img_stats", {})
     frames_read = src_stats.get("samples", g.nframe_total)
-    skipped = sum(int(getattr(b, "stats", {}).get("frames_skipped", 0) or 0)
+    skipped = sum(int(getattr(b, "stats", {}).get("nframe_skipped", 0) or 0)
                   for b in (g.calfold, g.imager, g.writer) if isinstance(getattr(b, "stats", None), dict))
     summary = {
         "name": cfg["name"], "outdir": g.outdir, "files": list(g.writer.written), "wall_s": wall,
@@ -233,12 +256,15 @@ def run(cfg, show_progress=None):
         "frames_dropped_partial": int(img.get("frames_dropped_partial", 0)), "frames_skipped": skipped,
         "images": int(img.get("images", 0)), "tbf": src_stats, "calibration": getattr(g.calfold, "cal_stats", {}),
     }
+    if cfg["source"]["kind"] == "udp":
+        summary["udp"] = summary.pop("tbf")
     log.info("%s: frames read %d, imaged %d, skipped %d, dropped (partial integration) %d; %d images, "
              "%d files in %s (%.1f s)", cfg["name"], summary["frames_read"], summary["frames_imaged"],
              summary["frames_skipped"], summary["frames_dropped_partial"], summary["images"],
              len(summary["files"]), g.outdir, wall)
     if src_stats.get("frames_missing"):
-        log.warning("%d TBF frames were missing and zero-filled", src_stats["frames_missing"])
+        log.warning("%d %s frames were missing and zero-filled", src_stats["frames_missing"],
+                    getattr(g.source, "fmt", "TBF").upper())
     return summary
 
 
@@ -246,8 +272,12 @@ def plan(cfg):
     """What the pipeline would do, without running it: a dict and a printable text."""
     station = load_station_for(cfg)
     src, im = cfg["source"], cfg["imager"]
-    if src["kind"] == "tbf":
-        info = _scan(src["path"])
+    if src["kind"] == "udp":
+        raise ValueError("plan: a udp source learns its channels from the packets; plan a capture file of the "
+                         "same stream (source.kind: file) instead")
+    fmt = capture_format(src)
+    if fmt is not None:
+        info = _scan(src["path"], fmt=fmt)
         freq, dt = np.asarray(info.freq_hz), 1.0 / info.chan_bw_hz
         block = channel_block_range(cfg, info)
         if block:

@@ -1,0 +1,724 @@
+"""Live capture of LWA F-engine packets over UDP, and a replayer that sends a capture file as packets.
+
+Packet formats are plug-ins (:class:`PacketFormat`): each knows how to recognise its frames, what a
+stream's layout is (frame size, stands, channels per frame, channel width) and how to list the frames
+of a file for the replayer. One frame per datagram: ``tbf`` (:class:`TBFPackets`, the layout of
+:mod:`bf_epic_blocks.io.tbf`) and ``tbx`` (:class:`TBXPackets`, the layout of :mod:`bf_epic_blocks.io.tbx`).
+
+:class:`UDPCapture` receives on its own thread and assembles frames into time samples:
+
+* The first valid packet fixes the stream's layout (frame id, stands, frame size). The channel
+  blocks and the first time tag are learned from the packets of the first ``buffer_s`` of data
+  (the sequence starts at the earliest time tag seen then; a block first seen later is counted as
+  ``frames_unknown_block`` and ignored).
+* Frames are put into a window of time slots (at least ``buffer_s`` of data, up to twice that), so
+  packets that arrive out of order within the window are put back in order. A slot leaves the
+  window when a frame more than the window ahead arrives; its missing frames are zero-filled
+  (byte 0 = 0+0j) and counted in ``frames_missing``. A frame for a slot that already left is
+  ``frames_late`` (it stays lost), a repeated one ``frames_duplicate``.
+* Datagrams that are not frames of the stream -- wrong size, bad sync word, another frame id or
+  stand count, a misaligned channel, a time tag off the sample grid -- are counted in
+  ``garbage`` (by reason) and ignored.
+* A forward jump of more than ``resync_s`` of data ends the sequence and starts a new one at the
+  new time (a restarted stream); no valid packet for ``idle_timeout_s`` ends the sequence.
+* The socket is never stalled: the thread only receives and copies, and hands finished gulps to the
+  consumer through a bounded queue. If the consumer falls more than ``max_queue_bytes`` behind,
+  a gulp is replaced by a "gap" marker (its samples counted in ``samples_overflow``) so that the
+  time axis stays exact; losses further down are the ring's (unguaranteed readers skip).
+* Once a second the thread logs what it received, lost (missing, late, garbage) and, when the
+  consumer provides it (``extra_report``), what was skipped downstream.
+
+Why a plain socket: a large ``SO_RCVBUF`` (the kernel caps it at ``net.core.rmem_max``; the granted
+size is logged) absorbs the bursts while the Python thread waits for the GIL; one ``recv_into``
+per datagram keeps the code portable (Python has no ``recvmmsg``). The receiver sustains tens of
+thousands of packets per second on one core (see the README's live-capture figures); at higher
+rates use a C packet capture (Bifrost's ``udp_capture``) in front of the same blocks.
+
+Loopback is the tested setting; nothing here restricts the address a capture binds to, but
+:func:`replay` refuses to send anywhere but a loopback address unless ``allow_remote=True``.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import ipaddress
+import logging
+import math
+import os
+import socket
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .tbf import CHANNELS_PER_FRAME, FRAME_KINDS, FS_HZ, HEADER_BYTES, SYNC_WORD, _open_frames
+
+__all__ = ["PacketFormat", "TBFPackets", "TBXPackets", "StreamLayout", "SequenceInfo", "UDPCapture", "ReplayResult",
+           "packet_format", "replay", "parse_host_port", "PACKET_FORMATS"]
+
+log = logging.getLogger(__name__)
+
+#: Names accepted by :func:`packet_format`.
+PACKET_FORMATS = ("tbf", "tbx")
+
+
+@dataclass(frozen=True)
+class StreamLayout:
+    """What the first valid packet of a stream tells: everything but the channel blocks and t0.
+
+    ``frame_bytes`` = ``header_bytes`` + ``chans_per_frame`` * ``nstand`` * 2 (ci4, 1 byte per
+    complex sample); ``sample_ticks`` = time-tag step of one sample (196 MHz ticks);
+    ``nstand_field`` the raw header value (old ADP frames write 0 for 256).
+    """
+    format: str
+    frame_id: int
+    nstand: int
+    nstand_field: int
+    chans_per_frame: int
+    header_bytes: int
+    frame_bytes: int
+    chan_bw_hz: float
+    engine: str
+    station_hint: str
+    first_chan0: int
+    time_tag0: int
+
+    @property
+    def sample_ticks(self) -> int:
+        return int(round(FS_HZ / self.chan_bw_hz))
+
+    @property
+    def payload_bytes(self) -> int:
+        return self.frame_bytes - self.header_bytes
+
+
+class PacketFormat:
+    """Interface of a packet format (one frame per datagram).
+
+    ``probe(buf, n)`` -> StreamLayout, or a garbage reason (str) when ``buf[:n]`` is not a frame.
+    ``parse(buf, n, layout)`` -> (time_tag, first_chan) of a frame of that stream, or a reason.
+    ``file_frames(path)`` -> (frames uint8 (nframe, frame_bytes), time_tags int64 (nframe,)) of a
+    capture file, complete frames in file order (for the replayer).
+    """
+    name = "?"
+
+    def probe(self, buf, n):
+        raise NotImplementedError
+
+    def parse(self, buf, n, layout):
+        raise NotImplementedError
+
+    def file_frames(self, path):
+        raise NotImplementedError
+
+
+_TBF_HDR = struct.Struct(">IIIhhq")  # sync, id<<24|count, second, first chan, nstand, time tag
+
+
+class TBFPackets(PacketFormat):
+    """TBF frames (ADP id 1, NDP id 5) as UDP payloads; layout as :mod:`bf_epic_blocks.io.tbf`."""
+    name = "tbf"
+
+    def probe(self, buf, n):
+        if n < HEADER_BYTES:
+            return "size"
+        sync, idc, _, fc, ns, tt = _TBF_HDR.unpack_from(buf, 0)
+        if sync != SYNC_WORD:
+            return "sync"
+        fid = idc >> 24
+        if fid not in FRAME_KINDS:
+            return "frame_id"
+        nstand = 256 if (ns == 0 and fid == 1) else ns
+        if nstand <= 0:
+            return "nstand"
+        fb = HEADER_BYTES + CHANNELS_PER_FRAME * nstand * 2
+        if n != fb:
+            return "size"
+        if fc < 0:
+            return "channel"
+        eng, hint, bw = FRAME_KINDS[fid]
+        return StreamLayout("tbf", fid, nstand, ns, CHANNELS_PER_FRAME, HEADER_BYTES, fb, bw, eng, hint, fc, tt)
+
+    def parse(self, buf, n, layout):
+        if n != layout.frame_bytes:
+            return "size"
+        sync, idc, _, fc, ns, tt = _TBF_HDR.unpack_from(buf, 0)
+        if sync != SYNC_WORD:
+            return "sync"
+        if idc >> 24 != layout.frame_id:
+            return "frame_id"
+        if ns != layout.nstand_field:
+            return "nstand"
+        if fc < 0 or (fc - layout.first_chan0) % CHANNELS_PER_FRAME:
+            return "channel"
+        return tt, fc
+
+    def file_frames(self, path):
+        mm, f = _open_frames(path)
+        tt = np.ascontiguousarray(mm[:, 16:24]).view(">i8").ravel().astype(np.int64)
+        return mm, tt
+
+
+_TBX_HDR = struct.Struct(">IIIIHHq")  # sync, id<<24|count, second, first chan, nstand, nchan, time tag
+
+
+class TBXPackets(PacketFormat):
+    """TBX frames (NDP, id 8) as UDP payloads; layout as :mod:`bf_epic_blocks.io.tbx`.
+
+    The header is decoded with :mod:`struct` rather than :func:`~bf_epic_blocks.io.tbx.parse_tbx_header`
+    (NumPy per packet is several times slower); the tests check both agree through the file reader.
+    """
+    name = "tbx"
+
+    def probe(self, buf, n):
+        from .tbx import CHAN_BW_HZ, FRAME_ID, HEADER_BYTES as TBX_HEADER
+        if n < TBX_HEADER:
+            return "size"
+        sync, idc, _, fc, ns, nc, tt = _TBX_HDR.unpack_from(buf, 0)
+        if sync != SYNC_WORD:
+            return "sync"
+        if idc >> 24 != FRAME_ID:
+            return "frame_id"
+        if ns <= 0 or nc <= 0:
+            return "nstand"
+        fb = TBX_HEADER + nc * ns * 2
+        if n != fb:
+            return "size"
+        hint = {64: "lwana", 256: "lwasv"}.get(ns, "lwana" if ns <= 64 else "lwasv")  # as io.tbx's station hint
+        return StreamLayout("tbx", FRAME_ID, ns, ns, nc, TBX_HEADER, fb, CHAN_BW_HZ, "NDP", hint, fc, tt)
+
+    def parse(self, buf, n, layout):
+        if n != layout.frame_bytes:
+            return "size"
+        sync, idc, _, fc, ns, nc, tt = _TBX_HDR.unpack_from(buf, 0)
+        if sync != SYNC_WORD:
+            return "sync"
+        if idc >> 24 != layout.frame_id:
+            return "frame_id"
+        if ns != layout.nstand or nc != layout.chans_per_frame:
+            return "nstand"
+        if (fc - layout.first_chan0) % layout.chans_per_frame:
+            return "channel"
+        return tt, fc
+
+    def file_frames(self, path):
+        from .tbx import _open_frames as open_tbx
+        mm, _, _ = open_tbx(path)
+        tt = np.ascontiguousarray(mm[:, 20:28]).view(">i8").ravel().astype(np.int64)
+        return mm, tt
+
+
+def packet_format(name: str) -> PacketFormat:
+    """The :class:`PacketFormat` called ``name``: 'tbf' (:class:`TBFPackets`) or 'tbx' (:class:`TBXPackets`).
+
+    Another format plugs in as a :class:`PacketFormat` subclass added here (probe, parse, file_frames).
+    """
+    if name == "tbf":
+        return TBFPackets()
+    if name == "tbx":
+        return TBXPackets()
+    raise ValueError(f"unknown packet format {name!r}; expected one of {PACKET_FORMATS}")
+
+
+def parse_host_port(text: str) -> tuple[str, int]:
+    """'127.0.0.1:4015' -> ('127.0.0.1', 4015); ValueError naming the problem otherwise."""
+    host, sep, port = str(text).rpartition(":")
+    if not sep or not host:
+        raise ValueError(f"expected HOST:PORT (e.g. 127.0.0.1:4015), got {text!r}")
+    try:
+        p = int(port)
+    except ValueError:
+        raise ValueError(f"port must be an integer, got {port!r} in {text!r}") from None
+    if not 0 < p < 65536:
+        raise ValueError(f"port must be in 1..65535, got {p}")
+    return host.strip("[]"), p
+
+
+# ------------------------------------------------------------------------------------------------
+# Capture
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class SequenceInfo:
+    """One sequence of a capture: the stream layout, channels learned, first time tag, index."""
+    layout: StreamLayout
+    blocks: np.ndarray        # (nblock,) sorted first channels
+    time_tag0: int
+    index: int
+
+    @property
+    def channels(self) -> np.ndarray:
+        return (self.blocks[:, None] + np.arange(self.layout.chans_per_frame)).ravel().astype(np.int64)
+
+    @property
+    def freq_hz(self) -> np.ndarray:
+        return self.channels.astype(np.float64) * self.layout.chan_bw_hz
+
+    @property
+    def nchan(self) -> int:
+        return len(self.blocks) * self.layout.chans_per_frame
+
+
+def socket_drops(sock):
+    """Datagrams the kernel dropped on this UDP socket (its receive buffer was full), from
+    /proc/net/udp (Linux); None where that is not available."""
+    try:
+        ino = str(os.fstat(sock.fileno()).st_ino)
+        for name in ("/proc/net/udp", "/proc/net/udp6"):
+            with open(name) as fh:
+                for line in fh.readlines()[1:]:
+                    f = line.split()
+                    if len(f) > 12 and f[9] == ino:
+                        return int(f[12])
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def _new_stats():
+    return dict(packets=0, bytes=0, kernel_drops=0, frames_used=0, frames_late=0, frames_duplicate=0,
+                frames_unknown_block=0, frames_missing=0, samples=0, samples_overflow=0, sequences=0,
+                garbage=collections.Counter())
+
+
+class UDPCapture:
+    """Receive frames of one packet format on ``(address, port)``; hand out ordered gulps.
+
+    Parameters
+    ----------
+    address, port : where to bind (port 0 = an ephemeral port, then read ``self.port``).
+    fmt : a :class:`PacketFormat` or its name.
+    gulp_nframe : time samples per handed-out gulp (the last of a sequence may be shorter).
+    buffer_s : reordering window, seconds of data (>= 1 sample).
+    idle_timeout_s : no valid frame for this long (wall clock) ends the sequence.
+    resync_s : a forward jump of more than this (data time) ends the sequence and starts another.
+    rcvbuf_bytes : SO_RCVBUF asked for (the kernel may grant less: ``self.rcvbuf_granted``).
+    max_queue_bytes : how far (bytes of gulps; at least 2 gulps) the consumer may lag before gulps
+        become counted gaps.
+    max_learn_frames : learning ends after this many frames even if the time has not advanced buffer_s.
+    extra_report : callable -> dict of extra counts for the once-a-second log line (e.g. skipped).
+    log_interval_s : seconds between log lines (None: no periodic log).
+
+    Events from :meth:`next_event`: ``("start", SequenceInfo)``, ``("data", t_index, array)`` with
+    array uint8 (n, nchan, nstand, 2) packed ci4 and t_index its first sample in the sequence,
+    ``("gap", t_index, n)`` (n samples the consumer was too slow to take: write zeros),
+    ``("end", reason)``, and ``("closed", reason)`` once the capture has stopped.
+    ``stats`` (cumulative): packets, bytes, kernel_drops (datagrams the kernel dropped because the
+    socket buffer was full; Linux, updated once a second and at each sequence end), frames_used,
+    frames_late, frames_duplicate,
+    frames_unknown_block, frames_missing, samples, samples_overflow, sequences, garbage (by reason).
+    """
+
+    def __init__(self, address="127.0.0.1", port=0, fmt="tbf", gulp_nframe=1024, buffer_s=0.05,
+                 idle_timeout_s=1.0, start_timeout_s=None, resync_s=1.0, rcvbuf_bytes=64 << 20,
+                 max_queue_bytes=256 << 20, extra_report=None, log_interval_s=1.0, max_sequences=None,
+                 max_learn_frames=1 << 18):
+        self.fmt = packet_format(fmt) if isinstance(fmt, str) else fmt
+        if int(gulp_nframe) < 1:
+            raise ValueError(f"gulp_nframe must be >= 1, got {gulp_nframe!r}")
+        for name, v in (("buffer_s", buffer_s), ("idle_timeout_s", idle_timeout_s), ("resync_s", resync_s)):
+            if not (isinstance(v, (int, float)) and v > 0):
+                raise ValueError(f"{name} must be a number > 0, got {v!r}")
+        self.gulp = int(gulp_nframe)
+        self.buffer_s, self.idle_timeout_s, self.resync_s = float(buffer_s), float(idle_timeout_s), float(resync_s)
+        self.start_timeout_s = start_timeout_s
+        self.max_queue_bytes, self.extra_report = int(max_queue_bytes), extra_report
+        self.log_interval_s, self.max_learn_frames = log_interval_s, int(max_learn_frames)
+        self.max_sequences = max_sequences
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(rcvbuf_bytes))
+            self.sock.bind((address, int(port)))
+        except OSError as e:
+            self.sock.close()
+            raise OSError(f"cannot receive UDP on {address}:{port}: {e}") from e
+        self.address, self.port = self.sock.getsockname()[:2]
+        self.rcvbuf_granted = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        self.stats = _new_stats()
+        log.info("%s: listening; receive buffer %.1f MiB%s", self.label, self.rcvbuf_granted / 2**20,
+                 "" if self.rcvbuf_granted >= int(rcvbuf_bytes) else
+                 f" (asked {int(rcvbuf_bytes) / 2**20:.1f} MiB: raise net.core.rmem_max for more)")
+        self.sock.settimeout(min(0.05, self.idle_timeout_s / 4))
+        self._events = collections.deque()
+        self._ndata_queued = 0
+        self._bytes_queued = 0
+        self._cv = threading.Condition()
+        self._stop = threading.Event()
+        self._thread = None
+        self._closed_reason = None
+        self._nseq = 0
+
+    @property
+    def label(self) -> str:
+        return f"udp {self.address}:{self.port} [{self.fmt.name}]"
+
+    # ---------------------------------------------------------------- consumer side
+    def start(self):
+        """Start the receiving thread (idempotent)."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._main, name=f"udp-capture-{self.port}", daemon=True)
+            self._thread.start()
+        return self
+
+    def next_event(self, timeout=None):
+        """The next event (see the class docstring), or None after ``timeout`` seconds."""
+        with self._cv:
+            if not self._events:
+                self._cv.wait(timeout)
+            if not self._events:
+                return None
+            ev = self._events.popleft()
+            if ev[0] == "data":
+                self._ndata_queued -= 1
+                self._bytes_queued -= ev[2].nbytes
+            return ev
+
+    def close(self, timeout=5.0):
+        """Stop receiving (the open sequence is flushed and ended) and close the socket."""
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ---------------------------------------------------------------- receiver side
+    def _emit(self, ev):
+        with self._cv:
+            if ev[0] == "data" and self._ndata_queued >= 2 and \
+                    self._bytes_queued + ev[2].nbytes > self.max_queue_bytes:
+                n = ev[2].shape[0]
+                self.stats["samples_overflow"] += n
+                ev = ("gap", ev[1], n)
+            elif ev[0] == "data":
+                self._ndata_queued += 1
+                self._bytes_queued += ev[2].nbytes
+            self._events.append(ev)
+            self._cv.notify_all()
+
+    def _main(self):
+        reason = "stopped"
+        try:
+            reason = self._receive()
+        except Exception as e:  # noqa: BLE001 - reported to the consumer, which raises it
+            log.exception("%s: receiver failed", self.label)
+            reason = f"receiver failed: {type(e).__name__}: {e}"
+        finally:
+            self._closed_reason = reason
+            self._emit(("closed", reason))
+            self._log_line(force=True)
+
+    def _receive(self):
+        buf = bytearray(65536)
+        mv = memoryview(buf)
+        fmt, stats = self.fmt, self.stats
+        seq = None                  # _Assembly of the open sequence (after learning)
+        learn = None                # list of (tt, fc, payload bytes) while learning
+        layout = None
+        lo = hi = 0               # time-tag range seen while learning
+        grid0 = ticks = hbytes = 0  # the stream's time grid and header size (from its layout)
+        t_start = time.monotonic()
+        last_valid = None
+        self._next_log = time.monotonic() + (self.log_interval_s or 1e30)
+        self._last_logged = dict(stats, garbage=stats["garbage"].copy())
+        while True:
+            if self._stop.is_set():
+                self._finish(seq, learn, layout, "capture stopped")
+                return "stopped"
+            now = time.monotonic()
+            if self.log_interval_s and now >= self._next_log:
+                self._log_line()
+            if last_valid is not None and now - last_valid > self.idle_timeout_s:
+                self._finish(seq, learn, layout, f"no packet for {self.idle_timeout_s:g} s")
+                seq = learn = layout = last_valid = None
+                if self.max_sequences and self._nseq >= self.max_sequences:
+                    return "all sequences received"
+            if (last_valid is None and self._nseq == 0 and self.start_timeout_s
+                    and now - t_start > self.start_timeout_s):
+                return f"no packet within {self.start_timeout_s:g} s"
+            try:
+                n = self.sock.recv_into(buf)
+            except socket.timeout:
+                continue
+            except OSError:
+                if self._stop.is_set():
+                    continue
+                raise
+            stats["packets"] += 1
+            stats["bytes"] += n
+            if layout is None:
+                got = fmt.probe(buf, n)
+                if isinstance(got, str):
+                    stats["garbage"][got] += 1
+                    continue
+                layout = got
+                learn = []
+                grid0, ticks, hbytes = layout.time_tag0, layout.sample_ticks, layout.header_bytes
+            got = fmt.parse(buf, n, layout)
+            if isinstance(got, str):
+                stats["garbage"][got] += 1
+                continue
+            tt, fc = got
+            if (tt - grid0) % ticks:
+                stats["garbage"]["time_grid"] += 1
+                continue
+            last_valid = time.monotonic()
+            payload = mv[hbytes:n]
+            if learn is not None:
+                learn.append((tt, fc, bytes(payload)))
+                lo, hi = (tt, tt) if len(learn) == 1 else (min(lo, tt), max(hi, tt))
+                if (hi - lo) // ticks >= self._nwin(layout) or len(learn) >= self.max_learn_frames:
+                    seq = self._begin(layout, learn)
+                    learn = None
+                continue
+            status = seq.insert(tt, fc, payload)
+            if status == "resync":
+                self._finish(seq, None, layout, "time jump (stream restarted?)")
+                if self.max_sequences and self._nseq >= self.max_sequences:
+                    return "all sequences received"
+                seq = None
+                layout = dataclasses.replace(layout, time_tag0=tt)
+                grid0 = tt
+                learn = [(tt, fc, bytes(payload))]
+                lo = hi = tt
+
+    def _nwin(self, layout):
+        return max(1, int(math.ceil(self.buffer_s * layout.chan_bw_hz)))
+
+    def _begin(self, layout, learn):
+        tts = np.array([x[0] for x in learn], dtype=np.int64)
+        blocks = np.unique(np.array([x[1] for x in learn], dtype=np.int64))
+        info = SequenceInfo(layout, blocks, int(tts.min()), self._nseq)
+        self._nseq += 1
+        self.stats["sequences"] += 1
+        self._emit(("start", info))
+        log.info("%s: sequence %d: %s, %d stands, %d channels (%d blocks from channel %d), time tag %d",
+                 self.label, info.index, layout.engine, layout.nstand, info.nchan, len(blocks), int(blocks[0]),
+                 info.time_tag0)
+        seq = _Assembly(self, info, self._nwin(layout), int(math.ceil(self.resync_s * layout.chan_bw_hz)))
+        for tt, fc, p in learn:
+            seq.insert(tt, fc, p)
+        return seq
+
+    def _finish(self, seq, learn, layout, why):
+        if seq is None and learn:
+            seq = self._begin(layout, learn)
+        if seq is not None:
+            self.kernel_drops()
+            seq.flush_all()
+            self._emit(("end", why))
+            log.info("%s: sequence %d ended (%s): %d samples", self.label, seq.info.index, why, seq.emitted)
+
+    def kernel_drops(self):
+        """Update and return ``stats['kernel_drops']`` (0 where the kernel does not say)."""
+        n = socket_drops(self.sock)
+        if n is not None:
+            self.stats["kernel_drops"] = n
+        return self.stats["kernel_drops"]
+
+    def _log_line(self, force=False):
+        self.kernel_drops()
+        s, p = self.stats, self._last_logged
+        now = time.monotonic()
+        self._next_log = now + (self.log_interval_s or 1e30)
+        d = {k: s[k] - p[k] for k in s if k != "garbage"}
+        dg = sum(s["garbage"].values()) - sum(p["garbage"].values())
+        if not force and d["packets"] == 0 and d["samples"] == 0:
+            return
+        extra = {}
+        if self.extra_report is not None:
+            try:
+                extra = self.extra_report() or {}
+            except Exception:  # noqa: BLE001 - a report must never stop the receiver
+                extra = {}
+        more = "".join(f", {k} {v}" for k, v in extra.items())
+        log.info("%s: +%d packets (%.1f MB), %d dropped by the kernel, %d frames used, %d garbage, %d late, "
+                 "%d duplicate; %d frames missing (zero-filled); %d samples out, %d overflowed%s | total %d packets, "
+                 "%d garbage %s", self.label, d["packets"], d["bytes"] / 1e6, d["kernel_drops"], d["frames_used"], dg,
+                 d["frames_late"],
+                 d["frames_duplicate"], d["frames_missing"], d["samples"], d["samples_overflow"], more,
+                 s["packets"], sum(s["garbage"].values()), dict(s["garbage"]) or "")
+        self._last_logged = dict(s, garbage=s["garbage"].copy())
+
+
+class _Assembly:
+    """The window of time slots of one sequence (receiver thread only).
+
+    Slots hold ``2 * nwin`` samples; when a frame lands ``2 * nwin`` or more samples past the oldest
+    open slot, the slots older than ``nwin`` samples before it are emitted (in order, missing frames
+    zero-filled and counted), so reordering up to ``nwin`` samples is always undone.
+    """
+
+    def __init__(self, cap: UDPCapture, info: SequenceInfo, nwin: int, max_jump: int):
+        self.cap, self.info, self.nwin, self.max_jump = cap, info, nwin, max_jump
+        lay = info.layout
+        self.nslot = 2 * nwin
+        self.nblock = len(info.blocks)
+        self.block_index = {int(b): i for i, b in enumerate(info.blocks)}
+        self.pbytes = lay.payload_bytes
+        self.slots = np.zeros((self.nslot, self.nblock, self.pbytes), np.uint8)
+        self._slots_mv = memoryview(self.slots.reshape(-1))  # per-frame copies without NumPy overhead
+        self._have = bytearray(self.nslot * self.nblock)
+        self.have = np.frombuffer(self._have, np.uint8).reshape(self.nslot, self.nblock)
+        self.tt0, self.ticks = int(info.time_tag0), lay.sample_ticks
+        self.base = 0           # time index of the oldest open slot
+        self.hi = 0             # 1 + the largest time index seen
+        self.chunk = None       # the gulp being filled
+        self.chunk_t0 = 0
+        self.chunk_n = 0
+        self.emitted = 0
+        self.frame_shape = (info.nchan, lay.nstand, 2)
+
+    def insert(self, tt, fc, payload):
+        """Put one frame (payload: bytes-like of payload_bytes) into its slot; 'resync' on a big jump."""
+        st = self.cap.stats
+        bi = self.block_index.get(fc)
+        if bi is None:
+            st["frames_unknown_block"] += 1
+            return None
+        ti = (tt - self.tt0) // self.ticks
+        if ti < self.base:
+            st["frames_late"] += 1
+            return None
+        if ti >= self.base + self.nslot:
+            if ti - self.hi > self.max_jump:
+                return "resync"
+            self.flush_to(ti - self.nwin + 1)
+        cell = (ti % self.nslot) * self.nblock + bi
+        if self._have[cell]:
+            st["frames_duplicate"] += 1
+            return None
+        off = cell * self.pbytes
+        self._slots_mv[off:off + self.pbytes] = payload
+        self._have[cell] = 1
+        st["frames_used"] += 1
+        if ti >= self.hi:
+            self.hi = ti + 1
+        return None
+
+    def flush_to(self, t_end):
+        """Emit samples [base, t_end) in order (missing frames zero-filled and counted)."""
+        st = self.cap.stats
+        while self.base < t_end:
+            if self.chunk is None:
+                self.chunk = np.empty((self.cap.gulp,) + self.frame_shape, np.uint8)
+                self.chunk_t0, self.chunk_n = self.base, 0
+            s0 = self.base % self.nslot
+            n = min(t_end - self.base, self.nslot - s0, self.cap.gulp - self.chunk_n)
+            sl = slice(s0, s0 + n)
+            st["frames_missing"] += int(n * self.nblock - np.count_nonzero(self.have[sl]))
+            self.chunk[self.chunk_n:self.chunk_n + n] = self.slots[sl].reshape((n,) + self.frame_shape)
+            self.slots[sl] = 0
+            self.have[sl] = 0
+            self.chunk_n += n
+            self.base += n
+            st["samples"] += n
+            self.emitted += n
+            if self.chunk_n == self.cap.gulp:
+                self._hand_off()
+
+    def _hand_off(self):
+        if self.chunk is not None and self.chunk_n:
+            self.cap._emit(("data", self.chunk_t0, self.chunk[:self.chunk_n]))
+        self.chunk = None
+        self.chunk_n = 0
+
+    def flush_all(self):
+        self.flush_to(self.hi)
+        self._hand_off()
+
+
+# ------------------------------------------------------------------------------------------------
+# Replay
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class ReplayResult:
+    """What :func:`replay` did: frames in the file, packets sent, indices (file order) dropped."""
+    nframe: int
+    sent: int
+    dropped: list = field(default_factory=list)
+    wall_s: float = 0.0
+    data_s: float = 0.0
+
+    @property
+    def rate_achieved(self) -> float:
+        """Data seconds per wall second actually achieved (inf for a single-time-tag file)."""
+        return self.data_s / self.wall_s if self.wall_s > 0 else float("inf")
+
+
+def _is_loopback(host):
+    try:
+        return ipaddress.ip_address(socket.gethostbyname(host)).is_loopback
+    except (OSError, ValueError):
+        return False
+
+
+def choose_drops(nframe, drop, seed):
+    """Indices (sorted, file order) of the round(drop * nframe) frames to drop, reproducible by seed."""
+    if not 0 <= drop < 1:
+        raise ValueError(f"drop must be a fraction in [0, 1), got {drop!r}")
+    k = int(round(drop * nframe))
+    if k == 0:
+        return np.zeros(0, np.int64)
+    rng = np.random.default_rng(seed)
+    return np.sort(rng.choice(nframe, size=k, replace=False)).astype(np.int64)
+
+
+def replay(path, host, port, rate=1.0, drop=0.0, seed=None, fmt="tbf", allow_remote=False, stop=None,
+           sndbuf_bytes=8 << 20):
+    """Send the frames of a capture file as UDP datagrams, paced at ``rate`` x real time.
+
+    Frames go out in file order; frame i leaves when the wall clock since the start reaches
+    (max time tag so far - first time tag) / 196 MHz / rate (a sender that falls behind sends at once).
+    ``drop``: fraction of frames not sent, exactly round(drop * nframe) of them, chosen by
+    ``seed`` (:func:`choose_drops`). ``stop``: an Event that ends the replay early.
+    Returns a :class:`ReplayResult` (dropped = file-order frame indices).
+    """
+    if not rate > 0:
+        raise ValueError(f"rate must be > 0, got {rate!r}")
+    if not allow_remote and not _is_loopback(host):
+        raise ValueError(f"replay sends only to a loopback address (127.0.0.1) unless allowed; got {host!r}")
+    fmt = packet_format(fmt) if isinstance(fmt, str) else fmt
+    frames, tts = fmt.file_frames(path)
+    nframe = len(tts)
+    dropped = choose_drops(nframe, drop, seed)
+    keep = np.ones(nframe, bool)
+    keep[dropped] = False
+    due = (np.maximum.accumulate(tts) - tts.min()) / FS_HZ / rate if nframe else tts
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sent = 0
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, int(sndbuf_bytes))
+        addr = (host, int(port))
+        fb = frames.shape[1] if nframe else 0
+        flat = memoryview(np.ascontiguousarray(frames).reshape(-1)) if nframe else None  # no copy for a memmap
+        due_s, keep_l = due.tolist(), keep.tolist()  # plain Python: per-packet NumPy indexing is slow
+        send, clock, sleep = sock.sendto, time.perf_counter, time.sleep
+        t0 = clock()
+        for i in range(nframe):
+            if stop is not None and stop.is_set():
+                break
+            wait = due_s[i] - (clock() - t0)
+            if wait > 1e-3:
+                sleep(wait)
+            if keep_l[i]:
+                while True:
+                    try:
+                        send(flat[i * fb:(i + 1) * fb], addr)
+                        break
+                    except BlockingIOError:  # the local send buffer is full: let it drain
+                        sleep(1e-4)
+                sent += 1
+        wall = time.perf_counter() - t0
+    finally:
+        sock.close()
+    data_s = float((tts.max() - tts.min()) / FS_HZ) if nframe else 0.0
+    return ReplayResult(nframe=nframe, sent=sent, dropped=[int(i) for i in dropped], wall_s=wall, data_s=data_s)
