@@ -82,7 +82,7 @@ def scene():
 
 
 def header(s, dtype="cf32"):
-    return efield_header("nan-test", 10**15, s["freq"], 40e-6, {"name": "test", "xyz_m": s["xyz"]}, dtype=dtype)
+    return efield_header("nan-test", 337023871211995136, s["freq"], 40e-6, {"name": "test", "xyz_m": s["xyz"]}, dtype=dtype)
 
 
 def run(X, hdr, lm, calfold=True, writer_dir=None):
