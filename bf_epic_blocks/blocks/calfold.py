@@ -8,6 +8,8 @@ voltages equals imaging the raw ones with D * A_c * A_s (tests/test_blocks.py pr
 Voltages are per-sample, so a solution switches at exactly the frame whose time tag reaches its
 ``valid_from``, inside a gulp if need be. The direction-dependent pattern (A_i) cannot be folded
 into voltages, so its name goes into the header (``calibration.pattern``) for the imager.
+Non-finite samples of float input (NaN/Inf) are zeroed and counted per antenna (:mod:`.nonfinite`):
+the header's ``nonfinite`` names the tally, a warning is logged per gulp that had any.
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ from ..imaging.calibration import GainTable, apply_direction_independent, cable_
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
 from .headers import derived_header, efield_layout
+from .nonfinite import is_float_dtype, new_tally, zero_and_count
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +40,8 @@ class CalFoldBlock(bfp.TransformBlock):
     pattern : None, a registered pattern name ("dipole"), or a callable ``fn(pixels_lm, freq_hz,
               npol)``; it is registered and its name written to the header for the imager.
     Output: dtype 'cf32', same labels; header ``calibration`` records what was applied.
-    ``stats``: frames, frames_before_first_solution, flagged antenna-pols.
+    ``stats``: frames, frames_before_first_solution, flagged antenna-pols, nonfinite (samples zeroed).
+    ``nonfinite_counts``: int64 (nstand, npol), non-finite samples zeroed in the current sequence.
     """
 
     def __init__(self, iring, cable=True, gains=None, flags=None, pattern=None, *args, **kwargs):
@@ -52,7 +56,8 @@ class CalFoldBlock(bfp.TransformBlock):
         elif pattern is not None:
             patterns.get_pattern(pattern)  # fail now for an unknown name
         self.pattern = pattern
-        self.cal_stats = {"frames": 0, "frames_before_first_solution": 0, "flagged": 0}
+        self.cal_stats = {"frames": 0, "frames_before_first_solution": 0, "flagged": 0, "nonfinite": 0}
+        self.tally = None
 
     def define_valid_input_spaces(self):
         return "any"
@@ -86,6 +91,10 @@ class CalFoldBlock(bfp.TransformBlock):
             w = np.broadcast_to(w, (nchan, nstand, npol))
             applied["cable"] = "explicit"
         flags |= np.all(w == 0, axis=0)
+        bad_w = ~np.all(np.isfinite(w), axis=0)
+        if bad_w.any():  # a NaN/Inf cable term would poison every sample of that antenna
+            log.warning("CalFoldBlock: non-finite cable weights for %d antenna-pols; flagging them", int(bad_w.sum()))
+            flags |= bad_w
         if self.gains is not None:
             self.gains.check_shape(nchan, nstand, npol)
             flags |= self.gains.flags(nstand, npol)
@@ -104,6 +113,12 @@ class CalFoldBlock(bfp.TransformBlock):
             if applied["cable"] and k in ohdr["station"]:
                 ohdr["station"].pop(k)  # applied: must not be applied twice downstream
         ohdr["calibration"] = {**ihdr.get("calibration", {}), **applied, "flagged": int(flags.sum())}
+        # float input can carry NaN/Inf: zeroed and counted here (integer input cannot); the tally
+        # travels by name and tells the imager that this sequence is clean
+        self._float_in = is_float_dtype(lay["dtype"])
+        self._seq_name = ihdr.get("name")
+        self.tally = new_tally("CalFoldBlock", nstand, npol)
+        ohdr["nonfinite"] = self.tally.to_header()
         log.info("CalFoldBlock %s: cable=%s, gain table=%s, %d antenna-pols flagged, pattern=%s",
                  ihdr.get("name"), applied["cable"], bool(self.gains), int(flags.sum()), self.pattern)
         return ohdr
@@ -121,6 +136,8 @@ class CalFoldBlock(bfp.TransformBlock):
         first = getattr(ispan, "frame_offset", self._next_frame)
         with _compat.stream_context():
             x = unpack_complex(idata, self._lay["dtype"])
+            if self._float_in:
+                x = zero_and_count(x, self.tally, first, "CalFoldBlock", self._seq_name)
             out = span_array(ospan)
             if self.gains is None:
                 out[:n] = apply_direction_independent(x, self._w, self._live)
@@ -133,9 +150,17 @@ class CalFoldBlock(bfp.TransformBlock):
                     out[s:e] = apply_direction_independent(x[s:e], self._w, self._live, g)
         self._next_frame = first + n
         self.cal_stats["frames"] += n
+        self.cal_stats["nonfinite"] = self.tally.total
         return n
 
+    @property
+    def nonfinite_counts(self):
+        return None if self.tally is None else self.tally.counts.copy()
+
     def on_sequence_end(self, iseq):
+        if self.tally.total:
+            log.warning("CalFoldBlock: %d non-finite samples zeroed in sequence %s, on %d antenna-pols",
+                        self.tally.total, iseq.header.get("name"), int((self.tally.counts > 0).sum()))
         if self.cal_stats["frames_before_first_solution"]:
             log.warning("CalFoldBlock: %d frames came before the first calibration solution and got unit gains",
                         self.cal_stats["frames_before_first_solution"])

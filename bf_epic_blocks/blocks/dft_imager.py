@@ -4,6 +4,8 @@ Thin adapter: header work in ``on_sequence`` (operator built once per sequence, 
 space), per-gulp work in ``on_data`` (unpack, accumulate, emit). An integration may span gulps
 and a gulp may hold several integrations; a partial integration at the end of a sequence is
 dropped and counted (``stats['frames_dropped_partial']``), never emitted as a short image.
+Float input that did not pass CalFoldBlock (no ``nonfinite`` tally in its header) has its NaN/Inf
+samples zeroed and counted here (:mod:`.nonfinite`), so images stay finite.
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from ..imaging.pixels import LMGrid, check_lm
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
 from .headers import derived_header, efield_layout
+from .nonfinite import get_tally, is_float_dtype, new_tally, zero_and_count
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +109,12 @@ class DFTImagerBlock(bfp.TransformBlock):
         f = lay["freq_hz"]
         fscale = [float(f[0]), float(f[1] - f[0]) if len(f) > 1 else 0.0]
         ohdr = derived_header(ihdr)
+        # float input not cleaned upstream: zero and count non-finite samples here
+        self.tally = None
+        if is_float_dtype(lay["dtype"]) and get_tally(ihdr) is None:
+            self.tally = new_tally(type(self).__name__, lay["nstand"], lay["npol"])
+            ohdr["nonfinite"] = self.tally.to_header()
+        self._seq_name = ihdr.get("name")
         if isinstance(self.pixels, LMGrid):
             g = self.pixels
             shape = [-1, lay["nchan"], nprod, g.size, g.size]
@@ -155,6 +164,8 @@ class DFTImagerBlock(bfp.TransformBlock):
         nout = 0
         with _compat.stream_context():
             x = unpack_complex(idata, self._lay["dtype"])
+            if self.tally is not None:
+                x = zero_and_count(x, self.tally, self._frame, type(self).__name__, self._seq_name)
             pos = 0
             while pos < n:
                 if self._acc.ntime == 0 and callable(self.pixels) and not isinstance(self.pixels, LMGrid):

@@ -52,7 +52,8 @@ class ImageWriterBlock(bfp.SinkBlock):
                 table carries the directions of its own integration (the header has the first).
     run_index : when the input holds only channel block ``run_index`` of a larger channel set (see
                 :func:`channel_runs`), name its files ``_r<run_index>`` as the whole set's would be.
-    ``written`` lists the files written.
+    ``written`` lists the files written. Each file records, as NONFINIT, the non-finite voltage samples
+    zeroed upstream in its integration (from the tally the header's ``nonfinite`` names; 0 without one).
     """
 
     def __init__(self, iring, outdir, prefix="image", fits=True, png=True, table=False, location=None,
@@ -85,6 +86,9 @@ class ImageWriterBlock(bfp.SinkBlock):
             from ..imaging.pixels import lm_grid
             self.grid = lm_grid(pix["size"], cell=pix["cell"])
         self.int_ticks = int(hdr["imager"]["integration_ticks"])
+        from .nonfinite import get_tally
+        self.tally = get_tally(hdr)
+        self.acc = int(hdr["imager"].get("accumulate_frames", 1))
         self.seq_index = getattr(self, "seq_index", -1) + 1
         self.frames_in_seq = 0
 
@@ -125,6 +129,7 @@ class ImageWriterBlock(bfp.SinkBlock):
             t = self._time(j)
             stem = os.path.join(self.outdir, f"{self.prefix}_s{self.seq_index:02d}_i{j:04d}")
             frame = data[k]
+            common["nonfinite"] = self.tally.count(j * self.acc, (j + 1) * self.acc) if self.tally else 0
             if self.grid is not None:
                 runs = _even_runs(self.freq)
                 width = float(self.freq[1] - self.freq[0]) if len(self.freq) > 1 else None

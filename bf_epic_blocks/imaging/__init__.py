@@ -14,11 +14,12 @@ from .dft import DFTOperator, ImageAccumulator, dirty_image, geometric_operator,
 from .pixels import LMGrid, azalt_from_lm, check_lm, lm_from_azalt, lm_grid, lm_list, n_from_lm
 from .moff import moff_image
 from .products import resolve_products
+from .sanitize import zero_nonfinite
 from .wstack import CovarianceGridder, GriddedAccumulator, cov_wgrid_image, gridded_accumulator, wstack_image
 
 __all__ = [
     "DFTOperator", "ImageAccumulator", "LMGrid", "azalt_from_lm", "check_lm", "cost", "dirty_image",
     "geometric_operator", "geometric_phase_cycles", "lm_from_azalt", "lm_grid", "lm_list", "n_from_lm",
     "resolve_products", "wstack_image", "cov_wgrid_image", "moff_image", "GriddedAccumulator",
-    "CovarianceGridder", "gridded_accumulator",
+    "CovarianceGridder", "gridded_accumulator", "zero_nonfinite",
 ]

@@ -176,7 +176,8 @@ def _geodetic_iau1976(x, y, z):
     return float(np.degrees(elong)), float(np.degrees(phi)), float(h)
 
 
-def _common_header(hdr, time, location, *, method, precision, telescope, int_time_s, nantenna, extra_header):
+def _common_header(hdr, time, location, *, method, precision, telescope, int_time_s, nantenna, extra_header,
+                   nonfinite=None):
     t, loc = as_time(time), as_location(location)
     hdr["DATE-OBS"] = (t.utc.isot, "UTC start of the integration")
     hdr["MJD-OBS"] = (float(t.utc.mjd), "MJD (UTC) of DATE-OBS")
@@ -203,6 +204,8 @@ def _common_header(hdr, time, location, *, method, precision, telescope, int_tim
         hdr["INTTIME"] = (float(int_time_s), "[s] integration time per image")
     if nantenna is not None:
         hdr["NANTENNA"] = (int(nantenna), "antennas used (unflagged)")
+    if nonfinite is not None:
+        hdr["NONFINIT"] = (int(nonfinite), "non-finite voltage samples zeroed in this image")
     for k, v in (extra_header or {}).items():
         hdr[k] = v  # value or (value, comment)
 
@@ -217,7 +220,7 @@ def _with_suffix(path: Path, suffix: str) -> Path:
 
 def write_fits_image(path, cube, grid, freq_hz, products, time, location, *, method, precision,
                      telescope=None, int_time_s=None, nantenna=None, chan_width_hz=None,
-                     extra_header=None, overwrite=True) -> list[str]:
+                     extra_header=None, nonfinite=None, overwrite=True) -> list[str]:
     """Write an all-sky image cube as FITS; returns the list of paths written.
 
     cube : (nchan, nprod, N, N) [m, l] real array (NumPy or CuPy), NaN below the horizon; cast
@@ -225,7 +228,8 @@ def write_fits_image(path, cube, grid, freq_hz, products, time, location, *, met
     grid : LMGrid of the images; freq_hz : (nchan,) uniform channel centres in Hz;
     products : the nprod product names; time : UTC start of the integration; location : station.
     method, precision : recorded as IMAGER and PRECISN (FITS keys have <= 8 characters); telescope, int_time_s, nantenna : TELESCOP,
-        INTTIME (s) and NANTENNA when given; extra_header : {key: value or (value, comment)}.
+        INTTIME (s) and NANTENNA when given; extra_header : {key: value or (value, comment)};
+    nonfinite : the number of non-finite (NaN/Inf) voltage samples zeroed in this integration, as NONFINIT.
     Usually one file at ``path``; see the module docstring for the product sets that need several.
     """
     from astropy.io import fits
@@ -265,7 +269,7 @@ def write_fits_image(path, cube, grid, freq_hz, products, time, location, *, met
         hdr["GRIDN"] = (N, "pixels per side of the (l, m) grid")
         hdr["GRIDCELL"] = (float(grid.cell), "grid step in direction cosines")
         _common_header(hdr, time, location, method=method, precision=precision, telescope=telescope,
-                       int_time_s=int_time_s, nantenna=nantenna, extra_header=extra_header)
+                       int_time_s=int_time_s, nantenna=nantenna, extra_header=extra_header, nonfinite=nonfinite)
         hdr.add_comment("Pixels at or below the horizon (l^2 + m^2 >= 1) are NaN.")
         hdr.add_comment("Projection centred on the zenith: pixel (l, m) = direction cosines East, North.")
         out = path if suffix is None else _with_suffix(path, suffix)
@@ -280,7 +284,7 @@ def write_fits_image(path, cube, grid, freq_hz, products, time, location, *, met
 # ---------------------------------------------------------------------------------------------
 def write_pixel_table(path, values, pixels_lm, freq_hz, products, time, location, *, method=None,
                       precision=None, telescope=None, int_time_s=None, nantenna=None, extra_header=None,
-                      overwrite=True) -> str:
+                      nonfinite=None, overwrite=True) -> str:
     """Write per-pixel values as a FITS binary table (or ``.npz``); returns the path.
 
     values : (nchan, nprod, npix) real array; pixels_lm : (npix, 2) l East, m North;
@@ -334,7 +338,7 @@ def write_pixel_table(path, values, pixels_lm, freq_hz, products, time, location
     primary = fits.PrimaryHDU()
     for hdr in (primary.header, pix.header):
         _common_header(hdr, t, loc, method=method, precision=precision, telescope=telescope,
-                       int_time_s=int_time_s, nantenna=nantenna, extra_header=extra_header)
+                       int_time_s=int_time_s, nantenna=nantenna, extra_header=extra_header, nonfinite=nonfinite)
     pix.header["BUNIT"] = ("UNCALIB", "arbitrary (uncalibrated) power units")
     pix.header["PRODUCTS"] = (",".join(products), "product columns")
     pix.header.add_comment("RA_DEG/DEC_DEG: ICRS; AZ_DEG from North through East; L East, M North.")
