@@ -145,3 +145,17 @@ def test_gpu_request_without_gpu_is_clear(tmp_path, capsys):
     assert cli.main(["run", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", "device=gpu",
                      "--set", f"output.dir={tmp_path}", *FAST]) == 1
     assert "CuPy or a CUDA GPU is not available" in capsys.readouterr().err
+
+
+def test_plan_with_a_tolerance_names_the_pick(capsys):
+    """imager.tolerance instead of a mode: plan prints the route x precision picked, with its bound."""
+    assert cli.main(["plan", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", "imager.tolerance=1e-4",
+                     "--set", "imager.min_elevation_deg=10"]) == 0
+    out = capsys.readouterr().out
+    assert "tolerance 1.0e-04: picked" in out and "fp32" in out, out
+    assert "error bound 1.0e-06" in out or "error bound" in out
+    # min_elevation_deg drops the pixels near the horizon: fewer than the 3205 of the full grid
+    kept = int(out.split("grid, ")[1].split(" pixels")[0])
+    assert kept < 3205
+    assert cli.main(["plan", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", "imager.tolerance=1e-30"]) != 0
+    assert "no route x precision" in capsys.readouterr().err

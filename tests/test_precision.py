@@ -281,3 +281,25 @@ def test_integer_input_with_weights_flags_and_autocorr_removed(xp, sky_scene, me
     img = imaging.dirty_image(xp.asarray(X), xp.asarray(xyz), xp.asarray(freq), xp.asarray(lm), method=method,
                               precision="fp64", products=prods, weights=xp.asarray(unit))
     assert rel_err(img, ref) < 1e-11
+
+
+def test_nonfinite_samples_are_zeroed_and_reported(xp, caplog):
+    """A NaN or Inf voltage is treated as flagged for that sample: the image stays finite and equals
+    the image of the data with those samples zeroed; the API logs how many were zeroed."""
+    rng = np.random.default_rng(4)
+    xyz = rng.normal(0, 20, (8, 3))
+    X = rng.normal(size=(32, 2, 8, 2)) + 1j * rng.normal(size=(32, 2, 8, 2))
+    X[3, 0, 2, 1] = np.nan
+    X[7, 1, 5, 0] = np.inf + 0j
+    X[9, 1, 5, 0] = complex(1.0, np.nan)
+    clean = X.copy()
+    clean[~np.isfinite(clean)] = 0
+    lm = imaging.lm_grid(6).lm
+    ref = brute_image(clean, xyz, [50e6, 60e6], lm, ("I", "V"))
+    for method in ("direct", "covariance"):
+        with caplog.at_level("WARNING"):
+            img = imaging.dirty_image(xp.asarray(X), xp.asarray(xyz), xp.asarray([50e6, 60e6]), xp.asarray(lm),
+                                      products=("I", "V"), method=method, precision="fp64")
+        assert np.all(np.isfinite(to_np(img))) and rel_err(img, ref) < 1e-12
+        assert "3 non-finite (NaN/Inf) voltage samples were zeroed" in caplog.text
+        caplog.clear()

@@ -275,6 +275,8 @@ class DFTOperator:
                 self.pixel_pattern = b[:, :, 0, :].astype(self.cdtype)
         self.shared_geometry = self.G.shape[1] == 1
         self._derived = {}
+        #: (nant_kept, npol) NaN/Inf samples zeroed so far in complex input (device array), or None
+        self.nonfinite_counts = None
 
     # ------------------------------------------------------------------ operator forms
     def live_G(self, pol):
@@ -377,6 +379,13 @@ class DFTOperator:
         x = self._select(efield)
         if ints:
             x = x[..., 0].astype(self.rdtype) + 1j * x[..., 1].astype(self.rdtype)
+        else:
+            # NaN/Inf samples count as flagged for that sample: zeroed (never 0 * NaN) and counted per
+            # antenna-pol on the device (no host sync here; dirty_image reports them)
+            bad = ~xp.isfinite(x)
+            cnt = bad.sum(axis=(0, 1))
+            self.nonfinite_counts = cnt if self.nonfinite_counts is None else self.nonfinite_counts + cnt
+            x = xp.where(bad, xp.zeros((), x.dtype), x)
         x = x.astype(self.cdtype, copy=False)
         live, w = self.data_live, self.data_weights
         if self.chan_index is not None:
@@ -796,4 +805,16 @@ def dirty_image(efield, xyz_m, freq_hz, pixels_lm, *, remove_autocorr=False, met
     op = DFTOperator(xp.asarray(xyz_m), xp.asarray(freq_hz), xp.asarray(pixels_lm), npol=int(efield.shape[3]),
                      weights=None if weights is None else xp.asarray(weights),
                      pattern=None if pattern is None else xp.asarray(pattern), precision=precision)
-    return op.image(efield, products, remove_autocorr=remove_autocorr, method=method, accumulate=accumulate)
+    out = op.image(efield, products, remove_autocorr=remove_autocorr, method=method, accumulate=accumulate)
+    if op.nonfinite_counts is not None:
+        nbad = int(op.nonfinite_counts.sum())
+        if nbad:
+            per = to_numpy_counts(op.nonfinite_counts)
+            worst = np.unravel_index(int(np.argmax(per)), per.shape)
+            log.warning("dirty_image: %d non-finite (NaN/Inf) voltage samples were zeroed (treated as flagged); "
+                        "most in kept antenna %d pol %d (%d)", nbad, worst[0], worst[1], int(per[worst]))
+    return out
+
+
+def to_numpy_counts(a):
+    return a.get() if hasattr(a, "get") else np.asarray(a)

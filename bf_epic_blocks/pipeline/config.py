@@ -70,7 +70,12 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
                                      (default [I]; returned as the resolved list of names)
       remove_autocorr: bool          (default false)
       method: auto | direct | covariance (default auto)
-      precision: fp32 | fp64         (default fp32)
+      precision: fp32 | fp64 | tf32x3 | tf32 | fp16 | bf16  (default fp32; the last four need a GPU:
+                                     tensor-core modes, see bf_epic_blocks.imaging.gemm)
+      tolerance: float in (0, 1)     (default null; an accuracy target instead of a mode: the fastest
+                                     route x precision whose measured error bound is <= tolerance on the
+                                     device; method / precision, when given, restrict the choice)
+      min_elevation_deg: float in [0, 90) (default 0; grid pixels below this elevation are not imaged)
       epsilon: float in (0, 0.1]     (default 1e-4; accuracy target of wstack / moff)
     device: cpu | gpu | 'gpu:N'      (default cpu; returned as 'cpu' or 'gpu:N', 'gpu' = 'gpu:0')
     output:
@@ -117,6 +122,7 @@ from typing import Iterable
 
 import yaml
 
+from ..imaging.gemm import PRECISIONS as _PRECISIONS
 from ..imaging.products import PRESETS, VALID as VALID_PRODUCTS, resolve_products
 from .yaml_schema import (INVALID, REQUIRED, BadValue, Bool, Choice, Context, File, Float, Int, Key, Section, Str,
                           TimeStr, did_you_mean, is_valid, join_path, key_lines, run_check)
@@ -124,6 +130,7 @@ from .yaml_schema import (INVALID, REQUIRED, BadValue, Bool, Choice, Context, Fi
 __all__ = ["ConfigError", "load_config", "apply_overrides", "parse_device", "schema_keys",
            "STATIONS", "CATALOGUE_SOURCES", "DEFAULT_START", "NPOL"]
 
+PRECISION_NAMES = tuple(_PRECISIONS)
 STATIONS = ("lwasv", "lwana", "lwa1")
 #: Source names the simulated sky and the tracker know without coordinates.
 CATALOGUE_SOURCES = ("CygA", "CasA", "TauA", "VirA")
@@ -261,6 +268,8 @@ def _station_post(out, given, path, ctx):
 
 
 def _imager_post(out, given, path, ctx):
+    if out.get("tolerance") not in (None, INVALID) and "precision" not in given:
+        out["precision"] = None   # the tolerance picks it (bf_epic_blocks.imaging.plan)
     if "grid" in given and "track" in given:
         ctx.error(path, "give exactly one of imager.grid (all-sky) or imager.track (a patch that "
                         "follows a source), not both; set the other to null to remove it")
@@ -376,7 +385,9 @@ SCHEMA = Section({
         "products": Key(Products(), ["I"]),
         "remove_autocorr": Key(Bool(), False),
         "method": Key(Choice("auto", "direct", "covariance"), "auto"),
-        "precision": Key(Choice("fp32", "fp64"), "fp32"),
+        "precision": Key(Choice(*PRECISION_NAMES), "fp32"),
+        "tolerance": Key(Float(0.0, 1.0, lo_open=True, hi_open=True), None),
+        "min_elevation_deg": Key(Float(0.0, 90.0, hi_open=True), 0.0),
         "epsilon": Key(Float(0.0, 0.1, lo_open=True), 1e-4),
     }, post=_imager_post, what="an imager mapping"), {}),
     "device": Key(Device(), "cpu"),
@@ -536,6 +547,10 @@ def _fill_and_cross_check(cfg: dict, default_name: str, ctx: Context) -> None:
 
     src, im = cfg["source"], cfg["imager"]
     st = cfg["station"]
+    if is_valid(im) and is_valid(cfg["device"]) and is_valid(im["precision"]) and im["precision"] is not None \
+            and cfg["device"] == "cpu" and _PRECISIONS[im["precision"]][2]:
+        ctx.error("imager.precision", f"{im['precision']!r} needs tensor cores (device: gpu); on the CPU use "
+                                      "fp32 or fp64, or imager.tolerance to let the imager pick")
     if is_valid(st) and is_valid(src) and st.get("name") == "auto" and src["kind"] != "tbf":
         ctx.error("station.name", "'auto' takes the station from a TBF file's frame id; with a "
                                   f"{src['kind']} source name the station (lwasv, lwana, lwa1)")

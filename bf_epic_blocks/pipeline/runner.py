@@ -139,7 +139,23 @@ def _pixels(cfg, station):
         return tracking_pixels(tr["source"] if not isinstance(tr["source"], dict) else tr["source"],
                                tr["size"], tr["fov_deg"], tr["update_s"], station.location)
     g = im["grid"]
-    return lm_grid(g["size"], cell=g.get("cell"))
+    return lm_grid(g["size"], cell=g.get("cell"), min_elevation_deg=im.get("min_elevation_deg") or 0.0)
+
+
+def imaging_mode(cfg, npix, nstand, nchan):
+    """(method, precision, Plan or None): the configured route and precision, or the tolerance's pick
+    (:func:`bf_epic_blocks.imaging.plan.choose`) for this device and problem."""
+    im = cfg["imager"]
+    if im.get("tolerance") is None:
+        return im["method"], im["precision"], None
+    from ..imaging import plan as planner
+
+    class _Ns:  # choose() needs only the namespace's name: planning must not need CuPy
+        __name__ = "cupy" if cfg["device"].startswith("gpu") else "numpy"
+    pick = planner.choose(im["tolerance"], xp=_Ns, ntime=int(im["accumulate_frames"]), nant=nstand, npix=npix,
+                          npol=2, nchan=nchan, products=im["products"], method=im["method"],
+                          precision=im["precision"])
+    return pick.method, pick.precision, pick
 
 
 def _device(cfg):
@@ -208,8 +224,13 @@ def build_graph(cfg, progress=None):
         pixels = _pixels(cfg, station)
         common = dict(products=im["products"], remove_autocorr=im["remove_autocorr"])
         if im["kind"] == "dft":
-            imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], method=im["method"],
-                                    precision=im["precision"], **common)
+            npix = pixels.npix if hasattr(pixels, "npix") else im["track"]["size"] ** 2
+            method, precision, pick = imaging_mode(cfg, npix, int((~station.flags).any(axis=1).sum()),
+                                                   len(channel_freqs(cfg)) if src_cfg["kind"] == "simulated" else 1)
+            if pick is not None:
+                log.info("imager.tolerance %.1e: %s", im["tolerance"], pick.describe())
+            imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], method=method,
+                                    precision=precision, **common)
         else:
             from ..blocks.wstack import WStackBlock
             imager = WStackBlock(calfold, pixels, im["accumulate_frames"], epsilon=im["epsilon"],
@@ -308,8 +329,16 @@ def plan(cfg):
     bytes_ = {k: v * nchan for k, v in
               cost.route_bytes(gulp, nstand_any, npix, 2, 8 if im["precision"] == "fp32" else 16).items()}
     input_bytes = gulp * nchan * station.nstand * 2  # ci4: one byte per complex sample
-    chosen = im["method"] if im["method"] != "auto" else cost.choose_method(acc, nstand_any, npix, 2, nblk)
-    t_gulp = cost.predict_seconds(per_gulp[chosen], dev, chosen) if im["kind"] == "dft" else float("nan")
+    method, precision, pick = imaging_mode(cfg, npix, nstand_any, nchan)
+    chosen = method if method != "auto" else cost.choose_method(acc, nstand_any, npix, 2, nblk)
+    if im["kind"] != "dft":
+        t_gulp = float("nan")
+    else:
+        from ..imaging import plan as planner
+        rows = [r for r in planner.load_table()["rows"]
+                if (r["device"], r["method"], r["precision"]) == (dev, chosen, precision)]
+        t_gulp = (per_gulp[chosen] / rows[0]["rate_cmac_s"] if rows
+                  else cost.predict_seconds(per_gulp[chosen], dev, chosen))
     rt = gulp * dt / t_gulp if t_gulp == t_gulp else float("nan")
     d = {"station": station.name, "stands": station.nstand, "stands_used": nstand_any, "antenna_pols_used": nant_pol,
          "flagged_antenna_pols": int(flags.sum()), "pixels": npix, "pixels_text": pix_txt, "nchan": nchan,
@@ -328,11 +357,17 @@ def plan(cfg):
         f"covariance {per_gulp['covariance']:.3e} CMAC",
         f"  bytes per gulp: input {input_bytes / 2**20:.1f} MiB (ci4); working set direct "
         f"{bytes_['direct'] / 2**20:.1f} MiB, covariance {bytes_['covariance'] / 2**20:.1f} MiB",
-        f"  method: {chosen}" + (" (auto: fewer operations)" if im["method"] == "auto" else ""),
+        f"  method: {chosen}" + (" (auto: fewer operations)" if method == "auto" else "")
+        + f", precision {precision}",
     ]
+    if pick is not None:
+        lines.append(f"  tolerance {im['tolerance']:.1e}: picked {pick.method} route, {pick.precision}, measured "
+                     f"error bound {pick.bound:.1e} (bf_epic_blocks/imaging/measured.json)")
+        d["tolerance_pick"] = {"method": pick.method, "precision": pick.precision, "bound": pick.bound}
     if im["kind"] == "dft":
         lines.append(f"  predicted on {dev}: {t_gulp * 1e3:.2f} ms per gulp of {gulp * dt * 1e3:.2f} ms of data "
-                     f"-> real-time factor {rt:.2f} (rates measured on the README's machines)")
+                     f"-> real-time factor {rt:.2f} (rates measured for {chosen} x {precision}, "
+                     "bf_epic_blocks/imaging/measured.json)")
     else:
         lines.append("  (run time of the w-stacking/MOFF imagers: see tools/bench_wstack.py)")
     return d, "\n".join(lines)

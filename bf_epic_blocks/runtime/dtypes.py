@@ -136,6 +136,31 @@ def unpack_complex(data, dtype_str, xp=None):
     return data.astype(xp.complex64)
 
 
+def unpack_int8_pairs(data, dtype_str, xp=None):
+    """Integer (re, im) pairs, int8 shaped ``data.shape + (2,)``, of a 'ci4' or 'ci8' span array.
+
+    The exact form of F-engine voltages for the imager's integer paths (``imaging.DFTOperator``
+    takes them directly: integer covariances, fp16 operands). Same storage forms as
+    :func:`unpack_complex` (for plain 'ci8' the trailing (re, im) axis is already there). Other types
+    raise TypeError: use :func:`unpack_complex`.
+    """
+    kind, comp = _check_name(dtype_str)
+    xp = _xp_of(data, xp)
+    names = getattr(data.dtype, 'names', None)
+    if kind == 'nibble':
+        if names:
+            data = data[names[0]]
+        b = data.view(xp.uint8)
+        re = ((b >> 4) ^ 8).astype(xp.int8) - xp.int8(8)     # sign-extend the 4-bit fields
+        im = ((b & 0x0F) ^ 8).astype(xp.int8) - xp.int8(8)
+        return xp.stack([re, im], axis=-1)
+    if kind == 'pair' and np.dtype(comp) == np.int8:
+        if names:
+            return xp.stack([data['re'], data['im']], axis=-1)
+        return data
+    raise TypeError(f"integer pairs come from 'ci4' or 'ci8' data, not {dtype_str!r}")
+
+
 def pack_ci4(values, xp=None):
     """Complex values -> ci4 bytes (uint8, same shape): round, clip to [-8, 7], high nibble =
     real, low nibble = imaginary, two's complement. NumPy or CuPy in, same module out."""
