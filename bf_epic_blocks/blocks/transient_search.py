@@ -118,7 +118,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         data = span_array(ispan)
         n = data.shape[0]
         with _compat.stream_context():
-            x = data[:, :, self._prod].reshape(n, self.lay["nchan"], -1)[:, :, self._index]
+            x = self.xp.take(data[:, :, self._prod].reshape(n, self.lay["nchan"], -1), self._index, axis=-1)
             n_before = self.search.nvalues
             cr = self.search.push(x)
             nsearched = max(0, self.search.nvalues - max(n_before, self.search.window + self.search.wmax - 1))

@@ -185,12 +185,13 @@ class TransientSearch:
         nnew = B - first
         if nnew <= 0:
             return xp.zeros((self.nser, 0, self.npix), dtype=xp.float32)
-        out = xp.empty((self.nser, nnew, self.npix), dtype=xp.float32)
+        out = xp.zeros((self.nser, nnew, self.npix), dtype=xp.float32)
         base = self.shift + first                          # ext index of the first complete image
-        chans = xp.arange(self.nchan)[:, None]
-        for d in range(self.nser):
-            t = base + xp.arange(nnew)[None, :] - xp.asarray(self._back[d])[:, None]   # (nchan, nnew)
-            out[d] = ext[chans, t].mean(axis=0)
+        for d in range(self.nser):                         # contiguous slices: no gather
+            for c in range(self.nchan):
+                a = base - int(self._back[d, c])
+                out[d] += ext[c, a:a + nnew]
+        out *= 1.0 / self.nchan
         return out
 
     def _push_values(self, v):
@@ -202,20 +203,19 @@ class TransientSearch:
         if self._ref is None:
             self._ref = v[:, 0].astype(xp.float32)
         v = v - self._ref[:, None, :]                                       # offset about the reference
-        n0, W, wmax, cap = self.nvalues, self.window, self.wmax, self.capacity
+        n0, W, wmax = self.nvalues, self.window, self.wmax
         n = np.arange(n0, n0 + B)
-        self._hist[:, xp.asarray(n % cap)] = v
+        self._ring_write(n0, v)
         self.nvalues += B
         # running sums: value n - wmax enters the window of value n, n - wmax - W leaves it
         enter, leave = n - wmax, n - wmax - W
-        ein = xp.asarray((enter % cap)[enter >= 0])
-        lin = xp.asarray((leave % cap)[leave >= 0])
         de = xp.zeros((self.nser, B, self.npix), dtype=xp.float64)
         dl = xp.zeros_like(de)
-        if ein.size:
-            de[:, B - int(ein.size):] = self._hist[:, ein]
-        if lin.size:
-            dl[:, B - int(lin.size):] = self._hist[:, lin]
+        ne, nl = int((enter >= 0).sum()), int((leave >= 0).sum())
+        if ne:
+            de[:, B - ne:] = self._ring_read(int(enter[B - ne]), ne)
+        if nl:
+            dl[:, B - nl:] = self._ring_read(int(leave[B - nl]), nl)
         s1 = self._s1[:, None] + xp.cumsum(de - dl, axis=1)                  # (nser, B, npix) after value n
         s2 = self._s2[:, None] + xp.cumsum(de * de - dl * dl, axis=1)
         self._s1, self._s2 = s1[:, -1].copy(), s2[:, -1].copy()
@@ -228,8 +228,8 @@ class TransientSearch:
         sigma = xp.sqrt(xp.maximum(s2 - s1 * mean, 0.0) / (W - 1))
         # boxcar sums over the newest w values, from a cumulative sum of the last wmax - 1 + B' values
         nb = B - k0
-        idx = (np.arange(n0 + k0 - (wmax - 1), n0 + B)) % cap
-        c = xp.cumsum(self._hist[:, xp.asarray(idx)].astype(xp.float64), axis=1)
+        first = n0 + k0 - (wmax - 1)
+        c = xp.cumsum(self._ring_read(first, n0 + B - first).astype(xp.float64), axis=1)
         c = xp.concatenate([xp.zeros((self.nser, 1, self.npix), dtype=xp.float64), c], axis=1)
         out = []
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -247,6 +247,22 @@ class TransientSearch:
                 out.append(Crossings(image=end - w + 1 - dmax, end_image=end, series=s,
                                      width_index=np.full(s.size, wi), pixel=p, snr=to_numpy(snr[hit])))
         return Crossings.concat(out)
+
+    def _ring_read(self, first, count):
+        """Values [first, first + count) of the circular history, (nser, count, npix) (a view when
+        they do not wrap)."""
+        a = first % self.capacity
+        if a + count <= self.capacity:
+            return self._hist[:, a:a + count]
+        k = self.capacity - a
+        return self.xp.concatenate([self._hist[:, a:], self._hist[:, :count - k]], axis=1)
+
+    def _ring_write(self, first, v):
+        a, count = first % self.capacity, v.shape[1]
+        k = min(count, self.capacity - a)
+        self._hist[:, a:a + k] = v[:, :k]
+        if k < count:
+            self._hist[:, :count - k] = v[:, k:]
 
     # ------------------------------------------------------------------ public
     def push(self, images):

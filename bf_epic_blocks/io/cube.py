@@ -67,7 +67,7 @@ def cube_wcs_header(grid, freq_hz, products, time, location, dt_s, *, chan_width
     h["WCSAXES"] = 5
     t = as_time(time)
     for k, v in (("CTYPE5", "TIME"), ("CUNIT5", "s"), ("CRPIX5", 1.0), ("CRVAL5", 0.0), ("CDELT5", float(dt_s)),
-                 ("MJDREF", float(t.utc.mjd)), ("TIMESYS", "UTC")):
+                 ("MJDREF", float(t.utc.mjd)), ("DATEREF", t.utc.isot), ("TIMESYS", "UTC")):
         h[k] = v
     return WCS(h).to_header().tostring(sep="\n")
 
