@@ -272,3 +272,30 @@ def test_cpu_and_gpu_find_the_same_candidates():
         np.testing.assert_array_equal(a[col], b[col])
     np.testing.assert_allclose(a["snr"], b["snr"], rtol=1e-4)
     assert out[0].search_stats["crossings"] == out[1].search_stats["crossings"]
+
+
+# ------------------------------------------------------------------------------ the YAML pipeline
+def test_transient_pipeline_yaml_end_to_end(tmp_path):
+    """pipelines/lwasv_sim_transient.yaml, made small: the burst is the brightest candidate, on the sky
+    where it was put; every image is in the HDF5 cube."""
+    from pathlib import Path
+    from astropy.coordinates import SkyCoord
+    from bf_epic_blocks.io.cube import read_image_cube
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import run
+    yaml = Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_transient.yaml"
+    cfg = load_config(yaml, [f"output.dir={tmp_path}", "source.duration_s=0.2", "source.channels.count=8",
+                             "imager.grid.size=16", "imager.search.window_s=0.06", "imager.search.dms=[0, 1.0, 2.0, 3.0]",
+                             "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.14, duration_s: 0.0015, "
+                             "flux_jy: 1500.0, dm: 2.0}]"])
+    summary = run(cfg, show_progress=False)
+    tab = read_candidates(tmp_path / "lwasv_sim_transient_candidates.ecsv")
+    best = tab[int(np.argmax(tab["snr"]))]
+    print(tab["snr", "dm", "width", "image", "ra_deg", "dec_deg"])
+    assert best["dm"] == 2.0 and best["snr"] > 8
+    assert abs(best["image"] - 0.14 / (16 * DT)) <= 1
+    sep = SkyCoord(best["ra_deg"], best["dec_deg"], unit="deg").separation(SkyCoord(310.0, 20.0, unit="deg")).deg
+    assert sep < 1.5 * np.degrees(2 / 16)                       # within ~one 7-degree cell
+    cube = read_image_cube(next(tmp_path.glob("*_cube_*.h5")))
+    assert cube["nimages"] == summary["images"] == int(0.2 / DT) // 16 and cube["images"].dtype == np.float16
+    assert summary["search"]["candidates"] == len(tab)

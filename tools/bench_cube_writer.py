@@ -128,6 +128,7 @@ def main(argv=None):
     ap.add_argument("--dir", default="/tmp", help="directory on the disk to measure")
     ap.add_argument("--rows", nargs="*", default=None, help="subset of rows (dd tofile cube-f32 cube-f16 "
                                                              "cube-avg block-f32 block-f16)")
+    ap.add_argument("--repeat", type=int, default=3, help="rounds over the rows (interleaved); median reported")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     from astropy.coordinates import EarthLocation
@@ -141,9 +142,9 @@ def main(argv=None):
     work = os.path.join(a.dir, f"bench_cube_{os.getpid()}")
     os.makedirs(work, exist_ok=True)
     rows = a.rows or ["dd", "tofile", "cube-f32", "cube-f16", "cube-avg", "block-f32", "block-f16"]
-    results = []
+    runs = []
     try:
-        for name in rows:
+        for name in [r for _ in range(a.repeat) for r in rows]:
             _settle()
             path = os.path.join(work, f"{name}.bin")
             files = [path]
@@ -161,27 +162,40 @@ def main(argv=None):
             if nimg:
                 r.update(images=nimg, images_per_s=nimg / el, caseP_MBps=nimg * CASE_P_BYTES / el / 1e6,
                          realtime_factor=nimg / el / IMAGE_RATE)
-            results.append(r)
+            runs.append(r)
             for f in files:
                 if os.path.exists(f):
                     os.remove(f)
             print(f"  {name}: {el:.1f} s", file=sys.stderr)
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    results = []
+    for name in rows:   # the median round of each row (by rate); the range across rounds alongside
+        mine = sorted((r for r in runs if r["row"] == name), key=lambda r: r["disk_MBps"])
+        med = dict(mine[len(mine) // 2])
+        med["disk_MBps_range"] = [mine[0]["disk_MBps"], mine[-1]["disk_MBps"]]
+        if "caseP_MBps" in med:
+            med["caseP_MBps_range"] = [mine[0]["caseP_MBps"], mine[-1]["caseP_MBps"]]
+        results.append(med)
     ceiling = next((r["disk_MBps"] for r in results if r["row"] == "dd"), None)
     need = IMAGE_RATE * CASE_P_BYTES / 1e6
     print(f"\nCase P image stream: {need:.1f} MB/s of float32 images ({IMAGE_RATE:.1f} images/s); "
           f"target 1.5x = {1.5 * need:.1f} MB/s; {a.gb:g} GB per row, fsync'ed, in {a.dir}")
-    print(f"{'row':<12} {'s':>7} {'disk MB/s':>10} {'images/s':>10} {'case-P MB/s':>12} {'x real time':>12} "
-          f"{'of dd':>7}")
+    print(f"median of {a.repeat} interleaved rounds; [min-max] over the rounds")
+    print(f"{'row':<12} {'s':>7} {'disk MB/s':>10} {'[range]':>13} {'images/s':>10} {'case-P MB/s':>12} "
+          f"{'[range]':>13} {'x real time':>12} {'of dd':>7}")
     for r in results:
         frac = r["disk_MBps"] / ceiling if ceiling else float("nan")
-        print(f"{r['row']:<12} {r['seconds']:>7.2f} {r['disk_MBps']:>10.1f} {r.get('images_per_s', float('nan')):>10.0f} "
-              f"{r.get('caseP_MBps', float('nan')):>12.1f} {r.get('realtime_factor', float('nan')):>12.2f} {frac:>7.2f}")
+        dr = r["disk_MBps_range"]
+        cr = r.get("caseP_MBps_range", [float("nan")] * 2)
+        print(f"{r['row']:<12} {r['seconds']:>7.2f} {r['disk_MBps']:>10.1f} {f'[{dr[0]:.0f}-{dr[1]:.0f}]':>13} "
+              f"{r.get('images_per_s', float('nan')):>10.0f} {r.get('caseP_MBps', float('nan')):>12.1f} "
+              f"{f'[{cr[0]:.0f}-{cr[1]:.0f}]':>13} {r.get('realtime_factor', float('nan')):>12.2f} {frac:>7.2f}")
     if a.json:
         out = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(), "host": platform.node(),
                "ncpu": os.cpu_count(), "dir": a.dir, "gb_per_row": a.gb, "caseP_need_MBps": need,
-               "target_MBps": 1.5 * need, "disk_ceiling_MBps": ceiling, "rows": results}
+               "target_MBps": 1.5 * need, "disk_ceiling_MBps": ceiling, "repeat": a.repeat, "rows": results,
+               "runs": runs}
         os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
         with open(a.json, "w") as f:
             json.dump(out, f, indent=1)

@@ -176,31 +176,37 @@ class ImageCubeWriter:
                 if nbig and not self.overflow:
                     log.warning("%s: %d image values beyond the float16 range (+-65504) stored as inf", self.path, nbig)
                 self.overflow += nbig
-        pos = 0
-        while pos < x.shape[0]:
-            take = min(self.k - self._nbuf, x.shape[0] - pos)
+        x = np.ascontiguousarray(x, dtype=self.dtype)
+        pos, n = 0, x.shape[0]
+        while pos < n:
+            if self._nbuf == 0 and n - pos >= self.k and self.nwritten % self.k == 0:
+                self._write(x[pos:pos + self.k])          # whole aligned chunk: no copy into the buffer
+                pos += self.k
+                continue
+            take = min(self.k - self._nbuf, n - pos)
             self._buf[self._nbuf:self._nbuf + take] = x[pos:pos + take]
             self._nbuf += take
             pos += take
             if self._nbuf == self.k:
                 self._write_buffer()
-        self.nimages += x.shape[0]
+        self.nimages += n
 
     def _write_buffer(self):
-        n = self._nbuf
-        if n == 0:
-            return
-        a = self.nwritten
+        if self._nbuf:
+            self._write(self._buf[:self._nbuf])
+            self._nbuf = 0
+
+    def _write(self, block):
+        """Write ``block`` (n <= k images, C-contiguous, the file's dtype) after the last image."""
+        n, a = block.shape[0], self.nwritten
         self.dset.resize(a + n, axis=0)
         if n == self.k and a % self.k == 0:   # a whole aligned chunk: straight to the file, no filter pipeline
-            self.dset.id.write_direct_chunk((a, 0, 0, 0), self._buf.tobytes() if not self._buf.flags.c_contiguous
-                                            else memoryview(self._buf))
+            self.dset.id.write_direct_chunk((a, 0, 0, 0), memoryview(block))
         else:
-            self.dset[a:a + n] = self._buf[:n]
+            self.dset[a:a + n] = block
         self.tags.resize(a + n, axis=0)
         self.tags[a:a + n] = self.time_tag0 + self.ticks * np.arange(a, a + n, dtype=np.int64)
         self.nwritten += n
-        self._nbuf = 0
         self._chunks += 1
         if self._chunks % self.flush_every == 0:
             self.f.attrs["nimages"] = self.nwritten
