@@ -6,6 +6,8 @@ runtime (:mod:`bf_epic_blocks.runtime`); :mod:`._compat` picks. Header keys: doc
 from ._compat import HAVE_BIFROST, RUNTIME, bfp  # noqa: F401
 from .array_io import ArraySinkBlock, ArraySourceBlock, array_sink, array_source  # noqa: F401
 from .calfold import CalFoldBlock, cal_fold  # noqa: F401
+from .cube_writer import ImageCubeWriterBlock, image_cube_writer  # noqa: F401
 from .dft_imager import DFTImagerBlock, dft_imager  # noqa: F401
-from .headers import efield_header, efield_layout  # noqa: F401
+from .headers import efield_header, efield_layout, image_layout  # noqa: F401
+from .transient_search import TransientSearchBlock, transient_search  # noqa: F401
 from .wstack import WStackBlock, wstack  # noqa: F401

@@ -124,3 +124,65 @@ def _jsonable(obj):
 def derived_header(hdr):
     """A deep copy of ``hdr`` for an output sequence (headers must never be shared between rings)."""
     return copy.deepcopy(hdr)
+
+
+def image_layout(hdr, who="block"):
+    """Validate an image header written by the imagers (docs/HEADERS.md); returns a dict with
+    ``kind`` ('grid' or 'list'), ``grid`` (LMGrid or None), ``lm`` (npix, 2) of the imaged pixels,
+    ``pixel_index`` (npix,) flat indices into the frame's pixel axes (N*N for grids), nchan, nprod,
+    products, freq_hz (nchan,), t0_s, dt_s (seconds per image), time_tag, integration_ticks,
+    frame_shape (the frame's axes after time).
+    """
+    from ..imaging.pixels import lm_grid
+    t = _tensor(hdr, who)
+    labels = list(t.get("labels") or [])
+    shape = list(t["shape"])
+    if labels == ["time", "freq", "pol", "m", "l"] and len(shape) == 5 and shape[0] == -1:
+        pix = hdr.get("pixels") or {}
+        if pix.get("kind") != "grid" or "size" not in pix:
+            raise ValueError(f"{who}: a gridded image header needs pixels = {{kind: grid, size, cell}}, got {pix!r}")
+        grid = lm_grid(int(pix["size"]), cell=pix.get("cell"))
+        if shape[3:] != [grid.size, grid.size]:
+            raise ValueError(f"{who}: image shape {shape} does not match the {grid.size}x{grid.size} grid")
+        kind, lm, index = "grid", grid.lm, np.flatnonzero(grid.mask)
+    elif labels == ["time", "freq", "pol", "pixel"] and len(shape) == 4 and shape[0] == -1:
+        grid = None
+        lm = np.asarray((hdr.get("pixels") or {}).get("lm"), dtype=np.float64)
+        if lm.shape != (shape[3], 2):
+            raise ValueError(f"{who}: header pixels.lm must be ({shape[3]}, 2), got {lm.shape}")
+        kind, index = "list", np.arange(shape[3])
+    else:
+        raise ValueError(f"{who}: expected an imager's output, labels ['time','freq','pol','m','l'] or "
+                         f"['time','freq','pol','pixel'] with shape [-1, ...]; got labels {labels}, shape {shape}")
+    if t["dtype"] not in ("f16", "f32", "f64"):
+        raise TypeError(f"{who}: images must be real floats (f32), got dtype {t['dtype']!r}")
+    nchan, nprod = int(shape[1]), int(shape[2])
+    scales = list(t.get("scales") or [None] * len(shape))
+    if "freq_hz" in hdr:
+        freq = np.asarray(hdr["freq_hz"], dtype=np.float64)
+    elif scales[1] is not None:
+        freq = scales[1][0] + scales[1][1] * np.arange(nchan)
+    else:
+        raise ValueError(f"{who}: no channel frequencies: give header 'freq_hz' or _tensor scales[1]")
+    if freq.shape != (nchan,):
+        raise ValueError(f"{who}: {nchan} channels but freq_hz has shape {freq.shape}")
+    products = list(hdr.get("pol_products") or [f"P{i}" for i in range(nprod)])
+    if len(products) != nprod:
+        raise ValueError(f"{who}: pol_products {products} do not match the {nprod} products of the data")
+    imager = hdr.get("imager") or {}
+    if scales[0] is None:
+        raise ValueError(f"{who}: no time axis scale: give _tensor scales[0] = [t0_s, seconds per image]")
+    t0_s, dt_s = float(scales[0][0]), float(scales[0][1])
+    ticks = int(imager.get("integration_ticks") or round(dt_s * FS_HZ))
+    return {"kind": kind, "grid": grid, "lm": lm, "pixel_index": index, "nchan": nchan, "nprod": nprod,
+            "products": products, "freq_hz": freq, "t0_s": t0_s, "dt_s": dt_s,
+            "time_tag": int(hdr.get("time_tag", 0)), "integration_ticks": ticks, "frame_shape": shape[1:]}
+
+
+def station_location(hdr):
+    """astropy EarthLocation of the header's station (``station.lat_deg/lon_deg/elev_m``), or None."""
+    st = hdr.get("station") or {}
+    if "lat_deg" not in st or "lon_deg" not in st:
+        return None
+    from astropy.coordinates import EarthLocation
+    return EarthLocation.from_geodetic(st["lon_deg"], st["lat_deg"], st.get("elev_m", 0.0))

@@ -165,10 +165,12 @@ class SimSkySourceBlock(bfp.SourceBlock):
               recomputed for each gulp's start time; gulp g uses seed (seed, g) so runs repeat exactly.
     quantize : True writes 'ci4' scaled like an F-engine (rms 2 units; scale fixed by the first
               gulp), False writes 'cf32'.
+    transients : dispersed bursts, ``[{ra_deg, dec_deg, start_s, duration_s, flux_jy, dm}]`` with
+              ``start_s`` seconds after ``start`` (at the highest channel; see sky.efield).
     """
 
     def __init__(self, station, freq_hz, start, duration_s, sources, gulp_nframe, noise_power=1000.0, seed=1,
-                 quantize=True, cable=True, progress=None, space="system", *args, **kwargs):
+                 quantize=True, cable=True, progress=None, space="system", transients=None, *args, **kwargs):
         super().__init__(["simulated-sky"], gulp_nframe, space, *args, **kwargs)
         from astropy.time import Time
         self.station, self.freq_hz = station, np.asarray(freq_hz, dtype=np.float64)
@@ -181,6 +183,7 @@ class SimSkySourceBlock(bfp.SourceBlock):
         self.sources, self.noise_power, self.seed = sources, float(noise_power), int(seed)
         self.quantize, self.cable, self.progress = quantize, cable, progress
         self.scale = None
+        self.transients = list(transients or [])
 
     def create_reader(self, sourcename):
         return _Reader(pos=0)
@@ -192,7 +195,8 @@ class SimSkySourceBlock(bfp.SourceBlock):
                             dtype="ci4" if self.quantize else "cf32", npol=2, t0_s=float(self.start.unix),
                             simulation={"sources": [str(s) if not isinstance(s, dict) else s.get("name", "custom")
                                                     for s in self.sources],
-                                        "noise_power": self.noise_power, "seed": self.seed, "start": self.start.isot})
+                                        "noise_power": self.noise_power, "seed": self.seed, "start": self.start.isot,
+                                        "transients": self.transients})
         from ..sky import source_directions
         d = source_directions(self.sources, self.start, st.location)
         log.info("simulated sky at %s UTC: %s above the horizon%s", self.start.isot[:19],
@@ -217,7 +221,8 @@ class SimSkySourceBlock(bfp.SourceBlock):
         gulp_index = reader.pos // max(1, self.gulp_nframe)
         x = simulate_efield(self.station.xyz_m, self.freq_hz, n, sources=self.sources, time=t,
                             location=self.station.location, cable_delay_s=self._delay, cable_gain=self._gain,
-                            noise_power=self.noise_power, seed=[self.seed, gulp_index])
+                            noise_power=self.noise_power, seed=[self.seed, gulp_index],
+                            transients=self.transients, t0_s=reader.pos * self.dt_s, sample_time_s=self.dt_s)
         if self.quantize:
             packed, self.scale = quantize_ci4(x, scale=self.scale)
             assign_storage(dst[:n], _as_storage(packed, dst.dtype))

@@ -35,6 +35,9 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       noise_power: float >= 0        (default 1000.0)
       seed: int                      (default 1)
       quantize: bool                 (default true)
+      transients: list of dispersed bursts {ra_deg, dec_deg, start_s: float >= 0 (s after start, at the
+               band's highest channel), duration_s: float > 0, flux_jy: float >= 0, dm: float >= 0
+               (default 0), name: str (optional)}   (default [])
       # kind: tbf, tbx or file
       path: path to a TBF / TBX file (required, must exist)
       channel_block: int >= 0        (tbf only; default null = all channels; image only this block of the
@@ -77,6 +80,15 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
                                      device; method / precision, when given, restrict the choice)
       min_elevation_deg: float in [0, 90) (default 0; grid pixels below this elevation are not imaged)
       epsilon: float in (0, 0.1]     (default 1e-4; accuracy target of wstack / moff)
+      search:                        transient search on the images (default null = none)
+        threshold: float > 0         (default 6.0; S/N)
+        window_s: float > 0          (default 1.0; sliding mean/variance window)
+        dms: list of float >= 0      (default [0.0]; trial DMs, pc cm^-3)
+        widths: list of int >= 1     (default [1, 2, 4, 8]; boxcar widths in images)
+        average_channels: bool       (default true; dedisperse and average, else per channel)
+        product: str                 (default null = the first product)
+        table: ecsv | fits           (default ecsv; <prefix>_candidates.<table> in output.dir)
+        png: bool                    (default true; sky with the candidates and their light curves)
     device: cpu | gpu | 'gpu:N'      (default cpu; returned as 'cpu' or 'gpu:N', 'gpu' = 'gpu:0')
     output:
       dir: path                      (default 'output/<name>'; relative to the working directory)
@@ -84,6 +96,10 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       png: bool                      (default true)
       table: bool                    (default false)
       prefix: str                    (default: name)
+      cube:                          HDF5 image cubes with a time axis (default null = none)
+        dtype: float32 | float16     (default float32)
+        average_channels: bool       (default false)
+        images_per_file: int >= 1    (default null = one file per sequence)
 
 Numbers: ``1e-3`` is accepted for a float although YAML 1.1 (PyYAML) reads it as a string.
 Paths of input files (``station.ssmif``, ``source.path``, ``calibration.gains_table``) are resolved
@@ -124,8 +140,8 @@ import yaml
 
 from ..imaging.gemm import PRECISIONS as _PRECISIONS
 from ..imaging.products import PRESETS, VALID as VALID_PRODUCTS, resolve_products
-from .yaml_schema import (INVALID, REQUIRED, BadValue, Bool, Choice, Context, File, Float, Int, Key, Section, Str,
-                          TimeStr, did_you_mean, is_valid, join_path, key_lines, run_check)
+from .yaml_schema import (INVALID, REQUIRED, BadValue, Bool, Choice, Context, File, Float, Int, Key, ListOf, Section,
+                          Str, TimeStr, did_you_mean, is_valid, join_path, key_lines, run_check)
 
 __all__ = ["ConfigError", "load_config", "apply_overrides", "parse_device", "schema_keys",
            "STATIONS", "CATALOGUE_SOURCES", "DEFAULT_START", "NPOL"]
@@ -298,6 +314,33 @@ IMAGER_TRACK = Section({
     "update_s": Key(Float(0.0, lo_open=True), 10.0),
 }, what="a track mapping {source, size, fov_deg, update_s}")
 
+TRANSIENT = Section({
+    "name": Key(Str(r"\S+", "a name without spaces"), None),
+    "ra_deg": Key(Float(0.0, 360.0, hi_open=True), REQUIRED),
+    "dec_deg": Key(Float(-90.0, 90.0), REQUIRED),
+    "start_s": Key(Float(0.0), REQUIRED),
+    "duration_s": Key(Float(0.0, lo_open=True), REQUIRED),
+    "flux_jy": Key(Float(0.0), REQUIRED),
+    "dm": Key(Float(0.0), 0.0),
+}, what="a burst mapping {ra_deg, dec_deg, start_s, duration_s, flux_jy, dm}")
+
+IMAGER_SEARCH = Section({
+    "threshold": Key(Float(0.0, lo_open=True), 6.0),
+    "window_s": Key(Float(0.0, lo_open=True), 1.0),
+    "dms": Key(ListOf(Float(0.0), "DMs >= 0"), [0.0]),
+    "widths": Key(ListOf(Int(1), "integers >= 1"), [1, 2, 4, 8]),
+    "average_channels": Key(Bool(), True),
+    "product": Key(Str(r"\S+", "a product name"), None),
+    "table": Key(Choice("ecsv", "fits"), "ecsv"),
+    "png": Key(Bool(), True),
+}, what="a search mapping {threshold, window_s, dms, widths, ...}")
+
+OUTPUT_CUBE = Section({
+    "dtype": Key(Choice("float32", "float16"), "float32"),
+    "average_channels": Key(Bool(), False),
+    "images_per_file": Key(Int(1), None),
+}, what="a cube mapping {dtype, average_channels, images_per_file}")
+
 SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf", "tbx", "file", "udp"), REQUIRED),
                  "gulp_nframe": Key(Int(1), 1024)}
 SOURCE_SIMULATED = {
@@ -312,6 +355,7 @@ SOURCE_SIMULATED = {
     "noise_power": Key(Float(0.0), 1000.0),
     "seed": Key(Int(), 1),
     "quantize": Key(Bool(), True),
+    "transients": Key(ListOf(TRANSIENT, "burst mappings"), []),
 }
 SOURCE_TBF = {
     "path": Key(File("TBF file"), REQUIRED),
@@ -389,6 +433,7 @@ SCHEMA = Section({
         "tolerance": Key(Float(0.0, 1.0, lo_open=True, hi_open=True), None),
         "min_elevation_deg": Key(Float(0.0, 90.0, hi_open=True), 0.0),
         "epsilon": Key(Float(0.0, 0.1, lo_open=True), 1e-4),
+        "search": Key(IMAGER_SEARCH, None),
     }, post=_imager_post, what="an imager mapping"), {}),
     "device": Key(Device(), "cpu"),
     "output": Key(Section({
@@ -397,6 +442,7 @@ SCHEMA = Section({
         "png": Key(Bool(), True),
         "table": Key(Bool(), False),
         "prefix": Key(Str(r"[^/\\\s]+", "a file-name prefix without spaces or slashes"), None),
+        "cube": Key(OUTPUT_CUBE, None),
     }, what="an output mapping"), {}),
 }, what="a pipeline mapping")
 
@@ -564,6 +610,15 @@ def _fill_and_cross_check(cfg: dict, default_name: str, ctx: Context) -> None:
                       f"{im['accumulate_frames']} frames ({im['accumulate_frames'] / ch['width_hz'] * 1e3:g} ms at "
                       f"{ch['width_hz']:g} Hz channels) is longer than source.duration_s = {src['duration_s']:g} s "
                       f"({int(nframe + 1e-9)} frames): no image would be produced")
+    search = im.get("search") if is_valid(im) else None
+    if is_valid(search) and search is not None:
+        if is_valid(search["product"]) and search["product"] is not None and is_valid(im["products"]) \
+                and search["product"] not in im["products"]:
+            ctx.error("imager.search.product", f"{search['product']!r} is not one of imager.products {im['products']}")
+        if is_valid(src) and src["kind"] == "simulated" and is_valid(src["duration_s"]) and is_valid(search["window_s"]) \
+                and search["window_s"] >= src["duration_s"]:
+            ctx.error("imager.search.window_s", f"{search['window_s']:g} s is not shorter than source.duration_s = "
+                                                f"{src['duration_s']:g} s: the window would never fill, nothing would be searched")
     if is_valid(im) and is_valid(im["track"]) and im["track"] is not None and is_valid(im["track"]["source"]):
         known = set(CATALOGUE_SOURCES)
         if is_valid(src) and src["kind"] == "simulated" and is_valid(src["sources"]):

@@ -35,6 +35,12 @@ class Graph:
     nframe_total: int | None
     station: object
     outdir: str
+    search: object = None
+    cube: object = None
+
+    @property
+    def sinks(self):
+        return [b for b in (self.writer, self.search, self.cube) if b is not None]
 
 
 def capture_format(src_cfg):
@@ -210,7 +216,9 @@ def build_graph(cfg, progress=None):
             freq = channel_freqs(cfg)
             source = SimSkySourceBlock(station, freq, src_cfg["start"], src_cfg["duration_s"], src_cfg["sources"],
                                        gulp, noise_power=src_cfg["noise_power"], seed=src_cfg["seed"],
-                                       quantize=src_cfg["quantize"], progress=progress, space=space)
+                                       quantize=src_cfg["quantize"], progress=progress, space=space,
+                                       transients=[{k: v for k, v in t.items() if v is not None}
+                                                   for t in src_cfg.get("transients") or []])
             nframe_total = source.nframe
         cal = cfg["calibration"]
         gains = cal.get("gains_table")
@@ -236,11 +244,26 @@ def build_graph(cfg, progress=None):
             imager = WStackBlock(calfold, pixels, im["accumulate_frames"], epsilon=im["epsilon"],
                                  moff=(im["kind"] == "moff"), **common)
         out = cfg["output"]
-        writer = ImageWriterBlock(imager, outdir, prefix=out["prefix"], fits=out["fits"], png=out["png"],
-                                  table=out["table"], location=station.location,
-                                  pixels_fn=pixels if callable(pixels) else None,
-                                  run_index=block[2] if block and block[3] > 1 else None)
-    return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir)
+        writer = search = cube = None
+        if out["fits"] or out["png"] or out["table"]:
+            writer = ImageWriterBlock(imager, outdir, prefix=out["prefix"], fits=out["fits"], png=out["png"],
+                                      table=out["table"], location=station.location,
+                                      pixels_fn=pixels if callable(pixels) else None,
+                                      run_index=block[2] if block and block[3] > 1 else None)
+        if im.get("search"):
+            from ..blocks.transient_search import TransientSearchBlock
+            sc = im["search"]
+            search = TransientSearchBlock(imager, threshold=sc["threshold"], window_s=sc["window_s"], dms=sc["dms"],
+                                          widths=sc["widths"], average_channels=sc["average_channels"],
+                                          product=sc["product"], outdir=outdir, prefix=out["prefix"],
+                                          table_format=sc["table"], png=sc["png"], location=station.location)
+        if out.get("cube"):
+            from ..blocks.cube_writer import ImageCubeWriterBlock
+            cc = out["cube"]
+            cube = ImageCubeWriterBlock(imager, outdir, prefix=f"{out['prefix']}_cube", dtype=cc["dtype"],
+                                        average_channels=cc["average_channels"],
+                                        images_per_file=cc["images_per_file"], location=station.location)
+    return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube)
 
 
 def run(cfg, show_progress=None):
@@ -270,15 +293,22 @@ def run(cfg, show_progress=None):
     img = getattr(g.imager, "img_stats", {})
     frames_read = src_stats.get("samples", g.nframe_total)
     skipped = sum(int(getattr(b, "stats", {}).get("nframe_skipped", 0) or 0)
-                  for b in (g.calfold, g.imager, g.writer) if isinstance(getattr(b, "stats", None), dict))
+                  for b in (g.calfold, g.imager, *g.sinks) if isinstance(getattr(b, "stats", None), dict))
     summary = {
-        "name": cfg["name"], "outdir": g.outdir, "files": list(g.writer.written), "wall_s": wall,
+        "name": cfg["name"], "outdir": g.outdir, "files": [f for b in g.sinks for f in b.written], "wall_s": wall,
         "frames_read": int(frames_read or 0), "frames_imaged": int(img.get("frames_imaged", 0)),
         "frames_dropped_partial": int(img.get("frames_dropped_partial", 0)), "frames_skipped": skipped,
         "images": int(img.get("images", 0)), "tbf": src_stats, "calibration": getattr(g.calfold, "cal_stats", {}),
     }
     if cfg["source"]["kind"] == "udp":
         summary["udp"] = summary.pop("tbf")
+    if g.search is not None:
+        summary["search"] = dict(g.search.search_stats)
+        log.info("transient search: %d images searched, %d crossings, %d candidates",
+                 g.search.search_stats["images_searched"], g.search.search_stats["crossings"],
+                 g.search.search_stats["candidates"])
+    if g.cube is not None:
+        summary["cube"] = dict(g.cube.cube_stats)
     log.info("%s: frames read %d, imaged %d, skipped %d, dropped (partial integration) %d; %d images, "
              "%d files in %s (%.1f s)", cfg["name"], summary["frames_read"], summary["frames_imaged"],
              summary["frames_skipped"], summary["frames_dropped_partial"], summary["images"],

@@ -259,6 +259,22 @@ class TimeStr:
 
 
 
+class ListOf:
+    """A list whose every item passes ``item`` (a leaf check or a Section)."""
+
+    def __init__(self, item, what: str):
+        self.item, self.what = item, what
+
+    def describe(self) -> str:
+        return f"a list of {self.what}"
+
+    def check(self, v, path, ctx):
+        if not isinstance(v, list):
+            ctx.error(path, f"expected {self.describe()}, got {v!r}")
+            return INVALID
+        return [run_check(self.item, x, f"{path}[{i}]", ctx) for i, x in enumerate(v)]
+
+
 def run_check(check, value, path, ctx):
     """Apply a leaf check or a structured check, recording errors under ``path``."""
     if hasattr(check, "check"):

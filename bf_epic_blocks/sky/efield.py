@@ -22,8 +22,18 @@ North, Up metres) and polarisation p (0 = X = N-S, 1 = Y = E-W)::
 * The sky is frozen: source directions are computed once, at ``time``, and held for the whole
   simulated stretch (1024 samples at 25 kHz are 41 ms, during which the sky turns by 0.0002 deg).
 
-Randomness: ``numpy.random.SeedSequence(seed)`` spawns one stream for the source signals and one for
-the noise, so a given seed gives the same sky signals whatever ``noise_power`` is.
+Transients (``transients=[{ra_deg, dec_deg, start_s, duration_s, flux_jy, dm}, ...]``, or az_deg/alt_deg
+or l/m instead of ra/dec; optional ``name``, ``spectral_index``): point sources that shine only for
+``duration_s``, unpolarised with flux ``flux_jy`` like the steady ones, and dispersed: in channel c
+the burst is on for samples whose start time t satisfies
+``start_s + delay_c <= t < start_s + delay_c + duration_s``, with
+``delay_c = 4.149 ms * dm * ((f_c/GHz)^-2 - (f_max/GHz)^-2)`` (f_max = the highest channel: ``start_s``
+is the arrival time at the top of the band; :func:`bf_epic_blocks.imaging.transient.dispersion_delay_s`).
+Sample k starts at ``t0_s + k * sample_time_s`` (``sample_time_s`` defaults to 1 / channel spacing).
+
+Randomness: ``numpy.random.SeedSequence(seed)`` spawns one stream for the source signals, one for
+the noise and one for the transients, so a given seed gives the same sky signals whatever
+``noise_power`` or the transients are.
 """
 from __future__ import annotations
 
@@ -33,6 +43,7 @@ import math
 import numpy as np
 
 from ..conventions import SPEED_OF_LIGHT_M_S
+from ..imaging.transient import dispersion_delay_s
 from .catalogue import source_directions
 
 __all__ = ["simulate_efield", "quantize_ci4"]
@@ -69,7 +80,8 @@ def _cable_factor(cable_delay_s, cable_gain, freq_hz, nchan, nant, npol):
 
 def simulate_efield(xyz_m, freq_hz, ntime: int, *, sources, time=None, location=None,
                     cable_delay_s=None, cable_gain=None, noise_power: float = 1.0, seed: int = 0,
-                    sigma: int = +1, pattern=None, return_directions: bool = False):
+                    sigma: int = +1, pattern=None, return_directions: bool = False, transients=None,
+                    t0_s: float = 0.0, sample_time_s: float | None = None):
     """Simulated antenna voltages, complex128 (ntime, nchan, nant, npol=2). See the module docstring.
 
     Parameters
@@ -86,6 +98,8 @@ def simulate_efield(xyz_m, freq_hz, ntime: int, *, sources, time=None, location=
     pattern : None (isotropic), an array broadcastable to (nchan, nsrc, npol) of voltage gains for the
         kept sources, or a callable ``pattern(l, m, freq_hz) -> that array``.
     return_directions : also return the :class:`SourceDirections` used.
+    transients, t0_s, sample_time_s : dispersed bursts and the time of sample 0 on their clock (s)
+        (module docstring); a callable ``pattern`` applies to them too.
     """
     xyz = np.asarray(xyz_m, np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -102,7 +116,7 @@ def simulate_efield(xyz_m, freq_hz, ntime: int, *, sources, time=None, location=
     ntime, nchan, nant, npol = int(ntime), f.size, xyz.shape[0], 2
     dirs = source_directions(sources, time, location)
     nsrc = len(dirs.sources)
-    sky_ss, noise_ss = np.random.SeedSequence(seed).spawn(2)
+    sky_ss, noise_ss, burst_ss = np.random.SeedSequence(seed).spawn(3)
     sky_rng, noise_rng = np.random.default_rng(sky_ss), np.random.default_rng(noise_ss)
 
     x = np.zeros((nchan, npol, ntime, nant), np.complex128)
@@ -124,6 +138,13 @@ def simulate_efield(xyz_m, freq_hz, ntime: int, *, sources, time=None, location=
         # cycles = nu * path / c in float64, then the phase; no precision is lost before exp()
         phase = np.exp(sigma * 2j * np.pi * (f[:, None, None] / SPEED_OF_LIGHT_M_S) * s_dot_r[None])
         x += e @ phase[:, None, :, :]                                             # (nchan, npol, ntime, nant)
+    if transients:
+        if sample_time_s is None:
+            if f.size < 2:
+                raise ValueError("sample_time_s: needed for transients with a single channel")
+            sample_time_s = 1.0 / abs(float(f[1] - f[0]))
+        _add_transients(x, transients, f, xyz, float(t0_s), float(sample_time_s), time, location, sigma,
+                        pattern if callable(pattern) else None, np.random.default_rng(burst_ss))
     x = np.ascontiguousarray(np.transpose(x, (2, 0, 3, 1)))                       # (ntime, nchan, nant, npol)
     if cable_delay_s is not None or cable_gain is not None:
         x *= _cable_factor(cable_delay_s, cable_gain, f, nchan, nant, npol)[None]
@@ -131,6 +152,49 @@ def simulate_efield(xyz_m, freq_hz, ntime: int, *, sources, time=None, location=
         nz = noise_rng.standard_normal((2, ntime, nchan, nant, npol))
         x += math.sqrt(noise_power / 2.0) * (nz[0] + 1j * nz[1])
     return (x, dirs) if return_directions else x
+
+
+_TRANSIENT_KEYS = {"name", "start_s", "duration_s", "flux_jy", "dm", "spectral_index", "ra_deg", "dec_deg",
+                   "az_deg", "alt_deg", "l", "m"}
+
+
+def _add_transients(x, transients, f, xyz, t0_s, dt_s, time, location, sigma, pattern, rng):
+    """Add dispersed bursts to x (nchan, npol, ntime, nant) in place (module docstring)."""
+    nchan, npol, ntime, _ = x.shape
+    t = t0_s + dt_s * np.arange(ntime)
+    for i, tr in enumerate(transients):
+        if not isinstance(tr, dict):
+            raise TypeError(f"transients[{i}]: expected a mapping {{ra_deg, dec_deg, start_s, duration_s, flux_jy, dm}}, "
+                            f"got {tr!r}")
+        unknown = set(tr) - _TRANSIENT_KEYS
+        missing = {"start_s", "duration_s", "flux_jy"} - set(tr)
+        if unknown or missing:
+            raise ValueError(f"transients[{i}]: " + "; ".join(
+                ([f"unknown keys {sorted(unknown)}"] if unknown else []) + ([f"missing {sorted(missing)}"] if missing else [])))
+        dm, dur = float(tr.get("dm", 0.0)), float(tr["duration_s"])
+        if not (dur > 0 and dm >= 0):
+            raise ValueError(f"transients[{i}]: duration_s must be > 0 and dm >= 0, got {dur!r}, {dm!r}")
+        start = float(tr["start_s"]) + dispersion_delay_s(dm, f, f.max())                  # (nchan,)
+        on = (t[None, :] >= start[:, None]) & (t[None, :] < start[:, None] + dur)      # (nchan, ntime)
+        if not on.any():
+            continue
+        src = {k: tr[k] for k in tr if k in ("name", "flux_jy", "spectral_index", "ra_deg", "dec_deg", "az_deg",
+                                              "alt_deg", "l", "m")}
+        src.setdefault("name", f"transient{i}")
+        d = source_directions([src], time, location)
+        if not len(d.sources):
+            log.warning("transient %s is below the horizon: not simulated", src["name"])
+            continue
+        cols = np.flatnonzero(on.any(axis=0))
+        a, b = int(cols[0]), int(cols[-1]) + 1
+        amp = np.sqrt(d.sources[0].flux_at(f) / 4.0)[:, None] * np.ones(npol)             # (nchan, npol)
+        if pattern is not None:
+            amp = amp * np.broadcast_to(np.asarray(pattern(d.l, d.m, f)), (nchan, 1, npol))[:, 0]
+        e = rng.standard_normal((2, nchan, npol, b - a))
+        e = (e[0] + 1j * e[1]) * amp[:, :, None] * on[:, None, a:b]
+        s_dot_r = np.array([d.l[0], d.m[0], d.n[0]]) @ xyz.T                                # (nant,)
+        phase = np.exp(sigma * 2j * np.pi * (f[:, None] / SPEED_OF_LIGHT_M_S) * s_dot_r[None])   # (nchan, nant)
+        x[:, :, a:b, :] += e[..., None] * phase[:, None, None, :]
 
 
 def quantize_ci4(efield, rms_target: float = 2.0, *, scale: float | None = None):

@@ -1,0 +1,229 @@
+"""TransientSearchBlock: searches an imager's output for short bursts, candidates on the sky.
+
+A sink on the image ring (docs/HEADERS.md, "Written by DFTImagerBlock"). Per gulp it hands the
+chosen product's images (pixels below the horizon dropped) to
+:class:`bf_epic_blocks.imaging.transient.TransientSearch` (NumPy or CuPy, where the ring lives),
+collects the threshold crossings, clusters them (:func:`cluster_crossings`) once no later crossing
+can join, and at the end of each sequence writes every candidate so far as a table and a PNG
+(:mod:`bf_epic_blocks.io.candidates`).
+
+Resets: a new sequence, and any images lost to an overrun (``guarantee=False``; ``on_skip``),
+clear the sliding window; the search restarts only once the window is full again, so a gap never
+produces candidates. Pending candidates are finished (with their light curves) before a reset.
+"""
+from __future__ import annotations
+
+import logging
+import os
+
+import numpy as np
+
+from ..imaging.transient import Crossings, TransientSearch, cluster_crossings
+from . import _compat
+from ._compat import bfp, span_array
+from .headers import image_layout, station_location
+
+log = logging.getLogger(__name__)
+
+
+class TransientSearchBlock(bfp.SinkBlock):
+    """Search image sequences for transients.
+
+    Parameters
+    ----------
+    iring : an imager's output ring (grid or pixel list).
+    threshold : S/N threshold (default 6). window_s : sliding statistics window, seconds (default 1).
+    dms : trial DMs, pc cm^-3 (default [0]). widths : boxcar widths in images (default 1, 2, 4, 8).
+    average_channels : dedisperse and average channels (default) or search each channel.
+    product : which product to search (name, e.g. 'I'; default the first).
+    outdir, prefix : where ``<prefix>_candidates.<table_format>`` and ``.png`` go (None: no files).
+    table_format : 'ecsv' or 'fits'. png : write the PNG.
+    space_link : clustering distance in grid pixels (grids) or in l/m (pixel lists; default: twice
+        the median nearest-neighbour distance). time_link : in images (default the widest boxcar).
+    lc_before, lc_after : light-curve images before and after the event start.
+    location : astropy EarthLocation (default: the header's station).
+
+    ``candidates`` is the astropy Table of all candidates so far; ``search_stats`` counts images
+    searched, trials per width, crossings, resets and images lost; ``written`` lists the files.
+    """
+
+    def __init__(self, iring, threshold=6.0, window_s=1.0, dms=(0.0,), widths=(1, 2, 4, 8), average_channels=True,
+                 product=None, outdir=None, prefix="transients", table_format="ecsv", png=True, space_link=None,
+                 time_link=None, lc_before=32, lc_after=32, location=None, *args, **kwargs):
+        super().__init__(iring, *args, **kwargs)
+        if table_format not in ("ecsv", "fits"):
+            raise ValueError(f"TransientSearchBlock: table_format must be 'ecsv' or 'fits', got {table_format!r}")
+        if not window_s > 0:
+            raise ValueError(f"TransientSearchBlock: window_s must be > 0 seconds, got {window_s!r}")
+        self.threshold, self.window_s = float(threshold), float(window_s)
+        self.dms, self.widths = [float(d) for d in dms], [int(w) for w in widths]
+        self.average_channels, self.product = bool(average_channels), product
+        self.outdir, self.prefix, self.table_format, self.png = outdir, prefix, table_format, png
+        self.space_link, self.time_link = space_link, time_link
+        self.lc_before, self.lc_after = int(lc_before), int(lc_after)
+        self.location = location
+        self.rows, self.written = [], []
+        self.candidates = None
+        self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
+                             "images_lost": 0, "trials_per_width": [0] * len(self.widths), "sequences": 0}
+        self._sky = None
+
+    # ------------------------------------------------------------------ set-up
+    def _xp(self):
+        if _compat.space_of(self.irings[0]) == "cuda":
+            import cupy
+            return cupy
+        return np
+
+    def on_sequence(self, iseq):
+        hdr = iseq.header
+        lay = image_layout(hdr, "TransientSearchBlock")
+        if self.product is None:
+            self._prod = 0
+        elif self.product in lay["products"]:
+            self._prod = lay["products"].index(self.product)
+        else:
+            raise ValueError(f"TransientSearchBlock: product {self.product!r} not in the images' products "
+                             f"{lay['products']}")
+        self.lay, self.hdr = lay, hdr
+        window = max(3, int(round(self.window_s / lay["dt_s"])))
+        self.xp = self._xp()
+        self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), window, dms=self.dms,
+                                      widths=self.widths, threshold=self.threshold,
+                                      average_channels=self.average_channels, xp=self.xp)
+        self._index = self.xp.asarray(lay["pixel_index"])
+        if lay["grid"] is not None:
+            N = lay["grid"].size
+            self._xy = np.column_stack([lay["pixel_index"] % N, lay["pixel_index"] // N]).astype(np.float64)
+            self._space = 2.0 if self.space_link is None else float(self.space_link)
+        else:
+            from scipy.spatial import cKDTree
+            self._xy = lay["lm"]
+            if self.space_link is None:
+                d, _ = cKDTree(self._xy).query(self._xy, k=2) if len(self._xy) > 1 else (np.ones((1, 2)), None)
+                self._space = 2.0 * float(np.median(d[:, 1]))
+            else:
+                self._space = float(self.space_link)
+        self._tlink = max(self.widths) if self.time_link is None else int(self.time_link)
+        self.loc = self.location if self.location is not None else station_location(hdr)
+        self._pending = Crossings()
+        self._j = 0                                   # sequence index of the next image
+        self.search_stats["sequences"] += 1
+        log.info("TransientSearchBlock %s: %d pixels, %d channels, window %d images (%.3f s), DMs %s, widths %s, "
+                 "threshold %.1f", hdr.get("name"), len(lay["lm"]), lay["nchan"], window, window * lay["dt_s"],
+                 self.dms, self.widths, self.threshold)
+
+    # ------------------------------------------------------------------ per gulp
+    def on_data(self, ispan):
+        data = span_array(ispan)
+        n = data.shape[0]
+        with _compat.stream_context():
+            x = self.xp.take(data[:, :, self._prod].reshape(n, self.lay["nchan"], -1), self._index, axis=-1)
+            n_before = self.search.nvalues
+            cr = self.search.push(x)
+            nsearched = max(0, self.search.nvalues - max(n_before, self.search.window + self.search.wmax - 1))
+            if nsearched:
+                for i in range(len(self.widths)):
+                    self.search_stats["trials_per_width"][i] += nsearched * self.search.nser * self.search.npix
+            self.search_stats["images_searched"] += nsearched
+        self._j += n
+        self.search_stats["images"] += n
+        self.search_stats["crossings"] += len(cr)
+        self._pending = Crossings.concat([self._pending, cr])
+        self._finish(final=False)
+
+    def on_skip(self, islices, ospans):
+        sl = islices[0]
+        lost = int(sl.stop - sl.start)
+        self._finish(final=True)
+        self._j += lost
+        self.search.reset(self._j)
+        self.search_stats["resets"] += 1
+        self.search_stats["images_lost"] += lost
+        log.warning("TransientSearchBlock: %d images lost (reader overrun); window reset at image %d", lost, self._j)
+
+    def on_sequence_end(self, iseq):
+        self._finish(final=True)
+        self._write()
+
+    # ------------------------------------------------------------------ candidates
+    def _finish(self, final):
+        """Cluster pending crossings; turn the clusters no later crossing can join into candidates."""
+        cr = self._pending
+        if not len(cr):
+            return
+        labels, peaks = cluster_crossings(cr.image, self._xy[cr.pixel], cr.series, cr.snr, time_link=self._tlink,
+                                          space_link=self._space, series_link=len(self.dms))
+        if final:
+            done = np.ones(labels.max() + 1, bool)
+        else:
+            newest = np.full(labels.max() + 1, -np.inf)
+            np.maximum.at(newest, labels, cr.image.astype(float))
+            # a later crossing starts no earlier than this image (widest boxcar, largest delay)
+            horizon = self._j - self.search.wmax - self.search.shift - self.lc_after
+            done = newest + self._tlink < horizon
+        for lab, k in zip(labels[peaks], peaks):
+            if done[lab]:
+                self._add_candidate(cr, k, int(np.sum(labels == lab)))
+        self._pending = cr.take(~done[labels])
+
+    def _add_candidate(self, cr, k, nmembers):
+        from ..io.tbf import time_tag_to_time
+        from ..sky.catalogue import lm_to_icrs
+        lay, s = self.lay, self.search
+        e, ser, wi, p = int(cr.image[k]), int(cr.series[k]), int(cr.width_index[k]), int(cr.pixel[k])
+        t = time_tag_to_time(lay["time_tag"] + e * lay["integration_ticks"])
+        l, m = (float(v) for v in lay["lm"][p])
+        ra = dec = float("nan")
+        if self.loc is not None:
+            r, d = lm_to_icrs([[l, m]], t, self.loc)
+            ra, dec = float(r[0]), float(d[0])
+        w = self.widths[wi]
+        # value index (since the reset) of the event's first image, dedispersed at this trial
+        n_e = int(cr.end_image[k]) - w + 1 - s.first_image - s.shift
+        vals = s.series_values(ser, p, n_e - self.lc_before, n_e + self.lc_after)
+        mean, sigma = (a[ser, p] for a in s.statistics())
+        mean, sigma = float(_compat.to_numpy(mean)), float(_compat.to_numpy(sigma))
+        lc = (vals - mean) / sigma if sigma > 0 else vals * np.nan
+        grid = lay["grid"]
+        gx, gy = (int(lay["pixel_index"][p] % grid.size), int(lay["pixel_index"][p] // grid.size)) if grid else (-1, -1)
+        self.rows.append({"time_utc": t, "sequence": str(self.hdr.get("name", "")), "image": e, "pixel": p,
+                          "grid_x": gx, "grid_y": gy, "l": l, "m": m, "ra_deg": ra, "dec_deg": dec,
+                          "snr": float(cr.snr[k]), "dm": self.dms[ser] if s.average else 0.0,
+                          "channel": -1 if s.average else ser, "width": w, "width_ms": w * lay["dt_s"] * 1e3,
+                          "nmembers": nmembers, "lightcurve": lc})
+        self.search_stats["candidates"] += 1
+        log.info("transient candidate: %s UTC, S/N %.1f, DM %g, width %d, l %.3f m %.3f, RA %.2f Dec %.2f",
+                 t.isot, cr.snr[k], self.rows[-1]["dm"], w, l, m, ra, dec)
+
+    def _write(self):
+        from ..io import candidates as cio
+        lay = self.lay
+        meta = {"threshold": self.threshold, "window_s": self.window_s, "window_images": self.search.window,
+                "dms": self.dms, "widths": self.widths, "dt_s": lay["dt_s"], "f_ref_mhz": float(lay["freq_hz"].max() / 1e6),
+                "average_channels": self.average_channels, "product": lay["products"][self._prod],
+                "lightcurve_first": -self.lc_before, "trials_per_width": list(self.search_stats["trials_per_width"]),
+                "time_reference": "event start at the highest channel frequency (f_ref_mhz)"}
+        self.candidates = cio.candidate_table(self.rows, meta, lc_length=self.lc_before + self.lc_after + 1)
+        mean, _ = self.search.statistics()
+        self._sky = _compat.to_numpy(mean[0])
+        if self.outdir is None:
+            return
+        os.makedirs(self.outdir, exist_ok=True)
+        stem = os.path.join(self.outdir, f"{self.prefix}_candidates")
+        path = cio.write_candidates(f"{stem}.{self.table_format}", self.candidates)
+        if path not in self.written:
+            self.written.append(path)
+        if self.png:
+            sky = self._sky if np.all(np.isfinite(self._sky)) else np.zeros(len(lay["lm"]))
+            png = cio.candidates_png(f"{stem}.png", self.candidates, sky, grid=lay["grid"], lm=lay["lm"],
+                                     dt_s=lay["dt_s"],
+                                     title=f"{len(self.candidates)} candidate(s) above {self.threshold:g} sigma "
+                                           f"({lay['products'][self._prod]}); sky: window mean")
+            if png not in self.written:
+                self.written.append(png)
+
+
+def transient_search(iring, *args, **kwargs):
+    """Factory for :class:`TransientSearchBlock`."""
+    return TransientSearchBlock(iring, *args, **kwargs)

@@ -1,0 +1,337 @@
+"""Streaming transient search on image time series: dedispersion, sliding statistics, boxcars.
+
+One code path for NumPy and CuPy (the arrays' namespace does the work, where they live); no
+kernel has to differ between the two, so there is no RawKernel.
+
+Definitions (all times in images; ``dt`` = seconds per image)
+-------------------------------------------------------------
+* Dispersion: a burst of dispersion measure DM (pc cm^-3) reaches frequency f later than the
+  reference frequency f_ref (the band's HIGHEST channel) by
+  ``delay(f) = 4.149 ms * DM * ((f/GHz)^-2 - (f_ref/GHz)^-2)``, rounded to whole images per channel
+  (:func:`dm_delays`).
+* Incoherent dedispersion, causal: the series of trial d at image j is
+  ``D_d(j) = mean_c I_c(j - (delay_max_d - delay_d,c))``, i.e. every channel is aligned on the
+  lowest channel's arrival; the event time at f_ref is ``j - delay_max_d``. With
+  ``average_channels=False`` every channel is its own series (no dedispersion; DM trials must be [0]).
+* Statistics: for the series value at j, mean and variance per pixel over the W values
+  ``D(j - wmax - W + 1) ... D(j - wmax)`` (W = window, wmax = the widest boxcar), so a burst never
+  sits in its own statistics; sums are kept in float64 about a per-pixel offset (the first value
+  after a reset), which avoids the cancellation of sum(x^2) - sum(x)^2 / W.
+* Boxcar S/N of width w ending at j: ``(mean(D(j-w+1..j)) - mu) * sqrt(w) / sigma`` -- the S/N of
+  the w-image mean if images are independent (they are for receiver- and sky-noise-limited images:
+  each image is made from its own samples).
+* Search starts once W + wmax dedispersed values exist since the last reset (a new sequence or a
+  lost stretch of images): no S/N is ever formed from a partly filled window.
+
+The expected number of noise crossings, for independent Gaussian images, is exactly
+``P(t_{W-1} > threshold / sqrt(1 + w / W))`` per trial (Student's t with W - 1 degrees of freedom:
+the estimated mean and sigma come from W other values); :func:`expected_false_rate` gives it.
+
+Candidates: :func:`cluster_crossings` groups crossings that are close in time, sky position and DM
+(friends of friends) and keeps each group's highest S/N.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._xp import get_xp, to_numpy
+
+__all__ = ["DISPERSION_CONSTANT_S", "dispersion_delay_s", "dm_delays", "TransientSearch", "Crossings",
+           "cluster_crossings", "expected_false_rate"]
+
+#: Dispersion constant, seconds * GHz^2 per (pc cm^-3).
+DISPERSION_CONSTANT_S = 4.149e-3
+
+
+def dispersion_delay_s(dm, freq_hz, ref_freq_hz):
+    """Arrival delay (s) at ``freq_hz`` relative to ``ref_freq_hz`` for dispersion measure ``dm``
+    (pc cm^-3); positive below the reference frequency. Broadcasts like NumPy."""
+    f = np.asarray(freq_hz, dtype=np.float64) / 1e9
+    fr = np.asarray(ref_freq_hz, dtype=np.float64) / 1e9
+    return DISPERSION_CONSTANT_S * np.asarray(dm, dtype=np.float64) * (f ** -2 - fr ** -2)
+
+
+def dm_delays(dms, freq_hz, dt_s):
+    """Per-trial, per-channel delays in whole images, (ndm, nchan) int64, relative to the highest
+    channel: ``round(dispersion_delay_s(dm, f_c, max(f)) / dt_s)``."""
+    f = np.asarray(freq_hz, dtype=np.float64)
+    d = dispersion_delay_s(np.asarray(dms, dtype=np.float64)[:, None], f[None, :], f.max())
+    return np.rint(d / float(dt_s)).astype(np.int64)
+
+
+def expected_false_rate(threshold, window, widths):
+    """Probability that one (pixel, series, image) trial of boxcar width w exceeds ``threshold`` on
+    independent Gaussian noise, for each w in ``widths`` (array). See the module docstring."""
+    from scipy import stats
+    w = np.asarray(widths, dtype=np.float64)
+    return stats.t.sf(float(threshold) / np.sqrt(1.0 + w / window), df=window - 1)
+
+
+class Crossings:
+    """Threshold crossings of one push, host NumPy arrays of equal length.
+
+    image : sequence image index at which the event starts at the reference (highest) frequency;
+    end_image : the image index of the newest image in the boxcar (as pushed, before dedispersion
+        alignment); series : DM-trial index (or channel with average_channels=False);
+    width_index : index into ``widths``; pixel : pixel index; snr : float.
+    """
+
+    FIELDS = ("image", "end_image", "series", "width_index", "pixel", "snr")
+
+    def __init__(self, **arrays):
+        for k in self.FIELDS:
+            setattr(self, k, np.asarray(arrays.get(k, ()), dtype=np.float64 if k == "snr" else np.int64))
+
+    def __len__(self):
+        return int(self.snr.size)
+
+    @classmethod
+    def concat(cls, items):
+        items = [c for c in items if len(c)]
+        if not items:
+            return cls()
+        return cls(**{k: np.concatenate([getattr(c, k) for c in items]) for k in cls.FIELDS})
+
+    def take(self, sel):
+        return Crossings(**{k: getattr(self, k)[sel] for k in self.FIELDS})
+
+
+class TransientSearch:
+    """Streaming per-pixel search state (arrays in ``xp``: numpy or cupy).
+
+    Parameters
+    ----------
+    freq_hz : (nchan,) channel centres, Hz; dt_s : seconds per image.
+    npix : pixels per image (the caller flattens and drops pixels that are never imaged).
+    window : W, images in the sliding statistics window (>= 3).
+    dms : trial DMs (pc cm^-3); widths : boxcar widths in images (positive integers).
+    threshold : S/N above which a trial is a crossing.
+    average_channels : True (dedisperse and average the channels) or False (search each channel).
+    xp : numpy or cupy; max_batch : images processed per internal step (bounds memory).
+
+    :meth:`push` takes images ``(nimage, nchan, npix)`` (float, finite) and returns
+    :class:`Crossings`; :meth:`reset` forgets the history (call at a gap or a new sequence, with the
+    sequence index of the next image to be pushed).
+    """
+
+    def __init__(self, freq_hz, dt_s, npix, window, dms=(0.0,), widths=(1, 2, 4, 8), threshold=6.0,
+                 average_channels=True, xp=np, max_batch=256):
+        self.freq_hz = np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))
+        if self.freq_hz.ndim != 1 or not np.all(self.freq_hz > 0):
+            raise ValueError(f"freq_hz: expected a 1-D array of positive frequencies, got {freq_hz!r}")
+        if not (dt_s > 0):
+            raise ValueError(f"dt_s: expected seconds per image > 0, got {dt_s!r}")
+        if int(window) != window or window < 3:
+            raise ValueError(f"window: expected an integer number of images >= 3, got {window!r}")
+        widths = [int(w) for w in np.atleast_1d(widths)]
+        if not widths or any(w < 1 for w in widths) or len(set(widths)) != len(widths):
+            raise ValueError(f"widths: expected distinct positive integers (images), got {widths!r}")
+        dms = [float(d) for d in np.atleast_1d(dms)]
+        if not dms or any(not np.isfinite(d) or d < 0 for d in dms):
+            raise ValueError(f"dms: expected finite DMs >= 0 (pc cm^-3), got {dms!r}")
+        if not average_channels and dms != [0.0]:
+            raise ValueError("dms: without channel averaging every channel is searched on its own, so the "
+                             f"only DM trial is 0; got {dms!r} (set average_channels=True to dedisperse)")
+        self.nchan, self.npix = self.freq_hz.size, int(npix)
+        self.dt_s, self.window, self.widths, self.dms = float(dt_s), int(window), widths, dms
+        self.threshold, self.average = float(threshold), bool(average_channels)
+        self.xp, self.max_batch = xp, int(max_batch)
+        self.delays = dm_delays(dms, self.freq_hz, dt_s)                 # (ndm, nchan)
+        self.delay_max = self.delays.max(axis=1)                          # (ndm,)
+        self.shift = int(self.delay_max.max()) if self.average else 0     # channel history needed
+        self.wmax = max(widths)
+        self.nser = len(dms) if self.average else self.nchan
+        # channel c of trial d is read `back[d, c]` images before the newest one
+        self._back = (self.delay_max[:, None] - self.delays) if self.average else None
+        self.capacity = self.window + self.wmax + self.max_batch
+        self.reset(0)
+
+    # ------------------------------------------------------------------ state
+    def reset(self, next_image=0):
+        """Forget everything; the next pushed image has sequence index ``next_image``."""
+        xp = self.xp
+        self.next_image = int(next_image)
+        self.first_image = int(next_image)       # sequence index of the first image since the reset
+        self.nimages = 0                         # images pushed since the reset
+        self.nvalues = 0                         # dedispersed values since the reset
+        self._chan = xp.zeros((self.nchan, self.shift, self.npix), dtype=xp.float32)
+        self._hist = xp.zeros((self.nser, self.capacity, self.npix), dtype=xp.float32)
+        self._ref = None                         # per-pixel offset of the sums (nser, npix)
+        self._s1 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
+        self._s2 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
+
+    @property
+    def ready(self):
+        """True once S/N values are being formed (the window is full)."""
+        return self.nvalues >= self.window + self.wmax
+
+    def value_image(self, n):
+        """Sequence index of the newest image in dedispersed value ``n`` (counted since the reset)."""
+        return self.first_image + self.shift + n
+
+    # ------------------------------------------------------------------ kernels
+    def _dedisperse(self, x):
+        """(B, nchan, npix) new images -> (nser, B', npix) new series values, B' = the values that
+        have every channel (all of them once ``shift`` images have been seen since the reset)."""
+        xp = self.xp
+        if not self.average:
+            return xp.ascontiguousarray(xp.moveaxis(x, 0, 1))
+        B = x.shape[0]
+        ext = xp.concatenate([self._chan, xp.moveaxis(x, 0, 1)], axis=1)   # (nchan, shift + B, npix)
+        self._chan = xp.ascontiguousarray(ext[:, ext.shape[1] - self.shift:])
+        first = max(0, self.shift - self.nimages)          # first new image whose values are complete
+        nnew = B - first
+        if nnew <= 0:
+            return xp.zeros((self.nser, 0, self.npix), dtype=xp.float32)
+        out = xp.zeros((self.nser, nnew, self.npix), dtype=xp.float32)
+        base = self.shift + first                          # ext index of the first complete image
+        for d in range(self.nser):                         # contiguous slices: no gather
+            for c in range(self.nchan):
+                a = base - int(self._back[d, c])
+                out[d] += ext[c, a:a + nnew]
+        out *= 1.0 / self.nchan
+        return out
+
+    def _push_values(self, v):
+        """Append series values (nser, B, npix); returns crossings found among them."""
+        xp = self.xp
+        B = v.shape[1]
+        if B == 0:
+            return Crossings()
+        if self._ref is None:
+            self._ref = v[:, 0].astype(xp.float32)
+        v = v - self._ref[:, None, :]                                       # offset about the reference
+        n0, W, wmax = self.nvalues, self.window, self.wmax
+        n = np.arange(n0, n0 + B)
+        self._ring_write(n0, v)
+        self.nvalues += B
+        # running sums: value n - wmax enters the window of value n, n - wmax - W leaves it
+        enter, leave = n - wmax, n - wmax - W
+        de = xp.zeros((self.nser, B, self.npix), dtype=xp.float64)
+        dl = xp.zeros_like(de)
+        ne, nl = int((enter >= 0).sum()), int((leave >= 0).sum())
+        if ne:
+            de[:, B - ne:] = self._ring_read(int(enter[B - ne]), ne)
+        if nl:
+            dl[:, B - nl:] = self._ring_read(int(leave[B - nl]), nl)
+        s1 = self._s1[:, None] + xp.cumsum(de - dl, axis=1)                  # (nser, B, npix) after value n
+        s2 = self._s2[:, None] + xp.cumsum(de * de - dl * dl, axis=1)
+        self._s1, self._s2 = s1[:, -1].copy(), s2[:, -1].copy()
+        ok = n >= W + wmax - 1                                              # window full for these
+        if not ok.any():
+            return Crossings()
+        k0 = int(np.argmax(ok))
+        s1, s2 = s1[:, k0:], s2[:, k0:]
+        mean = s1 / W
+        sigma = xp.sqrt(xp.maximum(s2 - s1 * mean, 0.0) / (W - 1))
+        # boxcar sums over the newest w values, from a cumulative sum of the last wmax - 1 + B' values
+        nb = B - k0
+        first = n0 + k0 - (wmax - 1)
+        c = xp.cumsum(self._ring_read(first, n0 + B - first).astype(xp.float64), axis=1)
+        c = xp.concatenate([xp.zeros((self.nser, 1, self.npix), dtype=xp.float64), c], axis=1)
+        out = []
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for wi, w in enumerate(self.widths):
+                e = np.arange(wmax - 1, wmax - 1 + nb) + 1
+                box = c[:, e] - c[:, e - w]
+                snr = (box / w - mean) * math.sqrt(w) / sigma
+                hit = xp.nonzero(snr > self.threshold)
+                if hit[0].size == 0:
+                    continue
+                s, b, p = (to_numpy(h) for h in hit)
+                nval = n0 + k0 + b
+                dmax = self.delay_max[s] if self.average else 0
+                end = self.value_image(nval)
+                out.append(Crossings(image=end - w + 1 - dmax, end_image=end, series=s,
+                                     width_index=np.full(s.size, wi), pixel=p, snr=to_numpy(snr[hit])))
+        return Crossings.concat(out)
+
+    def _ring_read(self, first, count):
+        """Values [first, first + count) of the circular history, (nser, count, npix) (a view when
+        they do not wrap)."""
+        a = first % self.capacity
+        if a + count <= self.capacity:
+            return self._hist[:, a:a + count]
+        k = self.capacity - a
+        return self.xp.concatenate([self._hist[:, a:], self._hist[:, :count - k]], axis=1)
+
+    def _ring_write(self, first, v):
+        a, count = first % self.capacity, v.shape[1]
+        k = min(count, self.capacity - a)
+        self._hist[:, a:a + k] = v[:, :k]
+        if k < count:
+            self._hist[:, :count - k] = v[:, k:]
+
+    # ------------------------------------------------------------------ public
+    def push(self, images):
+        """Search new images ``(nimage, nchan, npix)`` (the next ones in time); returns Crossings."""
+        xp = self.xp
+        x = images
+        if x.ndim != 3 or x.shape[1:] != (self.nchan, self.npix):
+            raise ValueError(f"images: expected shape (nimage, nchan={self.nchan}, npix={self.npix}), got {x.shape}")
+        found = []
+        for a in range(0, x.shape[0], self.max_batch):
+            chunk = xp.asarray(x[a:a + self.max_batch], dtype=xp.float32)
+            v = self._dedisperse(chunk)
+            self.nimages += chunk.shape[0]
+            self.next_image += chunk.shape[0]
+            found.append(self._push_values(v))
+        return Crossings.concat(found)
+
+    def statistics(self):
+        """Current window mean and sigma per series and pixel, (nser, npix) float64 each, in ``xp``
+        (NaN before the first value)."""
+        xp = self.xp
+        W = self.window
+        if self._ref is None:
+            nan = xp.full((self.nser, self.npix), np.nan)
+            return nan, nan
+        n = min(max(self.nvalues - self.wmax, 0), W)
+        if n < 2:
+            nan = xp.full((self.nser, self.npix), np.nan)
+            return self._ref.astype(xp.float64) + nan, nan
+        mean = self._s1 / n
+        sigma = xp.sqrt(xp.maximum(self._s2 - self._s1 * mean, 0.0) / (n - 1))
+        return mean + self._ref, sigma
+
+    def series_values(self, series, pixel, first, last):
+        """Dedispersed values of one series and pixel for value indices [first, last] (since the
+        reset), host float64; NaN where not (or no longer) held."""
+        out = np.full(last - first + 1, np.nan)
+        if self._ref is None:
+            return out
+        n = np.arange(first, last + 1)
+        keep = (n >= 0) & (n < self.nvalues) & (n > self.nvalues - 1 - self.capacity)
+        if keep.any():
+            vals = self._hist[series, self.xp.asarray(n[keep] % self.capacity), pixel]
+            out[keep] = to_numpy(vals).astype(np.float64) + float(to_numpy(self._ref[series, pixel]))
+        return out
+
+
+def cluster_crossings(image, xy, series, snr, *, time_link, space_link, series_link):
+    """Friends-of-friends groups of crossings; returns (labels (n,), index of each group's peak).
+
+    Two crossings are friends when their ``image`` indices differ by at most ``time_link``, their
+    sky positions ``xy`` (n, 2) (pixel-grid indices, or l/m) by at most ``space_link`` along each
+    axis, and their ``series`` (DM trial) indices by at most ``series_link``. Groups are the
+    connected components; each group's peak is its highest-S/N member. Host NumPy arrays.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+    n = len(snr)
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    pts = np.column_stack([np.asarray(image, np.float64) / max(time_link, 1e-9),
+                           np.asarray(xy, np.float64).reshape(n, 2) / max(space_link, 1e-12),
+                           np.asarray(series, np.float64) / max(series_link, 1e-9)])
+    pairs = cKDTree(pts).query_pairs(1.0 + 1e-9, p=np.inf, output_type="ndarray")
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
+        coo_matrix((n, n))
+    ncomp, labels = connected_components(g, directed=False)
+    snr = np.asarray(snr, np.float64)
+    order = np.lexsort((-snr, labels))                 # by label, highest S/N first
+    first = np.r_[True, labels[order][1:] != labels[order][:-1]]
+    return labels, order[first]

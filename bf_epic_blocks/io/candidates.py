@@ -1,0 +1,137 @@
+"""Transient candidates out: an astropy table (ECSV or FITS) and a PNG of the sky with light curves.
+
+Table columns (one row per candidate, i.e. per cluster of threshold crossings; units in the table):
+
+=============  ===========================================================================
+time_utc       UTC start of the event at the reference frequency (the band's highest channel)
+sequence       name of the image sequence; ``image``: index of the event's first image in it
+pixel          index in the list of imaged pixels; ``grid_x``, ``grid_y``: l and m indices on
+               the grid (-1 for pixel lists)
+l, m           direction cosines (East, North)
+ra_deg, dec_deg ICRS direction at ``time_utc`` (NaN without a station location)
+snr            peak S/N (boxcar mean against the sliding window's mean and sigma)
+dm             trial DM of the peak (pc cm^-3); ``channel``: -1 (channels averaged) or the channel
+width          boxcar width in images; ``width_ms``: the same in milliseconds
+nmembers       threshold crossings merged into the candidate
+lightcurve     S/N per image (width 1, the candidate's DM and pixel) from ``lc_first`` images
+               before the event to after it (NaN where not held); meta ``lightcurve_first``
+=============  ===========================================================================
+
+The table's ``meta`` holds the search parameters (threshold, window, DM trials, widths, image
+time, reference frequency, trials per width).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["CANDIDATE_COLUMNS", "candidate_table", "write_candidates", "read_candidates", "candidates_png"]
+
+CANDIDATE_COLUMNS = ("time_utc", "sequence", "image", "pixel", "grid_x", "grid_y", "l", "m", "ra_deg", "dec_deg",
+                     "snr", "dm", "channel", "width", "width_ms", "nmembers", "lightcurve")
+_UNITS = {"ra_deg": "deg", "dec_deg": "deg", "dm": "pc / cm3", "width_ms": "ms"}
+
+
+def candidate_table(rows, meta=None, lc_length=0):
+    """An astropy Table from a list of row dicts (keys :data:`CANDIDATE_COLUMNS`), sorted by time."""
+    from astropy.table import Table
+    from astropy.time import Time
+    cols = {}
+    for k in CANDIDATE_COLUMNS:
+        vals = [r[k] for r in rows]
+        if k == "time_utc":
+            cols[k] = Time([v.isot for v in vals], scale="utc", format="isot") if vals else Time([], format="isot")
+        elif k == "lightcurve":
+            cols[k] = np.asarray(vals, dtype=np.float32).reshape(len(vals), lc_length)
+        elif k == "sequence":
+            cols[k] = np.asarray(vals, dtype=str) if vals else np.zeros(0, dtype="U1")
+        else:
+            cols[k] = np.asarray(vals, dtype=np.int64 if k in ("image", "pixel", "grid_x", "grid_y", "channel",
+                                                               "width", "nmembers") else np.float64)
+    t = Table(cols, meta=dict(meta or {}))
+    for k, u in _UNITS.items():
+        t[k].unit = u
+    if len(t):
+        t.sort("time_utc")
+    return t
+
+
+def write_candidates(path, table):
+    """Write the table as ECSV (``.ecsv``) or FITS (``.fits``); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".ecsv":
+        table.write(path, format="ascii.ecsv", overwrite=True)
+    elif path.suffix.lower() in (".fits", ".fit"):
+        t = table.copy()
+        t.meta = {k.upper()[:8]: (str(v) if isinstance(v, (list, tuple, dict)) else v) for k, v in t.meta.items()}
+        t.write(path, format="fits", overwrite=True)
+    else:
+        raise ValueError(f"candidate table path must end in .ecsv or .fits, got {str(path)!r}")
+    return str(path)
+
+
+def read_candidates(path):
+    """Read a table written by :func:`write_candidates`."""
+    from astropy.table import Table
+    path = Path(path)
+    fmt = "ascii.ecsv" if path.suffix.lower() == ".ecsv" else "fits"
+    return Table.read(path, format=fmt)
+
+
+def candidates_png(path, table, sky, *, grid=None, lm=None, dt_s=None, title=None, max_curves=8, dpi=100):
+    """Sky with the candidates marked (numbered by S/N rank) and each candidate's light curve.
+
+    sky : (npix,) background values (e.g. the window mean) on ``grid`` (LMGrid) or at ``lm``
+    (npix, 2); dt_s : seconds per image (light-curve time axis). Returns the path.
+    """
+    from matplotlib.figure import Figure
+    from .quicklook import _draw_sky, _limits, _save
+    sky = np.asarray(sky, dtype=np.float64)
+    order = np.argsort(-np.asarray(table["snr"])) if len(table) else np.zeros(0, int)
+    shown = order[:max_curves]
+    ncur = max(1, len(shown))
+    fig = Figure(figsize=(12.0, max(5.5, 1.3 * ncur + 1.0)))
+    gs = fig.add_gridspec(ncur, 2, width_ratios=[1.15, 1.0])
+    ax = fig.add_subplot(gs[:, 0])
+    marks = [(str(i + 1), float(table["l"][k]), float(table["m"][k])) for i, k in enumerate(order)]
+    if grid is not None:
+        img = grid.to_image(sky)
+        lo, hi = _limits([img], None, None, (1.0, 99.5))
+        im = _draw_sky(ax, img, grid, cmap="inferno", lo=lo, hi=hi, sources=marks, horizon=True)
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="window mean (uncalibrated)")
+    else:
+        p = np.asarray(lm, dtype=np.float64)
+        sc = ax.scatter(p[:, 0], p[:, 1], c=sky, cmap="inferno", s=12)
+        for lab, l, m in marks:
+            ax.plot([l], [m], marker="o", ms=11, mfc="none", mec="cyan", mew=1.2)
+            ax.annotate(lab, (l, m), xytext=(7, 7), textcoords="offset points", color="cyan", fontsize=8)
+        ax.invert_xaxis()
+        ax.set_aspect("equal")
+        ax.set_xlabel("l (East)")
+        ax.set_ylabel("m (North)")
+        fig.colorbar(sc, ax=ax, fraction=0.046, pad=0.04, label="window mean (uncalibrated)")
+    ax.set_title(title or f"{len(table)} candidate(s); circles numbered by S/N rank", fontsize=10)
+    first = int(table.meta.get("lightcurve_first", 0))
+    dt_ms = 1e3 * float(dt_s if dt_s is not None else table.meta.get("dt_s", 1.0))
+    for i, k in enumerate(shown):
+        a = fig.add_subplot(gs[i, 1])
+        lc = np.asarray(table["lightcurve"][k], dtype=np.float64)
+        x = (first + np.arange(lc.size)) * dt_ms
+        a.step(x, lc, where="post", color="k", lw=0.9)
+        w = int(table["width"][k])
+        a.axvspan(0.0, w * dt_ms, color="tab:orange", alpha=0.3)
+        a.axhline(0.0, color="0.6", lw=0.5)
+        a.text(0.01, 0.95, f"#{i + 1}  S/N {float(table['snr'][k]):.1f}  DM {float(table['dm'][k]):g}  "
+                           f"w {w}  {table['time_utc'][k].isot[11:23]}", transform=a.transAxes, va="top", fontsize=8)
+        a.set_ylabel("S/N", fontsize=8)
+        a.tick_params(labelsize=7)
+        if i == len(shown) - 1:
+            a.set_xlabel("time from event start (ms), dedispersed at the candidate's DM", fontsize=8)
+    if not len(shown):
+        a = fig.add_subplot(gs[0, 1])
+        a.text(0.5, 0.5, "no candidate", ha="center", va="center")
+        a.set_axis_off()
+    fig.tight_layout()
+    return _save(fig, path, dpi)

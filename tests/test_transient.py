@@ -1,0 +1,301 @@
+"""Transient search: injected bursts found where, when and as bright as they were put; noise-only
+crossings as many as the Gaussian tail predicts; resets at gaps; dispersed bursts in the simulator."""
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from bf_epic_blocks import imaging
+from bf_epic_blocks.blocks import ArraySourceBlock, DFTImagerBlock, TransientSearchBlock, bfp, efield_header
+from bf_epic_blocks.imaging._xp import gpu_available
+from bf_epic_blocks.imaging.calibration import FS_HZ
+from bf_epic_blocks.imaging.transient import Crossings, TransientSearch, expected_false_rate
+from bf_epic_blocks.io.candidates import read_candidates
+from bf_epic_blocks.sky import simulate_efield
+from bf_epic_blocks.sky.catalogue import icrs_to_lm
+
+LWASV = {"lat_deg": 34.3484, "lon_deg": -106.8858, "elev_m": 1477.0}
+TIME_TAG = int(1717236000 * FS_HZ)      # 2024-06-01 10:00 UTC
+DT = 40e-6                              # one sample at 25 kHz channels
+
+
+def image_header(grid, freq, dt_img, time_tag=TIME_TAG, products=("I",), name="img"):
+    """An image sequence header as DFTImagerBlock writes it (docs/HEADERS.md)."""
+    N = grid.size
+    ax0 = float(grid.axis[0])
+    return {"name": name, "time_tag": int(time_tag),
+            "_tensor": {"dtype": "f32", "shape": [-1, len(freq), len(products), N, N],
+                        "labels": ["time", "freq", "pol", "m", "l"],
+                        "scales": [[time_tag / FS_HZ, dt_img], [float(freq[0]), float(freq[1] - freq[0])], None,
+                                   [ax0, grid.cell], [ax0, grid.cell]]},
+            "freq_hz": [float(f) for f in freq], "pol_products": list(products),
+            "pixels": {"kind": "grid", "size": N, "cell": grid.cell, "npix_imaged": grid.npix},
+            "imager": {"kind": "dft", "method": "direct", "integration_ticks": int(round(dt_img * FS_HZ))},
+            "station": {"name": "lwasv", **LWASV}}
+
+
+def to_np(a):
+    return a.get() if hasattr(a, "get") else np.asarray(a)
+
+
+# ------------------------------------------------------------------------------ dispersion
+def test_dispersion_delay_and_simulated_burst_arrival():
+    # 4.149 ms * DM * (f^-2 - f_ref^-2), f in GHz: DM 2 between 74.0 and 74.375 MHz
+    d = imaging.transient.dispersion_delay_s(2.0, 74.0e6, 74.375e6)
+    assert d == pytest.approx(4.149e-3 * 2.0 * (0.074 ** -2 - 0.074375 ** -2), rel=1e-12)
+    assert 0.015 < d < 0.016                              # ~7.6 ms per unit DM here
+    # the simulator: a burst, no noise, no steady sky; power per channel vs time
+    freq = 74e6 + 25e3 * np.arange(16)
+    xyz = np.array([[0.0, 0.0, 0.0], [5.0, 3.0, 0.1]])
+    start, dur, dm = 3e-3, 1.2e-3, 1.5
+    x = simulate_efield(xyz, freq, 1000, sources=[], noise_power=0.0, seed=1,
+                        transients=[{"l": 0.1, "m": 0.2, "start_s": start, "duration_s": dur, "flux_jy": 4.0, "dm": dm}],
+                        t0_s=1e-3)
+    on = np.abs(x[:, :, 0, 0]) > 0                                    # (ntime, nchan)
+    t = 1e-3 + DT * np.arange(1000)
+    for c, f in enumerate(freq):
+        delay = 4.149e-3 * dm * ((f / 1e9) ** -2 - (freq.max() / 1e9) ** -2)
+        expect = (t >= start + delay) & (t < start + delay + dur)
+        np.testing.assert_array_equal(on[:, c], expect)
+    assert on[:, 0].argmax() > on[:, -1].argmax()                      # lower frequency: later
+    # power: flux/2 per pol, on average
+    p = np.mean(np.abs(x[np.broadcast_to(on[:, :, None, None], x.shape)]) ** 2)
+    assert p == pytest.approx(2.0, rel=0.1)
+
+
+# ------------------------------------------------------------------------------ the math alone
+def _inject(x, pix, first_image, nimg, amp, delays):
+    for c, d in enumerate(delays):
+        x[first_image + d:first_image + d + nimg, c, pix] += amp
+
+
+def test_search_finds_dispersed_burst_at_expected_snr(xp):
+    rng = np.random.default_rng(11)
+    freq = 74e6 + 25e3 * np.arange(16)
+    dt_img, W, npix, nimg = 16 * DT, 150, 300, 600
+    dms = [0.0, 0.5, 1.0, 1.5, 2.0]
+    s = TransientSearch(freq, dt_img, npix, W, dms=dms, widths=[1, 2, 4, 8], threshold=6.0, xp=xp)
+    sigma = 2.0
+    x = rng.normal(50.0, sigma, (nimg, 16, npix)).astype(np.float32)
+    amp, width, e0, pix = 2.5, 4, 400, 77
+    _inject(x, pix, e0, width, amp, s.delays[dms.index(1.0)])
+    found = Crossings.concat([s.push(xp.asarray(x[a:a + 50])) for a in range(0, nimg, 50)])
+    k = int(np.argmax(found.snr))
+    assert found.pixel[k] == pix and found.image[k] == e0
+    assert dms[found.series[k]] == 1.0 and s.widths[found.width_index[k]] == width
+    expect = amp * np.sqrt(width) / (sigma / np.sqrt(16))    # mean excess / sigma of a w-image, 16-channel mean
+    print(f"pure search S/N {found.snr[k]:.2f}, expected {expect:.2f}")
+    assert found.snr[k] == pytest.approx(expect, rel=0.2)
+
+
+# ------------------------------------------------------------------------------ end to end
+@pytest.fixture(scope="module")
+def array24():
+    rng = np.random.default_rng(5)
+    return np.c_[rng.uniform(-30, 30, (24, 2)), rng.normal(0, 0.3, 24)]
+
+
+def _expected_snr(freq, dt_img, acc, burst, dm_trial, width, nant, noise_power):
+    """Peak S/N from the data model alone: the burst adds flux x (fraction of the image's samples it
+    is on) to the pixel's I in each channel; the noise of an image of T samples is the radiometer
+    sigma of |F|^2 (a complex Gaussian beam of power P = noise_power / nant per pol):
+    var(I) = 2 P^2 / T per channel, /nchan after the channel mean."""
+    nchan = len(freq)
+    fmax = freq.max()
+    delay_true = 4.149e-3 * burst["dm"] * ((freq / 1e9) ** -2 - (fmax / 1e9) ** -2)
+    shift = np.rint(4.149e-3 * dm_trial * ((freq / 1e9) ** -2 - (fmax / 1e9) ** -2) / dt_img).astype(int)
+    nimg = int(1 + (burst["start_s"] + delay_true.max() + burst["duration_s"]) / dt_img) + 16
+    excess = np.zeros((nchan, nimg))
+    ts = DT * np.arange(nimg * acc)                            # sample start times
+    for c in range(nchan):
+        on = (ts >= burst["start_s"] + delay_true[c]) & (ts < burst["start_s"] + delay_true[c] + burst["duration_s"])
+        excess[c] = burst["flux_jy"] * on.reshape(nimg, acc).mean(axis=1)
+    dd = np.zeros(nimg)
+    for c in range(nchan):                                     # align on the band top, as the search does
+        dd[:nimg - shift[c]] += excess[c, shift[c]:] / nchan
+    box = np.convolve(dd, np.ones(width), "valid") / width
+    P = noise_power / nant
+    sigma = np.sqrt(2 * P ** 2 / acc / nchan)
+    return box.max() * np.sqrt(width) / sigma
+
+
+@pytest.mark.parametrize("dm_true", [0.0, 0.9])
+def test_burst_found_on_the_sky_through_the_imager(array24, tmp_path, dm_true):
+    xyz, acc, nchan = array24, 16, 8
+    freq = 74e6 + 25e3 * np.arange(nchan)
+    grid = imaging.lm_grid(16)
+    gx, gy = 10, 5                                              # a pixel East and South of the zenith
+    l0, m0 = (gx - 8) * grid.cell, (gy - 8) * grid.cell
+    dt_img = acc * DT
+    burst = {"l": l0, "m": m0, "start_s": 0.30 + 0.3 * dt_img, "duration_s": 4 * dt_img, "flux_jy": 0.1, "dm": dm_true}
+    T = int(0.45 / DT) // acc * acc
+    X = simulate_efield(xyz, freq, T, sources=[], noise_power=1.0, seed=3, transients=[burst]).astype(np.complex64)
+    st = {"name": "lwasv", "xyz_m": xyz, **LWASV}
+    hdr = efield_header("burst", TIME_TAG, freq, DT, st, dtype="cf32")
+    dms = [0.0, 0.5, 1.0, 1.5, 2.0]
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(X, hdr, gulp_nframe=1024)
+        img = DFTImagerBlock(src, grid, acc, products=["I"], pattern=False)
+        srch = TransientSearchBlock(img, threshold=6.0, window_s=0.1, dms=dms, outdir=str(tmp_path))
+        p.run()
+    tab = srch.candidates
+    assert len(tab) >= 1
+    best = tab[int(np.argmax(tab["snr"]))]
+    assert abs(best["grid_x"] - gx) <= 1 and abs(best["grid_y"] - gy) <= 1
+    e_true = burst["start_s"] / dt_img
+    assert abs(best["image"] - e_true) <= 1.0
+    assert best["dm"] == dms[int(np.argmin(np.abs(np.asarray(dms) - dm_true)))]
+    expect = _expected_snr(freq, dt_img, acc, burst, best["dm"], int(best["width"]), len(xyz), 1.0)
+    print(f"DM {dm_true}: S/N {best['snr']:.2f} expected {expect:.2f}, image {best['image']} vs {e_true:.2f}")
+    assert best["snr"] == pytest.approx(expect, rel=0.2)
+    # time and sky position in the table agree with where the burst was put
+    t_true = TIME_TAG / FS_HZ + burst["start_s"]
+    assert abs(best["time_utc"].unix - t_true) <= 1.5 * dt_img
+    lm, _ = icrs_to_lm(best["ra_deg"], best["dec_deg"], best["time_utc"], srch.loc)
+    assert np.hypot(lm[0, 0] - best["l"], lm[0, 1] - best["m"]) < 1e-3
+    # files: the table reads back, the PNG exists
+    back = read_candidates(tmp_path / "transients_candidates.ecsv")
+    assert len(back) == len(tab) and back["lightcurve"].shape[1] == 65
+    assert (tmp_path / "transients_candidates.png").stat().st_size > 10_000
+
+
+# ------------------------------------------------------------------------------ noise statistics
+def test_noise_only_crossings_match_the_gaussian_tail():
+    """Single width, DM 0: trials are independent but for the shared window statistics, so the count
+    is Poisson about the exact expectation P(t_{W-1} > thr / sqrt(1 + 1/W)) per trial."""
+    rng = np.random.default_rng(2024)
+    W, npix, nimg, thr = 200, 2000, 700, 3.5
+    s = TransientSearch([74e6], 16 * DT, npix, W, dms=[0.0], widths=[1], threshold=thr)
+    n = 0
+    for a in range(0, nimg, 100):
+        n += len(s.push(rng.normal(10.0, 1.0, (100, 1, npix)).astype(np.float32)))
+    trials = (nimg - (W + 1 - 1)) * npix
+    expect = trials * expected_false_rate(thr, W, [1])[0]
+    print(f"noise-only crossings {n}, expected {expect:.1f}")
+    assert abs(n - expect) < 4 * np.sqrt(expect), (n, expect)
+    # and not the Gaussian tail alone without the window's estimation error (a test that can fail)
+    from scipy.stats import norm
+    assert expect > 1.05 * trials * norm.sf(thr)
+
+
+def test_noise_only_block_count_all_widths_and_dms():
+    """Through the block, 4 widths x 3 DMs: the count of crossings matches the sum of the tails over
+    the trials the block reports (loose bound: trials of one event are correlated)."""
+    rng = np.random.default_rng(7)
+    grid = imaging.lm_grid(24)
+    freq = 74e6 + 25e3 * np.arange(8)
+    dt_img, nimg = 16 * DT, 500
+    x = rng.normal(5.0, 0.5, (nimg, 8, 1, 24, 24)).astype(np.float32)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, image_header(grid, freq, dt_img), gulp_nframe=64)
+        srch = TransientSearchBlock(src, threshold=3.5, window_s=150 * dt_img, dms=[0.0, 1.0, 2.0])
+        p.run()
+    st = srch.search_stats
+    rate = expected_false_rate(3.5, srch.search.window, srch.widths)
+    expect = float(np.dot(st["trials_per_width"], rate))
+    assert st["images_searched"] == nimg - (srch.search.window + 8 - 1) - srch.search.shift
+    print(f"block crossings {st['crossings']}, expected {expect:.1f}, candidates {len(srch.candidates)}")
+    assert abs(st["crossings"] - expect) < 5 * np.sqrt(12 * expect), (st["crossings"], expect)
+    assert len(srch.candidates) <= st["crossings"]
+
+
+# ------------------------------------------------------------------------------ resets
+def _fake(data):
+    return SimpleNamespace(data=data, space="system")
+
+
+def test_skipped_gulp_and_new_sequence_reset_the_window(tmp_path):
+    """A level jump hidden in a gap would be a huge 'burst' without the reset. After the gap the search
+    waits for a full window, and image indices still count the lost images."""
+    rng = np.random.default_rng(3)
+    grid = imaging.lm_grid(12)
+    freq = 74e6 + 25e3 * np.arange(4)
+    dt_img = 16 * DT
+    hdr = image_header(grid, freq, dt_img)
+    N, W = grid.size, 60
+    with bfp.Pipeline():
+        src = ArraySourceBlock(np.zeros((1, 4, 1, N, N), np.float32), hdr, gulp_nframe=8)
+        blk = TransientSearchBlock(src, threshold=6.0, window_s=W * dt_img, dms=[0.0], outdir=None)
+
+    def noise(n, level):
+        return rng.normal(level, 1.0, (n, 4, 1, N, N)).astype(np.float32)
+
+    blk.on_sequence(SimpleNamespace(header=hdr))
+    for _ in range(10):
+        blk.on_data(_fake(noise(20, 10.0)))                 # images 0..199
+    blk.on_skip([slice(200, 232)], [])                      # 32 images lost
+    after = noise(200, 40.0)                                # the level jumped during the gap
+    k = int(np.flatnonzero(grid.mask)[40])
+    early, late = 232 + 20, 232 + 150                       # inside / after the window's refill
+    after[early - 232, :, 0].reshape(4, -1)[:, k] += 10.0
+    after[late - 232, :, 0].reshape(4, -1)[:, k] += 10.0
+    for a in range(0, 200, 25):
+        blk.on_data(_fake(after[a:a + 25]))
+    blk.on_sequence_end(None)
+    tab = blk.candidates
+    assert blk.search_stats["resets"] == 1 and blk.search_stats["images_lost"] == 32
+    assert list(tab["image"]) == [late]                      # no jump candidate, no early one
+    # a new sequence at yet another level: reset again, nothing found in pure noise
+    hdr2 = dict(hdr, name="img2")
+    blk.on_sequence(SimpleNamespace(header=hdr2))
+    for _ in range(5):
+        blk.on_data(_fake(noise(40, 90.0)))
+    blk.on_sequence_end(None)
+    assert len(blk.candidates) == 1
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
+def test_cpu_and_gpu_find_the_same_candidates():
+    import cupy
+    rng = np.random.default_rng(8)
+    grid = imaging.lm_grid(32)
+    freq = 74e6 + 25e3 * np.arange(16)
+    dt_img, nimg = 16 * DT, 400
+    x = rng.normal(5.0, 0.5, (nimg, 16, 1, 32, 32)).astype(np.float32)
+    flat = x.reshape(nimg, 16, 1, -1)
+    s = TransientSearch(freq, dt_img, 1, 100, dms=[0.0, 1.0])
+    for j, c in enumerate(np.flatnonzero(grid.mask)[[5, 300, 700]]):
+        for ch, d in enumerate(s.delays[1]):
+            flat[250 + 30 * j + d:250 + 30 * j + d + 2, ch, 0, c] += 1.5
+    out = []
+    for space in ("system", "cuda"):
+        with bfp.Pipeline() as p:
+            src = ArraySourceBlock(x, image_header(grid, freq, dt_img), gulp_nframe=64, space=space)
+            srch = TransientSearchBlock(src, threshold=4.5, window_s=100 * dt_img, dms=[0.0, 0.5, 1.0])
+            p.run()
+        out.append(srch)
+    assert out[1].xp is cupy
+    a, b = out[0].candidates, out[1].candidates
+    assert len(a) >= 3 and len(a) == len(b)
+    for col in ("image", "pixel", "dm", "width"):
+        np.testing.assert_array_equal(a[col], b[col])
+    np.testing.assert_allclose(a["snr"], b["snr"], rtol=1e-4)
+    assert out[0].search_stats["crossings"] == out[1].search_stats["crossings"]
+
+
+# ------------------------------------------------------------------------------ the YAML pipeline
+def test_transient_pipeline_yaml_end_to_end(tmp_path):
+    """pipelines/lwasv_sim_transient.yaml, made small: the burst is the brightest candidate, on the sky
+    where it was put; every image is in the HDF5 cube."""
+    from pathlib import Path
+    from astropy.coordinates import SkyCoord
+    from bf_epic_blocks.io.cube import read_image_cube
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import run
+    yaml = Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_transient.yaml"
+    cfg = load_config(yaml, [f"output.dir={tmp_path}", "source.duration_s=0.2", "source.channels.count=8",
+                             "imager.grid.size=16", "imager.search.window_s=0.06", "imager.search.dms=[0, 1.0, 2.0, 3.0]",
+                             "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.14, duration_s: 0.0015, "
+                             "flux_jy: 1500.0, dm: 2.0}]"])
+    summary = run(cfg, show_progress=False)
+    tab = read_candidates(tmp_path / "lwasv_sim_transient_candidates.ecsv")
+    best = tab[int(np.argmax(tab["snr"]))]
+    print(tab["snr", "dm", "width", "image", "ra_deg", "dec_deg"])
+    assert best["dm"] == 2.0 and best["snr"] > 8
+    assert abs(best["image"] - 0.14 / (16 * DT)) <= 1
+    sep = SkyCoord(best["ra_deg"], best["dec_deg"], unit="deg").separation(SkyCoord(310.0, 20.0, unit="deg")).deg
+    assert sep < 1.5 * np.degrees(2 / 16)                       # within ~one 7-degree cell
+    cube = read_image_cube(next(tmp_path.glob("*_cube_*.h5")))
+    assert cube["nimages"] == summary["images"] == int(0.2 / DT) // 16 and cube["images"].dtype == np.float16
+    assert summary["search"]["candidates"] == len(tab)
