@@ -127,6 +127,7 @@ extern "C" __global__ void NAME(
 _OUT_TYPES = {"int8": "i8", "float16": "__half", "bfloat16": "unsigned short", "float32": "float",
               "float64": "double"}
 _KERNELS = {}
+_ZERO_W = {}
 
 
 def _kernel(kind, out_type):
@@ -255,7 +256,9 @@ def cov_rhs(W, weights, blocks, npol_in, precision, stacked, scale=1.0, unit=Fal
             return stack_rhs(rhs, precision)[0]
         return rhs
     import cupy as cp
-    w = cp.ascontiguousarray(weights, dtype=cp.complex128).view(cp.float64)
+    # unit weights are not read: skip the copy (small, but a kernel and host time on every image)
+    w = _ZERO_W.setdefault("w", cp.zeros(2, cp.float64)) if unit else \
+        cp.ascontiguousarray(weights, dtype=cp.complex128).view(cp.float64)
     bp = device_ints(cp, [p for p, _ in blocks])
     bq = device_ints(cp, [q for _, q in blocks])
     total = C * A * nblk * A
