@@ -221,3 +221,28 @@ def test_real_bifrost_pipeline_matches_core(scene):
     assert got.shape == ref.shape == (2, 3, 4, len(s["lm"]))
     assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= 1e-6
     assert sink.headers[0]["_tensor"]["labels"] == ["time", "freq", "pol", "pixel"]
+
+
+def _ngpu():
+    from bf_epic_blocks.imaging._xp import cupy_or_none, gpu_available
+    return cupy_or_none().cuda.runtime.getDeviceCount() if gpu_available() else 0
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(_ngpu() < 1, reason="needs CuPy and a CUDA device")
+def test_imager_on_several_gpus_equals_calfold_then_one_device(scene):
+    """DFTImagerBlock(gpus=...) with the cable terms folded into its operators (no CalFoldBlock) equals
+    CalFoldBlock -> DFTImagerBlock on the CPU: same images, channels gathered in order."""
+    s = scene
+    data = pack_ci4(s["ints"])
+    hdr = efield_header("obs", 10**12, s["freq"], DT, station(s), dtype="ci4")
+    ref_sink, _ = run_pipeline(data, hdr, 60, 30, s["lm"], cable=True, products="stokes")
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(data, hdr, gulp_nframe=60)
+        img = DFTImagerBlock(src, s["lm"], 30, products="stokes", gpus=list(range(max(1, min(_ngpu(), 3)))),
+                             cable=True)
+        sink = ArraySinkBlock(img)
+        p.run()
+    got, ref = sink.result(0), ref_sink.result(0)
+    assert got.shape == ref.shape == (s["T"] // 30, 3, 4, len(s["lm"]))
+    assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= 1e-6

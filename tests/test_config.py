@@ -363,3 +363,15 @@ def test_key_lines_of_block_flow_lists_and_merges():
     assert lines["top.y"] == 6  # the mapping's own key wins over the merged one, as in loading
     assert lines["top.z"] == 7 and lines["top.z[1]"] == 7 and lines["top.z[1].w"] == 7
     assert key_lines("a: [") == {} and key_lines("") == {}
+
+
+@pytest.mark.parametrize("given, resolved", [("gpu:all", "gpu:all"), ("[0, 1]", "gpu:0,1"), ("'gpu:1,0'", "gpu:1,0"),
+                                             ("[2]", "gpu:2")])
+def test_several_gpus(given, resolved):
+    assert load_config(f"source: {{kind: simulated}}\ndevice: {given}\n")["device"] == resolved
+
+
+@pytest.mark.parametrize("given", ["[0, 0]", "[-1, 1]", "[a, b]", "[]"])
+def test_several_gpus_bad(given):
+    with pytest.raises(ConfigError, match="several GPUs as"):
+        load_config(f"source: {{kind: simulated}}\ndevice: {given}\n")

@@ -38,6 +38,14 @@ class DFTImagerBlock(bfp.TransformBlock):
              operator is rebuilt when the pixels change).
     accumulate : frames (time samples) per image.
     products, remove_autocorr, method, precision : as :func:`bf_epic_blocks.imaging.dirty_image`.
+    gpus : None (image where the input ring lives), or several GPU indices (a list, or 'all'): the
+           channels are sharded across those GPUs, one operator each (:mod:`bf_epic_blocks.imaging.multigpu`);
+           the input and output rings are then host ('system') rings, 4-bit samples cross the bus
+           packed, and a gulp must hold whole integrations (gulp_nframe a multiple of ``accumulate``).
+    weights : None or complex (nchan|1, nstand, npol|1) direction-independent weights folded into the
+           operator; flags from the header are always applied.
+    cable : fold the header's cable terms (``station.cable_delay_s``/``cable_gain``) into the operator,
+           as CalFoldBlock would apply them to the voltages (used when no CalFoldBlock runs before).
     pattern : None (use the header's ``calibration.pattern`` if CalFoldBlock set one), False (none),
               or a pattern name / callable.
     Output: float32 frames of one image each; header ``imager`` and ``pixels`` say what they are.
@@ -46,8 +54,9 @@ class DFTImagerBlock(bfp.TransformBlock):
     imager_kind = "dft"
 
     def __init__(self, iring, pixels, accumulate, products=None, remove_autocorr=False, method="auto",
-                 precision="fp32", pattern=None, *args, **kwargs):
+                 precision="fp32", pattern=None, *args, gpus=None, weights=None, cable=False, **kwargs):
         super().__init__(iring, *args, **kwargs)
+        self.gpus, self.weights, self.cable = gpus, weights, cable
         if int(accumulate) != accumulate or accumulate < 1:
             raise ValueError(f"DFTImagerBlock: accumulate must be a positive integer number of frames, got {accumulate!r}")
         self.accumulate = int(accumulate)
@@ -59,7 +68,7 @@ class DFTImagerBlock(bfp.TransformBlock):
         self.img_stats = {"images": 0, "frames_imaged": 0, "frames_dropped_partial": 0, "operator_builds": 0}
 
     def define_valid_input_spaces(self):
-        return "any"
+        return ("system",) if getattr(self, "gpus", None) is not None else "any"
 
     def define_output_nframes(self, input_nframe):
         # At most ceil(n / accumulate) integrations can complete within n new frames.
@@ -75,11 +84,31 @@ class DFTImagerBlock(bfp.TransformBlock):
     def _build(self, lm):
         lay, xp = self._lay, self._xp
         pat = self._pattern_name
+        w = (~lay["flags"])[None].astype(np.complex128)
+        if self.weights is not None:
+            w = w * np.asarray(self.weights, dtype=np.complex128)
+        if self.cable:
+            st = self._station_hdr
+            if "cable_delay_s" not in st or "cable_gain" not in st:
+                raise ValueError("DFTImagerBlock: cable=True needs station.cable_delay_s and station.cable_gain "
+                                 "(nstand, npol, nchan) in the header")
+            from ..imaging.calibration import cable_weights
+            npol = lay["npol"]
+            w = w * cable_weights(np.asarray(st["cable_delay_s"])[:, :npol], np.asarray(st["cable_gain"])[:, :npol],
+                                  lay["freq_hz"])
+        if self.gpus is not None:
+            from ..imaging.multigpu import ShardedOperator
+            B = None if pat is None else patterns.pattern_array(pat, np.asarray(lm), lay["freq_hz"], lay["npol"])
+            sh = ShardedOperator(lay["xyz_m"], lay["freq_hz"], lm, self.gpus, npol=lay["npol"], weights=w, pattern=B,
+                                 precision=self.precision)
+            self._acc = _ShardedImages(sh, self, lay["dtype"])
+            self._nant_used, self._npix = sh.ops[0].nant, sh.npix
+            self._lm = np.asarray(lm)
+            self.img_stats["operator_builds"] += 1
+            return
         B = None if pat is None else patterns.pattern_array(pat, xp.asarray(lm), xp.asarray(lay["freq_hz"]), lay["npol"])
-        live = ~lay["flags"]
         self._op = DFTOperator(xp.asarray(lay["xyz_m"]), xp.asarray(lay["freq_hz"]), xp.asarray(lm),
-                               npol=lay["npol"], weights=xp.asarray(live[None].astype(np.complex128)),
-                               pattern=B, precision=self.precision)
+                               npol=lay["npol"], weights=xp.asarray(w), pattern=B, precision=self.precision)
         self._acc = self._op.accumulator(self.products, remove_autocorr=self.remove_autocorr,
                                          method=self.method, ntime_hint=self.accumulate)
         self._nant_used, self._npix = self._op.nant, self._op.npix
@@ -90,6 +119,7 @@ class DFTImagerBlock(bfp.TransformBlock):
         ihdr = iseq.header
         lay = efield_layout(ihdr, "DFTImagerBlock")
         self._lay, self._xp = lay, self._space_xp()
+        self._station_hdr = ihdr.get("station", {})
         cal = ihdr.get("calibration", {})
         self._pattern_name = cal.get("pattern") if self.pattern is None else (self.pattern or None)
         if callable(self._pattern_name):
@@ -169,7 +199,9 @@ class DFTImagerBlock(bfp.TransformBlock):
         nout = 0
         tracking = callable(self.pixels) and not isinstance(self.pixels, LMGrid)
         with _compat.stream_context():
-            if self._lay["dtype"] in ("ci4", "ci8") and self.imager_kind == "dft":
+            if self.gpus is not None:
+                x = self._acc.host_view(idata)          # packed samples: decoded on each GPU
+            elif self._lay["dtype"] in ("ci4", "ci8") and self.imager_kind == "dft":
                 # 4/8-bit voltages stay integers: exact covariances, exact fp16 operands
                 x = unpack_int8_pairs(idata, self._lay["dtype"])
             else:
@@ -186,7 +218,7 @@ class DFTImagerBlock(bfp.TransformBlock):
                             raise ValueError("DFTImagerBlock: a tracking pixel function must keep the pixel count")
                         self._build(lm)
                 g = (n - pos) // self.accumulate
-                if self._acc.ntime == 0 and not tracking and g >= 2 and self.imager_kind == "dft":
+                if self._acc.ntime == 0 and not tracking and g >= (1 if self.gpus else 2) and self.imager_kind == "dft":
                     # several whole integrations in this gulp: one batched pass (one GEMM for all of them)
                     imgs = self._acc.images(x[pos:pos + g * self.accumulate], self.accumulate)
                     self._write(out, nout, imgs)
@@ -208,6 +240,44 @@ class DFTImagerBlock(bfp.TransformBlock):
             log.warning("DFTImagerBlock: %d frames at the end of sequence %s did not fill an integration of %d "
                         "and were not imaged", self._acc.ntime, iseq.header.get("name"), self.accumulate)
             self._acc.reset()
+
+
+class _ShardedImages:
+    """The accumulator interface DFTImagerBlock uses, over a :class:`ShardedOperator` (several GPUs):
+    whole integrations only (``images``), since a gulp holds whole integrations in that mode."""
+
+    def __init__(self, sharded, block, dtype):
+        from ..imaging import cost
+        from ..imaging.products import resolve_products
+        self.sharded, self.dtype = sharded, dtype
+        self.products = resolve_products(sharded.npol, block.products)
+        nblk = len(self.products)
+        op = sharded.ops[0]
+        self.method = block.method if block.method != "auto" else cost.choose_method(
+            block.accumulate, op.nant, op.npix, op.npol, nblk)
+        self.remove_autocorr = block.remove_autocorr
+        self.ntime = 0
+
+    def host_view(self, idata):
+        """The span as a plain host array the GPUs can copy in one piece (ci4/ci8 stay packed)."""
+        names = getattr(idata.dtype, "names", None)
+        if self.dtype == "ci4":
+            return np.ascontiguousarray(idata[names[0]] if names else idata).view(np.uint8)
+        if self.dtype == "ci8" and names:
+            return np.stack([idata["re"], idata["im"]], axis=-1)
+        return unpack_complex(idata, self.dtype)
+
+    def images(self, x, n):
+        decode = (lambda b: unpack_int8_pairs(b, "ci4")) if self.dtype == "ci4" else None
+        return self.sharded.image(x, self.products, remove_autocorr=self.remove_autocorr, method=self.method,
+                                  accumulate=n, decode=decode, out="host")
+
+    def add(self, x):
+        raise ValueError("DFTImagerBlock on several GPUs images whole integrations only: make gulp_nframe a "
+                         "multiple of accumulate (the integration)")
+
+    def reset(self):
+        pass
 
 
 def dft_imager(iring, pixels, accumulate, *args, **kwargs):

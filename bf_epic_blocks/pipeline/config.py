@@ -89,7 +89,10 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
         product: str                 (default null = the first product)
         table: ecsv | fits           (default ecsv; <prefix>_candidates.<table> in output.dir)
         png: bool                    (default true; sky with the candidates and their light curves)
-    device: cpu | gpu | 'gpu:N'      (default cpu; returned as 'cpu' or 'gpu:N', 'gpu' = 'gpu:0')
+    device: cpu | gpu | 'gpu:N'      (default cpu; returned as 'cpu' or 'gpu:N', 'gpu' = 'gpu:0');
+            or several GPUs of the host: 'gpu:all' or a list [0, 1] (returned as 'gpu:all' / 'gpu:0,1'):
+            the dft imager shards the channels across them (no CalFoldBlock then: cable terms are
+            folded into the operators; calibration.gains_table needs a single device)
     output:
       dir: path                      (default 'output/<name>'; relative to the working directory)
       fits: bool                     (default true)
@@ -181,7 +184,20 @@ class Device:
     def describe(self) -> str:
         return "'cpu', 'gpu' or 'gpu:N' (N >= 0 the GPU index)"
 
+    _MULTI = "several GPUs as 'gpu:all', 'gpu:0,1' or a list of distinct indices >= 0 like [0, 1]"
+
     def __call__(self, v, ctx):
+        if isinstance(v, list) or (isinstance(v, str) and (v.strip().lower() == "gpu:all" or "," in v)):
+            items = v if isinstance(v, list) else v.strip().lower()[4:].split(",") if v.strip().lower() != "gpu:all" else None
+            if items is None:
+                return "gpu:all"
+            try:
+                idx = [int(i) for i in items]
+            except (TypeError, ValueError):
+                raise BadValue(f"expected {self._MULTI}, got {v!r}") from None
+            if not idx or min(idx) < 0 or len(set(idx)) != len(idx) or any(isinstance(i, bool) for i in items):
+                raise BadValue(f"expected {self._MULTI}, got {v!r}")
+            return "gpu:" + ",".join(str(i) for i in idx) if len(idx) > 1 else f"gpu:{idx[0]}"
         try:
             kind, idx = parse_device(v)
         except ValueError:

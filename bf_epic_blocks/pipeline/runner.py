@@ -165,10 +165,16 @@ def imaging_mode(cfg, npix, nstand, nchan):
 
 
 def _device(cfg):
+    """('cpu', None), ('gpu', index), or ('gpus', [indices]) for several GPUs (channels sharded)."""
     dev = cfg["device"]
     if dev == "cpu":
         return "cpu", None
-    idx = int(dev.split(":")[1])
+    spec = dev.split(":")[1]
+    if spec == "all" or "," in spec:
+        from ..imaging.multigpu import resolve_devices
+        devs = resolve_devices("all" if spec == "all" else [int(i) for i in spec.split(",")])
+        return ("gpus", devs) if len(devs) > 1 else ("gpu", devs[0])
+    idx = int(spec)
     from ..imaging._xp import gpu_available
     if not gpu_available():
         raise RuntimeError(f"device {dev!r} asked for, but CuPy or a CUDA GPU is not available here; "
@@ -188,8 +194,18 @@ def build_graph(cfg, progress=None):
     if cfg["imager"]["kind"] != "dft" and cfg["calibration"].get("pattern") not in (None, "none"):
         raise ValueError(f"calibration.pattern: the {cfg['imager']['kind']} imager cannot fold an antenna pattern "
                          f"({cfg['calibration']['pattern']!r}); set calibration.pattern: none or use imager.kind: dft")
-    dev, _ = _device(cfg)
-    space = "cuda" if dev == "gpu" else "system"
+    dev, devs = _device(cfg)
+    space = "cuda" if dev == "gpu" else "system"   # several GPUs: host rings, each GPU pulls its channels
+    if dev == "gpus":
+        if cfg["imager"]["kind"] != "dft":
+            raise ValueError(f"device {cfg['device']!r}: only the dft imager shards channels over several GPUs")
+        if cfg["calibration"].get("gains_table"):
+            raise ValueError(f"device {cfg['device']!r}: calibration.gains_table (time-variable gains) needs "
+                             "CalFoldBlock, which runs on one device; use a single GPU")
+        if int(cfg["source"]["gulp_nframe"]) % int(cfg["imager"]["accumulate_frames"]):
+            raise ValueError(f"device {cfg['device']!r}: source.gulp_nframe ({cfg['source']['gulp_nframe']}) must "
+                             f"be a multiple of imager.accumulate_frames ({cfg['imager']['accumulate_frames']}) "
+                             "when the channels are sharded over several GPUs")
     station = load_station_for(cfg)
     src_cfg, im = cfg["source"], cfg["imager"]
     gulp = int(src_cfg["gulp_nframe"])
@@ -228,7 +244,10 @@ def build_graph(cfg, progress=None):
         # live packets must never wait for the imager: CalFoldBlock reads them unguaranteed and
         # counts the frames it could not keep up with (stats['nframe_skipped']; zeros go on)
         live = {"guarantee": False} if src_cfg["kind"] == "udp" else {}
-        calfold = CalFoldBlock(source, cable=bool(cal["cable"]), gains=gains, pattern=pattern, **live)
+        if dev == "gpus":   # the imager folds the cable terms into its per-GPU operators itself
+            calfold = source
+        else:
+            calfold = CalFoldBlock(source, cable=bool(cal["cable"]), gains=gains, pattern=pattern, **live)
         pixels = _pixels(cfg, station)
         common = dict(products=im["products"], remove_autocorr=im["remove_autocorr"])
         if im["kind"] == "dft":
@@ -237,6 +256,8 @@ def build_graph(cfg, progress=None):
                                                    len(channel_freqs(cfg)) if src_cfg["kind"] == "simulated" else 1)
             if pick is not None:
                 log.info("imager.tolerance %.1e: %s", im["tolerance"], pick.describe())
+            if dev == "gpus":
+                common.update(gpus=devs, cable=bool(cal["cable"]), pattern=pattern or False)
             imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], method=method,
                                     precision=precision, **common)
         else:
