@@ -5,8 +5,10 @@ Case P geometry (256 antennas, 64 x 64 grid, 1,024-sample gulps, 2 pols, Stokes 
 4-bit voltages. Rows, all in the same run:
   * ``1 GPU``: one DFTOperator over all 32 channels on GPU 0;
   * ``N GPUs, resident``: ShardedOperator, each GPU's input already in its memory (the imaging itself);
+  * ``N GPUs, peer, threads``: ShardedOperator fed from GPU 0's memory (one host thread per GPU);
   * ``N GPUs, from host``: ShardedOperator fed the gulp from (pinned) host memory as packed ci4 bytes,
-    each GPU copying the gulp over its own link and decoding it (what DFTImagerBlock(gpus=...) does).
+    each GPU copying the gulp over its own link and decoding it (what DFTImagerBlock(gpus=...) does),
+    one host thread per GPU (and the same issued from one thread, for comparison).
 Times are medians of wall-clock seconds per gulp (the result gathered on the host each time), and the
 speed-up is over the 1-GPU row. Output images are checked equal (<= 1e-6 of the peak) to 1 GPU.
 
@@ -97,7 +99,18 @@ def main(argv=None):
 
             def from_host():
                 return sh.image(host, ("I",), method=a.method, decode=lambda b: unpack_int8_pairs(b, "ci4"))
-            for label, fn in ((f"{n} GPUs, resident", res), (f"{n} GPUs, from host", from_host)):
+
+            def res_threads():
+                return sh.image(resident[0], ("I",), method=a.method)   # peer copies of each GPU's slice
+
+            def from_host_serial():
+                sh.threads = False
+                try:
+                    return from_host()
+                finally:
+                    sh.threads = True
+            for label, fn in ((f"{n} GPUs, resident", res), (f"{n} GPUs, peer, threads", res_threads),
+                              (f"{n} GPUs, from host", from_host), (f"{n} GPUs, host, 1 thread", from_host_serial)):
                 t = wall(fn, a.repeat)
                 diff = float(np.max(np.abs(fn() - ref)) / np.max(np.abs(ref)))
                 rows.append({"precision": precision, "setup": label, "ngpu": n, "gulp_s": t, "speedup": t1 / t,

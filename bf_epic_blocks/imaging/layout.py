@@ -257,7 +257,7 @@ def cov_rhs(W, weights, blocks, npol_in, precision, stacked, scale=1.0, unit=Fal
         return rhs
     import cupy as cp
     # unit weights are not read: skip the copy (small, but a kernel and host time on every image)
-    w = _ZERO_W.setdefault("w", cp.zeros(2, cp.float64)) if unit else \
+    w = _ZERO_W.setdefault(cp.cuda.runtime.getDevice(), cp.zeros(2, cp.float64)) if unit else \
         cp.ascontiguousarray(weights, dtype=cp.complex128).view(cp.float64)
     bp = device_ints(cp, [p for p, _ in blocks])
     bq = device_ints(cp, [q for _, q in blocks])

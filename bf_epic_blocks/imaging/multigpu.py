@@ -64,6 +64,14 @@ class ShardedOperator:
                 self.ops.append(DFTOperator(cp.asarray(xyz_m), cp.asarray(freq[cs]), cp.asarray(pixels_lm),
                                             npol=npol, weights=w, pattern=b, precision=precision))
         self.npix, self.npol, self.precision = self.ops[0].npix, npol, precision
+        self.threads = True
+        self._executor = None
+
+    def _pool(self):
+        if self._executor is None:
+            from concurrent.futures import ThreadPoolExecutor
+            self._executor = ThreadPoolExecutor(max_workers=len(self.devices), thread_name_prefix="bf-epic-gpu")
+        return self._executor
 
     def image(self, efield, products=None, *, remove_autocorr=False, method="auto", accumulate=None,
               decode=None, out="host"):
@@ -75,21 +83,25 @@ class ShardedOperator:
         out : 'host' (NumPy) or 'device' (CuPy on the first GPU).
         """
         cp = cupy_or_none()
-        parts = []
-        for d, cs, op in zip(self.devices, self.blocks, self.ops):
+        axis = 0 if accumulate is None else 1     # (nchan, ...) or (ngroup, nchan, ...)
+
+        def shard(i):
+            d, cs, op = self.devices[i], self.blocks[i], self.ops[i]
             with cp.cuda.Device(d):
                 x = cp.asarray(efield) if isinstance(efield, np.ndarray) else _to_device(efield, d)
                 if decode is not None:
                     x = decode(x)
-                parts.append(op.image(x[:, cs], products, remove_autocorr=remove_autocorr, method=method,
-                                      accumulate=accumulate))
-        axis = 0 if accumulate is None else 1     # (nchan, ...) or (ngroup, nchan, ...)
+                img = op.image(x[:, cs], products, remove_autocorr=remove_autocorr, method=method,
+                               accumulate=accumulate)
+                return img.get() if out == "host" else img
+        if self.threads and len(self.devices) > 1:
+            # one host thread per GPU: the transfers and waits release the GIL, so one GPU's copies
+            # and results overlap another's kernel launches
+            parts = list(self._pool().map(shard, range(len(self.devices))))
+        else:
+            parts = [shard(i) for i in range(len(self.devices))]
         if out == "host":
-            host = []
-            for d, p in zip(self.devices, parts):
-                with cp.cuda.Device(d):
-                    host.append(p.get())
-            return np.concatenate(host, axis=axis)
+            return np.concatenate(parts, axis=axis)
         with cp.cuda.Device(self.devices[0]):
             return cp.concatenate([_to_device(p, self.devices[0]) for p in parts], axis=axis)
 

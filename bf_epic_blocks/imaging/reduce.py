@@ -166,7 +166,8 @@ _INDEX_CACHE = {}
 
 def device_ints(xp, values):
     """A cached int32 device array of ``values`` (a tuple): made once, not copied on every call."""
-    key = (xp.__name__, tuple(values))
+    dev = xp.cuda.runtime.getDevice() if xp.__name__ == "cupy" else None   # one copy per GPU
+    key = (xp.__name__, dev, tuple(values))
     if key not in _INDEX_CACHE:
         _INDEX_CACHE[key] = xp.asarray(list(values), dtype=xp.int32)
     return _INDEX_CACHE[key]
