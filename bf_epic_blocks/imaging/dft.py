@@ -38,7 +38,7 @@ from ._xp import get_xp
 from .gemm import (PRECISIONS, STACKED, check_precision, cmatmul, int_gram, pow2_scale, split_tf32, stack_operator,
                    stack_rhs, stacked_matmul)
 from .layout import cov_rhs, direct_rhs, gram_rows
-from .reduce import block_corr, group_power, row_dot
+from .reduce import block_corr, group_power, product_coefficients, products_from_blocks, row_dot
 from .pixels import check_lm, n_from_lm
 from .products import combine, needs_cross, resolve_products
 
@@ -479,6 +479,7 @@ class ImageAccumulator:
             self._bw = xp.stack([B[:, :, min(p, B.shape[2] - 1)] * xp.conj(B[:, :, min(q, B.shape[2] - 1)])
                                  for p, q in blocks], axis=1)
         self._bidx = [(self.pols.index(p), self.pols.index(q)) for p, q in blocks]
+        self._coef = None
         self.reset()
 
     def reset(self):
@@ -650,13 +651,18 @@ class ImageAccumulator:
     def _finish(self, corr, factor):
         """(..., C', nblk, K) complex correlation sums, times ``factor`` -> (..., nchan, nprod, K) products."""
         xp, op = self.op.xp, self.op
-        corr = corr * (self._blkscale * op.rdtype(factor))
-        if self._bw is not None:
-            corr = corr * self._bw
-        get = {blk: corr[..., i, :] for i, blk in enumerate(self.blocks)}
-        xx, yy, xy = get.get((0, 0)), get.get((1, 1)), get.get((0, 1))
-        out = combine(self.products, xx.real if xx is not None else None,
-                      yy.real if yy is not None else None, xy).astype(op.rdtype, copy=False)
+        if self._bw is None:
+            # one pass: scale, 1/N_A^2 and the products' Re/Im combinations together (reduce.py)
+            if self._coef is None:
+                self._coef = xp.asarray(product_coefficients(self.products, self.blocks))
+            out = products_from_blocks(corr, self._blkscale[..., 0] * op.rdtype(factor), self._coef)
+            out = out.astype(op.rdtype, copy=False)
+        else:
+            corr = corr * (self._blkscale * op.rdtype(factor)) * self._bw
+            get = {blk: corr[..., i, :] for i, blk in enumerate(self.blocks)}
+            xx, yy, xy = get.get((0, 0)), get.get((1, 1)), get.get((0, 1))
+            out = combine(self.products, xx.real if xx is not None else None,
+                          yy.real if yy is not None else None, xy).astype(op.rdtype, copy=False)
         if op.chan_index is not None:
             full = xp.full(out.shape[:-3] + (op.nchan,) + out.shape[-2:], xp.nan, dtype=op.rdtype)
             full[..., op.chan_index, :, :] = out
@@ -719,7 +725,11 @@ class ImageAccumulator:
             for c0 in range(0, c, cchunk):
                 cs = slice(c0, min(c, c0 + cchunk))
                 M, stacked = op.field_gemm_parts(0, [rhs[cs]], cs)
-                out[cs] = row_dot(M, op.live_G(0)[cs], nblk, stacked=stacked, scale=None if s == 1 else 1.0 / s)
+                r = row_dot(M, op.live_G(0)[cs], nblk, stacked=stacked, scale=None if s == 1 else 1.0 / s)
+                if cchunk >= c:
+                    out = r          # one chunk: no copy
+                else:
+                    out[cs] = r
         else:
             R = self._covariance_blocks()                         # (C', nblk, A, A) sums
             for c0 in range(0, c, cchunk):

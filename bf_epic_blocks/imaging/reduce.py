@@ -20,7 +20,7 @@ import numpy as np
 
 from ._xp import get_xp
 
-__all__ = ["block_corr", "row_dot", "group_power"]
+__all__ = ["block_corr", "row_dot", "group_power", "products_from_blocks", "product_coefficients"]
 
 # F element (row r = (c, k), column j) sits at F[c*sc + k*sk + j*es] (real) and + im_off (imag).
 # One thread per output (c, b, k, g): consecutive threads take consecutive groups g of one row,
@@ -134,13 +134,38 @@ extern "C" __global__ void bf_row_dot(
 }
 """
 
+# Polarisation products from the block correlations in one pass: every product is a linear
+# combination of Re and Im of the blocks (I = Re XX + Re YY, V = -2 Im XY, ...):
+# out[g, c, p, k] = sum_b s[c, b] (a[p, b] Re corr[g, c, b, k] + i[p, b] Im corr[g, c, b, k]).
+_PRODUCTS_SRC = r"""
+extern "C" __global__ void bf_products(
+    const float2* __restrict__ corr, const float* __restrict__ s, const float* __restrict__ coef,
+    float* __restrict__ out, const long long G, const int C, const int nblk, const int nprod, const int K)
+{
+    long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    long long total = G * C * nprod * K;
+    if (idx >= total) return;
+    int k = (int)(idx % K); long long r = idx / K;
+    int p = (int)(r % nprod); r /= nprod;
+    int c = (int)(r % C); long long g = r / C;
+    const float2* cr = corr + ((g * C + c) * nblk) * K + k;
+    float v = 0.f;
+    for (int b = 0; b < nblk; ++b) {
+        float2 z = cr[(long long)b * K];
+        float sb = s[c * nblk + b];
+        v += sb * (coef[(p * nblk + b) * 2] * z.x + coef[(p * nblk + b) * 2 + 1] * z.y);
+    }
+    out[idx] = v;
+}
+"""
+
 _KERNELS = {}
 
 
 def _raw(name):
     if name not in _KERNELS:
         import cupy as cp
-        src = {"bf_block_corr": _BLOCK_CORR_SRC, "bf_row_dot": _ROW_DOT_SRC}[name]
+        src = {"bf_block_corr": _BLOCK_CORR_SRC, "bf_row_dot": _ROW_DOT_SRC, "bf_products": _PRODUCTS_SRC}[name]
         _KERNELS[name] = cp.RawKernel(src, name)
     return _KERNELS[name]
 
@@ -233,6 +258,46 @@ def row_dot(M, D, nblk, *, stacked=False, scale=None):
     _raw("bf_row_dot")(((nwarps * 32 + threads - 1) // threads,), (threads,),
                        (fl, D.view(xp.float32), out, *_scale_args(xp, scale), np.int32(c), np.int32(K), np.int32(A),
                         np.int32(nblk), np.int64(sc), np.int64(sk), np.int64(im_off), np.int32(es)))
+    return out
+
+
+_RECIPES = {  # product -> {block: (coefficient of Re, coefficient of Im)}
+    "XX": {(0, 0): (1, 0)}, "YY": {(1, 1): (1, 0)}, "XY": {(0, 1): (1, 0)}, "YX": {(0, 1): (1, 0)},
+    "XYi": {(0, 1): (0, 1)}, "YXi": {(0, 1): (0, -1)}, "I": {(0, 0): (1, 0), (1, 1): (1, 0)},
+    "Q": {(0, 0): (1, 0), (1, 1): (-1, 0)}, "U": {(0, 1): (2, 0)}, "V": {(0, 1): (0, -2)},
+}
+
+
+def product_coefficients(products, blocks):
+    """(nprod, nblk, 2) float32: Re and Im coefficients of each block in each product (the one place,
+    with :func:`bf_epic_blocks.imaging.products.combine`, where the Stokes convention lives in code)."""
+    out = np.zeros((len(products), len(blocks), 2), np.float32)
+    for p, name in enumerate(products):
+        for blk, (a, b) in _RECIPES[name].items():
+            out[p, blocks.index(blk)] = (a, b)
+    return out
+
+
+def products_from_blocks(corr, scale, coef):
+    """Real products (..., C, nprod, K) = sum_b scale[c, b] (coef Re + coef Im) of corr (..., C, nblk, K).
+
+    corr : complex block correlations; scale : real (C, nblk); coef : :func:`product_coefficients`.
+    One CUDA kernel on the GPU (complex64 input), array code elsewhere."""
+    xp = get_xp(corr)
+    lead = corr.shape[:-3]
+    C, nblk, K = corr.shape[-3:]
+    nprod = coef.shape[0]
+    if xp is np or corr.dtype != xp.complex64:
+        c = xp.asarray(coef, dtype=corr.real.dtype)
+        z = corr * scale[..., None]
+        return xp.einsum("...cbk,pb->...cpk", z.real, c[..., 0]) + xp.einsum("...cbk,pb->...cpk", z.imag, c[..., 1])
+    corr = xp.ascontiguousarray(corr)
+    G = int(np.prod(lead)) if lead else 1
+    out = xp.empty(lead + (C, nprod, K), xp.float32)
+    total = G * C * nprod * K
+    _raw("bf_products")(((total + 255) // 256,), (256,),
+                        (corr, xp.ascontiguousarray(scale, dtype=xp.float32), coef, out, np.int64(G), np.int32(C),
+                         np.int32(nblk), np.int32(nprod), np.int32(K)))
     return out
 
 
