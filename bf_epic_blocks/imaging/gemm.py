@@ -118,27 +118,33 @@ def _as_batched(a):
     return a
 
 
-def _cublas_gemm(a, b, c, compute, beta):
-    """c[i] = a[i] @ b[i] (+ beta c[i]) row-major, complex, with a cuBLAS compute type.
+def _gemm_ex(a, b, c, in_type, out_type, compute, scalar_dtype, beta):
+    """c[i] = a[i] @ b[i] (+ beta c[i]), row-major batches, through cublasGemmStridedBatchedEx.
 
     Row-major C = A B is column-major C^T = B^T A^T, so cuBLAS gets (B, A) with no transposes.
-    A batch dimension of 1 broadcasts (stride 0)."""
+    A batch dimension of 1 broadcasts (stride 0). ``in_type``/``out_type``: CUDA data types;
+    ``scalar_dtype``: NumPy type of alpha and beta (the compute type's)."""
     import cupy as cp
     from cupy_backends.cuda.libs import cublas
     batch = max(a.shape[0], b.shape[0])
     m, k = a.shape[1:]
     n = b.shape[2]
-    dt = _CUDA_C_64F if a.dtype == cp.complex128 else _CUDA_C_32F
-    sdt = np.complex128 if a.dtype == cp.complex128 else np.complex64
-    alpha = np.array(1, sdt)
-    beta_ = np.array(beta, sdt)
+    alpha = np.array(1, scalar_dtype)
+    beta_ = np.array(beta, scalar_dtype)
     sa = 0 if a.shape[0] == 1 else m * k
     sb = 0 if b.shape[0] == 1 else k * n
     handle = cp.cuda.device.get_cublas_handle()
     cublas.gemmStridedBatchedEx(handle, _OP_N, _OP_N, n, m, k, alpha.ctypes.data,
-                                b.data.ptr, dt, n, sb, a.data.ptr, dt, k, sa,
-                                beta_.ctypes.data, c.data.ptr, dt, n, m * n, batch, compute, _GEMM_DEFAULT)
+                                b.data.ptr, in_type, n, sb, a.data.ptr, in_type, k, sa,
+                                beta_.ctypes.data, c.data.ptr, out_type, n, m * n, batch, compute, _GEMM_DEFAULT)
     return c
+
+
+def _cublas_gemm(a, b, c, compute, beta):
+    """Complex c = a @ b (+ beta c) with a cuBLAS compute type (complex64 or complex128 operands)."""
+    wide = a.dtype == np.complex128
+    dt = _CUDA_C_64F if wide else _CUDA_C_32F
+    return _gemm_ex(a, b, c, dt, dt, compute, np.complex128 if wide else np.complex64, beta)
 
 
 def cmatmul(a, b, precision="fp32", *, out=None, b_exact=False, a_split=None):
@@ -300,22 +306,9 @@ def _stored_to_float(a):
 
 def _cublas_rgemm(a, b, c, precision, beta):
     """c = a @ b (+ beta c), row-major real batches: operands in ``precision``'s storage, fp32 out."""
-    import cupy as cp
-    from cupy_backends.cuda.libs import cublas
     atype = {"fp16": _CUDA_R_16F, "bf16": _CUDA_R_16BF}.get(precision, _CUDA_R_32F)
     compute = _COMPUTE["tf32"] if precision in ("tf32", "tf32x3") else _COMPUTE["fp32"]
-    batch = max(a.shape[0], b.shape[0])
-    m, k = a.shape[1:]
-    n = b.shape[2]
-    alpha = np.array(1, np.float32)
-    beta_ = np.array(beta, np.float32)
-    sa = 0 if a.shape[0] == 1 else m * k
-    sb = 0 if b.shape[0] == 1 else k * n
-    handle = cp.cuda.device.get_cublas_handle()
-    cublas.gemmStridedBatchedEx(handle, _OP_N, _OP_N, n, m, k, alpha.ctypes.data,
-                                b.data.ptr, atype, n, sb, a.data.ptr, atype, k, sa,
-                                beta_.ctypes.data, c.data.ptr, _CUDA_R_32F, n, m * n, batch, compute, _GEMM_DEFAULT)
-    return c
+    return _gemm_ex(a, b, c, atype, _CUDA_R_32F, compute, np.float32, beta)
 
 
 def stacked_matmul(a_parts, b_parts, precision, *, out=None, b_exact=False):

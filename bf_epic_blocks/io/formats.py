@@ -9,6 +9,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 __all__ = ["detect_format", "FrameFormatError", "SYNC_WORD", "FRAME_ID_FORMAT"]
 
 SYNC_WORD = 0xDEC0DE5C
@@ -48,3 +50,25 @@ def detect_format(path_or_bytes) -> str:
         return FRAME_ID_FORMAT[fid]
     except KeyError:
         raise FrameFormatError(f"{where}: frame id {fid} is neither TBF (1 = ADP, 5 = NDP) nor TBX (8)") from None
+
+
+class CaptureGrid:
+    """The (time tag, channel) grid of a TBF or TBX header scan, shared by their ``*Info`` classes.
+
+    Needs ``blocks`` (first channels), ``nchan_frame``, ``chan_bw_hz`` and ``time_tags``."""
+
+    @property
+    def channels(self) -> np.ndarray:
+        return (self.blocks[:, None] + np.arange(self.nchan_frame)).ravel()
+
+    @property
+    def freq_hz(self) -> np.ndarray:
+        return self.channels * self.chan_bw_hz
+
+    @property
+    def ntime(self) -> int:
+        return len(self.time_tags)
+
+    @property
+    def nchan(self) -> int:
+        return len(self.blocks) * self.nchan_frame

@@ -51,6 +51,8 @@ from typing import Iterator
 
 import numpy as np
 
+from .formats import CaptureGrid
+
 __all__ = ["TBFData", "TBFInfo", "TBFError", "TBFWarning", "read_tbf", "iter_tbf_gulps", "scan_tbf",
            "unpack_ci4", "pack_ci4", "time_tag_to_time", "SYNC_WORD", "FS_HZ", "CHANNELS_PER_FRAME",
            "HEADER_BYTES", "FRAME_KINDS", "write_tbf"]
@@ -136,7 +138,7 @@ def time_tag_to_time(time_tag):
 
 
 @dataclass
-class TBFInfo:
+class TBFInfo(CaptureGrid):
     """What one header pass over a TBF file finds (no payload read).
 
     ``time_tags`` (ntime,) sorted distinct; ``blocks`` (nblock,) sorted distinct first channels;
@@ -166,20 +168,8 @@ class TBFInfo:
         return FRAME_KINDS[self.frame_id][2]
 
     @property
-    def channels(self) -> np.ndarray:
-        return (self.blocks[:, None] + np.arange(CHANNELS_PER_FRAME)).ravel()
-
-    @property
-    def freq_hz(self) -> np.ndarray:
-        return self.channels * self.chan_bw_hz
-
-    @property
-    def ntime(self) -> int:
-        return len(self.time_tags)
-
-    @property
-    def nchan(self) -> int:
-        return len(self.blocks) * CHANNELS_PER_FRAME
+    def nchan_frame(self) -> int:
+        return CHANNELS_PER_FRAME
 
 
 @dataclass

@@ -45,7 +45,7 @@ from typing import Iterator, NamedTuple
 
 import numpy as np
 
-from .formats import SYNC_WORD
+from .formats import SYNC_WORD, CaptureGrid
 from .tbf import FS_HZ, TBFData
 
 __all__ = ["TBXData", "TBXInfo", "TBXError", "TBXWarning", "TBXFrame", "TBXHeader", "read_tbx", "iter_tbx_gulps",
@@ -213,7 +213,7 @@ def write_tbx(path, data, time_tags, first_chan: int, *, nchan_frame: int = 12, 
 
 
 @dataclass
-class TBXInfo:
+class TBXInfo(CaptureGrid):
     """What one header pass over a TBX file finds (no payload read); as :class:`~.tbf.TBFInfo`.
 
     ``time_tags`` (ntime,) sorted distinct; ``blocks`` (nblock,) sorted distinct first channels;
@@ -237,22 +237,6 @@ class TBXInfo:
     def station_hint(self) -> str:
         """The NDP station with this many stands: 64 -> 'lwana', 256 -> 'lwasv' (after its NDP upgrade)."""
         return _station_hint(self.nstand)
-
-    @property
-    def channels(self) -> np.ndarray:
-        return (self.blocks[:, None] + np.arange(self.nchan_frame)).ravel()
-
-    @property
-    def freq_hz(self) -> np.ndarray:
-        return self.channels * self.chan_bw_hz
-
-    @property
-    def ntime(self) -> int:
-        return len(self.time_tags)
-
-    @property
-    def nchan(self) -> int:
-        return len(self.blocks) * self.nchan_frame
 
 
 def _station_hint(nstand: int) -> str:
