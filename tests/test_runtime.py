@@ -835,3 +835,134 @@ def test_capacity_growth_while_a_write_span_is_open():
             for span in spans:
                 got.append(np.array(span.data))
             np.testing.assert_array_equal(np.concatenate(got), x)
+
+
+# --------------------------------------------------------------------------------------------
+# 'cuda' rings: ordering by events, pinned asynchronous host->device copies (GPU machine only)
+# --------------------------------------------------------------------------------------------
+
+_SPIN_SRC = r'''
+extern "C" __global__ void spin(long long cycles) {
+    long long t0 = clock64();
+    while (clock64() - t0 < cycles) { }
+}
+'''
+
+
+def _spin(cp, ms):
+    """Queue a kernel that keeps the GPU busy ~ms on the current stream (the host returns at
+    once): work queued after it on that stream runs late, as a slow GPU block's would."""
+    try:
+        hz = cp.cuda.Device().attributes['ClockRate'] * 1e3
+    except Exception:
+        hz = 2e9
+    cp.RawKernel(_SPIN_SRC, 'spin')((1,), (1,), (np.int64(ms * 1e-3 * hz),))
+
+
+class _SlowGpuScale(bfp.TransformBlock):
+    """out = 2 * in on the GPU, each gulp queued behind a ~ms-long kernel."""
+
+    def __init__(self, iring, ms=3, *args, **kwargs):
+        super().__init__(iring, *args, **kwargs)
+        self.ms = ms
+
+    def define_valid_input_spaces(self):
+        return ('cuda',)
+
+    def on_sequence(self, iseq):
+        return copy.deepcopy(iseq.header)
+
+    def on_data(self, ispan, ospan):
+        import cupy as cp
+        _spin(cp, self.ms)
+        ospan.data[...] = 2 * ispan.data   # reads the input only after the spin
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason='needs CuPy and a CUDA device')
+@pytest.mark.parametrize('device_input', [False, True])
+def test_cuda_slow_reader_never_sees_overwritten_data(device_input):
+    """The slow block's host side returns long before its kernels run; only the release events
+    stop the source (a fast second reader keeps it going) from overwriting the frames the
+    queued kernels will read, and only the ready events stop them reading before the copy in."""
+    import cupy as cp
+    n, gulp = 200, 8
+    x = (np.arange(n * 4, dtype=np.float32).reshape(n, 4) + 1) * 0.5
+
+    def graph(space):
+        with bfp.Pipeline() as p:
+            arr = cp.asarray(x) if (device_input and space == 'cuda') else x
+            src = ArraySourceBlock(arr, hdr(shape=(-1, 4)), gulp_nframe=gulp, space=space)
+            slow = _SlowGpuScale(src) if space == 'cuda' else Scale(src, k=2)
+            fast = ArraySinkBlock(src)
+            sink = ArraySinkBlock(slow)
+            run_with_timeout(p, 120)
+        return sink.result(0), fast.result(0), src
+
+    out, copy_out, src = graph('cuda')
+    assert src.orings[0].capacity < n      # the ring really is re-used many times over
+    np.testing.assert_array_equal(out, 2 * x)
+    np.testing.assert_array_equal(copy_out, x)
+    cpu_out, _, _ = graph('system')
+    np.testing.assert_array_equal(out, cpu_out)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason='needs CuPy and a CUDA device')
+def test_cuda_unguaranteed_slow_reader_copies_are_exact():
+    import cupy as cp
+    n = 400
+    x = np.repeat(np.arange(n, dtype=np.float32)[:, None], 3, axis=1)
+    bad = []
+
+    class SlowUnguaranteed(bfp.SinkBlock):
+        def define_valid_input_spaces(self):
+            return ('cuda',)
+
+        def on_sequence(self, iseq):
+            pass
+
+        def on_data(self, ispan):
+            _spin(cp, 2)
+            got = cp.asnumpy(ispan.data[:, 0])
+            if not np.array_equal(got, ispan.frame_offset + np.arange(ispan.nframe)):
+                bad.append(ispan.frame_offset)
+
+        def on_skip(self, islices, ospans):
+            pass
+
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(cp.asarray(x), hdr(shape=(-1, 3)), gulp_nframe=4, space='cuda')
+        slow = SlowUnguaranteed(src, guarantee=False)
+        run_with_timeout(p, 120)
+    assert slow.stats['nframe_skipped'] + slow.stats['nframe_read'] == n
+    assert slow.stats['nframe_read'] > 0 and not bad
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason='needs CuPy and a CUDA device')
+def test_cuda_source_sends_packed_ci4_from_pinned_memory():
+    import cupy as cp
+    rng = np.random.default_rng(11)
+    n, shape = 100, (3, 5, 2)
+    z = rng.integers(-8, 8, (n,) + shape) + 1j * rng.integers(-8, 8, (n,) + shape)
+    want = pack_ci4(z)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(z, hdr(dtype='ci4', shape=(-1,) + shape), gulp_nframe=16,
+                               space='cuda')
+        sink = ArraySinkBlock(src)
+        run_with_timeout(p, 60)
+    stored = src._items[0][0]
+    assert stored.dtype == np.uint8 and _compat.is_pinned(stored)
+    # one byte per complex sample crossed the bus, straight from pinned memory
+    assert src._h2d.nbytes == want.size and src._h2d.staged_bytes == 0
+    np.testing.assert_array_equal(sink.result(0).view(np.uint8), want)
+    # pageable host data go through the pinned staging buffers, chunk by chunk
+    h2d = _compat.HostToDevice()
+    dst = cp.zeros(want.shape, cp.uint8)
+    with cp.cuda.Stream(non_blocking=True) as s:
+        for i in range(0, n, 7):
+            h2d.copy(dst[i:i + 7], want[i:i + 7])
+        s.synchronize()
+    np.testing.assert_array_equal(dst.get(), want)
+    assert h2d.staged_bytes == want.size

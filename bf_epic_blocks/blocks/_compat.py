@@ -179,7 +179,11 @@ def is_pinned(a):
         return False
     while isinstance(a, np.ndarray):
         a = a.base
-    return isinstance(a, cp.cuda.PinnedMemoryPointer)
+    if isinstance(a, memoryview):  # NumPy 2's np.frombuffer keeps a memoryview of the exporter
+        a = a.obj
+    kinds = tuple(k for k in (getattr(cp.cuda, 'PinnedMemoryPointer', None),
+                              getattr(cp.cuda, 'PinnedMemory', None)) if k is not None)
+    return isinstance(a, kinds)
 
 
 def pinned_empty(shape, dtype):
