@@ -10,7 +10,9 @@ all sequences are numbered on one global clock; the ring holds the last ``capaci
 * A writer ``reserve``s n frames, fills ``span.data`` and commits c <= n of them. ``reserve``
   blocks while any *guaranteed* reader would fall more than ``capacity`` frames behind the head
   (back-pressure: guaranteed readers lose nothing).
-* *Unguaranteed* readers never slow the writer. A frame older than ``head - capacity`` is gone;
+* *Unguaranteed* readers never slow the writer (a ring that has one gets one more write gulp of
+  capacity, because the writer overwrites from its reserve on). A frame older than
+  ``head - capacity`` is gone;
   a read that asks for gone frames jumps forward by whole strides and reports the jump in
   ``span.nframe_skipped`` (the pipeline hands it to ``on_skip``).
 
@@ -256,6 +258,10 @@ class Ring:
 
     def _update_capacity(self):
         new = max(self._requested, self._max_write + self._max_read, 1)
+        if any(not r.guarantee for r in self._readers):
+            # the writer overwrites from its reserve on (not from its commit): one more write
+            # gulp keeps an unguaranteed reader's window at the requested size
+            new += self._max_write
         ghost = max(self._max_write, self._max_read)
         if new <= self._cap and ghost <= self._ghost:
             return
@@ -379,6 +385,8 @@ class Ring:
         with self._cond:
             rd = _Reader(self, guarantee)
             self._readers.append(rd)
+            if not rd.guarantee:
+                self._update_capacity()
             return rd
 
     def read(self, whence='earliest', guarantee=True):
