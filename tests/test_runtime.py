@@ -639,3 +639,330 @@ def test_whole_file_on_builtin_runtime_under_bifrost():
                          text=True, timeout=300)
     assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
     assert ' passed' in out.stdout and ' failed' not in out.stdout
+
+
+# --------------------------------------------------------------------------------------------
+# zero-copy spans, wrap-around, back-pressure with views
+# --------------------------------------------------------------------------------------------
+
+def _storage(ring):
+    """The storage buffer of the ring's newest sequence (runtime internals, for these tests)."""
+    return ring._seqs[-1].buf
+
+
+def test_guaranteed_reads_are_views_of_the_ring_and_read_only():
+    seen = []
+
+    class Check(bfp.SinkBlock):
+        def on_sequence(self, iseq):
+            pass
+
+        def on_data(self, ispan):
+            seen.append((np.shares_memory(ispan.data, _storage(self.iring)),
+                         ispan.data.flags.writeable, ispan.data.copy(), ispan.frame_offset))
+
+    written = []
+
+    class Src(ArraySourceBlock):
+        def on_data(self, reader, ospans):
+            written.append(np.shares_memory(ospans[0].data, _storage(self.orings[0])))
+            return super().on_data(reader, ospans)
+
+    x = np.arange(50 * 3, dtype=np.float32).reshape(50, 3)
+    with bfp.Pipeline() as p:
+        src = Src(x, hdr(shape=(-1, 3)), gulp_nframe=8)
+        Check(src)
+        run_with_timeout(p)
+    assert written and all(written)                      # writers fill the ring in place
+    assert len(seen) == 7 and all(shared for shared, _, _, _ in seen)
+    assert not any(w for _, w, _, _ in seen)             # a reader cannot scribble on the ring
+    np.testing.assert_array_equal(np.concatenate([d for _, _, d, _ in seen]), x)
+
+
+def _write_frames(ring, name, values, gulp, buf_nframe=None, ringlets=()):
+    """Write ``values`` (frames first) as one sequence, in gulps; returns the frame shape."""
+    shape = list(ringlets) + [-1] + list(values.shape[1 + len(ringlets):])
+    frames = values
+    with ring.begin_writing() as w:
+        with w.begin_sequence(hdr(name, dtype='f64', shape=shape), gulp, buf_nframe) as s:
+            for i in range(0, len(frames), gulp):
+                chunk = frames[i:i + gulp]
+                with s.reserve(gulp) as span:
+                    r = len(ringlets)
+                    dst = span.data[(slice(None),) * r + (slice(0, len(chunk)),)]
+                    dst[...] = np.moveaxis(chunk, 0, r) if r else chunk
+                    span.commit(len(chunk))
+
+
+@pytest.mark.parametrize('ringlets', [(), (2,)])
+def test_wrap_around_with_odd_sizes_and_overlap(ringlets):
+    """Capacity not a multiple of the gulps, spans with overlap: every span crosses the end of
+    the buffer at some point; contents must be exact and spans still views (ghost mirror)."""
+    rng = np.random.default_rng(7)
+    n, wgulp, rgulp, stride = 95, 7, 9, 5
+    x = rng.normal(size=(n,) + tuple(ringlets) + (3,))
+    ring = Ring()
+    got, shared, offsets = [], [], []
+    rd = ring.open_reader(guarantee=True)   # registered before the writer starts
+
+    def reader():
+        for seq in rd.sequences():
+            seq.resize(rgulp, buf_nframe=17)
+            for span in seq.read(rgulp, stride):
+                got.append(np.array(span.data))
+                shared.append(np.shares_memory(span.data, seq._seq.buf))
+                offsets.append(span.frame_offset)
+                time.sleep(0.001)
+        rd.close()
+
+    t = threading.Thread(target=reader, daemon=True)
+    t.start()
+    _write_frames(ring, 'w', x, wgulp, ringlets=ringlets)
+    t.join(10)
+    assert not t.is_alive()
+    cap, ghost = ring.capacity, ring.ghost
+    assert cap == 17 and ghost == rgulp and cap % wgulp and cap % stride
+    r = len(ringlets)
+    for off, d in zip(offsets, got):
+        want = x[off:off + rgulp]
+        np.testing.assert_array_equal(np.moveaxis(d, r, 0), want)
+    assert offsets == list(range(0, n - (rgulp - stride), stride))
+    wrapped = [off for off in offsets if off % cap + min(rgulp, n - off) > cap]
+    assert wrapped                                # the test does exercise the wrap
+    assert all(shared)                            # ... and the ghost keeps those spans views
+
+
+def test_backpressure_holds_a_viewed_span_until_released():
+    ring = Ring()
+    gulp = 4
+    x = np.arange(40, dtype=np.float64).reshape(40, 1)
+    events = {'held': threading.Event(), 'release': threading.Event()}
+    box = {}
+
+    rd = ring.open_reader(guarantee=True)
+
+    def reader():
+        for seq in rd.sequences():
+            seq.resize(gulp, buf_nframe=2 * gulp)
+            for span in seq.read(gulp):
+                if span.frame_offset == 0:
+                    box['first'] = span.data
+                    box['before'] = span.data.copy()
+                    events['held'].set()
+                    events['release'].wait(10)
+                    box['after'] = span.data.copy()   # still intact while held
+        rd.close()
+
+    writer_done = threading.Event()
+
+    def writer():
+        _write_frames(ring, 'bp', x, gulp)
+        writer_done.set()
+
+    tr = threading.Thread(target=reader, daemon=True)
+    tr.start()
+    tw = threading.Thread(target=writer, daemon=True)
+    tw.start()
+    assert events['held'].wait(10)
+    time.sleep(0.2)
+    # the writer cannot get more than one buffer ahead of the held span
+    assert not writer_done.is_set()
+    assert ring._head <= ring.capacity
+    events['release'].set()
+    tw.join(10)
+    tr.join(10)
+    assert writer_done.is_set()
+    np.testing.assert_array_equal(box['before'], x[:gulp])
+    np.testing.assert_array_equal(box['after'], x[:gulp])
+
+
+def test_unguaranteed_spans_are_copies_and_never_torn():
+    n = 300
+    x = np.repeat(np.arange(n, dtype=np.float64)[:, None], 3, axis=1)
+    bad, shared = [], []
+
+    class Slow(bfp.SinkBlock):
+        def on_sequence(self, iseq):
+            pass
+
+        def on_data(self, ispan):
+            shared.append(np.shares_memory(ispan.data, _storage(self.iring)))
+            want = ispan.frame_offset + np.arange(ispan.nframe)
+            time.sleep(0.003)    # the writer moves on meanwhile; a copy cannot change
+            if not np.array_equal(ispan.data[:, 0], want):
+                bad.append(ispan.frame_offset)
+
+        def on_skip(self, islices, ospans):
+            pass
+
+    class Paced(ArraySourceBlock):
+        def on_data(self, reader, ospans):
+            time.sleep(0.001)
+            return super().on_data(reader, ospans)
+
+    with bfp.Pipeline() as p:
+        src = Paced(x, hdr(dtype='f64', shape=(-1, 3)), gulp_nframe=4)
+        slow = Slow(src, guarantee=False)
+        run_with_timeout(p)
+    assert slow.stats['nframe_skipped'] > 0 and slow.stats['nframe_read'] > 0
+    assert slow.stats['nframe_skipped'] + slow.stats['nframe_read'] == n
+    assert not bad and shared and not any(shared)
+
+
+def test_capacity_growth_while_a_write_span_is_open():
+    """A reader asking for more room re-lays the storage out while the writer holds a span:
+    the frames of that span must land in the new storage at commit."""
+    ring = Ring()
+    x = np.arange(32, dtype=np.float64).reshape(32, 1)
+    with ring.begin_writing() as w:
+        with w.begin_sequence(hdr('g', dtype='f64', shape=(-1, 1)), 4) as s:
+            rd = ring.open_reader(guarantee=True)
+            seqs = rd.sequences()
+            rseq = next(seqs)
+            rseq.resize(4, buf_nframe=12)   # room for the first 12 frames without reading
+            for i in range(0, 12, 4):
+                with s.reserve(4) as span:
+                    span.data[...] = x[i:i + 4]
+                    if i == 8:
+                        rseq.resize(6, buf_nframe=40)   # grows capacity mid-span
+            assert ring.capacity == 40
+            got = []
+            spans = rseq.read(6)
+            for i in range(12, 32, 4):
+                with s.reserve(4) as span:
+                    span.data[...] = x[i:i + 4]
+            s.end()
+            for span in spans:
+                got.append(np.array(span.data))
+            np.testing.assert_array_equal(np.concatenate(got), x)
+
+
+# --------------------------------------------------------------------------------------------
+# 'cuda' rings: ordering by events, pinned asynchronous host->device copies (GPU machine only)
+# --------------------------------------------------------------------------------------------
+
+_SPIN_SRC = r'''
+extern "C" __global__ void spin(long long cycles) {
+    long long t0 = clock64();
+    while (clock64() - t0 < cycles) { }
+}
+'''
+
+
+def _spin(cp, ms):
+    """Queue a kernel that keeps the GPU busy ~ms on the current stream (the host returns at
+    once): work queued after it on that stream runs late, as a slow GPU block's would."""
+    try:
+        hz = cp.cuda.Device().attributes['ClockRate'] * 1e3
+    except Exception:
+        hz = 2e9
+    cp.RawKernel(_SPIN_SRC, 'spin')((1,), (1,), (np.int64(ms * 1e-3 * hz),))
+
+
+class _SlowGpuScale(bfp.TransformBlock):
+    """out = 2 * in on the GPU, each gulp queued behind a ~ms-long kernel."""
+
+    def __init__(self, iring, ms=3, *args, **kwargs):
+        super().__init__(iring, *args, **kwargs)
+        self.ms = ms
+
+    def define_valid_input_spaces(self):
+        return ('cuda',)
+
+    def on_sequence(self, iseq):
+        return copy.deepcopy(iseq.header)
+
+    def on_data(self, ispan, ospan):
+        import cupy as cp
+        _spin(cp, self.ms)
+        ospan.data[...] = 2 * ispan.data   # reads the input only after the spin
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason='needs CuPy and a CUDA device')
+@pytest.mark.parametrize('device_input', [False, True])
+def test_cuda_slow_reader_never_sees_overwritten_data(device_input):
+    """The slow block's host side returns long before its kernels run; only the release events
+    stop the source (a fast second reader keeps it going) from overwriting the frames the
+    queued kernels will read, and only the ready events stop them reading before the copy in."""
+    import cupy as cp
+    n, gulp = 200, 8
+    x = (np.arange(n * 4, dtype=np.float32).reshape(n, 4) + 1) * 0.5
+
+    def graph(space):
+        with bfp.Pipeline() as p:
+            arr = cp.asarray(x) if (device_input and space == 'cuda') else x
+            src = ArraySourceBlock(arr, hdr(shape=(-1, 4)), gulp_nframe=gulp, space=space)
+            slow = _SlowGpuScale(src) if space == 'cuda' else Scale(src, k=2)
+            fast = ArraySinkBlock(src)
+            sink = ArraySinkBlock(slow)
+            run_with_timeout(p, 120)
+        return sink.result(0), fast.result(0), src
+
+    out, copy_out, src = graph('cuda')
+    assert src.orings[0].capacity < n      # the ring really is re-used many times over
+    np.testing.assert_array_equal(out, 2 * x)
+    np.testing.assert_array_equal(copy_out, x)
+    cpu_out, _, _ = graph('system')
+    np.testing.assert_array_equal(out, cpu_out)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason='needs CuPy and a CUDA device')
+def test_cuda_unguaranteed_slow_reader_copies_are_exact():
+    import cupy as cp
+    n = 400
+    x = np.repeat(np.arange(n, dtype=np.float32)[:, None], 3, axis=1)
+    bad = []
+
+    class SlowUnguaranteed(bfp.SinkBlock):
+        def define_valid_input_spaces(self):
+            return ('cuda',)
+
+        def on_sequence(self, iseq):
+            pass
+
+        def on_data(self, ispan):
+            _spin(cp, 2)
+            got = cp.asnumpy(ispan.data[:, 0])
+            if not np.array_equal(got, ispan.frame_offset + np.arange(ispan.nframe)):
+                bad.append(ispan.frame_offset)
+
+        def on_skip(self, islices, ospans):
+            pass
+
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(cp.asarray(x), hdr(shape=(-1, 3)), gulp_nframe=4, space='cuda')
+        slow = SlowUnguaranteed(src, guarantee=False)
+        run_with_timeout(p, 120)
+    assert slow.stats['nframe_skipped'] + slow.stats['nframe_read'] == n
+    assert slow.stats['nframe_read'] > 0 and not bad
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason='needs CuPy and a CUDA device')
+def test_cuda_source_sends_packed_ci4_from_pinned_memory():
+    import cupy as cp
+    rng = np.random.default_rng(11)
+    n, shape = 100, (3, 5, 2)
+    z = rng.integers(-8, 8, (n,) + shape) + 1j * rng.integers(-8, 8, (n,) + shape)
+    want = pack_ci4(z)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(z, hdr(dtype='ci4', shape=(-1,) + shape), gulp_nframe=16,
+                               space='cuda')
+        sink = ArraySinkBlock(src)
+        run_with_timeout(p, 60)
+    stored = src._items[0][0]
+    assert stored.dtype == np.uint8 and _compat.is_pinned(stored)
+    # one byte per complex sample crossed the bus, straight from pinned memory
+    assert src._h2d.nbytes == want.size and src._h2d.staged_bytes == 0
+    np.testing.assert_array_equal(sink.result(0).view(np.uint8), want)
+    # pageable host data go through the pinned staging buffers, chunk by chunk
+    h2d = _compat.HostToDevice()
+    dst = cp.zeros(want.shape, cp.uint8)
+    with cp.cuda.Stream(non_blocking=True) as s:
+        for i in range(0, n, 7):
+            h2d.copy(dst[i:i + 7], want[i:i + 7])
+        s.synchronize()
+    np.testing.assert_array_equal(dst.get(), want)
+    assert h2d.staged_bytes == want.size

@@ -152,8 +152,9 @@ def span_array(span):
 
 
 def stream_context():
-    """Context to run CuPy work on Bifrost's CUDA stream (real Bifrost with CUDA);
-    a null context otherwise (our runtime synchronises the current stream at commits)."""
+    """Context to run CuPy work on Bifrost's CUDA stream (real Bifrost with CUDA); a null
+    context otherwise: our runtime has already made the block thread's own CUDA stream current
+    and orders rings by CUDA events (see :mod:`bf_epic_blocks.runtime.ring`)."""
     if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost
         try:
             import cupy as cp
@@ -161,6 +162,116 @@ def stream_context():
         except Exception:
             pass
     return contextlib.nullcontext()
+
+
+def _cupy():
+    try:
+        import cupy
+        return cupy if cupy.cuda.runtime.getDeviceCount() > 0 else None
+    except Exception:
+        return None
+
+
+def is_pinned(a):
+    """True when NumPy array ``a`` lies in page-locked memory made by :func:`pinned_empty`."""
+    cp = _cupy()
+    if cp is None or not isinstance(a, np.ndarray):
+        return False
+    while isinstance(a, np.ndarray):
+        a = a.base
+    if isinstance(a, memoryview):  # NumPy 2's np.frombuffer keeps a memoryview of the exporter
+        a = a.obj
+    kinds = tuple(k for k in (getattr(cp.cuda, 'PinnedMemoryPointer', None),
+                              getattr(cp.cuda, 'PinnedMemory', None)) if k is not None)
+    return isinstance(a, kinds)
+
+
+def pinned_empty(shape, dtype):
+    """An uninitialised NumPy array in page-locked host memory (CuPy's pinned pool), from
+    which host->device copies run asynchronously at full bus speed; a plain NumPy array when
+    there is no CuPy or GPU."""
+    dtype = np.dtype(dtype)
+    cp = _cupy()
+    count = int(np.prod(shape, dtype=np.int64))
+    if cp is None:
+        return np.empty(shape, dtype)
+    mem = cp.cuda.alloc_pinned_memory(max(count * dtype.itemsize, 1))
+    return np.frombuffer(mem, dtype, count).reshape(shape)
+
+
+def pin(a):
+    """A copy of NumPy array ``a`` in page-locked memory (``a`` itself when already pinned)."""
+    a = np.asarray(a)
+    if is_pinned(a) and a.flags.c_contiguous:
+        return a
+    out = pinned_empty(a.shape, a.dtype)
+    out[...] = a
+    return out
+
+
+class HostToDevice:
+    """Host->device copies of span data that cross the bus in the ring's storage form (ci4: one
+    byte per sample), asynchronously, from page-locked memory.
+
+    ``copy(dst, src)``: ``dst`` a C-contiguous CuPy array (a 'cuda' write span's data), ``src`` a
+    NumPy array with the same number of bytes (the storage form; structured or plain). A pinned
+    ``src`` (see :func:`pin`) is copied directly; any other is first copied into one of
+    ``nstage`` pinned staging buffers, each reused only once its previous copy is done. The copy
+    is queued on the current stream -- on our runtime the source block's own stream, so it
+    overlaps the consumers' kernels (the ring's commit event orders them after it); on real
+    Bifrost, Bifrost's stream, synchronised before returning (Bifrost's commit does not wait
+    for our CuPy work). A non-contiguous ``dst`` falls back to :func:`assign_storage`.
+    """
+
+    def __init__(self, nstage=2):
+        self.nstage = int(nstage)
+        self._stages = []      # [pinned buffer, event of its last copy or None]
+        self._next = 0
+        self.nbytes = 0        # bytes copied
+        self.staged_bytes = 0  # of which went through a staging buffer
+
+    def _stage(self, src):
+        nbytes = src.nbytes
+        if len(self._stages) < self.nstage:
+            self._stages.append([pinned_empty((nbytes,), np.uint8), None])
+        slot = self._stages[self._next]
+        self._next = (self._next + 1) % self.nstage
+        if slot[0].nbytes < nbytes:
+            if slot[1] is not None:
+                slot[1].synchronize()
+            slot[0], slot[1] = pinned_empty((nbytes,), np.uint8), None
+        elif slot[1] is not None:
+            slot[1].synchronize()  # its previous copy must be done before we overwrite it
+        buf = slot[0][:nbytes]
+        np.copyto(buf.view(src.dtype).reshape(src.shape), src)  # one host copy, any strides
+        self.staged_bytes += nbytes
+        return buf, slot
+
+    def copy(self, dst, src):
+        import cupy as cp
+        src = np.asarray(src)
+        if src.nbytes != dst.nbytes:
+            raise ValueError(f"host->device copy: {src.dtype} {src.shape} ({src.nbytes} bytes) "
+                             f"does not fit {dst.dtype} {dst.shape} ({dst.nbytes} bytes)")
+        if not dst.flags.c_contiguous:
+            return assign_storage(dst, src)
+        if dst.nbytes == 0:
+            return dst
+        with stream_context():
+            stream = cp.cuda.get_current_stream()
+            slot = None
+            if is_pinned(src) and src.flags.c_contiguous:
+                host = src
+            else:
+                host, slot = self._stage(src)
+            cp.cuda.runtime.memcpyAsync(dst.data.ptr, host.ctypes.data, dst.nbytes,
+                                        cp.cuda.runtime.memcpyHostToDevice, stream.ptr)
+            if slot is not None:
+                slot[1] = stream.record(cp.cuda.Event(block=False, disable_timing=True))
+            if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost and a GPU
+                stream.synchronize()
+        self.nbytes += dst.nbytes
+        return dst
 
 
 def to_numpy(a):
@@ -187,4 +298,5 @@ def assign_storage(dst, src):
 
 __all__ = ['HAVE_BIFROST', 'BIFROST_IMPORTABLE', 'RUNTIME', 'RUNTIME_ENV', 'bf', 'bfp',
            'span_array', 'space_of', 'stream_context', 'to_numpy', 'assign_storage',
+           'is_pinned', 'pinned_empty', 'pin', 'HostToDevice',
            'unpack_complex', 'pack_ci4', 'pack_complex', 'storage_dtype', 'SUPPORTED_DTYPES']

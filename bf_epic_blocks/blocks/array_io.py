@@ -6,7 +6,10 @@ Written against ``_compat.bfp`` only, so they run on real Bifrost and on our run
   (ntime, ...) with the FRAME AXIS FIRST, then the tensor's other axes in order (ringlets, then
   the frame shape); it is written in gulps of ``gulp_nframe`` frames, the last one short.
   The header's ``_tensor['dtype']`` decides the stored type: complex input into a 'ci4',
-  'ci8' or 'ci16' ring is rounded/clipped and packed.
+  'ci8' or 'ci16' ring is rounded/clipped and packed. For a 'cuda' ring the arrays are packed
+  once, at construction, into page-locked host memory, and each gulp crosses the bus in that
+  storage form (ci4: one byte per sample) as an asynchronous copy on the block's own stream
+  (:class:`~._compat.HostToDevice`); CuPy arrays stay on the device (a device copy per gulp).
 * :class:`ArraySinkBlock` collects every sequence: ``headers`` (list of dicts),
   ``result(i)`` / ``arrays`` -- NumPy arrays, frame axis first like the source's input
   (copied from the device for 'cuda'); ``result(i, as_complex=True)`` decodes complex types.
@@ -21,7 +24,7 @@ import time
 import numpy as np
 
 from ._compat import bfp, span_array, space_of, to_numpy, assign_storage, pack_complex, \
-    unpack_complex, storage_dtype
+    unpack_complex, storage_dtype, HostToDevice, pin, stream_context
 
 _NP_TO_BF = {np.dtype(k): v for k, v in [
     (np.int8, 'i8'), (np.int16, 'i16'), (np.int32, 'i32'), (np.int64, 'i64'),
@@ -35,8 +38,53 @@ def _split(shape):
     return list(shape[:i]), list(shape[i + 1:])
 
 
+def _is_cupy(a):
+    return type(a).__module__.startswith('cupy')
+
+
+def _prepare_device(array, hdr, index):
+    """A CuPy array for a 'cuda' ring stays on the device, in the ring's storage form:
+    complex values are packed there; ci4 bytes, plain pair arrays (..., 2) and real types
+    are kept (cast to the storage dtype)."""
+    import cupy as cp
+    tensor = hdr['_tensor']
+    if 'dtype' not in tensor:
+        if np.dtype(array.dtype) not in _NP_TO_BF:
+            raise ValueError(f"sequence {index}: cannot infer a Bifrost dtype from "
+                             f"{array.dtype}; give header['_tensor']['dtype']")
+        tensor['dtype'] = _NP_TO_BF[np.dtype(array.dtype)]
+    dtype = tensor['dtype']
+    sdt, extra = storage_dtype(dtype, 'cuda')
+    if cp.iscomplexobj(array):
+        stored = pack_complex(array, dtype, 'cuda', xp=cp)
+    elif dtype == 'ci4' and array.dtype.itemsize == 1:
+        stored = array.view(cp.uint8)
+    else:
+        stored = array.astype(sdt, copy=False)
+    tensor.setdefault('shape', [-1] + list(stored.shape[1:stored.ndim - len(extra)]))
+    return cp.ascontiguousarray(stored)
+
+
 def _prepare(array, header, index, space):
     """Validate one (array, header) pair; return (frames_first_storage_array, header)."""
+    if _is_cupy(array) and space == 'cuda':
+        hdr = copy.deepcopy(header) if header is not None else {}
+        if not isinstance(hdr, dict):
+            raise TypeError(f"sequence {index}: header must be a dict, got "
+                            f"{type(header).__name__}")
+        stored = _prepare_device(array, hdr, index)
+        shape = hdr['_tensor']['shape']
+        if not isinstance(shape, (list, tuple)) or list(shape).count(-1) != 1:
+            raise ValueError(f"sequence {index}: header['_tensor']['shape'] must contain "
+                             f"exactly one -1, got {shape!r}")
+        ringlet, frame = _split(shape)
+        _, extra = storage_dtype(hdr['_tensor']['dtype'], 'cuda')
+        expect = tuple(ringlet) + tuple(frame) + extra
+        if tuple(stored.shape[1:]) != expect:
+            raise ValueError(f"sequence {index}: array shape {stored.shape} does not match the "
+                             f"header tensor shape {list(shape)}; expected (ntime,) + {expect}")
+        hdr.setdefault('name', f'array_{index}')
+        return stored, hdr
     arr = to_numpy(array)
     if arr.ndim < 1:
         raise ValueError(f"sequence {index}: the array needs a frame axis first, got a scalar")
@@ -75,6 +123,8 @@ def _prepare(array, header, index, space):
     else:
         stored = pack_complex(arr, dtype, 'cuda' if space == 'cuda' else 'system', xp=np)
     hdr.setdefault('name', f'array_{index}')
+    if space == 'cuda':   # page-locked, so each gulp crosses the bus asynchronously
+        stored = pin(np.ascontiguousarray(stored))
     return stored, hdr
 
 
@@ -122,6 +172,7 @@ class ArraySourceBlock(bfp.SourceBlock):
         super().__init__(list(range(len(arrays))), gulp_nframe, space, *args, **kwargs)
         self._items = [_prepare(a, h, i, space) for i, (a, h) in
                        enumerate(zip(arrays, headers))]
+        self._h2d = HostToDevice()
 
     def create_reader(self, sourcename):
         frames, hdr = self._items[sourcename]
@@ -138,10 +189,17 @@ class ArraySourceBlock(bfp.SourceBlock):
         dst = span_array(ospan)
         nring = len(_split(reader.header['_tensor']['shape'])[0])
         chunk = reader.frames[reader.pos:reader.pos + n]
-        if nring:
-            chunk = np.moveaxis(chunk, 0, nring)
         index = (slice(None),) * nring + (slice(0, n),)
-        assign_storage(dst[index], np.ascontiguousarray(chunk))
+        if _is_cupy(chunk):        # device-resident input: a device copy on this block's stream
+            import cupy as cp
+            with stream_context():
+                dst[index] = cp.moveaxis(chunk, 0, nring) if nring else chunk
+        elif _is_cupy(dst) and not nring:
+            self._h2d.copy(dst[index], chunk)   # packed bytes, pinned, asynchronous
+        else:
+            if nring:
+                chunk = np.moveaxis(chunk, 0, nring)
+            assign_storage(dst[index], np.ascontiguousarray(chunk))
         reader.pos += n
         return [n]
 

@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 
 from ..imaging.calibration import FS_HZ
-from ._compat import assign_storage, bfp, span_array
+from ._compat import HostToDevice, assign_storage, bfp, span_array
 from .headers import efield_header
 
 log = logging.getLogger(__name__)
@@ -60,6 +60,7 @@ class TBFSourceBlock(bfp.SourceBlock):
         self.station, self.progress = station, progress
         self.channels = None if channels is None else slice(int(channels[0]), int(channels[1]))
         self.tbf_stats = {"frames_read": 0, "frames_missing": 0, "time_gaps": 0, "truncated_bytes": 0, "samples": 0}
+        self._h2d = HostToDevice()
 
     def create_reader(self, sourcename):
         with warnings.catch_warnings(record=True) as caught:
@@ -111,7 +112,7 @@ class TBFSourceBlock(bfp.SourceBlock):
         if self.tbf_stats["frames_missing"]:
             log.debug("%s: %d frames missing so far (zero-filled)", self.fmt.upper(), self.tbf_stats["frames_missing"])
         dst = span_array(ospans[0])
-        assign_storage(dst[:n], _as_storage(chunk.data[:, reader.sel], dst.dtype))
+        _write_span(dst[:n], chunk.data[:, reader.sel], self._h2d)
         if self.progress:
             self.progress(n)
         return [n]
@@ -149,6 +150,15 @@ def capture_source_class(path):
     return {"tbf": TBFSourceBlock, "tbx": TBXSourceBlock}[detect_format(path)]
 
 
+def _write_span(dst, host, h2d):
+    """Host samples (in the ring's storage form: packed ci4 bytes, ...) into span array ``dst``:
+    on a GPU an asynchronous copy of the packed bytes through pinned memory (``h2d``)."""
+    if type(dst).__module__.startswith("cupy"):
+        h2d.copy(dst, host)
+    else:
+        assign_storage(dst, _as_storage(host, dst.dtype))
+
+
 def _as_storage(packed_u8, dtype):
     """Packed ci4 bytes in the ring's storage form (structured 're_im' on the host, plain uint8 on GPU)."""
     a = np.ascontiguousarray(packed_u8)
@@ -184,6 +194,7 @@ class SimSkySourceBlock(bfp.SourceBlock):
         self.quantize, self.cable, self.progress = quantize, cable, progress
         self.scale = None
         self.transients = list(transients or [])
+        self._h2d = HostToDevice()
 
     def create_reader(self, sourcename):
         return _Reader(pos=0)
@@ -225,9 +236,9 @@ class SimSkySourceBlock(bfp.SourceBlock):
                             transients=self.transients, t0_s=reader.pos * self.dt_s, sample_time_s=self.dt_s)
         if self.quantize:
             packed, self.scale = quantize_ci4(x, scale=self.scale)
-            assign_storage(dst[:n], _as_storage(packed, dst.dtype))
+            _write_span(dst[:n], packed, self._h2d)
         else:
-            assign_storage(dst[:n], x.astype(np.complex64))
+            _write_span(dst[:n], x.astype(np.complex64), self._h2d)
         reader.pos += n
         if self.progress:
             self.progress(n)

@@ -10,9 +10,12 @@ Bifrost's names, hook signatures and header format (see ``docs``/BIFROST.md):
 * :mod:`.dtypes` -- Bifrost type strings, storage forms, ``unpack_complex``/``pack_ci4``.
 * :mod:`.header` -- header validation.
 
-Differences from Bifrost (deliberate): an exception in any block stops the whole pipeline and
-``Pipeline.run()`` raises :class:`PipelineError` naming the block; every block keeps counters in
-``block.stats``; spans are copies (``nframe_overwritten`` is always 0).
+Spans are views of ring memory, as in Bifrost (guaranteed readers and writers); on the GPU each
+block thread has its own CUDA stream and rings order them with CUDA events (no device-wide
+synchronisation). Differences from Bifrost (deliberate): an exception in any block stops the
+whole pipeline and ``Pipeline.run()`` raises :class:`PipelineError` naming the block; every block
+keeps counters in ``block.stats``; unguaranteed readers get copies taken under the ring lock
+(``nframe_overwritten`` is always 0).
 """
 from . import dtypes, header, ring, pipeline  # noqa: F401
 from .dtypes import unpack_complex, pack_ci4, pack_complex, storage_dtype  # noqa: F401

@@ -109,6 +109,7 @@ def unpack_complex(data, dtype_str, xp=None):
     ``data``: NumPy or CuPy array in any storage form described in the module docstring
     (structured or plain; for plain pair types the trailing axis of length 2 is (re, im) and
     is removed). Real types are simply cast. Vectorised; stays on the array's device.
+    complex64 input is returned as it is (not copied): treat the result as read-only.
     """
     kind, comp = _check_name(dtype_str)
     xp = _xp_of(data, xp)
@@ -132,8 +133,10 @@ def unpack_complex(data, dtype_str, xp=None):
                                 f"(re, im); got shape {tuple(data.shape)}")
             re, im = data[..., 0], data[..., 1]
         out = re.astype(xp.float32) + 1j * im.astype(xp.float32)
-        return out.astype(xp.complex64)
-    return data.astype(xp.complex64)
+        return out.astype(xp.complex64, copy=False)
+    # complex64 input comes back as itself (no copy of a whole gulp; it may be a read-only
+    # view of a ring: never write into the result)
+    return data.astype(xp.complex64, copy=False)
 
 
 def unpack_int8_pairs(data, dtype_str, xp=None):

@@ -25,6 +25,11 @@ define_output_nframes(gulp)``). The output header's ``gulp_nframe`` is
 Runtime-only extras: ``Pipeline.run()`` raises :class:`PipelineError` (chained to the original
 exception) when any block fails, after stopping every other block; ``block.stats`` counts
 sequences, gulps and frames (see :class:`Block`).
+
+GPU: a block that touches a 'cuda' ring (or is given ``gpu=N``) runs on its own non-blocking
+CUDA stream, made current for its thread (``block.stream``); CuPy work in its hooks queues there.
+Rings order the streams with CUDA events (see :mod:`.ring`), so blocks never synchronise the
+device; a block's stream is synchronised once, when its thread ends.
 """
 from __future__ import annotations
 
@@ -307,6 +312,7 @@ class Block(BlockScope):
                           nframe_written=0, nskip=0)
         self._ireaders = []
         self._seq_count = 0
+        self.stream = None     # the thread's CUDA stream (a block on a GPU, runtime only)
 
     def __init_subclass__(cls, **kwargs):
         # A block whose constructor raises must not stay in its pipeline (it would run, half
@@ -354,12 +360,21 @@ class Block(BlockScope):
                 os.sched_setaffinity(0, {core if isinstance(core, Integral) else core[0]})
             except OSError as exc:
                 warnings.warn(f"block '{self.name}': could not bind to core {core}: {exc}")
-        if self.gpu is not None:
-            try:
-                import cupy
-            except ImportError:
+        uses_cuda = any(r.space == 'cuda' for r in list(self.irings) + list(self.orings))
+        if self.gpu is None and not uses_cuda:
+            return
+        try:
+            import cupy
+            if cupy.cuda.runtime.getDeviceCount() < 1:
                 return
+        except Exception:  # no CuPy or no driver: host-only blocks need neither
+            return
+        if self.gpu is not None:
             cupy.cuda.Device(self.gpu).use()
+        # The thread's own non-blocking stream (CuPy's current stream is per thread): the
+        # blocks' kernels and copies queue there and overlap; rings order them with events.
+        self.stream = cupy.cuda.Stream(non_blocking=True)
+        self.stream.use()
 
     def _thread_main(self):
         try:
@@ -372,6 +387,11 @@ class Block(BlockScope):
         except BaseException as exc:  # noqa: BLE001 - reported to run() with the block's name
             self.pipeline._block_failed(self, exc)
         finally:
+            if self.stream is not None:
+                try:  # the block's last kernels finish before run() returns
+                    self.stream.synchronize()
+                except Exception as exc:  # noqa: BLE001 - a device error: report, do not hang
+                    self.pipeline._block_failed(self, exc)
             for rd in self._ireaders:
                 rd.close()
             self.pipeline._thread_done()

@@ -10,14 +10,32 @@ all sequences are numbered on one global clock; the ring holds the last ``capaci
 * A writer ``reserve``s n frames, fills ``span.data`` and commits c <= n of them. ``reserve``
   blocks while any *guaranteed* reader would fall more than ``capacity`` frames behind the head
   (back-pressure: guaranteed readers lose nothing).
-* *Unguaranteed* readers never slow the writer. A frame older than ``head - capacity`` is gone;
+* *Unguaranteed* readers never slow the writer (a ring that has one gets one more write gulp of
+  capacity, because the writer overwrites from its reserve on). A frame older than
+  ``head - capacity`` is gone;
   a read that asks for gone frames jumps forward by whole strides and reports the jump in
   ``span.nframe_skipped`` (the pipeline hands it to ``on_skip``).
-* Read spans are copies taken under the ring lock, so ``nframe_overwritten`` is always 0.
 
-Storage: one circular buffer per sequence, laid out (capacity, ringlets..., frame...) in
-NumPy ('system', 'cuda_host') or CuPy ('cuda'); spans are shaped ringlets + [nframe] + frame
-(see :mod:`.dtypes` for the storage dtypes of complex-integer types).
+Zero copy. Spans are views of the ring's storage, as in Bifrost: a write span is the ring
+memory the frames will occupy, and a guaranteed reader's span is the ring memory holding them
+(read-only NumPy views on the host). Storage is one buffer per sequence laid out
+(ringlets..., capacity + ghost, frame...): the ``ghost`` frames after the end mirror the first
+``ghost`` frames of the buffer (ghost = the largest write or read gulp), so a span that wraps the
+end is still one contiguous view; the writer's commit keeps the mirror (a copy of the frames
+that cross the end or land in the mirrored head, not of the whole span). Unguaranteed readers
+get copies taken under the ring lock (so ``nframe_overwritten`` is always 0); a write
+overwrites frames only after ``reserve`` has moved the ring's tail past them.
+
+Ordering on the GPU ('cuda' rings, CuPy). No device synchronisation: each block thread runs on
+its own CUDA stream (the pipeline makes one current per thread), and the ring orders the
+streams with events. A commit records a *ready* event on the writer's stream (after the
+writer's kernels and the ghost copies); a reader's stream waits on it before the span is handed
+out. A guaranteed reader records a *release* event on its stream when it releases a span (an
+unguaranteed one after its copy); ``reserve`` makes the writer's stream wait on every reader's
+latest release event before the writer may overwrite memory they read.
+
+Spans are shaped ringlets + [nframe] + frame (see :mod:`.dtypes` for the storage dtypes of
+complex-integer types).
 """
 from __future__ import annotations
 
@@ -75,11 +93,14 @@ class _Seq:
         self.base = base            # global frame number of local frame 0
         self.nframe = 0             # frames committed so far
         self.ended = False
-        self.buf = None             # circular buffer (allocated at first commit)
+        self.buf = None             # storage (allocated at the first reserve)
+        self.buf_cap = 0            # capacity and ghost the buffer was laid out for
+        self.buf_ghost = 0
         t = header['_tensor']
         ringlet, frame = split_shape(t['shape'])
         sdt, extra = storage_dtype(t['dtype'], ring.space)
         self.ringlet_shape, self.frame_shape = ringlet, frame
+        self.nr = len(ringlet)      # the frame axis of storage and spans
         self.sdtype, self.extra = sdt, extra
         self.tensor = {
             'dtype': t['dtype'], 'ringlet_shape': ringlet,
@@ -91,8 +112,12 @@ class _Seq:
     def span_shape(self, n):
         return tuple(self.ringlet_shape) + (n,) + tuple(self.frame_shape) + self.extra
 
-    def buf_shape(self, cap):
-        return (cap,) + tuple(self.ringlet_shape) + tuple(self.frame_shape) + self.extra
+    def buf_shape(self, nslot):
+        return tuple(self.ringlet_shape) + (nslot,) + tuple(self.frame_shape) + self.extra
+
+    def at(self, a, b):
+        """Index selecting storage/span frames [a, b) (the frame axis follows the ringlets)."""
+        return (slice(None),) * self.nr + (slice(a, b),)
 
 
 class Ring:
@@ -102,6 +127,7 @@ class Ring:
     def __init__(self, space='system', name=None, owner=None):
         self.xp = xp_for_space(space)
         self.space = space
+        self.on_device = space == 'cuda'
         if name is None:
             name = 'ring_%i' % Ring.instance_count
             Ring.instance_count += 1
@@ -112,6 +138,7 @@ class Ring:
         self._head = 0           # global frames committed
         self._tail = 0           # frames before this global number are gone (monotone)
         self._cap = 0
+        self._ghost = 0          # mirrored frames after the end of each buffer
         self._requested = 0      # largest buffer request (frames)
         self._max_write = 0      # largest write gulp seen
         self._max_read = 0       # largest read gulp seen
@@ -119,6 +146,8 @@ class Ring:
         self._writing = False
         self._ended = False      # the writer has finished with this ring
         self._aborted = False
+        self._ready_event = None     # 'cuda': all committed data is in memory after this event
+        self._retired_events = []    # 'cuda': last release events of readers that closed
 
     def __repr__(self):
         return f"Ring(name={self.name!r}, space={self.space!r})"
@@ -128,7 +157,46 @@ class Ring:
         """Current capacity in frames (0 until a gulp is known)."""
         return self._cap
 
-    # -- internals (call with the lock held) ---------------------------------------------
+    @property
+    def ghost(self):
+        """Frames mirrored past the end of the buffer (spans up to this long never need a copy)."""
+        return self._ghost
+
+    # -- CUDA ordering (call with the lock held; no-ops on the host) ----------------------------
+    def _stream(self):
+        return self.xp.cuda.get_current_stream()
+
+    def _new_event(self):
+        ev = self.xp.cuda.Event(block=False, disable_timing=True, interprocess=False)
+        ev.record(self._stream())
+        return ev
+
+    def _await_ready(self):
+        """The current stream waits until every committed frame is in memory."""
+        if self.on_device and self._ready_event is not None:
+            self._stream().wait_event(self._ready_event)
+
+    def _publish(self):
+        """Record that the current stream's work so far (writes, ghost copies) makes the ring's
+        contents; readers wait on this event. Chained: it also covers the previous one."""
+        if self.on_device:
+            self._await_ready()
+            self._ready_event = self._new_event()
+
+    def _await_readers(self):
+        """The current (writer's) stream waits until the readers' work on released or copied
+        spans is done, so the memory may be overwritten."""
+        if not self.on_device:
+            return
+        stream = self._stream()
+        for rd in self._readers:
+            if rd.event is not None:
+                stream.wait_event(rd.event)
+        for ev in self._retired_events:
+            stream.wait_event(ev)
+        self._retired_events = []
+
+    # -- storage (call with the lock held) -------------------------------------------------
     def _check_abort(self):
         if self._aborted:
             raise PipelineShutdown(f"ring '{self.name}' was shut down")
@@ -138,27 +206,88 @@ class Ring:
         self._cond.wait(_WAIT_S)
         self._check_abort()
 
-    def _sync(self):
-        if self.space == 'cuda':  # make device copies visible to other threads/streams
-            self.xp.cuda.get_current_stream().synchronize()
+    def _alloc(self, seq):
+        seq.buf = self.xp.empty(seq.buf_shape(self._cap + self._ghost), seq.sdtype)
+        seq.buf_cap, seq.buf_ghost = self._cap, self._ghost
+
+    def _sync_ghost(self, seq, lo, hi):
+        """Mirror storage slots [lo, hi) into the ghost where they have a ghost copy."""
+        hi = min(hi, seq.buf_ghost)
+        if hi > lo:
+            c = seq.buf_cap
+            seq.buf[seq.at(c + lo, c + hi)] = seq.buf[seq.at(lo, hi)]
+
+    def _store(self, seq, first, src):
+        """Copy frames (span-shaped ``src``, frame axis after the ringlets) into the slots of
+        local frames [first, first + n) of ``seq``, wrapping and keeping the ghost mirror."""
+        n = src.shape[seq.nr]
+        if n == 0:
+            return
+        cap = seq.buf_cap
+        start = first % cap
+        part = min(n, cap - start)
+        seq.buf[seq.at(start, start + part)] = src[seq.at(0, part)]
+        self._sync_ghost(seq, start, start + part)
+        if n > part:
+            seq.buf[seq.at(0, n - part)] = src[seq.at(part, n)]
+            self._sync_ghost(seq, 0, n - part)
+
+    def _finish_write(self, seq, start, n):
+        """After frames were written in place at storage slots [start, start + n): copy the
+        part past the end to the head of the buffer, and mirror the head into the ghost."""
+        cap = seq.buf_cap
+        if start + n > cap:
+            seq.buf[seq.at(0, start + n - cap)] = seq.buf[seq.at(cap, start + n)]
+        self._sync_ghost(seq, start, min(start + n, cap))
+
+    def _span_view(self, seq, offset, n):
+        """Frames [offset, offset + n) of ``seq``: a view of the storage when they fit in one
+        contiguous run (always, for n <= ghost), else a copy. Host views are read-only."""
+        if n == 0 or seq.buf is None:
+            return self.xp.empty(seq.span_shape(n), seq.sdtype)
+        cap = seq.buf_cap
+        start = offset % cap
+        if start + n <= cap + seq.buf_ghost:
+            view = seq.buf[seq.at(start, start + n)]
+            if not self.on_device:
+                view.flags.writeable = False
+            return view
+        part = cap - start
+        return self.xp.concatenate([seq.buf[seq.at(start, cap)],
+                                    seq.buf[seq.at(0, n - part)]], axis=seq.nr)
 
     def _update_capacity(self):
         new = max(self._requested, self._max_write + self._max_read, 1)
-        if new <= self._cap:
+        if any(not r.guarantee for r in self._readers):
+            # the writer overwrites from its reserve on (not from its commit): one more write
+            # gulp keeps an unguaranteed reader's window at the requested size
+            new += self._max_write
+        ghost = max(self._max_write, self._max_read)
+        if new <= self._cap and ghost <= self._ghost:
             return
+        new, ghost = max(new, self._cap), max(ghost, self._ghost)
         old = self._cap
         self._tail = max(self._tail, self._head - old)
+        self._cap, self._ghost = new, ghost
+        moved = False
         for seq in self._seqs:
             if seq.buf is None:
                 continue
-            nbuf = self.xp.empty(seq.buf_shape(new), seq.sdtype)
+            obuf, ocap = seq.buf, seq.buf_cap
+            self._alloc(seq)
             lo = max(0, self._tail - seq.base)
             if seq.nframe > lo:
+                if not moved:
+                    self._await_ready()
+                    moved = True
                 idx = self.xp.arange(lo, seq.nframe)
-                nbuf[idx % new] = seq.buf[idx % old]
-            seq.buf = nbuf
-        self._cap = new
-        self._sync()
+                ax = (slice(None),) * seq.nr
+                seq.buf[ax + (idx % new,)] = obuf[ax + (idx % ocap,)]
+                self._sync_ghost(seq, 0, new)
+        if moved and self.on_device:
+            self._publish()
+            # the old buffers are freed when the last view goes: finish copying out of them
+            self._stream().synchronize()
         self._cond.notify_all()
 
     def _request(self, buf_nframe=None, write_gulp=None, read_gulp=None):
@@ -170,34 +299,6 @@ class Ring:
             if read_gulp:
                 self._max_read = max(self._max_read, int(read_gulp))
             self._update_capacity()
-
-    def _copy_in(self, seq, src_frames_first):
-        """Append frames (array shaped (c, ringlets..., frame...)) to ``seq``."""
-        c = src_frames_first.shape[0]
-        cap = self._cap
-        if seq.buf is None:
-            seq.buf = self.xp.empty(seq.buf_shape(cap), seq.sdtype)
-        start = seq.nframe % cap
-        first = min(c, cap - start)
-        seq.buf[start:start + first] = src_frames_first[:first]
-        if c > first:
-            seq.buf[:c - first] = src_frames_first[first:]
-
-    def _copy_out(self, seq, offset, n):
-        """Frames [offset, offset + n) of ``seq`` as a fresh span-shaped array."""
-        xp, cap = self.xp, self._cap
-        start = offset % cap
-        first = min(n, cap - start)
-        if n == 0 or seq.buf is None:
-            frames = xp.empty(seq.buf_shape(n), seq.sdtype)
-        elif n > first:
-            frames = xp.concatenate([seq.buf[start:], seq.buf[:n - first]], axis=0)
-        else:
-            frames = seq.buf[start:start + n].copy()
-        r = len(seq.ringlet_shape)
-        if r:
-            frames = xp.ascontiguousarray(xp.moveaxis(frames, 0, r))
-        return frames
 
     def _drop_old(self):
         for seq in self._seqs:
@@ -240,7 +341,9 @@ class Ring:
             seq.ended = True
             self._cond.notify_all()
 
-    def _reserve(self, nframe):
+    def _reserve(self, seq, nframe):
+        """Wait for room for ``nframe`` frames after the head; returns the writable view of the
+        storage they will occupy (the tail has moved past the frames it overwrites)."""
         with self._cond:
             if nframe > self._max_write:
                 self._max_write = nframe
@@ -250,24 +353,30 @@ class Ring:
                 held = [r.effective_pos() for r in self._readers
                         if r.guarantee and not r.closed]
                 if not held or self._head + nframe - min(held) <= self._cap:
-                    return
+                    break
                 self._wait()
+            # from here the writer may overwrite frames older than head + nframe - capacity
+            self._tail = max(self._tail, self._head + nframe - self._cap)
+            self._drop_old()
+            self._await_readers()
+            if seq.buf is None:
+                self._alloc(seq)
+            start = seq.nframe % seq.buf_cap
+            return seq.buf, start, seq.buf[seq.at(start, start + nframe)]
 
-    def _commit(self, seq, data, nframe):
-        self._sync()  # the block's kernels that filled data must be finished
+    def _commit(self, seq, span, nframe):
         with self._cond:
             self._check_abort()
             if nframe:
-                r = len(seq.ringlet_shape)
-                src = data[(slice(None),) * r + (slice(0, nframe),)]
-                if r:
-                    src = self.xp.moveaxis(src, r, 0)
-                self._copy_in(seq, src)
+                if span.buf is seq.buf:
+                    self._finish_write(seq, span.start, nframe)
+                else:   # the buffer was re-laid out (a reader asked for more room) meanwhile
+                    self._store(seq, seq.nframe, span.data[seq.at(0, nframe)])
                 seq.nframe += nframe
                 self._head += nframe
                 self._tail = max(self._tail, self._head - self._cap)
                 self._drop_old()
-                self._sync()
+                self._publish()
             self._cond.notify_all()
 
     # -- reader side ----------------------------------------------------------------------
@@ -276,6 +385,8 @@ class Ring:
         with self._cond:
             rd = _Reader(self, guarantee)
             self._readers.append(rd)
+            if not rd.guarantee:
+                self._update_capacity()
             return rd
 
     def read(self, whence='earliest', guarantee=True):
@@ -361,16 +472,18 @@ class WriteSequence(_SequenceBase):
 
 
 class WriteSpan:
-    """Writable span: fill ``data`` (ringlets + [nframe] + frame), then commit."""
+    """Writable span: fill ``data`` (ringlets + [nframe] + frame), then commit.
+
+    ``data`` is the ring memory the frames will occupy (zero-copy); on 'cuda' fill it with work
+    queued on the current stream (the commit orders readers after it)."""
 
     def __init__(self, sequence, nframe):
         self.sequence = sequence
         self.ring = sequence.ring
-        self.ring._reserve(nframe)
         seq = sequence._seq
+        self.buf, self.start, self.data = self.ring._reserve(seq, nframe)
         self.frame_offset = seq.nframe
         self.nframe = nframe
-        self.data = self.ring.xp.empty(seq.span_shape(nframe), seq.sdtype)
         self.commit_nframe = nframe
         self._closed = False
 
@@ -395,7 +508,8 @@ class WriteSpan:
     def close(self):
         if not self._closed:
             self._closed = True
-            self.ring._commit(self.sequence._seq, self.data, self.commit_nframe)
+            self.ring._commit(self.sequence._seq, self, self.commit_nframe)
+            self.buf = None
 
 
 class _Reader:
@@ -408,6 +522,7 @@ class _Reader:
         self.current = None       # the open sequence, or None between sequences
         self.next_index = 0       # index of the next sequence to open
         self.closed = False
+        self.event = None         # 'cuda': its latest release (or copy) event
 
     def effective_pos(self):
         ring = self.ring
@@ -424,6 +539,8 @@ class _Reader:
             self.closed = True
             if self in self.ring._readers:
                 self.ring._readers.remove(self)
+                if self.event is not None:
+                    self.ring._retired_events.append(self.event)
             self.ring._cond.notify_all()
 
     def _hold(self, gpos):
@@ -495,6 +612,10 @@ class ReadSequence(_SequenceBase):
         """One span at ``frame_offset`` (None at the end of the sequence)."""
         return self._acquire(frame_offset, nframe, nframe)
 
+    def _empty_span(self, offset, skipped):
+        seq = self._seq
+        return ReadSpan(self, offset, self._ring.xp.empty(seq.span_shape(0), seq.sdtype), skipped)
+
     def _acquire(self, offset, nframe, stride):
         ring, seq, rd = self._ring, self._seq, self._reader
         overlap = max(nframe - stride, 0)
@@ -511,9 +632,7 @@ class ReadSequence(_SequenceBase):
                         jump = max(seq.nframe - offset, 0)
                         skipped += jump
                         offset += jump
-                        return (ReadSpan(self, offset, ring.xp.empty(seq.span_shape(0),
-                                                                      seq.sdtype), skipped)
-                                if skipped else None)
+                        return self._empty_span(offset, skipped) if skipped else None
                     skipped += jump
                     offset += jump
                     continue
@@ -522,19 +641,24 @@ class ReadSequence(_SequenceBase):
                     break
                 if seq.ended:
                     if avail <= overlap:
-                        return (ReadSpan(self, offset, ring.xp.empty(seq.span_shape(0),
-                                                                      seq.sdtype), skipped)
-                                if skipped else None)
+                        return self._empty_span(offset, skipped) if skipped else None
                     break
                 ring._wait()
             n = min(nframe, seq.nframe - offset)
-            data = ring._copy_out(seq, offset, n)
-            ring._sync()
+            ring._await_ready()
+            data = ring._span_view(seq, offset, n)
+            if not rd.guarantee:
+                # the writer does not wait for this reader: take a copy before the lock goes
+                data = data.copy()
+                if ring.on_device:
+                    rd.event = ring._new_event()
         return ReadSpan(self, offset, data, skipped)
 
 
 class ReadSpan:
-    """A read-only copy of frames [frame_offset, frame_offset + nframe) of a sequence."""
+    """Frames [frame_offset, frame_offset + nframe) of a sequence: a read-only view of the
+    ring's memory for a guaranteed reader (valid until the span is released), a copy for an
+    unguaranteed one."""
     nframe_overwritten = 0
 
     def __init__(self, sequence, frame_offset, data, nframe_skipped=0):
@@ -544,6 +668,7 @@ class ReadSpan:
         self.data = data
         self.nframe = data.shape[len(sequence._seq.ringlet_shape)]
         self.nframe_skipped = nframe_skipped
+        self._released = False
 
     @property
     def tensor(self):
@@ -556,4 +681,12 @@ class ReadSpan:
         self.release()
 
     def release(self):
-        pass
+        """Done with the data: on 'cuda', the writer may overwrite it once the work queued so
+        far on the current stream is done (recorded as this reader's release event)."""
+        if self._released:
+            return
+        self._released = True
+        rd = self.sequence._reader
+        if rd.guarantee and self.ring.on_device and self.nframe:
+            with self.ring._cond:
+                rd.event = self.ring._new_event()
