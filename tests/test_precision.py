@@ -222,7 +222,7 @@ def test_min_elevation_drops_pixels_near_the_horizon():
         imaging.lm_grid(32, min_elevation_deg=95)
 
 
-@pytest.mark.parametrize("precision, tol", [("tf32x3", 1e-6), ("tf32", 2e-3), ("fp16", 2e-3), ("bf16", 2e-2)])
+@pytest.mark.parametrize("precision, tol", [("tf32x3", 1e-6), ("fp16x3", 1e-6), ("tf32", 2e-3), ("fp16", 2e-3), ("bf16", 2e-2)])
 def test_stacked_real_form_equals_the_complex_product(xp, precision, tol):
     """[[Dr, -Di], [Di, Dr]] @ [Br; Bi] = [Re DB; Im DB] at the mode's rounding (NumPy: emulated)."""
     from bf_epic_blocks.imaging.gemm import stack_operator, stack_rhs, stacked_matmul

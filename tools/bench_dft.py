@@ -130,7 +130,7 @@ def main(argv=None):
     print(f"# bench_dft: device={a.device} nant={len(xyz)} ({layout}) ntime={a.ntime} nchan={nchan} npol={npol} "
           f"4-bit sky+noise; {machine(xp).get('gpu', machine(xp)['cpu'])}")
     print(f"{'grid':>4} {'regime':<8} {'route':<10} {'precision':<8} {'input':<5} {'ms/gulp':>9} {'rel err':>9} "
-          f"{'vs naive':>8} {'vs prev':>8}")
+          f"{'vs naive':>8} {'vs prev':>8} calls")
 
     def row(grid, regime, route, precision, inp, t, err, base=None, prevt=None, **kw):
         r = {"grid": grid, "regime": regime, "route": route, "precision": precision, "input": inp,
@@ -140,12 +140,26 @@ def main(argv=None):
         rows.append(r)
         sn = f"{base / t:8.2f}" if base else f"{'':8}"
         sp = f"{prevt / t:8.2f}" if prevt else f"{'':8}"
-        print(f"{grid:>4} {regime:<8} {route:<10} {precision:<8} {inp:<5} {t * 1e3:9.3f} {err:9.1e} {sn} {sp}",
+        mode = {True: "graph", False: "eager"}.get(kw.get("graphs"), "")
+        print(f"{grid:>4} {regime:<8} {route:<10} {precision:<8} {inp:<5} {t * 1e3:9.3f} {err:9.1e} {sn} {sp} {mode}",
               flush=True)
 
     def rel(got, ref):
         got = imaging._xp.to_numpy(got)
         return float(np.max(np.abs(got - ref)) / np.max(np.abs(ref)))
+
+    def graph_kw(op, inp):
+        return {"graphs": True} if gpu and inp == "ci4" and op.graphs is not None else {}
+
+    eager_ops = {}
+
+    def op_eager(precision):
+        """The same operator with CUDA graphs off (one per precision and grid, made once)."""
+        key = (precision, int(lmd.shape[0]))
+        if key not in eager_ops:
+            eager_ops.clear()
+            eager_ops[key] = imaging.DFTOperator(xyzd, fd, lmd, npol=npol, precision=precision, graphs=False)
+        return eager_ops[key]
 
     for grid_n in grids:
         grid = imaging.lm_grid(grid_n)
@@ -181,10 +195,14 @@ def main(argv=None):
                 for inp, X in (("ci4", Qd), ("cf32", Xd)):
                     if route == "direct" and inp == "cf32":
                         continue
+                    cm = nchan * cost.route_cmacs(a.ntime, len(xyz), grid.npix, npol, npol)[route]
                     t, img = run(lambda: op.image(X, method=route), repeat)
                     row(grid_n, "gulp", route, precision, inp, t, rel(img[:, :, subd], ref1),
-                        base=t_naive_cov, prevt=t_prev,
-                        cmacs=nchan * cost.route_cmacs(a.ntime, len(xyz), grid.npix, npol, npol)[route])
+                        base=t_naive_cov, prevt=t_prev, cmacs=cm, **graph_kw(op, inp))
+                    if gpu and inp == "ci4" and not big:    # the same without CUDA graphs (host-bound?)
+                        t, img = run(lambda: op_eager(precision).image(X, method=route), repeat)
+                        row(grid_n, "gulp", route, precision, inp, t, rel(img[:, :, subd], ref1),
+                            base=t_naive_cov, prevt=t_prev, cmacs=cm, graphs=False)
             del op
         if grid_n != 64:
             continue
@@ -204,9 +222,14 @@ def main(argv=None):
             row(grid_n, "x64", "previous", "fp32", "cf32", t_prev64, rel(img[..., sub], refn), base=t_naive_dir)
         for precision in precisions:
             op = imaging.DFTOperator(xyzd, fd, lmd, npol=npol, precision=precision)
+            cm = nchan * cost.route_cmacs(a.ntime, len(xyz), grid.npix, npol, npol)["direct"]
             t, img = run(lambda: op.image(Qd, method="direct", accumulate=n), repeat)
             row(grid_n, "x64", "direct", precision, "ci4", t, rel(img[..., subd], refn), base=t_naive_dir,
-                prevt=t_prev64, cmacs=nchan * cost.route_cmacs(a.ntime, len(xyz), grid.npix, npol, npol)["direct"])
+                prevt=t_prev64, cmacs=cm, **graph_kw(op, "ci4"))
+            if gpu:
+                t, img = run(lambda: op_eager(precision).image(Qd, method="direct", accumulate=n), repeat)
+                row(grid_n, "x64", "direct", precision, "ci4", t, rel(img[..., subd], refn), base=t_naive_dir,
+                    prevt=t_prev64, cmacs=cm, graphs=False)
             del op
         del G
     if a.ducc and not gpu:

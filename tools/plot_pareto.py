@@ -17,7 +17,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-COLOURS = {"fp64": "tab:gray", "fp32": "tab:blue", "tf32x3": "tab:cyan", "tf32": "tab:green",
+COLOURS = {"fp64": "tab:gray", "fp32": "tab:blue", "tf32x3": "tab:cyan", "fp16x3": "tab:purple", "tf32": "tab:green",
            "fp16": "tab:orange", "bf16": "tab:red"}
 MARKERS = {("covariance", "ci4"): "o", ("covariance", "cf32"): "s", ("direct", "ci4"): "^"}
 

@@ -218,9 +218,16 @@ class DFTImagerBlock(bfp.TransformBlock):
                             raise ValueError("DFTImagerBlock: a tracking pixel function must keep the pixel count")
                         self._build(lm)
                 g = (n - pos) // self.accumulate
-                if self._acc.ntime == 0 and not tracking and g >= (1 if self.gpus else 2) and self.imager_kind == "dft":
-                    # several whole integrations in this gulp: one batched pass (one GEMM for all of them)
-                    imgs = self._acc.images(x[pos:pos + g * self.accumulate], self.accumulate)
+                graphs = self.gpus is None and getattr(getattr(self, "_op", None), "graphs", None) is not None
+                if self._acc.ntime == 0 and not tracking and g >= (1 if self.gpus or graphs else 2) \
+                        and self.imager_kind == "dft":
+                    if g == 1 and graphs:
+                        # one whole integration: the operator's image(), replayed as a CUDA graph
+                        imgs = self._op.image(x[pos:pos + self.accumulate], self.products,
+                                              remove_autocorr=self.remove_autocorr, method=self._acc.method)[None]
+                    else:
+                        # several whole integrations in this gulp: one batched pass (one GEMM for all)
+                        imgs = self._acc.images(x[pos:pos + g * self.accumulate], self.accumulate)
                     self._write(out, nout, imgs)
                     nout += g
                     pos += g * self.accumulate

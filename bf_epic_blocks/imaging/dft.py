@@ -35,8 +35,9 @@ import numpy as np
 from ..conventions import SIGMA, SPEED_OF_LIGHT_M_S
 from . import cost
 from ._xp import get_xp
-from .gemm import (PRECISIONS, STACKED, check_precision, cmatmul, int_gram, pow2_scale, split_tf32, stack_operator,
+from .gemm import (FP16, PRECISIONS, STACKED, check_precision, cmatmul, int_gram, pow2_scale, split_tf32, stack_operator,
                    stack_rhs, stacked_matmul)
+from .graphs import GraphCache
 from .layout import cov_rhs, direct_rhs, gram_rows
 from .reduce import block_corr, group_power, product_coefficients, products_from_blocks, row_dot
 from .pixels import check_lm, n_from_lm
@@ -196,8 +197,10 @@ class DFTOperator:
     weights : complex, optional  (nant,) or broadcastable (nchan|1, nant, npol|1): folded
                                  direction-independent gains (cable, calibration); 0 = flagged.
     pattern : complex, optional  broadcastable (nchan|1, npix, nant|1, npol|1) voltage pattern B.
+    graphs : bool                on the GPU, replay repeated :meth:`image` calls on integer voltages
+                                 as CUDA graphs (:mod:`.graphs`); default True.
     precision : str              GEMM precision, one of :data:`.gemm.PRECISIONS` (fp64, fp32,
-                                 tf32x3, tf32, fp16, bf16; the last four need a GPU). Phases are
+                                 tf32x3, fp16x3, tf32, fp16, bf16; the last five need a GPU). Phases are
                                  always formed in float64; the operator is stored as complex64
                                  (complex128 for fp64) and rounded by the GEMM as the mode says.
 
@@ -207,8 +210,11 @@ class DFTOperator:
     then forms X X^H exactly in integer arithmetic and applies the weights to it afterwards.
     """
 
-    def __init__(self, xyz_m, freq_hz, pixels_lm, *, npol=1, weights=None, pattern=None, precision="fp32"):
+    def __init__(self, xyz_m, freq_hz, pixels_lm, *, npol=1, weights=None, pattern=None, precision="fp32",
+                 graphs=True):
         xp = get_xp(xyz_m, pixels_lm)
+        # CUDA graphs for repeated image() calls on integer voltages (the F-engine case): see .graphs
+        self.graphs = GraphCache() if graphs and xp.__name__ == "cupy" else None
         self.rdtype, self.cdtype = check_precision(precision, xp)
         self.precision = precision
         self.xp = xp
@@ -259,7 +265,7 @@ class DFTOperator:
         # fp16 covariance operands: R' = w R w^H / T <= 2 * 127^2 * max|w|^2, scaled by a power of two
         # into fp16's range (chosen once, on the host, from the weights)
         wmax = float(xp.abs(w).max())
-        self.cov_scale = 2.0 ** -math.ceil(math.log2(wmax * wmax)) if self.precision == "fp16" and wmax > 0 else 1.0
+        self.cov_scale = 2.0 ** -math.ceil(math.log2(wmax * wmax)) if self.precision in FP16 and wmax > 0 else 1.0
 
         G = geometric_operator(self.xyz_m, f, lm, "fp64" if precision == "fp64" else "fp32")  # (nchan, npix, nant)
         b = _check_pattern(pattern, nchan, npix, nant_in, npol, xp)
@@ -316,18 +322,18 @@ class DFTOperator:
         parts = self._operator_parts(pol, cs)
         if not self.stacked:
             return cmatmul(parts[0], rhs, self.precision), False, None
-        s = pow2_scale(rhs) if self.precision == "fp16" else None
+        s = pow2_scale(rhs) if self.precision in FP16 else None
         F = stacked_matmul(parts, stack_rhs(rhs, self.precision, s), self.precision, b_exact=exact)
         return F.reshape(F.shape[0], 2, F.shape[1] // 2, F.shape[2]), True, (None if s is None else 1.0 / s)
 
     def field_gemm_parts(self, pol, parts, cs=slice(None), *, exact=False):
         """D_pol @ rhs with rhs already in the GEMM's operand form: a list of stacked parts (tensor-core
-        modes; [hi, lo] for tf32x3) or [complex rhs]. Returns (F, stacked) as :meth:`field_gemm`."""
+        modes; [hi, lo] for tf32x3 / fp16x3) or [complex rhs]. Returns (F, stacked) as :meth:`field_gemm`."""
         ops = self._operator_parts(pol, cs)
         if not self.stacked:
             return cmatmul(ops[0], parts[0], self.precision), False
-        if self.precision == "tf32x3" and len(parts) == 1:
-            parts = list(split_tf32(parts[0])) if not exact else [parts[0]]
+        if self.precision == "tf32x3" and len(parts) == 1 and not exact:
+            parts = list(split_tf32(parts[0]))     # (fp16x3 parts come split from cov_rhs)
         F = stacked_matmul(ops, parts, self.precision, b_exact=exact or len(parts) == 1)
         return F.reshape(F.shape[0], 2, F.shape[1] // 2, F.shape[2]), True
 
@@ -422,7 +428,30 @@ class DFTOperator:
             batched pass (direct route: one GEMM for the whole gulp, |F|^2 summed per group);
             trailing samples that do not fill an integration are not imaged.
         Real images in the operator's precision (float32, float64 for fp64).
+
+        On the GPU, integer voltages of a shape seen before are imaged by replaying a CUDA graph of the
+        first such call (:mod:`.graphs`; ``graphs=False`` at construction turns this off).
         """
+        if accumulate is not None:
+            n = int(accumulate) if isinstance(accumulate, (int, np.integer)) or (
+                isinstance(accumulate, float) and accumulate.is_integer()) else None
+            if n is None or n < 1:
+                raise ValueError(f"accumulate must be a positive integer number of samples, got {accumulate!r}")
+            accumulate = n
+        # (one covariance image per N samples builds accumulators, with host->device copies, on
+        # every call: not capturable, and not the fast route for short integrations anyway)
+        if self.graphs is not None and _is_int_pairs(efield) and (
+                accumulate is None or self._cached_accumulator(products, remove_autocorr, method,
+                                                               int(accumulate)).method == "direct"):
+            self._check_efield(efield)
+            key = (tuple(efield.shape), str(efield.dtype), tuple(resolve_products(self.npol, products)),
+                   bool(remove_autocorr), method, accumulate)
+            caches = [self._derived, self._derived.setdefault("accumulators", {})]
+            return self.graphs.call(key, lambda x: self._image(x, products, remove_autocorr, method, accumulate),
+                                    efield, caches)
+        return self._image(efield, products, remove_autocorr, method, accumulate)
+
+    def _image(self, efield, products, remove_autocorr, method, accumulate):
         ntime = int(efield.shape[0])
         if accumulate is None:
             acc = self._cached_accumulator(products, remove_autocorr, method, ntime)
@@ -431,10 +460,7 @@ class DFTOperator:
             out = acc.result()
             acc.reset()
             return out
-        n = int(accumulate)
-        if n != accumulate or n < 1:
-            raise ValueError(f"accumulate must be a positive integer number of samples, got {accumulate!r}")
-        return self._cached_accumulator(products, remove_autocorr, method, n).images(efield, n)
+        return self._cached_accumulator(products, remove_autocorr, method, accumulate).images(efield, accumulate)
 
 
 class ImageAccumulator:
@@ -703,7 +729,7 @@ class ImageAccumulator:
             return self._R
         op, xp = self.op, self.op.xp
         rhs = cov_rhs(W, self._int_weights(), self.blocks, op.npol, "fp64" if op.precision == "fp64" else "fp32",
-                      False, unit=op.unit_weights)                               # (C', A, nblk A)
+                      False, unit=op.unit_weights)[0][0]                         # (C', A, nblk A)
         c, a = rhs.shape[0], rhs.shape[1]
         return xp.ascontiguousarray(rhs.reshape(c, a, len(self.blocks), a).transpose(0, 2, 1, 3))
 
@@ -718,18 +744,23 @@ class ImageAccumulator:
         out = xp.empty((c, nblk, op.npix), dtype=xp.complex128 if op.precision == "fp64" else xp.complex64)
         if W is not None and op.shared_geometry:
             # exact integer sums straight into the GEMM's operand form (weights, 1/T and the fp16
-            # range scale applied in the same pass)
+            # range scale applied in the same pass). The same-antenna terms stay out of the GEMM and
+            # are added exactly here (|D| = 1: a constant per channel and block): the GEMM's rounding
+            # is then relative to the cross-correlations, not to the much larger autocorrelations.
             s = op.cov_scale
-            rhs = cov_rhs(W, self._int_weights(), self.blocks, op.npol, op.precision, op.stacked,
-                          scale=s / self.ntime, unit=op.unit_weights)
+            rhs, diag = cov_rhs(W, self._int_weights(), self.blocks, op.npol, op.precision, op.stacked,
+                                scale=s / self.ntime, unit=op.unit_weights, nodiag=True)
             for c0 in range(0, c, cchunk):
                 cs = slice(c0, min(c, c0 + cchunk))
-                M, stacked = op.field_gemm_parts(0, [rhs[cs]], cs)
+                M, stacked = op.field_gemm_parts(0, [p[cs] for p in rhs], cs)
                 r = row_dot(M, op.live_G(0)[cs], nblk, stacked=stacked, scale=None if s == 1 else 1.0 / s)
                 if cchunk >= c:
                     out = r          # one chunk: no copy
                 else:
                     out[cs] = r
+            if not self.remove_autocorr:
+                out = out + (diag.sum(axis=-1) / self.ntime).astype(out.dtype)[..., None]
+            return out
         else:
             R = self._covariance_blocks()                         # (C', nblk, A, A) sums
             for c0 in range(0, c, cchunk):
@@ -783,7 +814,7 @@ def dirty_image(efield, xyz_m, freq_hz, pixels_lm, *, remove_autocorr=False, met
     method : "direct" (D X then |.|^2), "covariance" (Re diag(D R D^H)), or "auto" (cheaper by
              :func:`bf_epic_blocks.imaging.cost.choose_method`).
     precision : one of :data:`bf_epic_blocks.imaging.gemm.PRECISIONS` ("fp64", "fp32", and on a
-             GPU "tf32x3", "tf32", "fp16", "bf16"; phases are always formed in float64). Default
+             GPU "tf32x3", "fp16x3", "tf32", "fp16", "bf16"; phases are always formed in float64). Default
              "fp32" (or the tolerance's pick).
     tolerance : an accuracy target instead of a mode: the largest acceptable error (max |I - I_exact|
              / max I_exact); the fastest route x precision whose measured bound holds on this device

@@ -12,6 +12,10 @@ name         what the GEMM does                                                 
              tf32), A_hi B_hi + A_hi B_lo + A_lo B_hi in tf32 with fp32 accumulation:
              ~fp32 accuracy at tensor-core speed (B_lo is skipped when B is exact in
              tf32, e.g. 4-bit voltages or integer covariances below 2^11)
+``fp16x3``   split precision as tf32x3 with fp16 halves (hi = fp16(A), lo =          GPU (tensor cores)
+             fp16(A - hi), 22 bits together; operands scaled into fp16's range):
+             three fp16 products at twice tf32's rate -- ~fp32 accuracy for about the
+             cost of 1.5 tf32 products (integer covariances below 2^22 are exact in hi+lo)
 ``tf32``     operands rounded to tf32 (10-bit mantissa), fp32 accumulation           GPU (tensor cores)
 ``fp16``     operands rounded to fp16 (10-bit mantissa, 5-bit exponent: the caller   GPU (tensor cores)
              scales them into range), fp32 accumulation; as accurate as tf32 at twice
@@ -34,7 +38,7 @@ sums stay below 2^24): R carries no rounding error at all.
 On the GPU the products are cuBLAS ``cublasGemmStridedBatchedEx`` calls through CuPy's binding,
 with the compute type setting the precision (``CUBLAS_COMPUTE_32F_FAST_TF32`` / ``_FAST_16F`` /
 ``_FAST_16BF`` on complex64 operands: cuBLAS converts the operands itself, so one complex64 copy of
-the operator serves every mode). The CPU has no tensor cores: asking for tf32, tf32x3, fp16 or bf16
+the operator serves every mode). The CPU has no tensor cores: asking for tf32, tf32x3, fp16x3, fp16 or bf16
 there raises :class:`PrecisionUnavailable` naming what to use instead.
 
 Shapes: ``cmatmul(a, b)`` takes row-major (batch, m, k) and (batch, k, n) arrays (a batch of 1
@@ -46,7 +50,7 @@ import numpy as np
 
 from ._xp import get_xp
 
-__all__ = ["PRECISIONS", "PrecisionUnavailable", "check_precision", "cmatmul", "int_gram", "split_tf32",
+__all__ = ["PRECISIONS", "PrecisionUnavailable", "check_precision", "cmatmul", "int_gram", "split_tf32", "SPLIT", "FP16",
            "round_tf32", "precision_available", "STACKED", "stack_operator", "stack_rhs", "stacked_matmul",
            "to_bf16", "pow2_scale"]
 
@@ -60,18 +64,23 @@ PRECISIONS = {
     "fp64": (np.float64, np.complex128, False),
     "fp32": (np.float32, np.complex64, False),
     "tf32x3": (np.float32, np.complex64, True),
+    "fp16x3": (np.float32, np.complex64, True),
     "tf32": (np.float32, np.complex64, True),
     "fp16": (np.float32, np.complex64, True),
     "bf16": (np.float32, np.complex64, True),
 }
 
 #: modes computed as stacked real GEMMs (everything on tensor cores)
-STACKED = ("tf32x3", "tf32", "fp16", "bf16")
+STACKED = ("tf32x3", "fp16x3", "tf32", "fp16", "bf16")
+#: split modes: operands as [hi, lo] pairs, three products (two when one side is exact)
+SPLIT = ("tf32x3", "fp16x3")
+#: modes whose operands are fp16 (scaled by a power of two into range)
+FP16 = ("fp16", "fp16x3")
 
 # cuBLAS enums (cublas_api.h / library_types.h); CuPy's binding takes them as ints.
 _CUDA_C_32F, _CUDA_C_64F, _CUDA_R_8I, _CUDA_R_32I = 4, 5, 3, 10
 _CUDA_R_32F, _CUDA_R_16F, _CUDA_R_16BF = 0, 2, 14
-_COMPUTE = {"fp64": 70, "fp32": 68, "tf32": 77, "tf32x3": 77, "fp16": 74, "bf16": 75}  # CUBLAS_COMPUTE_*
+_COMPUTE = {"fp64": 70, "fp32": 68, "tf32": 77, "tf32x3": 77, "fp16": 74, "fp16x3": 74, "bf16": 75}  # CUBLAS_COMPUTE_*
 _COMPUTE_32I = 72
 _OP_N, _OP_T = 0, 1
 _GEMM_DEFAULT = -1
@@ -173,6 +182,9 @@ def cmatmul(a, b, precision="fp32", *, out=None, b_exact=False, a_split=None):
     batch = max(a.shape[0], b.shape[0])
     if out is None:
         out = xp.empty((batch, a.shape[1], b.shape[2]), cdt)
+    if precision == "fp16x3":
+        raise ValueError("cmatmul has no fp16x3 (cuBLAS' complex GEMM has no fp16 inputs): use "
+                         "stack_operator / stack_rhs / stacked_matmul, as DFTOperator does")
     compute = _COMPUTE[precision]
     if precision != "tf32x3":
         return _cublas_gemm(a, b, out, compute, 0)
@@ -249,7 +261,7 @@ def _bf16_to_float(b):
 def _store(a, precision):
     """float32 array -> the storage of ``precision``'s operands (fp16, bf16 bits, or float32)."""
     xp = get_xp(a)
-    if precision == "fp16":
+    if precision in FP16:
         return a.astype(xp.float16)
     if precision == "bf16":
         return to_bf16(a)
@@ -258,7 +270,7 @@ def _store(a, precision):
 
 def stack_operator(g, precision):
     """Stacked real form of a complex operator batch (b, m, k) -> list of (b, 2m, 2k) operands:
-    ``[[Dr, -Di], [Di, Dr]]`` in the storage of ``precision``; for tf32x3 the [hi, lo] pair."""
+    ``[[Dr, -Di], [Di, Dr]]`` in the storage of ``precision``; for tf32x3 / fp16x3 the [hi, lo] pair."""
     xp = get_xp(g)
     b, m, k = g.shape
     s = xp.empty((b, 2 * m, 2 * k), xp.float32)
@@ -266,14 +278,12 @@ def stack_operator(g, precision):
     s[:, :m, k:] = -g.imag
     s[:, m:, :k] = g.imag
     s[:, m:, k:] = g.real
-    if precision == "tf32x3":
-        return list(split_tf32(s))
-    return [_store(s, precision)]
+    return _parts(s, precision)
 
 
 def stack_rhs(b, precision, scale=None):
     """Stacked real form of a complex right-hand side (batch, k, n) -> list of (batch, 2k, n):
-    ``[Br; Bi]`` (times ``scale``) in the storage of ``precision``; for tf32x3 [hi, lo]."""
+    ``[Br; Bi]`` (times ``scale``) in the storage of ``precision``; for tf32x3 / fp16x3 [hi, lo]."""
     xp = get_xp(b)
     nb, k, n = b.shape
     s = xp.empty((nb, 2 * k, n), xp.float32)
@@ -283,8 +293,16 @@ def stack_rhs(b, precision, scale=None):
     else:
         s[:, :k] = b.real * scale
         s[:, k:] = b.imag * scale
+    return _parts(s, precision)
+
+
+def _parts(s, precision):
+    """float32 stacked operand -> its list of parts in the precision's storage ([hi, lo] if split)."""
     if precision == "tf32x3":
         return list(split_tf32(s))
+    if precision == "fp16x3":
+        hi = s.astype(get_xp(s).float16)
+        return [hi, (s - hi.astype(s.dtype)).astype(hi.dtype)]
     return [_store(s, precision)]
 
 
@@ -306,14 +324,15 @@ def _stored_to_float(a):
 
 def _cublas_rgemm(a, b, c, precision, beta):
     """c = a @ b (+ beta c), row-major real batches: operands in ``precision``'s storage, fp32 out."""
-    atype = {"fp16": _CUDA_R_16F, "bf16": _CUDA_R_16BF}.get(precision, _CUDA_R_32F)
+    atype = {"fp16": _CUDA_R_16F, "fp16x3": _CUDA_R_16F, "bf16": _CUDA_R_16BF}.get(precision, _CUDA_R_32F)
     compute = _COMPUTE["tf32"] if precision in ("tf32", "tf32x3") else _COMPUTE["fp32"]
     return _gemm_ex(a, b, c, atype, _CUDA_R_32F, compute, np.float32, beta)
 
 
 def stacked_matmul(a_parts, b_parts, precision, *, out=None, b_exact=False):
     """[Re; Im] of the complex product, float32 (batch, 2m, n), from :func:`stack_operator` and
-    :func:`stack_rhs` parts. tf32x3: a_hi b_hi + a_hi b_lo + a_lo b_hi (b_lo skipped if ``b_exact``).
+    :func:`stack_rhs` parts. tf32x3 / fp16x3: a_hi b_hi + a_hi b_lo + a_lo b_hi (b_lo skipped if
+    ``b_exact``).
 
     NumPy (for tests of the layout only; the CPU has no tensor cores): float32 products of the
     operands rounded to the mode, which is what the tensor cores compute up to summation order.
@@ -326,7 +345,7 @@ def stacked_matmul(a_parts, b_parts, precision, *, out=None, b_exact=False):
         def rnd(x):
             x = _stored_to_float(x)
             return round_tf32(x) if precision in ("tf32", "tf32x3") else x
-        terms = [(0, 0)] + ([] if precision != "tf32x3" else ([(1, 0)] + ([] if b_exact else [(0, 1)])))
+        terms = [(0, 0)] + ([] if precision not in SPLIT else ([(1, 0)] + ([] if b_exact else [(0, 1)])))
         res = sum(np.matmul(rnd(a_parts[i]), rnd(b_parts[j])) for i, j in terms)
         if out is None:
             return res.astype(np.float32)
@@ -334,7 +353,7 @@ def stacked_matmul(a_parts, b_parts, precision, *, out=None, b_exact=False):
         return out
     if out is None:
         out = xp.empty(shape, xp.float32)
-    if precision != "tf32x3":
+    if precision not in SPLIT:
         return _cublas_rgemm(a0, b0, out, precision, 0)
     _cublas_rgemm(a_parts[1], b0, out, precision, 0)      # small terms first
     if not b_exact:

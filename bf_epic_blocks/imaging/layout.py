@@ -32,6 +32,11 @@ __device__ __forceinline__ void put(double v, float* p) { *p = (float)v; }
 __device__ __forceinline__ void put(double v, double* p) { *p = v; }
 __device__ __forceinline__ void put(double v, __half* p) { *p = __float2half_rn((float)v); }
 __device__ __forceinline__ void put(double v, i8* p) { *p = (i8)v; }
+__device__ __forceinline__ float get(const float* p) { return *p; }
+__device__ __forceinline__ double get(const double* p) { return *p; }
+__device__ __forceinline__ float get(const __half* p) { return __half2float(*p); }
+__device__ __forceinline__ float get(const i8* p) { return (float)*p; }
+__device__ __forceinline__ float get(const unsigned short* p) { return __uint_as_float(((unsigned int)*p) << 16); }
 __device__ __forceinline__ void put(double v, unsigned short* p) {   // bfloat16 bits, round to nearest even
     unsigned int u = __float_as_uint((float)v);
     *p = (unsigned short)((u + 0x7FFFu + ((u >> 16) & 1u)) >> 16);
@@ -96,7 +101,8 @@ extern "C" __global__ void NAME(
     const int* __restrict__ W, OUT_T* __restrict__ out, const double* __restrict__ w,
     const int C, const int A, const int P, const int nblk,
     const int* __restrict__ bp, const int* __restrict__ bq, const double scale, const int unit,
-    const long long osc, const long long osa, const long long oes, const long long o_im)
+    const long long osc, const long long osa, const long long oes, const long long o_im,
+    double* __restrict__ diag, OUT_T* __restrict__ lo)
 {
     long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     long long total = (long long)C * A * nblk * A;
@@ -118,9 +124,18 @@ extern "C" __global__ void NAME(
         re = xr * wb[0] + xi * wb[1];                                            // * conj(w_b)
         im = xi * wb[0] - xr * wb[1];
     }
-    OUT_T* o = out + c * osc + a * osa + ((long long)b * A + a2) * oes;
-    put(re * scale, o);
-    put(im * scale, o + o_im);
+    if (diag != 0 && a == a2) {   // the same-antenna term leaves the GEMM; the caller adds it exactly
+        double* d = diag + 2 * (((long long)c * nblk + b) * A + a);
+        d[0] = re; d[1] = im;
+        re = 0.0; im = 0.0;
+    }
+    long long off = c * osc + a * osa + ((long long)b * A + a2) * oes;
+    put(re * scale, out + off);
+    put(im * scale, out + off + o_im);
+    if (lo != 0) {                // split storage: lo = v - hi, in the same type (fp16x3)
+        put(re * scale - (double)get(out + off), lo + off);
+        put(im * scale - (double)get(out + off + o_im), lo + off + o_im);
+    }
 }
 """
 
@@ -143,7 +158,8 @@ def _kernel(kind, out_type):
 
 def _storage(precision, xp):
     """(array dtype, kernel output type name) of a precision's stacked operands."""
-    return {"fp16": (xp.float16, "float16"), "bf16": (xp.uint16, "bfloat16")}.get(precision, (xp.float32, "float32"))
+    return {"fp16": (xp.float16, "float16"), "fp16x3": (xp.float16, "float16"),
+            "bf16": (xp.uint16, "bfloat16")}.get(precision, (xp.float32, "float32"))
 
 
 def _select_np(pairs, sel, pols):
@@ -226,14 +242,19 @@ def direct_rhs(pairs, sel, pols, precision, stacked):
     return out
 
 
-def cov_rhs(W, weights, blocks, npol_in, precision, stacked, scale=1.0, unit=False):
+def cov_rhs(W, weights, blocks, npol_in, precision, stacked, scale=1.0, unit=False, nodiag=False):
     """[R_b0 | R_b1 | ...] * scale from integer Gram sums, weights applied.
 
     W : (C', R, R) int32 (GPU) or float64 (CPU) sums of :func:`gram_rows` products, R = A (npol_in) 2.
     weights : complex (C', A, npol_in);  blocks : (p, q) pairs;  unit : weights are all 0/1 (skip them;
     flagged antennas are already zero in W).
-    Returns complex (C', A, nblk A) (complex64, complex128 for fp64) or stacked (C', 2 A, nblk A) in
-    the precision's operand storage.
+    nodiag : leave the same-antenna terms R_pq[a, a] out (zeros) and return them separately, weighted
+    and unscaled, complex128 (C', nblk, A): the caller adds their exact contribution, so that the
+    low-precision GEMM carries only the cross-correlations -- far smaller than the autocorrelations
+    in noise-dominated data, so the GEMM's rounding is relative to a smaller quantity.
+    Returns a list of parts and the diagonal (None unless ``nodiag``): parts are [complex (C', A, nblk A)]
+    (complex64, complex128 for fp64), or the stacked (C', 2 A, nblk A) operand in the precision's
+    storage -- for ``fp16x3`` two of them, [hi, lo] with lo = value - hi.
     """
     xp = get_xp(W)
     C, R, _ = W.shape
@@ -242,29 +263,41 @@ def cov_rhs(W, weights, blocks, npol_in, precision, stacked, scale=1.0, unit=Fal
     cdt = xp.complex128 if precision == "fp64" else xp.complex64
     if xp is np or W.dtype != xp.int32:
         Wr = W.reshape(C, A, npol_in, 2, A, npol_in, 2)
-        cols = []
+        cols, diags = [], []
+        ii = xp.arange(A)
         for p, q in blocks:
             re = Wr[:, :, p, 0, :, q, 0] + Wr[:, :, p, 1, :, q, 1]
             im = Wr[:, :, p, 1, :, q, 0] - Wr[:, :, p, 0, :, q, 1]
             r = re + 1j * im
             if not unit:
                 r = weights[:, :, p, None] * r * xp.conj(weights[:, None, :, q])
+            if nodiag:
+                diags.append(r[:, ii, ii].astype(xp.complex128))
+                r[:, ii, ii] = 0
             cols.append(r * scale)
         rhs = xp.concatenate(cols, axis=2).astype(cdt)
+        diag = xp.stack(diags, axis=1) if nodiag else None
         if stacked:
             from .gemm import stack_rhs
-            return stack_rhs(rhs, precision)[0]
-        return rhs
+            return stack_rhs(rhs, precision), diag
+        return [rhs], diag
     import cupy as cp
-    # unit weights are not read: skip the copy (small, but a kernel and host time on every image)
-    w = _ZERO_W.setdefault(cp.cuda.runtime.getDevice(), cp.zeros(2, cp.float64)) if unit else \
-        cp.ascontiguousarray(weights, dtype=cp.complex128).view(cp.float64)
+    dev = cp.cuda.runtime.getDevice()
+    if unit:   # unit weights are not read: no copy (small, but a kernel and host time on every image)
+        if dev not in _ZERO_W:
+            _ZERO_W[dev] = cp.zeros(2, cp.float64)
+        w = _ZERO_W[dev]
+    else:
+        w = cp.ascontiguousarray(weights, dtype=cp.complex128).view(cp.float64)
     bp = device_ints(cp, [p for p, _ in blocks])
     bq = device_ints(cp, [q for _, q in blocks])
     total = C * A * nblk * A
+    lo = None
     if stacked:
         dt, name = _storage(precision, xp)
         out = xp.empty((C, 2 * A, nblk * A), dt)
+        if precision == "fp16x3":
+            lo = xp.empty_like(out)
         strides = (2 * A * nblk * A, nblk * A, 1, A * nblk * A)
         target = out
     else:
@@ -272,7 +305,10 @@ def cov_rhs(W, weights, blocks, npol_in, precision, stacked, scale=1.0, unit=Fal
         name = "float64" if cdt == xp.complex128 else "float32"
         target = out.view(xp.float64 if cdt == xp.complex128 else xp.float32)
         strides = (2 * A * nblk * A, 2 * nblk * A, 2, 1)
+    diag = xp.empty((C, nblk, A), xp.complex128) if nodiag else None
+    null = np.uintp(0)
     _kernel("cov_rhs", name)(((total + 255) // 256,), (256,), (
         cp.ascontiguousarray(W), target, w, np.int32(C), np.int32(A), np.int32(npol_in), np.int32(nblk), bp, bq,
-        np.float64(scale), np.int32(1 if unit else 0), *(np.int64(s) for s in strides)))
-    return out
+        np.float64(scale), np.int32(1 if unit else 0), *(np.int64(s) for s in strides),
+        null if diag is None else diag.view(xp.float64), null if lo is None else lo))
+    return [out] if lo is None else [out, lo], diag

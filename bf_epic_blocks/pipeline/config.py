@@ -73,7 +73,7 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
                                      (default [I]; returned as the resolved list of names)
       remove_autocorr: bool          (default false)
       method: auto | direct | covariance (default auto)
-      precision: fp32 | fp64 | tf32x3 | tf32 | fp16 | bf16  (default fp32; the last four need a GPU:
+      precision: fp32 | fp64 | tf32x3 | fp16x3 | tf32 | fp16 | bf16  (default fp32; the last five need a GPU:
                                      tensor-core modes, see bf_epic_blocks.imaging.gemm)
       tolerance: float in (0, 1)     (default null; an accuracy target instead of a mode: the fastest
                                      route x precision whose measured error bound is <= tolerance on the
