@@ -91,3 +91,22 @@ def test_uncapturable_calls_run_eagerly_and_stay_correct():
         z = q[..., 0].astype(cp.complex64) + 1j * q[..., 1].astype(cp.complex64)
         assert cp.allclose(op.image(z, method="covariance"), ref.image(z, method="covariance"), rtol=1e-5, atol=1e-6)
     assert op.graphs.captured == 0
+
+
+@pytest.mark.parametrize("T, flagged", [(100, False), (1024, False), (70, True)])
+def test_gram_rows_word_transpose_equals_numpy(T, flagged):
+    """The GPU's gram_rows (word-wide transpose when nothing is selected, the general kernel when
+    something is) against NumPy's, bitwise, for times that do not fill a tile."""
+    import cupy as cp
+    from bf_epic_blocks.imaging.layout import gram_rows
+    xyz, freq, lm, rng = _scene(4)
+    freq = np.array([50e6, 60e6, 70e6])
+    w = np.ones(24)
+    if flagged:
+        w[3] = 0
+    q = rng.integers(-8, 8, size=(T, 3, 24, 2, 2)).astype(np.int8)
+    op_g = DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(lm), npol=2, weights=cp.asarray(w))
+    op_c = DFTOperator(xyz, freq, lm, npol=2, weights=w)
+    got = gram_rows(cp.asarray(q), op_g.sel).get()
+    ref = gram_rows(q, op_c.sel)
+    assert np.array_equal(got[..., :T], ref) and not got[..., T:].any()

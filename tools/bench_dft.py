@@ -23,6 +23,7 @@ precision) the bound = 3 x the worst error seen (rounded up) and the rate in CMA
 """
 import argparse
 import datetime
+import gc
 import json
 import math
 import os
@@ -40,6 +41,14 @@ from bf_epic_blocks.imaging import cost, plan  # noqa: E402
 from bf_epic_blocks.imaging.gemm import PRECISIONS, precision_available  # noqa: E402
 
 C = 299792458.0
+
+
+def release(xp):
+    """Free a deleted operator's device memory now: its cached accumulators refer back to it (a cycle
+    only the collector breaks) and each CUDA graph it captured holds one gulp's working memory."""
+    gc.collect()
+    if xp.__name__ == "cupy":
+        xp.get_default_memory_pool().free_all_blocks()
 
 
 def machine(xp):
@@ -204,6 +213,7 @@ def main(argv=None):
                         row(grid_n, "gulp", route, precision, inp, t, rel(img[:, :, subd], ref1),
                             base=t_naive_cov, prevt=t_prev, cmacs=cm, graphs=False)
             del op
+            release(xp)
         if grid_n != 64:
             continue
         # -------- one image per 16 samples (64 per gulp)
@@ -231,6 +241,7 @@ def main(argv=None):
                 row(grid_n, "x64", "direct", precision, "ci4", t, rel(img[..., subd], refn), base=t_naive_dir,
                     prevt=t_prev64, cmacs=cm, graphs=False)
             del op
+            release(xp)
         del G
     if a.ducc and not gpu:
         from bf_epic_blocks.imaging.wstack import cov_wgrid_image

@@ -328,7 +328,7 @@ class DFTOperator:
 
     def field_gemm_parts(self, pol, parts, cs=slice(None), *, exact=False):
         """D_pol @ rhs with rhs already in the GEMM's operand form: a list of stacked parts (tensor-core
-        modes; [hi, lo] for tf32x3 / fp16x3) or [complex rhs]. Returns (F, stacked) as :meth:`field_gemm`."""
+        modes; [hi, lo] for tf32x3; one concatenated array for fp16x3) or [complex rhs]. Returns (F, stacked) as :meth:`field_gemm`."""
         ops = self._operator_parts(pol, cs)
         if not self.stacked:
             return cmatmul(ops[0], parts[0], self.precision), False

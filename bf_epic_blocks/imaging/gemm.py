@@ -133,20 +133,79 @@ def _gemm_ex(a, b, c, in_type, out_type, compute, scalar_dtype, beta):
     Row-major C = A B is column-major C^T = B^T A^T, so cuBLAS gets (B, A) with no transposes.
     A batch dimension of 1 broadcasts (stride 0). ``in_type``/``out_type``: CUDA data types;
     ``scalar_dtype``: NumPy type of alpha and beta (the compute type's)."""
-    import cupy as cp
-    from cupy_backends.cuda.libs import cublas
-    batch = max(a.shape[0], b.shape[0])
     m, k = a.shape[1:]
+    return _gemm_cols(a, 0, k, b, 0, c, in_type, out_type, compute, scalar_dtype, beta)
+
+
+def _gemm_cols(a, a0, k, b, b0, c, in_type, out_type, compute, scalar_dtype, beta):
+    """c[i] = a[i][:, a0:a0+k] @ b[i][b0:b0+k, :] (+ beta c[i]): a column block of a (row-major, its
+    full width the leading dimension) times the matching row block of b; contiguous batches."""
+    batch = max(a.shape[0], b.shape[0])
+    m, lda = a.shape[1:]
     n = b.shape[2]
     alpha = np.array(1, scalar_dtype)
     beta_ = np.array(beta, scalar_dtype)
-    sa = 0 if a.shape[0] == 1 else m * k
-    sb = 0 if b.shape[0] == 1 else k * n
-    handle = cp.cuda.device.get_cublas_handle()
-    cublas.gemmStridedBatchedEx(handle, _OP_N, _OP_N, n, m, k, alpha.ctypes.data,
-                                b.data.ptr, in_type, n, sb, a.data.ptr, in_type, k, sa,
-                                beta_.ctypes.data, c.data.ptr, out_type, n, m * n, batch, compute, _GEMM_DEFAULT)
+    sa = 0 if a.shape[0] == 1 else m * lda
+    sb = 0 if b.shape[0] == 1 else b.shape[1] * n
+    pa = a.data.ptr + a0 * a.itemsize
+    pb = b.data.ptr + b0 * n * b.itemsize
+    _call_gemm((_OP_N, _OP_N, n, m, k, alpha.ctypes.data, pb, in_type, n, sb, pa, in_type, lda, sa,
+                beta_.ctypes.data, c.data.ptr, out_type, n, m * n, batch, compute, _GEMM_DEFAULT))
     return c
+
+
+def _call_gemm(args):
+    """cublasGemmStridedBatchedEx(handle, *args) on the current stream (CuPy's binding, or the library
+    itself while the stream is being captured into a CUDA graph)."""
+    import cupy as cp
+    from cupy_backends.cuda.libs import cublas
+    handle = cp.cuda.device.get_cublas_handle()
+    stream = cp.cuda.get_current_stream()
+    if stream.ptr not in (0, 1, 2) and stream.is_capturing():
+        _capturing_gemm(handle, stream.ptr, args)
+    else:
+        cublas.gemmStridedBatchedEx(handle, *args)
+
+
+_CUBLAS = []
+
+
+def _libcublas():
+    """The cuBLAS library CuPy has loaded (ctypes), found in this process' memory map."""
+    if not _CUBLAS:
+        import ctypes
+        import ctypes.util
+        path = None
+        try:
+            with open("/proc/self/maps") as f:
+                for line in f:
+                    if "libcublas.so" in line and "libcublasLt" not in line:
+                        path = line.split()[-1]
+                        break
+        except OSError:
+            pass
+        lib = ctypes.CDLL(path or ctypes.util.find_library("cublas"))
+        lib.cublasSetStream_v2.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        c_int, c_ll, c_p = ctypes.c_int, ctypes.c_longlong, ctypes.c_void_p
+        lib.cublasGemmStridedBatchedEx.argtypes = [
+            c_p, c_int, c_int, c_int, c_int, c_int, c_p, c_p, c_int, c_int, c_ll, c_p, c_int, c_int, c_ll,
+            c_p, c_p, c_int, c_int, c_ll, c_int, c_int, c_int]
+        _CUBLAS.append(lib)
+    return _CUBLAS[0]
+
+
+def _capturing_gemm(handle, stream_ptr, args):
+    """The same cuBLAS call while the stream is being captured into a CUDA graph (.graphs).
+
+    CuPy's cuBLAS bindings refuse to run during a stream capture; cuBLAS itself supports it (the
+    handle's default workspace is allocated when the handle is made, and host scalars are read at
+    call time), so the capture calls the library directly."""
+    lib = _libcublas()
+    st = lib.cublasSetStream_v2(handle, stream_ptr)
+    if st == 0:
+        st = lib.cublasGemmStridedBatchedEx(handle, *args)
+    if st != 0:
+        raise RuntimeError(f"cuBLAS GEMM during stream capture failed with status {st}")
 
 
 def _cublas_gemm(a, b, c, compute, beta):
@@ -221,7 +280,6 @@ def int_gram(z, out=None, accumulate=False):
             out[...] = res
         return out
     import cupy as cp
-    from cupy_backends.cuda.libs import cublas
     if z.dtype != cp.int8:
         raise TypeError(f"int_gram on the GPU takes int8 voltages, got {z.dtype}")
     if t % 4:
@@ -234,11 +292,8 @@ def int_gram(z, out=None, accumulate=False):
     alpha = np.array(1, np.int32)
     beta = np.array(1 if accumulate else 0, np.int32)
     # Row-major Z (r x t) is column-major Z^T (t x r, ld t); C = (Z^T)^T Z^T: "TN", IMMA's favourite.
-    handle = cp.cuda.device.get_cublas_handle()
-    cublas.gemmStridedBatchedEx(handle, _OP_T, _OP_N, r, r, t, alpha.ctypes.data,
-                                z.data.ptr, _CUDA_R_8I, t, r * t, z.data.ptr, _CUDA_R_8I, t, r * t,
-                                beta.ctypes.data, out.data.ptr, _CUDA_R_32I, r, r * r, nb, _COMPUTE_32I,
-                                _GEMM_DEFAULT)
+    _call_gemm((_OP_T, _OP_N, r, r, t, alpha.ctypes.data, z.data.ptr, _CUDA_R_8I, t, r * t, z.data.ptr, _CUDA_R_8I,
+                t, r * t, beta.ctypes.data, out.data.ptr, _CUDA_R_32I, r, r * r, nb, _COMPUTE_32I, _GEMM_DEFAULT))
     return out
 
 
@@ -278,7 +333,7 @@ def stack_operator(g, precision):
     s[:, :m, k:] = -g.imag
     s[:, m:, :k] = g.imag
     s[:, m:, k:] = g.real
-    return _parts(s, precision)
+    return _parts(s, precision, axis=2)
 
 
 def stack_rhs(b, precision, scale=None):
@@ -296,13 +351,17 @@ def stack_rhs(b, precision, scale=None):
     return _parts(s, precision)
 
 
-def _parts(s, precision):
-    """float32 stacked operand -> its list of parts in the precision's storage ([hi, lo] if split)."""
+def _parts(s, precision, axis=1):
+    """float32 stacked operand -> its list of parts in the precision's storage: [hi, lo] for tf32x3;
+    for fp16x3 one array, hi and lo concatenated along ``axis`` ([lo | hi] columns for an operator,
+    axis 2; [hi; lo] rows for a right-hand side, axis 1), the form :func:`stacked_matmul` takes."""
     if precision == "tf32x3":
         return list(split_tf32(s))
     if precision == "fp16x3":
-        hi = s.astype(get_xp(s).float16)
-        return [hi, (s - hi.astype(s.dtype)).astype(hi.dtype)]
+        xp = get_xp(s)
+        hi = s.astype(xp.float16)
+        lo = (s - hi.astype(s.dtype)).astype(hi.dtype)
+        return [xp.concatenate([lo, hi] if axis == 2 else [hi, lo], axis=axis)]
     return [_store(s, precision)]
 
 
@@ -329,10 +388,36 @@ def _cublas_rgemm(a, b, c, precision, beta):
     return _gemm_ex(a, b, c, atype, _CUDA_R_32F, compute, np.float32, beta)
 
 
+#: blocks of k that fp16x3's big term is summed in (see :func:`stacked_matmul`)
+FP16X3_SPLIT = 2
+
+
+def _fp16x3_matmul(a, b, out):
+    """out = a_lo b_hi + a_hi b_lo + a_hi b_hi from the concatenated fp16x3 operands (GPU)."""
+    k = a.shape[2] // 2
+    ints = b.shape[1] == k                       # exact right-hand side: no b_lo
+    gemm = dict(in_type=_CUDA_R_16F, out_type=_CUDA_R_32F, compute=_COMPUTE["fp32"], scalar_dtype=np.float32)
+    if ints:
+        _gemm_cols(a, 0, k, b, 0, out, beta=0, **gemm)            # a_lo b
+    else:
+        _gemm_cols(a, 0, 2 * k, b, 0, out, beta=0, **gemm)    # [a_lo | a_hi] [b_hi; b_lo]
+    step = -(-k // FP16X3_SPLIT)
+    for j0 in range(0, k, step):
+        kk = min(step, k - j0)
+        _gemm_cols(a, k + j0, kk, b, j0, out, beta=1, **gemm)    # a_hi b_hi, one block of k
+    return out
+
+
 def stacked_matmul(a_parts, b_parts, precision, *, out=None, b_exact=False):
     """[Re; Im] of the complex product, float32 (batch, 2m, n), from :func:`stack_operator` and
-    :func:`stack_rhs` parts. tf32x3 / fp16x3: a_hi b_hi + a_hi b_lo + a_lo b_hi (b_lo skipped if
-    ``b_exact``).
+    :func:`stack_rhs` parts. tf32x3: a_hi b_hi + a_hi b_lo + a_lo b_hi (b_lo skipped if ``b_exact``).
+
+    fp16x3 (parts: the operator [a_lo | a_hi] (b, m, 2k), the right-hand side [b_hi; b_lo] (b, 2k, n)
+    or an exact b (b, k, n)): the two small terms in one GEMM over the concatenation (K = 2k), then
+    a_hi b_hi in ``FP16X3_SPLIT`` GEMMs over consecutive blocks of k, each added in the epilogue.
+    Why the split: the tensor cores add the products of each k-step into the fp32 accumulator with
+    truncation, a bias that grows with the steps one accumulator takes; half the steps per
+    accumulator halves it (case P, H100: 1.4e-6 -> 6.1e-7 with 2 blocks, 2.9e-7 with 4, measured).
 
     NumPy (for tests of the layout only; the CPU has no tensor cores): float32 products of the
     operands rounded to the mode, which is what the tensor cores compute up to summation order.
@@ -345,8 +430,16 @@ def stacked_matmul(a_parts, b_parts, precision, *, out=None, b_exact=False):
         def rnd(x):
             x = _stored_to_float(x)
             return round_tf32(x) if precision in ("tf32", "tf32x3") else x
-        terms = [(0, 0)] + ([] if precision not in SPLIT else ([(1, 0)] + ([] if b_exact else [(0, 1)])))
-        res = sum(np.matmul(rnd(a_parts[i]), rnd(b_parts[j])) for i, j in terms)
+        if precision == "fp16x3":    # the same decomposition as on the GPU, in float32
+            k = a0.shape[2] // 2
+            lo, hi = rnd(a0[:, :, :k]), rnd(a0[:, :, k:])
+            bh = rnd(b0[:, :k])
+            res = np.matmul(lo, bh) + np.matmul(hi, bh)
+            if b0.shape[1] == 2 * k:
+                res = res + np.matmul(hi, rnd(b0[:, k:]))
+        else:
+            terms = [(0, 0)] + ([] if precision not in SPLIT else ([(1, 0)] + ([] if b_exact else [(0, 1)])))
+            res = sum(np.matmul(rnd(a_parts[i]), rnd(b_parts[j])) for i, j in terms)
         if out is None:
             return res.astype(np.float32)
         out[...] = res
@@ -355,6 +448,8 @@ def stacked_matmul(a_parts, b_parts, precision, *, out=None, b_exact=False):
         out = xp.empty(shape, xp.float32)
     if precision not in SPLIT:
         return _cublas_rgemm(a0, b0, out, precision, 0)
+    if precision == "fp16x3":
+        return _fp16x3_matmul(a0, b0, out)
     _cublas_rgemm(a_parts[1], b0, out, precision, 0)      # small terms first
     if not b_exact:
         _cublas_rgemm(a0, b_parts[1], out, precision, 1)

@@ -11,8 +11,6 @@ Users add their own with :func:`register_pattern` (the name travels in pipeline 
 """
 from __future__ import annotations
 
-import numpy as np
-
 from ._xp import get_xp
 
 

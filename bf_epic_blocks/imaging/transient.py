@@ -36,7 +36,7 @@ import math
 
 import numpy as np
 
-from ._xp import get_xp, to_numpy
+from ._xp import to_numpy
 
 __all__ = ["DISPERSION_CONSTANT_S", "dispersion_delay_s", "dm_delays", "TransientSearch", "Crossings",
            "cluster_crossings", "expected_false_rate"]
