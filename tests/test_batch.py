@@ -8,7 +8,6 @@ about two seconds once. The batch is run through ``--scheduler`` at that cluster
 default path (a LocalCluster the CLI starts itself) has its own small test.
 """
 import json
-import os
 import warnings
 from pathlib import Path
 
@@ -25,14 +24,7 @@ distributed = pytest.importorskip("distributed")
 from bf_epic_blocks.pipeline import cli  # noqa: E402
 
 
-def _data_dir() -> Path:
-    env = os.environ.get("BF_EPIC_DATA")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data" / "lwa"
-
-
-DATA = _data_dir()
-SV = DATA / "lwasv-adp-tbf.dat"
-NA = DATA / "lwana-ndp-tbf.dat"
+from lwa_data import DATA, NA, SV  # noqa: E402
 NA_FRAME = 1560
 pytestmark = pytest.mark.skipif(not (SV.is_file() and NA.is_file()),
                                 reason=f"real LWA TBF files not found in {DATA} (set BF_EPIC_DATA)")

@@ -1,24 +1,14 @@
 """TBF reader: real LWA-SV (ADP) and LWA-NA (NDP) files, hand-decoded bytes, corrupted copies."""
-import os
 import struct
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bf_epic_blocks.io.tbf import (TBFError, TBFWarning, iter_tbf_gulps, pack_ci4, read_tbf, scan_tbf,
                                    time_tag_to_time, unpack_ci4)
+from lwa_data import NA, SV
 
-
-def _data_dir() -> Path:
-    env = os.environ.get("BF_EPIC_DATA")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data" / "lwa"
-
-
-DATA = _data_dir()
-SV = DATA / "lwasv-adp-tbf.dat"
-NA = DATA / "lwana-ndp-tbf.dat"
 needs_sv = pytest.mark.skipif(not SV.is_file(), reason=f"real LWA-SV TBF file not found at {SV} "
                                                       "(set BF_EPIC_DATA to the folder holding it)")
 needs_na = pytest.mark.skipif(not NA.is_file(), reason=f"real LWA-NA TBF file not found at {NA} "

@@ -19,7 +19,6 @@ disk (the file is fsync'ed before the clock stops). Rows:
 """
 import argparse
 import datetime
-import json
 import os
 import platform
 import shutil
@@ -28,6 +27,9 @@ import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from cases import write_json  # noqa: E402
 
 IMAGE_RATE = 25e3 / 16          # images per second at LWA-SV, one per 16 samples
 NCHAN, NPIX = 16, 3205
@@ -196,10 +198,7 @@ def main(argv=None):
                "ncpu": os.cpu_count(), "dir": a.dir, "gb_per_row": a.gb, "caseP_need_MBps": need,
                "target_MBps": 1.5 * need, "disk_ceiling_MBps": ceiling, "repeat": a.repeat, "rows": results,
                "runs": runs}
-        os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
-        with open(a.json, "w") as f:
-            json.dump(out, f, indent=1)
-        print(f"wrote {a.json}")
+        write_json(a.json, out)
 
 
 if __name__ == "__main__":

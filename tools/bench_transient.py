@@ -19,7 +19,6 @@ The real-time factor is 0.64 ms divided by the time per image.
 """
 import argparse
 import datetime
-import json
 import os
 import platform
 import sys
@@ -30,6 +29,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from bf_epic_blocks.imaging.transient import TransientSearch  # noqa: E402
+from cases import write_json  # noqa: E402
 
 DT_IMG = 16 / 25e3
 
@@ -120,10 +120,7 @@ def main(argv=None):
         out = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(), "machine": info,
                "npix": a.npix, "nchan": a.nchan, "window_images": window, "widths": widths,
                "image_time_s": DT_IMG, "rows": rows}
-        os.makedirs(os.path.dirname(os.path.abspath(a.json)), exist_ok=True)
-        with open(a.json, "w") as f:
-            json.dump(out, f, indent=1)
-        print(f"wrote {a.json}")
+        write_json(a.json, out)
 
 
 if __name__ == "__main__":

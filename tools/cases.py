@@ -109,3 +109,13 @@ def timer(device):
                 ts.append(time.perf_counter() - t0)
             return float(np.median(ts)), out
     return run
+
+
+def write_json(path, out):
+    """Write a benchmark's result dict as indented JSON (making the folder) and say so."""
+    import json
+    import os
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w") as f:
+        json.dump(out, f, indent=1)
+    print(f"wrote {path}")
