@@ -5,9 +5,10 @@ images channels ``blocks[g]`` (contiguous, as equal as possible) with its own op
 images are gathered in channel order. The work is issued to every GPU before any result is waited
 for, so the GPUs compute concurrently while the host issues the next GPU's kernels.
 
-Input: voltages on the host (NumPy: each GPU copies the whole gulp -- one contiguous transfer over its
-own PCIe link, no host-side strided copy -- and slices its channels on the device), or a CuPy array on
-any GPU (peer copies of the channel slices). Output: NumPy on the host, or CuPy on the first GPU.
+Input: voltages on the host (NumPy: each GPU copies only its channels, as one 2-D transfer -- T rows
+of its channels' bytes at the gulp's pitch -- over its own link, no host-side strided copy), or a
+CuPy array on any GPU (peer copies of the channel slices). Output: NumPy on the host, or CuPy on the
+first GPU.
 """
 from __future__ import annotations
 
@@ -88,12 +89,19 @@ class ShardedOperator:
         def shard(i):
             d, cs, op = self.devices[i], self.blocks[i], self.ops[i]
             with cp.cuda.Device(d):
-                x = cp.asarray(efield) if isinstance(efield, np.ndarray) else _to_device(efield, d)
-                if decode is not None:
-                    x = decode(x)
-                img = op.image(x[:, cs], products, remove_autocorr=remove_autocorr, method=method,
+                if isinstance(efield, np.ndarray):
+                    x = _host_channels_to_device(efield, cs)      # only this GPU's channels cross
+                    x = decode(x) if decode is not None else x
+                else:
+                    x = _to_device(efield, d)
+                    x = (decode(x) if decode is not None else x)[:, cs]
+                img = op.image(x, products, remove_autocorr=remove_autocorr, method=method,
                                accumulate=accumulate)
-                return img.get() if out == "host" else img
+                if out == "host":
+                    return img.get()          # (waits for the stream: the host buffer is read by then)
+                if isinstance(efield, np.ndarray):
+                    cp.cuda.get_current_stream().synchronize()   # the caller may reuse its buffer
+                return img
         if self.threads and len(self.devices) > 1:
             # one host thread per GPU: the transfers and waits release the GIL, so one GPU's copies
             # and results overlap another's kernel launches
@@ -113,6 +121,22 @@ def _chan_slice(a, cs, nchan, axis=0):
     if a.shape[axis] != nchan:
         raise ValueError(f"expected {nchan} channels (or 1) on axis {axis}, got shape {a.shape}")
     return np.take(a, np.arange(cs.start, cs.stop), axis=axis)
+
+
+def _host_channels_to_device(host, cs):
+    """Channels ``cs`` (axis 1) of a host array (T, C, ...) as a contiguous CuPy array on the current
+    GPU: one 2-D copy (T rows of the channels' bytes, pitched by a whole sample) on the current stream."""
+    cp = cupy_or_none()
+    host = np.ascontiguousarray(host)
+    T, C = host.shape[:2]
+    per_c = host[0].nbytes // C if T else 0
+    out = cp.empty((T, cs.stop - cs.start) + host.shape[2:], host.dtype)
+    if out.nbytes:
+        width = per_c * (cs.stop - cs.start)
+        cp.cuda.runtime.memcpy2DAsync(out.data.ptr, width, host.ctypes.data + cs.start * per_c, per_c * C,
+                                      width, T, cp.cuda.runtime.memcpyHostToDevice,
+                                      cp.cuda.get_current_stream().ptr)
+    return out
 
 
 def _to_device(a, d):

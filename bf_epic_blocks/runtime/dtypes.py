@@ -154,6 +154,8 @@ def unpack_int8_pairs(data, dtype_str, xp=None):
         if names:
             data = data[names[0]]
         b = data.view(xp.uint8)
+        if xp is not np:
+            return _nibble_pairs_gpu(b)
         re = ((b >> 4) ^ 8).astype(xp.int8) - xp.int8(8)     # sign-extend the 4-bit fields
         im = ((b & 0x0F) ^ 8).astype(xp.int8) - xp.int8(8)
         return xp.stack([re, im], axis=-1)
@@ -162,6 +164,23 @@ def unpack_int8_pairs(data, dtype_str, xp=None):
             return xp.stack([data['re'], data['im']], axis=-1)
         return data
     raise TypeError(f"integer pairs come from 'ci4' or 'ci8' data, not {dtype_str!r}")
+
+
+_NIBBLE_KERNEL = []
+
+
+def _nibble_pairs_gpu(b):
+    """ci4 bytes -> int8 (re, im) pairs in one CUDA pass (the array-op form above took 0.8 ms for a
+    case-P gulp of 32 channels on an H200: eight passes and four temporaries)."""
+    import cupy as cp
+    if not _NIBBLE_KERNEL:
+        _NIBBLE_KERNEL.append(cp.ElementwiseKernel(
+            "uint8 b", "raw int8 out",
+            "out[2 * i] = (signed char)(((b >> 4) ^ 8) - 8); out[2 * i + 1] = (signed char)(((b & 15) ^ 8) - 8);",
+            "bf_unpack_ci4_pairs"))
+    out = cp.empty(b.shape + (2,), cp.int8)
+    _NIBBLE_KERNEL[0](b, out)
+    return out
 
 
 def pack_ci4(values, xp=None):
