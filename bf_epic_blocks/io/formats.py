@@ -7,6 +7,7 @@ followed by one byte of frame id: 1 (ADP TBF, LWA-SV before NDP), 5 (NDP TBF) or
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -52,10 +53,22 @@ def detect_format(path_or_bytes) -> str:
         raise FrameFormatError(f"{where}: frame id {fid} is neither TBF (1 = ADP, 5 = NDP) nor TBX (8)") from None
 
 
+@dataclass
 class CaptureGrid:
     """The (time tag, channel) grid of a TBF or TBX header scan, shared by their ``*Info`` classes.
 
-    Needs ``blocks`` (first channels), ``nchan_frame``, ``chan_bw_hz`` and ``time_tags``."""
+    ``time_tags`` (ntime,) sorted distinct; ``blocks`` (nblock,) sorted distinct first channels;
+    ``frame_time_index``/``frame_block_index`` (nframe,) the grid cell of each complete frame.
+    Subclasses add ``nchan_frame`` and ``chan_bw_hz`` (fields or properties)."""
+    path: Path
+    nstand: int
+    frame_bytes: int
+    nframe: int
+    truncated_bytes: int
+    time_tags: np.ndarray
+    blocks: np.ndarray
+    frame_time_index: np.ndarray
+    frame_block_index: np.ndarray
 
     @property
     def channels(self) -> np.ndarray:

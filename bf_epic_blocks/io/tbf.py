@@ -139,21 +139,9 @@ def time_tag_to_time(time_tag):
 
 @dataclass
 class TBFInfo(CaptureGrid):
-    """What one header pass over a TBF file finds (no payload read).
-
-    ``time_tags`` (ntime,) sorted distinct; ``blocks`` (nblock,) sorted distinct first channels;
-    ``frame_time_index``/``frame_block_index`` (nframe,) the grid cell of each complete frame.
-    """
-    path: Path
+    """What one header pass over a TBF file finds (no payload read): the grid (:class:`CaptureGrid`)
+    and the frame id (1 = ADP, 5 = NDP)."""
     frame_id: int
-    nstand: int
-    frame_bytes: int
-    nframe: int
-    truncated_bytes: int
-    time_tags: np.ndarray
-    blocks: np.ndarray
-    frame_time_index: np.ndarray
-    frame_block_index: np.ndarray
 
     @property
     def engine(self) -> str:
@@ -316,10 +304,12 @@ def scan_tbf(path, *, chunk_frames: int = 65536, warn: bool = True) -> TBFInfo:
                    frame_block_index=b_idx.ravel().astype(np.int64))
 
 
-def _gather(mm, info: TBFInfo, frames: np.ndarray, t0: int, t1: int, prev_tag) -> TBFData:
-    """Assemble time indices [t0, t1) from the given frame indices (all inside that range)."""
-    nt, nb, ns = t1 - t0, len(info.blocks), info.nstand
-    out = np.zeros((nt, nb, CHANNELS_PER_FRAME, ns, 2), dtype=np.uint8)
+def _gather(mm, info, frames: np.ndarray, t0: int, t1: int, prev_tag, header_bytes: int, data_cls):
+    """Assemble time indices [t0, t1) from the given frame indices (all inside that range) into a
+    ``data_cls`` (TBFData, or TBX's subclass): shared by the TBF and TBX readers, whose grids differ
+    only in header size and channels per frame (``info.nchan_frame``)."""
+    nt, nb, nc, ns = t1 - t0, len(info.blocks), info.nchan_frame, info.nstand
+    out = np.zeros((nt, nb, nc, ns, 2), dtype=np.uint8)
     ti = info.frame_time_index[frames] - t0
     bi = info.frame_block_index[frames]
     cell = ti * nb + bi
@@ -328,17 +318,37 @@ def _gather(mm, info: TBFInfo, frames: np.ndarray, t0: int, t1: int, prev_tag) -
     keep = np.sort(first)
     frames, ti, bi = frames[keep], ti[keep], bi[keep]
     if frames.size:
-        payload = np.asarray(mm[frames, HEADER_BYTES:])  # fancy index: reads only these frames
-        out[ti, bi] = payload.reshape(len(frames), CHANNELS_PER_FRAME, ns, 2)
+        payload = np.asarray(mm[frames, header_bytes:])  # fancy index: reads only these frames
+        out[ti, bi] = payload.reshape(len(frames), nc, ns, 2)
     tags = info.time_tags[t0:t1]
     step = int(round(FS_HZ / info.chan_bw_hz))
     steps = np.diff(tags if prev_tag is None else np.concatenate([[prev_tag], tags]))
     stats = dict(frames_read=int(len(frames)), frames_expected=int(nt * nb),
                  frames_missing=int(nt * nb - len(frames)), frames_duplicate=int(len(cell) - len(keep)),
                  time_gaps=int(np.count_nonzero(steps > step)), truncated_bytes=0)
-    return TBFData(data=out.reshape(nt, nb * CHANNELS_PER_FRAME, ns, 2), time_tags=tags.copy(),
-                   channels=info.channels.astype(np.int64), chan_bw_hz=info.chan_bw_hz,
-                   frame_id=info.frame_id, stats=stats)
+    return data_cls(data=out.reshape(nt, nb * nc, ns, 2), time_tags=tags.copy(),
+                    channels=info.channels.astype(np.int64), chan_bw_hz=info.chan_bw_hz,
+                    frame_id=info.frame_id, stats=stats)
+
+
+def _check_gulp(gulp_ntime):
+    if isinstance(gulp_ntime, bool) or not isinstance(gulp_ntime, (int, np.integer)) or gulp_ntime < 1:
+        raise ValueError(f"gulp_ntime must be an integer >= 1, got {gulp_ntime!r}")
+
+
+def _iter_gulps(mm, info, gulp_ntime: int, header_bytes: int, data_cls):
+    """Chunks of ``gulp_ntime`` time tags of a scanned capture (TBF or TBX), in time order."""
+    order = np.argsort(info.frame_time_index, kind="stable")  # file order within a time tag
+    sorted_t = info.frame_time_index[order]
+    prev = None
+    for t0 in range(0, info.ntime, int(gulp_ntime)):
+        t1 = min(info.ntime, t0 + int(gulp_ntime))
+        lo, hi = np.searchsorted(sorted_t, [t0, t1])
+        chunk = _gather(mm, info, order[lo:hi], t0, t1, prev, header_bytes, data_cls)
+        prev = int(info.time_tags[t1 - 1])
+        if t1 == info.ntime:
+            chunk.stats["truncated_bytes"] = int(info.truncated_bytes)
+        yield chunk
 
 
 def iter_tbf_gulps(path, gulp_ntime: int, *, info: TBFInfo | None = None) -> Iterator[TBFData]:
@@ -348,22 +358,11 @@ def iter_tbf_gulps(path, gulp_ntime: int, *, info: TBFInfo | None = None) -> Ite
     chunks concatenate along time into :func:`read_tbf`'s result; their ``stats`` add up to it.
     ``info``: a :func:`scan_tbf` result to reuse (skips the header pass).
     """
-    if isinstance(gulp_ntime, bool) or not isinstance(gulp_ntime, (int, np.integer)) or gulp_ntime < 1:
-        raise ValueError(f"gulp_ntime must be an integer >= 1, got {gulp_ntime!r}")
+    _check_gulp(gulp_ntime)
     if info is None:
         info = scan_tbf(path, warn=True)
     mm, _ = _open_frames(path)
-    order = np.argsort(info.frame_time_index, kind="stable")  # file order within a time tag
-    sorted_t = info.frame_time_index[order]
-    prev = None
-    for t0 in range(0, info.ntime, int(gulp_ntime)):
-        t1 = min(info.ntime, t0 + int(gulp_ntime))
-        lo, hi = np.searchsorted(sorted_t, [t0, t1])
-        chunk = _gather(mm, info, order[lo:hi], t0, t1, prev)
-        prev = int(info.time_tags[t1 - 1])
-        if t1 == info.ntime:
-            chunk.stats["truncated_bytes"] = int(info.truncated_bytes)
-        yield chunk
+    yield from _iter_gulps(mm, info, gulp_ntime, HEADER_BYTES, TBFData)
 
 
 def read_tbf(path) -> TBFData:

@@ -46,7 +46,7 @@ from typing import Iterator, NamedTuple
 import numpy as np
 
 from .formats import SYNC_WORD, CaptureGrid
-from .tbf import FS_HZ, TBFData
+from .tbf import FS_HZ, TBFData, _check_gulp, _iter_gulps
 
 __all__ = ["TBXData", "TBXInfo", "TBXError", "TBXWarning", "TBXFrame", "TBXHeader", "read_tbx", "iter_tbx_gulps",
            "scan_tbx", "parse_tbx_frame", "parse_tbx_header", "tbx_frame_bytes", "pack_tbx_frame", "write_tbx",
@@ -214,21 +214,9 @@ def write_tbx(path, data, time_tags, first_chan: int, *, nchan_frame: int = 12, 
 
 @dataclass
 class TBXInfo(CaptureGrid):
-    """What one header pass over a TBX file finds (no payload read); as :class:`~.tbf.TBFInfo`.
-
-    ``time_tags`` (ntime,) sorted distinct; ``blocks`` (nblock,) sorted distinct first channels;
-    ``frame_time_index``/``frame_block_index`` (nframe,) the grid cell of each complete frame.
-    """
-    path: Path
-    nstand: int
+    """What one header pass over a TBX file finds (no payload read): the grid (:class:`CaptureGrid`)
+    and the channels per frame, as :class:`~.tbf.TBFInfo`."""
     nchan_frame: int
-    frame_bytes: int
-    nframe: int
-    truncated_bytes: int
-    time_tags: np.ndarray
-    blocks: np.ndarray
-    frame_time_index: np.ndarray
-    frame_block_index: np.ndarray
     frame_id: int = FRAME_ID
     engine: str = "NDP"
     chan_bw_hz: float = CHAN_BW_HZ
@@ -326,49 +314,17 @@ def scan_tbx(path, *, chunk_frames: int = 65536, warn: bool = True) -> TBXInfo:
                    frame_time_index=t_idx.ravel().astype(np.int64), frame_block_index=b_idx.ravel().astype(np.int64))
 
 
-def _gather(mm, info: TBXInfo, frames: np.ndarray, t0: int, t1: int, prev_tag) -> TBXData:
-    """Assemble time indices [t0, t1) from the given frame indices (all inside that range)."""
-    nt, nb, nc, ns = t1 - t0, len(info.blocks), info.nchan_frame, info.nstand
-    out = np.zeros((nt, nb, nc, ns, 2), dtype=np.uint8)
-    ti = info.frame_time_index[frames] - t0
-    bi = info.frame_block_index[frames]
-    cell = ti * nb + bi
-    _, first = np.unique(cell, return_index=True)  # keep the first copy of a repeated frame
-    keep = np.sort(first)
-    frames, ti, bi = frames[keep], ti[keep], bi[keep]
-    if frames.size:
-        out[ti, bi] = np.asarray(mm[frames, HEADER_BYTES:]).reshape(len(frames), nc, ns, 2)
-    tags = info.time_tags[t0:t1]
-    steps = np.diff(tags if prev_tag is None else np.concatenate([[prev_tag], tags]))
-    stats = dict(frames_read=int(len(frames)), frames_expected=int(nt * nb), frames_missing=int(nt * nb - len(frames)),
-                 frames_duplicate=int(len(cell) - len(keep)), time_gaps=int(np.count_nonzero(steps > SAMPLE_TICKS)),
-                 truncated_bytes=0)
-    return TBXData(data=out.reshape(nt, nb * nc, ns, 2), time_tags=tags.copy(), channels=info.channels.astype(np.int64),
-                   chan_bw_hz=info.chan_bw_hz, frame_id=FRAME_ID, stats=stats)
-
-
 def iter_tbx_gulps(path, gulp_ntime: int, *, info: TBXInfo | None = None) -> Iterator[TBXData]:
     """Stream a TBX file as :class:`TBXData` chunks of ``gulp_ntime`` time tags (the last may be shorter).
 
     Every chunk has the file's full channel axis, so chunks concatenate along time into
     :func:`read_tbx`'s result and their ``stats`` add up to it. ``info``: a :func:`scan_tbx` result to reuse.
     """
-    if isinstance(gulp_ntime, bool) or not isinstance(gulp_ntime, (int, np.integer)) or gulp_ntime < 1:
-        raise ValueError(f"gulp_ntime must be an integer >= 1, got {gulp_ntime!r}")
+    _check_gulp(gulp_ntime)
     if info is None:
         info = scan_tbx(path, warn=True)
     mm, _, _ = _open_frames(path)
-    order = np.argsort(info.frame_time_index, kind="stable")  # file order within a time tag
-    sorted_t = info.frame_time_index[order]
-    prev = None
-    for t0 in range(0, info.ntime, int(gulp_ntime)):
-        t1 = min(info.ntime, t0 + int(gulp_ntime))
-        lo, hi = np.searchsorted(sorted_t, [t0, t1])
-        chunk = _gather(mm, info, order[lo:hi], t0, t1, prev)
-        prev = int(info.time_tags[t1 - 1])
-        if t1 == info.ntime:
-            chunk.stats["truncated_bytes"] = int(info.truncated_bytes)
-        yield chunk
+    yield from _iter_gulps(mm, info, gulp_ntime, HEADER_BYTES, TBXData)
 
 
 def read_tbx(path) -> TBXData:
