@@ -165,3 +165,14 @@ def test_configure_offline_in_fresh_process(tmp_path):
     assert Path(dirname) == tmp_path / "bf_epic_blocks" / "lslcfg"
     assert (enabled, age, auto) == ("False", "36500", "False")
     assert "enabled = False" in (tmp_path / "bf_epic_blocks" / "lslcfg" / "lsl.cfg").read_text()
+
+
+def test_capture_station_is_checked_against_the_stand_count():
+    """A capture's station: its own hint when none is named; a named one with a different stand count
+    is a clear error naming both counts (file and UDP sources share this check)."""
+    from bf_epic_blocks.station.tables import station_for_capture
+    st = station_for_capture(None, "lwana", 64, "TBF file's frames", "name the right station")
+    assert st.nstand == 64
+    assert station_for_capture(st, "lwasv", 64, "x", "y") is st
+    with pytest.raises(ValueError, match=r"TBF file's frames carry 256 stands but station 'lwana' has 64; name"):
+        station_for_capture("lwana", "lwasv", 256, "TBF file's frames", "name the right station")

@@ -71,16 +71,9 @@ class TBFSourceBlock(bfp.SourceBlock):
         return _Reader(info=info, it=self._iter(sourcename, self.gulp_nframe, info), path=sourcename)
 
     def _station(self, info):
-        from ..station.tables import StationTable, load_station
-        st = self.station
-        if st is None:
-            st = load_station(info.station_hint)
-        elif not isinstance(st, StationTable):
-            st = load_station(st)
-        if st.nstand != info.nstand:
-            raise ValueError(f"{self.fmt.upper()} file has {info.nstand} stands but station {st.name!r} has {st.nstand}; "
-                             f"name the right station (a {self.fmt.upper()} file from this station?)")
-        return st
+        from ..station.tables import station_for_capture
+        return station_for_capture(self.station, info.station_hint, info.nstand, f"{self.fmt.upper()} file's frames",
+                                   f"name the right station (a {self.fmt.upper()} file from this station?)")
 
     def on_sequence(self, reader, sourcename):
         info = reader.info

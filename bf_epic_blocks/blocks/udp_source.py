@@ -117,16 +117,9 @@ class UDPSourceBlock(bfp.SourceBlock):
         return _UDPReader(info=self._info, next_t=0, pending=None, name=sourcename, capture=self.capture)
 
     def _station(self, info):
-        from ..station.tables import StationTable, load_station
-        st = self.station
-        if st is None:
-            st = load_station(info.layout.station_hint)
-        elif not isinstance(st, StationTable):
-            st = load_station(st)
-        if st.nstand != info.layout.nstand:
-            raise ValueError(f"{self.capture.label}: the packets carry {info.layout.nstand} stands but station "
-                             f"{st.name!r} has {st.nstand}; name the station that sends them")
-        return st
+        from ..station.tables import station_for_capture
+        return station_for_capture(self.station, info.layout.station_hint, info.layout.nstand,
+                                   f"{self.capture.label}: the packets", "name the station that sends them")
 
     def on_sequence(self, reader, sourcename):
         info = reader.info

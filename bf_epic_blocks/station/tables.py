@@ -32,7 +32,7 @@ import numpy as np
 
 from .offline import configure_offline
 
-__all__ = ["StationTable", "load_station", "STATION_NAMES", "GOOD_STATUS"]
+__all__ = ["StationTable", "load_station", "station_for_capture", "STATION_NAMES", "GOOD_STATUS"]
 
 #: Station names LSL knows with antennas (``ovrolwa`` has none).
 STATION_NAMES = ("lwasv", "lwana", "lwa1")
@@ -303,3 +303,16 @@ def load_station(name_or_path, *, extra_flags=None) -> StationTable:
     else:
         raise TypeError(f"load_station: expected a station name or an SSMIF path, got {type(name_or_path).__name__}")
     return table.with_flags(extra_flags) if extra_flags else table
+
+
+def station_for_capture(station, hint: str, nstand: int, what: str, advice: str) -> StationTable:
+    """The station of a capture: ``station`` (a :class:`StationTable`, a name or SSMIF path for
+    :func:`load_station`, or None = the capture's own ``hint``), checked to have the capture's
+    ``nstand`` stands. ``what`` names the capture in the error ("TBF file", "udp://...: the packets"),
+    ``advice`` says what to do about a mismatch."""
+    st = load_station(hint) if station is None else station
+    if not isinstance(st, StationTable):
+        st = load_station(st)
+    if st.nstand != nstand:
+        raise ValueError(f"{what} carry {nstand} stands but station {st.name!r} has {st.nstand}; {advice}")
+    return st
