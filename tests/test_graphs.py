@@ -130,10 +130,10 @@ def test_replays_read_channel_slices_and_strided_inputs():
 
 
 def test_ci4_unpack_kernel_equals_numpy():
-    """The one-pass GPU decode of ci4 bytes gives NumPy's (re, im) int8 pairs, for strided device views
-    too (NumPy's decode is checked against hand-decoded bytes in test_tbf)."""
+    """The one-pass GPU decodes of ci4 bytes give NumPy's (re, im) int8 pairs and complex64 values,
+    for strided device views too (NumPy's decode is checked against hand-decoded bytes in test_tbf)."""
     import cupy as cp
-    from bf_epic_blocks.runtime.dtypes import unpack_int8_pairs
+    from bf_epic_blocks.runtime.dtypes import unpack_complex, unpack_int8_pairs
     rng = np.random.default_rng(6)
     b = rng.integers(0, 256, size=(37, 5, 24, 2)).astype(np.uint8)
     bd = cp.asarray(b)
@@ -141,3 +141,4 @@ def test_ci4_unpack_kernel_equals_numpy():
         got = unpack_int8_pairs(bd[sl], "ci4")
         assert got.shape == b[sl].shape + (2,)
         assert np.array_equal(got.get(), unpack_int8_pairs(b[sl], "ci4"))
+        assert np.array_equal(unpack_complex(bd[sl], "ci4").get(), unpack_complex(b[sl], "ci4"))
