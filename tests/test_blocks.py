@@ -230,19 +230,27 @@ def _ngpu():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(_ngpu() < 1, reason="needs CuPy and a CUDA device")
-def test_imager_on_several_gpus_equals_calfold_then_one_device(scene):
+@pytest.mark.parametrize("method", ["auto", "covariance"])
+@pytest.mark.parametrize("pixels", ["list", "grid"])
+def test_imager_on_several_gpus_equals_calfold_then_one_device(scene, method, pixels):
     """DFTImagerBlock(gpus=...) with the cable terms folded into its operators (no CalFoldBlock) equals
-    CalFoldBlock -> DFTImagerBlock on the CPU: same images, channels gathered in order."""
+    CalFoldBlock -> DFTImagerBlock on the CPU: same images, channels gathered in order (the covariance
+    route submits each of a gulp's two integrations before taking the first's images). On a grid the
+    GPUs place the pixels (NaN below the horizon) and write straight into the pinned output span."""
     s = scene
+    pix = s["lm"] if pixels == "list" else imaging.lm_grid(10)
     data = pack_ci4(s["ints"])
     hdr = efield_header("obs", 10**12, s["freq"], DT, station(s), dtype="ci4")
-    ref_sink, _ = run_pipeline(data, hdr, 60, 30, s["lm"], cable=True, products="stokes")
+    ref_sink, _ = run_pipeline(data, hdr, 60, 30, pix, cable=True, products="stokes")
     with bfp.Pipeline() as p:
-        src = ArraySourceBlock(data, hdr, gulp_nframe=60)
-        img = DFTImagerBlock(src, s["lm"], 30, products="stokes", gpus=list(range(max(1, min(_ngpu(), 3)))),
-                             cable=True)
+        src = ArraySourceBlock(data, hdr, gulp_nframe=60, space="cuda_host")
+        img = DFTImagerBlock(src, pix, 30, products="stokes", gpus=list(range(max(1, min(_ngpu(), 3)))),
+                             cable=True, method=method)
         sink = ArraySinkBlock(img)
         p.run()
     got, ref = sink.result(0), ref_sink.result(0)
-    assert got.shape == ref.shape == (s["T"] // 30, 3, 4, len(s["lm"]))
-    assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= 1e-6
+    npix = (len(s["lm"]),) if pixels == "list" else (10, 10)
+    assert got.shape == ref.shape == (s["T"] // 30, 3, 4) + npix
+    assert img.img_stats["images"] == s["T"] // 30
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+    assert np.nanmax(np.abs(got - ref)) / np.nanmax(np.abs(ref)) <= 1e-6

@@ -50,3 +50,91 @@ def test_sharded_equals_one_device_and_truth():
         assert np.max(np.abs(img - one)) / np.max(np.abs(one)) <= 1e-6
     imgs = sh.image(q, ("I",), accumulate=16, method="direct")
     assert imgs.shape == (4, 6, 1, len(lm))
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(NGPU < 1, reason="needs CuPy and a CUDA device")
+@pytest.mark.parametrize("method", ["covariance", "direct"])
+def test_gulps_in_flight_each_equal_truth(method):
+    """Several gulps submitted before any result is taken, from one reused pinned host buffer that is
+    overwritten as soon as the GPUs have read it: each result equals the float64 truth of its own
+    gulp (no gulp sees another's samples or images), for 4-bit samples decoded on the GPUs."""
+    cp = cupy_or_none()
+    from bf_epic_blocks.imaging.multigpu import ShardedOperator
+    from bf_epic_blocks.runtime.dtypes import pack_ci4, unpack_int8_pairs
+    rng = np.random.default_rng(5)
+    xyz = rng.normal(0, 15, (20, 3)) * [1, 1, 0.1]
+    freq = 60e6 + 1e6 * np.arange(5)
+    lm = imaging.lm_grid(8).lm
+    gulps = []
+    for k in range(5):      # more gulps than staging buffers (depth 2)
+        X = rng.normal(size=(48, 5, 20, 2)) + 1j * rng.normal(size=(48, 5, 20, 2))
+        X += point_source_efield(xyz, freq, 0.1 * k - 0.2, 0.15, 4.0, 48, npol=2, rng=rng)
+        q = np.stack([np.clip(np.rint(X.real), -8, 7), np.clip(np.rint(X.imag), -8, 7)], -1).astype(np.int8)
+        gulps.append(q)
+    devices = list(range(NGPU)) if NGPU > 1 else [0]
+    sh = ShardedOperator(xyz, freq, lm, devices, npol=2, precision="fp32", depth=2)
+    packed = pack_ci4(gulps[0][..., 0] + 1j * gulps[0][..., 1])
+    mem = cp.cuda.alloc_pinned_memory(packed.nbytes)
+    host = np.frombuffer(mem, np.uint8, packed.size).reshape(packed.shape)
+    acc = 16 if method == "direct" else None
+    pending = []
+    for q in gulps:
+        host[...] = pack_ci4(q[..., 0] + 1j * q[..., 1])
+        p = sh.submit(host, ("I",), method=method, accumulate=acc, decode=lambda b: unpack_int8_pairs(b, "ci4"))
+        p.release_input()          # the buffer may be refilled now
+        pending.append(p)
+    for q, p in zip(gulps, pending):
+        img = p.result()
+        if acc is None:
+            ref = brute_image(q[..., 0] + 1j * q[..., 1], xyz, freq, lm, ("I",))
+        else:
+            ref = np.stack([brute_image(q[i:i + acc, ..., 0] + 1j * q[i:i + acc, ..., 1], xyz, freq, lm, ("I",))
+                            for i in range(0, 48, acc)])
+        assert img.shape == ref.shape
+        assert np.max(np.abs(img - ref)) / np.max(np.abs(ref)) < 1e-6
+    # device input and output (peer copies of each GPU's channels): the same images, on the first GPU
+    dev = sh.submit(cp.asarray(gulps[-1]), ("I",), method=method, accumulate=acc, out="device").result()
+    assert isinstance(dev, cp.ndarray) and dev.device.id == devices[0]
+    assert np.max(np.abs(dev.get() - ref)) / np.max(np.abs(ref)) < 1e-6
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(NGPU < 1, reason="needs CuPy and a CUDA device")
+def test_sharded_bad_arguments_are_clear_errors():
+    from bf_epic_blocks.imaging.multigpu import ShardedOperator
+    xyz = np.zeros((4, 3))
+    xyz[:, 0] = np.arange(4)
+    with pytest.raises(ValueError, match="depth"):
+        ShardedOperator(xyz, [60e6, 61e6], imaging.lm_grid(4).lm, [0], depth=0)
+    sh = ShardedOperator(xyz, [60e6, 61e6], imaging.lm_grid(4).lm, [0])
+    with pytest.raises(ValueError, match="2 channels on axis 1"):
+        sh.submit(np.zeros((8, 3, 4, 1), np.complex64))
+    with pytest.raises(ValueError, match="out must be"):
+        sh.submit(np.zeros((8, 2, 4, 1), np.complex64), out="gpu")
+    with pytest.raises(ValueError, match=r"out: expected a C-contiguous float32 array of shape \(2, 1, 9\)"):
+        sh.submit(np.zeros((8, 2, 4, 1), np.complex64), out=np.zeros((2, 1, 15), np.float32))
+    with pytest.raises(ValueError, match="scatter must be"):
+        ShardedOperator(xyz, [60e6, 61e6], imaging.lm_grid(4).lm, [0], scatter=(np.arange(3), 16))
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(NGPU < 1, reason="needs CuPy and a CUDA device")
+def test_scatter_onto_grid_into_a_given_array():
+    """scatter=(grid indices, n): images placed on the whole grid on the GPUs (NaN elsewhere), written
+    into the caller's array; equal to the float64 truth at the imaged pixels."""
+    from bf_epic_blocks.imaging.multigpu import ShardedOperator
+    rng = np.random.default_rng(8)
+    xyz = rng.normal(0, 15, (16, 3)) * [1, 1, 0.1]
+    freq = 60e6 + 1e6 * np.arange(4)
+    grid = imaging.lm_grid(12)
+    X = rng.normal(size=(32, 4, 16, 2)) + 1j * rng.normal(size=(32, 4, 16, 2))
+    X += point_source_efield(xyz, freq, -0.2, 0.3, 5.0, 32, npol=2, rng=rng)
+    devices = list(range(NGPU)) if NGPU > 1 else [0]
+    sh = ShardedOperator(xyz, freq, grid.lm, devices, npol=2, scatter=(np.flatnonzero(grid.mask), grid.size ** 2))
+    out = np.full((4, 2, grid.size ** 2), -1.0, np.float32)
+    assert sh.image(X.astype(np.complex64), ("I", "Q"), method="covariance", out=out) is out
+    ref = brute_image(X, xyz, freq, grid.lm, ("I", "Q"))
+    on = grid.mask.ravel()
+    assert np.all(np.isnan(out[..., ~on]))
+    assert np.max(np.abs(out[..., on] - ref)) / np.max(np.abs(ref)) < 1e-5

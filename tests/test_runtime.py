@@ -614,6 +614,67 @@ def test_cuda_space_pipeline(dtype):
     np.testing.assert_array_equal(sink_host.result(0), want_c)
 
 
+def _ngpu():
+    return __import__('cupy').cuda.runtime.getDeviceCount() if HAS_GPU else 0
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(_ngpu() < 2, reason='needs two CUDA devices')
+def test_block_scope_gpu_puts_every_block_thread_on_that_gpu():
+    """Blocks built in block_scope(gpu=1) (what `device: gpu:1` builds) allocate their 'cuda' rings
+    and run their kernels on GPU 1, although each runs in its own thread."""
+    import cupy as cp
+    z = np.arange(64, dtype=np.float32).reshape(16, 4)
+    seen = []
+
+    class Twice(bfp.TransformBlock):
+        def on_sequence(self, iseq):
+            return copy.deepcopy(iseq.header)
+
+        def on_data(self, ispan, ospan):
+            src, dst = _compat.span_array(ispan), _compat.span_array(ospan)
+            seen.append((src.device.id, dst.device.id, cp.cuda.Device().id))
+            dst[...] = 2 * src
+
+    with bfp.Pipeline() as p, bfp.block_scope(gpu=1):
+        src = ArraySourceBlock(z, hdr(dtype='f32', shape=(-1, 4)), gulp_nframe=4, space='cuda')
+        sink = ArraySinkBlock(Twice(src))
+        run_with_timeout(p, 60)
+    assert seen and all(s == (1, 1, 1) for s in seen)
+    np.testing.assert_array_equal(sink.result(0), 2 * z)
+
+
+def test_cuda_host_space_ring_is_page_locked_where_there_is_a_gpu():
+    """A 'cuda_host' ring carries the data like a 'system' one; with a GPU its storage is page-locked
+    (so a GPU's copy of it is asynchronous), without one it is plain host memory (CPU CI)."""
+    rng = np.random.default_rng(6)
+    z = (rng.normal(size=(29, 4)) + 1j * rng.normal(size=(29, 4))) * 3
+    seen = []
+
+    class Look(bfp.TransformBlock):
+        def on_sequence(self, iseq):
+            return copy.deepcopy(iseq.header)
+
+        def on_data(self, ispan, ospan):
+            src = _compat.span_array(ispan)
+            assert isinstance(src, np.ndarray)
+            if HAS_GPU:
+                import cupy as cp
+                attr = cp.cuda.runtime.pointerGetAttributes(src.ctypes.data)
+                seen.append(attr.type)
+            _compat.span_array(ospan)[...] = src
+
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(z, hdr(dtype='ci8', shape=(-1, 4)), gulp_nframe=8, space='cuda_host')
+        sink = ArraySinkBlock(Look(src))
+        run_with_timeout(p, 60)
+    want = unpack_complex(pack_complex(z, 'ci8', space='system'), 'ci8')
+    np.testing.assert_array_equal(sink.result(0, as_complex=True), want)
+    if HAS_GPU:
+        import cupy as cp
+        assert seen and all(t == cp.cuda.runtime.memoryTypeHost for t in seen)
+
+
 def test_block_whose_constructor_raises_leaves_the_pipeline():
     class Picky(Scale):
         def __init__(self, iring, *args, **kwargs):

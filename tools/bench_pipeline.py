@@ -106,8 +106,10 @@ def make_case(a, xp):
     grid = imaging.lm_grid(a.grid)
     rng = np.random.default_rng(0)
     nframe = a.ngulp * a.gulp
-    ints = rng.integers(-8, 8, (nframe, a.nchan, 256, 2)) + 1j * rng.integers(-8, 8, (nframe, a.nchan, 256, 2))
-    packed = pack_ci4(ints)
+    # a few distinct gulps, repeated: a long steady-state window without generating every sample
+    nd = min(a.ngulp, a.distinct) * a.gulp
+    ints = rng.integers(-8, 8, (nd, a.nchan, 256, 2)) + 1j * rng.integers(-8, 8, (nd, a.nchan, 256, 2))
+    packed = np.resize(pack_ci4(ints), (nframe,) + ints.shape[1:])
     w = np.exp(2j * np.pi * rng.random((a.nchan, 256, 2))).astype(np.complex64)
     hdr = efield_header("bench", 0, freq, 40e-6, {"xyz_m": xyz}, dtype="ci4")
     return dict(xyz=xyz, layout=layout, freq=freq, grid=grid, packed=packed, w=w, hdr=hdr, nframe=nframe)
@@ -148,7 +150,7 @@ def bench_core(a, case, xp, sync):
 def bench_blocks(a, case, xp, space, source_on_device, stages=False, sync=None):
     """(b) through the blocks; returns (seconds per gulp steady, whole run seconds, images, stage times)."""
     src_data = xp.asarray(case["packed"]) if source_on_device else case["packed"]
-    with bfp.Pipeline() as p:
+    with bfp.Pipeline() as p, bfp.block_scope(buffer_factor=a.buffer_factor):
         src = ArraySourceBlock(src_data, case["hdr"], gulp_nframe=a.gulp, space=space)
         cal = CalFoldBlock(src, cable=case["w"])
         img = DFTImagerBlock(cal, case["grid"], a.gulp, products=("I",))
@@ -257,8 +259,11 @@ def main(argv=None):
     ap.add_argument("--device", choices=["cpu", "gpu"], default="cpu")
     ap.add_argument("--nchan", type=int, default=16)
     ap.add_argument("--ngulp", type=int, default=40)
+    ap.add_argument("--distinct", type=int, default=8, help="distinct gulps of random samples, repeated to --ngulp")
     ap.add_argument("--gulp", type=int, default=1024)
     ap.add_argument("--grid", type=int, default=64)
+    ap.add_argument("--buffer-factor", type=float, default=None,
+                    help="ring size in gulps for (b) (default: the runtime's, 3)")
     ap.add_argument("--repeat", type=int, default=3, help="runs of each measurement; the best is kept")
     ap.add_argument("--stages", action="store_true", help="also time each block with its stream synchronised")
     ap.add_argument("--fits-seconds", type=float, default=10.0, help="seconds of data for (d); 0 skips it")

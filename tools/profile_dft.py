@@ -44,6 +44,7 @@ def main(argv=None):
     ap.add_argument("--accumulate", type=int, default=None)
     ap.add_argument("--grid", type=int, default=64)
     ap.add_argument("--nchan", type=int, default=16)
+    ap.add_argument("--products", nargs="+", default=None, help="e.g. I (default: the operator's default)")
     a = ap.parse_args(argv)
     if a.summarise:
         return summarise(a.summarise)
@@ -56,7 +57,7 @@ def main(argv=None):
     op = imaging.DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(grid.lm), npol=2, precision=a.precision)
 
     def call():
-        return op.image(X, method=a.route, accumulate=a.accumulate)
+        return op.image(X, a.products, method=a.route, accumulate=a.accumulate)
     t, _ = timer("gpu")(call, 10)
     import time
     cp.cuda.Device().synchronize()
@@ -65,7 +66,7 @@ def main(argv=None):
         call()
     t_host = (time.perf_counter() - t0) / 10          # host time to issue one call (launch-bound if ~ t)
     cp.cuda.Device().synchronize()
-    print(f"# {a.route} {a.precision} {a.input} accumulate={a.accumulate} grid={a.grid}: {t * 1e3:.3f} ms "
+    print(f"# {a.route} {a.precision} {a.input} accumulate={a.accumulate} grid={a.grid} nchan={a.nchan}: {t * 1e3:.3f} ms "
           f"(host issue time {t_host * 1e3:.3f} ms)")
     cp.cuda.Device().synchronize()
     cp.cuda.profiler.start()

@@ -31,6 +31,7 @@ import numpy as np
 from ..runtime.dtypes import (  # noqa: F401  (re-exported)
     unpack_complex, pack_ci4, pack_complex, storage_dtype, SUPPORTED_DTYPES,
 )
+from ..imaging._xp import pinned_empty  # noqa: F401  (re-exported)
 from ..runtime import pipeline as _builtin_pipeline
 from ..runtime import ring as _builtin_ring
 
@@ -184,19 +185,6 @@ def is_pinned(a):
     kinds = tuple(k for k in (getattr(cp.cuda, 'PinnedMemoryPointer', None),
                               getattr(cp.cuda, 'PinnedMemory', None)) if k is not None)
     return isinstance(a, kinds)
-
-
-def pinned_empty(shape, dtype):
-    """An uninitialised NumPy array in page-locked host memory (CuPy's pinned pool), from
-    which host->device copies run asynchronously at full bus speed; a plain NumPy array when
-    there is no CuPy or GPU."""
-    dtype = np.dtype(dtype)
-    cp = _cupy()
-    count = int(np.prod(shape, dtype=np.int64))
-    if cp is None:
-        return np.empty(shape, dtype)
-    mem = cp.cuda.alloc_pinned_memory(max(count * dtype.itemsize, 1))
-    return np.frombuffer(mem, dtype, count).reshape(shape)
 
 
 def pin(a):

@@ -40,7 +40,8 @@ class DFTImagerBlock(bfp.TransformBlock):
     products, remove_autocorr, method, precision : as :func:`bf_epic_blocks.imaging.dirty_image`.
     gpus : None (image where the input ring lives), or several GPU indices (a list, or 'all'): the
            channels are sharded across those GPUs, one operator each (:mod:`bf_epic_blocks.imaging.multigpu`);
-           the input and output rings are then host ('system') rings, 4-bit samples cross the bus
+           the input and output rings are then host rings (best 'cuda_host': page-locked, so each GPU's
+           copy of its channels is asynchronous and at full bus speed), 4-bit samples cross the bus
            packed, and a gulp must hold whole integrations (gulp_nframe a multiple of ``accumulate``).
     weights : None or complex (nchan|1, nstand, npol|1) direction-independent weights folded into the
            operator; flags from the header are always applied.
@@ -68,7 +69,7 @@ class DFTImagerBlock(bfp.TransformBlock):
         self.img_stats = {"images": 0, "frames_imaged": 0, "frames_dropped_partial": 0, "operator_builds": 0}
 
     def define_valid_input_spaces(self):
-        return ("system",) if getattr(self, "gpus", None) is not None else "any"
+        return ("cuda_host", "system") if getattr(self, "gpus", None) is not None else "any"
 
     def define_output_nframes(self, input_nframe):
         # At most ceil(n / accumulate) integrations can complete within n new frames.
@@ -99,8 +100,12 @@ class DFTImagerBlock(bfp.TransformBlock):
         if self.gpus is not None:
             from ..imaging.multigpu import ShardedOperator
             B = None if pat is None else patterns.pattern_array(pat, np.asarray(lm), lay["freq_hz"], lay["npol"])
+            # images placed on the whole l, m grid (NaN below the horizon) on the GPUs, and copied from
+            # there straight into the output span
+            scatter = (np.flatnonzero(self.pixels.mask), self.pixels.size ** 2) if isinstance(self.pixels, LMGrid) \
+                else None
             sh = ShardedOperator(lay["xyz_m"], lay["freq_hz"], lm, self.gpus, npol=lay["npol"], weights=w, pattern=B,
-                                 precision=self.precision)
+                                 precision=self.precision, scatter=scatter)
             self._acc = _ShardedImages(sh, self, lay["dtype"])
             self._nant_used, self._npix = sh.ops[0].nant, sh.npix
             self._lm = np.asarray(lm)
@@ -185,6 +190,9 @@ class DFTImagerBlock(bfp.TransformBlock):
             flat[..., self._scatter] = imgs
         else:
             out[j:j + g] = imgs
+        self._count(g)
+
+    def _count(self, g):
         self.img_stats["images"] += g
         self.img_stats["frames_imaged"] += g * self.accumulate
 
@@ -221,6 +229,13 @@ class DFTImagerBlock(bfp.TransformBlock):
                 graphs = self.gpus is None and getattr(getattr(self, "_op", None), "graphs", None) is not None
                 if self._acc.ntime == 0 and not tracking and g >= (1 if self.gpus or graphs else 2) \
                         and self.imager_kind == "dft":
+                    if self.gpus is not None:
+                        # several GPUs: images land in the output span, already on the grid
+                        self._acc.images_into(x[pos:pos + g * self.accumulate], self.accumulate, out[nout:nout + g])
+                        self._count(g)
+                        nout += g
+                        pos += g * self.accumulate
+                        continue
                     if g == 1 and graphs:
                         # one whole integration: the operator's image(), replayed as a CUDA graph
                         imgs = self._op.image(x[pos:pos + self.accumulate], self.products,
@@ -274,10 +289,27 @@ class _ShardedImages:
             return np.stack([idata["re"], idata["im"]], axis=-1)
         return unpack_complex(idata, self.dtype)
 
-    def images(self, x, n):
+    def images_into(self, x, n, out):
+        """The g = len(x) // n whole integrations in x imaged into ``out`` (g, nchan, nprod, ...): the
+        output span's frames, written by the GPUs' copies (pixels as the sharded operator places them)."""
         decode = (lambda b: unpack_int8_pairs(b, "ci4")) if self.dtype == "ci4" else None
-        return self.sharded.image(x, self.products, remove_autocorr=self.remove_autocorr, method=self.method,
-                                  accumulate=n, decode=decode, out="host")
+        kw = dict(remove_autocorr=self.remove_autocorr, method=self.method, decode=decode)
+        g = x.shape[0] // n
+        rdtype = self.sharded.ops[0].rdtype
+        in_place = out.flags.c_contiguous and out.dtype == rdtype
+        flat = out.reshape(out.shape[:3] + (-1,)) if in_place else \
+            np.empty(out.shape[:3] + (self.sharded.npix_out,), rdtype)   # (fp64 images, or a strided span)
+        if self.method == "direct":     # one batched pass for all integrations
+            self.sharded.image(x, self.products, accumulate=n, out=flat, **kw)
+        else:
+            # covariance route: each integration as one whole-gulp call (replayed as a CUDA graph on
+            # each GPU), all of them in flight before the first is waited for
+            pending = [self.sharded.submit(x[i * n:(i + 1) * n], self.products, out=flat[i], **kw)
+                       for i in range(g)]
+            for p in pending:
+                p.result()
+        if not in_place:
+            out[...] = flat.reshape(out.shape)
 
     def add(self, x):
         raise ValueError("DFTImagerBlock on several GPUs images whole integrations only: make gulp_nframe a "

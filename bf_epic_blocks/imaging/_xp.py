@@ -28,6 +28,19 @@ def gpu_available() -> bool:
         return False
 
 
+def pinned_empty(shape, dtype):
+    """An uninitialised NumPy array in page-locked host memory (CuPy's pinned pool: cheap after the
+    first), from and to which the GPU copies asynchronously at full bus speed; a plain NumPy array
+    when there is no CuPy or GPU."""
+    dtype = np.dtype(dtype)
+    shape = tuple(int(n) for n in (shape if np.ndim(shape) else (shape,)))
+    count = int(np.prod(shape, dtype=np.int64))
+    if not gpu_available():
+        return np.empty(shape, dtype)
+    mem = _cupy.cuda.alloc_pinned_memory(max(count * dtype.itemsize, 1))
+    return np.frombuffer(mem, dtype, count).reshape(shape)
+
+
 def get_xp(*arrays):
     """The array module (numpy or cupy) that owns ``arrays`` (numpy for host arrays/scalars)."""
     if _cupy is not None:

@@ -48,7 +48,11 @@ class _Captured:
             cur.wait_event(self.done)       # the previous replay (maybe on another stream) is over
         _copy_in(self.xin, x, cur)
         self.graph.launch(cur)
-        out = self.out.copy()
+        if self.out.flags.c_contiguous:     # a memcpy: CuPy's copy() is a kernel, 3x the host time
+            out = cp.empty_like(self.out)
+            out.data.copy_from_device_async(self.out.data, self.out.nbytes, cur)
+        else:
+            out = self.out.copy()
         self.done = cur.record()
         return out
 

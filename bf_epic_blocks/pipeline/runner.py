@@ -8,6 +8,8 @@ applies the cable terms and flags, the imager builds its operator from the posit
 """
 from __future__ import annotations
 
+import contextlib
+
 import logging
 import math
 import os
@@ -195,7 +197,8 @@ def build_graph(cfg, progress=None):
         raise ValueError(f"calibration.pattern: the {cfg['imager']['kind']} imager cannot fold an antenna pattern "
                          f"({cfg['calibration']['pattern']!r}); set calibration.pattern: none or use imager.kind: dft")
     dev, devs = _device(cfg)
-    space = "cuda" if dev == "gpu" else "system"   # several GPUs: host rings, each GPU pulls its channels
+    # several GPUs: pinned host rings ('cuda_host'), from which each GPU pulls its channels asynchronously
+    space = {"gpu": "cuda", "gpus": "cuda_host"}.get(dev, "system")
     if dev == "gpus":
         if cfg["imager"]["kind"] != "dft":
             raise ValueError(f"device {cfg['device']!r}: only the dft imager shards channels over several GPUs")
@@ -211,7 +214,9 @@ def build_graph(cfg, progress=None):
     gulp = int(src_cfg["gulp_nframe"])
     outdir = cfg["output"]["dir"]
     block = None  # a channel block of a TBF file (source.channel_block), or all channels
-    with bfp.Pipeline() as p:
+    # one GPU: every block's thread uses it (a device chosen here would hold in this thread only)
+    scope = bfp.block_scope(gpu=devs) if dev == "gpu" else contextlib.nullcontext()
+    with bfp.Pipeline() as p, scope:
         fmt = capture_format(src_cfg)
         if fmt is not None:
             info = _scan(src_cfg["path"], report=False, fmt=fmt)

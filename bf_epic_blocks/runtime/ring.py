@@ -45,6 +45,7 @@ from numbers import Integral
 
 import numpy as np
 
+from ..imaging._xp import pinned_empty
 from .dtypes import SPACES, storage_dtype, itemsize_bytes
 from .header import validate_header, split_shape
 
@@ -207,7 +208,10 @@ class Ring:
         self._check_abort()
 
     def _alloc(self, seq):
-        seq.buf = self.xp.empty(seq.buf_shape(self._cap + self._ghost), seq.sdtype)
+        shape = seq.buf_shape(self._cap + self._ghost)
+        # 'cuda_host' (as in Bifrost): page-locked where there is a GPU, so a GPU reads it with
+        # asynchronous copies at full bus speed
+        seq.buf = pinned_empty(shape, seq.sdtype) if self.space == 'cuda_host' else self.xp.empty(shape, seq.sdtype)
         seq.buf_cap, seq.buf_ghost = self._cap, self._ghost
 
     def _sync_ghost(self, seq, lo, hi):
