@@ -27,7 +27,6 @@ Output images are checked equal (<= 1e-6 of the peak) to 1 GPU.
 """
 import argparse
 import datetime
-import json
 import os
 import sys
 import time
@@ -35,7 +34,7 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import lwasv_like_layout, quantise4, reference_image, sky_efield  # noqa: E402
+from cases import lwasv_like_layout, quantise4, reference_image, sky_efield, timer, write_json  # noqa: E402
 
 from bf_epic_blocks import imaging  # noqa: E402
 from bf_epic_blocks.imaging.multigpu import ShardedOperator  # noqa: E402
@@ -43,13 +42,8 @@ from bf_epic_blocks.runtime.dtypes import pack_ci4, unpack_int8_pairs  # noqa: E
 
 
 def wall(fn, repeat):
-    fn()
-    ts = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
+    """Median wall-clock seconds of ``fn()`` after one warm-up call (the host waits for each result)."""
+    return timer("cpu")(fn, repeat)[0]
 
 
 def bench_block(xyz, freq, grid, Q, packed, ngpu, k, precision, method, nimage=48):
@@ -239,9 +233,7 @@ def main(argv=None):
            "gpus": names, "case": {"nchan": a.nchan, "nant": 256, "layout": layout, "npix": grid.npix, "ntime": 1024,
                                    "method": a.method}, "rows": rows}
     if a.json:
-        with open(a.json, "w") as fh:
-            json.dump(out, fh, indent=2)
-        print(f"# wrote {a.json}")
+        write_json(a.json, out)
     return out
 
 

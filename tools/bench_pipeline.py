@@ -27,7 +27,6 @@ complex weights) -> DFTImagerBlock (64 x 64 all-sky grid, one image per gulp, St
 """
 import argparse
 import datetime
-import json
 import os
 import sys
 import tempfile
@@ -36,7 +35,7 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import lwasv_like_layout  # noqa: E402
+from cases import lwasv_like_layout, write_json  # noqa: E402
 
 from bf_epic_blocks import imaging  # noqa: E402
 from bf_epic_blocks.blocks import (ArraySinkBlock, ArraySourceBlock, CalFoldBlock, DFTImagerBlock, bfp,  # noqa: E402
@@ -362,8 +361,7 @@ def main(argv=None):
                "stages": stages, "fits": fits_row or fits_error, "realtime_fps": REALTIME_FPS}
         if a.device == "gpu":
             out["gpu"] = xp.cuda.runtime.getDeviceProperties(xp.cuda.Device().id)["name"].decode()
-        with open(a.json, "w") as fh:
-            json.dump(out, fh, indent=2)
+        write_json(a.json, out)
 
 
 if __name__ == "__main__":

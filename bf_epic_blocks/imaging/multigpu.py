@@ -177,10 +177,6 @@ class PendingImages:
         for p in self._parts:
             p.copied.synchronize()
 
-    def done(self) -> bool:
-        """True once every GPU has finished (``result`` will not wait)."""
-        return all(p.done.done for p in self._parts)
-
     def result(self):
         """The images: a NumPy array (pinned host memory) or a CuPy array on the first GPU."""
         if self._result is not None:

@@ -9,10 +9,8 @@ applies the cable terms and flags, the imager builds its operator from the posit
 from __future__ import annotations
 
 import contextlib
-
 import logging
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
