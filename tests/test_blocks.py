@@ -223,6 +223,37 @@ def test_real_bifrost_pipeline_matches_core(scene):
     assert sink.headers[0]["_tensor"]["labels"] == ["time", "freq", "pol", "pixel"]
 
 
+@pytest.mark.parametrize("gulp,accumulate", [(60, 60), (120, 30), (64, 40)])
+def test_imager_folding_static_calibration_equals_calfold(xp, scene, gulp, accumulate):
+    """What bf-epic run builds on a GPU for static calibration: no CalFoldBlock, the cable terms and
+    flags folded into the imager's operator, the 4-bit samples imaged as integers (one CUDA-graph
+    replay per whole integration in a gulp, the accumulator otherwise). Same images as the float64
+    core with those weights, and as CalFoldBlock -> DFTImagerBlock; on a grid, NaN below the horizon."""
+    s = scene
+    space = "cuda" if xp.__name__ == "cupy" else "system"
+    data = pack_ci4(s["ints"])
+    hdr = efield_header("obs", 10**12, s["freq"], DT, station(s), dtype="ci4")
+    grid = imaging.lm_grid(10)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(data, hdr, gulp_nframe=gulp, space=space)
+        img = DFTImagerBlock(src, grid, accumulate, products="stokes", cable=True)
+        sink = ArraySinkBlock(img)
+        p.run()
+    got = sink.result(0)
+    ref_sink, _ = run_pipeline(data, hdr, gulp, accumulate, grid, space=space, cable=True, products="stokes")
+    wc = cable_weights(s["delay"], s["gain"], s["freq"]) * ~s["flags"][None]
+    core = expected(dict(s, lm=grid.lm), s["ints"].astype(np.complex128), accumulate, lambda f: (0, wc),
+                    products="stokes")
+    core = grid.to_image(core)
+    nimg = s["T"] // accumulate
+    assert got.shape == ref_sink.result(0).shape == core.shape == (nimg, 3, 4, 10, 10)
+    assert img.img_stats["images"] == nimg and img.img_stats["frames_dropped_partial"] == s["T"] % accumulate
+    np.testing.assert_array_equal(np.isnan(got), ~np.broadcast_to(grid.mask, got.shape))
+    scale = np.nanmax(np.abs(core))
+    assert np.nanmax(np.abs(got - core)) / scale <= 1e-6
+    assert np.nanmax(np.abs(got - ref_sink.result(0))) / scale <= 1e-6
+
+
 def _ngpu():
     from bf_epic_blocks.imaging._xp import cupy_or_none, gpu_available
     return cupy_or_none().cuda.runtime.getDeviceCount() if gpu_available() else 0

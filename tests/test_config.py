@@ -375,3 +375,18 @@ def test_several_gpus(given, resolved):
 def test_several_gpus_bad(given):
     with pytest.raises(ConfigError, match="several GPUs as"):
         load_config(f"source: {{kind: simulated}}\ndevice: {given}\n")
+
+
+def test_calibration_folded_into_the_imager_only_where_it_should_be(yaml_dir):
+    """On a GPU with static calibration the DFT imager folds it (no CalFoldBlock); time-variable gains,
+    live UDP on one GPU, the gridded imagers and the CPU keep CalFoldBlock; several GPUs always fold."""
+    from bf_epic_blocks.pipeline.runner import folds_calibration
+    base = load_config("source: {kind: simulated}")
+    assert folds_calibration(base, "gpu") and folds_calibration(base, "gpus")
+    assert not folds_calibration(base, "cpu")
+    gains = dict(base, calibration=dict(base["calibration"], gains_table="gains.npz"))
+    assert not folds_calibration(gains, "gpu")
+    udp = dict(base, source=dict(base["source"], kind="udp"))
+    assert not folds_calibration(udp, "gpu") and folds_calibration(udp, "gpus")
+    ws = dict(base, imager=dict(base["imager"], kind="wstack"))
+    assert not folds_calibration(ws, "gpu") and not folds_calibration(ws, "gpus")

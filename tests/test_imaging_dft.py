@@ -244,3 +244,36 @@ def test_pixel_helpers():
     r = 1 - 1e-12
     d = 1.0 - r  # exact in float64 (Sterbenz)
     assert abs(imaging.n_from_lm(r, 0.0) - np.sqrt(d * (2 - d))) < 1e-20
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64", "complex64"])
+def test_grid_placement_puts_each_pixel_in_its_cell(xp, dtype):
+    from bf_epic_blocks.imaging.pixels import GridPlacement
+    g = imaging.lm_grid(24)
+    index = np.flatnonzero(g.mask)
+    rng = np.random.default_rng(3)
+    vals = rng.standard_normal((3, 2, g.npix)).astype(dtype)
+    place = GridPlacement(index, g.size * g.size, xp)
+    # into every other frame of a larger array (strided), and into a new array
+    big = xp.zeros((5, 2, g.size * g.size), dtype)
+    got = place(xp.asarray(vals), out=big[::2])
+    got2 = place(xp.asarray(vals))
+    for a in (got, got2, big[::2]):
+        a = a.get() if hasattr(a, "get") else a
+        for b, c in np.ndindex(3, 2):           # cell by cell from the definition
+            cell = np.full(g.size * g.size, np.nan, dtype)
+            for k, j in enumerate(index):
+                cell[j] = vals[b, c, k]
+            np.testing.assert_array_equal(a[b, c], cell)
+    assert not np.any(np.asarray(big[1::2].get() if hasattr(big, "get") else big[1::2]))   # untouched
+    # values cast to out's dtype (fp64 images into a float32 span)
+    if dtype == "float64":
+        o32 = place(xp.asarray(vals), out=xp.empty((3, 2, g.size * g.size), np.float32))
+        o32 = o32.get() if hasattr(o32, "get") else o32
+        np.testing.assert_array_equal(o32, np.asarray(got.get() if hasattr(got, "get") else got, np.float32))
+    with pytest.raises(ValueError, match="last axis"):
+        place(xp.asarray(vals[..., 1:]))
+    with pytest.raises(ValueError, match="distinct integers"):
+        GridPlacement([0, 0, 3], 8, xp)
+    with pytest.raises(ValueError, match="distinct integers"):
+        GridPlacement([0, 9], 8, xp)

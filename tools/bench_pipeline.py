@@ -1,12 +1,17 @@
 #!/usr/bin/env python
 """Benchmark: case P through the blocks against the same work called directly, and station to FITS.
 
-Case P: 'ci4' gulps of 1,024 frames x 16 channels x 256 stands x 2 pols; CalFoldBlock (explicit
-complex weights) -> DFTImagerBlock (64 x 64 all-sky grid, one image per gulp, Stokes I).
+Case P: 'ci4' gulps of 1,024 frames x 16 channels x 256 stands x 2 pols, explicit complex cable
+weights, a 64 x 64 all-sky grid, one image per gulp, Stokes I. Two block graphs (``--graph``):
 
-(a) ``core``: the blocks' per-gulp calls made directly on ci4 bytes already on the device: unpack,
-    ``apply_direction_independent``, the imager's accumulator (same operator, method, precision),
-    scatter onto the grid. One stream, no rings, no threads.
+* ``folded`` -- what ``bf-epic run`` builds on a GPU when calibration is static: source ->
+  DFTImagerBlock with the weights folded into its operator, the 4-bit samples imaged as integers
+  (exact integer covariance, one CUDA-graph replay per image).
+* ``calfold`` -- what it builds with time-variable gains (and on the CPU): source -> CalFoldBlock
+  (complex64 voltages out) -> DFTImagerBlock.
+
+(a) ``core``: the graph's per-gulp calls made directly on ci4 bytes already on the device (decode,
+    calibrate, image, place on the grid); one stream, no rings, no threads.
 (b) the same work through the blocks: ``pipe-dev`` (ArraySourceBlock of device-resident ci4 bytes:
     the runtime alone) and ``pipe-host`` (ci4 bytes in pinned host memory, one asynchronous
     host->device copy per gulp overlapped with imaging: the real case).
@@ -15,15 +20,15 @@ complex weights) -> DFTImagerBlock (64 x 64 all-sky grid, one image per gulp, St
     operator built in ``on_sequence``, pipeline fill). ``--stages`` adds one more run per block with
     the block's stream synchronised after each ``on_data`` (serialises the pipeline; per-stage cost).
 (d) ``fits``: station to FITS -- a pre-generated simulated sky (a point source in noise, ci4 in
-    pinned host memory, made on the device so the source is not the bottleneck) ->
-    CalFoldBlock -> DFTImagerBlock (one image per second of data = 25,000 frames) ->
-    ImageWriterBlock (one FITS file per image), the blocks ``bf-epic run`` builds
-    (``pipeline.runner.build_graph``) with the array source in place of the file/simulated one;
-    no LSL needed. Real-time factor = seconds of data / seconds of wall time (LWA-SV: 40 us per
-    sample). Also the source alone into a null sink, to show it is not the bottleneck.
+    pinned host memory, made on the device so the source is not the bottleneck) -> the first graph
+    (``folded`` on the GPU) with one image per second of data = 25,000 frames -> ImageWriterBlock
+    (one FITS file per image): the blocks ``bf-epic run`` builds (``pipeline.runner.build_graph``)
+    with the array source in place of the file/simulated one; no LSL needed. Real-time factor =
+    seconds of data / seconds of wall time (LWA-SV: 40 us per sample). Also the source alone into a
+    null sink, to show it is not the bottleneck.
 
     python tools/bench_pipeline.py --device cpu --nchan 1 --ngulp 4 --fits-seconds 0.5 --json out.json
-    python tools/bench_pipeline.py --device gpu --json docs/bench/bench_pipeline_gpu.json
+    python tools/bench_pipeline.py --device gpu --ngulp 200 --json docs/bench/bench_pipeline_gpu_200gulps.json
 """
 import argparse
 import datetime
@@ -35,13 +40,14 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import lwasv_like_layout, write_json  # noqa: E402
+from cases import lwasv_like_layout, reference_image, write_json  # noqa: E402
 
 from bf_epic_blocks import imaging  # noqa: E402
 from bf_epic_blocks.blocks import (ArraySinkBlock, ArraySourceBlock, CalFoldBlock, DFTImagerBlock, bfp,  # noqa: E402
                                    efield_header)
 from bf_epic_blocks.blocks import _compat  # noqa: E402
 from bf_epic_blocks.imaging.calibration import FS_HZ, apply_direction_independent  # noqa: E402
+from bf_epic_blocks.imaging.pixels import GridPlacement  # noqa: E402
 from bf_epic_blocks.runtime.dtypes import pack_ci4, unpack_complex, unpack_int8_pairs  # noqa: E402
 
 REALTIME_FPS = 25000.0  # LWA-SV: 40 us per sample
@@ -111,11 +117,27 @@ def make_case(a, xp):
     packed = np.resize(pack_ci4(ints), (nframe,) + ints.shape[1:])
     w = np.exp(2j * np.pi * rng.random((a.nchan, 256, 2))).astype(np.complex64)
     hdr = efield_header("bench", 0, freq, 40e-6, {"xyz_m": xyz}, dtype="ci4")
-    return dict(xyz=xyz, layout=layout, freq=freq, grid=grid, packed=packed, w=w, hdr=hdr, nframe=nframe)
+    return dict(xyz=xyz, layout=layout, freq=freq, grid=grid, packed=packed, w=w, hdr=hdr, nframe=nframe,
+                first=ints[:a.gulp])
 
 
-def bench_core(a, case, xp, sync):
-    """(a) the blocks' per-gulp calls, made directly; returns seconds per gulp and set-up seconds."""
+def first_image_error(case, images):
+    """Max relative error of the first image (Stokes I) against the float64 definition, on every 97th pixel."""
+    grid = case["grid"]
+    sub = slice(None, None, 97)
+    X = case["first"] * case["w"][None].astype(np.complex128)          # calibrated voltages (T, C, A, P)
+    ref = reference_image(X, case["xyz"], case["freq"], grid.lm[sub])   # (C, 2, n): XX, YY
+    ref_i = ref[:, 0] + ref[:, 1]
+    got = images[0, :, 0].reshape(images.shape[1], -1)[:, np.flatnonzero(grid.mask)[sub]]
+    return float(np.max(np.abs(got - ref_i)) / np.max(np.abs(ref_i)))
+
+
+def decode_ci4(b):
+    return unpack_int8_pairs(b, "ci4")
+
+
+def bench_core(a, case, xp, sync, graph):
+    """(a) the blocks' per-gulp calls, made directly; returns seconds per gulp, set-up seconds, method."""
     grid, gulp = case["grid"], a.gulp
     dev = xp.asarray(case["packed"])            # ci4 bytes on the device
     t0 = time.perf_counter()
@@ -123,12 +145,12 @@ def bench_core(a, case, xp, sync):
                              weights=xp.ones((1, 256, 2), xp.complex128), precision="fp32")
     acc = op.accumulator(("I",), method="auto", ntime_hint=gulp)
     wd, live = xp.asarray(case["w"]), xp.ones((256, 2), bool)
-    scatter = xp.asarray(np.flatnonzero(grid.mask))
+    place = GridPlacement(np.flatnonzero(grid.mask), grid.size * grid.size, xp)
     out = xp.empty((a.nchan, 1, grid.size * grid.size), xp.float32)
     sync()
     t_setup = time.perf_counter() - t0
 
-    if a.fold:   # the weights folded into the operator; 4-bit samples imaged as integers
+    if graph == "folded":   # the weights folded into the operator; 4-bit samples imaged as integers
         op = imaging.DFTOperator(xp.asarray(case["xyz"]), xp.asarray(case["freq"]), xp.asarray(grid.lm), npol=2,
                                  weights=wd, precision="fp32")
 
@@ -136,29 +158,29 @@ def bench_core(a, case, xp, sync):
         sync()
         t = time.perf_counter()
         for g in range(a.ngulp):
-            if a.fold:
-                img = op.image(unpack_int8_pairs(dev[g * gulp:(g + 1) * gulp], "ci4"), ("I",))
+            if graph == "folded":   # as the block: ci4 decoded inside the graph, its output placed at once
+                img = op.image(dev[g * gulp:(g + 1) * gulp], ("I",), decode=decode_ci4, static_out=True)
             else:
                 x = unpack_complex(dev[g * gulp:(g + 1) * gulp], "ci4")
                 y = apply_direction_independent(x, wd, live)
                 acc.add(y)
                 img = acc.result()
                 acc.reset()
-            out[...] = np.nan
-            out[..., scatter] = img
+            place(img, out=out)
         sync()
         return (time.perf_counter() - t) / a.ngulp
 
     run()  # warm-up (kernels, plans, allocator)
-    return min(run() for _ in range(a.repeat)), t_setup, acc.method
+    method = acc.method if graph == "calfold" else op.accumulator(("I",), ntime_hint=gulp).method
+    return min(run() for _ in range(a.repeat)), t_setup, method
 
 
-def bench_blocks(a, case, xp, space, source_on_device, stages=False, sync=None):
+def bench_blocks(a, case, xp, space, source_on_device, graph, stages=False, sync=None):
     """(b) through the blocks; returns (seconds per gulp steady, whole run seconds, images, stage times)."""
     src_data = xp.asarray(case["packed"]) if source_on_device else case["packed"]
     with bfp.Pipeline() as p, bfp.block_scope(buffer_factor=a.buffer_factor):
         src = ArraySourceBlock(src_data, case["hdr"], gulp_nframe=a.gulp, space=space)
-        if a.fold:   # no CalFoldBlock: the imager folds the weights into its operator
+        if graph == "folded":   # no CalFoldBlock: the imager folds the weights into its operator
             cal = src
             img = DFTImagerBlock(src, case["grid"], a.gulp, products=("I",), weights=case["w"])
         else:
@@ -204,8 +226,8 @@ def simulated_ci4(a, xp, nframe, xyz, freq, lm_src, power=4.0, chunk=25000):
     return out
 
 
-def bench_fits(a, xp, space, sync):
-    """(d) station to FITS; returns a dict of figures."""
+def bench_fits(a, xp, space, sync, graph):
+    """(d) station to FITS through ``graph`` ('folded' or 'calfold'); returns a dict of figures."""
     from astropy.io import fits
 
     from bf_epic_blocks.blocks.image_writer import ImageWriterBlock
@@ -225,26 +247,32 @@ def bench_fits(a, xp, space, sync):
     # the source alone (pinned memory -> ring, one asynchronous copy per gulp) into a null sink
     with bfp.Pipeline() as p:
         src = ArraySourceBlock(raw, hdr, gulp_nframe=a.gulp, space=space)
-        null = NullSink(src)
+        NullSink(src)
         ts = time.perf_counter()
         p.run()
         t_src = time.perf_counter() - ts
-    outdir = tempfile.mkdtemp(prefix="bench_fits_")
-    with bfp.Pipeline() as p:
-        src = ArraySourceBlock(raw, hdr, gulp_nframe=a.gulp, space=space)
-        cal = CalFoldBlock(src, cable=False)
-        img = DFTImagerBlock(cal, grid, accumulate, products=("I",))
-        writer = ImageWriterBlock(img, outdir, prefix="casep", fits=True, png=False, label_sources=False)
-        stamps = []
-        on_data = writer.on_data
+    def fits_run(data, outdir):
+        with bfp.Pipeline() as p:
+            src = ArraySourceBlock(data, hdr, gulp_nframe=a.gulp, space=space)
+            cal = src if graph == "folded" else CalFoldBlock(src, cable=False)
+            img = DFTImagerBlock(cal, grid, accumulate, products=("I",))
+            writer = ImageWriterBlock(img, outdir, prefix="casep", fits=True, png=False, label_sources=False)
+            stamps = []
+            on_data = writer.on_data
 
-        def stamped(ispan):
-            on_data(ispan)
-            stamps.append(time.perf_counter())
-        writer.on_data = stamped
-        ts = time.perf_counter()
-        p.run()
-        t_all = time.perf_counter() - ts
+            def stamped(ispan):
+                on_data(ispan)
+                stamps.append(time.perf_counter())
+            writer.on_data = stamped
+            ts = time.perf_counter()
+            p.run()
+            return time.perf_counter() - ts, writer, img, stamps
+
+    # a first run of two images compiles this route's kernels (CuPy keeps them on disk: a station's
+    # later runs start warm) and imports the writers' libraries; the timed run comes after
+    t_warm, *_ = fits_run(raw[:2 * accumulate], tempfile.mkdtemp(prefix="bench_fits_warm_"))
+    outdir = tempfile.mkdtemp(prefix="bench_fits_")
+    t_all, writer, img, stamps = fits_run(raw, outdir)
     files = [f for f in writer.written if f.endswith(".fits")]
     # sanity: the brightest pixel of the first image is the simulated source
     with fits.open(files[0]) as hl:
@@ -255,11 +283,11 @@ def bench_fits(a, xp, space, sync):
     per_image = steady_per_gulp(stamps)
     return {
         "seconds_of_data": nframe / REALTIME_FPS, "frames": nframe, "gulp": a.gulp, "accumulate": accumulate,
-        "images": len(files), "outdir": outdir, "generate_s": t_gen, "wall_s": t_all,
+        "images": len(files), "outdir": outdir, "generate_s": t_gen, "wall_s": t_all, "warm_up_s": t_warm,
         "realtime_factor": nframe / REALTIME_FPS / t_all,
         "steady_s_per_image": per_image, "realtime_factor_steady": a.image_seconds / per_image,
         "source_only_s": t_src, "source_only_realtime_factor": nframe / REALTIME_FPS / t_src,
-        "source_only_GBps": raw.nbytes / t_src / 1e9, "method": img._acc.method,
+        "source_only_GBps": raw.nbytes / t_src / 1e9, "method": img._acc.method, "graph": graph,
         "peak_lm": lm_peak, "source_lm": lm_src, "cell": grid.cell, "layout": layout,
     }
 
@@ -272,9 +300,9 @@ def main(argv=None):
     ap.add_argument("--distinct", type=int, default=8, help="distinct gulps of random samples, repeated to --ngulp")
     ap.add_argument("--gulp", type=int, default=1024)
     ap.add_argument("--grid", type=int, default=64)
-    ap.add_argument("--fold", action="store_true",
-                    help="(a)-(b) without CalFoldBlock: the weights folded into the imager's operator, ci4 imaged "
-                         "as integers (exact covariance, CUDA-graph replay on the GPU)")
+    ap.add_argument("--graph", choices=["auto", "folded", "calfold", "both"], default="auto",
+                    help="block graph(s) to time (see above); auto: both on the GPU (folded first, as bf-epic builds "
+                         "it), calfold on the CPU (as bf-epic builds it there)")
     ap.add_argument("--buffer-factor", type=float, default=None,
                     help="ring size in gulps for (b) (default: the runtime's, 3)")
     ap.add_argument("--repeat", type=int, default=3, help="runs of each measurement; the best is kept")
@@ -296,58 +324,69 @@ def main(argv=None):
         if a.device == "gpu":
             xp.cuda.Device().synchronize()
 
+    graphs = {"auto": ["folded", "calfold"] if a.device == "gpu" else ["calfold"],
+              "both": ["folded", "calfold"]}.get(a.graph, [a.graph])
     case = make_case(a, xp)
-    t_core, t_core_setup, method = bench_core(a, case, xp, device_sync)
-    rows = [{"path": "core", "s_per_gulp": t_core, "run_s": t_core * a.ngulp + t_core_setup,
-             "setup_s": t_core_setup}]
+    rows, methods, stages = [], {}, {}
     variants = [("pipe-dev", True), ("pipe-host", False)] if a.device == "gpu" else [("pipe-host", False)]
-    ref = None
-    for name, on_dev in variants:
-        bench_blocks(a, case, xp, space, on_dev)  # warm-up
-        best = None
-        for _ in range(a.repeat):
-            r = bench_blocks(a, case, xp, space, on_dev)
-            if best is None or r[0] < best[0]:
-                best = r
-        per, t_all, n_img, _, images = best
-        if ref is None:
-            ref = images
-        elif not np.allclose(images, ref, rtol=1e-5, atol=1e-5 * np.nanmax(np.abs(ref)), equal_nan=True):
-            raise RuntimeError(f"{name}: images differ from the other pipeline run")
-        rows.append({"path": name, "s_per_gulp": per, "run_s": t_all, "images": n_img})
-    for r in rows:
-        r["overhead"] = r["s_per_gulp"] / t_core - 1
-        r["run_overhead"] = r["run_s"] / rows[0]["run_s"] - 1
-        r["x_realtime"] = a.gulp / REALTIME_FPS / r["s_per_gulp"]
-    stages = None
-    if a.stages:
-        _, _, _, st, _ = bench_blocks(a, case, xp, space, a.device == "gpu", stages=True, sync=sync)
-        stages = {k: {"mean_ms": 1e3 * float(np.mean(v[1:] or v)), "calls": len(v)} for k, v in st.items()}
+    for graph in graphs:
+        t_core, t_core_setup, methods[graph] = bench_core(a, case, xp, device_sync, graph)
+        grows = [{"graph": graph, "path": "core", "s_per_gulp": t_core, "run_s": t_core * a.ngulp + t_core_setup,
+                  "setup_s": t_core_setup}]
+        ref = None
+        for name, on_dev in variants:
+            bench_blocks(a, case, xp, space, on_dev, graph)  # warm-up
+            best = None
+            for _ in range(a.repeat):
+                r = bench_blocks(a, case, xp, space, on_dev, graph)
+                if best is None or r[0] < best[0]:
+                    best = r
+            per, t_all, n_img, _, images = best
+            if ref is None:
+                ref = images
+                err = first_image_error(case, images)
+            elif not np.allclose(images, ref, rtol=1e-5, atol=1e-5 * np.nanmax(np.abs(ref)), equal_nan=True):
+                raise RuntimeError(f"{graph} {name}: images differ from the other pipeline run")
+            grows.append({"graph": graph, "path": name, "s_per_gulp": per, "run_s": t_all, "images": n_img,
+                          "error": err})
+        for r in grows:
+            r["overhead"] = r["s_per_gulp"] / t_core - 1
+            r["run_overhead"] = r["run_s"] / grows[0]["run_s"] - 1
+            r["x_realtime"] = a.gulp / REALTIME_FPS / r["s_per_gulp"]
+        rows += grows
+        if a.stages:
+            _, _, _, st, _ = bench_blocks(a, case, xp, space, a.device == "gpu", graph, stages=True, sync=sync)
+            stages[graph] = {k: {"mean_ms": 1e3 * float(np.mean(v[1:] or v)), "calls": len(v)} for k, v in st.items()}
     fits_row = fits_error = None
     if a.fits_seconds > 0:
         try:
-            fits_row = bench_fits(a, xp, space, sync)
+            fits_row = bench_fits(a, xp, space, sync, graphs[0])
         except ImportError as exc:   # astropy (FITS, times) missing on this machine: say so, keep (a)-(c)
             fits_error = f"station to FITS not run: {type(exc).__name__}: {exc}"
 
     print(f"# bench_pipeline device={a.device} nchan={a.nchan} gulps={a.ngulp}x{a.gulp} grid={a.grid} "
-          f"({case['layout']}) runtime={_compat.RUNTIME} imager method={method}")
-    print(f"{'path':<10} {'ms/gulp':>9} {'overhead':>9} {'x real time':>11} {'whole run s':>12} {'run overhead':>13}")
+          f"({case['layout']}) runtime={_compat.RUNTIME} imager method={methods}")
+    print(f"{'graph':<8} {'path':<10} {'ms/gulp':>9} {'overhead':>9} {'x real time':>11} {'whole run s':>12} "
+          f"{'run overhead':>13} {'error':>9}")
     for r in rows:
-        print(f"{r['path']:<10} {1e3 * r['s_per_gulp']:9.3f} {100 * r['overhead']:8.1f}% {r['x_realtime']:11.2f} "
-              f"{r['run_s']:12.3f} {100 * r['run_overhead']:12.1f}%")
-    print(f"# steady state = interval between the sink's images after the first; whole run includes start-up "
-          f"(core: {1e3 * t_core_setup:.1f} ms operator build)")
-    if stages:
-        print("# per stage (stream synchronised after each on_data; not overlapped):")
-        for k, v in stages.items():
+        err = f"{r['error']:9.1e}" if "error" in r else f"{'':>9}"
+        print(f"{r['graph']:<8} {r['path']:<10} {1e3 * r['s_per_gulp']:9.3f} {100 * r['overhead']:8.1f}% "
+              f"{r['x_realtime']:11.2f} {r['run_s']:12.3f} {100 * r['run_overhead']:12.1f}% {err}")
+    print("# error: the first image (Stokes I) against the float64 definition on every 97th pixel, max relative")
+    print("# steady state = interval between the sink's images after the first; whole run includes start-up "
+          "(core: " + ", ".join(f"{r['graph']} {1e3 * r['setup_s']:.1f} ms" for r in rows if r["path"] == "core")
+          + " operator build)")
+    for graph, st in stages.items():
+        print(f"# {graph}, per stage (stream synchronised after each on_data; not overlapped):")
+        for k, v in st.items():
             print(f"  {k:<24} {v['mean_ms']:8.3f} ms/gulp ({v['calls']} calls)")
     if fits_row:
         f = fits_row
         print(f"# station to FITS: {f['seconds_of_data']:.1f} s of data ({f['frames']} frames, gulp {f['gulp']}), "
-              f"{f['images']} images of {a.image_seconds:g} s ({f['method']}), FITS in {f['outdir']}")
+              f"{f['images']} images of {a.image_seconds:g} s ({f['graph']} graph, {f['method']}), FITS in {f['outdir']}")
         print(f"{'fits run':<22} {f['wall_s']:8.3f} s  {f['realtime_factor']:7.2f} x real time "
-              f"(steady {f['steady_s_per_image']:.3f} s/image = {f['realtime_factor_steady']:.2f} x)")
+              f"(steady {f['steady_s_per_image']:.3f} s/image = {f['realtime_factor_steady']:.2f} x; "
+              f"after a {f['warm_up_s']:.1f} s warm-up run of 2 images)")
         print(f"{'source alone':<22} {f['source_only_s']:8.3f} s  {f['source_only_realtime_factor']:7.2f} x real time "
               f"({f['source_only_GBps']:.2f} GB/s of ci4)   [data generated in {f['generate_s']:.1f} s]")
         print(f"# image peak at l,m = {f['peak_lm'][0]:+.3f},{f['peak_lm'][1]:+.3f} (source {f['source_lm']}, "
@@ -357,7 +396,7 @@ def main(argv=None):
     if a.json:
         out = {"benchmark": "bench_pipeline", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
                "device": a.device, "nchan": a.nchan, "gulp": a.gulp, "ngulp": a.ngulp, "grid": a.grid,
-               "layout": case["layout"], "runtime": _compat.RUNTIME, "method": method, "rows": rows,
+               "layout": case["layout"], "runtime": _compat.RUNTIME, "method": methods, "graphs": graphs, "rows": rows,
                "stages": stages, "fits": fits_row or fits_error, "realtime_fps": REALTIME_FPS}
         if a.device == "gpu":
             out["gpu"] = xp.cuda.runtime.getDeviceProperties(xp.cuda.Device().id)["name"].decode()

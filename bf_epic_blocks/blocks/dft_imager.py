@@ -16,7 +16,7 @@ import numpy as np
 
 from ..imaging import patterns
 from ..imaging.dft import DFTOperator
-from ..imaging.pixels import LMGrid, check_lm
+from ..imaging.pixels import GridPlacement, LMGrid, check_lm
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
 from ..runtime.dtypes import unpack_int8_pairs
@@ -159,7 +159,7 @@ class DFTImagerBlock(bfp.TransformBlock):
             scales = [[t0, dt * self.accumulate], fscale, None, [ax0, g.cell], [ax0, g.cell]]
             units = ["s", "Hz", None, None, None]
             ohdr["pixels"] = {"kind": "grid", "size": g.size, "cell": g.cell, "npix_imaged": g.npix}
-            self._scatter = self._xp.asarray(np.flatnonzero(g.mask))
+            self._place = GridPlacement(np.flatnonzero(g.mask), g.size * g.size, self._xp)
         else:
             shape = [-1, lay["nchan"], nprod, len(lm)]
             labels = ["time", "freq", "pol", "pixel"]
@@ -167,7 +167,7 @@ class DFTImagerBlock(bfp.TransformBlock):
             units = ["s", "Hz", None, None]
             kind = "track" if callable(self.pixels) else "list"
             ohdr["pixels"] = {"kind": kind, "lm": np.asarray(lm).tolist()}
-            self._scatter = None
+            self._place = None
         ohdr["_tensor"] = {"dtype": "f32", "shape": shape, "labels": labels, "scales": scales, "units": units}
         ohdr["pol_products"] = list(self._acc.products)
         ohdr["imager"] = {"kind": self.imager_kind, "method": self._acc.method, "precision": self.precision,
@@ -183,11 +183,9 @@ class DFTImagerBlock(bfp.TransformBlock):
     def _write(self, out, j, imgs):
         """Images (g, nchan, nprod, npix) into output frames j .. j + g (scattered onto the grid)."""
         g = imgs.shape[0]
-        if self._scatter is not None:
+        if self._place is not None:
             N = self.pixels.size
-            flat = out[j:j + g].reshape(imgs.shape[:3] + (N * N,))
-            flat[...] = np.nan
-            flat[..., self._scatter] = imgs
+            self._place(imgs, out=out[j:j + g].reshape(imgs.shape[:3] + (N * N,)))
         else:
             out[j:j + g] = imgs
         self._count(g)
@@ -206,12 +204,16 @@ class DFTImagerBlock(bfp.TransformBlock):
         n = idata.shape[0]
         nout = 0
         tracking = callable(self.pixels) and not isinstance(self.pixels, LMGrid)
+        graphs = self.gpus is None and getattr(getattr(self, "_op", None), "graphs", None) is not None
+        decode = None
         with _compat.stream_context():
             if self.gpus is not None:
                 x = self._acc.host_view(idata)          # packed samples: decoded on each GPU
             elif self._lay["dtype"] in ("ci4", "ci8") and self.imager_kind == "dft":
-                # 4/8-bit voltages stay integers: exact covariances, exact fp16 operands
-                x = unpack_int8_pairs(idata, self._lay["dtype"])
+                # 4/8-bit voltages stay integers: exact covariances, exact fp16 operands; decoded
+                # inside the replayed graph when a gulp is one whole integration
+                decode = _INT_DECODE[self._lay["dtype"]]
+                x = None
             else:
                 x = unpack_complex(idata, self._lay["dtype"])
                 if self.tally is not None:
@@ -226,7 +228,6 @@ class DFTImagerBlock(bfp.TransformBlock):
                             raise ValueError("DFTImagerBlock: a tracking pixel function must keep the pixel count")
                         self._build(lm)
                 g = (n - pos) // self.accumulate
-                graphs = self.gpus is None and getattr(getattr(self, "_op", None), "graphs", None) is not None
                 if self._acc.ntime == 0 and not tracking and g >= (1 if self.gpus or graphs else 2) \
                         and self.imager_kind == "dft":
                     if self.gpus is not None:
@@ -237,16 +238,23 @@ class DFTImagerBlock(bfp.TransformBlock):
                         pos += g * self.accumulate
                         continue
                     if g == 1 and graphs:
-                        # one whole integration: the operator's image(), replayed as a CUDA graph
-                        imgs = self._op.image(x[pos:pos + self.accumulate], self.products,
-                                              remove_autocorr=self.remove_autocorr, method=self._acc.method)[None]
+                        # one whole integration: the operator's image(), replayed as a CUDA graph; its
+                        # output is used at once on this stream (placed into the span), so not copied
+                        sl = slice(pos, pos + self.accumulate)
+                        imgs = self._op.image(idata[sl] if x is None else x[sl], self.products,
+                                              remove_autocorr=self.remove_autocorr, method=self._acc.method,
+                                              decode=decode if x is None else None, static_out=True)[None]
                     else:
                         # several whole integrations in this gulp: one batched pass (one GEMM for all)
+                        if x is None:
+                            x = decode(idata)
                         imgs = self._acc.images(x[pos:pos + g * self.accumulate], self.accumulate)
                     self._write(out, nout, imgs)
                     nout += g
                     pos += g * self.accumulate
                     continue
+                if x is None:
+                    x = decode(idata)
                 take = min(self.accumulate - self._acc.ntime, n - pos)
                 self._acc.add(x[pos:pos + take])
                 pos += take
@@ -262,6 +270,18 @@ class DFTImagerBlock(bfp.TransformBlock):
             log.warning("DFTImagerBlock: %d frames at the end of sequence %s did not fill an integration of %d "
                         "and were not imaged", self._acc.ntime, iseq.header.get("name"), self.accumulate)
             self._acc.reset()
+
+
+def _decode_ci4(b):
+    return unpack_int8_pairs(b, "ci4")
+
+
+def _decode_ci8(b):
+    return unpack_int8_pairs(b, "ci8")
+
+
+# module-level functions: the operator's graph cache keys on them
+_INT_DECODE = {"ci4": _decode_ci4, "ci8": _decode_ci8}
 
 
 class _ShardedImages:

@@ -420,7 +420,8 @@ class DFTOperator:
             cache[key] = self.accumulator(products, remove_autocorr=remove_autocorr, method=method, ntime_hint=ntime)
         return cache[key]
 
-    def image(self, efield, products=None, *, remove_autocorr=False, method="auto", accumulate=None):
+    def image(self, efield, products=None, *, remove_autocorr=False, method="auto", accumulate=None,
+              decode=None, static_out=False):
         """Images of ``efield``.
 
         accumulate : None -> one image from all samples, (nchan, nprod, npix); an integer N ->
@@ -431,6 +432,12 @@ class DFTOperator:
 
         On the GPU, integer voltages of a shape seen before are imaged by replaying a CUDA graph of the
         first such call (:mod:`.graphs`; ``graphs=False`` at construction turns this off).
+
+        decode : None, or a function turning ``efield`` (e.g. packed ci4 bytes) into the integer
+            (re, im) pairs to image; inside the graph on replays (the packed bytes are what is copied
+            in, and the host issues one call fewer).
+        static_out : on a graph replay, return the graph's own output (no copy); it is overwritten by
+            the operator's next call, so use it on the same stream before then.
         """
         if accumulate is not None:
             n = int(accumulate) if isinstance(accumulate, (int, np.integer)) or (
@@ -440,15 +447,23 @@ class DFTOperator:
             accumulate = n
         # (one covariance image per N samples builds accumulators, with host->device copies, on
         # every call: not capturable, and not the fast route for short integrations anyway)
-        if self.graphs is not None and _is_int_pairs(efield) and (
+        if self.graphs is not None and (decode is not None or _is_int_pairs(efield)) and (
                 accumulate is None or self._cached_accumulator(products, remove_autocorr, method,
                                                                int(accumulate)).method == "direct"):
-            self._check_efield(efield)
+            if decode is None:   # (with decode: checked as decoded on the first, eager, call; the key
+                self._check_efield(efield)   # fixes the shape after that)
             key = (tuple(efield.shape), str(efield.dtype), tuple(resolve_products(self.npol, products)),
-                   bool(remove_autocorr), method, accumulate)
+                   bool(remove_autocorr), method, accumulate, decode)
             caches = [self._derived, self._derived.setdefault("accumulators", {})]
-            return self.graphs.call(key, lambda x: self._image(x, products, remove_autocorr, method, accumulate),
-                                    efield, caches)
+
+            def fn(x):
+                x = x if decode is None else decode(x)
+                if not _is_int_pairs(x):
+                    raise TypeError("decode must give integer (re, im) pairs shaped (ntime, nchan, nant, npol, 2)")
+                return self._image(x, products, remove_autocorr, method, accumulate)
+            return self.graphs.call(key, fn, efield, caches, static_out=static_out)
+        if decode is not None:
+            efield = decode(efield)
         return self._image(efield, products, remove_autocorr, method, accumulate)
 
     def _image(self, efield, products, remove_autocorr, method, accumulate):

@@ -16,11 +16,14 @@ dtype, products, route, accumulation):
    back to CuPy's pool when the operator is dropped. Its input is a static buffer the graph reads.
    Operator cache entries first made during the capture are dropped (only the graph computed them).
 3. Later calls copy the input into the static buffer, launch the graph on the current stream and
-   return a copy of its output (the static output is overwritten by the next launch).
+   return a copy of its output (the static output is overwritten by the next launch), or, for a
+   caller that uses it at once on the same stream (DFTImagerBlock), the static output itself.
 
 A call that cannot be captured -- one that needs the host mid-way, such as a sample count read back
-from the device -- is run eagerly for good, with a log line saying why. Replays of one operator are
-ordered with an event, so changing the current stream between calls is safe; one operator must not
+from the device -- is run eagerly for good, with a log line saying why. A replay on another stream
+than the last one first waits for the work issued on that one (the same stream needs no call: fewer
+driver calls, each of which hands the interpreter lock to a pipeline's other threads), so changing
+the current stream between calls is safe; one operator must not
 be used from two threads at once (as before: it keeps cached accumulators).
 """
 from __future__ import annotations
@@ -39,21 +42,25 @@ class _Captured:
 
     def __init__(self, graph, xin, out, memory, stream):
         self.graph, self.xin, self.out, self.memory, self.stream = graph, xin, out, memory, stream
-        self.done = None   # event after the last replay's output copy
+        self.last = None   # the stream of the last replay
 
-    def replay(self, x):
+    def replay(self, x, static_out=False):
         import cupy as cp
         cur = cp.cuda.get_current_stream()
-        if self.done is not None:
-            cur.wait_event(self.done)       # the previous replay (maybe on another stream) is over
+        if self.last is not None and self.last.ptr != cur.ptr:
+            # the previous replay was on another stream: wait for everything issued there so far, which
+            # includes the caller's use of a static output; on the same stream, stream order does it
+            cur.wait_event(self.last.record())
         _copy_in(self.xin, x, cur)
         self.graph.launch(cur)
-        if self.out.flags.c_contiguous:     # a memcpy: CuPy's copy() is a kernel, 3x the host time
+        if static_out:
+            out = self.out                  # the caller uses it on this stream before the next call
+        elif self.out.flags.c_contiguous:   # a memcpy: CuPy's copy() is a kernel, 3x the host time
             out = cp.empty_like(self.out)
             out.data.copy_from_device_async(self.out.data, self.out.nbytes, cur)
         else:
             out = self.out.copy()
-        self.done = cur.record()
+        self.last = cur
         return out
 
 
@@ -90,12 +97,14 @@ class GraphCache:
         self.captured = 0    # graphs made
         self.replays = 0     # calls served by a graph
 
-    def call(self, key, fn, x, caches=None):
+    def call(self, key, fn, x, caches=None, static_out=False):
         """``fn(x)`` -- eagerly the first time, captured the second, replayed after.
 
         x : the CuPy input array (copied into the graph's static buffer on replays).
         caches : dicts the call may fill (the operator's derived arrays): entries first made during a
         capture are removed again, since only the graph has computed them.
+        static_out : on a replay, return the graph's own output array instead of a copy; the next
+        call overwrites it, so the caller must have used it (on the same stream) by then.
         """
         entry = self._entries.get(key)
         if entry is None:
@@ -110,7 +119,7 @@ class GraphCache:
             if entry is None:
                 return fn(x)
         self.replays += 1
-        return entry.replay(x)
+        return entry.replay(x, static_out)
 
     def _capture(self, key, fn, x, caches):
         import cupy as cp

@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._xp import cupy_or_none, pinned_empty
+from .pixels import GridPlacement
 
 __all__ = ["PendingImages", "ShardedOperator", "channel_blocks", "resolve_devices"]
 
@@ -97,7 +98,7 @@ class ShardedOperator:
             self.npix_out = n
             for lane in self.lanes:
                 with cp.cuda.Device(lane.device):
-                    lane.scatter = (cp.asarray(index), n)
+                    lane.scatter = GridPlacement(index, n, cp)
 
     def image(self, efield, products=None, *, remove_autocorr=False, method="auto", accumulate=None,
               decode=None, out="host"):
@@ -216,7 +217,7 @@ class _Lane:
             self.compute = cp.cuda.Stream(non_blocking=True)
         self.slots = [None] * depth      # (device buffer, event: the imaging that read it is done)
         self.next = 0
-        self.scatter = None              # (device flat indices, n): images placed on n pixels
+        self.scatter = None              # a GridPlacement on this GPU: images placed on its n cells
 
     def _stage(self, host):
         """Copy this lane's channels of a host gulp into the next staging buffer; (buffer, slot, event)."""
@@ -258,10 +259,7 @@ class _Lane:
                     x = (decode(x) if decode is not None else x)[:, self.chans]
                 img = self.op.image(x, products, **kw)
                 if self.scatter is not None:
-                    index, n = self.scatter
-                    full = cp.full(img.shape[:-1] + (n,), np.nan, img.dtype)
-                    full[..., index] = img
-                    img = full
+                    img = self.scatter(img)
                 if buf is not None:
                     self.slots[i] = (buf, self.compute.record())
                     copied_ev = copied

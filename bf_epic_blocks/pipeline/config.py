@@ -90,6 +90,8 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
         table: ecsv | fits           (default ecsv; <prefix>_candidates.<table> in output.dir)
         png: bool                    (default true; sky with the candidates and their light curves)
     device: cpu | gpu | 'gpu:N'      (default cpu; returned as 'cpu' or 'gpu:N', 'gpu' = 'gpu:0');
+            on one GPU with static calibration (no gains_table) and a file or simulated source, the
+            dft imager folds the cable terms into its operator and no CalFoldBlock runs;
             or several GPUs of the host: 'gpu:all' or a list [0, 1] (returned as 'gpu:all' / 'gpu:0,1'):
             the dft imager shards the channels across them (no CalFoldBlock then: cable terms are
             folded into the operators; calibration.gains_table needs a single device)

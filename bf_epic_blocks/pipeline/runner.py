@@ -1,10 +1,19 @@
 """Turn a validated pipeline configuration (:mod:`.config`) into a block graph, plan it, run it.
 
-    source (TBF / TBX file | simulated sky) -> CalFoldBlock -> imager (DFT | w-stacking | MOFF) -> ImageWriterBlock
+    source (TBF / TBX file | simulated sky | UDP) -> CalFoldBlock -> imager (DFT | w-stacking | MOFF) -> ImageWriterBlock
 
 The station table from LSL is what joins the configuration to the blocks: the sources put its
 positions, flags and cable terms (for the channels in use) into the sequence header, CalFoldBlock
 applies the cable terms and flags, the imager builds its operator from the positions.
+
+On a GPU, when calibration is static (no ``gains_table``) and the imager is the DFT one, there is
+no CalFoldBlock: the imager folds the cable terms, flags and pattern into its operator (D A, the
+same image: docs in :mod:`bf_epic_blocks.blocks.calfold`), and 4/8-bit samples go to it as integers
+(exact integer covariances, one CUDA-graph replay per integration). That saves a pass that writes
+and reads every sample as complex64 and a block thread's per-gulp Python (Bifrost-style blocks
+share one interpreter lock). Live UDP input keeps CalFoldBlock on one GPU: it is the unguaranteed
+reader that lets the capture never wait for the imager. On the CPU, CalFoldBlock's complex route
+is the faster one and is kept.
 """
 from __future__ import annotations
 
@@ -184,6 +193,17 @@ def _device(cfg):
     return "gpu", idx
 
 
+def folds_calibration(cfg, dev):
+    """True when the imager folds the calibration into its operator(s) and no CalFoldBlock runs:
+    the DFT imager on several GPUs, or on one GPU with static calibration (no gains table) and a
+    source that is not live UDP (see the module docstring). ``dev``: 'cpu', 'gpu' or 'gpus'."""
+    if cfg["imager"]["kind"] != "dft":
+        return False
+    if dev == "gpus":
+        return True
+    return dev == "gpu" and not cfg["calibration"].get("gains_table") and cfg["source"]["kind"] != "udp"
+
+
 def build_graph(cfg, progress=None):
     """Blocks for ``cfg`` inside a new Pipeline (not yet run)."""
     from ..blocks import CalFoldBlock, DFTImagerBlock, bfp
@@ -247,7 +267,8 @@ def build_graph(cfg, progress=None):
         # live packets must never wait for the imager: CalFoldBlock reads them unguaranteed and
         # counts the frames it could not keep up with (stats['nframe_skipped']; zeros go on)
         live = {"guarantee": False} if src_cfg["kind"] == "udp" else {}
-        if dev == "gpus":   # the imager folds the cable terms into its per-GPU operators itself
+        fold = folds_calibration(cfg, dev)
+        if fold:
             calfold = source
         else:
             calfold = CalFoldBlock(source, cable=bool(cal["cable"]), gains=gains, pattern=pattern, **live)
@@ -259,8 +280,10 @@ def build_graph(cfg, progress=None):
                                                    len(channel_freqs(cfg)) if src_cfg["kind"] == "simulated" else 1)
             if pick is not None:
                 log.info("imager.tolerance %.1e: %s", im["tolerance"], pick.describe())
+            if fold:
+                common.update(cable=bool(cal["cable"]), pattern=pattern or False)
             if dev == "gpus":
-                common.update(gpus=devs, cable=bool(cal["cable"]), pattern=pattern or False)
+                common.update(gpus=devs)
             imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], method=method,
                                     precision=precision, **common)
         else:
@@ -305,8 +328,8 @@ def run(cfg, show_progress=None):
     if bar is not None:
         bar.total = g.nframe_total
         bar.refresh()
-    log.info("running %s: %s source -> calfold -> %s imager -> %s", cfg["name"], cfg["source"]["kind"],
-             cfg["imager"]["kind"], g.outdir)
+    log.info("running %s: %s source -> %s%s imager -> %s", cfg["name"], cfg["source"]["kind"],
+             "" if g.calfold is g.source else "calfold -> ", cfg["imager"]["kind"], g.outdir)
     try:
         g.pipeline.run()
     finally:
