@@ -48,7 +48,7 @@ from bf_epic_blocks.blocks import (ArraySinkBlock, ArraySourceBlock, CalFoldBloc
 from bf_epic_blocks.blocks import _compat  # noqa: E402
 from bf_epic_blocks.imaging.calibration import FS_HZ, apply_direction_independent  # noqa: E402
 from bf_epic_blocks.imaging.pixels import GridPlacement  # noqa: E402
-from bf_epic_blocks.runtime.dtypes import pack_ci4, unpack_complex, unpack_int8_pairs  # noqa: E402
+from bf_epic_blocks.runtime.dtypes import int8_pairs_decoder, pack_ci4, unpack_complex  # noqa: E402
 
 REALTIME_FPS = 25000.0  # LWA-SV: 40 us per sample
 LWASV = {"name": "lwasv-like", "lat_deg": 34.348358, "lon_deg": -106.885783, "elev_m": 1477.0}
@@ -132,10 +132,6 @@ def first_image_error(case, images):
     return float(np.max(np.abs(got - ref_i)) / np.max(np.abs(ref_i)))
 
 
-def decode_ci4(b):
-    return unpack_int8_pairs(b, "ci4")
-
-
 def bench_core(a, case, xp, sync, graph):
     """(a) the blocks' per-gulp calls, made directly; returns seconds per gulp, set-up seconds, method."""
     grid, gulp = case["grid"], a.gulp
@@ -159,7 +155,7 @@ def bench_core(a, case, xp, sync, graph):
         t = time.perf_counter()
         for g in range(a.ngulp):
             if graph == "folded":   # as the block: ci4 decoded inside the graph, its output placed at once
-                img = op.image(dev[g * gulp:(g + 1) * gulp], ("I",), decode=decode_ci4, static_out=True)
+                img = op.image(dev[g * gulp:(g + 1) * gulp], ("I",), decode=int8_pairs_decoder("ci4"), static_out=True)
             else:
                 x = unpack_complex(dev[g * gulp:(g + 1) * gulp], "ci4")
                 y = apply_direction_independent(x, wd, live)

@@ -19,7 +19,7 @@ from ..imaging.dft import DFTOperator
 from ..imaging.pixels import GridPlacement, LMGrid, check_lm
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
-from ..runtime.dtypes import unpack_int8_pairs
+from ..runtime.dtypes import int8_pairs_decoder
 from .headers import derived_header, efield_layout
 from .nonfinite import get_tally, is_float_dtype, new_tally, zero_and_count
 
@@ -212,7 +212,7 @@ class DFTImagerBlock(bfp.TransformBlock):
             elif self._lay["dtype"] in ("ci4", "ci8") and self.imager_kind == "dft":
                 # 4/8-bit voltages stay integers: exact covariances, exact fp16 operands; decoded
                 # inside the replayed graph when a gulp is one whole integration
-                decode = _INT_DECODE[self._lay["dtype"]]
+                decode = int8_pairs_decoder(self._lay["dtype"])
                 x = None
             else:
                 x = unpack_complex(idata, self._lay["dtype"])
@@ -272,18 +272,6 @@ class DFTImagerBlock(bfp.TransformBlock):
             self._acc.reset()
 
 
-def _decode_ci4(b):
-    return unpack_int8_pairs(b, "ci4")
-
-
-def _decode_ci8(b):
-    return unpack_int8_pairs(b, "ci8")
-
-
-# module-level functions: the operator's graph cache keys on them
-_INT_DECODE = {"ci4": _decode_ci4, "ci8": _decode_ci8}
-
-
 class _ShardedImages:
     """The accumulator interface DFTImagerBlock uses, over a :class:`ShardedOperator` (several GPUs):
     whole integrations only (``images``), since a gulp holds whole integrations in that mode."""
@@ -312,7 +300,7 @@ class _ShardedImages:
     def images_into(self, x, n, out):
         """The g = len(x) // n whole integrations in x imaged into ``out`` (g, nchan, nprod, ...): the
         output span's frames, written by the GPUs' copies (pixels as the sharded operator places them)."""
-        decode = (lambda b: unpack_int8_pairs(b, "ci4")) if self.dtype == "ci4" else None
+        decode = int8_pairs_decoder("ci4") if self.dtype == "ci4" else None
         kw = dict(remove_autocorr=self.remove_autocorr, method=self.method, decode=decode)
         g = x.shape[0] // n
         rdtype = self.sharded.ops[0].rdtype

@@ -91,8 +91,7 @@ class ShardedOperator:
         self.npix_out = self.npix
         if scatter is not None:
             index, n = np.asarray(scatter[0]).ravel(), int(scatter[1])
-            if index.size != self.npix or index.dtype.kind not in "iu" or (
-                    index.size and (index.min() < 0 or index.max() >= n)):
+            if index.size != self.npix:   # (indices and range: checked by GridPlacement)
                 raise ValueError(f"scatter must be ({self.npix} integer indices in 0..n-1, n), got "
                                  f"{index.size} indices for n = {n}")
             self.npix_out = n

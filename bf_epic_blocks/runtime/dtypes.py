@@ -162,6 +162,25 @@ def unpack_int8_pairs(data, dtype_str, xp=None):
     raise TypeError(f"integer pairs come from 'ci4' or 'ci8' data, not {dtype_str!r}")
 
 
+def _pairs_ci4(data):
+    return unpack_int8_pairs(data, 'ci4')
+
+
+def _pairs_ci8(data):
+    return unpack_int8_pairs(data, 'ci8')
+
+
+_PAIR_DECODERS = {'ci4': _pairs_ci4, 'ci8': _pairs_ci8}
+
+
+def int8_pairs_decoder(dtype_str):
+    """The function ``data -> unpack_int8_pairs(data, dtype_str)`` for 'ci4' or 'ci8', always the same
+    object (a CUDA-graph cache can key on it: ``DFTOperator.image(..., decode=...)``)."""
+    if dtype_str not in _PAIR_DECODERS:
+        raise TypeError(f"integer pairs come from 'ci4' or 'ci8' data, not {dtype_str!r}")
+    return _PAIR_DECODERS[dtype_str]
+
+
 # ci4 decoding on the GPU in one pass each (CuPy's array form took eight passes and four
 # temporaries: 0.82 ms for a case-P gulp of 32 channels on an H200, against 0.085 ms)
 _NIBBLE_SRC = {
