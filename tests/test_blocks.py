@@ -5,7 +5,7 @@ import pytest
 from bf_epic_blocks import imaging
 from bf_epic_blocks.blocks import (ArraySinkBlock, ArraySourceBlock, CalFoldBlock, DFTImagerBlock, bfp,
                                    efield_header)
-from bf_epic_blocks.imaging.calibration import FS_HZ, GainTable, cable_weights
+from bf_epic_blocks.imaging.calibration import FS_HZ, GainTable, apply_direction_independent, cable_weights
 from bf_epic_blocks.blocks import _compat
 from bf_epic_blocks.runtime.dtypes import pack_ci4
 from truth import point_source_efield
@@ -98,6 +98,31 @@ def test_calfold_imager_equals_core_with_folded_weights(xp, scene, dtype, gulp, 
     assert hdr_out["_tensor"]["labels"] == ["time", "freq", "pol", "pixel"]
     assert hdr_out["imager"]["accumulate_frames"] == accumulate
     assert hdr_out["calibration"]["gain_table"]["nsol"] == 2
+
+
+@pytest.mark.parametrize("gain", [False, True])
+def test_apply_direction_independent_against_float64(xp, gain):
+    """The calibration product, fused on a GPU and written into a given array, against float64: x * w * g,
+    and exact zeros for a dead antenna-pol even where its gain is NaN."""
+    rng = np.random.default_rng(11)
+    x = (rng.standard_normal((7, 3, 5, 2)) + 1j * rng.standard_normal((7, 3, 5, 2))).astype(np.complex64)
+    w = (rng.uniform(0.5, 2, (3, 5, 2)) * np.exp(2j * np.pi * rng.random((3, 5, 2)))).astype(np.complex64)
+    g = (rng.uniform(0.5, 2, (3, 5, 2)) * np.exp(2j * np.pi * rng.random((3, 5, 2)))).astype(np.complex64)
+    live = np.ones((5, 2), bool)
+    live[2, 1] = False
+    g[:, 2, 1] = np.nan
+    ref = x.astype(np.complex128) * w.astype(np.complex128) * (g.astype(np.complex128) if gain else 1)
+    ref[:, :, 2, 1] = 0
+    out = xp.full(x.shape, np.nan, np.complex64)
+    got = apply_direction_independent(xp.asarray(x), xp.asarray(w), xp.asarray(live),
+                                      xp.asarray(g) if gain else None, out=out)
+    assert got is out
+    got = got.get() if xp.__name__ == "cupy" else got
+    assert np.all(got[:, :, 2, 1] == 0)
+    np.testing.assert_allclose(got, ref, rtol=3e-7, atol=0)
+    plain = apply_direction_independent(xp.asarray(x), xp.asarray(w))   # no flags, a new array
+    plain = plain.get() if xp.__name__ == "cupy" else plain
+    np.testing.assert_allclose(plain, x.astype(np.complex128) * w, rtol=3e-7, atol=0)
 
 
 def test_cable_terms_recover_a_point_source(scene):

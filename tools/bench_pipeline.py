@@ -8,7 +8,7 @@ weights, a 64 x 64 all-sky grid, one image per gulp, Stokes I. Two block graphs 
   DFTImagerBlock with the weights folded into its operator, the 4-bit samples imaged as integers
   (exact integer covariance, one CUDA-graph replay per image).
 * ``calfold`` -- what it builds with time-variable gains (and on the CPU): source -> CalFoldBlock
-  (complex64 voltages out) -> DFTImagerBlock.
+  (complex64 voltages out) -> DFTImagerBlock (on the GPU one CUDA-graph replay per image, as in ``folded``).
 
 (a) ``core``: the graph's per-gulp calls made directly on ci4 bytes already on the device (decode,
     calibrate, image, place on the grid); one stream, no rings, no threads.
@@ -27,7 +27,7 @@ weights, a 64 x 64 all-sky grid, one image per gulp, Stokes I. Two block graphs 
     seconds of data / seconds of wall time (LWA-SV: 40 us per sample). Also the source alone into a
     null sink, to show it is not the bottleneck.
 
-    python tools/bench_pipeline.py --device cpu --nchan 1 --ngulp 4 --fits-seconds 0.5 --json out.json
+    python tools/bench_pipeline.py --device cpu --nchan 1 --ngulp 4 --fits-seconds 2 --json out.json
     python tools/bench_pipeline.py --device gpu --ngulp 200 --json docs/bench/bench_pipeline_gpu_200gulps.json
 """
 import argparse
@@ -156,12 +156,10 @@ def bench_core(a, case, xp, sync, graph):
         for g in range(a.ngulp):
             if graph == "folded":   # as the block: ci4 decoded inside the graph, its output placed at once
                 img = op.image(dev[g * gulp:(g + 1) * gulp], ("I",), decode=int8_pairs_decoder("ci4"), static_out=True)
-            else:
+            else:   # as CalFoldBlock then the imager: calibrated complex voltages, one graph replay per image
                 x = unpack_complex(dev[g * gulp:(g + 1) * gulp], "ci4")
                 y = apply_direction_independent(x, wd, live)
-                acc.add(y)
-                img = acc.result()
-                acc.reset()
+                img = op.image(y, ("I",), method=acc.method, static_out=True)
             place(img, out=out)
         sync()
         return (time.perf_counter() - t) / a.ngulp
@@ -307,6 +305,9 @@ def main(argv=None):
     ap.add_argument("--image-seconds", type=float, default=1.0)
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
+    if 0 < a.fits_seconds < a.image_seconds:
+        ap.error(f"--fits-seconds {a.fits_seconds:g} is shorter than one image (--image-seconds {a.image_seconds:g}); "
+                 "give at least one image's worth, or 0 to skip station to FITS")
     xp = np
     if a.device == "gpu":
         import cupy as xp

