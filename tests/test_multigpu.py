@@ -50,6 +50,12 @@ def test_sharded_equals_one_device_and_truth():
         assert np.max(np.abs(img - one)) / np.max(np.abs(one)) <= 1e-6
     imgs = sh.image(q, ("I",), accumulate=16, method="direct")
     assert imgs.shape == (4, 6, 1, len(lm))
+    # calibrated complex voltages (CalFoldBlock's output): replayed as CUDA graphs from the second call
+    for call in range(3):
+        Xc = (X * np.exp(0.3j * call)).astype(np.complex64)
+        img = sh.image(Xc, ("I", "V"), method="covariance")
+        truth = brute_image(Xc.astype(np.complex128), xyz, freq, lm, ("I", "V"))
+        assert np.max(np.abs(img - truth)) / np.max(np.abs(truth)) < 1e-5, call
 
 
 @pytest.mark.gpu
