@@ -22,8 +22,9 @@ weights, a 64 x 64 all-sky grid, one image per gulp, Stokes I. Two block graphs 
 (d) ``fits``: station to FITS -- a pre-generated simulated sky (a point source in noise, ci4 in
     pinned host memory, made on the device so the source is not the bottleneck) -> the first graph
     (``folded`` on the GPU) with one image per second of data = 25,000 frames -> ImageWriterBlock
-    (one FITS file per image): the blocks ``bf-epic run`` builds (``pipeline.runner.build_graph``)
-    with the array source in place of the file/simulated one; no LSL needed. Real-time factor =
+    (one FITS file per image): the same blocks ``bf-epic run`` builds on a GPU (see
+    ``pipeline.runner.folds_calibration``), made here directly, with the array source in place of the
+    file/simulated one; no LSL needed. Real-time factor =
     seconds of data / seconds of wall time (LWA-SV: 40 us per sample). Also the source alone into a
     null sink, to show it is not the bottleneck.
 
