@@ -157,8 +157,9 @@ def main(argv=None):
         got = imaging._xp.to_numpy(got)
         return float(np.max(np.abs(got - ref)) / np.max(np.abs(ref)))
 
-    def graph_kw(op, inp):
-        return {"graphs": True} if gpu and inp == "ci4" and op.graphs is not None else {}
+    def graph_kw(op, inp, route):
+        # replayed as CUDA graphs: integer voltages on either route, complex ones on the covariance route
+        return {"graphs": True} if gpu and op.graphs is not None and (inp == "ci4" or route == "covariance") else {}
 
     eager_ops = {}
 
@@ -207,8 +208,8 @@ def main(argv=None):
                     cm = nchan * cost.route_cmacs(a.ntime, len(xyz), grid.npix, npol, npol)[route]
                     t, img = run(lambda: op.image(X, method=route), repeat)
                     row(grid_n, "gulp", route, precision, inp, t, rel(img[:, :, subd], ref1),
-                        base=t_naive_cov, prevt=t_prev, cmacs=cm, **graph_kw(op, inp))
-                    if gpu and inp == "ci4" and not big:    # the same without CUDA graphs (host-bound?)
+                        base=t_naive_cov, prevt=t_prev, cmacs=cm, **graph_kw(op, inp, route))
+                    if graph_kw(op, inp, route) and not big:    # the same without CUDA graphs (host-bound?)
                         t, img = run(lambda: op_eager(precision).image(X, method=route), repeat)
                         row(grid_n, "gulp", route, precision, inp, t, rel(img[:, :, subd], ref1),
                             base=t_naive_cov, prevt=t_prev, cmacs=cm, graphs=False)
@@ -235,7 +236,7 @@ def main(argv=None):
             cm = nchan * cost.route_cmacs(a.ntime, len(xyz), grid.npix, npol, npol)["direct"]
             t, img = run(lambda: op.image(Qd, method="direct", accumulate=n), repeat)
             row(grid_n, "x64", "direct", precision, "ci4", t, rel(img[..., subd], refn), base=t_naive_dir,
-                prevt=t_prev64, cmacs=cm, **graph_kw(op, "ci4"))
+                prevt=t_prev64, cmacs=cm, **graph_kw(op, "ci4", "direct"))
             if gpu:
                 t, img = run(lambda: op_eager(precision).image(Qd, method="direct", accumulate=n), repeat)
                 row(grid_n, "x64", "direct", precision, "ci4", t, rel(img[..., subd], refn), base=t_naive_dir,

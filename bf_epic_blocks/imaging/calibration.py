@@ -123,8 +123,8 @@ def apply_direction_independent(x, weights, live=None, gain=None, out=None):
     xp = get_xp(x)
     w = weights if gain is None else weights * gain
     if xp is not np and x.dtype == w.dtype == xp.complex64 and (out is None or out.dtype == xp.complex64):
-        args = (x, w, True if live is None else live)
-        return _calibrate_kernel()(*args) if out is None else _calibrate_kernel()(*args, out)
+        args = (x, w, True if live is None else live) + (() if out is None else (out,))
+        return _calibrate_kernel()(*args)
     y = x * w[None]
     if live is not None:
         y = xp.where(live[None], y, 0)

@@ -436,7 +436,10 @@ class DFTOperator:
         such call (:mod:`.graphs`; ``graphs=False`` at construction turns this off): integer voltages on
         either route, complex voltages on the covariance route with ``accumulate=None`` (there, replays
         were tested equal to eager calls bitwise, fp32 and fp16x3; on the direct route they were seen
-        not to be).
+        not to be). For complex voltages this is a trade: the gulp is first copied into the graph's
+        input (case P: 67 MB, which makes a loop of calls on an idle host 2-4% slower than eager ones,
+        H100), while the host's issue work falls from ~1.3 ms to one launch, which is what a pipeline
+        whose block threads share the host needs. ``graphs=False`` keeps every call eager.
 
         decode : None, or a function turning ``efield`` (e.g. packed ci4 bytes) into the integer
             (re, im) pairs to image; inside the graph on replays (the packed bytes are what is copied
@@ -452,13 +455,7 @@ class DFTOperator:
             accumulate = n
         # (one covariance image per N samples builds accumulators, with host->device copies, on
         # every call: not capturable, and not the fast route for short integrations anyway)
-        ints = decode is not None or _is_int_pairs(efield)
-        if self.graphs is not None and (
-                (ints and (accumulate is None or self._cached_accumulator(
-                    products, remove_autocorr, method, int(accumulate)).method == "direct"))
-                or (not ints and accumulate is None and getattr(efield, "ndim", 0) == 4
-                    and efield.dtype.kind == "c" and self._cached_accumulator(
-                        products, remove_autocorr, method, int(efield.shape[0])).method == "covariance")):
+        if self._replays(efield, decode, products, remove_autocorr, method, accumulate):
             if decode is None:   # (with decode: checked as decoded on the first, eager, call; the key
                 self._check_efield(efield)   # fixes the shape after that)
             key = (tuple(efield.shape), str(efield.dtype), tuple(resolve_products(self.npol, products)),
@@ -475,6 +472,17 @@ class DFTOperator:
         if decode is not None:
             efield = decode(efield)
         return self._image(efield, products, remove_autocorr, method, accumulate)
+
+    def _replays(self, efield, decode, products, remove_autocorr, method, accumulate):
+        """Whether this :meth:`image` call is served by a CUDA graph (which calls are: see there)."""
+        if self.graphs is None:
+            return False
+        if decode is not None or _is_int_pairs(efield):
+            return accumulate is None or self._cached_accumulator(
+                products, remove_autocorr, method, accumulate).method == "direct"
+        return (accumulate is None and getattr(efield, "ndim", 0) == 4 and efield.dtype.kind == "c"
+                and self._cached_accumulator(products, remove_autocorr, method,
+                                             int(efield.shape[0])).method == "covariance")
 
     def _image(self, efield, products, remove_autocorr, method, accumulate):
         ntime = int(efield.shape[0])
