@@ -100,6 +100,34 @@ def test_calfold_imager_equals_core_with_folded_weights(xp, scene, dtype, gulp, 
     assert hdr_out["calibration"]["gain_table"]["nsol"] == 2
 
 
+@pytest.mark.parametrize("tol", [1e-3, 1e-5])
+def test_imager_with_a_tolerance_picks_for_its_device(xp, scene, tol):
+    """DFTImagerBlock(tolerance=) as `imager.tolerance` in a YAML: the fastest mode whose measured bound
+    meets it on the device the block images on (a tensor-core mode on a GPU at 1e-3, never on the CPU),
+    and images within the tolerance of float64 truth; the pick is in the header."""
+    s = scene
+    gpu = xp.__name__ == "cupy"
+    hdr = efield_header("tol", 0, s["freq"], DT, station(s, with_cable=False), dtype="ci4")
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(pack_ci4(s["ints"]), hdr, gulp_nframe=120, space="cuda" if gpu else "system")
+        img = DFTImagerBlock(src, s["lm"], 120, products="stokes", tolerance=tol)
+        sink = ArraySinkBlock(img)
+        p.run()
+    assert img.plan is not None and img.plan.device == ("gpu" if gpu else "cpu")
+    assert img.plan.bound <= tol and img.precision == img.plan.precision
+    tensor_core = img.precision not in ("fp32", "fp64")
+    assert tensor_core == (gpu and tol >= 1e-4), img.plan
+    assert sink.headers[0]["imager"]["precision"] == img.precision
+    assert sink.headers[0]["imager"]["tolerance"] == tol
+    ref = expected(s, s["ints"].astype(np.complex128), 120, lambda f: (0, ~s["flags"][None]), products="stokes")
+    got = sink.result(0)
+    assert got.shape == ref.shape
+    assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= tol
+    with bfp.Pipeline():
+        with pytest.raises(ValueError, match="tolerance must be a positive number"):
+            DFTImagerBlock(ArraySourceBlock(pack_ci4(s["ints"]), hdr, 8), s["lm"], 4, tolerance=0)
+
+
 @pytest.mark.parametrize("gain", [False, True])
 def test_apply_direction_independent_against_float64(xp, gain):
     """The calibration product, fused on a GPU and written into a given array, against float64: x * w * g,

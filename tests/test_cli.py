@@ -138,6 +138,29 @@ def test_tracking_follows_cyg_a(tmp_path):
     assert sorted(out.glob("*.png"))
 
 
+@pytest.mark.parametrize("tol", ["1e-3", "1e-4", "1e-6"])
+def test_plan_for_a_gpu_picks_from_the_gpu_rows(tol, capsys):
+    """`bf-epic plan --set device=gpu` with a tolerance plans for the GPU on any machine (no CuPy
+    needed): at 1e-3 and 1e-4 a tensor-core mode, faster than fp32; at 1e-6 a mode whose bound meets it.
+    The plan's --json names the pick; the measured table says what the GPU offers."""
+    from bf_epic_blocks.imaging import plan
+    import json
+    argv = ["plan", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", "device=gpu", "--set", f"imager.tolerance={tol}"]
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert cli.main(argv + ["--json"]) == 0
+    pick = json.loads(capsys.readouterr().out)["tolerance_pick"]
+    assert f"picked {pick['method']} route, {pick['precision']}," in out, out
+    assert "predicted on gpu" in out
+    assert pick["bound"] <= float(tol)
+    gpu_rows = {(r["method"], r["precision"]) for r in plan.candidates("gpu")}
+    assert (pick["method"], pick["precision"]) in gpu_rows
+    if float(tol) >= 1e-4:
+        assert pick["precision"] not in ("fp32", "fp64"), out
+        fp32 = min(r["bound"] for r in plan.candidates("gpu") if r["precision"] == "fp32")
+        assert fp32 <= float(tol)   # fp32 also met it: the tensor-core mode was picked for speed
+
+
 def test_gpu_request_without_gpu_is_clear(tmp_path, capsys):
     from bf_epic_blocks.imaging._xp import gpu_available
     if gpu_available():

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from ..imaging import patterns
+from ..imaging import patterns, plan
 from ..imaging.dft import DFTOperator
 from ..imaging.pixels import GridPlacement, LMGrid, check_lm
 from . import _compat
@@ -37,7 +37,13 @@ class DFTImagerBlock(bfp.TransformBlock):
              ``pixels(time_tag) -> (npix, 2)`` re-evaluated at each integration (tracking; the
              operator is rebuilt when the pixels change).
     accumulate : frames (time samples) per image.
-    products, remove_autocorr, method, precision : as :func:`bf_epic_blocks.imaging.dirty_image`.
+    products, remove_autocorr, method, precision : as :func:`bf_epic_blocks.imaging.dirty_image`
+           (precision None: fp32, or the tolerance's pick).
+    tolerance : None, or an accuracy target instead of a mode (max |I - I_exact| / max I_exact): at each
+           sequence the fastest route x precision whose measured error bound meets it on the device the
+           block images on (the input ring's space, or the GPUs of ``gpus``) is picked for that problem
+           (:func:`bf_epic_blocks.imaging.plan.choose`; a ``method`` other than 'auto' or a ``precision``
+           restricts the choice). The pick is logged, kept in ``self.plan`` and written to the header.
     gpus : None (image where the input ring lives), or several GPU indices (a list, or 'all'): the
            channels are sharded across those GPUs, one operator each (:mod:`bf_epic_blocks.imaging.multigpu`);
            the input and output rings are then host rings (best 'cuda_host': page-locked, so each GPU's
@@ -55,9 +61,13 @@ class DFTImagerBlock(bfp.TransformBlock):
     imager_kind = "dft"
 
     def __init__(self, iring, pixels, accumulate, products=None, remove_autocorr=False, method="auto",
-                 precision="fp32", pattern=None, *args, gpus=None, weights=None, cable=False, **kwargs):
+                 precision=None, pattern=None, *args, gpus=None, weights=None, cable=False, tolerance=None,
+                 **kwargs):
         super().__init__(iring, *args, **kwargs)
         self.gpus, self.weights, self.cable = gpus, weights, cable
+        self.tolerance = None if tolerance is None else plan.check_tolerance(tolerance)
+        self._asked = (method, precision)   # what the tolerance's pick is restricted to
+        self.plan = None
         if int(accumulate) != accumulate or accumulate < 1:
             raise ValueError(f"DFTImagerBlock: accumulate must be a positive integer number of frames, got {accumulate!r}")
         self.accumulate = int(accumulate)
@@ -65,7 +75,8 @@ class DFTImagerBlock(bfp.TransformBlock):
             pixels = check_lm(np.asarray(pixels, dtype=np.float64))
         self.pixels = pixels
         self.products, self.remove_autocorr = products, remove_autocorr
-        self.method, self.precision, self.pattern = method, precision, pattern
+        self.method, self.pattern = method, pattern
+        self.precision = "fp32" if precision is None and tolerance is None else precision
         self.img_stats = {"images": 0, "frames_imaged": 0, "frames_dropped_partial": 0, "operator_builds": 0}
 
     def define_valid_input_spaces(self):
@@ -82,8 +93,22 @@ class DFTImagerBlock(bfp.TransformBlock):
             return cupy
         return np
 
+    def _pick(self, lm):
+        """The tolerance's (route, precision) for this sequence's problem on this block's device."""
+        lay = self._lay
+        method, precision = self._asked
+        device = "gpu" if self.gpus is not None else self._xp
+        nant = int((~lay["flags"]).any(axis=1).sum())
+        self.plan = plan.choose(self.tolerance, device, ntime=self.accumulate, nant=nant, npix=len(lm),
+                                npol=lay["npol"], nchan=lay["nchan"], products=self.products, method=method,
+                                precision=precision)
+        self.method, self.precision = self.plan.method, self.plan.precision
+        log.info("%s: tolerance %.1e: %s", type(self).__name__, self.tolerance, self.plan.describe())
+
     def _build(self, lm):
         lay, xp = self._lay, self._xp
+        if self.tolerance is not None:
+            self._pick(lm)
         pat = self._pattern_name
         w = (~lay["flags"])[None].astype(np.complex128)
         if self.weights is not None:
@@ -175,6 +200,8 @@ class DFTImagerBlock(bfp.TransformBlock):
                           "remove_autocorr": bool(self.remove_autocorr), "nant_used": int(self._nant_used),
                           "pattern": self._pattern_name,
                           "integration_ticks": self.accumulate * lay["ticks_per_frame"]}
+        if self.plan is not None:
+            ohdr["imager"].update(tolerance=self.tolerance, error_bound=self.plan.bound)
         log.info(type(self).__name__ + " %s: %d pixels, %d antennas used, %s route, %s, %d frames per image",
                  ihdr.get("name"), self._npix, self._nant_used, self._acc.method, self.precision, self.accumulate)
         return ohdr

@@ -32,6 +32,8 @@ class WStackBlock(DFTImagerBlock):
                             f"{type(grid).__name__}; for pixel lists use DFTImagerBlock")
         if not (0 < float(epsilon) <= 0.1):
             raise ValueError(f"WStackBlock: epsilon must be in (0, 0.1], got {epsilon!r}")
+        if kwargs.get("tolerance") is not None:
+            raise ValueError("WStackBlock: its accuracy is set by epsilon, not tolerance")
         if route not in ("auto", "efield", "covariance"):
             raise ValueError(f"WStackBlock: route must be 'auto', 'efield' or 'covariance', got {route!r}")
         super().__init__(iring, grid, accumulate, products=products, remove_autocorr=remove_autocorr,

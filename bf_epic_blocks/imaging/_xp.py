@@ -5,6 +5,8 @@ come from a caller who has it.
 """
 from __future__ import annotations
 
+import types
+
 import numpy as np
 
 try:  # CuPy is an optional extra ("gpu"); the package works without it.
@@ -26,6 +28,25 @@ def gpu_available() -> bool:
         return _cupy.cuda.runtime.getDeviceCount() > 0
     except Exception:
         return False
+
+
+def device_kind(device) -> str:
+    """'cpu' or 'gpu': the kind of device named by ``device``.
+
+    ``device``: a kind or a pipeline's device string ('cpu', 'gpu', 'gpu:1', 'gpu:all', 'gpu:0,1'), or a
+    real array namespace (the ``numpy`` or ``cupy`` module). Needs no CuPy and no GPU, so a plan can be
+    made for a GPU on a machine without one. Anything else is an error naming what was given: a
+    stand-in object cannot pass for a namespace (a class's ``__name__`` is always its own class name,
+    which once made every GPU plan a CPU plan).
+    """
+    if isinstance(device, str):
+        kind = device.strip().lower().split(":", 1)[0]
+        if kind in ("cpu", "gpu"):
+            return kind
+        raise ValueError(f"device must be 'cpu' or 'gpu' (or gpu:N, gpu:all), got {device!r}")
+    if isinstance(device, types.ModuleType) and device.__name__ in ("numpy", "cupy"):
+        return "gpu" if device.__name__ == "cupy" else "cpu"
+    raise TypeError(f"device must be 'cpu', 'gpu' or an array namespace (the numpy or cupy module), got {device!r}")
 
 
 def pinned_empty(shape, dtype):

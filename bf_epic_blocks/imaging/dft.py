@@ -873,7 +873,7 @@ def dirty_image(efield, xyz_m, freq_hz, pixels_lm, *, remove_autocorr=False, met
         from .plan import choose
         npix = int(xp.asarray(pixels_lm).shape[0])
         nt = int(efield.shape[0]) if accumulate is None else int(accumulate)
-        pick = choose(tolerance, xp=xp, ntime=nt, nant=int(efield.shape[2]), npix=npix, npol=int(efield.shape[3]),
+        pick = choose(tolerance, xp, ntime=nt, nant=int(efield.shape[2]), npix=npix, npol=int(efield.shape[3]),
                       products=products, method=method, precision=precision)
         method, precision = pick.method, pick.precision
     precision = "fp32" if precision is None else precision

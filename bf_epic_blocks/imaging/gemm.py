@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._xp import get_xp
+from ._xp import device_kind, get_xp
 
 __all__ = ["PRECISIONS", "PrecisionUnavailable", "check_precision", "cmatmul", "int_gram", "split_tf32", "SPLIT", "FP16",
            "round_tf32", "precision_available", "STACKED", "stack_operator", "stack_rhs", "stacked_matmul",
@@ -86,9 +86,10 @@ _OP_N, _OP_T = 0, 1
 _GEMM_DEFAULT = -1
 
 
-def precision_available(precision: str, xp) -> bool:
-    """Whether ``precision`` runs on arrays of namespace ``xp`` (tensor-core modes: CuPy only)."""
-    return precision in PRECISIONS and (xp.__name__ == "cupy" or not PRECISIONS[precision][2])
+def precision_available(precision: str, device) -> bool:
+    """Whether ``precision`` runs on ``device`` ('cpu' | 'gpu' or the numpy / cupy module; see
+    :func:`._xp.device_kind`): the tensor-core modes run on a GPU only."""
+    return precision in PRECISIONS and (device_kind(device) == "gpu" or not PRECISIONS[precision][2])
 
 
 def check_precision(precision, xp=np):
@@ -96,7 +97,7 @@ def check_precision(precision, xp=np):
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {tuple(PRECISIONS)}, got {precision!r}")
     rdt, cdt, tc = PRECISIONS[precision]
-    if tc and xp.__name__ != "cupy":
+    if tc and device_kind(xp) != "gpu":
         raise PrecisionUnavailable(
             f"precision {precision!r} needs tensor cores (a CUDA GPU with CuPy); the CPU has none: use "
             "'fp32' or 'fp64' there, or tolerance=... to let the imager pick what this machine offers")

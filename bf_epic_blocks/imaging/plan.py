@@ -16,12 +16,11 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from . import cost
-from .gemm import PRECISIONS, precision_available
+from ._xp import device_kind
+from .gemm import precision_available
 
-__all__ = ["Plan", "choose", "candidates", "load_table"]
+__all__ = ["Plan", "choose", "candidates", "load_table", "device_kind", "check_tolerance"]
 
 TABLE_PATH = Path(__file__).with_name("measured.json")
 
@@ -53,41 +52,42 @@ def load_table(path=None) -> dict:
     return _TABLE
 
 
-def _device(xp) -> str:
-    return "gpu" if getattr(xp, "__name__", "numpy") == "cupy" else "cpu"
-
-
-def candidates(device: str, table=None) -> list[dict]:
-    """Rows of the table for ``device`` ('cpu' or 'gpu') whose precision that device can run."""
-    xp_name = "cupy" if device == "gpu" else "numpy"
-
-    class _Ns:   # precision_available looks only at the namespace's name
-        __name__ = xp_name
-    rows = (table or load_table())["rows"]
-    return [r for r in rows if r["device"] == device and r["precision"] in PRECISIONS
-            and precision_available(r["precision"], _Ns)]
-
-
-def choose(tolerance, *, xp=np, ntime=1024, nant=256, npix=3205, npol=2, nchan=1, products=None,
-           method="auto", precision=None, table=None) -> Plan:
-    """The fastest (route, precision) with a measured error bound <= ``tolerance`` on ``xp``'s device.
-
-    ntime : samples per image; nant, npix, npol, nchan : the problem (for the operation counts;
-    the predicted time is for all ``nchan`` channels).
-    method : 'auto' (either route) or 'direct' / 'covariance' to restrict the choice.
-    precision : None (any) or a name to restrict the choice.
-    Raises ValueError when nothing meets the tolerance, naming the most accurate option there is.
-    """
+def check_tolerance(tolerance) -> float:
+    """``tolerance`` as a float, or a ValueError naming it unless it is a positive number."""
     try:
         tol = float(tolerance)
     except (TypeError, ValueError):
         raise ValueError(f"tolerance must be a positive number (max relative image error), got {tolerance!r}") from None
     if not tol > 0:
         raise ValueError(f"tolerance must be a positive number (max relative image error), got {tolerance!r}")
+    return tol
+
+
+def candidates(device, table=None) -> list[dict]:
+    """Rows of the table for ``device`` ('cpu' | 'gpu', a device string such as 'gpu:1', or the numpy /
+    cupy module) whose precision that device can run."""
+    kind = device_kind(device)
+    rows = (table or load_table())["rows"]
+    return [r for r in rows if r["device"] == kind and precision_available(r["precision"], kind)]
+
+
+def choose(tolerance, device="cpu", *, ntime=1024, nant=256, npix=3205, npol=2, nchan=1, products=None,
+           method="auto", precision=None, table=None) -> Plan:
+    """The fastest (route, precision) with a measured error bound <= ``tolerance`` on ``device``.
+
+    device : 'cpu' | 'gpu' (or a pipeline device string: 'gpu:1', 'gpu:all'), or the array namespace
+    the imaging will run in (the numpy or cupy module). Planning for a GPU needs neither CuPy nor a GPU.
+    ntime : samples per image; nant, npix, npol, nchan : the problem (for the operation counts;
+    the predicted time is for all ``nchan`` channels).
+    method : 'auto' (either route) or 'direct' / 'covariance' to restrict the choice.
+    precision : None (any) or a name to restrict the choice.
+    Raises ValueError when nothing meets the tolerance, naming the most accurate option there is.
+    """
+    tol = check_tolerance(tolerance)
     from .products import needs_cross, resolve_products
     names = resolve_products(npol, products)
     nblk = (npol if any(p in ("XX", "YY", "I", "Q") for p in names) else 0) + (1 if needs_cross(names) else 0)
-    device = _device(xp)
+    device = device_kind(device)
     rows = candidates(device, table)
     if method != "auto":
         rows = [r for r in rows if r["method"] == method]

@@ -77,7 +77,8 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
                                      tensor-core modes, see bf_epic_blocks.imaging.gemm)
       tolerance: float in (0, 1)     (default null; an accuracy target instead of a mode: the fastest
                                      route x precision whose measured error bound is <= tolerance on the
-                                     device; method / precision, when given, restrict the choice)
+                                     device; method / precision written beside it restrict the choice;
+                                     --set imager.tolerance=... replaces the file's precision)
       min_elevation_deg: float in [0, 90) (default 0; grid pixels below this elevation are not imaged)
       epsilon: float in (0, 0.1]     (default 1e-4; accuracy target of wstack / moff)
       search:                        transient search on the images (default null = none)
@@ -582,6 +583,11 @@ def load_config(path_or_text, overrides: Iterable[str] = (), *, base_dir=None) -
                            f"got {type(raw).__name__}"], source)
     if isinstance(overrides, str):
         overrides = [overrides]
+    keys = {ov.partition("=")[0].strip() for ov in overrides if isinstance(ov, str)}
+    if "imager.tolerance" in keys and "imager.precision" not in keys and isinstance(raw.get("imager"), dict):
+        # an accuracy target given on the command line replaces the file's mode; written beside a
+        # precision in the same place, the precision restricts the choice (see _imager_post)
+        raw["imager"].pop("precision", None)
     problems = apply_overrides(raw, overrides)
     if problems:
         raise ConfigError(problems, source)

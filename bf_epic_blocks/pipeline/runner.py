@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..imaging import cost
+from ..imaging._xp import device_kind
 from ..imaging.calibration import FS_HZ
 from ..imaging.pixels import lm_grid
 
@@ -164,10 +165,8 @@ def imaging_mode(cfg, npix, nstand, nchan):
     if im.get("tolerance") is None:
         return im["method"], im["precision"], None
     from ..imaging import plan as planner
-
-    class _Ns:  # choose() needs only the namespace's name: planning must not need CuPy
-        __name__ = "cupy" if cfg["device"].startswith("gpu") else "numpy"
-    pick = planner.choose(im["tolerance"], xp=_Ns, ntime=int(im["accumulate_frames"]), nant=nstand, npix=npix,
+    # the device string ('cpu', 'gpu:0', 'gpu:all'): planning for a GPU needs no CuPy and no GPU
+    pick = planner.choose(im["tolerance"], cfg["device"], ntime=int(im["accumulate_frames"]), nant=nstand, npix=npix,
                           npol=2, nchan=nchan, products=im["products"], method=im["method"],
                           precision=im["precision"])
     return pick.method, pick.precision, pick
@@ -400,13 +399,13 @@ def plan(cfg):
                 needs_cross(prods)])
     acc = int(im["accumulate_frames"])
     gulp = int(src["gulp_nframe"])
-    dev = "gpu" if cfg["device"].startswith("gpu") else "cpu"
+    dev = device_kind(cfg["device"])
+    method, precision, pick = imaging_mode(cfg, npix, nstand_any, nchan)
     per_image = cost.route_cmacs(acc, nstand_any, npix, 2, nblk)
     per_gulp = {k: v * nchan * gulp / acc for k, v in per_image.items()}
     bytes_ = {k: v * nchan for k, v in
-              cost.route_bytes(gulp, nstand_any, npix, 2, 8 if im["precision"] == "fp32" else 16).items()}
+              cost.route_bytes(gulp, nstand_any, npix, 2, 16 if precision == "fp64" else 8).items()}
     input_bytes = gulp * nchan * station.nstand * 2  # ci4: one byte per complex sample
-    method, precision, pick = imaging_mode(cfg, npix, nstand_any, nchan)
     chosen = method if method != "auto" else cost.choose_method(acc, nstand_any, npix, 2, nblk)
     if im["kind"] != "dft":
         t_gulp = float("nan")
