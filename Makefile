@@ -1,11 +1,16 @@
 # Two commands do all set-up on a fresh machine (Debian/Ubuntu, Python >= 3.10):
 #   make demo   -- install system packages and a virtualenv, run the default pipeline end to end
 #   make test   -- the same set-up, then the test suite (what CI runs)
+# On a machine with an NVIDIA GPU:
+#   make gpu-check  -- CuPy too, then the GPU tests, every shipped pipeline by bf-epic run on the GPU
+#                      and the CPU with their outputs compared, and the planner's GPU picks (a table)
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup test demo bench clean
+.PHONY: setup test demo bench gpu-check clean
+# CuPy for the GPU check: gpu (CUDA 12 wheels), gpu-cuda12 or gpu-cuda13 (the machine's own toolkit)
+GPU_EXTRA ?= gpu
 
 setup: $(VENV)/.installed
 
@@ -21,6 +26,10 @@ test: setup
 
 demo: setup
 	$(BIN)/bf-epic run pipelines/lwasv_sim_allsky.yaml
+
+gpu-check: setup
+	$(BIN)/python -m pip install -q -e '.[$(GPU_EXTRA)]'
+	$(BIN)/python tools/gpu_check.py --json output/gpu_check.json
 
 bench: setup
 	$(BIN)/python tools/bench_dft.py --device cpu --json bench_dft_cpu.json

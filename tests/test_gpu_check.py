@@ -1,0 +1,93 @@
+"""tools/gpu_check.py's comparison of two runs' outputs (the GPU check itself needs a GPU): it must
+pass equal outputs and catch each kind of difference a GPU bug would leave."""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("astropy")
+pytest.importorskip("h5py")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import gpu_check  # noqa: E402
+
+
+def _fits(path, data):
+    from astropy.io import fits
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fits.PrimaryHDU(np.asarray(data, np.float32)).writeto(path, overwrite=True)
+
+
+def _cube(path, data):
+    import h5py
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with h5py.File(path, "w") as f:
+        f.create_dataset("images", data=np.asarray(data, np.float16))
+        f.create_dataset("time_tag", data=np.arange(len(data), dtype=np.int64))
+
+
+def _cands(path, rows):
+    from bf_epic_blocks.io.candidates import write_candidates
+    from astropy.table import Table
+    t = Table(rows=rows, names=("sequence", "image", "pixel", "dm", "width", "snr"))
+    write_candidates(path, t)
+
+
+@pytest.fixture
+def sky():
+    rng = np.random.default_rng(0)
+    img = rng.uniform(1, 100, (2, 16, 16))
+    img[:, :3] = np.nan                                  # below the horizon
+    return img
+
+
+def test_equal_outputs_pass_and_differences_are_caught(tmp_path, sky):
+    g, c = tmp_path / "gpu", tmp_path / "cpu"
+    _fits(c / "a.fits", sky)
+    _fits(g / "a.fits", sky * (1 + 1e-7))
+    _cube(c / "cube.h5", sky)
+    with np.errstate(invalid="ignore"):
+        _cube(g / "cube.h5", np.float16(sky) + np.spacing(np.float16(sky)))   # one float16 rounding apart
+    (c / "a.png").write_bytes(b"png")
+    (g / "a.png").write_bytes(b"png")
+    res = gpu_check.compare_dirs(g, c)
+    assert all(v["ok"] for v in res.values()), res
+    assert res["a.fits"]["rel_diff"] < 1e-6 and res["cube.h5"]["ulp_diff"] <= 1.0
+
+    worse = sky.copy()
+    worse[1, 8, 8] += 1e-3 * np.nanmax(sky)              # a 1e-3 error in one pixel
+    _fits(g / "a.fits", worse)
+    with np.errstate(invalid="ignore"):
+        _cube(g / "cube.h5", np.float16(sky) + 3 * np.spacing(np.float16(sky)))
+    masked = sky.copy()
+    masked[0, 10, 10] = np.nan
+    _fits(g / "b.fits", masked)
+    _fits(c / "b.fits", sky)
+    (c / "only_cpu.png").write_bytes(b"png")
+    res = gpu_check.compare_dirs(g, c)
+    assert not res["a.fits"]["ok"] and res["a.fits"]["rel_diff"] == pytest.approx(1e-3, rel=1e-3)
+    assert not res["cube.h5"]["ok"] and res["cube.h5"]["ulp_diff"] >= 2
+    assert not res["b.fits"]["ok"] and "NaN masks differ" in res["b.fits"]["problem"]
+    assert not res["only_cpu.png"]["ok"]
+
+
+def test_candidate_tables_compare_by_their_candidates(tmp_path):
+    rows = [("s0", 10, 5, 0.4, 2, 12.0), ("s0", 90, 7, 1.2, 1, 8.0)]
+    _cands(tmp_path / "cpu" / "c_candidates.ecsv", rows)
+    _cands(tmp_path / "gpu" / "c_candidates.ecsv", [r[:5] + (r[5] * (1 + 1e-6),) for r in rows])
+    assert gpu_check.compare_dirs(tmp_path / "gpu", tmp_path / "cpu")["c_candidates.ecsv"]["ok"]
+    _cands(tmp_path / "gpu" / "c_candidates.ecsv", rows[:1] + [("s0", 91, 7, 1.2, 1, 8.0)])
+    res = gpu_check.compare_dirs(tmp_path / "gpu", tmp_path / "cpu")["c_candidates.ecsv"]
+    assert not res["ok"] and "1 only on the GPU, 1 only on the CPU" in res["problem"]
+
+
+def test_inputs_found_or_the_pipeline_skipped_with_a_reason(tmp_path):
+    yml = tmp_path / "p.yaml"
+    data = tmp_path / "data"
+    data.mkdir()
+    cfg = {"source": {"kind": "tbf", "path": "../nowhere/x.dat"}}
+    assert "not found" in gpu_check.resolve_input(yml, cfg, data)[2]
+    (data / "x.dat").write_bytes(b"")
+    ov, sender, why = gpu_check.resolve_input(yml, cfg, data)
+    assert why is None and ov == [f"source.path={(data / 'x.dat').resolve()}"]
+    assert gpu_check.resolve_input(yml, {"source": {"kind": "simulated"}}, data) == ([], None, None)
