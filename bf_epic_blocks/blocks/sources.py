@@ -14,6 +14,7 @@ import warnings
 import numpy as np
 
 from ..imaging.calibration import FS_HZ
+from . import _compat
 from ._compat import HostToDevice, assign_storage, bfp, span_array
 from .headers import efield_header
 
@@ -164,18 +165,25 @@ class SimSkySourceBlock(bfp.SourceBlock):
     station : StationTable (positions, cable terms and flags come from it; the simulated cables
               delay and scale the voltages exactly as the data model says).
     freq_hz : channel centres; ``start`` : astropy Time (or ISO string); ``duration_s`` : length.
-    sources, noise_power, seed : as :func:`bf_epic_blocks.sky.simulate_efield`; the sky is
-              recomputed for each gulp's start time; gulp g uses seed (seed, g) so runs repeat exactly.
-    quantize : True writes 'ci4' scaled like an F-engine (rms 2 units; scale fixed by the first
-              gulp), False writes 'cf32'.
+    sources, noise_power, seed : as :func:`bf_epic_blocks.sky.simulate_efield`. The samples are made
+              by :mod:`bf_epic_blocks.sky.fastsim` where the ring lives (one CUDA kernel per gulp
+              on a GPU, its NumPy twin on the host): every sample is a function of the seed and its
+              place, so runs repeat exactly whatever the gulp size, and GPU and CPU give the same data.
+    quantize : True writes 'ci4' scaled like an F-engine (rms 2 units, from the model's expected
+              power), False writes 'cf32'.
     transients : dispersed bursts, ``[{ra_deg, dec_deg, start_s, duration_s, flux_jy, dm}]`` with
               ``start_s`` seconds after ``start`` (at the highest channel; see sky.efield).
+    refresh_s : seconds of data between recomputations of the source directions (the sky turns
+              0.004 deg in a second).
     """
 
     def __init__(self, station, freq_hz, start, duration_s, sources, gulp_nframe, noise_power=1000.0, seed=1,
-                 quantize=True, cable=True, progress=None, space="system", transients=None, *args, **kwargs):
+                 quantize=True, cable=True, progress=None, space="system", transients=None, *args, refresh_s=1.0,
+                 **kwargs):
         super().__init__(["simulated-sky"], gulp_nframe, space, *args, **kwargs)
         from astropy.time import Time
+
+        from ..sky.efield import check_transient
         self.station, self.freq_hz = station, np.asarray(freq_hz, dtype=np.float64)
         self.start = Time(start, scale="utc")
         width = abs(self.freq_hz[1] - self.freq_hz[0]) if len(self.freq_hz) > 1 else 25e3
@@ -187,12 +195,15 @@ class SimSkySourceBlock(bfp.SourceBlock):
         self.quantize, self.cable, self.progress = quantize, cable, progress
         self.scale = None
         self.transients = list(transients or [])
+        self._bursts = [check_transient(i, tr) for i, tr in enumerate(self.transients)]
+        self.refresh_frames = max(1, int(round(float(refresh_s) / self.dt_s)))
         self._h2d = HostToDevice()
 
     def create_reader(self, sourcename):
         return _Reader(pos=0)
 
     def on_sequence(self, reader, sourcename):
+        from ..sky import fastsim, source_directions
         st = self.station
         self.time_tag0 = int(round(self.start.unix * FS_HZ))
         hdr = efield_header("simulated-sky", self.time_tag0, self.freq_hz, self.dt_s, st.to_header(self.freq_hz),
@@ -200,38 +211,80 @@ class SimSkySourceBlock(bfp.SourceBlock):
                             simulation={"sources": [str(s) if not isinstance(s, dict) else s.get("name", "custom")
                                                     for s in self.sources],
                                         "noise_power": self.noise_power, "seed": self.seed, "start": self.start.isot,
-                                        "transients": self.transients})
-        from ..sky import source_directions
+                                        "transients": self.transients, "generator": "counter (sky.fastsim)"})
         d = source_directions(self.sources, self.start, st.location)
         log.info("simulated sky at %s UTC: %s above the horizon%s", self.start.isot[:19],
                  ", ".join(f"{n} (alt {np.degrees(a):.1f} deg)" for n, a in zip(d.names, d.alt)) or "no source",
                  f"; below: {', '.join(d.dropped)}" if d.dropped else "")
+        self._cable = None
         if self.cable:
-            self._delay = np.moveaxis(st.cable_delay_s(self.freq_hz), -1, 0)
-            self._gain = np.moveaxis(st.cable_gain(self.freq_hz), -1, 0)
-        else:
-            self._delay = self._gain = None
+            tau = np.moveaxis(st.cable_delay_s(self.freq_hz), -1, 0)[:, :, :2]     # (nchan, nstand, 2)
+            gain = np.moveaxis(st.cable_gain(self.freq_hz), -1, 0)[:, :, :2]
+            self._cable = np.sqrt(gain) * np.exp(-2j * np.pi * self.freq_hz[:, None, None] * tau)
+        self._keys = fastsim.stream_keys(self.seed)
+        self._xp = self._gen_namespace()
+        self._w_at = None
+        self._weights(0)
+        if self.quantize:
+            self.scale = 2.0 / fastsim.expected_rms(self._w_steady, self.noise_power)
         return [hdr]
 
-    def on_data(self, reader, ospans):
+    def _gen_namespace(self):
+        """Where the samples are made: on the GPU for 'cuda' rings and for pinned 'cuda_host' rings
+        (copied down), on the host otherwise."""
+        if _compat.space_of(self.orings[0]) in ("cuda", "cuda_host"):
+            from ..imaging._xp import cupy_or_none, gpu_available
+            if gpu_available():
+                return cupy_or_none()
+        return np
+
+    def _weights(self, pos):
+        """The sky's weights and burst windows for the data from sample ``pos`` (recomputed each
+        ``refresh_frames``)."""
+        if self._w_at is not None and pos - self._w_at < self.refresh_frames:
+            return
         from astropy.time import TimeDelta
 
-        from ..sky import quantize_ci4, simulate_efield
+        from ..sky import fastsim, source_directions
+        t = self.start + TimeDelta(pos * self.dt_s, format="sec")
+        loc, f = self.station.location, self.freq_hz
+        d = source_directions(self.sources, t, loc)
+        flux = [s.flux_at(f) for s in d.sources]
+        l, m, n = list(d.l), list(d.m), list(d.n)
+        bursts = []
+        for i, (dm, dur, src) in enumerate(self._bursts):
+            b = source_directions([src], t, loc)
+            if not len(b.sources):
+                if self._w_at is None:
+                    log.warning("transient %s is below the horizon: not simulated", src["name"])
+                continue
+            flux.append(b.sources[0].flux_at(f))
+            l, m, n = l + [b.l[0]], m + [b.m[0]], n + [b.n[0]]
+            bursts.append({"start_s": self.transients[i]["start_s"], "duration_s": dur, "dm": dm})
+        flux = np.stack(flux, axis=1) if flux else np.zeros((len(f), 0))
+        w = fastsim.sky_weights(self.station.xyz_m, f, np.array(l), np.array(m), np.array(n), flux, self._cable)
+        self._w_steady = w[:, :len(d.sources)]
+        on0, on1 = fastsim.burst_windows(len(d.sources), bursts, f, self.dt_s)
+        xp = self._xp
+        self._w, self._on0, self._on1 = xp.asarray(w), xp.asarray(on0), xp.asarray(on1)
+        self._w_at = pos
+
+    def on_data(self, reader, ospans):
+        from ..sky import fastsim
         dst = span_array(ospans[0])
         n = min(dst.shape[0], self.nframe - reader.pos)
         if n <= 0:
             return [0]
-        t = self.start + TimeDelta(reader.pos * self.dt_s, format="sec")
-        gulp_index = reader.pos // max(1, self.gulp_nframe)
-        x = simulate_efield(self.station.xyz_m, self.freq_hz, n, sources=self.sources, time=t,
-                            location=self.station.location, cable_delay_s=self._delay, cable_gain=self._gain,
-                            noise_power=self.noise_power, seed=[self.seed, gulp_index],
-                            transients=self.transients, t0_s=reader.pos * self.dt_s, sample_time_s=self.dt_s)
-        if self.quantize:
-            packed, self.scale = quantize_ci4(x, scale=self.scale)
-            _write_span(dst[:n], packed, self._h2d)
-        else:
-            _write_span(dst[:n], x.astype(np.complex64), self._h2d)
+        self._weights(reader.pos)
+        xp = self._xp
+        shape = (n, len(self.freq_hz), self.station.nstand, 2)
+        dtype = np.uint8 if self.quantize else np.complex64
+        direct = type(dst).__module__.startswith("cupy") and dst.dtype == dtype and dst[:n].flags.c_contiguous
+        out = dst[:n] if direct else xp.empty(shape, dtype)
+        fastsim.make_gulp(out, reader.pos, self._w, self._on0, self._on1, self._keys, self.noise_power, self.scale)
+        if not direct:
+            host = out.get() if xp is not np else out
+            _write_span(dst[:n], host, self._h2d)
         reader.pos += n
         if self.progress:
             self.progress(n)

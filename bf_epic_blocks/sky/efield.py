@@ -158,29 +158,35 @@ _TRANSIENT_KEYS = {"name", "start_s", "duration_s", "flux_jy", "dm", "spectral_i
                    "az_deg", "alt_deg", "l", "m"}
 
 
+def check_transient(i, tr):
+    """(dm, duration_s, source dict) of ``transients[i]``, or a clear error naming what is wrong."""
+    if not isinstance(tr, dict):
+        raise TypeError(f"transients[{i}]: expected a mapping {{ra_deg, dec_deg, start_s, duration_s, flux_jy, dm}}, "
+                        f"got {tr!r}")
+    unknown = set(tr) - _TRANSIENT_KEYS
+    missing = {"start_s", "duration_s", "flux_jy"} - set(tr)
+    if unknown or missing:
+        raise ValueError(f"transients[{i}]: " + "; ".join(
+            ([f"unknown keys {sorted(unknown)}"] if unknown else []) + ([f"missing {sorted(missing)}"] if missing else [])))
+    dm, dur = float(tr.get("dm", 0.0)), float(tr["duration_s"])
+    if not (dur > 0 and dm >= 0):
+        raise ValueError(f"transients[{i}]: duration_s must be > 0 and dm >= 0, got {dur!r}, {dm!r}")
+    src = {k: tr[k] for k in tr if k in ("name", "flux_jy", "spectral_index", "ra_deg", "dec_deg", "az_deg",
+                                          "alt_deg", "l", "m")}
+    src.setdefault("name", f"transient{i}")
+    return dm, dur, src
+
+
 def _add_transients(x, transients, f, xyz, t0_s, dt_s, time, location, sigma, pattern, rng):
     """Add dispersed bursts to x (nchan, npol, ntime, nant) in place (module docstring)."""
     nchan, npol, ntime, _ = x.shape
     t = t0_s + dt_s * np.arange(ntime)
     for i, tr in enumerate(transients):
-        if not isinstance(tr, dict):
-            raise TypeError(f"transients[{i}]: expected a mapping {{ra_deg, dec_deg, start_s, duration_s, flux_jy, dm}}, "
-                            f"got {tr!r}")
-        unknown = set(tr) - _TRANSIENT_KEYS
-        missing = {"start_s", "duration_s", "flux_jy"} - set(tr)
-        if unknown or missing:
-            raise ValueError(f"transients[{i}]: " + "; ".join(
-                ([f"unknown keys {sorted(unknown)}"] if unknown else []) + ([f"missing {sorted(missing)}"] if missing else [])))
-        dm, dur = float(tr.get("dm", 0.0)), float(tr["duration_s"])
-        if not (dur > 0 and dm >= 0):
-            raise ValueError(f"transients[{i}]: duration_s must be > 0 and dm >= 0, got {dur!r}, {dm!r}")
+        dm, dur, src = check_transient(i, tr)
         start = float(tr["start_s"]) + dispersion_delay_s(dm, f, f.max())                  # (nchan,)
         on = (t[None, :] >= start[:, None]) & (t[None, :] < start[:, None] + dur)      # (nchan, ntime)
         if not on.any():
             continue
-        src = {k: tr[k] for k in tr if k in ("name", "flux_jy", "spectral_index", "ra_deg", "dec_deg", "az_deg",
-                                              "alt_deg", "l", "m")}
-        src.setdefault("name", f"transient{i}")
         d = source_directions([src], time, location)
         if not len(d.sources):
             log.warning("transient %s is below the horizon: not simulated", src["name"])

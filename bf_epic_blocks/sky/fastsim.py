@@ -1,0 +1,265 @@
+"""The simulated sky made where the imager runs: F-engine voltages from counters, one pass per gulp.
+
+Same data model as :func:`bf_epic_blocks.sky.simulate_efield` (module :mod:`.efield`: unpolarised
+point sources of power S/2 per pol, geometric phase sigma = +1, cable delay and power gain applied
+to the sky signal, receiver noise of power ``noise_power`` added after them, dispersed bursts),
+made differently so that a GPU can make it at many times real time and a CPU twin gives the same
+samples:
+
+* Every random number is a function of where it goes, not of a generator's state: a complex
+  normal (variance 1 per real part) is Box-Muller of a 64-bit hash (splitmix64's finaliser) of a
+  counter, with the counter for source s, pol p, channel c at absolute sample T
+  ``((T nchan + c) nsrc + s) 2 + p`` and for the noise of antenna a ``((T nchan + c) nant + a) 2 + p``,
+  each stream with its own key from the seed. So a sample does not depend on the gulp size, a gulp
+  can be made anywhere, and the NumPy and CUDA versions below agree sample for sample (up to the
+  last bit of float32 ``log``/``cos``/``sin``, which moves a 4-bit sample by one step about once in
+  a million).
+* The sky signal is X = sum_s e_s,p(T, c) W[c, s, a, p] + noise, with
+  W = sqrt(S_s(nu_c) / 4) exp(sigma 2 pi i nu_c (s_hat . r_a) / c0) sqrt(G) exp(-2 pi i nu_c tau)
+  (:func:`sky_weights`); a burst is a source whose e is zero outside its dispersed window of samples.
+* 4-bit output (``ci4``, high nibble real) is ``clip(rint(X * scale), -8, 7)``; the scale is set
+  from the model's expected power (rms 2 units, as :func:`quantize_ci4` does from the data).
+* The source directions are recomputed when the sky has turned for ``refresh_s`` (the
+  block's choice), not per sample: 1 s of Earth rotation moves a source by 0.004 deg.
+
+On a GPU one CUDA kernel writes the packed bytes (or complex64) straight into the output array:
+nothing but the weights crosses the bus.
+"""
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from ..conventions import SPEED_OF_LIGHT_M_S
+from ..imaging.transient import dispersion_delay_s
+
+__all__ = ["stream_keys", "sky_weights", "burst_windows", "expected_rms", "make_gulp", "complex_normals"]
+
+_M64 = (1 << 64) - 1
+_NEVER = np.iinfo(np.int64).min, np.iinfo(np.int64).max
+
+
+def _mix64_int(z: int) -> int:
+    z = (z + 0x9E3779B97F4A7C15) & _M64
+    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _M64
+    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _M64
+    return z ^ (z >> 31)
+
+
+def stream_keys(seed: int) -> tuple[int, int]:
+    """(sky key, noise key): 64-bit keys of the two counter streams for ``seed`` (any int)."""
+    base = _mix64_int(int(seed) & _M64)
+    return _mix64_int(base ^ 1), _mix64_int(base ^ 2)
+
+
+def _mix64(z):
+    """splitmix64's finaliser on a uint64 NumPy array (wrapping arithmetic)."""
+    z = z + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def complex_normals(counter, key):
+    """(re, im) float32 arrays: a standard normal pair for each uint64 counter (Box-Muller of its hash)."""
+    h = _mix64(np.asarray(counter, np.uint64) ^ np.uint64(key))
+    u1 = (((h >> np.uint64(40)).astype(np.float64) + 0.5) * (1.0 / 16777216.0)).astype(np.float32)
+    u2 = (((h >> np.uint64(16)) & np.uint64(0xFFFFFF)).astype(np.float64) * (1.0 / 16777216.0)).astype(np.float32)
+    r = np.sqrt(np.float32(-2.0) * np.log(u1))
+    th = np.float32(6.2831855) * u2
+    return r * np.cos(th), r * np.sin(th)
+
+
+def sky_weights(xyz_m, freq_hz, l, m, n, flux, cable=None, sigma=+1):
+    """W (nchan, nsrc, nant, 2) complex64: amplitude x geometric phase x cable term (module docstring).
+
+    l, m, n : (nsrc,) direction cosines; flux : (nchan, nsrc) flux density per source; cable : None
+    or complex (nchan, nant, 2) sqrt(G) exp(-2 pi i nu tau).
+    """
+    f = np.asarray(freq_hz, np.float64)
+    s_dot_r = np.stack([l, m, n], axis=1) @ np.asarray(xyz_m, np.float64).T                  # (nsrc, nant)
+    phase = np.exp(sigma * 2j * np.pi * (f[:, None, None] / SPEED_OF_LIGHT_M_S) * s_dot_r[None])   # (c, s, a)
+    w = np.sqrt(np.asarray(flux, np.float64) / 4.0)[:, :, None, None] * phase[..., None] * np.ones(2)
+    if cable is not None:
+        w = w * np.asarray(cable)[:, None, :, :]
+    return w.astype(np.complex64)
+
+
+def burst_windows(nsteady, bursts, freq_hz, dt_s):
+    """(on0, on1) int64 (nsrc, nchan): the samples [on0, on1) (counted from the run's first sample)
+    in which each source shines: always for the ``nsteady`` steady ones, then for each burst
+    ``{start_s, duration_s, dm}`` from ``start_s + delay_c`` for ``duration_s`` (delay to the
+    band's highest channel, as :func:`~.efield.simulate_efield` does)."""
+    f = np.asarray(freq_hz, np.float64)
+    on0 = np.full((nsteady + len(bursts), len(f)), _NEVER[0], np.int64)
+    on1 = np.full_like(on0, _NEVER[1])
+    for j, b in enumerate(bursts):
+        start = float(b["start_s"]) + dispersion_delay_s(float(b.get("dm", 0.0)), f, f.max())
+        on0[nsteady + j] = np.ceil(start / dt_s - 1e-9)
+        on1[nsteady + j] = np.ceil((start + float(b["duration_s"])) / dt_s - 1e-9)
+    return on0, on1
+
+
+def expected_rms(w_steady, noise_power):
+    """rms of the real and imaginary parts of the voltages the model expects (bursts left out)."""
+    var = noise_power / 2.0 + np.sum(np.abs(np.asarray(w_steady, np.complex128)) ** 2, axis=1)   # (c, a, p)
+    return math.sqrt(float(np.mean(var)))
+
+
+# ------------------------------------------------------------------ the gulp
+_KERNEL = r"""
+typedef unsigned long long u64;
+__device__ __forceinline__ u64 mix64(u64 z) {
+    z += 0x9E3779B97F4A7C15ULL;
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ULL;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
+    return z ^ (z >> 31);
+}
+__device__ __forceinline__ float2 cnormal(u64 ctr, u64 key) {
+    u64 h = mix64(ctr ^ key);
+    float u1 = (float)(((double)(h >> 40) + 0.5) * (1.0 / 16777216.0));
+    float u2 = (float)((double)((h >> 16) & 0xFFFFFFULL) * (1.0 / 16777216.0));
+    float r = sqrtf(-2.0f * logf(u1));
+    float th = 6.2831855f * u2;
+    return make_float2(r * cosf(th), r * sinf(th));
+}
+// one block per (sample, channel): the sources' signals once in shared memory, then one thread per
+// antenna writes both pols (two ci4 bytes, or two complex64)
+extern "C" __global__ void sim_gulp(unsigned char* out, int ci4, const float2* W, const long long* on0,
+                                    const long long* on1, long long t0, int nchan, int nsrc, int nant,
+                                    u64 key_sky, u64 key_noise, float noise_amp, float scale) {
+    extern __shared__ float2 e[];
+    const long long tc = blockIdx.x;
+    const int c = (int)(tc % nchan);
+    const long long T = t0 + tc / nchan;
+    const u64 base = (u64)(T * nchan + c);
+    for (int i = threadIdx.x; i < 2 * nsrc; i += blockDim.x) {
+        const int s = i >> 1;
+        const bool on = T >= on0[s * nchan + c] && T < on1[s * nchan + c];
+        float2 z = cnormal((base * nsrc + s) * 2 + (i & 1), key_sky);
+        e[i] = on ? z : make_float2(0.0f, 0.0f);
+    }
+    __syncthreads();
+    for (int a = threadIdx.x; a < nant; a += blockDim.x) {
+        float2 v[2];
+        for (int p = 0; p < 2; ++p) {
+            float vr = 0.0f, vi = 0.0f;
+            for (int s = 0; s < nsrc; ++s) {
+                const float2 w = W[(((long long)c * nsrc + s) * nant + a) * 2 + p];
+                const float2 z = e[2 * s + p];
+                vr = vr + (z.x * w.x - z.y * w.y);
+                vi = vi + (z.x * w.y + z.y * w.x);
+            }
+            const float2 nz = cnormal((base * nant + a) * 2 + p, key_noise);
+            v[p] = make_float2(vr + noise_amp * nz.x, vi + noise_amp * nz.y);
+        }
+        const long long k = tc * nant + a;
+        if (ci4) {
+            unsigned short packed = 0;
+            for (int p = 0; p < 2; ++p) {
+                int qr = max(-8, min(7, __float2int_rn(v[p].x * scale)));
+                int qi = max(-8, min(7, __float2int_rn(v[p].y * scale)));
+                packed |= (unsigned short)(((qr & 0xF) << 4) | (qi & 0xF)) << (8 * p);
+            }
+            reinterpret_cast<unsigned short*>(out)[k] = packed;
+        } else {
+            reinterpret_cast<float4*>(out)[k] = make_float4(v[0].x, v[0].y, v[1].x, v[1].y);
+        }
+    }
+}
+"""
+_GPU = {}
+
+
+def _gpu_kernel():
+    import cupy
+    dev = cupy.cuda.Device().id
+    if dev not in _GPU:
+        # no fused multiply-add: the same float32 operations as the NumPy twin
+        _GPU[dev] = cupy.RawKernel(_KERNEL, "sim_gulp", options=("--fmad=false",))
+    return _GPU[dev]
+
+
+def make_gulp(out, t0, w, on0, on1, keys, noise_power, scale=None):
+    """Samples t0 .. t0 + len(out) - 1 of the run into ``out`` (NumPy or CuPy, where it lives).
+
+    out : (n, nchan, nant, 2) uint8 for ci4 (packed, high nibble real; needs ``scale``) or complex64
+    (the voltages themselves). w : (nchan, nsrc, nant, 2) complex64 (:func:`sky_weights`, in out's
+    namespace on a GPU); on0, on1 : (nsrc, nchan) int64 (:func:`burst_windows`); keys :
+    :func:`stream_keys`. Returns ``out``.
+    """
+    n, nchan, nant, npol = out.shape
+    ci4 = out.dtype == np.uint8
+    if npol != 2 or not (ci4 or out.dtype == np.complex64):
+        raise ValueError(f"make_gulp: out must be (n, nchan, nant, 2) uint8 (ci4) or complex64, got "
+                         f"{out.shape} {out.dtype}")
+    if ci4 and not (scale and scale > 0):
+        raise ValueError("make_gulp: ci4 output needs a positive scale")
+    nsrc = int(w.shape[1])
+    noise_amp = np.float32(math.sqrt(noise_power / 2.0))
+    if type(out).__module__.startswith("cupy"):
+        import cupy
+        if not out.flags.c_contiguous:
+            raise ValueError("make_gulp: the output array must be C-contiguous")
+        k = _gpu_kernel()
+        threads = 256 if nant > 128 else 64
+        args = (out, np.int32(ci4), cupy.asarray(w, cupy.complex64), cupy.asarray(on0, cupy.int64),
+                cupy.asarray(on1, cupy.int64), np.int64(t0), np.int32(nchan), np.int32(nsrc), np.int32(nant),
+                np.uint64(keys[0]), np.uint64(keys[1]), noise_amp, np.float32(scale or 1.0))
+        if n * nchan:
+            k((n * nchan,), (threads,), args, shared_mem=max(8, 16 * nsrc))
+        return out
+    _numpy_gulp(out, int(t0), np.asarray(w, np.complex64), np.asarray(on0), np.asarray(on1), keys, noise_amp,
+                np.float32(scale or 1.0), ci4)
+    return out
+
+
+def _numpy_gulp(out, t0, w, on0, on1, keys, noise_amp, scale, ci4, chunk=16):
+    """The CPU twin: chunks of ``chunk`` samples on a thread each (NumPy lets go of the interpreter
+    lock in its loops), one per core."""
+    n = out.shape[0]
+    starts = range(0, n, chunk)
+    if n <= chunk or (os.cpu_count() or 1) == 1:
+        for a0 in starts:
+            _numpy_chunk(out, a0, min(n, a0 + chunk), t0, w, on0, on1, keys, noise_amp, scale, ci4)
+        return
+    with ThreadPoolExecutor(max_workers=min(os.cpu_count() or 1, 16)) as pool:
+        list(pool.map(lambda a0: _numpy_chunk(out, a0, min(n, a0 + chunk), t0, w, on0, on1, keys, noise_amp,
+                                              scale, ci4), starts))
+
+
+def _numpy_chunk(out, a0, a1, t0, w, on0, on1, keys, noise_amp, scale, ci4):
+    # the kernel's float32 operations, element for element; worked in (t, c, p, a) order so that the
+    # antenna axis is the long contiguous one, and turned to (t, c, a, p) at the end
+    n, nchan, nant, _ = out.shape
+    nsrc = w.shape[1]
+    wt = np.ascontiguousarray(np.transpose(w, (0, 1, 3, 2)))                                # (c, s, p, a)
+    wr, wi = np.ascontiguousarray(wt.real), np.ascontiguousarray(wt.imag)
+    c = np.arange(nchan, dtype=np.uint64)
+    a_p = (np.arange(nant, dtype=np.uint64)[None, :] * np.uint64(2) + np.arange(2, dtype=np.uint64)[:, None])  # (p, a)
+    s_p = np.arange(nsrc, dtype=np.uint64)[:, None] * np.uint64(2) + np.arange(2, dtype=np.uint64)[None, :]   # (s, p)
+    T = np.arange(t0 + a0, t0 + a1, dtype=np.int64)
+    base = T.astype(np.uint64)[:, None] * np.uint64(nchan) + c[None, :]                  # (t, c)
+    vr = np.zeros((len(T), nchan, 2, nant), np.float32)
+    vi = np.zeros_like(vr)
+    if nsrc:
+        er, ei = complex_normals(base[:, :, None, None] * np.uint64(2 * nsrc) + s_p, keys[0])   # (t, c, s, p)
+        on = (T[:, None, None] >= on0.T[None]) & (T[:, None, None] < on1.T[None])       # (t, c, s)
+        er, ei = er * on[..., None], ei * on[..., None]
+        for s in range(nsrc):
+            zr, zi = er[:, :, s, :, None], ei[:, :, s, :, None]
+            vr = vr + (zr * wr[None, :, s] - zi * wi[None, :, s])
+            vi = vi + (zr * wi[None, :, s] + zi * wr[None, :, s])
+    nr, ni = complex_normals(base[:, :, None, None] * np.uint64(2 * nant) + a_p, keys[1])  # (t, c, p, a)
+    vr = np.transpose(vr + noise_amp * nr, (0, 1, 3, 2))
+    vi = np.transpose(vi + noise_amp * ni, (0, 1, 3, 2))
+    dst = out[a0:a0 + len(T)]
+    if ci4:
+        qr = np.clip(np.rint(vr * scale), -8, 7).astype(np.int8).view(np.uint8)
+        qi = np.clip(np.rint(vi * scale), -8, 7).astype(np.int8).view(np.uint8)
+        dst[...] = ((qr & np.uint8(0xF)) << np.uint8(4)) | (qi & np.uint8(0xF))
+    else:
+        dst.real, dst.imag = vr, vi

@@ -1,0 +1,127 @@
+"""The counter-based simulated sky (sky.fastsim) against the data model's own statistics, the
+burst windows, its 4-bit packing, gulp-size independence, and on a GPU the CUDA kernel against
+its NumPy twin."""
+import numpy as np
+import pytest
+
+from bf_epic_blocks.imaging._xp import gpu_available
+from bf_epic_blocks.imaging.transient import dispersion_delay_s
+from bf_epic_blocks.io.tbf import unpack_ci4
+from bf_epic_blocks.sky import fastsim
+
+C = 299792458.0
+
+
+def scene(nant=8, nchan=2, seed=4):
+    rng = np.random.default_rng(seed)
+    xyz = rng.normal(0, 30, (nant, 3)) * [1, 1, 0.05]
+    freq = 60e6 + 25e3 * np.arange(nchan)
+    l, m = np.array([0.3, -0.2]), np.array([0.1, 0.5])
+    n = np.sqrt(1 - l * l - m * m)
+    flux = np.array([[400.0, 100.0]] * nchan)
+    cable = np.exp(-2j * np.pi * rng.uniform(0, 1, (nchan, nant, 2))) * rng.uniform(0.8, 1.2, (nchan, nant, 2))
+    w = fastsim.sky_weights(xyz, freq, l, m, n, flux, cable)
+    on0, on1 = fastsim.burst_windows(2, [], freq, 40e-6)
+    return dict(xyz=xyz, freq=freq, l=l, m=m, n=n, flux=flux, cable=cable, w=w, on0=on0, on1=on1)
+
+
+def test_complex_normals_are_standard_and_independent():
+    re, im = fastsim.complex_normals(np.arange(2_000_000, dtype=np.uint64), fastsim.stream_keys(7)[1])
+    for x in (re, im):
+        assert abs(x.mean()) < 5e-3 and abs(x.var() - 1) < 5e-3
+        assert abs(np.mean(x.astype(np.float64) ** 4) - 3) < 0.03          # Gaussian kurtosis
+    assert abs(np.corrcoef(re, im)[0, 1]) < 3e-3
+    assert abs(np.corrcoef(re[:-1], re[1:])[0, 1]) < 3e-3                   # neighbouring counters
+    other = fastsim.complex_normals(np.arange(200_000, dtype=np.uint64), fastsim.stream_keys(8)[1])[0]
+    assert abs(np.corrcoef(re[:200_000], other)[0, 1]) < 1e-2              # another seed: another sky
+
+
+def test_voltage_covariance_is_the_data_model():
+    """Sample covariance of the voltages against the model's: sum_s S_s/2 g_a g_b* e^{...} + noise
+    delta_ab, computed here from positions, fluxes and cables, not from sky_weights."""
+    s = scene()
+    T, noise = 40000, 300.0
+    x = np.empty((T, 2, 8, 2), np.complex64)
+    fastsim.make_gulp(x, 0, s["w"], s["on0"], s["on1"], fastsim.stream_keys(1), noise)
+    for c in range(2):
+        for p in range(2):
+            v = x[:, c, :, p].astype(np.complex128)
+            R = v.T @ v.conj() / T
+            g = s["cable"][c, :, p]
+            ref = noise * np.eye(8, dtype=complex)
+            for k in range(2):
+                a = np.exp(2j * np.pi * s["freq"][c] / C * (s["xyz"] @ [s["l"][k], s["m"][k], s["n"][k]])) * g
+                ref += s["flux"][c, k] / 2 * np.outer(a, a.conj())
+            scale = np.sqrt(np.outer(np.diag(ref.real), np.diag(ref.real)) / T)   # one sigma of each entry
+            assert np.max(np.abs(R - ref) / scale) < 5.5
+
+
+def test_ci4_is_the_quantised_voltage_and_gulps_do_not_matter():
+    s = scene()
+    keys, noise = fastsim.stream_keys(3), 50.0
+    scale = 2.0 / fastsim.expected_rms(s["w"], noise)
+    v = np.empty((100, 2, 8, 2), np.complex64)
+    fastsim.make_gulp(v, 1000, s["w"], s["on0"], s["on1"], keys, noise)
+    q = np.empty(v.shape, np.uint8)
+    fastsim.make_gulp(q, 1000, s["w"], s["on0"], s["on1"], keys, noise, scale)
+    ref = np.clip(np.rint(v.real * np.float32(scale)), -8, 7) + 1j * np.clip(np.rint(v.imag * np.float32(scale)), -8, 7)
+    np.testing.assert_array_equal(unpack_ci4(q), ref)
+    # the rms the scale was set from is the data's (the sources' signals are common to all antennas:
+    # 20,000 samples hold 40,000 independent values of each)
+    long = np.empty((20000, 2, 8, 2), np.complex64)
+    fastsim.make_gulp(long, 0, s["w"], s["on0"], s["on1"], keys, noise)
+    rms = np.sqrt(np.mean(np.abs(long.astype(np.complex128)) ** 2) / 2)
+    assert abs(rms * scale - 2.0) < 0.02
+    # made in two pieces of other sizes: the same samples
+    parts = [np.empty((37, 2, 8, 2), np.uint8), np.empty((63, 2, 8, 2), np.uint8)]
+    fastsim.make_gulp(parts[0], 1000, s["w"], s["on0"], s["on1"], keys, noise, scale)
+    fastsim.make_gulp(parts[1], 1037, s["w"], s["on0"], s["on1"], keys, noise, scale)
+    np.testing.assert_array_equal(np.concatenate(parts), q)
+
+
+def test_a_burst_shines_only_in_its_dispersed_window():
+    s = scene(nchan=4)
+    f, dt = s["freq"], 40e-6
+    burst = {"start_s": 0.004, "duration_s": 0.0008, "dm": 30.0}
+    on0, on1 = fastsim.burst_windows(0, [burst], f, dt)
+    w = s["w"][:, :1]
+    x = np.empty((400, 4, 8, 2), np.complex64)
+    fastsim.make_gulp(x, 0, w, on0, on1, fastsim.stream_keys(2), 0.0)
+    delay = dispersion_delay_s(30.0, f, f.max())
+    t = np.arange(400) * dt
+    for c in range(4):
+        lit = np.abs(x[:, c]).max(axis=(1, 2)) > 0
+        expect = (t >= 0.004 + delay[c] - 1e-12) & (t < 0.004 + delay[c] + 0.0008 - 1e-12)
+        np.testing.assert_array_equal(lit, expect)
+    assert delay[0] > 2 * dt                                               # the window moves with channel
+
+
+def test_bad_output_is_refused():
+    s = scene()
+    with pytest.raises(ValueError, match="needs a positive scale"):
+        fastsim.make_gulp(np.empty((4, 2, 8, 2), np.uint8), 0, s["w"], s["on0"], s["on1"], (1, 2), 1.0)
+    with pytest.raises(ValueError, match="uint8 \\(ci4\\) or complex64"):
+        fastsim.make_gulp(np.empty((4, 2, 8, 2), np.float32), 0, s["w"], s["on0"], s["on1"], (1, 2), 1.0)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
+def test_the_gpu_kernel_makes_the_numpy_twin_s_samples():
+    import cupy
+    s = scene(nant=256, nchan=3)
+    bursts = [{"start_s": 0.002, "duration_s": 0.001, "dm": 5.0}]
+    w = np.concatenate([s["w"], s["w"][:, :1]], axis=1)
+    on0, on1 = fastsim.burst_windows(2, bursts, s["freq"], 40e-6)
+    keys, noise = fastsim.stream_keys(11), 200.0
+    scale = 2.0 / fastsim.expected_rms(s["w"], noise)
+    for dtype in (np.uint8, np.complex64):
+        ref = np.empty((512, 3, 256, 2), dtype)
+        fastsim.make_gulp(ref, 4096, w, on0, on1, keys, noise, scale)
+        got = cupy.empty(ref.shape, dtype)
+        fastsim.make_gulp(got, 4096, cupy.asarray(w), on0, on1, keys, noise, scale)
+        got = got.get()
+        if dtype is np.uint8:
+            d = np.abs(unpack_ci4(got) - unpack_ci4(ref))
+            assert np.mean(d > 0) < 1e-5 and d.max() <= np.sqrt(2)       # a rare step at a rounding edge
+        else:
+            assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) < 1e-5
