@@ -1,0 +1,253 @@
+"""End to end: what a station operator gets from `bf-epic run`, beside the imaging core, in one run.
+
+Rows (each `bf-epic run` is a subprocess, timed from outside, as a user would see it):
+
+* recording: a TBF file written with the project's own writer (`io.tbf.write_tbf`: LWA-SV, 256
+  stands, random 4-bit samples; default 10 s of 24 channels = 3.08 GB), imaged on a 64x64 all-sky
+  grid with 1-s images, once per precision; the first run of the first precision is a warm-up
+  (CuPy kernels compiled and cached). Whole run: data seconds / process wall; pipeline: data
+  seconds / the runner's own wall (`wall_s` of `--summary-json`); steady: images after the first /
+  time between the first and the last image file.
+* simulated: `pipelines/lwasv_sim_allsky.yaml` (2 s, 16 channels), the same measures.
+* start-up: the first of those runs with CuPy's kernel cache pointed at an empty folder
+  (`CUPY_CACHE_DIR`): seconds to the first image file, and the whole run.
+* source alone: the simulated sky's generator (`sky.fastsim.make_gulp`) for 16, 24 and 784
+  channels on the device asked for; and the TBF reader alone (`io.tbf.iter_tbf_gulps`).
+* core: the imager's operator on the same problem (24 channels, 256 stands, 3,205 pixels, 1,024
+  samples per gulp, 25,000 per image) called directly, per gulp, as a real-time factor.
+
+usage: python tools/bench_e2e.py [--device gpu|cpu] [--seconds 10] [--nchan 24] [--precisions fp16,fp32]
+                                 [--skip recording,simulated,startup,source,core] [--json PATH]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+DT = 40e-6
+
+
+def bf_epic():
+    beside = Path(sys.executable).with_name("bf-epic")
+    exe = str(beside) if beside.exists() else shutil.which("bf-epic")
+    return [exe] if exe else [sys.executable, "-m", "bf_epic_blocks.pipeline.cli"]
+
+
+def write_recording(path, seconds, nchan, seed=1):
+    """A TBF file of ``seconds`` of LWA-SV data (256 stands, ``nchan`` channels from 1200), written in
+    pieces of 1 s so memory stays small; returns (bytes, write seconds)."""
+    from bf_epic_blocks.imaging.calibration import FS_HZ
+    from bf_epic_blocks.io.tbf import write_tbf
+    rng = np.random.default_rng(seed)
+    ntime = int(round(seconds / DT))
+    step = int(round(FS_HZ * DT))
+    t0 = time.perf_counter()
+    with open(path, "wb") as out:
+        for a in range(0, ntime, 25000):
+            n = min(25000, ntime - a)
+            data = rng.integers(0, 256, size=(n, nchan, 256, 2), dtype=np.uint8)
+            piece = str(path) + ".piece"
+            write_tbf(piece, data, 1200, int(1.7e9) * FS_HZ + a * step, frame_id=1)
+            with open(piece, "rb") as fh:
+                shutil.copyfileobj(fh, out, 1 << 24)
+            os.remove(piece)
+    return os.path.getsize(path), time.perf_counter() - t0
+
+
+def recording_yaml(path, tbf, outdir, device, precision):
+    Path(path).write_text(f"""name: e2e_recording
+station: {{name: lwasv}}
+source: {{kind: tbf, path: {tbf}, gulp_nframe: 1024}}
+calibration: {{cable: true, pattern: none}}
+imager: {{kind: dft, grid: {{size: 64}}, accumulate_frames: 25000, products: [I], method: auto,
+         precision: {precision}}}
+device: {device}
+output: {{dir: {outdir}, fits: true, png: false}}
+""")
+
+
+def run_cli(yml, data_s, outdir, env_extra=None, sets=()):
+    """Run bf-epic; watch the output folder for image files. Returns a row of times."""
+    shutil.rmtree(outdir, ignore_errors=True)
+    summary = Path(tempfile.mkdtemp()) / "summary.json"
+    cmd = bf_epic() + ["run", str(yml), "--no-progress", "-q", "--summary-json", str(summary)]
+    for s in sets:
+        cmd += ["--set", s]
+    env = dict(os.environ, **(env_extra or {}))
+    seen = {}
+    stop = threading.Event()
+
+    def watch():
+        while not stop.is_set():
+            if Path(outdir).exists():
+                for p in Path(outdir).rglob("*.fits"):
+                    seen.setdefault(p.name, time.perf_counter())
+            time.sleep(0.01)
+    th = threading.Thread(target=watch, daemon=True)
+    t0 = time.perf_counter()
+    th.start()
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - t0
+    stop.set()
+    th.join()
+    if p.returncode:
+        raise RuntimeError(f"bf-epic run failed ({p.returncode}): {p.stderr[-2000:]}")
+    info = json.loads(summary.read_text())
+    marks = sorted(seen.values())
+    row = {"wall_s": wall, "pipeline_s": info["wall_s"], "images": info["images"], "data_s": data_s,
+           "rt_whole": data_s / wall, "rt_pipeline": data_s / info["wall_s"],
+           "first_image_s": (marks[0] - t0) if marks else None}
+    if len(marks) >= 3:
+        per_image = (marks[-1] - marks[0]) / (len(marks) - 1)
+        row["rt_steady"] = (data_s / info["images"]) / per_image
+    return row
+
+
+def core_rate(device, nchan, precision, gulps=20):
+    """Real-time factor of the imaging core alone: 1,024-sample gulps of random ci4 integers
+    accumulated into 25,000-sample images, on the LWA-SV layout, 64x64 all-sky grid."""
+    from bf_epic_blocks import imaging
+    from bf_epic_blocks.imaging.dft import DFTOperator
+    from bf_epic_blocks.station import load_station
+    st = load_station("lwasv")
+    xp = np
+    if device == "gpu":
+        import cupy as xp
+    freq = 25e3 * (1200 + np.arange(nchan))
+    lm = imaging.lm_grid(64).lm
+    op = DFTOperator(xp.asarray(st.xyz_m), xp.asarray(freq), xp.asarray(lm), npol=2, precision=precision)
+    acc = op.accumulator(("I",), method="auto", ntime_hint=25000)
+    rng = np.random.default_rng(0)
+    x = xp.asarray((rng.integers(-8, 8, (1024, nchan, st.nstand, 2)) + 1j * rng.integers(-8, 8, (1024, nchan, st.nstand, 2))).astype(np.complex64))
+    acc.add(x)
+    sync = (lambda: xp.cuda.Device().synchronize()) if device == "gpu" else (lambda: None)
+    sync()
+    t0 = time.perf_counter()
+    for _ in range(gulps):
+        acc.add(x)
+    sync()
+    per_gulp = (time.perf_counter() - t0) / gulps
+    return {"per_gulp_ms": per_gulp * 1e3, "rt": 1024 * DT / per_gulp}
+
+
+def source_rates(device, nchans=(16, 24, 784), gulp=1024):
+    from bf_epic_blocks.sky import fastsim
+    rows = []
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(0, 40, (256, 3))
+    xp = np
+    if device == "gpu":
+        import cupy as xp
+    for nchan in nchans:
+        if device != "gpu" and nchan > 100:
+            continue                     # the whole band on a CPU: hours, not a benchmark
+        f = 25e3 * (2960 + np.arange(nchan))
+        l, m = np.array([0.1, -0.3, 0.4, 0.0]), np.array([0.2, 0.1, -0.3, 0.6])
+        w = fastsim.sky_weights(xyz, f, l, m, np.sqrt(1 - l * l - m * m), np.full((nchan, 4), 1e4))
+        on0, on1 = fastsim.burst_windows(4, [], f, DT)
+        wd = xp.asarray(w)
+        out = xp.empty((gulp, nchan, 256, 2), np.uint8)
+        keys = fastsim.stream_keys(1)
+        fastsim.make_gulp(out, 0, wd, on0, on1, keys, 1000.0, 0.1)
+        reps = 20 if device == "gpu" else 2
+        if device == "gpu":
+            xp.cuda.Device().synchronize()
+        t0 = time.perf_counter()
+        for i in range(reps):
+            fastsim.make_gulp(out, (i + 1) * gulp, wd, on0, on1, keys, 1000.0, 0.1)
+        if device == "gpu":
+            xp.cuda.Device().synchronize()
+        per = (time.perf_counter() - t0) / reps
+        rows.append({"nchan": nchan, "per_gulp_ms": per * 1e3, "rt": gulp * DT / per})
+    return rows
+
+
+def reader_rate(path, data_s):
+    from bf_epic_blocks.io.tbf import iter_tbf_gulps, scan_tbf
+    t0 = time.perf_counter()
+    info = scan_tbf(path)
+    t1 = time.perf_counter()
+    for _ in iter_tbf_gulps(path, 1024, info=info):
+        pass
+    t2 = time.perf_counter()
+    return {"scan_s": t1 - t0, "read_s": t2 - t1, "rt": data_s / (t2 - t0)}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="gpu", choices=("gpu", "cpu"))
+    ap.add_argument("--seconds", type=float, default=10.0)
+    ap.add_argument("--nchan", type=int, default=24)
+    ap.add_argument("--precisions", default="fp16,fp32")
+    ap.add_argument("--workdir", default=None, help="where the recording is written (default: a temp folder)")
+    ap.add_argument("--skip", default="", help="comma list of rows to leave out")
+    ap.add_argument("--json")
+    a = ap.parse_args(argv)
+    skip = set(a.skip.split(",")) - {""}
+    work = Path(a.workdir or tempfile.mkdtemp(prefix="bf_e2e_"))
+    work.mkdir(parents=True, exist_ok=True)
+    res = {"date": time.strftime("%Y-%m-%d", time.gmtime()), "device": a.device, "args": vars(a)}
+    if a.device == "gpu":
+        import cupy
+        res["gpu"] = cupy.cuda.runtime.getDeviceProperties(0)["name"].decode()
+    res["cpu_cores"] = os.cpu_count()
+
+    def show(name, row):
+        print(f"{name:<34} " + ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
+                                         for k, v in row.items()), flush=True)
+
+    if "startup" not in skip or "simulated" not in skip:
+        yml = REPO / "pipelines" / "lwasv_sim_allsky.yaml"
+        sets = [f"device={a.device}", f"output.dir={work / 'sim'}", "output.png=false"]
+        if "startup" not in skip:
+            cold = Path(tempfile.mkdtemp(prefix="cupy_cache_"))
+            res["startup_cold"] = run_cli(yml, 2.0, work / "sim", {"CUPY_CACHE_DIR": str(cold)}, sets)
+            show("simulated demo, empty kernel cache", res["startup_cold"])
+        if "simulated" not in skip:
+            run_cli(yml, 2.0, work / "sim", None, sets)               # warm-up
+            res["simulated"] = run_cli(yml, 2.0, work / "sim", None, sets)
+            show("simulated demo (2 s, 16 ch)", res["simulated"])
+    if "source" not in skip:
+        res["source"] = source_rates(a.device)
+        for r in res["source"]:
+            show(f"simulated sky alone, {r['nchan']} ch", r)
+    if "recording" not in skip:
+        tbf = work / "recording.tbf"
+        nbytes, wt = write_recording(tbf, a.seconds, a.nchan)
+        print(f"wrote {tbf}: {nbytes / 1e9:.2f} GB in {wt:.1f} s", flush=True)
+        res["recording_bytes"] = nbytes
+        res["reader"] = reader_rate(tbf, a.seconds)
+        show("TBF reader alone", res["reader"])
+        res["recording"] = {}
+        for i, prec in enumerate(a.precisions.split(",")):
+            y = work / f"rec_{prec}.yaml"
+            recording_yaml(y, tbf, work / "rec", a.device, prec)
+            if i == 0:
+                run_cli(y, a.seconds, work / "rec")                      # warm-up (kernels cached)
+            res["recording"][prec] = run_cli(y, a.seconds, work / "rec")
+            show(f"recording {a.seconds:g} s x {a.nchan} ch, {prec}", res["recording"][prec])
+        tbf.unlink()
+    if "core" not in skip:
+        res["core"] = {p: core_rate(a.device, a.nchan, p) for p in a.precisions.split(",")}
+        for p, r in res["core"].items():
+            show(f"core, {a.nchan} ch, {p}", r)
+    if a.json:
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps(res, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
