@@ -267,3 +267,92 @@ def test_scan_matches_read():
     assert info.nframe == 5 and info.frame_bytes == SV_FRAME and info.nstand == 256
     assert info.station_hint == "lwasv" and info.engine == "ADP" and info.nchan == 60
     np.testing.assert_array_equal(info.channels, np.arange(2348, 2408))
+
+
+# ------------------------------------------------------------------ raw gulps (the GPU's read path)
+def _written(tmp_path, name, ntime=50, nchan=24, nstand=4, order=None, drop=None, seed=0):
+    from bf_epic_blocks.io.tbf import write_tbf
+    data = np.random.default_rng(seed).integers(0, 256, (ntime, nchan, nstand, 2), dtype=np.uint8)
+    p = tmp_path / name
+    write_tbf(p, data, 1200, 10**15, frame_id=5, order=order)
+    if drop is not None:   # cut one frame out of the file
+        fb = 24 + 12 * nstand * 2
+        raw = p.read_bytes()
+        p.write_bytes(raw[:drop * fb] + raw[(drop + 1) * fb:])
+    return p, data
+
+
+def _strip(p, g):
+    """A RawGulp's samples read the way the GPU path reads them (pread_into), headers stripped here."""
+    import os
+    from bf_epic_blocks.blocks.sources import pread_into
+    buf = np.empty(g.nbytes, np.uint8)
+    fd = os.open(p, os.O_RDONLY)
+    try:
+        pread_into(fd, buf, g.offset, piece=1000)
+    finally:
+        os.close(fd)
+    return buf.reshape(g.ntime, g.nblock, g.frame_bytes)[:, :, g.header_bytes:].reshape(g.ntime, -1, 4, 2)
+
+
+def test_raw_gulps_are_the_file_s_bytes_and_irregular_gulps_fall_back(tmp_path):
+    from bf_epic_blocks.io.tbf import RawGulp
+    p, data = _written(tmp_path, "ordered.tbf")
+    gulps = list(iter_tbf_gulps(p, 16, raw=True))
+    assert [type(g) for g in gulps] == [RawGulp] * 4 and [g.ntime for g in gulps] == [16, 16, 16, 2]
+    np.testing.assert_array_equal(np.concatenate([_strip(p, g) for g in gulps]), data)
+    ref = read_tbf(p)
+    for key in ("frames_read", "frames_missing", "time_gaps"):
+        assert sum(g.stats[key] for g in gulps) == ref.stats[key]
+    np.testing.assert_array_equal(np.concatenate([g.time_tags for g in gulps]), ref.time_tags)
+    # two blocks of sample 20 swapped, and a frame of sample 40 missing: those gulps are gathered
+    order = np.arange(100)
+    order[[40, 41]] = order[[41, 40]]
+    p2, data2 = _written(tmp_path, "swapped.tbf", order=order, seed=1)
+    kinds = [type(g).__name__ for g in iter_tbf_gulps(p2, 16, raw=True)]
+    assert kinds == ["RawGulp", "TBFData", "RawGulp", "RawGulp"]
+    p3, _ = _written(tmp_path, "dropped.tbf", drop=81, seed=2)
+    got = list(iter_tbf_gulps(p3, 16, raw=True))
+    assert [type(g).__name__ for g in got] == ["RawGulp", "RawGulp", "TBFData", "RawGulp"]
+    assert got[2].stats["frames_missing"] == 1
+    out = np.concatenate([_strip(p2, g) if isinstance(g, RawGulp) else g.data
+                          for g in iter_tbf_gulps(p2, 16, raw=True)])
+    np.testing.assert_array_equal(out, data2)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("fmt", ["tbf", "tbx"])
+def test_a_gpu_ring_gets_the_file_s_samples_through_raw_gulps(tmp_path, fmt):
+    """TBFSourceBlock / TBXSourceBlock writing a 'cuda' ring (file bytes -> pinned -> GPU, headers
+    stripped there) give the samples the host reader gives, for in-order and irregular gulps."""
+    from bf_epic_blocks.imaging._xp import gpu_available
+    if not gpu_available():
+        pytest.skip("needs CuPy and a CUDA device")
+    pytest.importorskip("lsl")
+    from bf_epic_blocks.blocks import ArraySinkBlock, bfp
+    from bf_epic_blocks.blocks.sources import TBFSourceBlock, TBXSourceBlock
+    from bf_epic_blocks.io.tbx import write_tbx
+    from bf_epic_blocks.station.offline import configure_offline
+    configure_offline()
+    rng = np.random.default_rng(5)
+    data = rng.integers(0, 256, (300, 24, 256, 2), dtype=np.uint8)
+    order = np.arange(600)
+    order[[300, 301]] = order[[301, 300]]                       # one irregular gulp
+    p = tmp_path / f"x.{fmt}"
+    if fmt == "tbf":
+        from bf_epic_blocks.io.tbf import write_tbf
+        write_tbf(p, data, 1200, 10**15, frame_id=1, order=order)
+        cls, station = TBFSourceBlock, None
+    else:
+        write_tbx(p, data, 10**15 + 8192 * np.arange(300), 1200, order=order)
+        cls, station = TBXSourceBlock, "lwasv"
+    got = {}
+    for space in ("system", "cuda"):
+        with bfp.Pipeline() as pl:
+            src = cls(str(p), 64, station=station, space=space)
+            sink = ArraySinkBlock(src)
+            pl.run()
+        got[space] = sink.result(0).view(np.uint8).reshape(data.shape)
+        assert src.tbf_stats["frames_read"] == 600 and src.tbf_stats["samples"] == 300
+    np.testing.assert_array_equal(got["cuda"], data)
+    np.testing.assert_array_equal(got["system"], data)

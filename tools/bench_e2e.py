@@ -9,6 +9,8 @@ Rows (each `bf-epic run` is a subprocess, timed from outside, as a user would se
   seconds / the runner's own wall (`wall_s` of `--summary-json`); steady: images after the first /
   time between the first and the last image file.
 * simulated: `pipelines/lwasv_sim_allsky.yaml` (2 s, 16 channels), the same measures.
+* recording from disk: the last precision again after the file's pages are dropped from the page
+  cache (``posix_fadvise(DONTNEED)``), so it is read from the disk.
 * start-up: the first of those runs with CuPy's kernel cache pointed at an empty folder
   (`CUPY_CACHE_DIR`): seconds to the first image file, and the whole run.
 * source alone: the simulated sky's generator (`sky.fastsim.make_gulp`) for 16, 24 and 784
@@ -76,6 +78,20 @@ imager: {{kind: dft, grid: {{size: 64}}, accumulate_frames: 25000, products: [I]
 device: {device}
 output: {{dir: {outdir}, fits: true, png: false}}
 """)
+
+
+def evict(path):
+    """Drop the file's pages from the page cache (posix_fadvise DONTNEED); True if the call worked."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+            os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+        finally:
+            os.close(fd)
+        return True
+    except (OSError, AttributeError):
+        return False
 
 
 def run_cli(yml, data_s, outdir, env_extra=None, sets=()):
@@ -238,6 +254,11 @@ def main(argv=None):
                 run_cli(y, a.seconds, work / "rec")                      # warm-up (kernels cached)
             res["recording"][prec] = run_cli(y, a.seconds, work / "rec")
             show(f"recording {a.seconds:g} s x {a.nchan} ch, {prec}", res["recording"][prec])
+        # the same file with its pages dropped from the page cache: read from the disk
+        evicted = evict(tbf)
+        res["recording_from_disk"] = run_cli(y, a.seconds, work / "rec")
+        res["recording_from_disk"]["page_cache_evicted"] = evicted
+        show(f"recording, {prec}, evicted from cache", res["recording_from_disk"])
         tbf.unlink()
     if "core" not in skip:
         res["core"] = {p: core_rate(a.device, a.nchan, p) for p in a.precisions.split(",")}

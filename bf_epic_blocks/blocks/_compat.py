@@ -218,8 +218,8 @@ class HostToDevice:
         self.nbytes = 0        # bytes copied
         self.staged_bytes = 0  # of which went through a staging buffer
 
-    def _stage(self, src):
-        nbytes = src.nbytes
+    def _slot(self, nbytes):
+        """A pinned staging buffer of ``nbytes`` whose previous copy is done, and its slot."""
         if len(self._stages) < self.nstage:
             self._stages.append([pinned_empty((nbytes,), np.uint8), None])
         slot = self._stages[self._next]
@@ -230,10 +230,30 @@ class HostToDevice:
             slot[0], slot[1] = pinned_empty((nbytes,), np.uint8), None
         elif slot[1] is not None:
             slot[1].synchronize()  # its previous copy must be done before we overwrite it
-        buf = slot[0][:nbytes]
+        return slot[0][:nbytes], slot
+
+    def _stage(self, src):
+        buf, slot = self._slot(src.nbytes)
         np.copyto(buf.view(src.dtype).reshape(src.shape), src)  # one host copy, any strides
-        self.staged_bytes += nbytes
+        self.staged_bytes += src.nbytes
         return buf, slot
+
+    def fill_and_copy(self, dst, fill):
+        """``fill(buf)`` writes ``dst.nbytes`` bytes into a pinned staging buffer (a file read
+        straight into it, say), which is then copied to the C-contiguous CuPy array ``dst`` on
+        the current stream: no other host copy."""
+        import cupy as cp
+        with stream_context():
+            stream = cp.cuda.get_current_stream()
+            buf, slot = self._slot(dst.nbytes)
+            fill(buf)
+            cp.cuda.runtime.memcpyAsync(dst.data.ptr, buf.ctypes.data, dst.nbytes,
+                                        cp.cuda.runtime.memcpyHostToDevice, stream.ptr)
+            slot[1] = stream.record(cp.cuda.Event(block=False, disable_timing=True))
+            if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost and a GPU
+                stream.synchronize()
+        self.nbytes += dst.nbytes
+        return dst
 
     def copy(self, dst, src):
         import cupy as cp

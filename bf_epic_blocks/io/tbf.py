@@ -304,6 +304,53 @@ def scan_tbf(path, *, chunk_frames: int = 65536, warn: bool = True) -> TBFInfo:
                    frame_block_index=b_idx.ravel().astype(np.int64))
 
 
+@dataclass
+class RawGulp:
+    """A gulp whose frames lie in the file as one unbroken run in (time, channel block) order, each
+    (time, block) once: bytes ``[offset, offset + nframe * frame_bytes)`` of the file are its frames,
+    and their payloads, headers (``header_bytes``) stripped, are its samples, packed ci4
+    (ntime, nblock * nchan_frame, nstand, 2). Readers copy those bytes wherever they are needed
+    (a GPU strips the headers) instead of gathering frames on the host. ``time_tags``, ``stats``: as
+    :class:`TBFData`."""
+    offset: int
+    nframe: int
+    ntime: int
+    nblock: int
+    frame_bytes: int
+    header_bytes: int
+    time_tags: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def nbytes(self) -> int:
+        return self.nframe * self.frame_bytes
+
+
+def _gulp_stats(info, t0, t1, prev_tag, nread, nexpected, nduplicate):
+    tags = info.time_tags[t0:t1]
+    step = int(round(FS_HZ / info.chan_bw_hz))
+    steps = np.diff(tags if prev_tag is None else np.concatenate([[prev_tag], tags]))
+    return tags, dict(frames_read=int(nread), frames_expected=int(nexpected), frames_missing=int(nexpected - nread),
+                      frames_duplicate=int(nduplicate), time_gaps=int(np.count_nonzero(steps > step)),
+                      truncated_bytes=0)
+
+
+def _as_raw(info, frames, t0, t1, prev_tag, header_bytes):
+    """A :class:`RawGulp` when ``frames`` (file order within a time) are one run of the file in
+    (time, block) order covering every cell of [t0, t1) once; else None."""
+    nt, nb = t1 - t0, len(info.blocks)
+    n = nt * nb
+    if len(frames) != n or n == 0 or frames[-1] - frames[0] != n - 1:
+        return None
+    if not (np.all(np.diff(frames) == 1)
+            and np.array_equal(info.frame_time_index[frames], np.repeat(np.arange(t0, t1), nb))
+            and np.array_equal(info.frame_block_index[frames], np.tile(np.arange(nb), nt))):
+        return None
+    tags, stats = _gulp_stats(info, t0, t1, prev_tag, n, n, 0)
+    return RawGulp(offset=int(frames[0]) * info.frame_bytes, nframe=n, ntime=nt, nblock=nb,
+                   frame_bytes=info.frame_bytes, header_bytes=header_bytes, time_tags=tags.copy(), stats=stats)
+
+
 def _gather(mm, info, frames: np.ndarray, t0: int, t1: int, prev_tag, header_bytes: int, data_cls):
     """Assemble time indices [t0, t1) from the given frame indices (all inside that range) into a
     ``data_cls`` (TBFData, or TBX's subclass): shared by the TBF and TBX readers, whose grids differ
@@ -320,12 +367,7 @@ def _gather(mm, info, frames: np.ndarray, t0: int, t1: int, prev_tag, header_byt
     if frames.size:
         payload = np.asarray(mm[frames, header_bytes:])  # fancy index: reads only these frames
         out[ti, bi] = payload.reshape(len(frames), nc, ns, 2)
-    tags = info.time_tags[t0:t1]
-    step = int(round(FS_HZ / info.chan_bw_hz))
-    steps = np.diff(tags if prev_tag is None else np.concatenate([[prev_tag], tags]))
-    stats = dict(frames_read=int(len(frames)), frames_expected=int(nt * nb),
-                 frames_missing=int(nt * nb - len(frames)), frames_duplicate=int(len(cell) - len(keep)),
-                 time_gaps=int(np.count_nonzero(steps > step)), truncated_bytes=0)
+    tags, stats = _gulp_stats(info, t0, t1, prev_tag, len(frames), nt * nb, len(cell) - len(keep))
     return data_cls(data=out.reshape(nt, nb * nc, ns, 2), time_tags=tags.copy(),
                     channels=info.channels.astype(np.int64), chan_bw_hz=info.chan_bw_hz,
                     frame_id=info.frame_id, stats=stats)
@@ -336,33 +378,37 @@ def _check_gulp(gulp_ntime):
         raise ValueError(f"gulp_ntime must be an integer >= 1, got {gulp_ntime!r}")
 
 
-def _iter_gulps(mm, info, gulp_ntime: int, header_bytes: int, data_cls):
-    """Chunks of ``gulp_ntime`` time tags of a scanned capture (TBF or TBX), in time order."""
+def _iter_gulps(mm, info, gulp_ntime: int, header_bytes: int, data_cls, raw=False):
+    """Chunks of ``gulp_ntime`` time tags of a scanned capture (TBF or TBX), in time order; with
+    ``raw``, a :class:`RawGulp` for each chunk whose frames lie in the file in order."""
     order = np.argsort(info.frame_time_index, kind="stable")  # file order within a time tag
     sorted_t = info.frame_time_index[order]
     prev = None
     for t0 in range(0, info.ntime, int(gulp_ntime)):
         t1 = min(info.ntime, t0 + int(gulp_ntime))
         lo, hi = np.searchsorted(sorted_t, [t0, t1])
-        chunk = _gather(mm, info, order[lo:hi], t0, t1, prev, header_bytes, data_cls)
+        chunk = _as_raw(info, order[lo:hi], t0, t1, prev, header_bytes) if raw else None
+        if chunk is None:
+            chunk = _gather(mm, info, order[lo:hi], t0, t1, prev, header_bytes, data_cls)
         prev = int(info.time_tags[t1 - 1])
         if t1 == info.ntime:
             chunk.stats["truncated_bytes"] = int(info.truncated_bytes)
         yield chunk
 
 
-def iter_tbf_gulps(path, gulp_ntime: int, *, info: TBFInfo | None = None) -> Iterator[TBFData]:
+def iter_tbf_gulps(path, gulp_ntime: int, *, info: TBFInfo | None = None, raw=False) -> Iterator[TBFData]:
     """Stream a TBF file as :class:`TBFData` chunks of ``gulp_ntime`` time tags (the last may be shorter).
 
     Every chunk has the full channel axis of the file (all blocks found by the header pass), so
     chunks concatenate along time into :func:`read_tbf`'s result; their ``stats`` add up to it.
-    ``info``: a :func:`scan_tbf` result to reuse (skips the header pass).
+    ``info``: a :func:`scan_tbf` result to reuse (skips the header pass). ``raw``: yield a
+    :class:`RawGulp` (the file's byte range) instead for chunks whose frames lie in the file in order.
     """
     _check_gulp(gulp_ntime)
     if info is None:
         info = scan_tbf(path, warn=True)
     mm, _ = _open_frames(path)
-    yield from _iter_gulps(mm, info, gulp_ntime, HEADER_BYTES, TBFData)
+    yield from _iter_gulps(mm, info, gulp_ntime, HEADER_BYTES, TBFData, raw=raw)
 
 
 def read_tbf(path) -> TBFData:

@@ -314,17 +314,18 @@ def scan_tbx(path, *, chunk_frames: int = 65536, warn: bool = True) -> TBXInfo:
                    frame_time_index=t_idx.ravel().astype(np.int64), frame_block_index=b_idx.ravel().astype(np.int64))
 
 
-def iter_tbx_gulps(path, gulp_ntime: int, *, info: TBXInfo | None = None) -> Iterator[TBXData]:
+def iter_tbx_gulps(path, gulp_ntime: int, *, info: TBXInfo | None = None, raw=False) -> Iterator[TBXData]:
     """Stream a TBX file as :class:`TBXData` chunks of ``gulp_ntime`` time tags (the last may be shorter).
 
     Every chunk has the file's full channel axis, so chunks concatenate along time into
     :func:`read_tbx`'s result and their ``stats`` add up to it. ``info``: a :func:`scan_tbx` result to reuse.
+    ``raw``: as :func:`bf_epic_blocks.io.tbf.iter_tbf_gulps`.
     """
     _check_gulp(gulp_ntime)
     if info is None:
         info = scan_tbx(path, warn=True)
     mm, _, _ = _open_frames(path)
-    yield from _iter_gulps(mm, info, gulp_ntime, HEADER_BYTES, TBXData)
+    yield from _iter_gulps(mm, info, gulp_ntime, HEADER_BYTES, TBXData, raw=raw)
 
 
 def read_tbx(path) -> TBXData:
