@@ -49,6 +49,20 @@ def device_kind(device) -> str:
     raise TypeError(f"device must be 'cpu', 'gpu' or an array namespace (the numpy or cupy module), got {device!r}")
 
 
+def host_all(a) -> bool:
+    """``all(a)`` of a small array (flags, positions, weights), decided on the host.
+
+    On a GPU a whole-array reduction goes to CUB, whose kernels NVRTC takes ~2 s each to compile
+    on a machine with an empty kernel cache: six such checks were 10 s of a cold first image
+    (H100, 2026-11-25). Copying a few kB to the host costs microseconds."""
+    return bool(np.all(to_numpy(a)))
+
+
+def host_any(a) -> bool:
+    """``any(a)`` of a small array, decided on the host (see :func:`host_all`)."""
+    return bool(np.any(to_numpy(a)))
+
+
 def pinned_empty(shape, dtype):
     """An uninitialised NumPy array in page-locked host memory (CuPy's pinned pool: cheap after the
     first), from and to which the GPU copies asynchronously at full bus speed; a plain NumPy array

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..conventions import SIGMA, SPEED_OF_LIGHT_M_S
 from . import cost
-from ._xp import get_xp, to_numpy
+from ._xp import get_xp, host_all, host_any, to_numpy
 from .gemm import (FP16, PRECISIONS, STACKED, check_precision, cmatmul, int_gram, pow2_scale, split_tf32, stack_operator,
                    stack_rhs, stacked_matmul)
 from .graphs import GraphCache
@@ -63,8 +63,8 @@ def _as_positions(xyz_m, xp):
     xyz = xp.asarray(xyz_m, dtype=xp.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"xyz_m must be shaped (nant, 3) East/North/Up metres; got shape {tuple(xyz.shape)}")
-    if not bool(xp.all(xp.isfinite(xyz))):
-        bad = int(xp.argmax(~xp.all(xp.isfinite(xyz), axis=1)))
+    if not host_all(xp.isfinite(xyz)):
+        bad = int(np.argmax(~np.all(np.isfinite(to_numpy(xyz)), axis=1)))
         raise ValueError(f"xyz_m has a non-finite position for antenna {bad}")
     return xyz
 
@@ -73,7 +73,7 @@ def _as_freqs(freq_hz, xp):
     f = xp.atleast_1d(xp.asarray(freq_hz, dtype=xp.float64))
     if f.ndim != 1:
         raise ValueError(f"freq_hz must be 1-D (nchan,), got shape {tuple(f.shape)}")
-    if not bool(xp.all(f > 0)) or not bool(xp.all(xp.isfinite(f))):
+    if not host_all(f > 0) or not host_all(xp.isfinite(f)):
         raise ValueError("freq_hz must be finite and positive (Hz)")
     return f
 
@@ -129,7 +129,7 @@ def _broadcast_weights(weights, nchan, nant, npol, xp):
     except ValueError:
         raise ValueError(f"weights of shape {tuple(w.shape)} do not broadcast to (nchan, nant, npol) = "
                          f"{(nchan, nant, npol)}") from None
-    if not bool(xp.all(xp.isfinite(w))):
+    if not host_all(xp.isfinite(w)):
         raise ValueError("weights contain NaN or inf; flag an antenna with weight 0 instead")
     return w
 
@@ -145,7 +145,7 @@ def _check_pattern(pattern, nchan, npix, nant, npol, xp):
     if not ok:
         raise ValueError(f"pattern of shape {tuple(b.shape)} does not broadcast to (nchan, npix, nant, npol) = "
                          f"{(nchan, npix, nant, npol)}")
-    if not bool(xp.all(xp.isfinite(b))):
+    if not host_all(xp.isfinite(b)):
         raise ValueError("pattern contains NaN or inf")
     return b
 
@@ -240,14 +240,14 @@ class DFTOperator:
         n_live = live.sum(axis=1)  # (nchan, npol): N_A per channel and pol
         self.n_live = n_live
         self.dead = n_live == 0
-        self.any_dead = bool(xp.any(self.dead))  # host flag: result() needs no device sync per image
+        self.any_dead = host_any(self.dead)  # host flag: result() needs no device sync per image
         if self.any_dead:
             log.warning("%d channel-pol combinations have every antenna flagged; their images are NaN",
                         int(self.dead.sum()))
         # Channels with every antenna of every pol flagged cost nothing: they are left out of the
         # GEMMs and come back as NaN images.
         chan_live = ~xp.all(self.dead, axis=1)
-        self.chan_index = None if bool(xp.all(chan_live)) else xp.flatnonzero(chan_live)
+        self.chan_index = None if host_all(chan_live) else xp.flatnonzero(chan_live)
         if self.chan_index is not None and int(self.chan_index.shape[0]) == 0:
             raise ValueError("every channel has every antenna flagged: there is nothing to image")
         # 1/N_A is applied to the image (norm), not to the data, so that integer voltages with
@@ -256,8 +256,8 @@ class DFTOperator:
         self.data_weights = w.astype(self.cdtype)                                # (nchan, nant, npol)
         self.weights128 = w                                                      # for integer covariances
         self.data_live = live
-        self.partial_flags = not bool(xp.all(live))
-        self.unit_weights = bool(xp.all((w == 0) | (w == 1)))
+        self.partial_flags = not host_all(live)
+        self.unit_weights = host_all((w == 0) | (w == 1))
         self.xyz_m = xyz[self.keep_index]
         live_sel = live if self.chan_index is None else live[self.chan_index]
         self.sel = _Selection(xp, self.chan_index, None if self.all_kept else self.keep_index,

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._xp import get_xp
+from ._xp import get_xp, host_all, host_any
 
 
 def n_from_lm(l, m):
@@ -45,7 +45,7 @@ def check_lm(pixels_lm):
         raise ValueError("pixels_lm is empty: at least one pixel is needed")
     r2 = lm[:, 0] ** 2 + lm[:, 1] ** 2
     bad = r2 > 1.0
-    if bool(xp.any(bad)) or not bool(xp.all(xp.isfinite(r2))):
+    if host_any(bad) or not host_all(xp.isfinite(r2)):
         idx = int(xp.argmax(bad | ~xp.isfinite(r2)))
         l, m = float(lm[idx, 0]), float(lm[idx, 1])
         raise ValueError(

@@ -8,7 +8,7 @@ exactly as a flagged antenna's zeroed voltage does in CalFoldBlock) and counted.
 """
 from __future__ import annotations
 
-from ._xp import get_xp, to_numpy
+from ._xp import get_xp, host_any
 
 __all__ = ["zero_nonfinite"]
 
@@ -44,7 +44,7 @@ def zero_nonfinite(x, xp=None, *, per_time: bool = False, inplace: bool = False)
     bad = ~xp.isfinite(x)  # complex: False unless both parts are finite
     axes = tuple(range(1 if per_time else 0, x.ndim - 2))
     counts = bad.sum(axis=axes, dtype=xp.int64) if axes else bad.astype(xp.int64)
-    if not bool(to_numpy(counts.any())):   # synchronised first: see to_numpy
+    if not host_any(counts):   # counts are small; on the host (see _xp.host_all), synchronised first
         return x, counts
     if inplace:
         x[bad] = 0
