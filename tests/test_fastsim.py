@@ -122,6 +122,6 @@ def test_the_gpu_kernel_makes_the_numpy_twin_s_samples():
         got = got.get()
         if dtype is np.uint8:
             d = np.abs(unpack_ci4(got) - unpack_ci4(ref))
-            assert np.mean(d > 0) < 1e-5 and d.max() <= np.sqrt(2)       # a rare step at a rounding edge
+            assert np.count_nonzero(d) <= 1, np.count_nonzero(d)        # 786,432 samples: the same
         else:
-            assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) < 1e-5
+            assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) < 1e-6

@@ -11,9 +11,9 @@ samples:
   counter, with the counter for source s, pol p, channel c at absolute sample T
   ``((T nchan + c) nsrc + s) 2 + p`` and for the noise of antenna a ``((T nchan + c) nant + a) 2 + p``,
   each stream with its own key from the seed. So a sample does not depend on the gulp size, a gulp
-  can be made anywhere, and the NumPy and CUDA versions below agree sample for sample (up to the
-  last bit of float32 ``log``/``cos``/``sin``, which moves a 4-bit sample by one step about once in
-  a million).
+  can be made anywhere, and the NumPy and CUDA versions below agree sample for sample (Box-Muller
+  in float64, rounded to float32: their float64 ``log``/``cos``/``sin`` may differ by an ulp, which
+  reaches a float32 sample about once in 10^8 values and a 4-bit sample almost never).
 * The sky signal is X = sum_s e_s,p(T, c) W[c, s, a, p] + noise, with
   W = sqrt(S_s(nu_c) / 4) exp(sigma 2 pi i nu_c (s_hat . r_a) / c0) sqrt(G) exp(-2 pi i nu_c tau)
   (:func:`sky_weights`); a burst is a source whose e is zero outside its dispersed window of samples.
@@ -64,13 +64,14 @@ def _mix64(z):
 
 
 def complex_normals(counter, key):
-    """(re, im) float32 arrays: a standard normal pair for each uint64 counter (Box-Muller of its hash)."""
+    """(re, im) float32 arrays: a standard normal pair for each uint64 counter (Box-Muller of its
+    hash, in float64, rounded to float32 at the end as the CUDA kernel does)."""
     h = _mix64(np.asarray(counter, np.uint64) ^ np.uint64(key))
-    u1 = (((h >> np.uint64(40)).astype(np.float64) + 0.5) * (1.0 / 16777216.0)).astype(np.float32)
-    u2 = (((h >> np.uint64(16)) & np.uint64(0xFFFFFF)).astype(np.float64) * (1.0 / 16777216.0)).astype(np.float32)
-    r = np.sqrt(np.float32(-2.0) * np.log(u1))
-    th = np.float32(6.2831855) * u2
-    return r * np.cos(th), r * np.sin(th)
+    u1 = ((h >> np.uint64(40)).astype(np.float64) + 0.5) * (1.0 / 16777216.0)
+    u2 = ((h >> np.uint64(16)) & np.uint64(0xFFFFFF)).astype(np.float64) * (1.0 / 16777216.0)
+    r = np.sqrt(-2.0 * np.log(u1))
+    th = 6.283185307179586 * u2
+    return (r * np.cos(th)).astype(np.float32), (r * np.sin(th)).astype(np.float32)
 
 
 def sky_weights(xyz_m, freq_hz, l, m, n, flux, cable=None, sigma=+1):
@@ -118,13 +119,17 @@ __device__ __forceinline__ u64 mix64(u64 z) {
     z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
     return z ^ (z >> 31);
 }
+// Box-Muller in float64, rounded to float32 at the end: libdevice's and NumPy's float64 log/sin/cos
+// differ by an ulp at most, which survives the rounding to float32 about once in 10^8 values, so
+// the GPU and the host twin give the same samples (float32 transcendentals moved a 4-bit sample
+// by one step about once in 10^6, enough to show in 16-sample images)
 __device__ __forceinline__ float2 cnormal(u64 ctr, u64 key) {
     u64 h = mix64(ctr ^ key);
-    float u1 = (float)(((double)(h >> 40) + 0.5) * (1.0 / 16777216.0));
-    float u2 = (float)((double)((h >> 16) & 0xFFFFFFULL) * (1.0 / 16777216.0));
-    float r = sqrtf(-2.0f * logf(u1));
-    float th = 6.2831855f * u2;
-    return make_float2(r * cosf(th), r * sinf(th));
+    double u1 = ((double)(h >> 40) + 0.5) * (1.0 / 16777216.0);
+    double u2 = (double)((h >> 16) & 0xFFFFFFULL) * (1.0 / 16777216.0);
+    double r = sqrt(-2.0 * log(u1));
+    double th = 6.283185307179586 * u2;
+    return make_float2((float)(r * cos(th)), (float)(r * sin(th)));
 }
 // one block per (sample, channel): the sources' signals once in shared memory, then one thread per
 // antenna writes both pols (two ci4 bytes, or two complex64)
