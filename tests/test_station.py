@@ -176,3 +176,30 @@ def test_capture_station_is_checked_against_the_stand_count():
     assert station_for_capture(st, "lwasv", 64, "x", "y") is st
     with pytest.raises(ValueError, match=r"TBF file's frames carry 256 stands but station 'lwana' has 64; name"):
         station_for_capture("lwana", "lwasv", 256, "TBF file's frames", "name the right station")
+
+
+def test_station_cache_gives_lsl_s_table_without_lsl(tmp_path, monkeypatch):
+    """load_station(name, freq_hz=f) caches the table with LSL's cable terms at f; the next call reads
+    the file (no LSL objects in it) and answers the same positions, flags and cable terms; other
+    frequencies or a damaged file go back to LSL."""
+    from bf_epic_blocks.station import tables
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    f = 25e3 * (2960 + np.arange(6))
+    ref = tables.load_station("lwasv")                       # straight from LSL, no cache
+    first = tables.load_station("lwasv", freq_hz=f)
+    files = list((tmp_path / "bf_epic_blocks" / "stations").glob("lwasv-*.npz"))
+    assert len(files) == 1 and first.cables is not None
+    again = tables.load_station("lwasv", freq_hz=f, extra_flags=[{"stand": int(ref.stand_ids[3]), "pol": "X"}])
+    assert again.cables is None and again.cable_table is not None
+    np.testing.assert_array_equal(again.xyz_m, ref.xyz_m)
+    np.testing.assert_array_equal(again.stand_ids, ref.stand_ids)
+    assert again.flags[3, 0] and (again.flags ^ ref.flags).sum() == (0 if ref.flags[3, 0] else 1)
+    np.testing.assert_array_equal(again.cable_delay_s(f), ref.cable_delay_s(f))
+    np.testing.assert_array_equal(again.cable_gain(f[2:4]), ref.cable_gain(f[2:4]))
+    assert (again.lat_deg, again.lon_deg, again.elev_m) == (ref.lat_deg, ref.lon_deg, ref.elev_m)
+    with pytest.raises(ValueError, match="cable terms only for its stored"):
+        again.cable_delay_s(f + 12.5e3)
+    assert tables.load_station("lwasv", freq_hz=f + 25e3).cables is not None    # other channels: LSL
+    files[0].write_bytes(b"not a cache")
+    assert tables.load_station("lwasv", freq_hz=f).cables is not None            # damaged: rebuilt
+    assert tables.load_station("lwasv", freq_hz=f).cables is None

@@ -77,13 +77,19 @@ def _scan(path, report=True, fmt="tbf"):
 
 
 def load_station_for(cfg):
-    """The StationTable the configuration names, with the YAML flags added (``auto``: the TBF file's)."""
+    """The StationTable the configuration names, with the YAML flags added (``auto``: the TBF file's).
+
+    For a simulated source or a capture file the channels are known here, so the table comes from
+    the station cache when an earlier run made it (:func:`bf_epic_blocks.station.load_station`)."""
     from ..station import load_station
-    st_cfg = cfg["station"]
+    st_cfg, src = cfg["station"], cfg["source"]
     name = st_cfg.get("ssmif") or st_cfg.get("name")
+    fmt = capture_format(src)
+    info = _scan(src["path"], report=False, fmt=fmt) if fmt is not None else None
     if name == "auto":
-        name = _scan(cfg["source"]["path"], report=False).station_hint
-    return load_station(name, extra_flags=st_cfg.get("flags") or None)
+        name = (info or _scan(src["path"], report=False)).station_hint
+    freq = channel_freqs(cfg) if src["kind"] == "simulated" else None if info is None else np.asarray(info.freq_hz)
+    return load_station(name, extra_flags=st_cfg.get("flags") or None, freq_hz=freq)
 
 
 def channel_freqs(cfg):

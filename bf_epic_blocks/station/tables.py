@@ -267,7 +267,54 @@ def _from_lsl(station, name: str) -> StationTable:
     )
 
 
-def load_station(name_or_path, *, extra_flags=None) -> StationTable:
+def _cache_file(name_or_path, freq) -> Path | None:
+    """Where the station table for these frequencies is cached (None: no LSL version to key it by).
+
+    The key is the LSL version (its shipped station files), the station name or the SSMIF's path,
+    size and modification time, and the frequencies' bytes: a change to any of them misses."""
+    import hashlib
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        lsl_version = version("lsl")
+    except PackageNotFoundError:
+        return None
+    h = hashlib.sha1()
+    src = str(name_or_path)
+    if Path(src).is_file():
+        st = os.stat(src)
+        src = f"{Path(src).resolve()}:{st.st_size}:{st.st_mtime_ns}"
+    for part in (lsl_version, src, np.ascontiguousarray(freq, np.float64).tobytes()):
+        h.update(part if isinstance(part, bytes) else part.encode())
+    from .offline import lsl_config_dir
+    return lsl_config_dir().parent / "stations" / f"{_norm_name(Path(str(name_or_path)).stem)}-{h.hexdigest()[:16]}.npz"
+
+
+def _load_cached(path) -> StationTable | None:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return StationTable(name=str(z["name"]), lat_deg=float(z["lat_deg"]), lon_deg=float(z["lon_deg"]),
+                                elev_m=float(z["elev_m"]), stand_ids=z["stand_ids"], xyz_m=z["xyz_m"],
+                                flags=z["flags"], combined_status=z["combined_status"],
+                                cable_table={"freq_hz": z["freq_hz"], "delay_s": z["delay_s"], "gain": z["gain"]})
+    except (OSError, KeyError, ValueError):
+        return None     # unreadable or from another layout: rebuilt from LSL and written again
+
+
+def _save_cached(path, table: StationTable, freq) -> None:
+    delay, gain = table._cable_terms(freq)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+        np.savez(tmp, name=table.name, lat_deg=table.lat_deg, lon_deg=table.lon_deg, elev_m=table.elev_m,
+                 stand_ids=table.stand_ids, xyz_m=table.xyz_m, flags=table.flags,
+                 combined_status=table.combined_status, freq_hz=np.asarray(freq, np.float64), delay_s=delay,
+                 gain=gain)
+        os.replace(tmp, path)     # whole files only, also with runs in parallel
+    except OSError:
+        pass                      # a read-only cache costs the next run LSL's import, nothing else
+
+
+def load_station(name_or_path, *, extra_flags=None, freq_hz=None) -> StationTable:
     """Station metadata from LSL.
 
     Parameters
@@ -278,10 +325,22 @@ def load_station(name_or_path, *, extra_flags=None) -> StationTable:
         LSL stand id) or bare stand ids; flagged on top of the status flags. Unknown stands or pols
         raise ValueError.
 
+    freq_hz : the frequencies the caller will ask cable terms for, or None. Given, the table (with
+        the cable delays and gains at those frequencies, as LSL's cable model gives them) is cached
+        under the user's cache folder and later calls with the same station, LSL version and
+        frequencies read that file instead of importing LSL (whose import, through SciPy, was ~2 s
+        of every run's start-up). The cached table answers cable terms for those frequencies only.
+
     Requires LSL (``pip install lsl``); :func:`configure_offline` is applied first so that LSL and
     astropy never wait on a network.
     """
     configure_offline()
+    cache = None
+    if freq_hz is not None and isinstance(name_or_path, (str, os.PathLike)):
+        cache = _cache_file(name_or_path, freq_hz)
+        table = _load_cached(cache) if cache is not None and cache.is_file() else None
+        if table is not None:
+            return table.with_flags(extra_flags) if extra_flags else table
     try:
         from lsl.common import stations
     except ImportError as e:  # pragma: no cover - lsl is a declared dependency of the station extra
@@ -302,6 +361,8 @@ def load_station(name_or_path, *, extra_flags=None) -> StationTable:
         table = _from_lsl(st, _norm_name(st.name) or path.stem)
     else:
         raise TypeError(f"load_station: expected a station name or an SSMIF path, got {type(name_or_path).__name__}")
+    if cache is not None:
+        _save_cached(cache, table, table._freqs(freq_hz))
     return table.with_flags(extra_flags) if extra_flags else table
 
 
