@@ -38,13 +38,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+from cases import bf_epic_command  # noqa: E402
 DT = 40e-6
-
-
-def bf_epic():
-    beside = Path(sys.executable).with_name("bf-epic")
-    exe = str(beside) if beside.exists() else shutil.which("bf-epic")
-    return [exe] if exe else [sys.executable, "-m", "bf_epic_blocks.pipeline.cli"]
 
 
 def write_recording(path, seconds, nchan, seed=1):
@@ -98,7 +93,7 @@ def run_cli(yml, data_s, outdir, env_extra=None, sets=()):
     """Run bf-epic; watch the output folder for image files. Returns a row of times."""
     shutil.rmtree(outdir, ignore_errors=True)
     summary = Path(tempfile.mkdtemp()) / "summary.json"
-    cmd = bf_epic() + ["run", str(yml), "--no-progress", "-q", "--summary-json", str(summary)]
+    cmd = bf_epic_command() + ["run", str(yml), "--no-progress", "-q", "--summary-json", str(summary)]
     for s in sets:
         cmd += ["--set", s]
     env = dict(os.environ, **(env_extra or {}))

@@ -3,7 +3,10 @@
 Case P (the seed paper's table): 256 antennas laid out like LWA-SV, a 64 x 64 all-sky grid of which
 the ~3,205 pixels above the horizon are imaged, 1,024 samples, 16 channels x 2 pols.
 """
+import shutil
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -119,3 +122,11 @@ def write_json(path, out):
     with open(path, "w") as f:
         json.dump(out, f, indent=1)
     print(f"wrote {path}")
+
+
+def bf_epic_command():
+    """The command line of ``bf-epic``: this Python's own console script (a virtualenv's), else the one
+    on PATH, else the module."""
+    beside = Path(sys.executable).with_name("bf-epic")
+    exe = str(beside) if beside.exists() else shutil.which("bf-epic")
+    return [exe] if exe else [sys.executable, "-m", "bf_epic_blocks.pipeline.cli"]

@@ -34,16 +34,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from cases import bf_epic_command
+
 REPO = Path(__file__).resolve().parents[1]
 TOL_FP32 = 1e-5
 TOLERANCES = ("1e-3", "1e-4", "1e-6")
-
-
-def bf_epic():
-    """The command line of ``bf-epic`` (the console script when installed, else the module)."""
-    beside = Path(sys.executable).with_name("bf-epic")        # this Python's own (a virtualenv's)
-    exe = str(beside) if beside.exists() else shutil.which("bf-epic")
-    return [exe] if exe else [sys.executable, "-m", "bf_epic_blocks.pipeline.cli"]
 
 
 def data_dir(arg):
@@ -229,7 +224,7 @@ def resolve_input(yml, cfg, data):
 def run_one(yml, device, outdir, overrides, sender, log):
     """Run ``bf-epic run`` on one device; (ok, wall seconds, summary dict or None, tail of its output)."""
     summary = outdir.with_suffix(".json")
-    cmd = bf_epic() + ["run", str(yml), "--set", f"device={device}", "--set", f"output.dir={outdir}",
+    cmd = bf_epic_command() + ["run", str(yml), "--set", f"device={device}", "--set", f"output.dir={outdir}",
                        "--no-progress", "--summary-json", str(summary)]
     for ov in overrides:
         cmd += ["--set", ov]
@@ -247,7 +242,7 @@ def run_one(yml, device, outdir, overrides, sender, log):
             lines.append(line)
             if "listening" in line:
                 break
-        rep = subprocess.run(bf_epic() + ["replay", str(sender), "--to", f"127.0.0.1:{port}", "--rate", "1", "-q"],
+        rep = subprocess.run(bf_epic_command() + ["replay", str(sender), "--to", f"127.0.0.1:{port}", "--rate", "1", "-q"],
                              capture_output=True, text=True)
         lines.append(rep.stdout + rep.stderr)
         rest, _ = proc.communicate(timeout=600)
@@ -303,7 +298,7 @@ def check_pipeline(yml, args, data, out, log):
 def plan_picks(log):
     rows = []
     for tol in TOLERANCES:
-        cmd = bf_epic() + ["plan", str(REPO / "pipelines" / "lwasv_sim_allsky.yaml"), "--set", "device=gpu",
+        cmd = bf_epic_command() + ["plan", str(REPO / "pipelines" / "lwasv_sim_allsky.yaml"), "--set", "device=gpu",
                            "--set", f"imager.tolerance={tol}", "--json", "-q"]
         p = subprocess.run(cmd, capture_output=True, text=True)
         try:

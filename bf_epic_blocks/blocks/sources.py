@@ -284,9 +284,10 @@ class SimSkySourceBlock(bfp.SourceBlock):
                  f"; below: {', '.join(d.dropped)}" if d.dropped else "")
         self._cable = None
         if self.cable:
-            tau = np.moveaxis(st.cable_delay_s(self.freq_hz), -1, 0)[:, :, :2]     # (nchan, nstand, 2)
-            gain = np.moveaxis(st.cable_gain(self.freq_hz), -1, 0)[:, :, :2]
-            self._cable = np.sqrt(gain) * np.exp(-2j * np.pi * self.freq_hz[:, None, None] * tau)
+            from ..sky.efield import cable_factor
+            self._cable = cable_factor(np.moveaxis(st.cable_delay_s(self.freq_hz), -1, 0),
+                                       np.moveaxis(st.cable_gain(self.freq_hz), -1, 0), self.freq_hz,
+                                       len(self.freq_hz), st.nstand, 2)
         self._keys = fastsim.stream_keys(self.seed)
         self._xp = self._gen_namespace()
         self._w_at = None

@@ -76,16 +76,15 @@ def _scan(path, report=True, fmt="tbf"):
     return info
 
 
-def load_station_for(cfg):
+def load_station_for(cfg, info=None):
     """The StationTable the configuration names, with the YAML flags added (``auto``: the TBF file's).
 
-    For a simulated source or a capture file the channels are known here, so the table comes from
-    the station cache when an earlier run made it (:func:`bf_epic_blocks.station.load_station`)."""
+    For a simulated source or a capture file (``info``: its scan) the channels are known here, so the
+    table comes from the station cache when an earlier run made it
+    (:func:`bf_epic_blocks.station.load_station`)."""
     from ..station import load_station
     st_cfg, src = cfg["station"], cfg["source"]
     name = st_cfg.get("ssmif") or st_cfg.get("name")
-    fmt = capture_format(src)
-    info = _scan(src["path"], report=False, fmt=fmt) if fmt is not None else None
     if name == "auto":
         name = (info or _scan(src["path"], report=False)).station_hint
     freq = channel_freqs(cfg) if src["kind"] == "simulated" else None if info is None else np.asarray(info.freq_hz)
@@ -232,17 +231,17 @@ def build_graph(cfg, progress=None):
             raise ValueError(f"device {cfg['device']!r}: source.gulp_nframe ({cfg['source']['gulp_nframe']}) must "
                              f"be a multiple of imager.accumulate_frames ({cfg['imager']['accumulate_frames']}) "
                              "when the channels are sharded over several GPUs")
-    station = load_station_for(cfg)
     src_cfg, im = cfg["source"], cfg["imager"]
+    fmt = capture_format(src_cfg)
+    info = _scan(src_cfg["path"], report=False, fmt=fmt) if fmt is not None else None
+    station = load_station_for(cfg, info)
     gulp = int(src_cfg["gulp_nframe"])
     outdir = cfg["output"]["dir"]
     block = None  # a channel block of a TBF file (source.channel_block), or all channels
     # one GPU: every block's thread uses it (a device chosen here would hold in this thread only)
     scope = bfp.block_scope(gpu=devs) if dev == "gpu" else contextlib.nullcontext()
     with bfp.Pipeline() as p, scope:
-        fmt = capture_format(src_cfg)
         if fmt is not None:
-            info = _scan(src_cfg["path"], report=False, fmt=fmt)
             nframe_total = int(info.ntime)
             block = channel_block_range(cfg, info)
             cls = TBXSourceBlock if fmt == "tbx" else TBFSourceBlock
@@ -373,14 +372,14 @@ def run(cfg, show_progress=None):
 
 def plan(cfg):
     """What the pipeline would do, without running it: a dict and a printable text."""
-    station = load_station_for(cfg)
     src, im = cfg["source"], cfg["imager"]
     if src["kind"] == "udp":
         raise ValueError("plan: a udp source learns its channels from the packets; plan a capture file of the "
                          "same stream (source.kind: file) instead")
     fmt = capture_format(src)
+    info = _scan(src["path"], fmt=fmt) if fmt is not None else None
+    station = load_station_for(cfg, info)
     if fmt is not None:
-        info = _scan(src["path"], fmt=fmt)
         freq, dt = np.asarray(info.freq_hz), 1.0 / info.chan_bw_hz
         block = channel_block_range(cfg, info)
         if block:

@@ -51,7 +51,9 @@ __all__ = ["simulate_efield", "quantize_ci4"]
 log = logging.getLogger(__name__)
 
 
-def _cable_factor(cable_delay_s, cable_gain, freq_hz, nchan, nant, npol):
+def cable_factor(cable_delay_s, cable_gain, freq_hz, nchan, nant, npol):
+    """sqrt(G) exp(-2 pi i nu tau), complex128 (nchan, nant, npol): the cable terms the data model applies
+    to the sky signal (each argument broadcastable to that shape; None for none)."""
     # Deliberately not imaging.calibration.cable_weights inverted: the simulator corrupts the
     # voltages from the data model on its own, so tests of CalFoldBlock check against independent code.
     shape = (nchan, nant, npol)
@@ -147,7 +149,7 @@ def simulate_efield(xyz_m, freq_hz, ntime: int, *, sources, time=None, location=
                         pattern if callable(pattern) else None, np.random.default_rng(burst_ss))
     x = np.ascontiguousarray(np.transpose(x, (2, 0, 3, 1)))                       # (ntime, nchan, nant, npol)
     if cable_delay_s is not None or cable_gain is not None:
-        x *= _cable_factor(cable_delay_s, cable_gain, f, nchan, nant, npol)[None]
+        x *= cable_factor(cable_delay_s, cable_gain, f, nchan, nant, npol)[None]
     if noise_power > 0:
         nz = noise_rng.standard_normal((2, ntime, nchan, nant, npol))
         x += math.sqrt(noise_power / 2.0) * (nz[0] + 1j * nz[1])
