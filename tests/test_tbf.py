@@ -356,3 +356,21 @@ def test_a_gpu_ring_gets_the_file_s_samples_through_raw_gulps(tmp_path, fmt):
         assert src.tbf_stats["frames_read"] == 600 and src.tbf_stats["samples"] == 300
     np.testing.assert_array_equal(got["cuda"], data)
     np.testing.assert_array_equal(got["system"], data)
+
+
+def test_a_short_read_names_the_byte(tmp_path):
+    """pread_into on a file that ends before the gulp does (truncated after the scan): a clear error
+    naming where, never a half-filled buffer passed on."""
+    import os
+    from bf_epic_blocks.blocks.sources import pread_into
+    p = tmp_path / "short.bin"
+    p.write_bytes(bytes(range(256)) * 10)
+    buf = np.zeros(3000, np.uint8)
+    fd = os.open(p, os.O_RDONLY)
+    try:
+        pread_into(fd, buf[:2000], 100, piece=512)
+        np.testing.assert_array_equal(buf[:2000], np.frombuffer(p.read_bytes()[100:2100], np.uint8))
+        with pytest.raises(OSError, match="short read at byte 2560 of the capture"):
+            pread_into(fd, buf, 0, piece=512)
+    finally:
+        os.close(fd)
