@@ -6,8 +6,9 @@ Rows (each `bf-epic run` is a subprocess, timed from outside, as a user would se
   stands, random 4-bit samples; default 10 s of 24 channels = 3.08 GB), imaged on a 64x64 all-sky
   grid with 1-s images, once per precision; the first run of the first precision is a warm-up
   (CuPy kernels compiled and cached). Whole run: data seconds / process wall; pipeline: data
-  seconds / the runner's own wall (`wall_s` of `--summary-json`); steady: images after the first /
-  time between the first and the last image file.
+  seconds / the runner's own wall (`wall_s` of `--summary-json`); steady: the imager's data after
+  its first gulp / the time from that gulp to its last (the runner's per-block timing), beside each
+  block's host milliseconds per gulp.
 * simulated: `pipelines/lwasv_sim_allsky.yaml` (2 s, 16 channels), the same measures.
 * recording from disk: the last precision again after the file's pages are dropped from the page
   cache (``posix_fadvise(DONTNEED)``), so it is read from the disk.
@@ -19,7 +20,8 @@ Rows (each `bf-epic run` is a subprocess, timed from outside, as a user would se
   samples per gulp, 25,000 per image) called directly, per gulp, as a real-time factor.
 
 usage: python tools/bench_e2e.py [--device gpu|cpu] [--seconds 10] [--nchan 24] [--precisions fp16,fp32]
-                                 [--skip recording,simulated,startup,source,core] [--json PATH]
+                                 [--gulps 1024,5000]
+                                 [--skip recording,tbx,simulated,startup,source,core] [--json PATH]
 """
 from __future__ import annotations
 
@@ -63,10 +65,28 @@ def write_recording(path, seconds, nchan, seed=1):
     return os.path.getsize(path), time.perf_counter() - t0
 
 
-def recording_yaml(path, tbf, outdir, device, precision):
+def write_tbx_recording(path, seconds, nchan, seed=1):
+    """The same as :func:`write_recording` as an LWA-SV-sized TBX file (NDP frames of 12 channels)."""
+    from bf_epic_blocks.io.tbx import write_tbx
+    rng = np.random.default_rng(seed)
+    ntime = int(round(seconds / DT))
+    t0 = time.perf_counter()
+    with open(path, "wb") as out:
+        for a in range(0, ntime, 25000):
+            n = min(25000, ntime - a)
+            data = rng.integers(0, 256, size=(n, nchan, 256, 2), dtype=np.uint8)
+            piece = str(path) + ".piece"
+            write_tbx(piece, data, 10**15 + 8192 * (a + np.arange(n)), 1200)
+            with open(piece, "rb") as fh:
+                shutil.copyfileobj(fh, out, 1 << 24)
+            os.remove(piece)
+    return os.path.getsize(path), time.perf_counter() - t0
+
+
+def recording_yaml(path, tbf, outdir, device, precision, kind="tbf", gulp=1024):
     Path(path).write_text(f"""name: e2e_recording
 station: {{name: lwasv}}
-source: {{kind: tbf, path: {tbf}, gulp_nframe: 1024}}
+source: {{kind: {kind}, path: {tbf}, gulp_nframe: {gulp}}}
 calibration: {{cable: true, pattern: none}}
 imager: {{kind: dft, grid: {{size: 64}}, accumulate_frames: 25000, products: [I], method: auto,
          precision: {precision}}}
@@ -109,21 +129,38 @@ def run_cli(yml, data_s, outdir, env_extra=None, sets=()):
     th = threading.Thread(target=watch, daemon=True)
     t0 = time.perf_counter()
     th.start()
-    p = subprocess.run(cmd, capture_output=True, text=True, env=env)
-    wall = time.perf_counter() - t0
-    stop.set()
-    th.join()
-    if p.returncode:
-        raise RuntimeError(f"bf-epic run failed ({p.returncode}): {p.stderr[-2000:]}")
+    with tempfile.TemporaryFile("w+") as err:
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=env)
+        _, status, usage = os.wait4(p.pid, 0)       # this child's own peak memory, not all children's
+        wall = time.perf_counter() - t0
+        p.returncode = os.waitstatus_to_exitcode(status)
+        stop.set()
+        th.join()
+        if p.returncode:
+            err.seek(0)
+            raise RuntimeError(f"bf-epic run failed ({p.returncode}): {err.read()[-2000:]}")
     info = json.loads(summary.read_text())
     marks = sorted(seen.values())
     row = {"wall_s": wall, "pipeline_s": info["wall_s"], "images": info["images"], "data_s": data_s,
            "rt_whole": data_s / wall, "rt_pipeline": data_s / info["wall_s"],
-           "first_image_s": (marks[0] - t0) if marks else None}
-    if len(marks) >= 3:
-        per_image = (marks[-1] - marks[0]) / (len(marks) - 1)
-        row["rt_steady"] = (data_s / info["images"]) / per_image
+           "first_image_s": (marks[0] - t0) if marks else None, "peak_rss_mb": usage.ru_maxrss / 1024}
+    row.update(steady_rate(info.get("blocks", {}), data_s))
     return row
+
+
+def steady_rate(blocks, data_s):
+    """The imager's real-time factor once it runs: the data after its first gulp over the time from
+    its first gulp's start to its last gulp's end (from the runner's per-block timing), and each
+    block's host time per gulp. Not image-file times: a writer that starts late (a slow first FITS
+    file) writes the queued images back to back, which once read as 15-20x for a 6x pipeline."""
+    out = {}
+    img = next((b for n, b in blocks.items() if n.startswith(("DFTImager", "WStack"))), None)
+    if img and img["ngulp"] > 1 and img["last_data_s"] > img["first_data_s"]:
+        out["rt_steady"] = data_s * (img["ngulp"] - 1) / img["ngulp"] / (img["last_data_s"] - img["first_data_s"])
+    for n, b in blocks.items():
+        if b["ngulp"]:
+            out["ms_per_gulp_" + n.rsplit("_", 1)[0].replace("Block", "")] = 1e3 * b["process_s"] / b["ngulp"]
+    return out
 
 
 def core_rate(device, nchan, precision, gulps=20):
@@ -185,6 +222,34 @@ def source_rates(device, nchans=(16, 24, 784), gulp=1024):
     return rows
 
 
+def raw_read_rates(path, data_s, gulp_bytes, threads=(1, 2, 4, 8, 16)):
+    """The GPU path's file reads alone (:func:`~bf_epic_blocks.blocks.sources.pread_start`, page cache
+    -> pinned memory, ``gulp_bytes`` at a time, two reads ahead) for several reader-thread counts."""
+    from concurrent.futures import ThreadPoolExecutor
+    from bf_epic_blocks.blocks.sources import pread_start, pread_wait
+    from bf_epic_blocks.imaging._xp import pinned_empty
+    size = os.path.getsize(path)
+    bufs = [pinned_empty(gulp_bytes, np.uint8) for _ in range(3)]
+    rows = []
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        for nt in threads:
+            with ThreadPoolExecutor(nt) as pool:
+                t0 = time.perf_counter()
+                pending = []
+                for k, off in enumerate(range(0, size - gulp_bytes + 1, gulp_bytes)):
+                    pending.append(pread_start(fd, bufs[k % 3], off, pool))
+                    if len(pending) > 2:
+                        pread_wait(pending.pop(0))
+                for p in pending:
+                    pread_wait(p)
+                dt = time.perf_counter() - t0
+            rows.append({"threads": nt, "GB_per_s": size / dt / 1e9, "rt": data_s / dt})
+    finally:
+        os.close(fd)
+    return rows
+
+
 def reader_rate(path, data_s):
     from bf_epic_blocks.io.tbf import iter_tbf_gulps, scan_tbf
     t0 = time.perf_counter()
@@ -202,6 +267,7 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--nchan", type=int, default=24)
     ap.add_argument("--precisions", default="fp16,fp32")
+    ap.add_argument("--gulps", default="1024,5000", help="source.gulp_nframe values for the recordings")
     ap.add_argument("--workdir", default=None, help="where the recording is written (default: a temp folder)")
     ap.add_argument("--skip", default="", help="comma list of rows to leave out")
     ap.add_argument("--json")
@@ -240,21 +306,50 @@ def main(argv=None):
         print(f"wrote {tbf}: {nbytes / 1e9:.2f} GB in {wt:.1f} s", flush=True)
         res["recording_bytes"] = nbytes
         res["reader"] = reader_rate(tbf, a.seconds)
-        show("TBF reader alone", res["reader"])
+        show("TBF reader alone (host)", res["reader"])
+        if a.device == "gpu":
+            res["raw_reads"] = raw_read_rates(tbf, a.seconds, 1024 * (a.nchan // 12) * 6168)
+            for r in res["raw_reads"]:
+                show(f"file reads alone, {r['threads']} threads", r)
         res["recording"] = {}
+        gulps = [int(g) for g in a.gulps.split(",")]
         for i, prec in enumerate(a.precisions.split(",")):
-            y = work / f"rec_{prec}.yaml"
-            recording_yaml(y, tbf, work / "rec", a.device, prec)
-            if i == 0:
-                run_cli(y, a.seconds, work / "rec")                      # warm-up (kernels cached)
-            res["recording"][prec] = run_cli(y, a.seconds, work / "rec")
-            show(f"recording {a.seconds:g} s x {a.nchan} ch, {prec}", res["recording"][prec])
+            for gulp in gulps:
+                y = work / f"rec_{prec}_{gulp}.yaml"
+                recording_yaml(y, tbf, work / "rec", a.device, prec, gulp=gulp)
+                if i == 0 and gulp == gulps[0]:
+                    run_cli(y, a.seconds, work / "rec")                      # warm-up (kernels cached)
+                key = prec if gulp == gulps[0] else f"{prec}_gulp{gulp}"
+                res["recording"][key] = run_cli(y, a.seconds, work / "rec")
+                show(f"recording {a.seconds:g} s x {a.nchan} ch, {prec}, gulp {gulp}", res["recording"][key])
         # the same file with its pages dropped from the page cache: read from the disk
         evicted = evict(tbf)
         res["recording_from_disk"] = run_cli(y, a.seconds, work / "rec")
         res["recording_from_disk"]["page_cache_evicted"] = evicted
-        show(f"recording, {prec}, evicted from cache", res["recording_from_disk"])
+        show(f"recording, {prec}, gulp {gulp}, evicted from cache", res["recording_from_disk"])
+        # peak memory against the file's length: the first 20% of it as its own recording
+        short = work / "short.tbf"
+        with open(tbf, "rb") as fi, open(short, "wb") as fo:
+            fo.write(fi.read(nbytes // 5 // 6168 * 6168))
+        recording_yaml(work / "short.yaml", short, work / "rec", a.device, prec, gulp=gulp)
+        res["recording_short"] = run_cli(work / "short.yaml", a.seconds / 5, work / "rec")
+        show(f"recording {a.seconds / 5:g} s (peak memory)", res["recording_short"])
+        short.unlink()
         tbf.unlink()
+    if "tbx" not in skip:
+        tbx = work / "recording.tbx"
+        nbytes, wt = write_tbx_recording(tbx, a.seconds, a.nchan)
+        print(f"wrote {tbx}: {nbytes / 1e9:.2f} GB in {wt:.1f} s", flush=True)
+        res["tbx"] = {"bytes": nbytes}
+        prec = a.precisions.split(",")[0]
+        for j, gulp in enumerate(int(g) for g in a.gulps.split(",")):
+            y = work / f"tbx_{gulp}.yaml"
+            recording_yaml(y, tbx, work / "tbx", a.device, prec, kind="tbx", gulp=gulp)
+            if j == 0:
+                run_cli(y, a.seconds, work / "tbx")
+            res["tbx"][f"gulp{gulp}"] = run_cli(y, a.seconds, work / "tbx")
+            show(f"TBX recording {a.seconds:g} s x {a.nchan} ch, {prec}, gulp {gulp}", res["tbx"][f"gulp{gulp}"])
+        tbx.unlink()
     if "core" not in skip:
         res["core"] = {p: core_rate(a.device, a.nchan, p) for p in a.precisions.split(",")}
         for p, r in res["core"].items():

@@ -238,25 +238,35 @@ class HostToDevice:
         self.staged_bytes += src.nbytes
         return buf, slot
 
-    def fill_and_copy(self, dst, fill):
-        """``fill(buf)`` writes ``dst.nbytes`` bytes into a pinned staging buffer (a file read
-        straight into it, say), which is then copied to the C-contiguous CuPy array ``dst`` on
-        the current stream: no other host copy."""
+    def staging(self, nbytes):
+        """A pinned buffer of ``nbytes`` to fill (a file read straight into it, say) and then hand to
+        :meth:`copy_staged`; returns ``(buffer, slot)``. Its previous copy is done. Up to
+        ``nstage - 1`` buffers may be filling while another one's copy is queued."""
+        return self._slot(nbytes)
+
+    def copy_staged(self, dst, buf, slot=None):
+        """Queue the copy of the pinned ``buf`` into the C-contiguous CuPy array ``dst`` (same bytes)
+        on the current stream; ``slot``: from :meth:`staging`, reusable once this copy is done."""
         import cupy as cp
         with stream_context():
             stream = cp.cuda.get_current_stream()
-            buf, slot = self._slot(dst.nbytes)
-            fill(buf)
             cp.cuda.runtime.memcpyAsync(dst.data.ptr, buf.ctypes.data, dst.nbytes,
                                         cp.cuda.runtime.memcpyHostToDevice, stream.ptr)
-            slot[1] = stream.record(cp.cuda.Event(block=False, disable_timing=True))
+            if slot is not None:
+                slot[1] = stream.record(cp.cuda.Event(block=False, disable_timing=True))
             if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost and a GPU
                 stream.synchronize()
         self.nbytes += dst.nbytes
         return dst
 
+    def fill_and_copy(self, dst, fill):
+        """``fill(buf)`` writes ``dst.nbytes`` bytes into a pinned staging buffer, which is then
+        copied to the C-contiguous CuPy array ``dst`` on the current stream: no other host copy."""
+        buf, slot = self.staging(dst.nbytes)
+        fill(buf)
+        return self.copy_staged(dst, buf, slot)
+
     def copy(self, dst, src):
-        import cupy as cp
         src = np.asarray(src)
         if src.nbytes != dst.nbytes:
             raise ValueError(f"host->device copy: {src.dtype} {src.shape} ({src.nbytes} bytes) "
@@ -265,21 +275,9 @@ class HostToDevice:
             return assign_storage(dst, src)
         if dst.nbytes == 0:
             return dst
-        with stream_context():
-            stream = cp.cuda.get_current_stream()
-            slot = None
-            if is_pinned(src) and src.flags.c_contiguous:
-                host = src
-            else:
-                host, slot = self._stage(src)
-            cp.cuda.runtime.memcpyAsync(dst.data.ptr, host.ctypes.data, dst.nbytes,
-                                        cp.cuda.runtime.memcpyHostToDevice, stream.ptr)
-            if slot is not None:
-                slot[1] = stream.record(cp.cuda.Event(block=False, disable_timing=True))
-            if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost and a GPU
-                stream.synchronize()
-        self.nbytes += dst.nbytes
-        return dst
+        if is_pinned(src) and src.flags.c_contiguous:
+            return self.copy_staged(dst, src)
+        return self.copy_staged(dst, *self._stage(src))
 
 
 def assign_storage(dst, src):

@@ -109,6 +109,8 @@ class ImageWriterBlock(bfp.SinkBlock):
         out = [(n, float(l), float(m)) for n, (l, m), a in zip(names, lm, alt) if np.isfinite(a) and a > 0]
         try:  # the Sun is near: go to AltAz directly (via ICRS would add a parallax of degrees)
             from astropy.coordinates import AltAz, get_body
+            from ..station.offline import iers_table
+            iers_table()
             sun = get_body("sun", t, self.loc).transform_to(AltAz(obstime=t, location=self.loc))
             if sun.alt.deg > 0:
                 alt_r, az_r = sun.alt.rad, sun.az.rad

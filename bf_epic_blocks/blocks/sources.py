@@ -11,6 +11,7 @@ import contextlib
 import logging
 import os
 import warnings
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -30,6 +31,15 @@ class _Reader(contextlib.AbstractContextManager):
         self.__dict__.update(state)
 
     def __exit__(self, *exc):
+        # reads started ahead (TBFSourceBlock._next_chunk) finish or are cancelled before their file
+        # descriptor closes: a read of a closed (or reused) descriptor would be wrong, not just lost
+        for _, job in getattr(self, "ahead", ()):
+            for f in (job[2] if job is not None else ()):
+                f.cancel()
+        pool = getattr(self, "pool", None)
+        if pool is not None:
+            pool.shutdown(wait=True)
+            self.pool = None
         if getattr(self, "fd", None) is not None:
             os.close(self.fd)
             self.fd = None
@@ -66,7 +76,7 @@ class TBFSourceBlock(bfp.SourceBlock):
         self.station, self.progress = station, progress
         self.channels = None if channels is None else slice(int(channels[0]), int(channels[1]))
         self.tbf_stats = {"frames_read": 0, "frames_missing": 0, "time_gaps": 0, "truncated_bytes": 0, "samples": 0}
-        self._h2d = HostToDevice()
+        self._h2d = HostToDevice(nstage=READ_AHEAD + 1)
 
     def create_reader(self, sourcename):
         with warnings.catch_warnings(record=True) as caught:
@@ -104,17 +114,13 @@ class TBFSourceBlock(bfp.SourceBlock):
         return [hdr]
 
     def on_data(self, reader, ospans):
-        from ..io.tbf import RawGulp
-        try:
-            chunk = next(reader.it)
-        except StopIteration:
+        chunk, job = self._next_chunk(reader)
+        if chunk is None:
             return [0]
-        if isinstance(chunk, RawGulp):
-            return [self._read_raw(reader, chunk, span_array(ospans[0]))]
+        if job is not None:
+            return [self._read_raw(reader, chunk, job, span_array(ospans[0]))]
         n = chunk.data.shape[0]
-        for k in ("frames_read", "frames_missing", "time_gaps", "truncated_bytes"):
-            self.tbf_stats[k] += int(chunk.stats.get(k, 0))
-        self.tbf_stats["samples"] += n
+        self._count(chunk.stats, n)
         if self.tbf_stats["frames_missing"]:
             log.debug("%s: %d frames missing so far (zero-filled)", self.fmt.upper(), self.tbf_stats["frames_missing"])
         dst = span_array(ospans[0])
@@ -123,20 +129,46 @@ class TBFSourceBlock(bfp.SourceBlock):
             self.progress(n)
         return [n]
 
+    def _count(self, stats, ntime):
+        for k in ("frames_read", "frames_missing", "time_gaps", "truncated_bytes"):
+            self.tbf_stats[k] += int(stats.get(k, 0))
+        self.tbf_stats["samples"] += ntime
 
-    def _read_raw(self, reader, g, dst):
-        """A :class:`~bf_epic_blocks.io.tbf.RawGulp` into the 'cuda' span ``dst``: the file's bytes read
-        (threads, ``os.preadv``) into a pinned staging buffer, copied to the GPU whole, headers
+    def _next_chunk(self, reader):
+        """The next chunk of the capture and, for a :class:`~bf_epic_blocks.io.tbf.RawGulp`, its read
+        (already under way); the reads of the following ``READ_AHEAD`` raw gulps are started
+        before returning, so the file is read while this gulp goes to the GPU and the imager runs."""
+        from ..io.tbf import RawGulp
+        ahead = reader.__dict__.setdefault("ahead", deque())
+        first = ahead.popleft() if ahead else None
+        while len(ahead) < READ_AHEAD and not getattr(reader, "done", False):
+            try:
+                chunk = next(reader.it)
+            except StopIteration:
+                reader.done = True
+                break
+            job = None
+            if isinstance(chunk, RawGulp):
+                buf, slot = self._h2d.staging(chunk.nbytes)
+                job = (buf, slot, pread_start(reader.fd, buf, chunk.offset, self._pool(reader)))
+            ahead.append((chunk, job))
+        if first is None:
+            first = ahead.popleft() if ahead else (None, None)
+        return first
+
+    def _read_raw(self, reader, g, job, dst):
+        """A :class:`~bf_epic_blocks.io.tbf.RawGulp` into the 'cuda' span ``dst``: its bytes, read by
+        threads (``os.preadv``) into a pinned staging buffer, copied to the GPU whole, headers
         stripped by one strided copy on the GPU. One host copy (the kernel's, page cache to pinned)."""
         import cupy as cp
-        for k in ("frames_read", "frames_missing", "time_gaps", "truncated_bytes"):
-            self.tbf_stats[k] += int(g.stats.get(k, 0))
-        self.tbf_stats["samples"] += g.ntime
+        buf, slot, pieces = job
+        pread_wait(pieces)
+        self._count(g.stats, g.ntime)
         frames = getattr(self, "_raw_dev", None)
         if frames is None or frames.nbytes < g.nbytes:
             frames = self._raw_dev = cp.empty(g.nbytes, cp.uint8)
         raw = frames[:g.nbytes]
-        self._h2d.fill_and_copy(raw, lambda buf: pread_into(reader.fd, buf, g.offset, self._pool()))
+        self._h2d.copy_staged(raw, buf, slot)
         with _compat.stream_context():
             out = dst[:g.ntime].reshape(g.ntime, g.nblock, -1)
             out[...] = raw.reshape(g.ntime, g.nblock, g.frame_bytes)[:, :, g.header_bytes:]
@@ -146,36 +178,53 @@ class TBFSourceBlock(bfp.SourceBlock):
             self.progress(g.ntime)
         return g.ntime
 
-    def _pool(self):
-        if getattr(self, "_readers", None) is None:
-            self._readers = ThreadPoolExecutor(max_workers=READ_THREADS, thread_name_prefix="bf-epic-read")
-        return self._readers
+    @staticmethod
+    def _pool(reader):
+        if getattr(reader, "pool", None) is None:
+            reader.pool = ThreadPoolExecutor(max_workers=READ_THREADS, thread_name_prefix="bf-epic-read")
+        return reader.pool
 
 
-#: threads reading a gulp's bytes at once (page cache -> pinned memory runs at a few GB/s per thread)
-READ_THREADS = 4
+
+#: threads reading a capture's bytes at once: one thread copies page cache -> pinned memory at
+#: 1-2 GB/s on an H100 host (py-spy, 2026-11-25), and a 24-channel gulp at 20x real time needs 6 GB/s
+READ_THREADS = max(2, min(8, os.cpu_count() or 2))
+#: raw gulps whose reads are under way ahead of the one being copied to the GPU (staging buffers:
+#: READ_AHEAD + 1, each a gulp's bytes of pinned memory)
+READ_AHEAD = 2
+
+
+def pread_start(fd, buf, offset, pool, piece=2 << 20):
+    """Start filling the uint8 array ``buf`` with the file's bytes from ``offset`` on ``pool``
+    (``os.preadv``, pieces of ``piece`` bytes in parallel); returns what :func:`pread_wait` takes."""
+    view = memoryview(buf).cast("B")
+    n = len(view)
+    return [pool.submit(_pread_piece, fd, view, offset, a, min(n, a + piece)) for a in range(0, n, piece)]
+
+
+def pread_wait(pieces):
+    """Wait for the reads :func:`pread_start` began; the first error (a short read) is raised."""
+    for f in pieces:
+        f.result()
+
+
+def _pread_piece(fd, view, offset, a, b):
+    got = a
+    while got < b:
+        k = os.preadv(fd, [view[got:b]], offset + got)
+        if k <= 0:
+            raise OSError(f"short read at byte {offset + got} of the capture: the file ended early")
+        got += k
 
 
 def pread_into(fd, buf, offset, pool=None, piece=4 << 20):
     """Fill the uint8 array ``buf`` with the file's bytes from ``offset`` (``os.preadv``, several
     pieces at once on ``pool``); a short read (the file changed under us) is an error naming it."""
+    if pool is not None and len(buf) > piece:
+        return pread_wait(pread_start(fd, buf, offset, pool, piece))
     view = memoryview(buf).cast("B")
-    n = len(view)
-
-    def one(a):
-        b = min(n, a + piece)
-        got = a
-        while got < b:
-            k = os.preadv(fd, [view[got:b]], offset + got)
-            if k <= 0:
-                raise OSError(f"short read at byte {offset + got} of the capture: the file ended early")
-            got += k
-    starts = range(0, n, piece)
-    if pool is None or n <= piece:
-        for a in starts:
-            one(a)
-    else:
-        list(pool.map(one, starts))
+    for a in range(0, len(view), piece):
+        _pread_piece(fd, view, offset, a, min(len(view), a + piece))
 
 
 class TBXSourceBlock(TBFSourceBlock):

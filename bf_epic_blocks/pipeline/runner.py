@@ -298,7 +298,7 @@ def build_graph(cfg, progress=None):
         writer = search = cube = None
         if out["fits"] or out["png"] or out["table"]:
             writer = ImageWriterBlock(imager, outdir, prefix=out["prefix"], fits=out["fits"], png=out["png"],
-                                      table=out["table"], location=station.location,
+                                      table=out["table"], location=None,   # the header's station (this table), built in its thread
                                       pixels_fn=pixels if callable(pixels) else None,
                                       run_index=block[2] if block and block[3] > 1 else None)
         if im.get("search"):
@@ -307,14 +307,29 @@ def build_graph(cfg, progress=None):
             search = TransientSearchBlock(imager, threshold=sc["threshold"], window_s=sc["window_s"], dms=sc["dms"],
                                           widths=sc["widths"], average_channels=sc["average_channels"],
                                           product=sc["product"], outdir=outdir, prefix=out["prefix"],
-                                          table_format=sc["table"], png=sc["png"], location=station.location)
+                                          table_format=sc["table"], png=sc["png"], location=None)
         if out.get("cube"):
             from ..blocks.cube_writer import ImageCubeWriterBlock
             cc = out["cube"]
             cube = ImageCubeWriterBlock(imager, outdir, prefix=f"{out['prefix']}_cube", dtype=cc["dtype"],
                                         average_channels=cc["average_channels"],
-                                        images_per_file=cc["images_per_file"], location=station.location)
+                                        images_per_file=cc["images_per_file"], location=None)
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube)
+
+
+def block_timing(blocks, t0):
+    """{block name: {ngulp, process_s, first_data_s, last_data_s}} from the runtime's ``stats``
+    (times in seconds after ``t0``, a ``time.perf_counter()``); blocks without them (real Bifrost
+    keeps its own ``perf`` proclog instead) are left out."""
+    out = {}
+    for b in blocks:
+        st = getattr(b, "stats", None)
+        if not isinstance(st, dict) or "process_s" not in st:
+            continue
+        rel = (lambda t: None if t is None else round(t - t0, 4))
+        out[b.name] = {"ngulp": int(st["ngulp"]), "process_s": round(float(st["process_s"]), 4),
+                       "first_data_s": rel(st["first_data_at"]), "last_data_s": rel(st["last_data_at"])}
+    return out
 
 
 def run(cfg, show_progress=None):
@@ -351,6 +366,11 @@ def run(cfg, show_progress=None):
         "frames_dropped_partial": int(img.get("frames_dropped_partial", 0)), "frames_skipped": skipped,
         "images": int(img.get("images", 0)), "tbf": src_stats, "calibration": getattr(g.calfold, "cal_stats", {}),
     }
+    summary["blocks"] = block_timing(g.pipeline.blocks, t0)
+    for name, bt in summary["blocks"].items():
+        log.debug("block %s: %d gulps, %.3f s in on_data (%.2f ms/gulp), first data at %s s, last at %s s",
+                  name, bt["ngulp"], bt["process_s"], 1e3 * bt["process_s"] / max(bt["ngulp"], 1),
+                  bt["first_data_s"], bt["last_data_s"])
     if cfg["source"]["kind"] == "udp":
         summary["udp"] = summary.pop("tbf")
     if g.search is not None:

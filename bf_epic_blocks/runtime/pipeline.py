@@ -285,7 +285,10 @@ class Block(BlockScope):
     ``nsequence`` sequences started, ``ngulp`` on_data calls, ``nframe_read`` input frames
     handed to on_data (overlap frames count each time they are read), ``nframe_skipped``
     input frames lost to overruns (unguaranteed readers), ``nframe_written`` frames committed
-    to the outputs (including on_skip output), ``nskip`` on_skip calls.
+    to the outputs (including on_skip output), ``nskip`` on_skip calls; ``process_s`` seconds
+    spent in on_data (host time: GPU work still queued is not in it, as in Bifrost's ``perf``
+    proclog), ``first_data_at`` / ``last_data_at`` (``time.perf_counter()`` when the first
+    on_data began and the last one ended; None before any).
     """
     instance_counts = defaultdict(lambda: 0)
 
@@ -309,7 +312,8 @@ class Block(BlockScope):
         self.orings = []
         self.shutdown_event = threading.Event()
         self.stats = dict(nsequence=0, ngulp=0, nframe_read=0, nframe_skipped=0,
-                          nframe_written=0, nskip=0)
+                          nframe_written=0, nskip=0, process_s=0.0, first_data_at=None,
+                          last_data_at=None)
         self._ireaders = []
         self._seq_count = 0
         self.stream = None     # the thread's CUDA stream (a block on a GPU, runtime only)
@@ -396,6 +400,18 @@ class Block(BlockScope):
                 rd.close()
             self.pipeline._thread_done()
 
+    def _data_begins(self):
+        t = time.perf_counter()
+        if self.stats['first_data_at'] is None:
+            self.stats['first_data_at'] = t
+        return t
+
+    def _data_ends(self, t0):
+        st = self.stats
+        st['last_data_at'] = t = time.perf_counter()
+        st['process_s'] += t - t0
+        st['ngulp'] += 1
+
     def _check_shutdown(self):
         if self.shutdown_event.is_set():
             raise PipelineShutdown()
@@ -476,8 +492,9 @@ class SourceBlock(Block):
                         self._check_shutdown()
                         with ExitStack() as span_stack:
                             ospans = self._reserve_spans(span_stack, oseqs, [])
+                            t = self._data_begins()
                             ostrides = self.on_data(ireader, ospans)
-                            self.stats['ngulp'] += 1
+                            self._data_ends(t)
                             if not isinstance(ostrides, (list, tuple)) or \
                                     len(ostrides) != len(ospans):
                                 raise TypeError(
@@ -549,8 +566,9 @@ class MultiTransformBlock(Block):
                     with ExitStack() as span_stack:
                         ospans = self._reserve_spans(span_stack, oseqs,
                                                      [sp.nframe for sp in ispans])
+                        t = self._data_begins()
                         ostrides = self._on_data(ispans, ospans)
-                        self.stats['ngulp'] += 1
+                        self._data_ends(t)
                         self.stats['nframe_read'] += sum(sp.nframe for sp in ispans)
                         self._commit_spans(ospans, ostrides, ooverlaps)
             self._on_sequence_end(iseqs)

@@ -169,7 +169,8 @@ def source_directions(sources, time=None, location=None) -> SourceDirections:
             raise ValueError("source_directions: time must be a single instant (the sky is frozen)")
         c = SkyCoord(ra=[srcs[i].ra_deg for i in icrs] * u.deg, dec=[srcs[i].dec_deg for i in icrs] * u.deg,
                      frame="icrs")
-        aa = c.transform_to(AltAz(obstime=t, location=location))
+        with _iers_offline():
+            aa = c.transform_to(AltAz(obstime=t, location=location))
         alt[icrs] = aa.alt.to_value(u.rad)
         az[icrs] = aa.az.to_value(u.rad)
     for i, s in enumerate(srcs):
@@ -195,9 +196,13 @@ def source_directions(sources, time=None, location=None) -> SourceDirections:
 
 
 def _iers_offline():
-    """Context in which astropy uses its bundled IERS tables instead of downloading (offline)."""
+    """Context in which astropy uses its bundled IERS tables instead of downloading (offline), read
+    from this package's cache of the parsed table (:func:`..station.offline.iers_table`)."""
     from astropy.utils import iers
-    return iers.conf.set_temp("auto_download", False)
+    from ..station.offline import iers_table
+    ctx = iers.conf.set_temp("auto_download", False)
+    iers_table()
+    return ctx
 
 
 def as_time(time):

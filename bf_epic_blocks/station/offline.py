@@ -33,7 +33,7 @@ import tempfile
 import warnings
 from pathlib import Path
 
-__all__ = ["configure_offline", "lsl_config_dir", "LSL_CFG_SETTINGS"]
+__all__ = ["configure_offline", "lsl_config_dir", "LSL_CFG_SETTINGS", "iers_table"]
 
 #: The settings written to lsl.cfg: {section: {key: value}} (keys from LSL's lsl/config.py).
 LSL_CFG_SETTINGS = {
@@ -120,6 +120,68 @@ def _configure_lsl(respect_existing: bool) -> Path | None:
             return None
     os.environ["LSLCONFIGDIR"] = str(folder)
     return folder
+
+
+#: the IERS table's columns astropy's Earth-orientation lookups read (``IERS.ut1_utc``, ``pm_xy``,
+#: ``dcip_xy`` and the IERS_A source flags), as ``IERS_A.read`` leaves them (A and B combined)
+_IERS_COLUMNS = ("MJD", "UT1_UTC", "PM_x", "PM_y", "dX_2000A", "dY_2000A", "UT1Flag", "PolPMFlag", "NutFlag")
+
+
+def _iers_cache_file(data_path) -> Path:
+    import hashlib
+    from importlib.metadata import version
+    st = os.stat(data_path)
+    key = f"{version('astropy')}:{Path(data_path).resolve()}:{st.st_size}:{st.st_mtime_ns}"
+    return lsl_config_dir().parent / "iers" / f"iers_a-{hashlib.sha1(key.encode()).hexdigest()[:16]}.npz"
+
+
+def iers_table():
+    """astropy's default Earth-orientation table (``IERS_Auto``, the bundled IERS-A file combined
+    with IERS-B), parsed once per astropy version and IERS data file and then kept as ``.npz`` under
+    the user's cache folder (``~/.cache/bf_epic_blocks/iers``).
+
+    astropy parses the 3.4-MB fixed-width IERS-A text on the first coordinate transform of every
+    process: 1.4 s on this project's CI machine and 1.3 s of every ``bf-epic run`` on a GPU host,
+    holding the GIL while the pipeline's other threads wait (py-spy, H100 host, 2026-11-25). A
+    cached table fills ``IERS_Auto``'s own slot, so every later astropy transform in the process
+    uses it and gives what the parsed file gives, value for value. Needs
+    :func:`configure_offline` (no downloads) to have run; returns the table.
+    """
+    import numpy as np
+    from astropy import units as u
+    from astropy.table import QTable
+    from astropy.utils import iers
+    if iers.IERS_Auto.iers_table is not None:
+        return iers.IERS_Auto.iers_table
+    path = None
+    try:
+        path = _iers_cache_file(iers.IERS_A_FILE)
+        with np.load(path, allow_pickle=False) as z:
+            cols = {k: (z[k] * u.Unit(str(z[f"unit_{k}"])) if f"unit_{k}" in z else z[k]) for k in _IERS_COLUMNS}
+            meta = {"predictive_index": int(z["predictive_index"]), "predictive_mjd": float(z["predictive_mjd"]),
+                    "data_path": str(iers.IERS_A_FILE), "readme_path": str(iers.IERS_A_README)}
+        iers.IERS_Auto.iers_table = iers.IERS_Auto(QTable(cols, meta=meta))
+        return iers.IERS_Auto.iers_table
+    except (OSError, KeyError, ValueError, TypeError):
+        pass            # no cache yet, or one from another layout: parse the file and write it
+    table = iers.IERS_Auto.open()
+    if path is not None:
+        try:
+            arrays = {}
+            for k in _IERS_COLUMNS:
+                col = table[k]
+                unit = getattr(col, "unit", None)
+                arrays[k] = np.asarray(col.value if unit is not None else col)
+                if unit is not None:
+                    arrays[f"unit_{k}"] = np.array(str(unit))
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+            np.savez(tmp, predictive_index=table.meta["predictive_index"],
+                     predictive_mjd=table.meta["predictive_mjd"], **arrays)
+            os.replace(tmp, path)
+        except OSError:
+            pass        # a read-only cache costs the next run the parse, nothing else
+    return table
 
 
 def _configure_astropy(allow_internet: bool) -> None:

@@ -22,6 +22,7 @@ that were stored with ``to_header(freq_hz=...)`` only.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass, field
@@ -70,7 +71,6 @@ class StationTable:
     combined_status: np.ndarray
     cables: Sequence[Any] | None = field(default=None, repr=False)
     cable_table: Mapping[str, np.ndarray] | None = field(default=None, repr=False)
-    location: Any = field(init=False, repr=False)
 
     def __post_init__(self):
         self.stand_ids = np.asarray(self.stand_ids, dtype=np.int64)
@@ -85,10 +85,15 @@ class StationTable:
         if self.cables is not None and len(self.cables) != 2 * n:
             raise ValueError(f"StationTable.cables: expected {2 * n} cables (stand-major, pol minor), "
                              f"got {len(self.cables)}")
+
+    @functools.cached_property
+    def location(self):
+        """astropy EarthLocation (WGS84) of the station; built when first asked for, so a pipeline that
+        needs none does not import astropy.coordinates (0.1-0.5 s) while it starts."""
         from astropy import units as u
         from astropy.coordinates import EarthLocation
-        self.location = EarthLocation.from_geodetic(lon=self.lon_deg * u.deg, lat=self.lat_deg * u.deg,
-                                                    height=self.elev_m * u.m, ellipsoid="WGS84")
+        return EarthLocation.from_geodetic(lon=self.lon_deg * u.deg, lat=self.lat_deg * u.deg,
+                                           height=self.elev_m * u.m, ellipsoid="WGS84")
 
     # ------------------------------------------------------------------ basic facts
     @property
