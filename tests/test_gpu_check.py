@@ -91,3 +91,16 @@ def test_inputs_found_or_the_pipeline_skipped_with_a_reason(tmp_path):
     ov, sender, why = gpu_check.resolve_input(yml, cfg, data)
     assert why is None and ov == [f"source.path={(data / 'x.dat').resolve()}"]
     assert gpu_check.resolve_input(yml, {"source": {"kind": "simulated"}}, data) == ([], None, None)
+
+
+def test_bench_e2e_steady_rate_is_the_imager_s_own_pace():
+    """tools/bench_e2e.py: the steady real-time factor comes from the imager's first and last gulps,
+    not from image-file times (a writer that starts late writes queued images back to back)."""
+    import bench_e2e
+    blocks = {"TBFSourceBlock_0": {"ngulp": 11, "process_s": 0.011, "first_data_s": 0.2, "last_data_s": 1.2},
+              "DFTImagerBlock_0": {"ngulp": 11, "process_s": 0.022, "first_data_s": 0.5, "last_data_s": 1.5},
+              "ImageWriterBlock_0": {"ngulp": 2, "process_s": 1.0, "first_data_s": 1.4, "last_data_s": 1.51}}
+    r = bench_e2e.steady_rate(blocks, 11.0)
+    assert r["rt_steady"] == pytest.approx(10.0)          # 10 of 11 s of data in 1.0 s
+    assert r["ms_per_gulp_DFTImager"] == pytest.approx(2.0) and r["ms_per_gulp_ImageWriter"] == pytest.approx(500.0)
+    assert "rt_steady" not in bench_e2e.steady_rate({"DFTImagerBlock_0": dict(blocks["DFTImagerBlock_0"], ngulp=1)}, 1.0)

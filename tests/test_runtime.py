@@ -175,6 +175,26 @@ def test_guaranteed_reader_loses_nothing_and_backpressures():
     assert src.t_end - t0 > 0.5 * 0.004 * (50 - 2 * cap // 8 - 4), (src.t_end - t0, t_all)
 
 
+def test_block_timing_counts_the_time_spent_in_on_data():
+    """stats['process_s'] is the host time inside on_data (a sink that sleeps 4 ms a gulp spends at
+    least 50 x 4 ms there), first/last_data_at bracket the gulps, and the runner's block_timing
+    reports them after its start; blocks without them (real Bifrost) are left out."""
+    from bf_epic_blocks.pipeline.runner import block_timing
+    x = np.arange(400 * 4, dtype=np.int32).reshape(400, 4)
+    t0 = time.perf_counter()
+    with bfp.Pipeline() as p:
+        src = TimedSource(x, hdr(dtype='i32', shape=(-1, 4)), gulp_nframe=8)
+        sink = ArraySinkBlock(src, delay_s=0.004)
+        run_with_timeout(p)
+    st = sink.stats
+    assert st['ngulp'] == 50 and 0.2 <= st['process_s'] <= time.perf_counter() - t0
+    assert t0 < st['first_data_at'] < st['last_data_at'] and st['last_data_at'] - st['first_data_at'] >= 0.196
+    bt = block_timing([src, sink, object()], t0)
+    assert set(bt) == {src.name, sink.name}
+    assert bt[sink.name]['ngulp'] == 50 and bt[sink.name]['process_s'] == round(st['process_s'], 4)
+    assert 0 < bt[sink.name]['first_data_s'] < bt[sink.name]['last_data_s']
+
+
 def test_unguaranteed_reader_skips_are_counted_and_zero_filled():
     n = 400
     x = 1 + np.arange(n * 2, dtype=np.float32).reshape(n, 2)   # no zeros in the input

@@ -203,3 +203,35 @@ def test_station_cache_gives_lsl_s_table_without_lsl(tmp_path, monkeypatch):
     files[0].write_bytes(b"not a cache")
     assert tables.load_station("lwasv", freq_hz=f).cables is not None            # damaged: rebuilt
     assert tables.load_station("lwasv", freq_hz=f).cables is None
+
+
+def test_the_iers_cache_gives_astropy_s_own_earth_orientation(tmp_path):
+    """iers_table(): the first process parses astropy's bundled IERS-A file and keeps the columns; a
+    second one reads them instead of parsing (astropy's reader is made to fail there) and answers
+    UT1-UTC, polar motion and a zenith's ICRS position value for value as astropy's parse does."""
+    env = {k: v for k, v in os.environ.items() if k != "LSLCONFIGDIR"}
+    env.update(XDG_CACHE_HOME=str(tmp_path), HOME=str(tmp_path))
+    code = ("import sys\n"
+            "from bf_epic_blocks.station.offline import configure_offline, iers_table\n"
+            "configure_offline()\n"
+            "from astropy.utils import iers\n"
+            "if sys.argv[1] == 'cached':\n"
+            "    def no(*a, **k): raise AssertionError('parsed the IERS file again')\n"
+            "    iers.IERS_A.read = classmethod(no)\n"
+            "if sys.argv[1] != 'astropy':\n"
+            "    iers_table()\n"
+            "from astropy.time import Time\n"
+            "from bf_epic_blocks.sky.catalogue import zenith_icrs\n"
+            "t = Time(['2019-03-01T00:00:00', '2026-11-25T04:00:00', '2027-06-01T12:00:00'])\n"
+            "tab = iers.earth_orientation_table.get()\n"
+            "print(type(tab).__name__, list(t.ut1.jd2), [list(v.value) for v in tab.pm_xy(t.jd1, t.jd2)],\n"
+            "      zenith_icrs('2026-11-25T04:00:00', (-106.9, 34.3, 1477.0)))\n")
+    outs = {}
+    for mode in ("astropy", "first", "cached"):
+        out = subprocess.run([sys.executable, "-c", code, mode], env=env, capture_output=True, text=True,
+                             timeout=180, cwd=str(Path(__file__).resolve().parents[1]))
+        assert out.returncode == 0, out.stderr
+        outs[mode] = out.stdout.strip()
+    assert len(list((tmp_path / "bf_epic_blocks" / "iers").glob("iers_a-*.npz"))) == 1
+    assert outs["first"] == outs["cached"] == outs["astropy"]
+    assert outs["cached"].startswith("IERS_Auto ")

@@ -77,12 +77,9 @@ def pinned_empty(shape, dtype):
 
 
 def get_xp(*arrays):
-    """The array module (numpy or cupy) that owns ``arrays`` (numpy for host arrays/scalars).
-
-    Not ``cupy.get_array_module``: it also looks for cupyx sparse matrices, and its first call
-    imports SciPy (0.8 s of a GPU run's start-up, H100 profile 2026-11-25)."""
-    if _cupy is not None and any(isinstance(a, _cupy.ndarray) for a in arrays):
-        return _cupy
+    """The array module (numpy or cupy) that owns ``arrays`` (numpy for host arrays/scalars)."""
+    if _cupy is not None:
+        return _cupy.get_array_module(*arrays)
     return np
 
 
