@@ -62,7 +62,15 @@ def write_candidates(path, table):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() == ".ecsv":
-        table.write(path, format="ascii.ecsv", overwrite=True)
+        t = table
+        lc = table["lightcurve"] if "lightcurve" in table.colnames else None
+        if len(table) == 0 and lc is not None and lc.ndim > 1:
+            # astropy's ECSV reader cannot rebuild a 0-row column of arrays ("shape mismatch between value
+            # and column specifier", astropy 7-8): store it flat and its length in the meta
+            t = table.copy()
+            t.replace_column("lightcurve", np.zeros(0, dtype=lc.dtype))
+            t.meta["lightcurve_length"] = int(lc.shape[1])
+        t.write(path, format="ascii.ecsv", overwrite=True)
     elif path.suffix.lower() in (".fits", ".fit"):
         t = table.copy()
         t.meta = {k.upper()[:8]: (str(v) if isinstance(v, (list, tuple, dict)) else v) for k, v in t.meta.items()}
@@ -77,7 +85,11 @@ def read_candidates(path):
     from astropy.table import Table
     path = Path(path)
     fmt = "ascii.ecsv" if path.suffix.lower() == ".ecsv" else "fits"
-    return Table.read(path, format=fmt)
+    t = Table.read(path, format=fmt)
+    n = t.meta.pop("lightcurve_length", None)
+    if n is not None and len(t) == 0 and "lightcurve" in t.colnames:
+        t.replace_column("lightcurve", np.zeros((0, int(n)), dtype=t["lightcurve"].dtype))
+    return t
 
 
 def candidates_png(path, table, sky, *, grid=None, lm=None, dt_s=None, title=None, max_curves=8, dpi=100):
