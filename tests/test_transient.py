@@ -178,6 +178,40 @@ def test_noise_only_crossings_match_the_gaussian_tail():
     assert expect > 1.05 * trials * norm.sf(thr)
 
 
+def test_a_sky_filling_flash_is_one_crossing_per_trial_not_one_per_pixel(xp):
+    """A flash over the whole image (every pixel far over the threshold) gives one sky-wide crossing
+    per trial image (series, value, width) at its peak pixel, whatever the number of pixels; an event
+    over fewer pixels than sky_fraction keeps at most max_pixels (its brightest) per trial image, and
+    a lone burst keeps its own crossing. Bounded crossings mean bounded memory and time downstream
+    (a 3-MJy flash once made 24 GB of crossings)."""
+    rng = np.random.default_rng(7)
+    npix, W = 4000, 20
+    s = TransientSearch([74e6], 16 * DT, npix, W, dms=[0.0], widths=[1, 2], threshold=8.0, xp=xp,
+                        max_pixels=16, sky_fraction=0.1)
+    noise = lambda n: xp.asarray(rng.normal(10.0, 1.0, (n, 1, npix)).astype(np.float32))  # noqa: E731
+    assert len(s.push(noise(W + 4))) == 0
+    flash = noise(1)
+    flash += 1e4
+    flash[0, 0, 1234] += 5e4                                    # its peak
+    cr = s.push(flash)
+    assert len(cr) == 2 and set(cr.width_index) == {0, 1}       # one per width, not 2 x 4000
+    assert np.all(cr.skywide == 1) and np.all(cr.pixel == 1234) and np.all(cr.frac == 1.0)
+    s.reset(0)
+    assert len(s.push(noise(W + 4))) == 0
+    part = noise(1)
+    part[0, 0, :300] += 1e3                                     # 7.5% of the sky: not sky-wide
+    part[0, 0, 7] += 1e4
+    cr = s.push(part)
+    assert 0 < len(cr) <= 2 * 16 and np.all(cr.skywide == 0)
+    assert 7 in cr.pixel and np.all(cr.pixel < 300) and np.allclose(cr.frac, 300 / npix)
+    s.reset(0)
+    s.push(noise(W + 4))
+    one = noise(1)
+    one[0, 0, 99] += 100.0
+    cr = s.push(one)
+    assert list(cr.pixel[cr.width_index == 0]) == [99] and np.all(cr.skywide == 0)
+
+
 def test_noise_only_block_count_all_widths_and_dms():
     """Through the block, 4 widths x 3 DMs: the count of crossings matches the sum of the tails over
     the trials the block reports (loose bound: trials of one event are correlated)."""
@@ -316,7 +350,7 @@ def test_candidate_tables_read_back_for_any_number_of_rows(tmp_path, suffix, nro
         r = {c: float(rng.normal()) for c in CANDIDATE_COLUMNS}
         r.update(time_utc=Time("2026-11-25T04:00:00") + k * 0.01 * u.s,
                  sequence=f"seq{k}", image=k, pixel=3 * k, grid_x=k, grid_y=-1, channel=-1, width=1 + k,
-                 nmembers=k + 2, lightcurve=np.where(np.arange(9) < 2, np.nan, rng.normal(size=9)))
+                 nmembers=k + 2, kind="sky-wide" if k == 1 else "point", sky_fraction=0.01 * k, lightcurve=np.where(np.arange(9) < 2, np.nan, rng.normal(size=9)))
         rows.append(r)
     tab = candidate_table(rows, {"threshold": 6.0, "lightcurve_first": -4}, lc_length=9)
     path = write_candidates(tmp_path / f"c{suffix}", tab)
@@ -328,3 +362,4 @@ def test_candidate_tables_read_back_for_any_number_of_rows(tmp_path, suffix, nro
     np.testing.assert_array_equal(np.asarray(back["lightcurve"]), np.asarray(tab["lightcurve"]))
     np.testing.assert_array_equal(np.asarray(back["snr"]), np.asarray(tab["snr"]))
     assert list(back["sequence"]) == list(tab["sequence"]) and back["dm"].unit == tab["dm"].unit
+    assert list(back["kind"]) == list(tab["kind"])

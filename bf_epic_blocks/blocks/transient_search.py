@@ -65,7 +65,8 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.rows, self.written = [], []
         self.candidates = None
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
-                             "images_lost": 0, "trials_per_width": [0] * len(self.widths), "sequences": 0}
+                             "images_lost": 0, "trials_per_width": [0] * len(self.widths), "sequences": 0,
+                             "sky_wide": 0}
         self._sky = None
 
     # ------------------------------------------------------------------ set-up
@@ -152,7 +153,11 @@ class TransientSearchBlock(bfp.SinkBlock):
         cr = self._pending
         if not len(cr):
             return
-        labels, peaks = cluster_crossings(cr.image, self._xy[cr.pixel], cr.series, cr.snr, time_link=self._tlink,
+        xy = self._xy[cr.pixel].astype(np.float64)
+        # sky-wide crossings are all in one place, far from every pixel: they link to each other by
+        # time and DM only, never to a point crossing
+        xy[cr.skywide.astype(bool)] = 1e12
+        labels, peaks = cluster_crossings(cr.image, xy, cr.series, cr.snr, time_link=self._tlink,
                                           space_link=self._space, series_link=len(self.dms))
         if final:
             done = np.ones(labels.max() + 1, bool)
@@ -164,10 +169,11 @@ class TransientSearchBlock(bfp.SinkBlock):
             done = newest + self._tlink < horizon
         for lab, k in zip(labels[peaks], peaks):
             if done[lab]:
-                self._add_candidate(cr, k, int(np.sum(labels == lab)))
+                members = labels == lab
+                self._add_candidate(cr, k, int(np.sum(members)), float(cr.frac[members].max()))
         self._pending = cr.take(~done[labels])
 
-    def _add_candidate(self, cr, k, nmembers):
+    def _add_candidate(self, cr, k, nmembers, sky_fraction):
         from ..io.tbf import time_tag_to_time
         from ..sky.catalogue import lm_to_icrs
         lay, s = self.lay, self.search
@@ -191,8 +197,15 @@ class TransientSearchBlock(bfp.SinkBlock):
                           "grid_x": gx, "grid_y": gy, "l": l, "m": m, "ra_deg": ra, "dec_deg": dec,
                           "snr": float(cr.snr[k]), "dm": self.dms[ser] if s.average else 0.0,
                           "channel": -1 if s.average else ser, "width": w, "width_ms": w * lay["dt_s"] * 1e3,
-                          "nmembers": nmembers, "lightcurve": lc})
+                          "nmembers": nmembers, "kind": "sky-wide" if cr.skywide[k] else "point",
+                          "sky_fraction": sky_fraction, "lightcurve": lc})
         self.search_stats["candidates"] += 1
+        if cr.skywide[k]:
+            self.search_stats["sky_wide"] += 1
+            log.warning("sky-wide event: %s UTC, peak S/N %.1f at l %.3f m %.3f, %.0f%% of the sky over the "
+                        "threshold (lightning, RFI or a flash?), DM %g, width %d", t.isot, cr.snr[k], l, m,
+                        100 * sky_fraction, self.rows[-1]["dm"], w)
+            return
         log.info("transient candidate: %s UTC, S/N %.1f, DM %g, width %d, l %.3f m %.3f, RA %.2f Dec %.2f",
                  t.isot, cr.snr[k], self.rows[-1]["dm"], w, l, m, ra, dec)
 

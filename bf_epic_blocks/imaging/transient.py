@@ -75,14 +75,17 @@ class Crossings:
     image : sequence image index at which the event starts at the reference (highest) frequency;
     end_image : the image index of the newest image in the boxcar (as pushed, before dedispersion
         alignment); series : DM-trial index (or channel with average_channels=False);
-    width_index : index into ``widths``; pixel : pixel index; snr : float.
+    width_index : index into ``widths``; pixel : pixel index; snr : float;
+    frac : the fraction of the image's pixels over the threshold in that trial (series, value, width);
+    skywide : 1 for a sky-wide crossing (``frac`` above the search's ``sky_fraction``: one crossing
+    at the image's peak pixel stands for all of them), else 0.
     """
 
-    FIELDS = ("image", "end_image", "series", "width_index", "pixel", "snr")
+    FIELDS = ("image", "end_image", "series", "width_index", "pixel", "snr", "frac", "skywide")
 
     def __init__(self, **arrays):
         for k in self.FIELDS:
-            setattr(self, k, np.asarray(arrays.get(k, ()), dtype=np.float64 if k == "snr" else np.int64))
+            setattr(self, k, np.asarray(arrays.get(k, ()), dtype=np.float64 if k in ("snr", "frac") else np.int64))
 
     def __len__(self):
         return int(self.snr.size)
@@ -110,6 +113,10 @@ class TransientSearch:
     threshold : S/N above which a trial is a crossing.
     average_channels : True (dedisperse and average the channels) or False (search each channel).
     xp : numpy or cupy; max_batch : images processed per internal step (bounds memory).
+    max_pixels : at most this many crossings (the brightest) are kept per trial image (series, value,
+        width), so a bright event costs what a faint one does (default 32).
+    sky_fraction : a trial image with more than this fraction of its pixels over the threshold is one
+        sky-wide crossing at its peak pixel (lightning, RFI, a flash), not a crossing per pixel (0.1).
 
     :meth:`push` takes images ``(nimage, nchan, npix)`` (float, finite) and returns
     :class:`Crossings`; :meth:`reset` forgets the history (call at a gap or a new sequence, with the
@@ -117,7 +124,7 @@ class TransientSearch:
     """
 
     def __init__(self, freq_hz, dt_s, npix, window, dms=(0.0,), widths=(1, 2, 4, 8), threshold=6.0,
-                 average_channels=True, xp=np, max_batch=256):
+                 average_channels=True, xp=np, max_batch=256, max_pixels=32, sky_fraction=0.1):
         self.freq_hz = np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))
         if self.freq_hz.ndim != 1 or not np.all(self.freq_hz > 0):
             raise ValueError(f"freq_hz: expected a 1-D array of positive frequencies, got {freq_hz!r}")
@@ -138,6 +145,11 @@ class TransientSearch:
         self.dt_s, self.window, self.widths, self.dms = float(dt_s), int(window), widths, dms
         self.threshold, self.average = float(threshold), bool(average_channels)
         self.xp, self.max_batch = xp, int(max_batch)
+        if int(max_pixels) != max_pixels or max_pixels < 1:
+            raise ValueError(f"max_pixels: expected an integer >= 1, got {max_pixels!r}")
+        if not 0 < sky_fraction <= 1:
+            raise ValueError(f"sky_fraction: expected a fraction in (0, 1], got {sky_fraction!r}")
+        self.max_pixels, self.sky_fraction = int(max_pixels), float(sky_fraction)
         self.delays = dm_delays(dms, self.freq_hz, dt_s)                 # (ndm, nchan)
         self.delay_max = self.delays.max(axis=1)                          # (ndm,)
         self.shift = int(self.delay_max.max()) if self.average else 0     # channel history needed
@@ -237,16 +249,49 @@ class TransientSearch:
                 e = np.arange(wmax - 1, wmax - 1 + nb) + 1
                 box = c[:, e] - c[:, e - w]
                 snr = (box / w - mean) * math.sqrt(w) / sigma
-                hit = xp.nonzero(snr > self.threshold)
-                if hit[0].size == 0:
+                found = self._crossings(snr)
+                if found is None:
                     continue
-                s, b, p = (to_numpy(h) for h in hit)
+                s, b, p, val, frac, sky = found
                 nval = n0 + k0 + b
                 dmax = self.delay_max[s] if self.average else 0
                 end = self.value_image(nval)
                 out.append(Crossings(image=end - w + 1 - dmax, end_image=end, series=s,
-                                     width_index=np.full(s.size, wi), pixel=p, snr=to_numpy(snr[hit])))
+                                     width_index=np.full(s.size, wi), pixel=p, snr=val, frac=frac, skywide=sky))
         return Crossings.concat(out)
+
+    def _crossings(self, snr):
+        """Crossings of one width's S/N cube (nser, nb, npix), bounded whatever the sky does: per trial
+        image (series, value) at most ``max_pixels`` (its brightest), and a trial image with more than
+        ``sky_fraction`` of its pixels over the threshold gives one sky-wide crossing at its peak.
+        Reduced where the arrays live; returns host (series, value, pixel, snr, frac, skywide) or None."""
+        xp = self.xp
+        over = snr > self.threshold                           # NaN (sigma 0) never crosses
+        count = to_numpy(over.sum(axis=2))                    # (nser, nb)
+        if not count.any():
+            return None
+        frac_all = count / self.npix
+        skyrow = frac_all > self.sky_fraction
+        if count.max() <= self.max_pixels and not skyrow.any():
+            hit = xp.nonzero(over)
+            s, b, p = (to_numpy(h) for h in hit)
+            val = to_numpy(snr[hit]).astype(np.float64)
+        else:
+            k = min(self.max_pixels, self.npix)
+            masked = xp.where(over, snr, -xp.inf)
+            idx = xp.argpartition(-masked, k - 1, axis=2)[:, :, :k] if k < self.npix else \
+                xp.broadcast_to(xp.arange(self.npix), masked.shape)
+            top = to_numpy(xp.take_along_axis(masked, idx, axis=2))
+            idx = to_numpy(idx)
+            if skyrow.any():                                   # the peak alone stands for a sky-wide row
+                peak = to_numpy(xp.argmax(masked, axis=2))
+                top[skyrow] = -np.inf
+                ss, bb = np.nonzero(skyrow)
+                idx[ss, bb, 0] = peak[ss, bb]
+                top[ss, bb, 0] = to_numpy(masked[xp.asarray(ss), xp.asarray(bb), xp.asarray(peak[ss, bb])])
+            s, b, j = np.nonzero(top > self.threshold)
+            p, val = idx[s, b, j], top[s, b, j].astype(np.float64)
+        return s, b, p, val, frac_all[s, b], skyrow[s, b].astype(np.int64)
 
     def _ring_read(self, first, count):
         """Values [first, first + count) of the circular history, (nser, count, npix) (a view when

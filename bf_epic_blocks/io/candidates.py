@@ -12,7 +12,10 @@ ra_deg, dec_deg ICRS direction at ``time_utc`` (NaN without a station location)
 snr            peak S/N (boxcar mean against the sliding window's mean and sigma)
 dm             trial DM of the peak (pc cm^-3); ``channel``: -1 (channels averaged) or the channel
 width          boxcar width in images; ``width_ms``: the same in milliseconds
-nmembers       threshold crossings merged into the candidate
+nmembers       threshold crossings merged into the candidate (at most ``max_pixels`` per trial image)
+kind           'point', or 'sky-wide': more than the search's ``sky_fraction`` of the image's pixels over
+               the threshold at once (lightning, RFI, a flash); ``pixel`` etc. are then its peak's
+sky_fraction   the largest fraction of the image's pixels over the threshold among its crossings
 lightcurve     S/N per image (width 1, the candidate's DM and pixel) from ``lc_first`` images
                before the event to after it (NaN where not held); meta ``lightcurve_first``
 =============  ===========================================================================
@@ -29,7 +32,7 @@ import numpy as np
 __all__ = ["CANDIDATE_COLUMNS", "candidate_table", "write_candidates", "read_candidates", "candidates_png"]
 
 CANDIDATE_COLUMNS = ("time_utc", "sequence", "image", "pixel", "grid_x", "grid_y", "l", "m", "ra_deg", "dec_deg",
-                     "snr", "dm", "channel", "width", "width_ms", "nmembers", "lightcurve")
+                     "snr", "dm", "channel", "width", "width_ms", "nmembers", "kind", "sky_fraction", "lightcurve")
 _UNITS = {"ra_deg": "deg", "dec_deg": "deg", "dm": "pc / cm3", "width_ms": "ms"}
 
 
@@ -44,7 +47,7 @@ def candidate_table(rows, meta=None, lc_length=0):
             cols[k] = Time([v.isot for v in vals], scale="utc", format="isot") if vals else Time([], format="isot")
         elif k == "lightcurve":
             cols[k] = np.asarray(vals, dtype=np.float32).reshape(len(vals), lc_length)
-        elif k == "sequence":
+        elif k in ("sequence", "kind"):
             cols[k] = np.asarray(vals, dtype=str) if vals else np.zeros(0, dtype="U1")
         else:
             cols[k] = np.asarray(vals, dtype=np.int64 if k in ("image", "pixel", "grid_x", "grid_y", "channel",
