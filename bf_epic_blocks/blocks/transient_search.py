@@ -153,6 +153,13 @@ class TransientSearchBlock(bfp.SinkBlock):
         cr = self._pending
         if not len(cr):
             return
+        sky = cr.skywide.astype(bool)
+        if sky.any() and not sky.all():
+            # the other DM trials and widths see a sky-wide event smeared over up to the largest delay
+            # (plus a boxcar): what crosses then, near it in time, is that event, not a source of its own
+            span = self.search.shift + self.search.wmax
+            near = np.abs(cr.image[:, None] - cr.image[sky][None, :]).min(axis=1) <= span
+            cr.skywide[near] = 1
         xy = self._xy[cr.pixel].astype(np.float64)
         # sky-wide crossings are all in one place, far from every pixel: they link to each other by
         # time and DM only, never to a point crossing
