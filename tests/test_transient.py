@@ -233,6 +233,31 @@ def test_noise_only_block_count_all_widths_and_dms():
     assert len(srch.candidates) <= st["crossings"]
 
 
+def test_a_flash_is_one_sky_wide_row_and_a_burst_elsewhere_stays_a_point(tmp_path):
+    """Through the block, with DM trials: a flash over the whole sky (DM 0, seen smeared by the other
+    trials) is ONE row of kind 'sky-wide' with its sky fraction; a point burst well after it is its own
+    'point' row at its pixel; the table reads back with both kinds."""
+    rng = np.random.default_rng(5)
+    grid = imaging.lm_grid(24)
+    freq = 74e6 + 25e3 * np.arange(8)
+    dt_img, nimg = 16 * DT, 700
+    x = rng.normal(5.0, 0.5, (nimg, 8, 1, 24, 24)).astype(np.float32)
+    x[400:402] += 500.0                                            # the flash: every pixel, every channel
+    pix = divmod(int(np.flatnonzero(grid.mask)[40]), 24)          # (row = m index, column = l index)
+    x[600, :, 0, pix[0], pix[1]] += 20.0                           # the burst: one pixel, S/N ~ 40
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, image_header(grid, freq, dt_img), gulp_nframe=64)
+        srch = TransientSearchBlock(src, threshold=8.0, window_s=150 * dt_img, dms=[0.0, 1.0, 2.0],
+                                    outdir=str(tmp_path), png=False)
+        p.run()
+    t = read_candidates(tmp_path / "transients_candidates.ecsv")
+    sky = t[t["kind"] == "sky-wide"]
+    assert len(sky) == 1 and sky["image"][0] in (399, 400, 401) and sky["sky_fraction"][0] > 0.9
+    pts = t[t["kind"] == "point"]
+    assert len(pts) == 1 and pts["image"][0] == 600 and (pts["grid_y"][0], pts["grid_x"][0]) == pix
+    assert srch.search_stats["sky_wide"] == 1
+
+
 # ------------------------------------------------------------------------------ resets
 def _fake(data):
     return SimpleNamespace(data=data, space="system")
