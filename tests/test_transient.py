@@ -258,6 +258,43 @@ def test_a_flash_is_one_sky_wide_row_and_a_burst_elsewhere_stays_a_point(tmp_pat
     assert srch.search_stats["sky_wide"] == 1
 
 
+@pytest.mark.parametrize("factor", [2.0, 0.0])
+def test_a_bright_burst_s_sidelobes_fold_into_it_and_a_second_burst_stays(tmp_path, factor):
+    """Images of a bright burst (S/N ~200) drawn with the array's own beam (24 antennas in the
+    header's station: sidelobes of 4-30% over a few per cent of the sky) and a second, unrelated burst at the same
+    time: the sidelobes fold into the burst's row (nsidelobes counts them), the burst keeps its
+    pixel, the second burst keeps its own row; sidelobe_factor 0 keeps every row (the old output)."""
+    from bf_epic_blocks.imaging.transient import beam_power
+    rng = np.random.default_rng(11)
+    grid = imaging.lm_grid(24)
+    lm = grid.lm
+    freq = 74e6 + 25e3 * np.arange(4)
+    xyz = np.column_stack([rng.uniform(-40, 40, (64, 2)), np.zeros(64)])
+    hdr = image_header(grid, freq, 16 * DT)
+    hdr["station"].update(xyz_m=xyz.tolist(), flags=np.zeros((64, 2), bool).tolist())
+    nimg, N = 500, grid.size
+    x = rng.normal(5.0, 1.0, (nimg, 4, 1, N * N)).astype(np.float32)
+    valid = np.flatnonzero(grid.mask.ravel())
+    p, q = 150, 400                                       # indices into the imaged pixels
+    beam = beam_power(xyz, freq, lm[p], lm)
+    x[420, :, 0, valid] += (100.0 * beam)[:, None]        # one image: S/N ~200 at p, its sidelobes elsewhere
+    assert 10 < np.sum(200.0 * beam > 8.0) < 0.1 * len(lm)   # sidelobes over the threshold, not sky-wide
+    x[420, :, 0, valid[q]] += 60.0                        # an unrelated burst, far above p's sidelobe there
+    with bfp.Pipeline() as pl:
+        src = ArraySourceBlock(x.reshape(nimg, 4, 1, N, N), hdr, gulp_nframe=50)
+        srch = TransientSearchBlock(src, threshold=8.0, window_s=150 * 16 * DT, widths=[1], outdir=str(tmp_path),
+                                    png=False, sidelobe_factor=factor)
+        pl.run()
+    t = read_candidates(tmp_path / "transients_candidates.ecsv")
+    t.sort("snr", reverse=True)
+    if factor == 0:
+        assert len(t) > 10 and np.all(t["nsidelobes"] == 0)
+        return
+    assert len(t) <= 3, t["pixel", "snr", "nsidelobes"]
+    assert t["pixel"][0] == p and t["nsidelobes"][0] > 10
+    assert q in list(t["pixel"])
+
+
 # ------------------------------------------------------------------------------ resets
 def _fake(data):
     return SimpleNamespace(data=data, space="system")
@@ -375,7 +412,7 @@ def test_candidate_tables_read_back_for_any_number_of_rows(tmp_path, suffix, nro
         r = {c: float(rng.normal()) for c in CANDIDATE_COLUMNS}
         r.update(time_utc=Time("2026-11-25T04:00:00") + k * 0.01 * u.s,
                  sequence=f"seq{k}", image=k, pixel=3 * k, grid_x=k, grid_y=-1, channel=-1, width=1 + k,
-                 nmembers=k + 2, kind="sky-wide" if k == 1 else "point", sky_fraction=0.01 * k, lightcurve=np.where(np.arange(9) < 2, np.nan, rng.normal(size=9)))
+                 nmembers=k + 2, nsidelobes=k, kind="sky-wide" if k == 1 else "point", sky_fraction=0.01 * k, lightcurve=np.where(np.arange(9) < 2, np.nan, rng.normal(size=9)))
         rows.append(r)
     tab = candidate_table(rows, {"threshold": 6.0, "lightcurve_first": -4}, lc_length=9)
     path = write_candidates(tmp_path / f"c{suffix}", tab)
@@ -388,3 +425,30 @@ def test_candidate_tables_read_back_for_any_number_of_rows(tmp_path, suffix, nro
     np.testing.assert_array_equal(np.asarray(back["snr"]), np.asarray(tab["snr"]))
     assert list(back["sequence"]) == list(tab["sequence"]) and back["dm"].unit == tab["dm"].unit
     assert list(back["kind"]) == list(tab["kind"])
+
+
+def test_beam_power_is_what_the_imager_makes_of_a_point_source():
+    """beam_power(p -> q) against the DFT imager itself: one noise-free sample of a point source at a
+    pixel p, imaged on the grid and divided by its peak, is the beam at every pixel (float64),
+    with and without the self terms."""
+    from bf_epic_blocks.imaging.dft import dirty_image
+    from bf_epic_blocks.imaging.transient import beam_power
+    rng = np.random.default_rng(3)
+    xyz = np.column_stack([rng.uniform(-50, 50, (40, 2)), rng.normal(0, 1, 40)])
+    freq = np.array([60e6, 70e6])
+    grid = imaging.lm_grid(24)
+    lm = grid.lm
+    p = 77
+    s = np.append(lm[p], np.sqrt(1 - (lm[p] ** 2).sum()))
+    for sign in (1, -1):
+        x = np.exp(sign * 2j * np.pi * freq[:, None] / 299792458.0 * (xyz @ s)[None])[None, :, :, None]
+        for rm in (False, True):
+            img = dirty_image(x, xyz, freq, lm, remove_autocorr=rm, precision="fp64").sum(axis=0)[0]
+            if not rm and int(np.argmax(img)) != p:
+                break                                       # the other sign is the model's
+            got = img / img[p]
+            np.testing.assert_allclose(got, beam_power(xyz, freq, lm[p], lm, remove_autocorr=rm), atol=1e-9)
+            assert beam_power(xyz, freq, lm[p], lm[p:p + 1], remove_autocorr=rm)[0] == pytest.approx(1.0)
+        else:
+            return
+    raise AssertionError("the imager's image of the point source peaks at neither sign's pixel")

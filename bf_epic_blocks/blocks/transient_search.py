@@ -42,6 +42,12 @@ class TransientSearchBlock(bfp.SinkBlock):
         the median nearest-neighbour distance). time_link : in images (default the widest boxcar).
     lc_before, lc_after : light-curve images before and after the event start.
     location : astropy EarthLocation (default: the header's station).
+    sidelobe_factor : a point candidate no brighter than ``sidelobe_factor * beam * S`` of a brighter
+        one (S/N S) at the same time, ``beam`` the array's power pattern from that one's pixel to its
+        own (:func:`~bf_epic_blocks.imaging.transient.beam_power`, from the header's station), is
+        that one's sidelobe: folded into it (its row's ``nsidelobes`` counts them), not a row of its
+        own. 2 allows for pixels' noise levels differing; 0 keeps every row.
+    max_pixels, sky_fraction : see :class:`~bf_epic_blocks.imaging.transient.TransientSearch`.
 
     ``candidates`` is the astropy Table of all candidates so far; ``search_stats`` counts images
     searched, trials per width, crossings, resets and images lost; ``written`` lists the files.
@@ -49,7 +55,8 @@ class TransientSearchBlock(bfp.SinkBlock):
 
     def __init__(self, iring, threshold=6.0, window_s=1.0, dms=(0.0,), widths=(1, 2, 4, 8), average_channels=True,
                  product=None, outdir=None, prefix="transients", table_format="ecsv", png=True, space_link=None,
-                 time_link=None, lc_before=32, lc_after=32, location=None, *args, **kwargs):
+                 time_link=None, lc_before=32, lc_after=32, location=None, sidelobe_factor=2.0, max_pixels=32,
+                 sky_fraction=0.1, *args, **kwargs):
         super().__init__(iring, *args, **kwargs)
         if table_format not in ("ecsv", "fits"):
             raise ValueError(f"TransientSearchBlock: table_format must be 'ecsv' or 'fits', got {table_format!r}")
@@ -62,11 +69,14 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.space_link, self.time_link = space_link, time_link
         self.lc_before, self.lc_after = int(lc_before), int(lc_after)
         self.location = location
+        if not sidelobe_factor >= 0:
+            raise ValueError(f"TransientSearchBlock: sidelobe_factor must be >= 0, got {sidelobe_factor!r}")
+        self.sidelobe_factor, self.max_pixels, self.sky_fraction = float(sidelobe_factor), max_pixels, sky_fraction
         self.rows, self.written = [], []
         self.candidates = None
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
                              "images_lost": 0, "trials_per_width": [0] * len(self.widths), "sequences": 0,
-                             "sky_wide": 0}
+                             "sky_wide": 0, "sidelobes_folded": 0}
         self._sky = None
 
     # ------------------------------------------------------------------ set-up
@@ -91,7 +101,18 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.xp = self._xp()
         self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), window, dms=self.dms,
                                       widths=self.widths, threshold=self.threshold,
-                                      average_channels=self.average_channels, xp=self.xp)
+                                      average_channels=self.average_channels, xp=self.xp,
+                                      max_pixels=self.max_pixels, sky_fraction=self.sky_fraction)
+        st = hdr.get("station") or {}
+        self._beam_ants = []            # (antenna positions, weight) per polarisation, for the sidelobe test
+        if st.get("xyz_m") is not None:
+            xyz = np.asarray(st["xyz_m"], np.float64).reshape(-1, 3)
+            fl = np.asarray(st.get("flags", np.zeros((len(xyz), 2), bool)), bool).reshape(len(xyz), -1)
+            for pol in range(fl.shape[1]):
+                ants = xyz[~fl[:, pol]]
+                self._beam_ants.append((ants, float(len(ants)) ** 2))
+        self._autocorr_removed = bool((hdr.get("imager") or {}).get("remove_autocorr", False))
+        self._recent = []               # point rows that may have sidelobes still to come: (image, pixel, snr, row)
         self._index = self.xp.asarray(lay["pixel_index"])
         if lay["grid"] is not None:
             N = lay["grid"].size
@@ -174,11 +195,48 @@ class TransientSearchBlock(bfp.SinkBlock):
             # a later crossing starts no earlier than this image (widest boxcar, largest delay)
             horizon = self._j - self.search.wmax - self.search.shift - self.lc_after
             done = newest + self._tlink < horizon
-        for lab, k in zip(labels[peaks], peaks):
-            if done[lab]:
-                members = labels == lab
-                self._add_candidate(cr, k, int(np.sum(members)), float(cr.frac[members].max()))
+        finals = sorted((k for lab, k in zip(labels[peaks], peaks) if done[lab]), key=lambda k: -cr.snr[k])
+        self._sigma = _compat.to_numpy(self.search.statistics()[1]) if finals else None   # (nser, npix)
+        for k in finals:                                 # brightest first: sidelobes fold into it
+            members = labels == labels[k]
+            if not cr.skywide[k] and self._sidelobe_of(cr, k, int(np.sum(members))):
+                continue
+            self._add_candidate(cr, k, int(np.sum(members)), float(cr.frac[members].max()))
+            if not cr.skywide[k]:
+                self._recent.append((int(cr.image[k]), int(cr.pixel[k]), float(cr.snr[k]), len(self.rows) - 1,
+                                     float(self._sigma[cr.series[k], cr.pixel[k]])))
+        keep = self._j - 4 * (self._tlink + self.search.wmax + self.search.shift + self.lc_after)
+        self._recent = [r for r in self._recent if r[0] >= keep]
         self._pending = cr.take(~done[labels])
+
+    def _sidelobe_of(self, cr, k, nmembers):
+        """Fold point candidate k into a brighter point row at (nearly) the same time whose sidelobe it
+        can be: its S/N no more than ``sidelobe_factor`` times what the brighter one's flux puts at its
+        pixel through the beam, in its pixel's noise (window sigma). True if folded (that row's
+        ``nsidelobes`` and ``nmembers`` grow)."""
+        if not self.sidelobe_factor or not self._beam_ants:
+            return False
+        from ..imaging.transient import beam_power
+        e, q, snr = int(cr.image[k]), int(cr.pixel[k]), float(cr.snr[k])
+        span = self._tlink + self.search.wmax
+        lm = self.lay["lm"]
+        sigma_q = float(self._sigma[cr.series[k], q])
+        for e_p, p, snr_p, row, sigma_p in sorted(self._recent, key=lambda r: -r[2]):
+            if snr_p <= snr or abs(e_p - e) > span or p == q or not sigma_q > 0:
+                continue
+            wsum = sum(w for _, w in self._beam_ants)
+            beam = sum(w * beam_power(a, self.lay["freq_hz"], lm[p], lm[q:q + 1],
+                                      remove_autocorr=self._autocorr_removed)[0] for a, w in self._beam_ants) / wsum
+            # what the brighter one puts here, in this pixel's own noise: flux ratio = beam, S/N scales
+            # as 1 / sigma (pixels near bright sources are noisier)
+            if snr <= self.sidelobe_factor * snr_p * beam * sigma_p / sigma_q:
+                self.rows[row]["nsidelobes"] += 1
+                self.rows[row]["nmembers"] += nmembers
+                self.search_stats["sidelobes_folded"] += 1
+                log.debug("candidate at image %d, pixel %d, S/N %.1f folded into the S/N %.1f one at pixel %d "
+                          "(beam %.3f)", e, q, snr, snr_p, p, beam)
+                return True
+        return False
 
     def _add_candidate(self, cr, k, nmembers, sky_fraction):
         from ..io.tbf import time_tag_to_time
@@ -204,7 +262,7 @@ class TransientSearchBlock(bfp.SinkBlock):
                           "grid_x": gx, "grid_y": gy, "l": l, "m": m, "ra_deg": ra, "dec_deg": dec,
                           "snr": float(cr.snr[k]), "dm": self.dms[ser] if s.average else 0.0,
                           "channel": -1 if s.average else ser, "width": w, "width_ms": w * lay["dt_s"] * 1e3,
-                          "nmembers": nmembers, "kind": "sky-wide" if cr.skywide[k] else "point",
+                          "nmembers": nmembers, "nsidelobes": 0, "kind": "sky-wide" if cr.skywide[k] else "point",
                           "sky_fraction": sky_fraction, "lightcurve": lc})
         self.search_stats["candidates"] += 1
         if cr.skywide[k]:

@@ -39,7 +39,7 @@ import numpy as np
 from ._xp import to_numpy
 
 __all__ = ["DISPERSION_CONSTANT_S", "dispersion_delay_s", "dm_delays", "TransientSearch", "Crossings",
-           "cluster_crossings", "expected_false_rate"]
+           "cluster_crossings", "expected_false_rate", "beam_power"]
 
 #: Dispersion constant, seconds * GHz^2 per (pc cm^-3).
 DISPERSION_CONSTANT_S = 4.149e-3
@@ -353,6 +353,34 @@ class TransientSearch:
             vals = self._hist[series, self.xp.asarray(n[keep] % self.capacity), pixel]
             out[keep] = to_numpy(vals).astype(np.float64) + float(to_numpy(self._ref[series, pixel]))
         return out
+
+
+def beam_power(xyz_m, freq_hz, lm_from, lm_to, *, remove_autocorr=False):
+    """The array's power pattern: what a unit point source at ``lm_from`` (2,) puts into the image at
+    the directions ``lm_to`` (n, 2), relative to its own peak, channel mean (host float64, (n,)).
+
+    ``|sum_a exp(2 pi i nu/c r_a . (s_to - s_from))|^2 / N^2`` for the N antennas ``xyz_m`` (N, 3)
+    (East/North/Up metres, unit weights, the full 3-D positions: no w approximation), s = (l, m, n);
+    with ``remove_autocorr`` the image's own definition without the N self terms,
+    ``(|sum|^2 - N) / (N^2 - N)``. 1 at ``lm_from``; a sidelobe of a burst of S/N S at ``lm_from``
+    reaches about ``S * beam_power`` at ``lm_to`` (as far as the pixels' noise levels agree).
+    """
+    from ..conventions import SPEED_OF_LIGHT_M_S
+    xyz = np.asarray(xyz_m, np.float64).reshape(-1, 3)
+    f = np.atleast_1d(np.asarray(freq_hz, np.float64))
+    n_ant = len(xyz)
+    if n_ant == 0:
+        return np.zeros(len(np.atleast_2d(lm_to)))
+
+    def s_of(lm):
+        lm = np.atleast_2d(np.asarray(lm, np.float64))
+        return np.column_stack([lm, np.sqrt(np.clip(1.0 - (lm * lm).sum(axis=1), 0.0, None))])
+    ds = s_of(lm_to) - s_of(lm_from)                                   # (n, 3)
+    phase = (2.0 * np.pi / SPEED_OF_LIGHT_M_S) * f[:, None, None] * (ds @ xyz.T)[None]   # (nchan, n, N)
+    p = np.abs(np.exp(1j * phase).sum(axis=2)) ** 2                    # (nchan, n)
+    if remove_autocorr:
+        return ((p - n_ant) / max(n_ant * n_ant - n_ant, 1)).mean(axis=0)
+    return (p / (n_ant * n_ant)).mean(axis=0)
 
 
 def cluster_crossings(image, xy, series, snr, *, time_link, space_link, series_link):

@@ -13,6 +13,8 @@ snr            peak S/N (boxcar mean against the sliding window's mean and sigma
 dm             trial DM of the peak (pc cm^-3); ``channel``: -1 (channels averaged) or the channel
 width          boxcar width in images; ``width_ms``: the same in milliseconds
 nmembers       threshold crossings merged into the candidate (at most ``max_pixels`` per trial image)
+nsidelobes     fainter candidates at the same time folded into this one as its sidelobes (the
+               array's beam from its pixel explains them; their crossings are in ``nmembers``)
 kind           'point', or 'sky-wide': more than the search's ``sky_fraction`` of the image's pixels over
                the threshold at once (lightning, RFI, a flash); ``pixel`` etc. are then its peak's
 sky_fraction   the largest fraction of the image's pixels over the threshold among its crossings
@@ -32,7 +34,7 @@ import numpy as np
 __all__ = ["CANDIDATE_COLUMNS", "candidate_table", "write_candidates", "read_candidates", "candidates_png"]
 
 CANDIDATE_COLUMNS = ("time_utc", "sequence", "image", "pixel", "grid_x", "grid_y", "l", "m", "ra_deg", "dec_deg",
-                     "snr", "dm", "channel", "width", "width_ms", "nmembers", "kind", "sky_fraction", "lightcurve")
+                     "snr", "dm", "channel", "width", "width_ms", "nmembers", "nsidelobes", "kind", "sky_fraction", "lightcurve")
 _UNITS = {"ra_deg": "deg", "dec_deg": "deg", "dm": "pc / cm3", "width_ms": "ms"}
 
 
@@ -51,7 +53,7 @@ def candidate_table(rows, meta=None, lc_length=0):
             cols[k] = np.asarray(vals, dtype=str) if vals else np.zeros(0, dtype="U1")
         else:
             cols[k] = np.asarray(vals, dtype=np.int64 if k in ("image", "pixel", "grid_x", "grid_y", "channel",
-                                                               "width", "nmembers") else np.float64)
+                                                               "width", "nmembers", "nsidelobes") else np.float64)
     t = Table(cols, meta=dict(meta or {}))
     for k, u in _UNITS.items():
         t[k].unit = u
