@@ -342,7 +342,7 @@ def run(cfg, show_progress=None):
         from tqdm import tqdm
         bar = tqdm(total=None, unit="frame", desc=cfg["name"], unit_scale=True)
         progress = bar.update
-    t0 = time.perf_counter()
+    t0, t0_unix = time.perf_counter(), time.time()
     g = build_graph(cfg, progress=progress)
     if bar is not None:
         bar.total = g.nframe_total
@@ -367,6 +367,7 @@ def run(cfg, show_progress=None):
         "images": int(img.get("images", 0)), "tbf": src_stats, "calibration": getattr(g.calfold, "cal_stats", {}),
     }
     summary["blocks"] = block_timing(g.pipeline.blocks, t0)
+    summary["started_unix_s"] = t0_unix      # the blocks' times are seconds after this (time.time())
     for name, bt in summary["blocks"].items():
         log.debug("block %s: %d gulps, %.3f s in on_data (%.2f ms/gulp), first data at %s s, last at %s s",
                   name, bt["ngulp"], bt["process_s"], 1e3 * bt["process_s"] / max(bt["ngulp"], 1),
