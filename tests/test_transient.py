@@ -452,3 +452,19 @@ def test_beam_power_is_what_the_imager_makes_of_a_point_source():
         else:
             return
     raise AssertionError("the imager's image of the point source peaks at neither sign's pixel")
+
+
+def test_the_search_s_bounds_are_pipeline_settings():
+    """imager.search.max_pixels / sky_fraction / sidelobe_factor reach the search block from the YAML;
+    a fraction outside (0, 1] is an error naming the key."""
+    from pathlib import Path
+    from bf_epic_blocks.pipeline.config import ConfigError, load_config
+    from bf_epic_blocks.pipeline.runner import build_graph
+    yaml = Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_transient.yaml"
+    cfg = load_config(yaml, ["imager.search.max_pixels=4", "imager.search.sky_fraction=0.3",
+                             "imager.search.sidelobe_factor=0"])
+    g = build_graph(cfg)
+    assert (g.search.max_pixels, g.search.sky_fraction, g.search.sidelobe_factor) == (4, 0.3, 0.0)
+    assert load_config(yaml, [])["imager"]["search"]["sky_fraction"] == 0.1
+    with pytest.raises(ConfigError, match="imager.search.sky_fraction"):
+        load_config(yaml, ["imager.search.sky_fraction=1.5"])

@@ -90,6 +90,11 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
         product: str                 (default null = the first product)
         table: ecsv | fits           (default ecsv; <prefix>_candidates.<table> in output.dir)
         png: bool                    (default true; sky with the candidates and their light curves)
+        max_pixels: int >= 1         (default 32; crossings kept per trial image, its brightest)
+        sky_fraction: float in (0, 1] (default 0.1; more of the sky over the threshold at once is one
+                                     'sky-wide' event: lightning, RFI, a flash)
+        sidelobe_factor: float >= 0  (default 2.0; fold a candidate a brighter one explains through the
+                                     array's beam; 0 keeps every candidate)
     device: cpu | gpu | 'gpu:N'      (default cpu; returned as 'cpu' or 'gpu:N', 'gpu' = 'gpu:0');
             on one GPU with static calibration (no gains_table) and a file or simulated source, the
             dft imager folds the cable terms into its operator and no CalFoldBlock runs;
@@ -352,6 +357,9 @@ IMAGER_SEARCH = Section({
     "product": Key(Str(r"\S+", "a product name"), None),
     "table": Key(Choice("ecsv", "fits"), "ecsv"),
     "png": Key(Bool(), True),
+    "max_pixels": Key(Int(1), 32),
+    "sky_fraction": Key(Float(0.0, 1.0, lo_open=True), 0.1),
+    "sidelobe_factor": Key(Float(0.0), 2.0),
 }, what="a search mapping {threshold, window_s, dms, widths, ...}")
 
 OUTPUT_CUBE = Section({

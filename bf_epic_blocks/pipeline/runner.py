@@ -307,7 +307,9 @@ def build_graph(cfg, progress=None):
             search = TransientSearchBlock(imager, threshold=sc["threshold"], window_s=sc["window_s"], dms=sc["dms"],
                                           widths=sc["widths"], average_channels=sc["average_channels"],
                                           product=sc["product"], outdir=outdir, prefix=out["prefix"],
-                                          table_format=sc["table"], png=sc["png"], location=None)
+                                          table_format=sc["table"], png=sc["png"], location=None,
+                                          max_pixels=sc["max_pixels"], sky_fraction=sc["sky_fraction"],
+                                          sidelobe_factor=sc["sidelobe_factor"])
         if out.get("cube"):
             from ..blocks.cube_writer import ImageCubeWriterBlock
             cc = out["cube"]
