@@ -76,7 +76,10 @@ class TBFSourceBlock(bfp.SourceBlock):
         self.station, self.progress = station, progress
         self.channels = None if channels is None else slice(int(channels[0]), int(channels[1]))
         self.tbf_stats = {"frames_read": 0, "frames_missing": 0, "time_gaps": 0, "truncated_bytes": 0, "samples": 0}
-        self._h2d = HostToDevice(nstage=READ_AHEAD + 1)
+        self._h2d = HostToDevice()
+        # raw gulps' reads fill their own staging buffers: a gathered gulp's copy must never take a
+        # buffer that a read started ahead is still filling
+        self._h2d_reads = HostToDevice(nstage=READ_AHEAD + 1)
 
     def create_reader(self, sourcename):
         with warnings.catch_warnings(record=True) as caught:
@@ -149,7 +152,7 @@ class TBFSourceBlock(bfp.SourceBlock):
                 break
             job = None
             if isinstance(chunk, RawGulp):
-                buf, slot = self._h2d.staging(chunk.nbytes)
+                buf, slot = self._h2d_reads.staging(chunk.nbytes)
                 job = (buf, slot, pread_start(reader.fd, buf, chunk.offset, self._pool(reader)))
             ahead.append((chunk, job))
         if first is None:
@@ -168,7 +171,7 @@ class TBFSourceBlock(bfp.SourceBlock):
         if frames is None or frames.nbytes < g.nbytes:
             frames = self._raw_dev = cp.empty(g.nbytes, cp.uint8)
         raw = frames[:g.nbytes]
-        self._h2d.copy_staged(raw, buf, slot)
+        self._h2d_reads.copy_staged(raw, buf, slot)
         with _compat.stream_context():
             out = dst[:g.ntime].reshape(g.ntime, g.nblock, -1)
             out[...] = raw.reshape(g.ntime, g.nblock, g.frame_bytes)[:, :, g.header_bytes:]
