@@ -149,10 +149,16 @@ def test_bad_frequencies(sv):
             sv.cable_delay_s(bad)
 
 
+def _fresh_env(home):
+    """The environment of a fresh interpreter whose home and cache folder are ``home`` (no LSLCONFIGDIR)."""
+    env = {k: v for k, v in os.environ.items() if k != "LSLCONFIGDIR"}
+    env.update(XDG_CACHE_HOME=str(home), HOME=str(home))
+    return env
+
+
 def test_configure_offline_in_fresh_process(tmp_path):
     """A fresh interpreter: LSL must read our lsl.cfg (telemetry off, long refresh age)."""
-    env = {k: v for k, v in os.environ.items() if k != "LSLCONFIGDIR"}
-    env.update(XDG_CACHE_HOME=str(tmp_path), HOME=str(tmp_path))
+    env = _fresh_env(tmp_path)
     code = ("from bf_epic_blocks.station.offline import configure_offline as c\n"
             "d = c(); assert c() == d\n"
             "from lsl.config import LSL_CONFIG as L\n"
@@ -209,8 +215,7 @@ def test_the_iers_cache_gives_astropy_s_own_earth_orientation(tmp_path):
     """iers_table(): the first process parses astropy's bundled IERS-A file and keeps the columns; a
     second one reads them instead of parsing (astropy's reader is made to fail there) and answers
     UT1-UTC, polar motion and a zenith's ICRS position value for value as astropy's parse does."""
-    env = {k: v for k, v in os.environ.items() if k != "LSLCONFIGDIR"}
-    env.update(XDG_CACHE_HOME=str(tmp_path), HOME=str(tmp_path))
+    env = _fresh_env(tmp_path)
     code = ("import sys\n"
             "from bf_epic_blocks.station.offline import configure_offline, iers_table\n"
             "configure_offline()\n"

@@ -283,13 +283,16 @@ def _written(tmp_path, name, ntime=50, nchan=24, nstand=4, order=None, drop=None
 
 
 def _strip(p, g):
-    """A RawGulp's samples read the way the GPU path reads them (pread_into), headers stripped here."""
+    """A RawGulp's samples read the way the GPU path reads them (pread_start on reader threads),
+    headers stripped here."""
     import os
-    from bf_epic_blocks.blocks.sources import pread_into
+    from concurrent.futures import ThreadPoolExecutor
+    from bf_epic_blocks.blocks.sources import pread_start, pread_wait
     buf = np.empty(g.nbytes, np.uint8)
     fd = os.open(p, os.O_RDONLY)
     try:
-        pread_into(fd, buf, g.offset, piece=1000)
+        with ThreadPoolExecutor(3) as pool:
+            pread_wait(pread_start(fd, buf, g.offset, pool, piece=1000))
     finally:
         os.close(fd)
     return buf.reshape(g.ntime, g.nblock, g.frame_bytes)[:, :, g.header_bytes:].reshape(g.ntime, -1, 4, 2)
@@ -360,10 +363,15 @@ def test_a_gpu_ring_gets_the_file_s_samples_through_raw_gulps(tmp_path, fmt):
 
 
 def test_a_short_read_names_the_byte(tmp_path):
-    """pread_into on a file that ends before the gulp does (truncated after the scan): a clear error
-    naming where, never a half-filled buffer passed on."""
+    """The reader threads' reads of a file that ends before the gulp does (truncated after the scan):
+    a clear error naming where, never a half-filled buffer passed on."""
     import os
-    from bf_epic_blocks.blocks.sources import pread_into
+    from concurrent.futures import ThreadPoolExecutor
+    from bf_epic_blocks.blocks.sources import pread_start, pread_wait
+
+    def pread_into(fd, buf, offset, piece):
+        with ThreadPoolExecutor(2) as pool:
+            pread_wait(pread_start(fd, buf, offset, pool, piece=piece))
     p = tmp_path / "short.bin"
     p.write_bytes(bytes(range(256)) * 10)
     buf = np.zeros(3000, np.uint8)

@@ -40,15 +40,17 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-from cases import bf_epic_command  # noqa: E402
+from cases import bf_epic_command, write_json  # noqa: E402
 DT = 40e-6
 
 
-def write_recording(path, seconds, nchan, seed=1):
-    """A TBF file of ``seconds`` of LWA-SV data (256 stands, ``nchan`` channels from 1200), written in
+def write_recording(path, seconds, nchan, seed=1, fmt="tbf"):
+    """A TBF (or, ``fmt="tbx"``, NDP TBX) file of ``seconds`` of LWA-SV-sized data (256 stands,
+    ``nchan`` channels from 1200, random 4-bit samples), written with the project's own writers in
     pieces of 1 s so memory stays small; returns (bytes, write seconds)."""
     from bf_epic_blocks.imaging.calibration import FS_HZ
     from bf_epic_blocks.io.tbf import write_tbf
+    from bf_epic_blocks.io.tbx import write_tbx
     rng = np.random.default_rng(seed)
     ntime = int(round(seconds / DT))
     step = int(round(FS_HZ * DT))
@@ -58,25 +60,10 @@ def write_recording(path, seconds, nchan, seed=1):
             n = min(25000, ntime - a)
             data = rng.integers(0, 256, size=(n, nchan, 256, 2), dtype=np.uint8)
             piece = str(path) + ".piece"
-            write_tbf(piece, data, 1200, int(1.7e9) * FS_HZ + a * step, frame_id=1)
-            with open(piece, "rb") as fh:
-                shutil.copyfileobj(fh, out, 1 << 24)
-            os.remove(piece)
-    return os.path.getsize(path), time.perf_counter() - t0
-
-
-def write_tbx_recording(path, seconds, nchan, seed=1):
-    """The same as :func:`write_recording` as an LWA-SV-sized TBX file (NDP frames of 12 channels)."""
-    from bf_epic_blocks.io.tbx import write_tbx
-    rng = np.random.default_rng(seed)
-    ntime = int(round(seconds / DT))
-    t0 = time.perf_counter()
-    with open(path, "wb") as out:
-        for a in range(0, ntime, 25000):
-            n = min(25000, ntime - a)
-            data = rng.integers(0, 256, size=(n, nchan, 256, 2), dtype=np.uint8)
-            piece = str(path) + ".piece"
-            write_tbx(piece, data, 10**15 + 8192 * (a + np.arange(n)), 1200)
+            if fmt == "tbx":
+                write_tbx(piece, data, 10**15 + 8192 * (a + np.arange(n)), 1200)
+            else:
+                write_tbf(piece, data, 1200, int(1.7e9) * FS_HZ + a * step, frame_id=1)
             with open(piece, "rb") as fh:
                 shutil.copyfileobj(fh, out, 1 << 24)
             os.remove(piece)
@@ -338,7 +325,7 @@ def main(argv=None):
         tbf.unlink()
     if "tbx" not in skip:
         tbx = work / "recording.tbx"
-        nbytes, wt = write_tbx_recording(tbx, a.seconds, a.nchan)
+        nbytes, wt = write_recording(tbx, a.seconds, a.nchan, fmt="tbx")
         print(f"wrote {tbx}: {nbytes / 1e9:.2f} GB in {wt:.1f} s", flush=True)
         res["tbx"] = {"bytes": nbytes}
         prec = a.precisions.split(",")[0]
@@ -355,8 +342,7 @@ def main(argv=None):
         for p, r in res["core"].items():
             show(f"core, {a.nchan} ch, {p}", r)
     if a.json:
-        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps(res, indent=1, default=str))
+        write_json(a.json, res)
     return 0
 
 

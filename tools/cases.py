@@ -120,7 +120,7 @@ def write_json(path, out):
     import os
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w") as f:
-        json.dump(out, f, indent=1)
+        json.dump(out, f, indent=1, default=str)
     print(f"wrote {path}")
 
 

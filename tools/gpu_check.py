@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from cases import bf_epic_command
+from cases import bf_epic_command, write_json
 
 REPO = Path(__file__).resolve().parents[1]
 TOL_FP32 = 1e-5
@@ -391,8 +391,7 @@ def main(argv=None):
     text = table(result)
     log("\n" + text)
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(result, indent=1, default=str))
+        write_json(args.json, result)
     return 0 if result["ok"] else 1
 
 

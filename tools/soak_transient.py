@@ -32,7 +32,7 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-from cases import bf_epic_command  # noqa: E402
+from cases import bf_epic_command, write_json  # noqa: E402
 
 
 def injections(seconds, nburst, nflash, seed=3):
@@ -162,8 +162,7 @@ def main(argv=None):
     print(f"resident memory: {res['rss_first_after_warmup_mb']} MB after warm-up, {res['rss_last_mb']} MB last "
           f"(x{res['rss_growth']}), peak {res['rss_peak_mb']} MB; {len(samples)} samples; ok {res['ok']}")
     if a.json:
-        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps(res, indent=1, default=str))
+        write_json(a.json, res)
     return 0 if res["ok"] else 1
 
 

@@ -259,13 +259,6 @@ class HostToDevice:
         self.nbytes += dst.nbytes
         return dst
 
-    def fill_and_copy(self, dst, fill):
-        """``fill(buf)`` writes ``dst.nbytes`` bytes into a pinned staging buffer, which is then
-        copied to the C-contiguous CuPy array ``dst`` on the current stream: no other host copy."""
-        buf, slot = self.staging(dst.nbytes)
-        fill(buf)
-        return self.copy_staged(dst, buf, slot)
-
     def copy(self, dst, src):
         src = np.asarray(src)
         if src.nbytes != dst.nbytes:

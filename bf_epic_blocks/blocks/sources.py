@@ -220,16 +220,6 @@ def _pread_piece(fd, view, offset, a, b):
         got += k
 
 
-def pread_into(fd, buf, offset, pool=None, piece=4 << 20):
-    """Fill the uint8 array ``buf`` with the file's bytes from ``offset`` (``os.preadv``, several
-    pieces at once on ``pool``); a short read (the file changed under us) is an error naming it."""
-    if pool is not None and len(buf) > piece:
-        return pread_wait(pread_start(fd, buf, offset, pool, piece))
-    view = memoryview(buf).cast("B")
-    for a in range(0, len(view), piece):
-        _pread_piece(fd, view, offset, a, min(len(view), a + piece))
-
-
 class TBXSourceBlock(TBFSourceBlock):
     """Read LWA TBX files (NDP transient buffer, frame id 8), one sequence per file, 'ci4' gulps.
 

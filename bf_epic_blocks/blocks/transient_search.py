@@ -221,10 +221,10 @@ class TransientSearchBlock(bfp.SinkBlock):
         span = self._tlink + self.search.wmax
         lm = self.lay["lm"]
         sigma_q = float(self._sigma[cr.series[k], q])
+        wsum = sum(w for _, w in self._beam_ants)
         for e_p, p, snr_p, row, sigma_p in sorted(self._recent, key=lambda r: -r[2]):
             if snr_p <= snr or abs(e_p - e) > span or p == q or not sigma_q > 0:
                 continue
-            wsum = sum(w for _, w in self._beam_ants)
             beam = sum(w * beam_power(a, self.lay["freq_hz"], lm[p], lm[q:q + 1],
                                       remove_autocorr=self._autocorr_removed)[0] for a, w in self._beam_ants) / wsum
             # what the brighter one puts here, in this pixel's own noise: flux ratio = beam, S/N scales
