@@ -361,9 +361,9 @@ def live_stats(run):
     return run[0].source.udp_stats, run
 
 
-def run_file(tmp_path, station, capture, gulp, acc, tag="file", kind="tbf"):
+def run_file(tmp_path, station, capture, gulp, acc, tag="file", kind="tbf", size=16):
     sets = ["--set", f"station.name={station}", "--set", f"source.kind={kind}", "--set", f"source.path={capture}",
-            *common_sets(tmp_path / tag, gulp, acc)]
+            *common_sets(tmp_path / tag, gulp, acc, size=size)]
     cfg = load_config(PIPES / "lwasv_tbf_allsky.yaml", sets[1::2])
     return run_pipeline(cfg, show_progress=False)
 
@@ -389,7 +389,47 @@ def test_real_file_replayed_gives_the_images_of_reading_it(tmp_path, capture, st
         assert np.array_equal(a, b, equal_nan=True)
     s = g.source.udp_stats
     assert s["packets"] == r.sent == r.nframe and s["frames_missing"] == 0 and s["samples"] == 1
-    assert g.calfold.stats["nframe_skipped"] == 0 and wall < 10
+    assert g.calfold.guarantee and s["samples_overflow"] == 0 and wall < 10
+
+
+@pytest.mark.parametrize("rate", [RATE, 20.0])
+def test_start_of_a_paced_stream_is_imaged_whole(tmp_path, rate):
+    """Issue 23's case at LWA-NA's size: 2,048 samples x 24 channels, 256-sample gulps, one image per
+    256 samples, the shipped live YAML's default reordering window (0.05 s = 1,250 samples, more than
+    the ring holds). Paced so the imager keeps up, every image equals the file path's bit for bit;
+    far faster than real time, the run still ends normally and whatever was lost is counted, never
+    silently zero."""
+    path = tmp_path / "na.tbf"
+    ntime, gulp = 2048, 256
+    gen_capture(path, ntime, nstand=64, nchan=24, first=2176, seed=21)
+
+    def run(rt):
+        sets = ["--set", "station.name=lwana", "--set", "source.port=0", "--set", "source.idle_timeout_s=0.3",
+                "--set", "source.start_timeout_s=10", *common_sets(tmp_path / f"udp{rt}", gulp, gulp, size=32)]
+        cfg = load_config(PIPES / "lwasv_udp_live.yaml", sets[1::2])
+        assert cfg["source"]["buffer_s"] == 0.05
+        g = build_graph(cfg)
+        res = {}
+        th = threading.Thread(target=lambda: res.update(r=replay(path, LOOPBACK, g.source.port, rate=rt)))
+        th.start()
+        g.pipeline.run()
+        th.join()
+        return g.source.udp_stats, (g, res["r"])
+
+    g, r = without_kernel_drops(run, rate=rate)
+    s = g.source.udp_stats
+    assert s["packets"] == r.sent == 2 * ntime and s["frames_missing"] == 0 and s["samples"] == ntime
+    live = fits_data(g.writer.written)
+    assert len(live) == ntime // gulp
+    lost = s["samples_overflow"]
+    if rate <= 1:
+        want = fits_data(run_file(tmp_path, "lwana", path, gulp, gulp, size=32)["files"])
+        assert lost == 0
+        for i, (a, b) in enumerate(zip(live, want)):
+            assert np.array_equal(a, b, equal_nan=True), f"image {i} differs from the file path's"
+    else:  # whatever could not be imaged in time is counted (zeros), the rest is imaged
+        assert lost % gulp == 0
+        assert sum(not np.any(np.nan_to_num(a)) for a in live) == lost // gulp
 
 
 def test_generated_capture_with_drops_and_garbage_through_the_pipeline(tmp_path):
@@ -422,8 +462,10 @@ def test_generated_capture_with_drops_and_garbage_through_the_pipeline(tmp_path)
 
 def test_slow_imager_never_stalls_the_socket(tmp_path):
     """A reader that cannot keep up skips (counted) while the capture keeps receiving every packet;
-    the frames it did read are the file's, the skipped ones zeros."""
+    the frames it did read are the file's, the skipped ones zeros. Under real Bifrost this is the
+    overrun that met ring2's frame-alignment assertion (24 x 64 x 2-byte frames divide no power of two)."""
     from bf_epic_blocks.blocks import ArraySinkBlock, bfp
+    from bf_epic_blocks.blocks._compat import RUNTIME
     from bf_epic_blocks.blocks.udp_source import UDPSourceBlock
 
     path = tmp_path / "gen.tbf"
@@ -445,9 +487,10 @@ def test_slow_imager_never_stalls_the_socket(tmp_path):
     src, sink, res = without_kernel_drops(run, rate=2 * RATE)
     s = src.udp_stats
     assert s["packets"] == res["r"].sent == 6000 and s["frames_missing"] == 0 and s["samples"] == 3000
-    assert src.stats["nframe_written"] == 3000
     skipped = sink.nframe_skipped[0]
-    assert skipped > 0 and skipped == sink.stats["nframe_skipped"]
+    assert skipped > 0
+    if RUNTIME == "builtin":  # the runtime's own counters (real Bifrost has none)
+        assert src.stats["nframe_written"] == 3000 and skipped == sink.stats["nframe_skipped"]
     got = sink.result().view(np.uint8).reshape(data.shape)
     zero = ~got.reshape(3000, -1).any(axis=1)
     assert zero.sum() == skipped and np.array_equal(got[~zero], data[~zero])

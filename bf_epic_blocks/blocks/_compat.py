@@ -12,7 +12,8 @@ through :func:`span_array`, so the same code runs on both.
   SinkBlock, MultiTransformBlock. On real Bifrost it is ``bifrost.pipeline``'s namespace with
   ``Pipeline`` subclassed so that ``run()`` raises a failed block's error as
   :class:`bf_epic_blocks.runtime.pipeline.PipelineError` (plain Bifrost only ends that block's
-  thread); ``PipelineError`` is the failure type on both runtimes.
+  thread); ``PipelineError`` is the failure type on both runtimes. With real Bifrost, read spans
+  are also trimmed to whole frames after an overrun (see ``_frame_aligned_read_spans``).
 
 Span data forms (see :mod:`bf_epic_blocks.runtime.dtypes`): host spaces give NumPy arrays
 (complex integers as Bifrost's structured dtypes), 'cuda' gives CuPy arrays ('ci4' as uint8,
@@ -91,6 +92,53 @@ if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost
                 raise _builtin_pipeline.PipelineError(block, exc) from exc
             if init_error is not None:
                 raise init_error
+
+    def _frame_aligned_read_spans():
+        """Work around real Bifrost's overrun assertion (``ring2.SpanBase.frame_offset``:
+        ``assert(byte_offset % self.frame_nbyte == 0)``, a case its own TODO foresees).
+
+        Why it fires: a ring's span is rounded up to a power of two (``ring_impl.cpp``,
+        ``round_up_pow2``) and an overrun moves the tail to ``head - span``; an unguaranteed
+        read of overwritten data then starts at the tail, which lies inside a frame whenever the
+        frame size does not divide a power of two (an LWA-SV TBF frame of 24 channels is
+        24*256*2 = 12,288 bytes = 3 * 4,096). Here every read span is trimmed to the whole
+        frames it holds: its start moves to the next frame boundary (data pointer and size with
+        it), so the bytes before it count as skipped, and a partly overwritten frame counts as
+        overwritten. Guaranteed reads (always aligned) are unchanged."""
+        try:
+            import bifrost.ring2 as ring2
+        except ImportError:  # a Bifrost without ring2 has no such spans to mend
+            return
+        if not hasattr(getattr(ring2, 'ReadSpan', None), '_cache_info'):
+            return
+
+        class FrameAlignedReadSpan(ring2.ReadSpan):
+            def _cache_info(self):
+                super()._cache_info()
+                fn = self._sequence.tensor['frame_nbyte']
+                off = int(self._info.offset)
+                self._cut = -off % fn
+                if self._cut:
+                    size = int(self._info.size)
+                    self._info.offset = off + self._cut
+                    if self._info.data:
+                        self._info.data = int(self._info.data) + self._cut
+                    self._info.size = max(size - self._cut, 0) // fn * fn
+
+            @property
+            def nframe_overwritten(self):
+                n = ring2.ctypes.c_ulong()
+                ring2._check(ring2._bf.bfRingSpanGetSizeOverwritten(self.obj, n))
+                nbyte = min(max(int(n.value) - getattr(self, '_cut', 0), 0), self._size_bytes)
+                return -(-nbyte // self.frame_nbyte)
+
+        FrameAlignedReadSpan.__name__ = FrameAlignedReadSpan.__qualname__ = 'ReadSpan'
+        FrameAlignedReadSpan.__module__ = ring2.__name__
+        if not getattr(ring2.ReadSpan, '_bf_epic_aligned', False):
+            FrameAlignedReadSpan._bf_epic_aligned = True
+            ring2.ReadSpan = FrameAlignedReadSpan
+
+    _frame_aligned_read_spans()
 
     # bifrost.pipeline's names, with Pipeline replaced by the subclass above
     bfp = types.ModuleType('bf_epic_blocks.blocks._compat.bfp', _bf_pipeline.__doc__)

@@ -212,54 +212,74 @@ class ArraySinkBlock(bfp.SinkBlock):
         delay_s: seconds to sleep after each gulp (to make a slow reader in tests).
         guarantee (keyword, from SinkBlock): False makes an overrunnable reader; lost frames
             become zeros in the result and are counted in ``nframe_skipped``.
+
+    Frames are placed by their offset in the sequence (``span.frame_offset``), not by the order
+    of calls, so the result is right on both runtimes: real Bifrost reports frames overwritten
+    *while* ``on_data`` read them through a later ``on_skip`` (here those frames, counted by the
+    span's ``nframe_overwritten`` after the copy, are zeroed), and after such an overrun it skips
+    a whole further gulp without a call that says where; frames never delivered intact stay zero.
     """
 
     def __init__(self, iring, delay_s=0.0, *args, **kwargs):
         super().__init__(iring, *args, **kwargs)
         self.delay_s = float(delay_s)
         self.headers = []
-        self.nframe_skipped = []
-        self._chunks = []
+        self._chunks = []     # per sequence: [(frame offset, array, frames zeroed at its start)]
+        self._skipped_end = []  # per sequence: 1 + the last frame a skip reported
         self._nring = 0
 
     def on_sequence(self, iseq):
         hdr = copy.deepcopy(iseq.header)
         self.headers.append(hdr)
-        self.nframe_skipped.append(0)
         self._chunks.append([])
+        self._skipped_end.append(0)
         self._nring = len(_split(hdr['_tensor']['shape'])[0])
 
     def on_data(self, ispan):
         data = to_numpy(span_array(ispan))
         if self._nring:
             data = np.moveaxis(data, self._nring, 0)
-        self._chunks[-1].append(np.array(data, copy=True))
+        data = np.array(data, copy=True)
+        # real Bifrost: frames the writer reached while we copied are not the frames we meant
+        nover = min(int(getattr(ispan, 'nframe_overwritten', 0) or 0), data.shape[0])
+        data[:nover] = 0
+        self._chunks[-1].append((int(ispan.frame_offset), data, nover))
         if self.delay_s > 0:
             time.sleep(self.delay_s)
 
     def on_skip(self, islices, ospans):
+        # Lost frames are the gaps between placed chunks; this only extends the sequence when
+        # frames are lost at its end (our runtime's slices start where the loss starts).
         islice = islices[0]
-        n = islice.stop - islice.start
-        hdr = self.headers[-1]
-        ringlet, frame = _split(hdr['_tensor']['shape'])
-        space = space_of(self.irings[0])
-        sdt, extra = storage_dtype(hdr['_tensor']['dtype'],
-                                   'cuda' if space == 'cuda' else 'system')
-        self._chunks[-1].append(np.zeros((n,) + tuple(ringlet) + tuple(frame) + extra, sdt))
-        self.nframe_skipped[-1] += n
+        if islice.stop is not None and islice.start is not None and islice.stop > islice.start:
+            self._skipped_end[-1] = max(self._skipped_end[-1], int(islice.stop))
+
+    def _nframe(self, i):
+        ends = [off + a.shape[0] for off, a, _ in self._chunks[i]]
+        return max(ends + [self._skipped_end[i]])
+
+    @property
+    def nframe_skipped(self):
+        """Per sequence: frames in the result that were not delivered intact (zeros)."""
+        return [self._nframe(i) - sum(a.shape[0] - z for _, a, z in self._chunks[i])
+                for i in range(len(self.headers))]
 
     def result(self, i=0, as_complex=False):
         """Sequence ``i`` as one NumPy array, frame axis first (``as_complex``: complex64)."""
         if not -len(self.headers) <= i < len(self.headers):
             raise IndexError(f"sequence {i} not collected; have {len(self.headers)}")
         hdr = self.headers[i]
+        ringlet, frame = _split(hdr['_tensor']['shape'])
+        space = space_of(self.irings[0])
+        sdt, extra = storage_dtype(hdr['_tensor']['dtype'], 'cuda' if space == 'cuda' else 'system')
         chunks = self._chunks[i]
         if chunks:
-            out = np.concatenate(chunks, axis=0)
+            sdt, shape = chunks[0][1].dtype, chunks[0][1].shape[1:]
         else:
-            ringlet, frame = _split(hdr['_tensor']['shape'])
-            sdt, extra = storage_dtype(hdr['_tensor']['dtype'], 'system')
-            out = np.zeros((0,) + tuple(ringlet) + tuple(frame) + extra, sdt)
+            shape = tuple(ringlet) + tuple(frame) + extra
+        out = np.zeros((self._nframe(i),) + tuple(shape), sdt)
+        for off, a, _ in chunks:
+            out[off:off + a.shape[0]] = a
         if as_complex:
             out = unpack_complex(out, hdr['_tensor']['dtype'], xp=np)
         return out

@@ -6,11 +6,15 @@ capture's idle timeout or a restart of the sender). Headers are the E-field head
 docs/HEADERS.md, as :class:`~bf_epic_blocks.blocks.sources.TBFSourceBlock` writes them, plus
 ``udp`` (address, port, format, engine, channels, buffer_s).
 
-Never stalling: the capture keeps receiving whatever the block does, and the block never waits on
-the ring when the reader after it is unguaranteed (``guarantee=False``, as the pipeline runner sets
-it for CalFoldBlock behind this source): frames that reader could not keep up with are skipped
-and counted there (``stats['nframe_skipped']``). The once-a-second log line of the capture
-includes those skips (``skipped downstream``; the builtin runtime only).
+Never stalling, never losing the start: the capture keeps receiving on its own thread whatever the
+block does, and hands the block whole gulps through a bounded queue. The pipeline runner has the
+blocks behind this source read *guaranteed*, so every gulp the queue holds reaches the imager --
+including the reordering window's worth (``buffer_s``) that arrives at once when a stream starts,
+which an unguaranteed reader lost. A pipeline that cannot keep up fills the queue, and the capture
+then replaces whole gulps by counted zeros (``udp_stats['samples_overflow']``). A reader given
+``guarantee=False`` still works (its skips are counted in its ``stats['nframe_skipped']`` and in
+the capture's log line as ``skipped downstream``, builtin runtime), but it is overrun at the start
+of a stream.
 """
 from __future__ import annotations
 

@@ -24,7 +24,9 @@ of a file for the replayer. One frame per datagram: ``tbf`` (:class:`TBFPackets`
 * The socket is never stalled: the thread only receives and copies, and hands finished gulps to the
   consumer through a bounded queue. If the consumer falls more than ``max_queue_bytes`` behind,
   a gulp is replaced by a "gap" marker (its samples counted in ``samples_overflow``) so that the
-  time axis stays exact; losses further down are the ring's (unguaranteed readers skip).
+  time axis stays exact. This queue is the one place a live pipeline loses data: the blocks behind
+  :class:`~bf_epic_blocks.blocks.udp_source.UDPSourceBlock` read guaranteed (back-pressure reaches
+  the block's thread, never the socket).
 * Once a second the thread logs what it received, lost (missing, late, garbage) and, when the
   consumer provides it (``extra_report``), what was skipped downstream.
 

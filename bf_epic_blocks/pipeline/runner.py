@@ -11,9 +11,9 @@ no CalFoldBlock: the imager folds the cable terms, flags and pattern into its op
 same image: docs in :mod:`bf_epic_blocks.blocks.calfold`), and 4/8-bit samples go to it as integers
 (exact integer covariances, one CUDA-graph replay per integration). That saves a pass that writes
 and reads every sample as complex64 and a block thread's per-gulp Python (Bifrost-style blocks
-share one interpreter lock). Live UDP input keeps CalFoldBlock on one GPU: it is the unguaranteed
-reader that lets the capture never wait for the imager. On the CPU, CalFoldBlock's complex route
-is the faster one and is kept.
+share one interpreter lock). Live UDP input folds the same way: its blocks read guaranteed, and the
+capture thread's bounded queue is where a pipeline that falls behind loses (counted) data. On the
+CPU, CalFoldBlock's complex route is the faster one and is kept.
 """
 from __future__ import annotations
 
@@ -199,13 +199,13 @@ def _device(cfg):
 
 def folds_calibration(cfg, dev):
     """True when the imager folds the calibration into its operator(s) and no CalFoldBlock runs:
-    the DFT imager on several GPUs, or on one GPU with static calibration (no gains table) and a
-    source that is not live UDP (see the module docstring). ``dev``: 'cpu', 'gpu' or 'gpus'."""
+    the DFT imager on several GPUs, or on one GPU with static calibration (no gains table); see the
+    module docstring. ``dev``: 'cpu', 'gpu' or 'gpus'."""
     if cfg["imager"]["kind"] != "dft":
         return False
     if dev == "gpus":
         return True
-    return dev == "gpu" and not cfg["calibration"].get("gains_table") and cfg["source"]["kind"] != "udp"
+    return dev == "gpu" and not cfg["calibration"].get("gains_table")
 
 
 def build_graph(cfg, progress=None):
@@ -268,9 +268,13 @@ def build_graph(cfg, progress=None):
         if gains:
             gains = GainTable.load(gains)
         pattern = None if cal.get("pattern") in (None, "none") else cal["pattern"]
-        # live packets must never wait for the imager: CalFoldBlock reads them unguaranteed and
-        # counts the frames it could not keep up with (stats['nframe_skipped']; zeros go on)
-        live = {"guarantee": False} if src_cfg["kind"] == "udp" else {}
+        # Live packets never wait for the imager, yet CalFoldBlock reads them *guaranteed*: the
+        # capture thread keeps receiving whatever the blocks do, and its bounded queue is the one
+        # place where a pipeline that cannot keep up loses data (whole gulps, written as zeros and
+        # counted in udp_stats['samples_overflow']). An unguaranteed reader here lost the start of
+        # every stream (the reordering window arrives at once, faster than any reader starts) and,
+        # inside real Bifrost, met its frame-alignment assertion on an overrun (see _compat).
+        live = {}
         fold = folds_calibration(cfg, dev)
         if fold:
             calfold = source
