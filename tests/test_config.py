@@ -378,8 +378,9 @@ def test_several_gpus_bad(given):
 
 
 def test_calibration_folded_into_the_imager_only_where_it_should_be(yaml_dir):
-    """On a GPU with static calibration the DFT imager folds it (no CalFoldBlock); time-variable gains,
-    live UDP on one GPU, the gridded imagers and the CPU keep CalFoldBlock; several GPUs always fold."""
+    """On a GPU with static calibration the DFT imager folds it (no CalFoldBlock), live UDP included
+    (its blocks read guaranteed); time-variable gains, the gridded imagers and the CPU keep
+    CalFoldBlock; several GPUs always fold."""
     from bf_epic_blocks.pipeline.runner import folds_calibration
     base = load_config("source: {kind: simulated}")
     assert folds_calibration(base, "gpu") and folds_calibration(base, "gpus")
@@ -387,6 +388,6 @@ def test_calibration_folded_into_the_imager_only_where_it_should_be(yaml_dir):
     gains = dict(base, calibration=dict(base["calibration"], gains_table="gains.npz"))
     assert not folds_calibration(gains, "gpu")
     udp = dict(base, source=dict(base["source"], kind="udp"))
-    assert not folds_calibration(udp, "gpu") and folds_calibration(udp, "gpus")
+    assert folds_calibration(udp, "gpu") and folds_calibration(udp, "gpus") and not folds_calibration(udp, "cpu")
     ws = dict(base, imager=dict(base["imager"], kind="wstack"))
     assert not folds_calibration(ws, "gpu") and not folds_calibration(ws, "gpus")

@@ -594,3 +594,153 @@ def test_operator_flow_bf_epic_run_then_replay(tmp_path):
     live = fits_data([str(p) for p in out.glob("*.fits")])
     want = fits_data(ref["files"])
     assert len(live) == len(want) == 2 and all(np.array_equal(a, b, equal_nan=True) for a, b in zip(live, want))
+
+
+# ------------------------------------------------------------------------------------------------
+# The F-engines' own streams: chips (ADP) and snap2 (NDP), as Bifrost's formats define them.
+# Truth: the samples of the TBF recording they are made from (the file reader), with exactly the
+# dropped packets' (sample, source) cells zero.
+# ------------------------------------------------------------------------------------------------
+def _chips_header(roach, nchan, nroach, chan0, seq):
+    return struct.pack(">BBBBBBHQ", roach, 0, nchan, 1, 0, nroach, chan0, seq)
+
+
+def test_chips_header_is_bifrosts_layout():
+    """chips.hpp: roach, gbe, nchan, nsubband, subband, nroach (u8 each), chan0 (big-endian u16), seq
+    (big-endian u64, 1-based); payload nchan x 32 inputs (16 stands x 2 pols) of board roach (1-based)."""
+    fmt = packet_format("chips", sync_time=1_700_000_000)
+    rng = np.random.default_rng(3)
+    data = rng.integers(0, 256, (3, 24, 256, 2), dtype=np.uint8)
+    pk, tt, sync = fmt.packets(data, 1_700_000_000 * FS_HZ + 5 * 7840, 1200, 7840)
+    assert sync == 1_700_000_000 and pk.shape == (3 * 16, 16 + 24 * 32)
+    p = pk[16 + 2]  # sample 1, board 3
+    assert bytes(p[:16]) == _chips_header(3, 24, 16, 1200, 1 + 5 + 1)
+    assert np.array_equal(p[16:].reshape(24, 16, 2), data[1, :, 32:48])
+    lay = fmt.probe(p, len(p))
+    assert (lay.nstand, lay.chans_per_frame, lay.first_chan0, lay.sample_ticks) == (256, 24, 1200, 7840)
+    assert fmt.parse(p, len(p), lay) == (1_700_000_000 * FS_HZ + 6 * 7840, 2)
+    bad = bytearray(p)
+    bad[6:8] = (1212).to_bytes(2, "big")
+    assert fmt.parse(bad, len(bad), lay) == "channel"
+    assert fmt.probe(bytes(20), 20) == "source"
+
+
+def test_snap2_header_is_bifrosts_layout():
+    """snap2.hpp: seq (u64), sync_time (u32), npol, npol_tot, nchan, nchan_tot (u16), chan_block_id,
+    chan0, pol0 (u32), all big-endian; source = pol0/npol + chan_block_id * npol_tot/npol."""
+    fmt = packet_format("snap2")
+    rng = np.random.default_rng(4)
+    data = rng.integers(0, 256, (2, 24, 64, 2), dtype=np.uint8)
+    pk, tt, sync = fmt.packets(data, 1_700_000_000 * FS_HZ + 7 * 8192, 900, 8192, nchan=12)
+    assert pk.shape == (2 * 2 * 2, 32 + 12 * 64)
+    p = pk[4 + 3]  # sample 1, channel block 1, inputs 64..127
+    assert bytes(p[:32]) == struct.pack(">QIHHHHIII", 8, 1_700_000_000, 64, 128, 12, 24, 1, 912, 64)
+    assert np.array_equal(p[32:].reshape(12, 32, 2), data[1, 12:, 32:])
+    lay = fmt.probe(pk[0], len(pk[0]))
+    assert (lay.nstand, lay.nchan_blocks, lay.ninput_blocks, lay.first_chan0) == (64, 2, 2, 900)
+    assert fmt.parse(p, len(p), lay) == (1_700_000_000 * FS_HZ + 8 * 8192, 3)
+
+
+@pytest.mark.parametrize("fmt,nstand,frame_id", [("chips", 256, 1), ("snap2", 64, 5)])
+def test_station_stream_with_drops_is_the_recording_with_those_cells_zeroed(tmp_path, fmt, nstand, frame_id):
+    """A TBF recording replayed as the F-engine's own packets, 2% of them dropped: the capture gives
+    exactly the recording's samples with the dropped packets' (sample, channel block, inputs) zero,
+    and counts exactly the dropped packets as missing."""
+    ntime = 300
+    rng = np.random.default_rng(11)
+    data = rng.integers(0, 256, (ntime, 24, nstand, 2), dtype=np.uint8)
+    path = tmp_path / "rec.tbf"
+    write_tbf(path, data, 1200, 1_700_000_000 * FS_HZ, frame_id=frame_id)
+    pf = packet_format(fmt)
+    pk, tt, sync = pf.packets(data, 1_700_000_000 * FS_HZ, 1200, 7840 if fmt == "chips" else 8192)
+
+    def run(rate):
+        opts = {"sync_time": sync} if fmt == "chips" else {}
+        with UDPCapture(LOOPBACK, 0, packet_format(fmt, **opts), gulp_nframe=ntime, buffer_s=0.002,
+                        idle_timeout_s=0.3, start_timeout_s=5) as cap:
+            cap.start()
+            r = replay(path, LOOPBACK, cap.port, rate=rate, drop=0.02, seed=7, fmt=fmt)
+            infos, got, end = drain(cap)
+        return cap.stats, (cap, r, infos, got)
+
+    cap, r, infos, got = without_kernel_drops(run, rate=2 * RATE)
+    assert r.sync_time == sync and r.nframe == len(pk)
+    lay = infos[0].layout
+    assert infos[0].time_tag0 == 1_700_000_000 * FS_HZ and np.array_equal(infos[0].channels, 1200 + np.arange(24))
+    want = data.copy()
+    nsrc = lay.nchan_blocks * lay.ninput_blocks
+    cpf, ipb = lay.chans_per_frame, 2 * nstand // lay.ninput_blocks
+    for i in r.dropped:
+        t, src = divmod(i, nsrc)
+        cb, ib = divmod(src, lay.ninput_blocks)
+        want[t, cb * cpf:(cb + 1) * cpf].reshape(cpf, -1)[:, ib * ipb:(ib + 1) * ipb] = 0
+    assert len(r.dropped) == round(0.02 * len(pk)) > 0
+    assert np.array_equal(got, want)
+    assert cap.stats["frames_missing"] == len(r.dropped) and sum(cap.stats["garbage"].values()) == 0
+
+
+def test_a_silent_chips_board_is_zero_filled_and_counted(tmp_path):
+    """One ROACH of 16 never sends: its 16 stands are zeros in every sample, counted missing; the
+    other boards' samples are exact (a board is expected from the header's nroach, not learned)."""
+    rng = np.random.default_rng(12)
+    ntime = 40
+    data = rng.integers(0, 256, (ntime, 12, 256, 2), dtype=np.uint8)
+    pf = packet_format("chips", sync_time=1_700_000_000)
+    pk, tt, sync = pf.packets(data, 1_700_000_000 * FS_HZ, 600, 7840)
+    keep = np.ones(len(pk), bool)
+    keep[4::16] = False  # board 5
+    with UDPCapture(LOOPBACK, 0, pf, gulp_nframe=ntime, buffer_s=0.002, idle_timeout_s=0.3,
+                    start_timeout_s=5) as cap:
+        cap.start()
+        tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for p in pk[keep]:
+            tx.sendto(p.tobytes(), (LOOPBACK, cap.port))
+            time.sleep(2e-5)
+        tx.close()
+        infos, got, _ = drain(cap)
+    if cap.stats["kernel_drops"]:
+        pytest.skip("the kernel dropped packets (machine overloaded)")
+    want = data.copy()
+    want[:, :, 64:80] = 0
+    assert infos[0].layout.nstand == 256 and np.array_equal(got, want)
+    assert cap.stats["frames_missing"] == ntime
+
+
+def test_chips_stream_through_bf_epic_run_gives_the_recordings_images(tmp_path):
+    """`bf-epic run` of the live YAML with source.format: chips (LWA-SV, 256 stands), fed by
+    `replay --format chips`: every image equals the file path's, bit for bit."""
+    ntime, gulp = 512, 128
+    rng = np.random.default_rng(13)
+    data = rng.integers(0, 256, (ntime, 24, 256, 2), dtype=np.uint8)
+    path = tmp_path / "sv.tbf"
+    write_tbf(path, data, 1200, 1_700_000_000 * FS_HZ, frame_id=1)
+
+    def run(rt):
+        sets = ["--set", "station.name=lwasv", "--set", "source.port=0", "--set", "source.format=chips",
+                "--set", "source.sync_time=1700000000", "--set", "source.idle_timeout_s=0.3",
+                "--set", "source.start_timeout_s=10", *common_sets(tmp_path / f"udp{rt}", gulp, gulp, size=16)]
+        g = build_graph(load_config(PIPES / "lwasv_udp_live.yaml", sets[1::2]))
+        res = {}
+        th = threading.Thread(target=lambda: res.update(r=replay(path, LOOPBACK, g.source.port, rate=rt,
+                                                                 fmt="chips")))
+        th.start()
+        g.pipeline.run()
+        th.join()
+        return g.source.udp_stats, (g, res["r"])
+
+    g, r = without_kernel_drops(run, rate=RATE / 4)
+    s = g.source.udp_stats
+    assert s["packets"] == r.sent == 16 * ntime and s["frames_missing"] == 0 and s["samples_overflow"] == 0
+    live = fits_data(g.writer.written)
+    want = fits_data(run_file(tmp_path, "lwasv", path, gulp, gulp, size=16)["files"])
+    assert len(live) == len(want) == ntime // gulp
+    for a, b in zip(live, want):
+        assert np.array_equal(a, b, equal_nan=True)
+
+
+def test_sync_time_is_for_chips_only():
+    from bf_epic_blocks.pipeline.config import ConfigError
+    cfg = load_config("source: {kind: udp, port: 4015, format: chips, sync_time: 1700000000}\n")
+    assert cfg["source"]["sync_time"] == 1700000000
+    with pytest.raises(ConfigError, match="source.sync_time.*only used when source.format is 'chips'"):
+        load_config("source: {kind: udp, port: 4015, format: snap2, sync_time: 1700000000}\n")

@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .tbf import CHANNELS_PER_FRAME, FRAME_KINDS, FS_HZ, HEADER_BYTES, SYNC_WORD, _open_frames
+from .tbf import CHANNELS_PER_FRAME, FRAME_KINDS, FS_HZ, HEADER_BYTES, SYNC_WORD, _open_frames, read_tbf
 
 __all__ = ["PacketFormat", "TBFPackets", "TBXPackets", "StreamLayout", "SequenceInfo", "UDPCapture", "ReplayResult",
            "packet_format", "replay", "parse_host_port", "PACKET_FORMATS"]
@@ -63,7 +63,7 @@ __all__ = ["PacketFormat", "TBFPackets", "TBXPackets", "StreamLayout", "Sequence
 log = logging.getLogger(__name__)
 
 #: Names accepted by :func:`packet_format`.
-PACKET_FORMATS = ("tbf", "tbx")
+PACKET_FORMATS = ("tbf", "tbx", "chips", "snap2")
 
 
 @dataclass(frozen=True)
@@ -86,6 +86,13 @@ class StreamLayout:
     station_hint: str
     first_chan0: int
     time_tag0: int
+    #: Sources per time sample, as (channel blocks, input blocks): a packet carries
+    #: ``chans_per_frame`` channels x ``payload_bytes // chans_per_frame`` inputs (1 byte each,
+    #: ci4). 0 channel blocks = learned from the stream (TBF/TBX: blocks of all stands, keyed by
+    #: their first channel); otherwise every source is expected from the start (chips, snap2:
+    #: keyed by source number; a source never heard is zero-filled and counted missing).
+    nchan_blocks: int = 0
+    ninput_blocks: int = 1
 
     @property
     def sample_ticks(self) -> int:
@@ -100,11 +107,26 @@ class PacketFormat:
     """Interface of a packet format (one frame per datagram).
 
     ``probe(buf, n)`` -> StreamLayout, or a garbage reason (str) when ``buf[:n]`` is not a frame.
-    ``parse(buf, n, layout)`` -> (time_tag, first_chan) of a frame of that stream, or a reason.
+    ``parse(buf, n, layout)`` -> (time_tag, block key) of a frame of that stream, or a reason; the
+    key is the first channel (TBF/TBX) or the source number (chips, snap2; see StreamLayout).
     ``file_frames(path)`` -> (frames uint8 (nframe, frame_bytes), time_tags int64 (nframe,)) of a
     capture file, complete frames in file order (for the replayer).
     """
     name = "?"
+
+    @staticmethod
+    def to_samples(slots, layout):
+        """Packet payloads (n, nsource, payload_bytes), sources in key order, as time samples
+        uint8 (n, nchan, nstand, 2). Source key = input block + channel block * ninput_blocks;
+        a payload is (chans_per_frame, inputs) channel-major, inputs stand-major (stand, pol)."""
+        n = slots.shape[0]
+        ncb = layout.nchan_blocks or slots.shape[1]
+        nib = layout.ninput_blocks
+        cpf = layout.chans_per_frame
+        x = slots.reshape(n, ncb, nib, cpf, -1)
+        if nib > 1:
+            x = x.transpose(0, 1, 3, 2, 4)
+        return x.reshape(n, ncb * cpf, layout.nstand, 2)
 
     def probe(self, buf, n):
         raise NotImplementedError
@@ -212,16 +234,211 @@ class TBXPackets(PacketFormat):
         return mm, tt
 
 
-def packet_format(name: str) -> PacketFormat:
-    """The :class:`PacketFormat` called ``name``: 'tbf' (:class:`TBFPackets`) or 'tbx' (:class:`TBXPackets`).
+# The F-engines' own streams, as Bifrost's src/formats/chips.hpp and snap2.hpp define them.
+_CHIPS_HDR = struct.Struct(">BBBBBBHQ")  # roach (1-based), gbe, nchan, nsubband, subband, nroach, chan0, seq (1-based)
+_SNAP2_HDR = struct.Struct(">QIHHHHIII")  # seq, sync_time, npol, npol_tot, nchan, nchan_tot, chan_block_id, chan0, pol0
+ADP_CHAN_BW_HZ = 25e3           # ADP F-engine channels (LSL: lsl.common.adp.fC)
+NDP_CHAN_BW_HZ = FS_HZ / 8192   # NDP F-engine channels (LSL: lsl.common.ndp.fC)
+
+
+def _sync_from_clock(seq, ticks):
+    """The F-engine's sync time (whole UNIX second at which ``seq`` was 0), from the arrival time of
+    a packet with spectrum count ``seq``: F-engines start on a whole second, so rounding the arrival
+    time less ``seq`` samples recovers it while the network delay is well under 0.5 s."""
+    return int(round(time.time() - seq * ticks / FS_HZ))
+
+
+class ChipsPackets(PacketFormat):
+    """ADP (LWA-SV) F-engine packets, Bifrost's ``chips`` format: one per ROACH board and spectrum.
+
+    Header (16 bytes, big-endian): roach (1-based), gbe (tuning), nchan, nsubband, subband, nroach,
+    chan0 (first channel), seq (spectrum count, 1-based). Payload: nchan channels x 32 inputs (16
+    stands x 2 pols, digitizer order: board r carries stands 16 (r-1) .. 16 r - 1 of LSL's antenna
+    order, the TBF payload order), 1 byte ci4 each. Every board of ``nroach`` is expected; one not
+    heard is zero-filled and counted in ``frames_missing``.
+
+    The packets carry no absolute time: a spectrum's time tag is ``sync_time`` x 196e6 + (seq - 1)
+    x 7,840 ticks, ``sync_time`` the whole UNIX second the F-engine counted from (ADP's
+    ``utc_start``). ``sync_time=None`` recovers it from the arrival clock (logged; exact while the
+    network delay is < 0.5 s and the machine's clock is right); give it for archival streams.
+    """
+    name = "chips"
+    INPUTS = 32
+
+    def __init__(self, sync_time=None):
+        self.sync_time = None if sync_time is None else int(sync_time)
+
+    def probe(self, buf, n):
+        if n < _CHIPS_HDR.size:
+            return "size"
+        roach, _, nchan, _, _, nroach, chan0, seq = _CHIPS_HDR.unpack_from(buf, 0)
+        if nroach == 0 or nchan == 0 or not 1 <= roach <= nroach:
+            return "source"
+        if n != _CHIPS_HDR.size + nchan * self.INPUTS:
+            return "size"
+        if seq < 1:
+            return "time_grid"
+        ticks = int(round(FS_HZ / ADP_CHAN_BW_HZ))
+        sync = self.sync_time
+        if sync is None:
+            sync = _sync_from_clock(seq - 1, ticks)
+            log.info("chips: sync time %d (UNIX s) recovered from the arrival clock; set source.sync_time "
+                     "to the F-engine's utc_start for archival accuracy", sync)
+        self._sync_ticks = sync * FS_HZ
+        return StreamLayout("chips", 0, nroach * 16, nroach, nchan, _CHIPS_HDR.size, n, ADP_CHAN_BW_HZ,
+                            "ADP F-engine", "lwasv", chan0, self._sync_ticks + (seq - 1) * ticks,
+                            nchan_blocks=1, ninput_blocks=nroach)
+
+    def parse(self, buf, n, layout):
+        if n != layout.frame_bytes:
+            return "size"
+        roach, _, nchan, _, _, nroach, chan0, seq = _CHIPS_HDR.unpack_from(buf, 0)
+        if nroach != layout.ninput_blocks or not 1 <= roach <= nroach or nchan != layout.chans_per_frame:
+            return "source"
+        if chan0 != layout.first_chan0:
+            return "channel"
+        if seq < 1:
+            return "time_grid"
+        return self._sync_ticks + (seq - 1) * layout.sample_ticks, roach - 1
+
+    def packets(self, data, time_tag0, chan0, time_step, sync_time=None):
+        """Chips packets of time samples ``data`` uint8 (ntime, nchan, nstand, 2) (nstand a multiple
+        of 16, nchan <= 255): (packets uint8 (ntime * nroach, size), time tags), per spectrum the
+        boards in order. ``sync_time``: default the whole second at or before ``time_tag0``."""
+        ntime, nchan, nstand, _ = data.shape
+        if nstand % 16 or not 0 < nchan < 256 or not 0 <= chan0 < 65536:
+            raise ValueError(f"chips packets need a multiple of 16 stands and 1-255 channels; got {nstand} stands, "
+                             f"{nchan} channels from {chan0}")
+        sync = int(time_tag0 // FS_HZ) if sync_time is None else int(sync_time)
+        tt = int(time_tag0) + np.arange(ntime, dtype=np.int64) * int(time_step)
+        seq, rem = np.divmod(tt - sync * FS_HZ, int(round(FS_HZ / ADP_CHAN_BW_HZ)))
+        if rem.any() or (seq < 0).any():
+            raise ValueError(f"time tags are not whole spectra after sync time {sync}: not a chips stream")
+        nroach = nstand // 16
+        hdr = np.zeros((ntime, nroach), np.dtype([("roach", "u1"), ("gbe", "u1"), ("nchan", "u1"), ("nsub", "u1"),
+                                                  ("sub", "u1"), ("nroach", "u1"), ("chan0", ">u2"), ("seq", ">u8")]))
+        hdr["roach"] = np.arange(1, nroach + 1)
+        hdr["nchan"], hdr["nsub"], hdr["nroach"], hdr["chan0"] = nchan, 1, nroach, chan0
+        hdr["seq"] = (seq + 1)[:, None]
+        pay = data.reshape(ntime, nchan, nroach, 32).transpose(0, 2, 1, 3).reshape(ntime, nroach, -1)
+        out = np.concatenate([hdr.view(np.uint8).reshape(ntime, nroach, -1), pay], axis=2)
+        return out.reshape(ntime * nroach, -1), np.repeat(tt, nroach), sync
+
+    def file_frames(self, path):
+        return _packets_from_recording(self, path)
+
+
+class Snap2Packets(PacketFormat):
+    """NDP (SNAP2) F-engine packets, Bifrost's ``snap2`` format.
+
+    Header (32 bytes, big-endian): seq (spectrum count since ``sync_time``), sync_time (UNIX s),
+    npol, npol_tot, nchan, nchan_tot, chan_block_id, chan0 (this packet's first channel), pol0
+    (first input). Payload: nchan x npol inputs, 1 byte ci4 each; inputs stand-major (stand, pol)
+    in the station's digitizer order, as the TBF payload. Source number = pol0 / npol +
+    chan_block_id x (npol_tot / npol), as Bifrost's decoder numbers them; all are expected, and
+    one not heard is zero-filled and counted. Time tag = sync_time x 196e6 + seq x 8,192 ticks.
+    """
+    name = "snap2"
+
+    def probe(self, buf, n):
+        if n < _SNAP2_HDR.size:
+            return "size"
+        seq, sync, npol, npol_tot, nchan, nchan_tot, cb, chan0, pol0 = _SNAP2_HDR.unpack_from(buf, 0)
+        if not npol or not nchan or npol_tot % npol or nchan_tot % nchan or npol_tot % 2:
+            return "source"
+        if n != _SNAP2_HDR.size + nchan * npol:
+            return "size"
+        if cb >= nchan_tot // nchan or pol0 % npol or pol0 >= npol_tot or chan0 < cb * nchan:
+            return "source"
+        ticks = int(round(FS_HZ / NDP_CHAN_BW_HZ))
+        nstand = npol_tot // 2
+        hint = "lwana" if nstand <= 64 else "lwasv"
+        return StreamLayout("snap2", 0, nstand, nstand, nchan, _SNAP2_HDR.size, n, NDP_CHAN_BW_HZ, "NDP F-engine",
+                            hint, chan0 - cb * nchan, sync * FS_HZ + seq * ticks,
+                            nchan_blocks=nchan_tot // nchan, ninput_blocks=npol_tot // npol)
+
+    def parse(self, buf, n, layout):
+        if n != layout.frame_bytes:
+            return "size"
+        seq, sync, npol, npol_tot, nchan, nchan_tot, cb, chan0, pol0 = _SNAP2_HDR.unpack_from(buf, 0)
+        nib = layout.ninput_blocks
+        if (nchan != layout.chans_per_frame or npol_tot != 2 * layout.nstand or npol * nib != npol_tot
+                or nchan_tot != nchan * layout.nchan_blocks or cb >= layout.nchan_blocks or pol0 % npol
+                or pol0 >= npol_tot):
+            return "source"
+        if chan0 != layout.first_chan0 + cb * nchan:
+            return "channel"
+        return sync * FS_HZ + seq * layout.sample_ticks, pol0 // npol + cb * nib
+
+    def packets(self, data, time_tag0, chan0, time_step, sync_time=None, npol=64, nchan=None):
+        """Snap2 packets of ``data`` uint8 (ntime, nchan_tot, nstand, 2): ``npol`` inputs (default
+        64, or all) by ``nchan`` channels (default the most, dividing the total, that fit 8 kB)
+        each; per spectrum the sources in order. Returns (packets, time tags, sync time)."""
+        ntime, nchan_tot, nstand, _ = data.shape
+        npol_tot = 2 * nstand
+        npol = min(int(npol), npol_tot)
+        if npol_tot % npol:
+            raise ValueError(f"snap2 packets: {npol} inputs per packet do not divide {npol_tot}")
+        if nchan is None:
+            nchan = max(c for c in range(1, nchan_tot + 1) if nchan_tot % c == 0 and c * npol <= 8192)
+        if nchan_tot % nchan:
+            raise ValueError(f"snap2 packets: {nchan} channels per packet do not divide {nchan_tot}")
+        sync = int(time_tag0 // FS_HZ) if sync_time is None else int(sync_time)
+        tt = int(time_tag0) + np.arange(ntime, dtype=np.int64) * int(time_step)
+        seq, rem = np.divmod(tt - sync * FS_HZ, int(round(FS_HZ / NDP_CHAN_BW_HZ)))
+        if rem.any() or (seq < 0).any():
+            raise ValueError(f"time tags are not whole spectra after sync time {sync}: not a snap2 stream")
+        ncb, nib = nchan_tot // nchan, npol_tot // npol
+        hdr = np.zeros((ntime, ncb, nib), np.dtype([("seq", ">u8"), ("sync", ">u4"), ("npol", ">u2"),
+                                                    ("npol_tot", ">u2"), ("nchan", ">u2"), ("nchan_tot", ">u2"),
+                                                    ("cb", ">u4"), ("chan0", ">u4"), ("pol0", ">u4")]))
+        hdr["seq"] = seq[:, None, None]
+        hdr["sync"], hdr["npol"], hdr["npol_tot"], hdr["nchan"], hdr["nchan_tot"] = sync, npol, npol_tot, nchan, nchan_tot
+        hdr["cb"] = np.arange(ncb)[:, None]
+        hdr["chan0"] = chan0 + nchan * np.arange(ncb)[:, None]
+        hdr["pol0"] = npol * np.arange(nib)
+        pay = data.reshape(ntime, ncb, nchan, nib, npol).transpose(0, 1, 3, 2, 4).reshape(ntime, ncb, nib, -1)
+        out = np.concatenate([hdr.view(np.uint8).reshape(ntime, ncb, nib, -1), pay], axis=3)
+        return out.reshape(ntime * ncb * nib, -1), np.repeat(tt, ncb * nib), sync
+
+    def file_frames(self, path):
+        return _packets_from_recording(self, path)
+
+
+def _packets_from_recording(fmt, path):
+    """A TBF or TBX recording's samples as ``fmt``'s packets (for the replayer): (packets, time tags)."""
+    from .formats import detect_format
+    kind = detect_format(path)
+    if kind == "tbx":
+        from .tbx import read_tbx
+        d = read_tbx(path)
+    else:
+        d = read_tbf(path)
+    if d.data.shape[0] == 0:
+        return np.zeros((0, 0), np.uint8), np.zeros(0, np.int64)
+    step = int(round(FS_HZ / d.chan_bw_hz))
+    if np.any(np.diff(d.channels) != 1):
+        raise ValueError(f"{path}: channels are not contiguous; a {fmt.name} stream carries one run of channels")
+    pkts, tts, sync = fmt.packets(d.data, int(d.time_tags[0]), int(d.channels[0]), step)
+    fmt.replay_sync_time = sync
+    log.info("%s: %d samples x %d channels as %d %s packets (sync time %d)", path, d.data.shape[0],
+             d.data.shape[1], len(pkts), fmt.name, sync)
+    return pkts, tts
+
+
+_FORMATS = {"tbf": TBFPackets, "tbx": TBXPackets, "chips": ChipsPackets, "snap2": Snap2Packets}
+
+
+def packet_format(name: str, **options) -> PacketFormat:
+    """The :class:`PacketFormat` called ``name``: 'tbf' (:class:`TBFPackets`), 'tbx'
+    (:class:`TBXPackets`), 'chips' (:class:`ChipsPackets`; option ``sync_time``) or 'snap2'
+    (:class:`Snap2Packets`).
 
     Another format plugs in as a :class:`PacketFormat` subclass added here (probe, parse, file_frames).
     """
-    if name == "tbf":
-        return TBFPackets()
-    if name == "tbx":
-        return TBXPackets()
-    raise ValueError(f"unknown packet format {name!r}; expected one of {PACKET_FORMATS}")
+    if name not in _FORMATS:
+        raise ValueError(f"unknown packet format {name!r}; expected one of {PACKET_FORMATS}")
+    return _FORMATS[name](**options)
 
 
 def parse_host_port(text: str) -> tuple[str, int]:
@@ -251,7 +468,10 @@ class SequenceInfo:
 
     @property
     def channels(self) -> np.ndarray:
-        return (self.blocks[:, None] + np.arange(self.layout.chans_per_frame)).ravel().astype(np.int64)
+        lay = self.layout
+        if lay.nchan_blocks:  # sources expected by number: one run of channels from the first
+            return lay.first_chan0 + np.arange(lay.nchan_blocks * lay.chans_per_frame, dtype=np.int64)
+        return (self.blocks[:, None] + np.arange(lay.chans_per_frame)).ravel().astype(np.int64)
 
     @property
     def freq_hz(self) -> np.ndarray:
@@ -259,7 +479,7 @@ class SequenceInfo:
 
     @property
     def nchan(self) -> int:
-        return len(self.blocks) * self.layout.chans_per_frame
+        return len(self.channels)
 
 
 def socket_drops(sock):
@@ -497,14 +717,17 @@ class UDPCapture:
 
     def _begin(self, layout, learn):
         tts = np.array([x[0] for x in learn], dtype=np.int64)
-        blocks = np.unique(np.array([x[1] for x in learn], dtype=np.int64))
+        if layout.nchan_blocks:  # every source of the F-engine is expected, heard or not
+            blocks = np.arange(layout.nchan_blocks * layout.ninput_blocks, dtype=np.int64)
+        else:
+            blocks = np.unique(np.array([x[1] for x in learn], dtype=np.int64))
         info = SequenceInfo(layout, blocks, int(tts.min()), self._nseq)
         self._nseq += 1
         self.stats["sequences"] += 1
         self._emit(("start", info))
-        log.info("%s: sequence %d: %s, %d stands, %d channels (%d blocks from channel %d), time tag %d",
-                 self.label, info.index, layout.engine, layout.nstand, info.nchan, len(blocks), int(blocks[0]),
-                 info.time_tag0)
+        log.info("%s: sequence %d: %s, %d stands, %d channels (%d sources, from channel %d), time tag %d",
+                 self.label, info.index, layout.engine, layout.nstand, info.nchan, len(blocks),
+                 int(info.channels[0]), info.time_tag0)
         seq = _Assembly(self, info, self._nwin(layout), int(math.ceil(self.resync_s * layout.chan_bw_hz)))
         for tt, fc, p in learn:
             seq.insert(tt, fc, p)
@@ -617,7 +840,7 @@ class _Assembly:
             n = min(t_end - self.base, self.nslot - s0, self.cap.gulp - self.chunk_n)
             sl = slice(s0, s0 + n)
             st["frames_missing"] += int(n * self.nblock - np.count_nonzero(self.have[sl]))
-            self.chunk[self.chunk_n:self.chunk_n + n] = self.slots[sl].reshape((n,) + self.frame_shape)
+            self.chunk[self.chunk_n:self.chunk_n + n] = self.cap.fmt.to_samples(self.slots[sl], self.info.layout)
             self.slots[sl] = 0
             self.have[sl] = 0
             self.chunk_n += n
@@ -649,6 +872,7 @@ class ReplayResult:
     dropped: list = field(default_factory=list)
     wall_s: float = 0.0
     data_s: float = 0.0
+    sync_time: int | None = None  # chips/snap2: the sync time (UNIX s) the packets count from
 
     @property
     def rate_achieved(self) -> float:
@@ -723,4 +947,5 @@ def replay(path, host, port, rate=1.0, drop=0.0, seed=None, fmt="tbf", allow_rem
     finally:
         sock.close()
     data_s = float((tts.max() - tts.min()) / FS_HZ) if nframe else 0.0
-    return ReplayResult(nframe=nframe, sent=sent, dropped=[int(i) for i in dropped], wall_s=wall, data_s=data_s)
+    return ReplayResult(nframe=nframe, sent=sent, dropped=[int(i) for i in dropped], wall_s=wall, data_s=data_s,
+                        sync_time=getattr(fmt, "replay_sync_time", None))

@@ -57,14 +57,17 @@ def build_parser():
                        description="Send the frames of a TBF/TBX capture as UDP datagrams to a live source "
                                    "(source.kind: udp), paced by their time tags at R x real time, optionally "
                                    "dropping a reproducible fraction of them. Loopback only unless --allow-remote.")
-    r.add_argument("file", help="capture file (TBF, or TBX with --format tbx)")
+    r.add_argument("file", help="capture file (TBF or TBX; sent as its own frames, or as chips/snap2 packets)")
     r.add_argument("--to", required=True, metavar="HOST:PORT", help="destination, e.g. 127.0.0.1:4015")
     r.add_argument("--rate", type=float, default=1.0, help="speed, x real time (default 1)")
     r.add_argument("--drop", type=float, default=0.0, metavar="F",
                    help="fraction of packets not sent: exactly round(F * frames), chosen by --seed")
     r.add_argument("--seed", type=int, default=None, help="seed of the drop choice (reproducible runs)")
-    r.add_argument("--format", default="auto", choices=("auto", "tbf", "tbx"),
-                   help="frame format of the file (default: told by the first frame's id)")
+    r.add_argument("--format", default="auto", choices=("auto", "tbf", "tbx", "chips", "snap2"),
+                   help="packets to send: the file's own frames (auto: told by the first frame's id; tbf, "
+                        "tbx), or its samples as the F-engines' streams: chips (ADP, 16 stands per packet; "
+                        "the sync time used is printed, give it to the receiver as source.sync_time) or "
+                        "snap2 (NDP, 64 inputs per packet)")
     r.add_argument("--allow-remote", action="store_true", help="allow a non-loopback destination")
     r.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
     r.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
@@ -84,7 +87,8 @@ def _replay(args):
         return 2
     print(f"replayed {args.file} ({fmt.upper()}) to {host}:{port}: {res.nframe} frames, sent {res.sent}, dropped "
           f"{len(res.dropped)} (seed {args.seed}); {res.data_s:.4f} s of data in {res.wall_s:.3f} s "
-          f"(asked {args.rate:g}x real time)")
+          f"(asked {args.rate:g}x real time)" + (f"; sync time {res.sync_time} (source.sync_time)"
+                                                 if res.sync_time is not None else ""))
     if res.dropped:
         print("dropped frame indices (file order): " + " ".join(map(str, res.dropped)))
     return 0

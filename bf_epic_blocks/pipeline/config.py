@@ -46,7 +46,10 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       # kind: udp (live packets; the station is station.name / ssmif and must match the packets)
       address: IP address to listen on (default 127.0.0.1)
       port: int >= 0                 (required; 0 = an ephemeral port)
-      format: tbf | tbx              (default tbf)
+      format: tbf | tbx | chips | snap2  (default tbf; chips = the ADP F-engine's own stream (LWA-SV),
+                                     snap2 = the NDP F-engine's (Bifrost's formats of those names))
+      sync_time: int >= 0            (chips only; default null = recovered from the arrival clock: the
+                                     whole UNIX second the F-engine counts spectra from, its utc_start)
       buffer_s: float > 0            (default 0.05; reordering window, seconds of data)
       idle_timeout_s: float > 0      (default 2.0; no packet for this long ends the sequence)
       start_timeout_s: float > 0     (default null = wait for the first packet forever)
@@ -391,7 +394,8 @@ SOURCE_TBF = {
 SOURCE_UDP = {  # live capture (bf_epic_blocks.io.udp); station from station.name / ssmif
     "address": Key(Str(r"\S+", "an IP address to listen on"), "127.0.0.1"),
     "port": Key(Int(0), REQUIRED),
-    "format": Key(Choice("tbf", "tbx"), "tbf"),
+    "format": Key(Choice("tbf", "tbx", "chips", "snap2"), "tbf"),
+    "sync_time": Key(Int(0), None),
     "buffer_s": Key(Float(0.0, lo_open=True), 0.05),
     "idle_timeout_s": Key(Float(0.0, lo_open=True), 2.0),
     "start_timeout_s": Key(Float(0.0, lo_open=True), None),
@@ -432,7 +436,12 @@ class SourceSection(Section):
                 if k not in mine:
                     users.setdefault(k, []).append(repr(other_kind))
         elsewhere = {k: f"only used when source.kind is {' or '.join(u)} (kind is {kind!r})" for k, u in users.items()}
-        return super().check(v, path, ctx, allowed={**SOURCE_COMMON, **mine}, elsewhere=elsewhere)
+        out = super().check(v, path, ctx, allowed={**SOURCE_COMMON, **mine}, elsewhere=elsewhere)
+        if (kind == "udp" and is_valid(out) and out.get("sync_time") is not None
+                and out.get("format") not in ("chips", INVALID)):
+            ctx.error(join_path(path, "sync_time"), f"only used when source.format is 'chips' (its packets carry "
+                                                    f"no absolute time); format is {out.get('format')!r}")
+        return out
 
 
 SCHEMA = Section({

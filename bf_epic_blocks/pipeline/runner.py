@@ -250,7 +250,10 @@ def build_graph(cfg, progress=None):
         elif src_cfg["kind"] == "udp":
             from ..blocks.udp_source import UDPSourceBlock
             nframe_total = None
-            source = UDPSourceBlock(src_cfg["address"], src_cfg["port"], gulp, fmt=src_cfg["format"], station=station,
+            from ..io.udp import packet_format
+            fmt = packet_format(src_cfg["format"], **({"sync_time": src_cfg["sync_time"]}
+                                                      if src_cfg["format"] == "chips" else {}))
+            source = UDPSourceBlock(src_cfg["address"], src_cfg["port"], gulp, fmt=fmt, station=station,
                                     buffer_s=src_cfg["buffer_s"], idle_timeout_s=src_cfg["idle_timeout_s"],
                                     start_timeout_s=src_cfg["start_timeout_s"],
                                     rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20), sequences=src_cfg["sequences"],
