@@ -340,6 +340,9 @@ class Snap2Packets(PacketFormat):
     """
     name = "snap2"
 
+    def __init__(self, npol=64, nchan=None):
+        self.npol, self.nchan = int(npol), nchan  # packet shape the replayer sends (see packets)
+
     def probe(self, buf, n):
         if n < _SNAP2_HDR.size:
             return "size"
@@ -370,10 +373,13 @@ class Snap2Packets(PacketFormat):
             return "channel"
         return sync * FS_HZ + seq * layout.sample_ticks, pol0 // npol + cb * nib
 
-    def packets(self, data, time_tag0, chan0, time_step, sync_time=None, npol=64, nchan=None):
+    def packets(self, data, time_tag0, chan0, time_step, sync_time=None, npol=None, nchan=None):
         """Snap2 packets of ``data`` uint8 (ntime, nchan_tot, nstand, 2): ``npol`` inputs (default
-        64, or all) by ``nchan`` channels (default the most, dividing the total, that fit 8 kB)
-        each; per spectrum the sources in order. Returns (packets, time tags, sync time)."""
+        the format's, 64, or all) by ``nchan`` channels (default the format's, or the most,
+        dividing the total, that fit 8 kB) each; per spectrum the sources in order. Returns
+        (packets, time tags, sync time)."""
+        npol = self.npol if npol is None else npol
+        nchan = self.nchan if nchan is None else nchan
         ntime, nchan_tot, nstand, _ = data.shape
         npol_tot = 2 * nstand
         npol = min(int(npol), npol_tot)

@@ -250,14 +250,26 @@ def build_graph(cfg, progress=None):
         elif src_cfg["kind"] == "udp":
             from ..blocks.udp_source import UDPSourceBlock
             nframe_total = None
+            from ..blocks.bifrost_capture import BifrostCaptureBlock, bifrost_capture_available
             from ..io.udp import packet_format
-            fmt = packet_format(src_cfg["format"], **({"sync_time": src_cfg["sync_time"]}
-                                                      if src_cfg["format"] == "chips" else {}))
-            source = UDPSourceBlock(src_cfg["address"], src_cfg["port"], gulp, fmt=fmt, station=station,
-                                    buffer_s=src_cfg["buffer_s"], idle_timeout_s=src_cfg["idle_timeout_s"],
-                                    start_timeout_s=src_cfg["start_timeout_s"],
-                                    rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20), sequences=src_cfg["sequences"],
-                                    progress=progress, space=space)
+            ok, why = bifrost_capture_available(src_cfg["format"])
+            if src_cfg["engine"] == "bifrost" and not ok:
+                raise ValueError(f"source.engine: bifrost: {why}; use engine: auto or python")
+            if ok and src_cfg["engine"] != "python":
+                log.info("live capture: Bifrost's C packet capture (%s)", src_cfg["format"])
+                source = BifrostCaptureBlock(src_cfg["address"], src_cfg["port"], gulp, src_cfg["format"], station,
+                                             sync_time=src_cfg["sync_time"], idle_timeout_s=src_cfg["idle_timeout_s"],
+                                             sequences=src_cfg["sequences"], space=space)
+            else:
+                log.info("live capture: the Python receiver (%s)", why if src_cfg["engine"] == "auto" else
+                         "source.engine: python")
+                fmt = packet_format(src_cfg["format"], **({"sync_time": src_cfg["sync_time"]}
+                                                          if src_cfg["format"] == "chips" else {}))
+                source = UDPSourceBlock(src_cfg["address"], src_cfg["port"], gulp, fmt=fmt, station=station,
+                                        buffer_s=src_cfg["buffer_s"], idle_timeout_s=src_cfg["idle_timeout_s"],
+                                        start_timeout_s=src_cfg["start_timeout_s"],
+                                        rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20),
+                                        sequences=src_cfg["sequences"], progress=progress, space=space)
         else:
             freq = channel_freqs(cfg)
             source = SimSkySourceBlock(station, freq, src_cfg["start"], src_cfg["duration_s"], src_cfg["sources"],
