@@ -238,6 +238,7 @@ def build_graph(cfg, progress=None):
     gulp = int(src_cfg["gulp_nframe"])
     outdir = cfg["output"]["dir"]
     block = None  # a channel block of a TBF file (source.channel_block), or all channels
+    feed = None   # a block between the source and the rest (Bifrost's copy of a capture to the GPU)
     # one GPU: every block's thread uses it (a device chosen here would hold in this thread only)
     scope = bfp.block_scope(gpu=devs) if dev == "gpu" else contextlib.nullcontext()
     with bfp.Pipeline() as p, scope:
@@ -257,9 +258,14 @@ def build_graph(cfg, progress=None):
                 raise ValueError(f"source.engine: bifrost: {why}; use engine: auto or python")
             if ok and src_cfg["engine"] != "python":
                 log.info("live capture: Bifrost's C packet capture (%s)", src_cfg["format"])
+                # the C capture writes host memory: pinned for a GPU, whose copy Bifrost's own block makes
                 source = BifrostCaptureBlock(src_cfg["address"], src_cfg["port"], gulp, src_cfg["format"], station,
                                              sync_time=src_cfg["sync_time"], idle_timeout_s=src_cfg["idle_timeout_s"],
-                                             sequences=src_cfg["sequences"], space=space)
+                                             sequences=src_cfg["sequences"],
+                                             space="cuda_host" if space == "cuda" else space)
+                if space == "cuda":
+                    from bifrost.blocks import copy as bifrost_copy
+                    feed = bifrost_copy(source, space="cuda")
             else:
                 log.info("live capture: the Python receiver (%s)", why if src_cfg["engine"] == "auto" else
                          "source.engine: python")
@@ -278,23 +284,24 @@ def build_graph(cfg, progress=None):
                                        transients=[{k: v for k, v in t.items() if v is not None}
                                                    for t in src_cfg.get("transients") or []])
             nframe_total = source.nframe
+        feed = source if feed is None else feed  # what the blocks after the source read
         cal = cfg["calibration"]
         gains = cal.get("gains_table")
         if gains:
             gains = GainTable.load(gains)
         pattern = None if cal.get("pattern") in (None, "none") else cal["pattern"]
-        # Live packets never wait for the imager, yet CalFoldBlock reads them *guaranteed*: the
-        # capture thread keeps receiving whatever the blocks do, and its bounded queue is the one
-        # place where a pipeline that cannot keep up loses data (whole gulps, written as zeros and
-        # counted in udp_stats['samples_overflow']). An unguaranteed reader here lost the start of
-        # every stream (the reordering window arrives at once, faster than any reader starts) and,
-        # inside real Bifrost, met its frame-alignment assertion on an overrun (see _compat).
-        live = {}
+        # Live packets never wait for the imager, yet the blocks read them *guaranteed*: the capture
+        # thread keeps receiving whatever the blocks do, and its bounded queue is the one place
+        # where a pipeline that cannot keep up loses data (whole gulps, written as zeros and counted
+        # in udp_stats['samples_overflow']; with Bifrost's capture, the kernel's socket buffer). An
+        # unguaranteed reader here lost the start of every stream (the reordering window arrives at
+        # once, faster than any reader starts) and, inside real Bifrost, met its frame-alignment
+        # assertion on an overrun (see _compat).
         fold = folds_calibration(cfg, dev)
         if fold:
-            calfold = source
+            calfold = feed
         else:
-            calfold = CalFoldBlock(source, cable=bool(cal["cable"]), gains=gains, pattern=pattern, **live)
+            calfold = CalFoldBlock(feed, cable=bool(cal["cable"]), gains=gains, pattern=pattern)
         pixels = _pixels(cfg, station)
         common = dict(products=im["products"], remove_autocorr=im["remove_autocorr"])
         if im["kind"] == "dft":
