@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 
 import numpy as np
 
@@ -83,7 +82,10 @@ class BifrostCaptureBlock(bfp.SourceBlock):
         self.max_payload_size, self.use_verbs = int(max_payload_size), bool(use_verbs)
         self.sock = UDPSocket()
         self.sock.bind(Address(address, int(port)))
-        self.sock.timeout = 0.1  # recv returns NO_DATA this often, so shutdown and idle are seen
+        # Bifrost's capture ends a sequence at the first receive that times out without a whole
+        # buffer (packet_capture.cpp: recv -> flush, BF_CAPTURE_ENDED): the socket's timeout *is*
+        # the stream's idle timeout, and how long a shutdown may wait
+        self.sock.timeout = float(idle_timeout_s)
         self.address, self.port = address, self._bound_port(int(port))
         self.capture_stats = []
         self.udp_stats = {"engine": "bifrost"}
@@ -168,8 +170,7 @@ class BifrostCaptureBlock(bfp.SourceBlock):
         (cb.set_chips if self.fmt == "chips" else cb.set_snap2)(
             self._chips_cb if self.fmt == "chips" else self._snap2_cb)
         started, ended = _bf.BF_CAPTURE_STARTED, _bf.BF_CAPTURE_ENDED
-        nodata = _bf.BF_CAPTURE_NO_DATA
-        nseq, last = 0, None
+        nseq = 0
         # the readers initialise on the first sequence, which only the capture can bring: report this
         # block initialised now instead of waiting with the others (bifrost.pipeline's begin_sequences)
         self.pipeline.block_init_queue.put((self, True))
@@ -177,18 +178,12 @@ class BifrostCaptureBlock(bfp.SourceBlock):
                  self.gulp_nframe, sequence_callback=cb) as cap:
             while not self.shutdown_event.is_set():
                 status = cap.recv()
-                now = time.monotonic()
                 if status == started:
                     nseq += 1
-                if status not in (nodata,):
-                    last = now
-                elif last is not None and now - last > self.idle_timeout_s:
-                    cap.flush()  # end of stream: the open buffers and sequence are committed
-                    last = None
+                elif status == ended:  # idle for idle_timeout_s: the capture flushed the sequence
+                    self.udp_stats.update(self._read_stats())
                     if self.nsequences and nseq >= self.nsequences:
                         break
-                if status == ended:
-                    break
             self.udp_stats.update(self._read_stats())
         self.sock.close()
         log.info("udp %s:%d [%s]: Bifrost's capture ended: %s", self.address, self.port, self.fmt, self.udp_stats)
