@@ -266,6 +266,9 @@ def case_rate(args):
         sent += n * pkt_per_spec
     send_s = time.perf_counter() - ts
     wall, summ, text = finish_run(p, t0, err, summary)
+    if args.log_dir:
+        os.makedirs(args.log_dir, exist_ok=True)
+        Path(args.log_dir, f"run_{args.format}_{nchan}ch.log").write_text(text)
     tb = summ.get("udp") or summ.get("tbf") or {}
     images = summ.get("images")
     row = dict(format=args.format, device=args.device, nchan=nchan, seconds=args.seconds, packets_sent=sent,
@@ -293,6 +296,7 @@ def main(argv=None):
     ap.add_argument("--accumulate", type=int, default=2500)
     ap.add_argument("--batch", type=int, default=50, help="rate: spectra per send call (2 ms; <= 1,024 packets)")
     ap.add_argument("--settle", type=float, default=2.0, help="rate: seconds between listening and sending")
+    ap.add_argument("--log-dir", help="rate: keep the bf-epic run's log here")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     import platform
