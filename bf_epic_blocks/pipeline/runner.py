@@ -375,6 +375,10 @@ def run(cfg, show_progress=None):
     if bar is not None:
         bar.total = g.nframe_total
         bar.refresh()
+    if cfg["source"]["kind"] == "udp" and hasattr(g.imager, "warm_up"):
+        # a live stream cannot wait for the first gulp's kernel compilation: do it before it starts
+        from ..blocks import CalFoldBlock
+        g.imager.warm_up("cf32" if isinstance(g.calfold, CalFoldBlock) else "ci4")
     log.info("running %s: %s source -> %s%s imager -> %s", cfg["name"], cfg["source"]["kind"],
              "" if g.calfold is g.source else "calfold -> ", cfg["imager"]["kind"], g.outdir)
     try:
