@@ -376,3 +376,17 @@ def test_warm_up_on_the_cpu_does_nothing(scene):
         src = ArraySourceBlock(pack_ci4(s["ints"]), hdr, gulp_nframe=120)
         img = DFTImagerBlock(src, s["lm"], 120)
     assert img.warm_up() == 0.0 and img.img_stats["operator_builds"] == 0
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("sets", [[], ["calibration.gains_table=null", "imager.precision=fp16"]])
+def test_the_runner_warms_a_live_imager_before_its_socket_opens(sets):
+    """bf-epic run of a live YAML on a GPU compiles the imager's route in a scratch graph first."""
+    pytest.importorskip("cupy")
+    from pathlib import Path
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import warm_live_imager
+    from bf_epic_blocks.station import load_station
+    yml = Path(__file__).resolve().parents[1] / "pipelines" / "lwasv_udp_live.yaml"
+    cfg = load_config(yml, ["device=gpu", "imager.grid.size=16", "imager.accumulate_frames=64", *sets])
+    assert warm_live_imager(cfg, load_station("lwasv")) > 0

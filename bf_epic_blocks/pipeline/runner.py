@@ -208,6 +208,32 @@ def folds_calibration(cfg, dev):
     return dev == "gpu" and not cfg["calibration"].get("gains_table")
 
 
+def warm_live_imager(cfg, station):
+    """Compile the GPU imager's route before a live source opens its socket: a live stream cannot
+    wait seconds for the first gulp's kernel compilation (its packets would pile up and, with
+    Bifrost's capture, be dropped by the kernel). An imager with this configuration's pixels, route,
+    precision and calibration folding is built in a scratch graph that never runs, and runs one
+    small integration (:meth:`DFTImagerBlock.warm_up`); kernels and libraries stay loaded for the
+    real one. Returns the seconds it took."""
+    from ..blocks import ArraySourceBlock, DFTImagerBlock, bfp
+    from ..blocks.headers import efield_header
+    im, cal = cfg["imager"], cfg["calibration"]
+    fold = folds_calibration(cfg, "gpu")
+    pixels = _pixels(cfg, station)
+    npix = pixels.npix if hasattr(pixels, "npix") else im["track"]["size"] ** 2
+    method, precision, _ = imaging_mode(cfg, npix, int((~station.flags).any(axis=1).sum()), 1)
+    dtype = "ci4" if fold else "cf32"
+    hdr = efield_header("warm-up", 0, [60e6, 60.025e6], 4e-5, {"xyz_m": np.zeros((8, 3))}, dtype=dtype)
+    pattern = None if cal.get("pattern") in (None, "none") else cal["pattern"]
+    extra = dict(cable=bool(cal["cable"]), pattern=pattern or False) if fold else {}
+    with bfp.Pipeline():
+        src = ArraySourceBlock(np.zeros((1, 2, 8, 2), np.uint8 if dtype == "ci4" else np.complex64), hdr, 1,
+                               space="cuda")
+        img = DFTImagerBlock(src, pixels, im["accumulate_frames"], method=method, precision=precision,
+                             products=im["products"], remove_autocorr=im["remove_autocorr"], **extra)
+    return img.warm_up(dtype)
+
+
 def build_graph(cfg, progress=None):
     """Blocks for ``cfg`` inside a new Pipeline (not yet run)."""
     from ..blocks import CalFoldBlock, DFTImagerBlock, bfp
@@ -251,6 +277,8 @@ def build_graph(cfg, progress=None):
         elif src_cfg["kind"] == "udp":
             from ..blocks.udp_source import UDPSourceBlock
             nframe_total = None
+            if dev == "gpu" and im["kind"] == "dft":
+                warm_live_imager(cfg, station)
             from ..blocks.bifrost_capture import BifrostCaptureBlock, bifrost_capture_available
             from ..io.udp import packet_format
             ok, why = bifrost_capture_available(src_cfg["format"])
@@ -375,10 +403,6 @@ def run(cfg, show_progress=None):
     if bar is not None:
         bar.total = g.nframe_total
         bar.refresh()
-    if cfg["source"]["kind"] == "udp" and hasattr(g.imager, "warm_up"):
-        # a live stream cannot wait for the first gulp's kernel compilation: do it before it starts
-        from ..blocks import CalFoldBlock
-        g.imager.warm_up("cf32" if isinstance(g.calfold, CalFoldBlock) else "ci4")
     log.info("running %s: %s source -> %s%s imager -> %s", cfg["name"], cfg["source"]["kind"],
              "" if g.calfold is g.source else "calfold -> ", cfg["imager"]["kind"], g.outdir)
     try:
