@@ -379,7 +379,7 @@ def test_warm_up_on_the_cpu_does_nothing(scene):
 
 
 @pytest.mark.gpu
-@pytest.mark.parametrize("sets", [[], ["calibration.gains_table=null", "imager.precision=fp16"]])
+@pytest.mark.parametrize("sets", [[], ["calibration.cable=false", "imager.precision=fp16", "imager.method=covariance"]])
 def test_the_runner_warms_a_live_imager_before_its_socket_opens(sets):
     """bf-epic run of a live YAML on a GPU compiles the imager's route in a scratch graph first."""
     pytest.importorskip("cupy")
