@@ -239,31 +239,47 @@ def case_rate(args):
     summary = tmp / "summary.json"
     p, port, t0, err = start_run(LIVE_YAML, sets, {}, tmp / "log.txt", summary)
     time.sleep(args.settle)
-    open_, prepare, send = bifrost_sender(args.format, nstand, nchan, 1200)
-    open_(port)
-    pay = prepare(pay)
     batch = args.batch
     assert block % batch == 0, "--batch must divide the 1,000-spectrum data block"
     # Bifrost's writer hands a call's packets to one sendmmsg, which takes at most 1,024 (UIO_MAXIOV)
     # and Bifrost does not send the rest: found sending 4,000 and receiving 1,024 per call
     assert batch * pkt_per_spec <= 1024, f"--batch {batch}: {batch * pkt_per_spec} packets per call > 1024"
+    # Several senders, each its own writer and socket with a share of the sources (as the F-engine's
+    # boards are separate senders): on loopback the sender's system call also delivers the packet,
+    # so one thread alone reached only ~0.8x of 400k packets/s when nothing was dropped.
+    nsnd = max(1, min(args.senders, pay.shape[1]))
+    cuts = np.linspace(0, pay.shape[1], nsnd + 1).astype(int)
     ts = time.perf_counter()
-    sent = 0
-    late = 0.0
-    for s0 in range(0, nspec, batch):
-        n = min(batch, nspec - s0)
-        due = s0 / bw - (time.perf_counter() - ts)
-        if due > 0:
-            time.sleep(due)
-        else:
-            late = max(late, -due)
-        i0 = s0 % block
-        n = min(n, block - i0)
-        if args.format == "chips":
-            send(pay[i0:i0 + n], s0 + 1, 1, 0, 1)  # chips seq is 1-based
-        else:
-            send(pay[i0:i0 + n], SYNC * FS_HZ + s0 * 7840, 7840, 1200, 12)
-        sent += n * pkt_per_spec
+    stats = []
+
+    def sender(k):
+        a, b = int(cuts[k]), int(cuts[k + 1])
+        open_, prepare, send = bifrost_sender(args.format, nstand, nchan, 1200)
+        open_(port)
+        mine = prepare(np.ascontiguousarray(pay[:, a:b]))
+        sent, late = 0, 0.0
+        for s0 in range(0, nspec, batch):
+            due = s0 / bw - (time.perf_counter() - ts)
+            if due > 0:
+                time.sleep(due)
+            else:
+                late = max(late, -due)
+            i0 = s0 % block
+            n = min(batch, nspec - s0, block - i0)
+            if args.format == "chips":
+                send(mine[i0:i0 + n], s0 + 1, 1, a, 1)  # chips seq is 1-based; board = a + j
+            else:
+                send(mine[i0:i0 + n], SYNC * FS_HZ + s0 * 7840, 7840, 1200 + 12 * a, 12)
+            sent += n * (b - a)
+        stats.append((sent, late))
+
+    threads = [threading.Thread(target=sender, args=(k,)) for k in range(nsnd)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    sent = sum(x[0] for x in stats)
+    late = max(x[1] for x in stats)
     send_s = time.perf_counter() - ts
     wall, summ, text = finish_run(p, t0, err, summary)
     if args.log_dir:
@@ -271,7 +287,7 @@ def case_rate(args):
         Path(args.log_dir, f"run_{args.format}_{nchan}ch.log").write_text(text)
     tb = summ.get("udp") or summ.get("tbf") or {}
     images = summ.get("images")
-    row = dict(format=args.format, device=args.device, nchan=nchan, seconds=args.seconds, packets_sent=sent,
+    row = dict(format=args.format, device=args.device, nchan=nchan, seconds=args.seconds, senders=nsnd, packets_sent=sent,
                packets_per_s=round(sent / send_s), sender_pace=round(args.seconds / send_s, 3),
                sender_max_late_s=round(late, 4), images=images, images_expected=nspec // acc,
                capture=tb, frames_skipped=summ.get("frames_skipped"),
@@ -294,6 +310,7 @@ def main(argv=None):
     ap.add_argument("--grid", type=int, default=64)
     ap.add_argument("--gulp", type=int, default=2500)
     ap.add_argument("--accumulate", type=int, default=2500)
+    ap.add_argument("--senders", type=int, default=4, help="rate: sender threads (sources split between them)")
     ap.add_argument("--batch", type=int, default=50, help="rate: spectra per send call (2 ms; <= 1,024 packets)")
     ap.add_argument("--settle", type=float, default=2.0, help="rate: seconds between listening and sending")
     ap.add_argument("--log-dir", help="rate: keep the bf-epic run's log here")
