@@ -229,6 +229,8 @@ def case_rate(args):
             f"source.gulp_nframe={args.gulp}", f"imager.accumulate_frames={acc}", f"device={args.device}",
             "source.port=0", f"output.dir={tmp / 'out'}", "source.idle_timeout_s=1.0", f"source.format={args.format}",
             f"imager.precision={args.precision}", f"imager.method={args.method}"]
+    if args.core is not None:
+        sets.append(f"source.core={args.core}")
     if args.format == "chips":
         sets.append(f"source.sync_time={SYNC}")
         pay = chips_payloads(data)
@@ -310,6 +312,7 @@ def main(argv=None):
     ap.add_argument("--grid", type=int, default=64)
     ap.add_argument("--gulp", type=int, default=2500)
     ap.add_argument("--accumulate", type=int, default=2500)
+    ap.add_argument("--core", type=int, help="rate: bind Bifrost's capture thread to this core (source.core)")
     ap.add_argument("--senders", type=int, default=4, help="rate: sender threads (sources split between them)")
     ap.add_argument("--batch", type=int, default=50, help="rate: spectra per send call (2 ms; <= 1,024 packets)")
     ap.add_argument("--settle", type=float, default=2.0, help="rate: seconds between listening and sending")

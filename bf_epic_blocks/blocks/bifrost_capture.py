@@ -64,11 +64,12 @@ class BifrostCaptureBlock(bfp.SourceBlock):
         snap2 ``nsrc``, default 2 * nstand / :func:`snap2_inputs_per_packet`, one channel block).
     gulp_nframe : spectra per capture buffer and per ring gulp.
     sync_time : chips only, see the module docstring.
+    core : CPU core to bind the capture thread to (None: not bound), as stations run it.
     ``capture_stats``: per sequence, what the capture's header callback saw (seq0, chan0, nchan, nsrc).
     """
 
     def __init__(self, address, port, gulp_nframe, fmt, station, sync_time=None, nsrc=None, idle_timeout_s=1.0,
-                 sequences=1, max_payload_size=9000, use_verbs=False, space="system", *args, **kwargs):
+                 sequences=1, max_payload_size=9000, use_verbs=False, core=None, space="system", *args, **kwargs):
         ok, why = bifrost_capture_available(fmt)
         if not ok:
             raise RuntimeError(f"BifrostCaptureBlock: {why}")
@@ -80,6 +81,7 @@ class BifrostCaptureBlock(bfp.SourceBlock):
                                             else 2 * station.nstand // snap2_inputs_per_packet())
         self.idle_timeout_s, self.nsequences = float(idle_timeout_s), int(sequences)
         self.max_payload_size, self.use_verbs = int(max_payload_size), bool(use_verbs)
+        self.capture_core = None if core is None else int(core)
         self.sock = UDPSocket()
         self.sock.bind(Address(address, int(port)))
         # Bifrost's capture ends a sequence at the first receive that times out without a whole
@@ -175,7 +177,7 @@ class BifrostCaptureBlock(bfp.SourceBlock):
         # block initialised now instead of waiting with the others (bifrost.pipeline's begin_sequences)
         self.pipeline.block_init_queue.put((self, True))
         with cls(self.fmt, self.sock, orings[0], self.nsrc, 0, self.max_payload_size, self.gulp_nframe,
-                 self.gulp_nframe, sequence_callback=cb) as cap:
+                 self.gulp_nframe, sequence_callback=cb, core=self.capture_core) as cap:
             while not self.shutdown_event.is_set():
                 status = cap.recv()
                 if status == started:

@@ -50,6 +50,7 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
                                      snap2 = the NDP F-engine's (Bifrost's formats of those names))
       engine: auto | bifrost | python  (default auto: Bifrost's C packet capture where Bifrost is the
                                      runtime and decodes the format (chips, snap2), else the Python receiver)
+      core: int >= 0                 (default null; the CPU core Bifrost's capture thread is bound to)
       sync_time: int >= 0            (chips only; default null = recovered from the arrival clock: the
                                      whole UNIX second the F-engine counts spectra from, its utc_start)
       buffer_s: float > 0            (default 0.05; reordering window, seconds of data)
@@ -399,6 +400,7 @@ SOURCE_UDP = {  # live capture (bf_epic_blocks.io.udp); station from station.nam
     "format": Key(Choice("tbf", "tbx", "chips", "snap2"), "tbf"),
     "sync_time": Key(Int(0), None),
     "engine": Key(Choice("auto", "bifrost", "python"), "auto"),
+    "core": Key(Int(0), None),
     "buffer_s": Key(Float(0.0, lo_open=True), 0.05),
     "idle_timeout_s": Key(Float(0.0, lo_open=True), 2.0),
     "start_timeout_s": Key(Float(0.0, lo_open=True), None),

@@ -289,7 +289,7 @@ def build_graph(cfg, progress=None):
                 # the C capture writes host memory: pinned for a GPU, whose copy Bifrost's own block makes
                 source = BifrostCaptureBlock(src_cfg["address"], src_cfg["port"], gulp, src_cfg["format"], station,
                                              sync_time=src_cfg["sync_time"], idle_timeout_s=src_cfg["idle_timeout_s"],
-                                             sequences=src_cfg["sequences"],
+                                             sequences=src_cfg["sequences"], core=src_cfg["core"],
                                              space="cuda_host" if space == "cuda" else space)
                 if space == "cuda":
                     from bifrost.blocks import copy as bifrost_copy
@@ -297,6 +297,9 @@ def build_graph(cfg, progress=None):
             else:
                 log.info("live capture: the Python receiver (%s)", why if src_cfg["engine"] == "auto" else
                          "source.engine: python")
+                if src_cfg["core"] is not None:
+                    log.warning("source.core %d is for Bifrost's capture thread; the Python receiver ignores it",
+                                src_cfg["core"])
                 fmt = packet_format(src_cfg["format"], **({"sync_time": src_cfg["sync_time"]}
                                                           if src_cfg["format"] == "chips" else {}))
                 source = UDPSourceBlock(src_cfg["address"], src_cfg["port"], gulp, fmt=fmt, station=station,
