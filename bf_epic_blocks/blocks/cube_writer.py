@@ -76,13 +76,34 @@ class ImageCubeWriterBlock(bfp.SinkBlock):
             self._w.close()
             self._w = None
 
+    def _lose(self, lost, why):
+        """``lost`` images that will not be written: later images' time tags jump over them."""
+        self._w.skip(lost)
+        self._j += lost
+        self.cube_stats["images_lost"] += lost
+        log.warning("ImageCubeWriterBlock: %d images lost (%s, guarantee=False)", lost, why)
+
     def on_data(self, ispan):
+        # Images are placed by their index in the sequence (the span's frame offset), not by the
+        # order of calls: real Bifrost reports an overrun's skipped images with a slice that does not
+        # say where they were, and after an overrun during on_data skips a further gulp unannounced.
+        off = int(getattr(ispan, "frame_offset", self._j))
+        if off > self._j:
+            self._lose(off - self._j, "reader overrun")
         data = span_array(ispan)
         n = data.shape[0]
         lay = self.lay
         x = to_numpy(data).reshape(n, lay["nchan"], lay["nprod"], -1)
         if lay["grid"] is not None:   # take, not fancy indexing: ~6x faster on NumPy for this gather
             x = np.take(x, lay["pixel_index"], axis=-1)
+        else:
+            x = np.array(x, copy=True)
+        # real Bifrost reads ring memory in place: images the writer reached while we copied them are
+        # not the images we meant (our runtime's unguaranteed readers get copies: 0 here)
+        bad = min(int(getattr(ispan, "nframe_overwritten", 0) or 0), n)
+        if bad:
+            self._lose(bad, "overwritten while read")
+            x, n = x[bad:], n - bad
         pos = 0
         while pos < n:
             if self.images_per_file and self._in_file == self.images_per_file:
@@ -97,11 +118,12 @@ class ImageCubeWriterBlock(bfp.SinkBlock):
         self.cube_stats["images"] += n
 
     def on_skip(self, islices, ospans):
-        lost = int(islices[0].stop - islices[0].start)
-        self._w.skip(lost)
-        self._j += lost
-        self.cube_stats["images_lost"] += lost
-        log.warning("ImageCubeWriterBlock: %d images lost (reader overrun, guarantee=False)", lost)
+        # Losses before a span are counted when it arrives (on_data); this counts those at the end of
+        # a sequence, where the slice's end is the sequence index after them (our runtime; real
+        # Bifrost's slices start at 0, so theirs are not counted here).
+        end = islices[0].stop
+        if end is not None and int(end) > self._j:
+            self._lose(int(end) - self._j, "reader overrun")
 
     def on_sequence_end(self, iseq):
         self._close()
