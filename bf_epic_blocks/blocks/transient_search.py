@@ -136,11 +136,37 @@ class TransientSearchBlock(bfp.SinkBlock):
                  self.dms, self.widths, self.threshold)
 
     # ------------------------------------------------------------------ per gulp
+    def _lose(self, lost, why):
+        """``lost`` images not searched: what was pending is finished and the window starts again."""
+        self._finish(final=True)
+        self._j += lost
+        self.search.reset(self._j)
+        self.search_stats["resets"] += 1
+        self.search_stats["images_lost"] += lost
+        log.warning("TransientSearchBlock: %d images lost (%s); window reset at image %d", lost, why, self._j)
+
     def on_data(self, ispan):
+        # Images are placed by their index in the sequence (the span's frame offset), not by the
+        # order of calls: real Bifrost reports an overrun's skipped images with a slice that does not
+        # say where they were, and after an overrun during on_data skips a further gulp unannounced.
+        off = int(getattr(ispan, "frame_offset", self._j))
+        if off > self._j:
+            self._lose(off - self._j, "reader overrun")
         data = span_array(ispan)
         n = data.shape[0]
         with _compat.stream_context():
             x = self.xp.take(data[:, :, self._prod].reshape(n, self.lay["nchan"], -1), self._index, axis=-1)
+            if not getattr(self, "guarantee", True):
+                # real Bifrost reads ring memory in place: images the writer reached while we copied
+                # them are not the images we meant (our runtime hands unguaranteed readers copies)
+                if self.xp is not np:
+                    self.xp.cuda.get_current_stream().synchronize()
+                bad = min(int(getattr(ispan, "nframe_overwritten", 0) or 0), n)
+                if bad:
+                    self._lose(bad, "overwritten while read")
+                    x, n = x[bad:], n - bad
+                    if n == 0:
+                        return
             n_before = self.search.nvalues
             cr = self.search.push(x)
             nsearched = max(0, self.search.nvalues - max(n_before, self.search.window + self.search.wmax - 1))
@@ -155,14 +181,12 @@ class TransientSearchBlock(bfp.SinkBlock):
         self._finish(final=False)
 
     def on_skip(self, islices, ospans):
-        sl = islices[0]
-        lost = int(sl.stop - sl.start)
-        self._finish(final=True)
-        self._j += lost
-        self.search.reset(self._j)
-        self.search_stats["resets"] += 1
-        self.search_stats["images_lost"] += lost
-        log.warning("TransientSearchBlock: %d images lost (reader overrun); window reset at image %d", lost, self._j)
+        # Losses before a span are counted when it arrives (on_data); this counts those at the end of
+        # a sequence, where the slice's end is the sequence index after them (our runtime; real
+        # Bifrost's slices start at 0, so theirs are not counted here).
+        end = islices[0].stop
+        if end is not None and int(end) > self._j:
+            self._lose(int(end) - self._j, "reader overrun")
 
     def on_sequence_end(self, iseq):
         self._finish(final=True)
