@@ -231,6 +231,8 @@ def case_rate(args):
             f"imager.precision={args.precision}", f"imager.method={args.method}"]
     if args.core is not None:
         sets.append(f"source.core={args.core}")
+    if args.rcvbuf_mb:
+        sets.append(f"source.rcvbuf_mb={args.rcvbuf_mb}")
     if args.format == "chips":
         sets.append(f"source.sync_time={SYNC}")
         pay = chips_payloads(data)
@@ -312,6 +314,7 @@ def main(argv=None):
     ap.add_argument("--grid", type=int, default=64)
     ap.add_argument("--gulp", type=int, default=2500)
     ap.add_argument("--accumulate", type=int, default=2500)
+    ap.add_argument("--rcvbuf-mb", type=float, help="rate: source.rcvbuf_mb (socket receive buffer asked for)")
     ap.add_argument("--core", type=int, help="rate: bind Bifrost's capture thread to this core (source.core)")
     ap.add_argument("--senders", type=int, default=4, help="rate: sender threads (sources split between them)")
     ap.add_argument("--batch", type=int, default=50, help="rate: spectra per send call (2 ms; <= 1,024 packets)")

@@ -69,7 +69,8 @@ class BifrostCaptureBlock(bfp.SourceBlock):
     """
 
     def __init__(self, address, port, gulp_nframe, fmt, station, sync_time=None, nsrc=None, idle_timeout_s=1.0,
-                 sequences=1, max_payload_size=9000, use_verbs=False, core=None, space="system", *args, **kwargs):
+                 sequences=1, max_payload_size=9000, use_verbs=False, core=None, rcvbuf_bytes=None, space="system",
+                 *args, **kwargs):
         ok, why = bifrost_capture_available(fmt)
         if not ok:
             raise RuntimeError(f"BifrostCaptureBlock: {why}")
@@ -89,11 +90,29 @@ class BifrostCaptureBlock(bfp.SourceBlock):
         # the stream's idle timeout, and how long a shutdown may wait
         self.sock.timeout = float(idle_timeout_s)
         self.address, self.port = address, self._bound_port(int(port))
+        self.rcvbuf_granted = self._set_rcvbuf(rcvbuf_bytes)
         self.capture_stats = []
         self.udp_stats = {"engine": "bifrost"}
         self._hdr_buf = None
-        log.info("udp %s:%d [%s]: listening with Bifrost's packet capture (%s), %d sources", address, self.port,
-                 fmt, "verbs" if use_verbs else "sockets", self.nsrc)
+        log.info("udp %s:%d [%s]: listening with Bifrost's packet capture (%s), %d sources; receive buffer "
+                 "%.0f MiB%s", address, self.port, fmt, "verbs" if use_verbs else "sockets", self.nsrc,
+                 self.rcvbuf_granted / 2**20, "" if not rcvbuf_bytes or self.rcvbuf_granted >= rcvbuf_bytes else
+                 f" (asked {rcvbuf_bytes / 2**20:.0f} MiB: raise net.core.rmem_max for more)")
+
+    def _set_rcvbuf(self, nbytes):
+        """Ask the kernel for a receive buffer of ``nbytes`` (None: Bifrost's own, 256 MB asked); the
+        granted size (Linux caps it at net.core.rmem_max) is returned. A stream's first packet waits
+        for the sequence header (built in Python: ~0.1-0.2 s for 132 channels of LWA-SV, whose cable
+        terms it carries), and all that arrives meanwhile must fit here: what does not is dropped,
+        and Bifrost's capture, once behind, blanks whole sources and falls further behind."""
+        import socket
+        s = socket.socket(fileno=self.sock.fileno())
+        try:
+            if nbytes:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(nbytes))
+            return s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        finally:
+            s.detach()
 
     def _bound_port(self, port):
         if port:

@@ -290,6 +290,7 @@ def build_graph(cfg, progress=None):
                 source = BifrostCaptureBlock(src_cfg["address"], src_cfg["port"], gulp, src_cfg["format"], station,
                                              sync_time=src_cfg["sync_time"], idle_timeout_s=src_cfg["idle_timeout_s"],
                                              sequences=src_cfg["sequences"], core=src_cfg["core"],
+                                             rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20),
                                              space="cuda_host" if space == "cuda" else space)
                 if space == "cuda":
                     from bifrost.blocks import copy as bifrost_copy
