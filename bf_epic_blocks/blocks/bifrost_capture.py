@@ -100,7 +100,7 @@ class BifrostCaptureBlock(bfp.SourceBlock):
                  f" (asked {rcvbuf_bytes / 2**20:.0f} MiB: raise net.core.rmem_max for more)")
 
     def _set_rcvbuf(self, nbytes):
-        """Ask the kernel for a receive buffer of ``nbytes`` (None: Bifrost's own, 256 MB asked); the
+        """Ask the kernel for a receive buffer of ``nbytes`` if more than Bifrost's own (256 MB asked); the
         granted size (Linux caps it at net.core.rmem_max) is returned. A stream's first packet waits
         for the sequence header (built in Python: ~0.1-0.2 s for 132 channels of LWA-SV, whose cable
         terms it carries), and all that arrives meanwhile must fit here: what does not is dropped,
@@ -108,7 +108,7 @@ class BifrostCaptureBlock(bfp.SourceBlock):
         import socket
         s = socket.socket(fileno=self.sock.fileno())
         try:
-            if nbytes:
+            if nbytes and int(nbytes) > s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF):  # never shrink it
                 s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(nbytes))
             return s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
         finally:
