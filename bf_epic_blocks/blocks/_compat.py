@@ -321,6 +321,33 @@ class HostToDevice:
         return self.copy_staged(dst, *self._stage(src))
 
 
+# --- Overrun accounting for readers with guarantee=False that place data by sequence index ----------
+# Both runtimes hand such a reader ``on_skip`` for frames an overrun took, but real Bifrost's slices
+# always start at 0, and after frames are overwritten *during* ``on_data`` it calls ``on_skip`` for
+# frames the block already read and then skips a further gulp without any call. What holds on both
+# is the span's ``frame_offset``; these three turn it into counts.
+
+def frames_lost_before(ispan, next_index):
+    """Frames between ``next_index`` (the sequence index the block expects next) and this span's
+    first: taken by an overrun before it."""
+    return max(int(getattr(ispan, 'frame_offset', next_index)) - int(next_index), 0)
+
+
+def frames_overwritten(ispan, n):
+    """Of this span's ``n`` first frames, those the writer reached while the block read them (call
+    after copying the data out; real Bifrost reads ring memory in place, our runtime hands
+    unguaranteed readers copies: 0)."""
+    return min(int(getattr(ispan, 'nframe_overwritten', 0) or 0), int(n))
+
+
+def frames_lost_at_end(islices, next_index):
+    """For ``on_skip``: frames lost after the last span of a sequence (our runtime's slices end at
+    the index after them; real Bifrost's start at 0, so theirs give 0 here and its losses before
+    a later span are counted by :func:`frames_lost_before`)."""
+    end = islices[0].stop
+    return max(int(end) - int(next_index), 0) if end is not None else 0
+
+
 def assign_storage(dst, src):
     """``dst[...] = src`` for span arrays in a storage form, copying raw bytes when the two
     differ only in the structured field types (e.g. Bifrost's ci4 're_im' int8 vs uint8)."""
@@ -337,6 +364,7 @@ def assign_storage(dst, src):
 
 
 __all__ = ['HAVE_BIFROST', 'BIFROST_IMPORTABLE', 'RUNTIME', 'RUNTIME_ENV', 'bf', 'bfp',
+           'frames_lost_before', 'frames_overwritten', 'frames_lost_at_end',
            'span_array', 'space_of', 'stream_context', 'to_numpy', 'assign_storage',
            'is_pinned', 'pinned_empty', 'pin', 'HostToDevice',
            'unpack_complex', 'pack_ci4', 'pack_complex', 'storage_dtype', 'SUPPORTED_DTYPES']

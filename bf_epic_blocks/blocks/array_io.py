@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from ._compat import bfp, span_array, space_of, to_numpy, assign_storage, pack_complex, \
-    unpack_complex, storage_dtype, HostToDevice, pin, stream_context
+    unpack_complex, storage_dtype, HostToDevice, pin, stream_context, frames_overwritten
 
 _NP_TO_BF = {np.dtype(k): v for k, v in [
     (np.int8, 'i8'), (np.int16, 'i16'), (np.int32, 'i32'), (np.int64, 'i64'),
@@ -240,8 +240,7 @@ class ArraySinkBlock(bfp.SinkBlock):
         if self._nring:
             data = np.moveaxis(data, self._nring, 0)
         data = np.array(data, copy=True)
-        # real Bifrost: frames the writer reached while we copied are not the frames we meant
-        nover = min(int(getattr(ispan, 'nframe_overwritten', 0) or 0), data.shape[0])
+        nover = frames_overwritten(ispan, data.shape[0])   # after the copy just made
         data[:nover] = 0
         self._chunks[-1].append((int(ispan.frame_offset), data, nover))
         if self.delay_s > 0:

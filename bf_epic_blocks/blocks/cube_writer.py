@@ -12,7 +12,7 @@ import os
 
 import numpy as np
 
-from ._compat import bfp, span_array, to_numpy
+from ._compat import bfp, frames_lost_at_end, frames_lost_before, frames_overwritten, span_array, to_numpy
 from .headers import image_layout, station_location
 
 log = logging.getLogger(__name__)
@@ -84,12 +84,10 @@ class ImageCubeWriterBlock(bfp.SinkBlock):
         log.warning("ImageCubeWriterBlock: %d images lost (%s, guarantee=False)", lost, why)
 
     def on_data(self, ispan):
-        # Images are placed by their index in the sequence (the span's frame offset), not by the
-        # order of calls: real Bifrost reports an overrun's skipped images with a slice that does not
-        # say where they were, and after an overrun during on_data skips a further gulp unannounced.
-        off = int(getattr(ispan, "frame_offset", self._j))
-        if off > self._j:
-            self._lose(off - self._j, "reader overrun")
+        # images are placed by their index in the sequence, not by the order of calls (see _compat)
+        gap = frames_lost_before(ispan, self._j)
+        if gap:
+            self._lose(gap, "reader overrun")
         data = span_array(ispan)
         n = data.shape[0]
         lay = self.lay
@@ -98,9 +96,7 @@ class ImageCubeWriterBlock(bfp.SinkBlock):
             x = np.take(x, lay["pixel_index"], axis=-1)
         else:
             x = np.array(x, copy=True)
-        # real Bifrost reads ring memory in place: images the writer reached while we copied them are
-        # not the images we meant (our runtime's unguaranteed readers get copies: 0 here)
-        bad = min(int(getattr(ispan, "nframe_overwritten", 0) or 0), n)
+        bad = frames_overwritten(ispan, n)   # after the copy just made
         if bad:
             self._lose(bad, "overwritten while read")
             x, n = x[bad:], n - bad
@@ -118,12 +114,9 @@ class ImageCubeWriterBlock(bfp.SinkBlock):
         self.cube_stats["images"] += n
 
     def on_skip(self, islices, ospans):
-        # Losses before a span are counted when it arrives (on_data); this counts those at the end of
-        # a sequence, where the slice's end is the sequence index after them (our runtime; real
-        # Bifrost's slices start at 0, so theirs are not counted here).
-        end = islices[0].stop
-        if end is not None and int(end) > self._j:
-            self._lose(int(end) - self._j, "reader overrun")
+        lost = frames_lost_at_end(islices, self._j)   # those before a later span: counted in on_data
+        if lost:
+            self._lose(lost, "reader overrun")
 
     def on_sequence_end(self, iseq):
         self._close()

@@ -146,22 +146,18 @@ class TransientSearchBlock(bfp.SinkBlock):
         log.warning("TransientSearchBlock: %d images lost (%s); window reset at image %d", lost, why, self._j)
 
     def on_data(self, ispan):
-        # Images are placed by their index in the sequence (the span's frame offset), not by the
-        # order of calls: real Bifrost reports an overrun's skipped images with a slice that does not
-        # say where they were, and after an overrun during on_data skips a further gulp unannounced.
-        off = int(getattr(ispan, "frame_offset", self._j))
-        if off > self._j:
-            self._lose(off - self._j, "reader overrun")
+        # images are placed by their index in the sequence, not by the order of calls (see _compat)
+        gap = _compat.frames_lost_before(ispan, self._j)
+        if gap:
+            self._lose(gap, "reader overrun")
         data = span_array(ispan)
         n = data.shape[0]
         with _compat.stream_context():
             x = self.xp.take(data[:, :, self._prod].reshape(n, self.lay["nchan"], -1), self._index, axis=-1)
             if not getattr(self, "guarantee", True):
-                # real Bifrost reads ring memory in place: images the writer reached while we copied
-                # them are not the images we meant (our runtime hands unguaranteed readers copies)
-                if self.xp is not np:
+                if self.xp is not np:   # the copy must be done before asking what was overwritten
                     self.xp.cuda.get_current_stream().synchronize()
-                bad = min(int(getattr(ispan, "nframe_overwritten", 0) or 0), n)
+                bad = _compat.frames_overwritten(ispan, n)
                 if bad:
                     self._lose(bad, "overwritten while read")
                     x, n = x[bad:], n - bad
@@ -181,12 +177,9 @@ class TransientSearchBlock(bfp.SinkBlock):
         self._finish(final=False)
 
     def on_skip(self, islices, ospans):
-        # Losses before a span are counted when it arrives (on_data); this counts those at the end of
-        # a sequence, where the slice's end is the sequence index after them (our runtime; real
-        # Bifrost's slices start at 0, so theirs are not counted here).
-        end = islices[0].stop
-        if end is not None and int(end) > self._j:
-            self._lose(int(end) - self._j, "reader overrun")
+        lost = _compat.frames_lost_at_end(islices, self._j)   # those before a later span: in on_data
+        if lost:
+            self._lose(lost, "reader overrun")
 
     def on_sequence_end(self, iseq):
         self._finish(final=True)
