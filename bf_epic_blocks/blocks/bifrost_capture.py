@@ -18,6 +18,7 @@ block (0 = until the pipeline stops).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 
@@ -106,21 +107,24 @@ class BifrostCaptureBlock(bfp.SourceBlock):
         terms it carries), and all that arrives meanwhile must fit here: what does not is dropped,
         and Bifrost's capture, once behind, blanks whole sources and falls further behind."""
         import socket
-        s = socket.socket(fileno=self.sock.fileno())
-        try:
+        with self._py_socket() as s:
             if nbytes and int(nbytes) > s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF):  # never shrink it
                 s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, int(nbytes))
             return s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
-        finally:
-            s.detach()
 
     def _bound_port(self, port):
         if port:
             return port
-        import socket
-        s = socket.socket(fileno=self.sock.fileno())  # the same descriptor: read its name, then let go
-        try:
+        with self._py_socket() as s:
             return s.getsockname()[1]
+
+    @contextlib.contextmanager
+    def _py_socket(self):
+        """A Python socket on Bifrost's socket's descriptor, let go (not closed) afterwards."""
+        import socket
+        s = socket.socket(fileno=self.sock.fileno())
+        try:
+            yield s
         finally:
             s.detach()
 
@@ -213,7 +217,6 @@ class BifrostCaptureBlock(bfp.SourceBlock):
         """The capture's own counters (its ProcLog 'stats' entry, as of its last receive: the buffers
         committed when it ends are not in them) and the kernel's drops on the socket."""
         import os
-        import socket
         from ..io.udp import socket_drops
         out = {}
         try:
@@ -227,11 +230,8 @@ class BifrostCaptureBlock(bfp.SourceBlock):
                            "missing_bytes": int(st["nmissing_bytes"])}
         except Exception as e:  # noqa: BLE001 - counters are a report, never a failure
             log.debug("capture stats not readable: %s", e)
-        s = socket.socket(fileno=self.sock.fileno())
-        try:
+        with self._py_socket() as s:
             drops = socket_drops(s)
-        finally:
-            s.detach()
         if drops is not None:
             out["kernel_drops"] = drops
         return out

@@ -241,6 +241,18 @@ ADP_CHAN_BW_HZ = 25e3           # ADP F-engine channels (LSL: lsl.common.adp.fC)
 NDP_CHAN_BW_HZ = FS_HZ / 8192   # NDP F-engine channels (LSL: lsl.common.ndp.fC)
 
 
+def _spectra(ntime, time_tag0, time_step, sync_time, chan_bw_hz, name):
+    """For a writer of ``name`` packets: (time tags, 0-based spectrum counts since the sync time,
+    sync time) of ``ntime`` samples from ``time_tag0``; the sync time defaults to the whole second
+    at or before it. ValueError when the samples are not whole spectra after it."""
+    sync = int(time_tag0 // FS_HZ) if sync_time is None else int(sync_time)
+    tt = int(time_tag0) + np.arange(ntime, dtype=np.int64) * int(time_step)
+    seq, rem = np.divmod(tt - sync * FS_HZ, int(round(FS_HZ / chan_bw_hz)))
+    if rem.any() or (seq < 0).any():
+        raise ValueError(f"time tags are not whole spectra after sync time {sync}: not a {name} stream")
+    return tt, seq, sync
+
+
 def _sync_from_clock(seq, ticks):
     """The F-engine's sync time (whole UNIX second at which ``seq`` was 0), from the arrival time of
     a packet with spectrum count ``seq``: F-engines start on a whole second, so rounding the arrival
@@ -309,11 +321,7 @@ class ChipsPackets(PacketFormat):
         if nstand % 16 or not 0 < nchan < 256 or not 0 <= chan0 < 65536:
             raise ValueError(f"chips packets need a multiple of 16 stands and 1-255 channels; got {nstand} stands, "
                              f"{nchan} channels from {chan0}")
-        sync = int(time_tag0 // FS_HZ) if sync_time is None else int(sync_time)
-        tt = int(time_tag0) + np.arange(ntime, dtype=np.int64) * int(time_step)
-        seq, rem = np.divmod(tt - sync * FS_HZ, int(round(FS_HZ / ADP_CHAN_BW_HZ)))
-        if rem.any() or (seq < 0).any():
-            raise ValueError(f"time tags are not whole spectra after sync time {sync}: not a chips stream")
+        tt, seq, sync = _spectra(ntime, time_tag0, time_step, sync_time, ADP_CHAN_BW_HZ, "chips")
         nroach = nstand // 16
         hdr = np.zeros((ntime, nroach), np.dtype([("roach", "u1"), ("gbe", "u1"), ("nchan", "u1"), ("nsub", "u1"),
                                                   ("sub", "u1"), ("nroach", "u1"), ("chan0", ">u2"), ("seq", ">u8")]))
@@ -389,11 +397,7 @@ class Snap2Packets(PacketFormat):
             nchan = max(c for c in range(1, nchan_tot + 1) if nchan_tot % c == 0 and c * npol <= 8192)
         if nchan_tot % nchan:
             raise ValueError(f"snap2 packets: {nchan} channels per packet do not divide {nchan_tot}")
-        sync = int(time_tag0 // FS_HZ) if sync_time is None else int(sync_time)
-        tt = int(time_tag0) + np.arange(ntime, dtype=np.int64) * int(time_step)
-        seq, rem = np.divmod(tt - sync * FS_HZ, int(round(FS_HZ / NDP_CHAN_BW_HZ)))
-        if rem.any() or (seq < 0).any():
-            raise ValueError(f"time tags are not whole spectra after sync time {sync}: not a snap2 stream")
+        tt, seq, sync = _spectra(ntime, time_tag0, time_step, sync_time, NDP_CHAN_BW_HZ, "snap2")
         ncb, nib = nchan_tot // nchan, npol_tot // npol
         hdr = np.zeros((ntime, ncb, nib), np.dtype([("seq", ">u8"), ("sync", ">u4"), ("npol", ">u2"),
                                                     ("npol_tot", ">u2"), ("nchan", ">u2"), ("nchan_tot", ">u2"),
