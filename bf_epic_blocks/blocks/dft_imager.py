@@ -22,7 +22,7 @@ from ..imaging.pixels import GridPlacement, LMGrid, check_lm
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
 from ..runtime.dtypes import int8_pairs_decoder
-from .headers import derived_header, efield_layout
+from .headers import derived_header, efield_header, efield_layout
 from .nonfinite import get_tally, is_float_dtype, new_tally, zero_and_count
 
 log = logging.getLogger(__name__)
@@ -247,7 +247,6 @@ class DFTImagerBlock(bfp.TransformBlock):
         freq = 60e6 + 25e3 * np.arange(nchan)
         station = {"xyz_m": rng.normal(0.0, 30.0, (nant, 3)), "flags": np.zeros((nant, 2), bool),
                    "cable_delay_s": np.zeros((nant, 2, nchan)), "cable_gain": np.ones((nant, 2, nchan))}
-        from .headers import efield_header
         hdr = efield_header("warm-up", 0, freq, 1.0 / 25e3, station, dtype=dtype, npol=2)
         saved = (dict(self.img_stats), self.plan, self.method, self.precision)
         hdr["_tensor"]["dtype"] = dtype
