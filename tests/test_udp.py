@@ -836,3 +836,19 @@ def test_engine_choice_is_checked_and_logged(caplog):
     g.source.capture.close() if hasattr(g.source, "capture") else g.source.sock.close()
     want = "Bifrost's C packet capture (chips)" if bifrost_capture_available("chips")[0] else "the Python receiver"
     assert any(want in r.getMessage() for r in caplog.records)
+
+
+def test_station_packet_writers_refuse_what_their_streams_cannot_carry(tmp_path):
+    """chips needs whole boards (16 stands) and <= 255 channels; both need whole spectra after the
+    sync time; a recording whose channels are not one run cannot become one stream. Each is a
+    ValueError naming the problem, and `bf-epic replay` turns it into a one-line failure."""
+    data = np.zeros((4, 24, 40, 2), np.uint8)
+    with pytest.raises(ValueError, match="multiple of 16 stands"):
+        packet_format("chips").packets(data, 1_700_000_000 * FS_HZ, 0, 7840)
+    with pytest.raises(ValueError, match="not whole spectra after sync time 1700000000: not a chips stream"):
+        packet_format("chips").packets(np.zeros((4, 24, 64, 2), np.uint8), 1_700_000_000 * FS_HZ + 5, 0, 7840)
+    with pytest.raises(ValueError, match="not a snap2 stream"):
+        packet_format("snap2").packets(np.zeros((4, 24, 64, 2), np.uint8), 1_700_000_000 * FS_HZ + 100, 0, 8192)
+    rec = tmp_path / "odd.tbf"   # an NDP recording's grid is 8,192 ticks: not chips' 7,840
+    gen_capture(rec, 8, nstand=64, nchan=24, first=2176, seed=1)
+    assert cli.main(["replay", str(rec), "--to", "127.0.0.1:9", "--format", "chips"]) == 2
