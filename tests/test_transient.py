@@ -296,6 +296,93 @@ def test_a_bright_burst_s_sidelobes_fold_into_it_and_a_second_burst_stays(tmp_pa
     assert q in list(t["pixel"])
 
 
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.34, 0.41), (-0.5, 0.2)])
+def test_locate_point_source_finds_a_source_between_pixels(offset):
+    """An S/N image drawn from beam_power (float64, every channel) at a known position between pixels,
+    plus unit noise and pixels of differing noise: the fitted position is within 0.05 cells of it, and
+    the fitted S/N at every pixel is the drawn one within the noise."""
+    from bf_epic_blocks.imaging.transient import ArrayBeam, beam_power, locate_point_source
+    rng = np.random.default_rng(7)
+    xyz = np.column_stack([rng.uniform(-50, 50, (96, 2)), rng.normal(0, 0.5, 96)])
+    grid = imaging.lm_grid(32)
+    lm = grid.lm
+    freq = 74e6 + 25e3 * np.arange(8)
+    p = int(np.argmin(np.hypot(lm[:, 0] + 0.2, lm[:, 1] - 0.1)))
+    true = lm[p] + np.array(offset) * grid.cell
+    sigma = rng.uniform(0.5, 2.0, len(lm))
+    beam = ArrayBeam([xyz, xyz[:90]], [1.0, 1.0], freq, lm)
+    # two pols, one with 6 antennas flagged: the beam is their mean
+    want = 0.5 * (beam_power(xyz, freq, true, lm) + beam_power(xyz[:90], freq, true, lm))
+    every = ArrayBeam([xyz, xyz[:90]], [1.0, 1.0], freq, lm, max_channels=8)
+    np.testing.assert_allclose(every.at(true[None])[0], want, atol=2e-6)
+    np.testing.assert_allclose(beam.at(true[None])[0], want, atol=1e-4)     # 4 channels stand for 8
+    y = 500.0 * want / sigma + rng.normal(size=len(lm))
+    fit, model, explained = locate_point_source(y, sigma, beam, lm[p], grid.cell)
+    assert np.hypot(*(fit - true)) < 0.05 * grid.cell, (fit, true)
+    assert np.max(np.abs(model - 500.0 * want / sigma)) < 1.0 and explained > 0.9
+
+
+def test_a_burst_between_pixels_is_one_row_though_its_pixel_sees_a_tenth_of_it(tmp_path):
+    """A grid coarser than the beam (LWA-SV's 256 stands, a 32x32 all-sky grid: the beam is half a
+    cell wide) sees a burst between pixels in its nearest pixel at a small fraction of its peak, and
+    its sidelobes elsewhere at many times that fraction, so the beam from the pixel's centre explains
+    none of them. The images are drawn from the array's beam at the true position; the search fits
+    that position and folds the sidelobes: one row at the burst's pixel (the old code: one per
+    sidelobe, 10 or more)."""
+    from bf_epic_blocks.imaging.transient import beam_power
+    from bf_epic_blocks.station.tables import load_station
+    st = load_station("lwasv")
+    xyz = np.asarray(st.xyz_m)[st.good.all(axis=1)]
+    rng = np.random.default_rng(2)
+    grid = imaging.lm_grid(32)
+    lm = grid.lm
+    freq = 74e6 + 25e3 * np.arange(4)
+    hdr = image_header(grid, freq, 16 * DT)
+    hdr["station"].update(xyz_m=xyz.tolist(), flags=np.zeros((len(xyz), 2), bool).tolist())
+    nimg, N = 500, grid.size
+    x = rng.normal(5.0, 1.0, (nimg, 4, 1, N * N)).astype(np.float32)
+    valid = np.flatnonzero(grid.mask.ravel())
+    p = int(np.argmin(np.hypot(lm[:, 0] - 0.25, lm[:, 1] + 0.25)))
+    true = lm[p] + np.array([0.34, 0.41]) * grid.cell           # off the pixel as the demo's burst is
+    beam = beam_power(xyz, freq, true, lm)
+    assert beam[p] < 0.2 and np.sum(60.0 * beam / beam[p] > 8.0) > 10   # the pixel sees a fraction; sidelobes cross
+    x[420, :, 0, valid] += (30.0 / beam[p] * beam)[:, None]     # S/N ~60 at p (noise 0.5 in the channel mean)
+    with bfp.Pipeline() as pl:
+        src = ArraySourceBlock(x.reshape(nimg, 4, 1, N, N), hdr, gulp_nframe=50)
+        srch = TransientSearchBlock(src, threshold=6.0, window_s=150 * 16 * DT, widths=[1], outdir=str(tmp_path),
+                                    png=False)
+        pl.run()
+    t = read_candidates(tmp_path / "transients_candidates.ecsv")
+    assert len(t) == 1, t["pixel", "snr", "nsidelobes"]
+    assert t["pixel"][0] == p and t["nsidelobes"][0] >= 10 and t["snr"][0] == pytest.approx(60, rel=0.05)
+    # the light curve is the search's own S/N, against the window the burst was found with
+    assert t["lightcurve"][0][32] == pytest.approx(t["snr"][0], rel=1e-3)
+
+
+def test_a_bright_burst_in_the_demo_is_at_most_three_rows(tmp_path):
+    """The issue's case, as a user runs it: pipelines/lwasv_sim_transient.yaml (LWA-SV, Cyg A, Cas A,
+    4-bit voltages, a 32x32 grid) with a 2 kJy, 4-ms burst at DM 0.5, which lands between pixels:
+    at most 3 rows within 50 ms of it (the old code: 11), the brightest within 1.5 cells of where it
+    was put, the rest of its crossings folded into it."""
+    from pathlib import Path
+    from astropy.coordinates import SkyCoord
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import run
+    yaml = Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_transient.yaml"
+    cfg = load_config(yaml, [f"output.dir={tmp_path}", "source.duration_s=0.36", "output.cube=null",
+                             "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.3, duration_s: 0.004, "
+                             "flux_jy: 2000.0, dm: 0.5}]"])
+    run(cfg, show_progress=False)
+    t = read_candidates(tmp_path / "lwasv_sim_transient_candidates.ecsv")
+    near = t[np.abs(t["image"] * 16 * DT - 0.3) < 0.05]
+    print(near["pixel", "grid_x", "grid_y", "snr", "dm", "width", "nsidelobes"])
+    assert 1 <= len(near) <= 3
+    best = near[int(np.argmax(near["snr"]))]
+    assert best["snr"] > 40 and best["nsidelobes"] >= 5
+    sep = SkyCoord(best["ra_deg"], best["dec_deg"], unit="deg").separation(SkyCoord(310.0, 20.0, unit="deg")).deg
+    assert sep < 1.5 * np.degrees(2 / 32)                       # within 1.5 cells of 3.6 degrees
+
+
 # ------------------------------------------------------------------------------ resets
 def _fake(data):
     return SimpleNamespace(data=data, space="system")

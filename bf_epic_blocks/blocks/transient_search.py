@@ -18,7 +18,7 @@ import os
 
 import numpy as np
 
-from ..imaging.transient import Crossings, TransientSearch, cluster_crossings
+from ..imaging.transient import Crossings, TransientSearch, cluster_crossings, dm_delays
 from . import _compat
 from ._compat import bfp, span_array
 from .headers import image_layout, station_location
@@ -99,10 +99,15 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.lay, self.hdr = lay, hdr
         window = max(3, int(round(self.window_s / lay["dt_s"])))
         self.xp = self._xp()
+        self._tlink = max(self.widths) if self.time_link is None else int(self.time_link)
+        shift = int(dm_delays(self.dms, lay["freq_hz"], lay["dt_s"]).max()) if self.average_channels else 0
+        # an event is finished (and looked back at: its window, its boxcar on every pixel) at most this
+        # many values after it, gulps being pushed a batch at a time (on_data)
+        hold = self._tlink + 2 * max(self.widths) + shift + self.lc_after
         self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), window, dms=self.dms,
                                       widths=self.widths, threshold=self.threshold,
                                       average_channels=self.average_channels, xp=self.xp,
-                                      max_pixels=self.max_pixels, sky_fraction=self.sky_fraction)
+                                      max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, hold=hold)
         st = hdr.get("station") or {}
         self._beam_ants = []            # (antenna positions, weight) per polarisation, for the sidelobe test
         if st.get("xyz_m") is not None:
@@ -112,21 +117,21 @@ class TransientSearchBlock(bfp.SinkBlock):
                 ants = xyz[~fl[:, pol]]
                 self._beam_ants.append((ants, float(len(ants)) ** 2))
         self._autocorr_removed = bool((hdr.get("imager") or {}).get("remove_autocorr", False))
-        self._recent = []               # point rows that may have sidelobes still to come: (image, pixel, snr, row)
+        self._beam = None               # ArrayBeam on the searched pixels, made when first needed
+        self._fits = {}                 # row -> fitted S/N model of that point event at every pixel
+        self._recent = []               # point rows that may have sidelobes still to come
         self._index = self.xp.asarray(lay["pixel_index"])
         if lay["grid"] is not None:
             N = lay["grid"].size
             self._xy = np.column_stack([lay["pixel_index"] % N, lay["pixel_index"] // N]).astype(np.float64)
             self._space = 2.0 if self.space_link is None else float(self.space_link)
+            self._cell = float(lay["grid"].cell)
         else:
             from scipy.spatial import cKDTree
             self._xy = lay["lm"]
-            if self.space_link is None:
-                d, _ = cKDTree(self._xy).query(self._xy, k=2) if len(self._xy) > 1 else (np.ones((1, 2)), None)
-                self._space = 2.0 * float(np.median(d[:, 1]))
-            else:
-                self._space = float(self.space_link)
-        self._tlink = max(self.widths) if self.time_link is None else int(self.time_link)
+            d, _ = cKDTree(self._xy).query(self._xy, k=2) if len(self._xy) > 1 else (np.ones((1, 2)), None)
+            self._cell = float(np.median(d[:, 1]))
+            self._space = 2.0 * self._cell if self.space_link is None else float(self.space_link)
         self.loc = self.location if self.location is not None else station_location(hdr)
         self._pending = Crossings()
         self._j = 0                                   # sequence index of the next image
@@ -163,13 +168,20 @@ class TransientSearchBlock(bfp.SinkBlock):
                     x, n = x[bad:], n - bad
                     if n == 0:
                         return
-            n_before = self.search.nvalues
-            cr = self.search.push(x)
-            nsearched = max(0, self.search.nvalues - max(n_before, self.search.window + self.search.wmax - 1))
-            if nsearched:
-                for i in range(len(self.widths)):
-                    self.search_stats["trials_per_width"][i] += nsearched * self.search.nser * self.search.npix
-            self.search_stats["images_searched"] += nsearched
+            # a batch at a time, each finished before the next: an event is looked back at (its window,
+            # its boxcar on every pixel) while the search still holds it, whatever the gulp size
+            for a in range(0, n, self.search.max_batch):
+                self._push(x[a:a + self.search.max_batch])
+
+    def _push(self, x):
+        n = x.shape[0]
+        n_before = self.search.nvalues
+        cr = self.search.push(x)
+        nsearched = max(0, self.search.nvalues - max(n_before, self.search.window + self.search.wmax - 1))
+        if nsearched:
+            for i in range(len(self.widths)):
+                self.search_stats["trials_per_width"][i] += nsearched * self.search.nser * self.search.npix
+        self.search_stats["images_searched"] += nsearched
         self._j += n
         self.search_stats["images"] += n
         self.search_stats["crossings"] += len(cr)
@@ -219,18 +231,19 @@ class TransientSearchBlock(bfp.SinkBlock):
             if not cr.skywide[k] and self._sidelobe_of(cr, k, int(np.sum(members))):
                 continue
             self._add_candidate(cr, k, int(np.sum(members)), float(cr.frac[members].max()))
-            if not cr.skywide[k]:
-                self._recent.append((int(cr.image[k]), int(cr.pixel[k]), float(cr.snr[k]), len(self.rows) - 1,
-                                     float(self._sigma[cr.series[k], cr.pixel[k]])))
         keep = self._j - 4 * (self._tlink + self.search.wmax + self.search.shift + self.lc_after)
-        self._recent = [r for r in self._recent if r[0] >= keep]
+        self._recent = [r for r in self._recent if r["image"] >= keep]
+        self._fits = {r["row"]: self._fits[r["row"]] for r in self._recent if r["row"] in self._fits}
         self._pending = cr.take(~done[labels])
 
     def _sidelobe_of(self, cr, k, nmembers):
         """Fold point candidate k into a brighter point row at (nearly) the same time whose sidelobe it
-        can be: its S/N no more than ``sidelobe_factor`` times what the brighter one's flux puts at its
-        pixel through the beam, in its pixel's noise (window sigma). True if folded (that row's
-        ``nsidelobes`` and ``nmembers`` grow)."""
+        can be: its S/N no more than ``sidelobe_factor`` times what the brighter one puts at its pixel.
+
+        What the brighter one puts there is its fitted point source (:meth:`_fitted`) seen through the
+        array's beam, in this pixel's noise; where that row's images were no longer held, the beam
+        from that row's pixel centre and the ratio of the two pixels' window sigmas stand for it.
+        True if folded (that row's ``nsidelobes`` and ``nmembers`` grow)."""
         if not self.sidelobe_factor or not self._beam_ants:
             return False
         from ..imaging.transient import beam_power
@@ -239,21 +252,75 @@ class TransientSearchBlock(bfp.SinkBlock):
         lm = self.lay["lm"]
         sigma_q = float(self._sigma[cr.series[k], q])
         wsum = sum(w for _, w in self._beam_ants)
-        for e_p, p, snr_p, row, sigma_p in sorted(self._recent, key=lambda r: -r[2]):
-            if snr_p <= snr or abs(e_p - e) > span or p == q or not sigma_q > 0:
+        for r in sorted(self._recent, key=lambda r: -r["snr"]):
+            p, snr_p = r["pixel"], r["snr"]
+            if snr_p <= snr or abs(r["image"] - e) > span or p == q:
                 continue
-            beam = sum(w * beam_power(a, self.lay["freq_hz"], lm[p], lm[q:q + 1],
-                                      remove_autocorr=self._autocorr_removed)[0] for a, w in self._beam_ants) / wsum
-            # what the brighter one puts here, in this pixel's own noise: flux ratio = beam, S/N scales
-            # as 1 / sigma (pixels near bright sources are noisier)
-            if snr <= self.sidelobe_factor * snr_p * beam * sigma_p / sigma_q:
-                self.rows[row]["nsidelobes"] += 1
-                self.rows[row]["nmembers"] += nmembers
+            model = self._fitted(r)
+            if model is not None:
+                expect = float(model[q])
+            elif sigma_q > 0:
+                beam = sum(w * beam_power(a, self.lay["freq_hz"], lm[p], lm[q:q + 1],
+                                          remove_autocorr=self._autocorr_removed)[0]
+                           for a, w in self._beam_ants) / wsum
+                # flux ratio = beam, S/N scales as 1 / sigma (pixels near bright sources are noisier)
+                expect = snr_p * beam * r["sigma"] / sigma_q
+            else:
+                continue
+            if snr <= self.sidelobe_factor * expect:
+                self.rows[r["row"]]["nsidelobes"] += 1
+                self.rows[r["row"]]["nmembers"] += nmembers
                 self.search_stats["sidelobes_folded"] += 1
                 log.debug("candidate at image %d, pixel %d, S/N %.1f folded into the S/N %.1f one at pixel %d "
-                          "(beam %.3f)", e, q, snr, snr_p, p, beam)
+                          "(which puts S/N %.1f here)", e, q, snr, snr_p, p, expect)
                 return True
         return False
+
+    def _array_beam(self):
+        """The :class:`~bf_epic_blocks.imaging.transient.ArrayBeam` of the searched product on the
+        searched pixels (the header's station, flags and antenna pattern), or None where the product
+        is not a power the beam describes (Q, U, V, cross-hands)."""
+        if self._beam is None:
+            from ..imaging import patterns
+            from ..imaging.transient import ArrayBeam
+            prod = self.lay["products"][self._prod]
+            npol = len(self._beam_ants)
+            w = {"I": [1.0] * npol, "XX": [1.0] + [0.0] * (npol - 1), "YY": [0.0, 1.0][:npol]}.get(prod)
+            if w is None or not any(w):
+                self._beam = False
+                return None
+            pp, name = None, (self.hdr.get("imager") or {}).get("pattern")
+            if name:
+                try:
+                    b = patterns.pattern_array(name, np.asarray(self.lay["lm"]), self.lay["freq_hz"], npol)
+                    b = np.abs(_compat.to_numpy(b)) ** 2                  # (nchan|1, npix, nant|1, npol|1)
+                    b = np.broadcast_to(b.mean(axis=(0, 2)), (len(self.lay["lm"]), npol))
+                    pp = (b * np.asarray(w)[None]).sum(axis=1) / sum(w)
+                except (ValueError, TypeError) as exc:
+                    log.warning("TransientSearchBlock: antenna pattern %r not known here (%s); the sidelobe "
+                                "test takes it as 1", name, exc)
+            self._beam = ArrayBeam([a for a, _ in self._beam_ants], w, self.lay["freq_hz"], self.lay["lm"],
+                                   pattern_power=pp, remove_autocorr=self._autocorr_removed)
+        return self._beam or None
+
+    def _fitted(self, r):
+        """The S/N (npix,) that recent point row ``r``'s event puts at every pixel: the point source
+        that best explains its S/N image through the array's beam (:func:`locate_point_source`, within a
+        cell of its pixel: on a grid coarser than the beam a source between pixels shows in its nearest
+        one at a fraction of its peak, and its sidelobes elsewhere at many times that fraction). None
+        if its images were no longer held."""
+        if r["row"] not in self._fits:
+            model = None
+            beam = self._array_beam() if r["snr_image"] is not None else None
+            if beam is not None:
+                from ..imaging.transient import locate_point_source
+                lm_fit, model, explained = locate_point_source(r["snr_image"], r["sigma_image"], beam,
+                                                               self.lay["lm"][r["pixel"]], self._cell)
+                log.debug("row %d: point source fitted at l %.4f m %.4f (pixel %d at %s), explains %.0f%% of its "
+                          "S/N image", r["row"], lm_fit[0], lm_fit[1], r["pixel"], self.lay["lm"][r["pixel"]],
+                          100 * explained)
+            self._fits[r["row"]] = model
+        return self._fits[r["row"]]
 
     def _add_candidate(self, cr, k, nmembers, sky_fraction):
         from ..io.tbf import time_tag_to_time
@@ -270,8 +337,12 @@ class TransientSearchBlock(bfp.SinkBlock):
         # value index (since the reset) of the event's first image, dedispersed at this trial
         n_e = int(cr.end_image[k]) - w + 1 - s.first_image - s.shift
         vals = s.series_values(ser, p, n_e - self.lc_before, n_e + self.lc_after)
-        mean, sigma = (a[ser, p] for a in s.statistics())
-        mean, sigma = float(_compat.to_numpy(mean)), float(_compat.to_numpy(sigma))
+        # against the window the event was found with (a later one holds the event and overstates sigma)
+        ws = s.window_statistics(ser, n_e)
+        if ws is not None:
+            mean, sigma = float(ws[0][p]), float(ws[1][p])
+        else:
+            mean, sigma = (float(_compat.to_numpy(a[ser, p])) for a in s.statistics())
         lc = (vals - mean) / sigma if sigma > 0 else vals * np.nan
         grid = lay["grid"]
         gx, gy = (int(lay["pixel_index"][p] % grid.size), int(lay["pixel_index"][p] // grid.size)) if grid else (-1, -1)
@@ -282,6 +353,18 @@ class TransientSearchBlock(bfp.SinkBlock):
                           "nmembers": nmembers, "nsidelobes": 0, "kind": "sky-wide" if cr.skywide[k] else "point",
                           "sky_fraction": sky_fraction, "lightcurve": lc})
         self.search_stats["candidates"] += 1
+        if not cr.skywide[k]:
+            # kept for the sidelobe test of fainter candidates at the same time: the event's boxcar S/N
+            # on every pixel, against the window it was found with (None once no longer held)
+            n_end = n_e + w - 1
+            ws, box = s.window_statistics(ser, n_end), s.box_image(ser, n_end, w)
+            img = None
+            if ws is not None and box is not None:
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    img = (box - ws[0]) * np.sqrt(w) / ws[1]
+            self._recent.append({"image": e, "pixel": p, "snr": float(cr.snr[k]), "row": len(self.rows) - 1,
+                                 "sigma": float(self._sigma[ser, p]) if self._sigma is not None else float("nan"),
+                                 "snr_image": img, "sigma_image": None if ws is None else ws[1]})
         if cr.skywide[k]:
             self.search_stats["sky_wide"] += 1
             log.warning("sky-wide event: %s UTC, peak S/N %.1f at l %.3f m %.3f, %.0f%% of the sky over the "

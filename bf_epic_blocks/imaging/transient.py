@@ -39,7 +39,7 @@ import numpy as np
 from ._xp import to_numpy
 
 __all__ = ["DISPERSION_CONSTANT_S", "dispersion_delay_s", "dm_delays", "TransientSearch", "Crossings",
-           "cluster_crossings", "expected_false_rate", "beam_power"]
+           "cluster_crossings", "expected_false_rate", "beam_power", "ArrayBeam", "locate_point_source"]
 
 #: Dispersion constant, seconds * GHz^2 per (pc cm^-3).
 DISPERSION_CONSTANT_S = 4.149e-3
@@ -115,6 +115,9 @@ class TransientSearch:
     xp : numpy or cupy; max_batch : images processed per internal step (bounds memory).
     max_pixels : at most this many crossings (the brightest) are kept per trial image (series, value,
         width), so a bright event costs what a faint one does (default 32).
+    hold : values kept beyond what the search itself needs (window + widest boxcar + a batch), so
+        that :meth:`window_statistics` and :meth:`box_image` can still look back at an event that
+        far behind the newest value (default 0).
     sky_fraction : a trial image with more than this fraction of its pixels over the threshold is one
         sky-wide crossing at its peak pixel (lightning, RFI, a flash), not a crossing per pixel (0.1).
 
@@ -124,7 +127,7 @@ class TransientSearch:
     """
 
     def __init__(self, freq_hz, dt_s, npix, window, dms=(0.0,), widths=(1, 2, 4, 8), threshold=6.0,
-                 average_channels=True, xp=np, max_batch=256, max_pixels=32, sky_fraction=0.1):
+                 average_channels=True, xp=np, max_batch=256, max_pixels=32, sky_fraction=0.1, hold=0):
         self.freq_hz = np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))
         if self.freq_hz.ndim != 1 or not np.all(self.freq_hz > 0):
             raise ValueError(f"freq_hz: expected a 1-D array of positive frequencies, got {freq_hz!r}")
@@ -157,7 +160,9 @@ class TransientSearch:
         self.nser = len(dms) if self.average else self.nchan
         # channel c of trial d is read `back[d, c]` images before the newest one
         self._back = (self.delay_max[:, None] - self.delays) if self.average else None
-        self.capacity = self.window + self.wmax + self.max_batch
+        if int(hold) != hold or hold < 0:
+            raise ValueError(f"hold: expected an integer number of values >= 0, got {hold!r}")
+        self.capacity = self.window + self.wmax + self.max_batch + int(hold)
         self.reset(0)
 
     # ------------------------------------------------------------------ state
@@ -341,6 +346,30 @@ class TransientSearch:
         sigma = xp.sqrt(xp.maximum(self._s2 - self._s1 * mean, 0.0) / (n - 1))
         return mean + self._ref, sigma
 
+    def _held(self, first, last):
+        """True if values [first, last] (since the reset) are all still in the history."""
+        return first >= 0 and last < self.nvalues and first > self.nvalues - 1 - self.capacity
+
+    def window_statistics(self, series, n):
+        """Mean and sigma per pixel, host float64 (npix,) each, of series ``series`` over the W values
+        value ``n`` was compared with (``n - wmax - W + 1 .. n - wmax``): an event's own noise level,
+        which a later window that holds the event itself would overstate. None if not all held."""
+        a, b = n - self.wmax - self.window + 1, n - self.wmax
+        if self._ref is None or not self._held(a, b):
+            return None
+        v = to_numpy(self._ring_read(a, b - a + 1)[series]).astype(np.float64)      # (W, npix), offset
+        ref = to_numpy(self._ref[series]).astype(np.float64)
+        return v.mean(axis=0) + ref, v.std(axis=0, ddof=1)
+
+    def box_image(self, series, n_end, width):
+        """Mean of series ``series`` over values ``n_end - width + 1 .. n_end`` per pixel (the boxcar
+        the search formed), host float64 (npix,); None if not all held."""
+        a = n_end - int(width) + 1
+        if self._ref is None or not self._held(a, n_end):
+            return None
+        v = to_numpy(self._ring_read(a, int(width))[series].astype(self.xp.float64).mean(axis=0))
+        return v + to_numpy(self._ref[series]).astype(np.float64)
+
     def series_values(self, series, pixel, first, last):
         """Dedispersed values of one series and pixel for value indices [first, last] (since the
         reset), host float64; NaN where not (or no longer) held."""
@@ -408,3 +437,101 @@ def cluster_crossings(image, xy, series, snr, *, time_link, space_link, series_l
     order = np.lexsort((-snr, labels))                 # by label, highest S/N first
     first = np.r_[True, labels[order][1:] != labels[order][:-1]]
     return labels, order[first]
+
+
+class ArrayBeam:
+    """The array's power pattern from any sky direction to a fixed set of pixels, as the imager makes
+    it: what a unit point source at ``lm_from`` puts into each pixel's Stokes I image.
+
+    ``sum_p w_p |B_p(q)|^2 |sum_a exp(2 pi i nu/c r_a . (s_q - s_from))|^2 / N_p^2`` (channel mean),
+    for the antennas ``ants[p]`` (N_p, 3) of each polarisation p (East/North/Up metres, full 3-D:
+    no w approximation), weights ``w_p`` summing to 1, and the imager's antenna-independent voltage
+    pattern ``B_p`` at each pixel (``pattern_power`` (npix,) = sum_p w_p |B_p|^2, or None for 1).
+    With ``remove_autocorr`` the N_p self terms are left out, ``(|sum|^2 - N_p) / (N_p^2 - N_p)``.
+
+    The pixels' phase factors are made once (``max_channels`` channels evenly through the band stand
+    for all of them; a narrow band's beam hardly changes across it), so many source positions cost
+    one matrix product: :meth:`at`.
+    """
+
+    def __init__(self, ants, weights, freq_hz, lm_pixels, *, pattern_power=None, remove_autocorr=False,
+                 max_channels=4):
+        from ..conventions import SPEED_OF_LIGHT_M_S
+        f = np.atleast_1d(np.asarray(freq_hz, np.float64))
+        f = f[np.unique(np.rint(np.linspace(0, f.size - 1, min(int(max_channels), f.size))).astype(int))]
+        self.k = 2.0 * np.pi * f / SPEED_OF_LIGHT_M_S                              # (C,) rad / m
+        w = np.asarray(weights, np.float64)
+        self.weights = w / w.sum()
+        self.ants = [np.asarray(a, np.float64).reshape(-1, 3) for a in ants]
+        self.remove_autocorr = bool(remove_autocorr)
+        self.lm = np.asarray(lm_pixels, np.float64).reshape(-1, 2)
+        sq = _s_of(self.lm)                                                        # (npix, 3)
+        # exp(-i k r_a . s_q), (C, npix, N_p) per polarisation, complex64 (a beam to ~1e-6 is plenty)
+        self._e = [np.exp(-1j * self.k[:, None, None] * (sq @ a.T)[None]).astype(np.complex64) for a in self.ants]
+        self.pattern_power = None if pattern_power is None else np.asarray(pattern_power, np.float64)
+
+    def at(self, lm_from):
+        """(npos, npix) float64: the beam from each of the directions ``lm_from`` (npos, 2)."""
+        s = _s_of(lm_from)                                                         # (npos, 3)
+        out = np.zeros((len(s), len(self.lm)))
+        for a, e, w in zip(self.ants, self._e, self.weights):
+            n = len(a)
+            if n == 0:
+                continue
+            v = np.exp(1j * self.k[:, None, None] * (a @ s.T)[None]).astype(np.complex64)   # (C, N_p, npos)
+            p = np.abs(np.matmul(e, v)) ** 2                                       # (C, npix, npos)
+            p = ((p - n) / max(n * n - n, 1)) if self.remove_autocorr else p / (n * n)
+            out += w * p.mean(axis=0).T
+        if self.pattern_power is not None:
+            out *= self.pattern_power[None, :]
+        return out
+
+
+def _s_of(lm):
+    """(n, 3) unit vectors (l, m, n) of directions (n, 2); n = 0 beyond the horizon."""
+    lm = np.atleast_2d(np.asarray(lm, np.float64))
+    return np.column_stack([lm, np.sqrt(np.clip(1.0 - (lm * lm).sum(axis=1), 0.0, None))])
+
+
+def locate_point_source(snr_image, sigma, beam, lm0, radius, *, steps=13, levels=3):
+    """Where on the sky a point source must be to make ``snr_image`` through ``beam``.
+
+    snr_image : (npix,) an event's S/N at each pixel (its boxcar against its window);
+    sigma : (npix,) those pixels' noise (the window's sigma, flux units); beam : :class:`ArrayBeam`
+    on the same pixels; lm0 : (2,) where to look (the event's peak pixel); radius : half-width of the
+    square searched about ``lm0`` (l, m units; a grid's cell: on a grid coarser than the beam a
+    source between pixels shows in its nearest one at a small fraction of its peak).
+
+    The model is ``snr(q) = A beam(t -> q) / sigma(q)``; for each trial position t the amplitude A is
+    the least-squares one and the fit's score is the S/N variance it explains,
+    ``(sum y m)^2 / sum m^2`` with ``m = beam / sigma``. A ``steps`` x ``steps`` grid of positions,
+    refined ``levels - 1`` times about the best one. Returns ``(lm (2,), model (npix,) the fitted
+    S/N at every pixel, explained fraction of sum y^2)``; pixels whose sigma is not > 0 or whose S/N
+    is not finite take no part (their model is 0).
+    """
+    y = np.asarray(snr_image, np.float64)
+    inv = np.zeros_like(y)
+    sg = np.asarray(sigma, np.float64)
+    ok = np.isfinite(y) & np.isfinite(sg) & (sg > 0)
+    inv[ok] = 1.0 / sg[ok]
+    y = np.where(ok, y, 0.0)
+    centre, r = np.asarray(lm0, np.float64).reshape(2), float(radius)
+    best = None
+    for _ in range(max(1, int(levels))):
+        g = np.linspace(-r, r, int(steps))
+        t = centre + np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+        t = t[(t * t).sum(axis=1) < 1.0]                     # above the horizon
+        if not len(t):
+            break
+        m = beam.at(t) * inv[None, :]                        # (npos, npix)
+        ym, mm = m @ y, (m * m).sum(axis=1)
+        score = np.where(mm > 0, ym * ym / np.where(mm > 0, mm, 1.0), -np.inf)
+        score[ym <= 0] = -np.inf                             # a source adds power
+        i = int(np.argmax(score))
+        if best is None or score[i] >= best[0]:
+            best = (score[i], t[i], ym[i] / mm[i] * m[i] if mm[i] > 0 else np.zeros_like(y))
+        centre, r = best[1], 2.0 * r / (int(steps) - 1)
+    yy = float(np.sum(y * y))
+    if best is None or not np.isfinite(best[0]):
+        return np.asarray(lm0, np.float64).reshape(2), np.zeros_like(y), 0.0
+    return best[1], best[2], float(best[0] / yy) if yy > 0 else 0.0
