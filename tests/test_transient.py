@@ -322,13 +322,16 @@ def test_locate_point_source_finds_a_source_between_pixels(offset):
     assert np.max(np.abs(model - 500.0 * want / sigma)) < 1.0 and explained > 0.9
 
 
-def test_a_burst_between_pixels_is_one_row_though_its_pixel_sees_a_tenth_of_it(tmp_path):
+@pytest.mark.parametrize("tail", [False, True])
+def test_a_burst_between_pixels_is_one_row_though_its_pixel_sees_a_tenth_of_it(tmp_path, tail):
     """A grid coarser than the beam (LWA-SV's 256 stands, a 32x32 all-sky grid: the beam is half a
     cell wide) sees a burst between pixels in its nearest pixel at a small fraction of its peak, and
     its sidelobes elsewhere at many times that fraction, so the beam from the pixel's centre explains
     none of them. The images are drawn from the array's beam at the true position; the search fits
     that position and folds the sidelobes: one row at the burst's pixel (the old code: one per
-    sidelobe, 10 or more)."""
+    sidelobe, 10 or more). With ``tail`` the burst's cluster goes on 20 images after its peak (the
+    next pixel, linked by a longer time link) and gulps are short, so its sidelobes' clusters are complete gulps before its own: they
+    wait for it (they were rows of their own)."""
     from bf_epic_blocks.imaging.transient import beam_power
     from bf_epic_blocks.station.tables import load_station
     st = load_station("lwasv")
@@ -347,10 +350,13 @@ def test_a_burst_between_pixels_is_one_row_though_its_pixel_sees_a_tenth_of_it(t
     beam = beam_power(xyz, freq, true, lm)
     assert beam[p] < 0.2 and np.sum(60.0 * beam / beam[p] > 8.0) > 10   # the pixel sees a fraction; sidelobes cross
     x[420, :, 0, valid] += (30.0 / beam[p] * beam)[:, None]     # S/N ~60 at p (noise 0.5 in the channel mean)
+    if tail:                                                    # the next pixel East, S/N ~20, 20 images later
+        e = int(np.argmin(np.hypot(lm[:, 0] - lm[p, 0] - grid.cell, lm[:, 1] - lm[p, 1])))
+        x[440, :, 0, valid[e]] += 10.0
     with bfp.Pipeline() as pl:
-        src = ArraySourceBlock(x.reshape(nimg, 4, 1, N, N), hdr, gulp_nframe=50)
+        src = ArraySourceBlock(x.reshape(nimg, 4, 1, N, N), hdr, gulp_nframe=10 if tail else 50)
         srch = TransientSearchBlock(src, threshold=6.0, window_s=150 * 16 * DT, widths=[1], outdir=str(tmp_path),
-                                    png=False)
+                                    png=False, time_link=24 if tail else None)
         pl.run()
     t = read_candidates(tmp_path / "transients_candidates.ecsv")
     assert len(t) == 1, t["pixel", "snr", "nsidelobes"]

@@ -224,6 +224,19 @@ class TransientSearchBlock(bfp.SinkBlock):
             # a later crossing starts no earlier than this image (widest boxcar, largest delay)
             horizon = self._j - self.search.wmax - self.search.shift - self.lc_after
             done = newest + self._tlink < horizon
+            if not done.all() and done.any():
+                # a cluster waits for any brighter one near it in time that is still open: it may be
+                # that one's sidelobe, and a sidelobe can only fold into a row that exists
+                first = np.full(labels.max() + 1, np.inf)
+                np.minimum.at(first, labels, cr.image.astype(float))
+                peak = np.full(labels.max() + 1, -np.inf)
+                np.maximum.at(peak, labels, cr.snr)
+                span = self._tlink + self.search.wmax
+                open_ = np.flatnonzero(~done)
+                for lab in np.flatnonzero(done):
+                    near = (first[open_] <= newest[lab] + span) & (newest[open_] >= first[lab] - span)
+                    if np.any(near & (peak[open_] > peak[lab])):
+                        done[lab] = False
         finals = sorted((k for lab, k in zip(labels[peaks], peaks) if done[lab]), key=lambda k: -cr.snr[k])
         self._sigma = _compat.to_numpy(self.search.statistics()[1]) if finals else None   # (nser, npix)
         for k in finals:                                 # brightest first: sidelobes fold into it
