@@ -11,9 +11,12 @@ samples:
   counter, with the counter for source s, pol p, channel c at absolute sample T
   ``((T nchan + c) nsrc + s) 2 + p`` and for the noise of antenna a ``((T nchan + c) nant + a) 2 + p``,
   each stream with its own key from the seed. So a sample does not depend on the gulp size, a gulp
-  can be made anywhere, and the NumPy and CUDA versions below agree sample for sample (Box-Muller
-  in float64, rounded to float32: their float64 ``log``/``cos``/``sin`` may differ by an ulp, which
-  reaches a float32 sample about once in 10^8 values and a 4-bit sample almost never).
+  can be made anywhere, and the NumPy and CUDA versions below agree bit for bit: Box-Muller in
+  float32 made of IEEE operations only (+, -, *, sqrt and integer bit work: Cephes' polynomials
+  for log and sin/cos, relative error ~1e-7), which both sides round the same way. (Library
+  ``log``/``sin``/``cos`` differ between NumPy and CUDA by an ulp now and then; in float32 that
+  moved a 4-bit sample about once in 10^6, and in float64, which agreed, they cost the GPU half its
+  speed.)
 * The sky signal is X = sum_s e_s,p(T, c) W[c, s, a, p] + noise, with
   W = sqrt(S_s(nu_c) / 4) exp(sigma 2 pi i nu_c (s_hat . r_a) / c0) sqrt(G) exp(-2 pi i nu_c tau)
   (:func:`sky_weights`); a burst is a source whose e is zero outside its dispersed window of samples.
@@ -23,7 +26,9 @@ samples:
   block's choice), not per sample: 1 s of Earth rotation moves a source by 0.004 deg.
 
 On a GPU one CUDA kernel writes the packed bytes (or complex64) straight into the output array:
-nothing but the weights crosses the bus.
+nothing but the weights crosses the bus. A CUDA block makes a tile of 32 samples of one channel, so
+an antenna's weights are read once per tile, not once per sample (that re-reading, not the random
+numbers, had held the kernel to ~13x real time at 784 channels).
 """
 from __future__ import annotations
 
@@ -63,15 +68,69 @@ def _mix64(z):
     return z ^ (z >> np.uint64(31))
 
 
+# Box-Muller in float32 from IEEE operations only (+, -, *, sqrt, integer bit work): no library
+# log/sin/cos, whose results differ between NumPy and CUDA, so the two give the same bits. The
+# polynomials are Cephes' logf and sinf/cosf (relative error ~1e-7 on their ranges).
+_LOG_P = (7.0376836292e-2, -1.1514610310e-1, 1.1676998740e-1, -1.2420140846e-1, 1.4249322787e-1,
+          -1.6668057665e-1, 2.0000714765e-1, -2.4999993993e-1, 3.3333331174e-1)
+_F = np.float32
+
+
+def _log_u1(k1):
+    """log(k1 / 2^24) for integer k1 in [1, 2^24], float32, as the kernel computes it."""
+    u = k1.astype(_F) * _F(1.0 / 16777216.0)                            # exact
+    bits = u.view(np.int32)
+    e = ((bits >> 23) & 0xFF) - 127
+    m = ((bits & 0x7FFFFF) | 0x3F800000).view(_F)                       # u = m 2^e, m in [1, 2)
+    big = m > _F(1.4142135)
+    m = np.where(big, m * _F(0.5), m)                                   # [sqrt(1/2), sqrt(2)]: exact
+    ef = (e + big).astype(_F)
+    x = m - _F(1.0)
+    z = x * x
+    p = np.full_like(x, _F(_LOG_P[0]))
+    for c in _LOG_P[1:]:
+        p = p * x + _F(c)
+    y = x * z * p + ef * _F(-2.12194440e-4) - _F(0.5) * z
+    return (x + y) + ef * _F(0.693359375)
+
+
+def _sincos_2pi(k2):
+    """(cos, sin) of 2 pi k2 / 2^24 for integer k2 in [0, 2^24), float32: octant from the top 3 bits,
+    the angle within it from the other 21 (reflected in odd octants), Cephes' polynomials on [0, pi/4]."""
+    o = k2 >> 21
+    j = (k2 & 0x1FFFFF).astype(np.int64)
+    odd = (o & 1) == 1
+    t = np.where(odd, (1 << 21) - j, j).astype(_F) * _F(np.pi / 4 / (1 << 21))
+    z = t * t
+    sn = ((_F(-1.9515295891e-4) * z + _F(8.3321608736e-3)) * z - _F(1.6666654611e-1)) * z * t + t
+    cs = ((_F(2.443315711809948e-5) * z - _F(1.388731625493765e-3)) * z + _F(4.166664568298827e-2)) * z * z \
+        - _F(0.5) * z + _F(1.0)
+    swap = ((o + 1) & 2) != 0                                           # octants 1, 2, 5, 6
+    c, s = np.where(swap, sn, cs), np.where(swap, cs, sn)
+    c = np.where(((o + 2) & 4) != 0, -c, c)                             # octants 2-5: cos < 0
+    s = np.where(o >= 4, -s, s)                                         # octants 4-7: sin < 0
+    return c, s
+
+
 def complex_normals(counter, key):
-    """(re, im) float32 arrays: a standard normal pair for each uint64 counter (Box-Muller of its
-    hash, in float64, rounded to float32 at the end as the CUDA kernel does)."""
-    h = _mix64(np.asarray(counter, np.uint64) ^ np.uint64(key))
-    u1 = ((h >> np.uint64(40)).astype(np.float64) + 0.5) * (1.0 / 16777216.0)
-    u2 = ((h >> np.uint64(16)) & np.uint64(0xFFFFFF)).astype(np.float64) * (1.0 / 16777216.0)
-    r = np.sqrt(-2.0 * np.log(u1))
-    th = 6.283185307179586 * u2
-    return (r * np.cos(th)).astype(np.float32), (r * np.sin(th)).astype(np.float32)
+    """(re, im) float32 arrays: a standard normal pair for each uint64 counter: Box-Muller of its
+    hash, u1 = (top 24 bits + 1) / 2^24 in (0, 1], u2 = the next 24 bits / 2^24, in the float32
+    IEEE operations the CUDA kernel does, one for one (so the two agree bit for bit)."""
+    ctr = np.asarray(counter, np.uint64)
+    flat = ctr.reshape(-1)
+    re, im = np.empty(flat.shape, _F), np.empty(flat.shape, _F)
+    # in pieces that stay in the core's cache: the ~50 array operations a piece takes then cost what
+    # they compute, not a trip to memory each (3x faster than whole 16-sample gulps at 16 channels)
+    step = 8192
+    for a in range(0, flat.size, step):
+        h = _mix64(flat[a:a + step] ^ np.uint64(key))
+        k1 = ((h >> np.uint64(40)) + np.uint64(1)).astype(np.int64)
+        k2 = ((h >> np.uint64(16)) & np.uint64(0xFFFFFF)).astype(np.int64)
+        r = np.sqrt(_F(-2.0) * _log_u1(k1))
+        c, s = _sincos_2pi(k2)
+        np.multiply(r, c, out=re[a:a + step])
+        np.multiply(r, s, out=im[a:a + step])
+    return re.reshape(ctr.shape), im.reshape(ctr.shape)
 
 
 def sky_weights(xyz_m, freq_hz, l, m, n, flux, cable=None, sigma=+1):
@@ -119,64 +178,98 @@ __device__ __forceinline__ u64 mix64(u64 z) {
     z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
     return z ^ (z >> 31);
 }
-// Box-Muller in float64, rounded to float32 at the end: libdevice's and NumPy's float64 log/sin/cos
-// differ by an ulp at most, which survives the rounding to float32 about once in 10^8 values, so
-// the GPU and the host twin give the same samples (float32 transcendentals moved a 4-bit sample
-// by one step about once in 10^6, enough to show in 16-sample images)
+// Box-Muller in float32 from IEEE operations only, one for one as complex_normals does in NumPy
+// (compiled with --fmad=false: no fused multiply-add, which NumPy does not do either), so the GPU
+// and the host twin give the same bits; Cephes' logf and sinf/cosf polynomials. Constants go decimal ->
+// double -> float, as NumPy's np.float32(literal) does (decimal -> float directly may round otherwise)
+#define F(x) ((float)(x))
 __device__ __forceinline__ float2 cnormal(u64 ctr, u64 key) {
-    u64 h = mix64(ctr ^ key);
-    double u1 = ((double)(h >> 40) + 0.5) * (1.0 / 16777216.0);
-    double u2 = (double)((h >> 16) & 0xFFFFFFULL) * (1.0 / 16777216.0);
-    double r = sqrt(-2.0 * log(u1));
-    double th = 6.283185307179586 * u2;
-    return make_float2((float)(r * cos(th)), (float)(r * sin(th)));
+    const u64 h = mix64(ctr ^ key);
+    // log(u1), u1 = (top 24 bits + 1) / 2^24 = m 2^e
+    const float u = (float)(unsigned int)((h >> 40) + 1ULL) * (F(1.0) / F(16777216.0));   // 32-bit: exact
+    const int bits = __float_as_int(u);
+    int e = ((bits >> 23) & 0xFF) - 127;
+    float m = __int_as_float((bits & 0x7FFFFF) | 0x3F800000);
+    if (m > F(1.4142135)) { m = m * F(0.5); e = e + 1; }
+    const float ef = (float)e;
+    const float x = m - F(1.0), z = x * x;
+    float p = F(7.0376836292e-2);
+    p = p * x + -F(1.1514610310e-1); p = p * x + F(1.1676998740e-1); p = p * x + -F(1.2420140846e-1);
+    p = p * x + F(1.4249322787e-1); p = p * x + -F(1.6668057665e-1); p = p * x + F(2.0000714765e-1);
+    p = p * x + -F(2.4999993993e-1); p = p * x + F(3.3333331174e-1);
+    const float y = x * z * p + ef * -F(2.12194440e-4) - F(0.5) * z;
+    const float lg = (x + y) + ef * F(0.693359375);
+    const float r = sqrtf(-F(2.0) * lg);
+    // cos, sin of 2 pi u2, u2 = the next 24 bits / 2^24: octant, then the angle within it
+    const int k2 = (int)((h >> 16) & 0xFFFFFFULL);
+    const int o = k2 >> 21, j = k2 & 0x1FFFFF;
+    const float t = (float)((o & 1) ? (1 << 21) - j : j) * (float)(0.78539816339744830962 / 2097152.0);
+    const float zz = t * t;
+    const float sn = ((-F(1.9515295891e-4) * zz + F(8.3321608736e-3)) * zz - F(1.6666654611e-1)) * zz * t + t;
+    const float cs = ((F(2.443315711809948e-5) * zz - F(1.388731625493765e-3)) * zz + F(4.166664568298827e-2)) * zz * zz
+                     - F(0.5) * zz + F(1.0);
+    const bool swap = ((o + 1) & 2) != 0;
+    float c = swap ? sn : cs, s = swap ? cs : sn;
+    if ((o + 2) & 4) c = -c;
+    if (o >= 4) s = -s;
+    return make_float2(r * c, r * s);
 }
-// one block per (sample, channel): the sources' signals once in shared memory, then one thread per
-// antenna writes both pols (two ci4 bytes, or two complex64)
+// one block per (channel, tile of TILE samples): the sources' signals for the tile once in shared
+// memory, then one thread per antenna writes both pols of every sample (two ci4 bytes, or two
+// complex64); an antenna's weights are read once per tile (from L1 after the first sample), not
+// once per sample
+#define TILE 32
 extern "C" __global__ void sim_gulp(unsigned char* out, int ci4, const float2* W, const long long* on0,
-                                    const long long* on1, long long t0, int nchan, int nsrc, int nant,
+                                    const long long* on1, long long t0, int n, int nchan, int nsrc, int nant,
                                     u64 key_sky, u64 key_noise, float noise_amp, float scale) {
-    extern __shared__ float2 e[];
-    const long long tc = blockIdx.x;
-    const int c = (int)(tc % nchan);
-    const long long T = t0 + tc / nchan;
-    const u64 base = (u64)(T * nchan + c);
-    for (int i = threadIdx.x; i < 2 * nsrc; i += blockDim.x) {
-        const int s = i >> 1;
+    extern __shared__ float2 e[];                       // (TILE, 2 nsrc)
+    const int c = blockIdx.x % nchan;
+    const long long i0 = (long long)(blockIdx.x / nchan) * TILE;
+    const int nt = (int)min((long long)TILE, (long long)n - i0);
+    for (int i = threadIdx.x; i < nt * 2 * nsrc; i += blockDim.x) {
+        const int k = i / (2 * nsrc), sp = i % (2 * nsrc), s = sp >> 1;
+        const long long T = t0 + i0 + k;
+        const u64 base = (u64)(T * nchan + c);
         const bool on = T >= on0[s * nchan + c] && T < on1[s * nchan + c];
-        float2 z = cnormal((base * nsrc + s) * 2 + (i & 1), key_sky);
+        const float2 z = cnormal((base * nsrc + s) * 2 + (sp & 1), key_sky);
         e[i] = on ? z : make_float2(0.0f, 0.0f);
     }
     __syncthreads();
     for (int a = threadIdx.x; a < nant; a += blockDim.x) {
-        float2 v[2];
-        for (int p = 0; p < 2; ++p) {
-            float vr = 0.0f, vi = 0.0f;
-            for (int s = 0; s < nsrc; ++s) {
-                const float2 w = W[(((long long)c * nsrc + s) * nant + a) * 2 + p];
-                const float2 z = e[2 * s + p];
-                vr = vr + (z.x * w.x - z.y * w.y);
-                vi = vi + (z.x * w.y + z.y * w.x);
-            }
-            const float2 nz = cnormal((base * nant + a) * 2 + p, key_noise);
-            v[p] = make_float2(vr + noise_amp * nz.x, vi + noise_amp * nz.y);
-        }
-        const long long k = tc * nant + a;
-        if (ci4) {
-            unsigned short packed = 0;
+        const float2* Wa = W + ((long long)c * nsrc * nant + a) * 2;       // W[c, s, a, p] = Wa[2 nant s + p]
+        for (int k = 0; k < nt; ++k) {
+            const long long T = t0 + i0 + k;
+            const u64 nb = ((u64)(T * nchan + c) * nant + a) * 2;           // the noise counters: nb + p
+            float2 v[2];
             for (int p = 0; p < 2; ++p) {
-                int qr = max(-8, min(7, __float2int_rn(v[p].x * scale)));
-                int qi = max(-8, min(7, __float2int_rn(v[p].y * scale)));
-                packed |= (unsigned short)(((qr & 0xF) << 4) | (qi & 0xF)) << (8 * p);
+                float vr = 0.0f, vi = 0.0f;
+                for (int s = 0; s < nsrc; ++s) {
+                    const float2 w = Wa[2 * nant * s + p];
+                    const float2 z = e[k * 2 * nsrc + 2 * s + p];
+                    vr = vr + (z.x * w.x - z.y * w.y);
+                    vi = vi + (z.x * w.y + z.y * w.x);
+                }
+                const float2 nz = cnormal(nb + p, key_noise);
+                v[p] = make_float2(vr + noise_amp * nz.x, vi + noise_amp * nz.y);
             }
-            reinterpret_cast<unsigned short*>(out)[k] = packed;
-        } else {
-            reinterpret_cast<float4*>(out)[k] = make_float4(v[0].x, v[0].y, v[1].x, v[1].y);
+            const long long o = ((i0 + k) * nchan + c) * nant + a;
+            if (ci4) {
+                unsigned short packed = 0;
+                for (int p = 0; p < 2; ++p) {
+                    int qr = max(-8, min(7, __float2int_rn(v[p].x * scale)));
+                    int qi = max(-8, min(7, __float2int_rn(v[p].y * scale)));
+                    packed |= (unsigned short)(((qr & 0xF) << 4) | (qi & 0xF)) << (8 * p);
+                }
+                reinterpret_cast<unsigned short*>(out)[o] = packed;
+            } else {
+                reinterpret_cast<float4*>(out)[o] = make_float4(v[0].x, v[0].y, v[1].x, v[1].y);
+            }
         }
     }
 }
 """
 _GPU = {}
+_TILE = 32          # samples per CUDA block (TILE in the kernel)
 
 
 def _gpu_kernel():
@@ -212,10 +305,10 @@ def make_gulp(out, t0, w, on0, on1, keys, noise_power, scale=None):
         k = _gpu_kernel()
         threads = 256 if nant > 128 else 64
         args = (out, np.int32(ci4), cupy.asarray(w, cupy.complex64), cupy.asarray(on0, cupy.int64),
-                cupy.asarray(on1, cupy.int64), np.int64(t0), np.int32(nchan), np.int32(nsrc), np.int32(nant),
-                np.uint64(keys[0]), np.uint64(keys[1]), noise_amp, np.float32(scale or 1.0))
+                cupy.asarray(on1, cupy.int64), np.int64(t0), np.int32(n), np.int32(nchan), np.int32(nsrc),
+                np.int32(nant), np.uint64(keys[0]), np.uint64(keys[1]), noise_amp, np.float32(scale or 1.0))
         if n * nchan:
-            k((n * nchan,), (threads,), args, shared_mem=max(8, 16 * nsrc))
+            k((-(-n // _TILE) * nchan,), (threads,), args, shared_mem=max(8, _TILE * 16 * nsrc))
         return out
     _numpy_gulp(out, int(t0), np.asarray(w, np.complex64), np.asarray(on0), np.asarray(on1), keys, noise_amp,
                 np.float32(scale or 1.0), ci4)
