@@ -42,11 +42,15 @@ class TransientSearchBlock(bfp.SinkBlock):
         the median nearest-neighbour distance). time_link : in images (default the widest boxcar).
     lc_before, lc_after : light-curve images before and after the event start.
     location : astropy EarthLocation (default: the header's station).
-    sidelobe_factor : a point candidate no brighter than ``sidelobe_factor * beam * S`` of a brighter
-        one (S/N S) at the same time, ``beam`` the array's power pattern from that one's pixel to its
-        own (:func:`~bf_epic_blocks.imaging.transient.beam_power`, from the header's station), is
-        that one's sidelobe: folded into it (its row's ``nsidelobes`` counts them), not a row of its
-        own. 2 allows for pixels' noise levels differing; 0 keeps every row.
+    sidelobe_factor : a point candidate whose S/N is at most ``sidelobe_factor`` times what a brighter
+        one at the same time puts at its pixel is that one's sidelobe: folded into it (its row's
+        ``nsidelobes`` counts them), not a row of its own. What the brighter one puts there is the
+        point source that best explains its S/N on every pixel through the array's beam
+        (:class:`~bf_epic_blocks.imaging.transient.ArrayBeam` from the header's station, flags and
+        antenna pattern; :func:`~bf_epic_blocks.imaging.transient.locate_point_source`, within a
+        cell of its pixel: a grid coarser than the beam sees a source between pixels at a fraction
+        of its peak). 2 allows for the fit and for a sidelobe's own best DM and width; 0 keeps
+        every row.
     max_pixels, sky_fraction : see :class:`~bf_epic_blocks.imaging.transient.TransientSearch`.
 
     ``candidates`` is the astropy Table of all candidates so far; ``search_stats`` counts images

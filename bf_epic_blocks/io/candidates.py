@@ -13,8 +13,9 @@ snr            peak S/N (boxcar mean against the sliding window's mean and sigma
 dm             trial DM of the peak (pc cm^-3); ``channel``: -1 (channels averaged) or the channel
 width          boxcar width in images; ``width_ms``: the same in milliseconds
 nmembers       threshold crossings merged into the candidate (at most ``max_pixels`` per trial image)
-nsidelobes     fainter candidates at the same time folded into this one as its sidelobes (the
-               array's beam from its pixel explains them; their crossings are in ``nmembers``)
+nsidelobes     fainter candidates at the same time folded into this one as its sidelobes (the point
+               source fitted to its S/N image explains them through the array's beam; their
+               crossings are in ``nmembers``)
 kind           'point', or 'sky-wide': more than the search's ``sky_fraction`` of the image's pixels over
                the threshold at once (lightning, RFI, a flash); ``pixel`` etc. are then its peak's
 sky_fraction   the largest fraction of the image's pixels over the threshold among its crossings
