@@ -98,9 +98,8 @@ def _sincos_2pi(k2):
     """(cos, sin) of 2 pi k2 / 2^24 for integer k2 in [0, 2^24), float32: octant from the top 3 bits,
     the angle within it from the other 21 (reflected in odd octants), Cephes' polynomials on [0, pi/4]."""
     o = k2 >> 21
-    j = (k2 & 0x1FFFFF).astype(np.int64)
-    odd = (o & 1) == 1
-    t = np.where(odd, (1 << 21) - j, j).astype(_F) * _F(np.pi / 4 / (1 << 21))
+    j = k2 & 0x1FFFFF
+    t = np.where((o & 1) == 1, (1 << 21) - j, j).astype(_F) * _F(np.pi / 4 / (1 << 21))
     z = t * t
     sn = ((_F(-1.9515295891e-4) * z + _F(8.3321608736e-3)) * z - _F(1.6666654611e-1)) * z * t + t
     cs = ((_F(2.443315711809948e-5) * z - _F(1.388731625493765e-3)) * z + _F(4.166664568298827e-2)) * z * z \
@@ -124,8 +123,8 @@ def complex_normals(counter, key):
     step = 8192
     for a in range(0, flat.size, step):
         h = _mix64(flat[a:a + step] ^ np.uint64(key))
-        k1 = ((h >> np.uint64(40)) + np.uint64(1)).astype(np.int64)
-        k2 = ((h >> np.uint64(16)) & np.uint64(0xFFFFFF)).astype(np.int64)
+        k1 = ((h >> np.uint64(40)) + np.uint64(1)).astype(np.int32)         # <= 2^24: 32 bits do
+        k2 = ((h >> np.uint64(16)) & np.uint64(0xFFFFFF)).astype(np.int32)
         r = np.sqrt(_F(-2.0) * _log_u1(k1))
         c, s = _sincos_2pi(k2)
         np.multiply(r, c, out=re[a:a + step])
