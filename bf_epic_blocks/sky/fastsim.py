@@ -83,7 +83,7 @@ def _log_u1(k1):
     e = ((bits >> 23) & 0xFF) - 127
     m = ((bits & 0x7FFFFF) | 0x3F800000).view(_F)                       # u = m 2^e, m in [1, 2)
     big = m > _F(1.4142135)
-    m = np.where(big, m * _F(0.5), m)                                   # [sqrt(1/2), sqrt(2)]: exact
+    m = m * (_F(1.0) - _F(0.5) * big)                                   # x 1/2 or x 1, both exact: [sqrt(1/2), sqrt(2)]
     ef = (e + big).astype(_F)
     x = m - _F(1.0)
     z = x * x
@@ -95,20 +95,26 @@ def _log_u1(k1):
 
 
 def _sincos_2pi(k2):
-    """(cos, sin) of 2 pi k2 / 2^24 for integer k2 in [0, 2^24), float32: octant from the top 3 bits,
-    the angle within it from the other 21 (reflected in odd octants), Cephes' polynomials on [0, pi/4]."""
+    """(cos, sin) of 2 pi k2 / 2^24 for integer k2 (int32) in [0, 2^24), float32: octant from the top 3
+    bits, the angle within it from the other 21 (reflected in odd octants), Cephes' polynomials on
+    [0, pi/4]. The octant's swaps and signs are bit operations (np.where on a mask that changes
+    every element is slow in NumPy), with the kernel's results bit for bit."""
     o = k2 >> 21
     j = k2 & 0x1FFFFF
-    t = np.where((o & 1) == 1, (1 << 21) - j, j).astype(_F) * _F(np.pi / 4 / (1 << 21))
+    odd = o & 1
+    j = j + odd * ((1 << 21) - 2 * j)                                   # 2^21 - j in odd octants
+    t = j.astype(_F) * _F(np.pi / 4 / (1 << 21))
     z = t * t
     sn = ((_F(-1.9515295891e-4) * z + _F(8.3321608736e-3)) * z - _F(1.6666654611e-1)) * z * t + t
     cs = ((_F(2.443315711809948e-5) * z - _F(1.388731625493765e-3)) * z + _F(4.166664568298827e-2)) * z * z \
         - _F(0.5) * z + _F(1.0)
-    swap = ((o + 1) & 2) != 0                                           # octants 1, 2, 5, 6
-    c, s = np.where(swap, sn, cs), np.where(swap, cs, sn)
-    c = np.where(((o + 2) & 4) != 0, -c, c)                             # octants 2-5: cos < 0
-    s = np.where(o >= 4, -s, s)                                         # octants 4-7: sin < 0
-    return c, s
+    swap = -(((o + 1) >> 1) & 1)                                        # all ones in octants 1, 2, 5, 6
+    sb, cb = sn.view(np.int32), cs.view(np.int32)
+    c = (sb & swap) | (cb & ~swap)
+    s = (cb & swap) | (sb & ~swap)
+    c ^= (((o + 2) >> 2) & 1) << 31                                     # octants 2-5: cos < 0
+    s ^= ((o >> 2) & 1) << 31                                           # octants 4-7: sin < 0
+    return c.view(_F), s.view(_F)
 
 
 def complex_normals(counter, key):
