@@ -113,13 +113,13 @@ class TransientSearchBlock(bfp.SinkBlock):
                                       average_channels=self.average_channels, xp=self.xp,
                                       max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, hold=hold)
         st = hdr.get("station") or {}
-        self._beam_ants = []            # (antenna positions, weight) per polarisation, for the sidelobe test
+        self._beam_ants = []            # antenna positions per polarisation, for the sidelobe test
         if st.get("xyz_m") is not None:
             xyz = np.asarray(st["xyz_m"], np.float64).reshape(-1, 3)
             fl = np.asarray(st.get("flags", np.zeros((len(xyz), 2), bool)), bool).reshape(len(xyz), -1)
             for pol in range(fl.shape[1]):
                 ants = xyz[~fl[:, pol]]
-                self._beam_ants.append((ants, float(len(ants)) ** 2))
+                self._beam_ants.append(ants)
         self._autocorr_removed = bool((hdr.get("imager") or {}).get("remove_autocorr", False))
         self._beam = None               # ArrayBeam on the searched pixels, made when first needed
         self._fits = {}                 # row -> fitted S/N model of that point event at every pixel
@@ -261,14 +261,13 @@ class TransientSearchBlock(bfp.SinkBlock):
         array's beam, in this pixel's noise; where that row's images were no longer held, the beam
         from that row's pixel centre and the ratio of the two pixels' window sigmas stand for it.
         True if folded (that row's ``nsidelobes`` and ``nmembers`` grow)."""
-        if not self.sidelobe_factor or not self._beam_ants:
+        beam = self._array_beam() if self.sidelobe_factor and self._beam_ants else None
+        if beam is None:
             return False
-        from ..imaging.transient import beam_power
         e, q, snr = int(cr.image[k]), int(cr.pixel[k]), float(cr.snr[k])
         span = self._tlink + self.search.wmax
         lm = self.lay["lm"]
         sigma_q = float(self._sigma[cr.series[k], q])
-        wsum = sum(w for _, w in self._beam_ants)
         for r in sorted(self._recent, key=lambda r: -r["snr"]):
             p, snr_p = r["pixel"], r["snr"]
             if snr_p <= snr or abs(r["image"] - e) > span or p == q:
@@ -277,11 +276,11 @@ class TransientSearchBlock(bfp.SinkBlock):
             if model is not None:
                 expect = float(model[q])
             elif sigma_q > 0:
-                beam = sum(w * beam_power(a, self.lay["freq_hz"], lm[p], lm[q:q + 1],
-                                          remove_autocorr=self._autocorr_removed)[0]
-                           for a, w in self._beam_ants) / wsum
-                # flux ratio = beam, S/N scales as 1 / sigma (pixels near bright sources are noisier)
-                expect = snr_p * beam * r["sigma"] / sigma_q
+                # the beam from that row's pixel centre: flux ratio = beam there over beam at the
+                # centre (the antenna pattern differs), S/N scales as 1 / sigma (pixels near bright
+                # sources are noisier)
+                b = beam.at(lm[p:p + 1])[0]
+                expect = snr_p * b[q] / b[p] * r["sigma"] / sigma_q if b[p] > 0 else 0.0
             else:
                 continue
             if snr <= self.sidelobe_factor * expect:
@@ -316,7 +315,7 @@ class TransientSearchBlock(bfp.SinkBlock):
                 except (ValueError, TypeError) as exc:
                     log.warning("TransientSearchBlock: antenna pattern %r not known here (%s); the sidelobe "
                                 "test takes it as 1", name, exc)
-            self._beam = ArrayBeam([a for a, _ in self._beam_ants], w, self.lay["freq_hz"], self.lay["lm"],
+            self._beam = ArrayBeam(self._beam_ants, w, self.lay["freq_hz"], self.lay["lm"],
                                    pattern_power=pp, remove_autocorr=self._autocorr_removed)
         return self._beam or None
 
