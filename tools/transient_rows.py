@@ -21,8 +21,6 @@ checked (3 MJy flash: peak memory <= 2x and wall <= 2.5x the quiet run's; the bu
 from __future__ import annotations
 
 import argparse
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -32,7 +30,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tools"))
-from cases import bf_epic_command, write_json  # noqa: E402
+from bench_e2e import run_cli  # noqa: E402
+from cases import write_json  # noqa: E402
 
 _AT = "ra_deg: 310.0, dec_deg: 20.0, start_s: 0.33, duration_s: 0.004"
 ROWS = {
@@ -46,23 +45,17 @@ ROWS = {
 
 def run_row(name, transients, device, work):
     out = work / name
-    cmd = bf_epic_command() + ["run", str(REPO / "pipelines" / "lwasv_sim_transient.yaml"), "--no-progress", "-q",
-                               "--set", f"device={device}", "--set", f"output.dir={out}", "--set", "output.cube=null"]
+    sets = [f"device={device}", f"output.dir={out}", "output.cube=null"]
     if transients is not None:
-        cmd += ["--set", f"source.transients={transients}"]
-    t0 = time.perf_counter()
-    with open(work / f"{name}.log", "w") as log:
-        p = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
-        _, status, usage = os.wait4(p.pid, 0)       # this child's own peak memory
-    wall = time.perf_counter() - t0
-    if os.waitstatus_to_exitcode(status):
-        sys.stdout.write((work / f"{name}.log").read_text()[-3000:])
-        raise SystemExit(f"row {name}: bf-epic run failed")
+        sets.append(f"source.transients={transients}")
+    # the end-to-end benchmark's runner: wall time and this child's own peak memory (wait4)
+    row = run_cli(REPO / "pipelines" / "lwasv_sim_transient.yaml", 0.5, out, sets=sets)
+    wall, peak_mb = row["wall_s"], row["peak_rss_mb"]
     from bf_epic_blocks.io.candidates import read_candidates
     t = read_candidates(out / "lwasv_sim_transient_candidates.ecsv")
     dt_img = 16 / 25e3
     within = np.abs(np.asarray(t["image"]) * dt_img - 0.33) <= 0.05 if len(t) else np.zeros(0, bool)
-    return {"wall_s": round(wall, 2), "peak_rss_mb": round(usage.ru_maxrss / 1024), "rows": len(t),
+    return {"wall_s": round(wall, 2), "peak_rss_mb": round(peak_mb), "rows": len(t),
             "rows_within_50ms": int(within.sum()), "kinds": [str(k) for k in t["kind"]],
             "snr": [round(float(v), 1) for v in t["snr"]], "nsidelobes": [int(v) for v in t["nsidelobes"]],
             "image": [int(v) for v in t["image"]], "grid_xy": [[int(x), int(y)] for x, y in zip(t["grid_x"], t["grid_y"])],
