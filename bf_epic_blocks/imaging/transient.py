@@ -400,11 +400,7 @@ def beam_power(xyz_m, freq_hz, lm_from, lm_to, *, remove_autocorr=False):
     n_ant = len(xyz)
     if n_ant == 0:
         return np.zeros(len(np.atleast_2d(lm_to)))
-
-    def s_of(lm):
-        lm = np.atleast_2d(np.asarray(lm, np.float64))
-        return np.column_stack([lm, np.sqrt(np.clip(1.0 - (lm * lm).sum(axis=1), 0.0, None))])
-    ds = s_of(lm_to) - s_of(lm_from)                                   # (n, 3)
+    ds = _s_of(lm_to) - _s_of(lm_from)                                 # (n, 3)
     phase = (2.0 * np.pi / SPEED_OF_LIGHT_M_S) * f[:, None, None] * (ds @ xyz.T)[None]   # (nchan, n, N)
     p = np.abs(np.exp(1j * phase).sum(axis=2)) ** 2                    # (nchan, n)
     if remove_autocorr:
