@@ -373,7 +373,8 @@ class TransientSearchBlock(bfp.SinkBlock):
             # kept for the sidelobe test of fainter candidates at the same time: the event's boxcar S/N
             # on every pixel, against the window it was found with (None once no longer held)
             n_end = n_e + w - 1
-            ws, box = s.window_statistics(ser, n_end), s.box_image(ser, n_end, w)
+            ws = s.window_statistics(ser, n_end) if n_end != n_e else ws
+            box = s.box_image(ser, n_end, w)
             img = None
             if ws is not None and box is not None:
                 with np.errstate(divide="ignore", invalid="ignore"):

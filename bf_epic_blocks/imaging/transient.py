@@ -357,9 +357,10 @@ class TransientSearch:
         a, b = n - self.wmax - self.window + 1, n - self.wmax
         if self._ref is None or not self._held(a, b):
             return None
-        v = to_numpy(self._ring_read(a, b - a + 1)[series]).astype(np.float64)      # (W, npix), offset
+        v = self._ring_read(a, b - a + 1)[series].astype(self.xp.float64)        # (W, npix), offset
         ref = to_numpy(self._ref[series]).astype(np.float64)
-        return v.mean(axis=0) + ref, v.std(axis=0, ddof=1)
+        # reduced where the history lives: only (npix,) pairs cross to the host
+        return to_numpy(v.mean(axis=0)) + ref, to_numpy(v.std(axis=0, ddof=1))
 
     def box_image(self, series, n_end, width):
         """Mean of series ``series`` over values ``n_end - width + 1 .. n_end`` per pixel (the boxcar
