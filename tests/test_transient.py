@@ -587,3 +587,11 @@ def test_an_overrun_search_counts_every_image_searched_or_lost(tmp_path):
     st = blk.search_stats
     assert st["images_lost"] > 0 and st["resets"] >= 1
     assert st["images"] + st["images_lost"] == n, st
+
+
+@pytest.mark.parametrize("kw, name", [({"max_pixels": 0}, "max_pixels"), ({"sky_fraction": 1.5}, "sky_fraction"),
+                                      ({"hold": -1}, "hold"), ({"hold": 2.5}, "hold"), ({"window": 2}, "window")])
+def test_bad_search_settings_are_named(kw, name):
+    args = {"window": 10, **kw}
+    with pytest.raises(ValueError, match=name):
+        TransientSearch([74e6], 0.64e-3, 5, args.pop("window"), **args)
