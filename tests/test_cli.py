@@ -182,3 +182,78 @@ def test_plan_with_a_tolerance_names_the_pick(capsys):
     assert kept < 3205
     assert cli.main(["plan", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", "imager.tolerance=1e-30"]) != 0
     assert "no route x precision" in capsys.readouterr().err
+
+
+def _small_tbf(path, ntime=600, nchan=12):
+    """An LWA-SV (ADP, 256 stands) TBF file of random 4-bit samples."""
+    from bf_epic_blocks.imaging.calibration import FS_HZ
+    from bf_epic_blocks.io.tbf import write_tbf
+    data = np.random.default_rng(5).integers(0, 256, (ntime, nchan, 256, 2), dtype=np.uint8)
+    write_tbf(path, data, 1200, int(1.7e9) * FS_HZ, frame_id=1)
+    return path
+
+
+def _recording_yaml(tmp_path, tbf, extra=""):
+    y = tmp_path / "rec.yaml"
+    y.write_text(f"name: rec\nstation: {{name: lwasv}}\nsource: {{kind: tbf, path: {tbf}{extra}}}\n"
+                 f"calibration: {{cable: true, pattern: none}}\n"
+                 f"imager: {{kind: dft, grid: {{size: 16}}, accumulate_frames: 300, products: [I]}}\n"
+                 f"output: {{dir: {tmp_path / 'out'}, fits: true, png: false}}\n")
+    return y
+
+
+def test_auto_gulp_gives_a_recording_on_a_gpu_64_mib_gulps(tmp_path, capsys):
+    """source.gulp_nframe defaults to auto: a capture file imaged on a GPU gets ~64 MiB of samples per
+    gulp (its block threads' per-gulp host work, not the GPU, sets the pace there); a CPU, a simulated
+    sky or a number given in the YAML keep theirs. Planned on any machine (no GPU needed)."""
+    import json
+    from bf_epic_blocks.pipeline.runner import gulp_frames
+    y = _recording_yaml(tmp_path, _small_tbf(tmp_path / "rec.tbf"))
+
+    def planned(*sets):
+        argv = ["plan", str(y), "--json"] + [a for s in sets for a in ("--set", s)]
+        assert cli.main(argv) == 0
+        return json.loads(capsys.readouterr().out)["gulp_nframe"]
+    assert planned("device=gpu") == (64 << 20) // (2 * 12 * 256) // 256 * 256 == 10752
+    assert planned("device=cpu") == 1024
+    assert planned("device=gpu", "source.gulp_nframe=2000") == 2000
+    sim = ["plan", str(PIPES / "lwasv_sim_allsky.yaml"), "--json", "--set", "device=gpu",
+           "--set", "source.gulp_nframe=auto"]
+    assert cli.main(sim) == 0 and json.loads(capsys.readouterr().out)["gulp_nframe"] == 1024
+    # channels sharded over several GPUs: whole integrations per gulp
+    cfg = {"source": {"gulp_nframe": "auto", "kind": "tbf"}, "imager": {"accumulate_frames": 25000}}
+    assert gulp_frames(cfg, "gpus", 24, 256) == 25000
+    assert gulp_frames(dict(cfg, imager={"accumulate_frames": 100}), "gpus", 24, 256) == 5400
+    # a bad value names the key and what it may be
+    assert cli.main(["validate", str(y), "--set", "source.gulp_nframe=fast"]) == 2
+    err = capsys.readouterr().err
+    assert "source.gulp_nframe" in err and "'auto'" in err
+
+
+def test_a_recording_is_scanned_once(tmp_path, monkeypatch):
+    """The runner scans a capture file's headers to plan the pipeline and hands the result to the
+    source block, which does not read every frame header a second time."""
+    import bf_epic_blocks.io.tbf as tbf
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    calls = []
+    real = tbf.scan_tbf
+    monkeypatch.setattr(tbf, "scan_tbf", lambda *a, **k: calls.append(a[0]) or real(*a, **k))
+    cfg = load_config(_recording_yaml(tmp_path, _small_tbf(tmp_path / "rec.tbf", ntime=300)), ["device=cpu"])
+    summary = runner.run(cfg, show_progress=False)
+    assert summary["images"] == 1 and summary["frames_imaged"] == 300
+    assert len(calls) == 1, calls
+
+
+def test_the_console_script_exits_with_mains_status(tmp_path):
+    """`bf-epic` (cli.entry) ends the process as soon as main returns -- its output flushed, its exit
+    status main's -- without the interpreter's teardown."""
+    import subprocess
+    import sys
+    y = _recording_yaml(tmp_path, _small_tbf(tmp_path / "rec.tbf", ntime=300))
+    code = "import sys; from bf_epic_blocks.pipeline.cli import entry; sys.argv = ['bf-epic'] + sys.argv[1:]; entry()"
+    ok = subprocess.run([sys.executable, "-c", code, "validate", str(y)], capture_output=True, text=True, timeout=300)
+    assert ok.returncode == 0 and "valid" in ok.stdout, ok.stderr
+    bad = subprocess.run([sys.executable, "-c", code, "validate", str(tmp_path / "none.yaml")], capture_output=True,
+                         text=True, timeout=300)
+    assert bad.returncode == 2 and "none.yaml" in bad.stderr

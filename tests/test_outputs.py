@@ -75,6 +75,39 @@ def test_zenith_and_east_pixels():
     assert min(north.az.deg, 360 - north.az.deg) < 0.05
 
 
+def test_zenith_pointings_of_a_series_put_each_image_on_its_own_sky():
+    """One vectorised transform for many times: each time's WCS still puts its centre pixel at the
+    zenith and +m on local North *at that time* (astropy AltAz per time, the independent truth), and
+    the numbers equal a transform of that time alone."""
+    from bf_epic_blocks.sky import north_angle_deg, zenith_pointings
+    grid = lm_grid(32)
+    times = TIME + np.array([0.0, 1.0, 3600.0, 6 * 3600.0, 13 * 3600.0]) * u.s
+    ra, dec, north = zenith_pointings(times, LOC)
+    assert ra.shape == dec.shape == north.shape == (5,)
+    assert np.ptp(ra) > 90  # the zenith moves through RA over the day: a series, not one pointing
+    for k, t in enumerate(times):
+        assert (ra[k], dec[k]) == zenith_icrs(t, LOC) and north[k] == north_angle_deg(t, LOC)
+        w = image_wcs(grid, [60e6], ["I"], t, LOC, pointing=(ra[k], dec[k], north[k])).celestial
+        frame = AltAz(obstime=t, location=LOC)
+        assert w.pixel_to_world(grid.size // 2, grid.size // 2).transform_to(frame).alt.deg > 89.99
+        up = w.pixel_to_world(grid.size // 2, grid.size // 2 + 8).transform_to(frame)
+        assert min(up.az.deg, 360 - up.az.deg) < 0.05, (k, up.az.deg)
+
+
+def test_image_writer_pointing_batches_match_each_images_time():
+    """The image writer computes its FITS pointings for a batch of integrations at once: the
+    pointing it gives integration j (across batch boundaries, and going back) is that of j's own time."""
+    from bf_epic_blocks.blocks.image_writer import ImageWriterBlock
+    from bf_epic_blocks.io.tbf import time_tag_to_time
+    from bf_epic_blocks.sky import zenith_pointings
+    w = ImageWriterBlock.__new__(ImageWriterBlock)
+    w.hdr, w.loc, w.int_ticks = {"time_tag": int(TIME.unix) * 196_000_000}, LOC, 196_000_000 * 60
+    w._pointings = (0, None)
+    for j in (0, 5, ImageWriterBlock.POINTING_BATCH + 3, 2):
+        want = zenith_pointings(time_tag_to_time(w.hdr["time_tag"] + j * w.int_ticks), LOC)
+        assert w._pointing(j) == want, j
+
+
 def _cyga_cube(grid, nchan=3, products=("I", "Q")):
     lm, alt = icrs_to_lm(CYGA.ra.deg, CYGA.dec.deg, TIME, LOC)
     assert alt[0] > 30, "test time chosen so that Cyg A is well above the horizon"

@@ -17,10 +17,12 @@ Rows (each `bf-epic run` is a subprocess, timed from outside, as a user would se
 * source alone: the simulated sky's generator (`sky.fastsim.make_gulp`) for 16, 24 and 784
   channels on the device asked for; and the TBF reader alone (`io.tbf.iter_tbf_gulps`).
 * core: the imager's operator on the same problem (24 channels, 256 stands, 3,205 pixels, 1,024
-  samples per gulp, 25,000 per image) called directly, per gulp, as a real-time factor.
+  samples per gulp, 25,000 per image) called directly, per gulp, as a real-time factor: with the
+  voltages as complex64 (the floating-point covariance route), and as packed ci4 bytes decoded and
+  accumulated as integers, which is what `bf-epic run` does with a capture file on a GPU.
 
 usage: python tools/bench_e2e.py [--device gpu|cpu] [--seconds 10] [--nchan 24] [--precisions fp16,fp32]
-                                 [--gulps 1024,5000]
+                                 [--gulps auto,1024,5000]
                                  [--skip recording,tbx,simulated,startup,source,core] [--json PATH]
 """
 from __future__ import annotations
@@ -150,11 +152,15 @@ def steady_rate(blocks, data_s):
     return out
 
 
-def core_rate(device, nchan, precision, gulps=20):
-    """Real-time factor of the imaging core alone: 1,024-sample gulps of random ci4 integers
-    accumulated into 25,000-sample images, on the LWA-SV layout, 64x64 all-sky grid."""
+def core_rate(device, nchan, precision, gulps=20, packed=False, gulp=1024):
+    """Real-time factor of the imaging core alone: ``gulp``-sample gulps accumulated into 25,000-sample
+    images, on the LWA-SV layout, 64x64 all-sky grid. ``packed=False``: random ci4 integers given as
+    complex64 (the covariance route in floating point); ``packed=True``: the same kind of voltages as
+    packed 4-bit bytes, decoded and accumulated as integers, which is what `bf-epic run` does on a GPU
+    for a capture file (the exact integer covariance)."""
     from bf_epic_blocks import imaging
     from bf_epic_blocks.imaging.dft import DFTOperator
+    from bf_epic_blocks.runtime.dtypes import int8_pairs_decoder
     from bf_epic_blocks.station import load_station
     st = load_station("lwasv")
     xp = np
@@ -165,16 +171,34 @@ def core_rate(device, nchan, precision, gulps=20):
     op = DFTOperator(xp.asarray(st.xyz_m), xp.asarray(freq), xp.asarray(lm), npol=2, precision=precision)
     acc = op.accumulator(("I",), method="auto", ntime_hint=25000)
     rng = np.random.default_rng(0)
-    x = xp.asarray((rng.integers(-8, 8, (1024, nchan, st.nstand, 2)) + 1j * rng.integers(-8, 8, (1024, nchan, st.nstand, 2))).astype(np.complex64))
-    acc.add(x)
+    if packed:
+        x = xp.asarray(rng.integers(0, 256, (gulp, nchan, st.nstand, 2), dtype=np.uint8))
+        decode = int8_pairs_decoder("ci4")
+
+        def add():
+            acc.add(decode(x))
+    else:
+        x = xp.asarray((rng.integers(-8, 8, (gulp, nchan, st.nstand, 2))
+                        + 1j * rng.integers(-8, 8, (gulp, nchan, st.nstand, 2))).astype(np.complex64))
+
+        def add():
+            acc.add(x)
+    per_image = max(1, 25000 // gulp)
+
+    def one(i):
+        add()
+        if (i + 1) % per_image == 0:      # an image every 25,000 samples, as the pipeline makes
+            acc.result()
+            acc.reset()
+    one(0)
     sync = (lambda: xp.cuda.Device().synchronize()) if device == "gpu" else (lambda: None)
     sync()
     t0 = time.perf_counter()
-    for _ in range(gulps):
-        acc.add(x)
+    for i in range(1, gulps + 1):
+        one(i)
     sync()
     per_gulp = (time.perf_counter() - t0) / gulps
-    return {"per_gulp_ms": per_gulp * 1e3, "rt": 1024 * DT / per_gulp}
+    return {"per_gulp_ms": per_gulp * 1e3, "rt": gulp * DT / per_gulp, "gulp": gulp, "input": "ci4" if packed else "complex64"}
 
 
 def source_rates(device, nchans=(16, 24, 784), gulp=1024):
@@ -254,7 +278,8 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--nchan", type=int, default=24)
     ap.add_argument("--precisions", default="fp16,fp32")
-    ap.add_argument("--gulps", default="1024,5000", help="source.gulp_nframe values for the recordings")
+    ap.add_argument("--gulps", default="auto,1024,5000",
+                    help="source.gulp_nframe values for the recordings (the first is the main row: auto, the default)")
     ap.add_argument("--workdir", default=None, help="where the recording is written (default: a temp folder)")
     ap.add_argument("--skip", default="", help="comma list of rows to leave out")
     ap.add_argument("--json")
@@ -299,7 +324,7 @@ def main(argv=None):
             for r in res["raw_reads"]:
                 show(f"file reads alone, {r['threads']} threads", r)
         res["recording"] = {}
-        gulps = [int(g) for g in a.gulps.split(",")]
+        gulps = a.gulps.split(",")
         for i, prec in enumerate(a.precisions.split(",")):
             for gulp in gulps:
                 y = work / f"rec_{prec}_{gulp}.yaml"
@@ -329,7 +354,7 @@ def main(argv=None):
         print(f"wrote {tbx}: {nbytes / 1e9:.2f} GB in {wt:.1f} s", flush=True)
         res["tbx"] = {"bytes": nbytes}
         prec = a.precisions.split(",")[0]
-        for j, gulp in enumerate(int(g) for g in a.gulps.split(",")):
+        for j, gulp in enumerate(a.gulps.split(",")):
             y = work / f"tbx_{gulp}.yaml"
             recording_yaml(y, tbx, work / "tbx", a.device, prec, kind="tbx", gulp=gulp)
             if j == 0:
@@ -340,7 +365,10 @@ def main(argv=None):
     if "core" not in skip:
         res["core"] = {p: core_rate(a.device, a.nchan, p) for p in a.precisions.split(",")}
         for p, r in res["core"].items():
-            show(f"core, {a.nchan} ch, {p}", r)
+            show(f"core, {a.nchan} ch, {p}, complex64 input", r)
+        res["core_ci4"] = {p: core_rate(a.device, a.nchan, p, gulps=40, packed=True) for p in a.precisions.split(",")}
+        for p, r in res["core_ci4"].items():
+            show(f"core, {a.nchan} ch, {p}, ci4 as run uses", r)
     if a.json:
         write_json(a.json, res)
     return 0

@@ -91,10 +91,27 @@ class ImageWriterBlock(bfp.SinkBlock):
         self.acc = int(hdr["imager"].get("accumulate_frames", 1))
         self.seq_index = getattr(self, "seq_index", -1) + 1
         self.frames_in_seq = 0
+        self._pointings = (0, None)
 
     def _time(self, j):
         from ..io.tbf import time_tag_to_time
         return time_tag_to_time(int(self.hdr["time_tag"]) + j * self.int_ticks)
+
+    #: images whose zenith pointings (a FITS image's WCS) are computed in one astropy transform: one
+    #: image's transform costs ~15 ms of interpreter time, 64 images' ~20 ms (this thread holds the
+    #: GIL throughout, so a per-image transform slowed the source and imager threads)
+    POINTING_BATCH = 64
+
+    def _pointing(self, j):
+        """(ra_deg, dec_deg, north_deg) of the zenith at the start of integration ``j``."""
+        from ..sky import zenith_pointings
+        from ..io.tbf import time_tag_to_time
+        j0, batch = self._pointings
+        if batch is None or not j0 <= j < j0 + len(batch[0]):
+            tags = int(self.hdr["time_tag"]) + (j + np.arange(self.POINTING_BATCH)) * self.int_ticks
+            j0, batch = j, zenith_pointings(time_tag_to_time(tags), self.loc)
+            self._pointings = (j0, batch)
+        return tuple(float(v[j - j0]) for v in batch)
 
     def _labels(self, t):
         if not self.label_sources:
@@ -147,7 +164,7 @@ class ImageWriterBlock(bfp.SinkBlock):
                     if self.do_fits:
                         self.written += fits_out.write_fits_image(
                             f"{rstem}.fits", frame[a:b], self.grid, self.freq[a:b], self.products, t, self.loc,
-                            chan_width_hz=width if b - a == 1 else None, **common)
+                            chan_width_hz=width if b - a == 1 else None, pointing=self._pointing(j), **common)
                     if self.do_png:  # channel mean of the first product, one PNG per FITS file
                         with np.errstate(all="ignore"), warnings.catch_warnings():
                             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels below the horizon

@@ -54,7 +54,7 @@ import numpy as np
 from ..imaging._xp import to_numpy
 from ..imaging.products import VALID as VALID_PRODUCTS
 from ..imaging.pixels import azalt_from_lm
-from ..sky.catalogue import as_location, as_time, lm_to_icrs, north_angle_deg, zenith_icrs
+from ..sky.catalogue import as_location, as_time, lm_to_icrs, zenith_pointings
 
 __all__ = ["STOKES_CODES", "image_wcs", "write_fits_image", "write_pixel_table", "read_pixel_table"]
 
@@ -115,20 +115,22 @@ def _product_groups(products):
     return groups
 
 
-def image_wcs(grid, freq_hz, products, time, location, *, chan_width_hz=None):
+def image_wcs(grid, freq_hz, products, time, location, *, chan_width_hz=None, pointing=None):
     """The 4-axis celestial WCS (RA---SIN, DEC--SIN, FREQ, STOKES) of an all-sky cube.
 
     grid : LMGrid (uses ``size`` and ``cell``); freq_hz : (nchan,) uniformly spaced channel centres;
     products : names with FITS STOKES codes, forming a linear run in the given order
     (:func:`write_fits_image` reorders or splits other sets before calling this).
-    A 3-axis WCS (no STOKES) is returned when ``products`` is None.
+    A 3-axis WCS (no STOKES) is returned when ``products`` is None. ``pointing``: the zenith's
+    (ra_deg, dec_deg, north_deg) at ``time`` if already known (:func:`~bf_epic_blocks.sky.zenith_pointings`
+    for a series of images in one call), else computed here.
     """
     from astropy.wcs import WCS
     N, cell = int(grid.size), float(grid.cell)
     f0, df = _freq_axis(freq_hz, chan_width_hz)
     t, loc = as_time(time), as_location(location)
-    ra0, dec0 = zenith_icrs(t, loc)
-    theta = np.deg2rad(north_angle_deg(t, loc))
+    ra0, dec0, north = zenith_pointings(t, loc) if pointing is None else (float(v) for v in pointing)
+    theta = np.deg2rad(north)
     naxis = 3 if products is None else 4
     w = WCS(naxis=naxis)
     ctype = ["RA---SIN", "DEC--SIN", "FREQ"]
@@ -220,7 +222,7 @@ def _with_suffix(path: Path, suffix: str) -> Path:
 
 def write_fits_image(path, cube, grid, freq_hz, products, time, location, *, method, precision,
                      telescope=None, int_time_s=None, nantenna=None, chan_width_hz=None,
-                     extra_header=None, nonfinite=None, overwrite=True) -> list[str]:
+                     extra_header=None, nonfinite=None, overwrite=True, pointing=None) -> list[str]:
     """Write an all-sky image cube as FITS; returns the list of paths written.
 
     cube : (nchan, nprod, N, N) [m, l] real array (NumPy or CuPy), NaN below the horizon; cast
@@ -230,6 +232,7 @@ def write_fits_image(path, cube, grid, freq_hz, products, time, location, *, met
     method, precision : recorded as IMAGER and PRECISN (FITS keys have <= 8 characters); telescope, int_time_s, nantenna : TELESCOP,
         INTTIME (s) and NANTENNA when given; extra_header : {key: value or (value, comment)};
     nonfinite : the number of non-finite (NaN/Inf) voltage samples zeroed in this integration, as NONFINIT.
+    pointing : the zenith's (ra_deg, dec_deg, north_deg) at ``time`` if known (see :func:`image_wcs`).
     Usually one file at ``path``; see the module docstring for the product sets that need several.
     """
     from astropy.io import fits
@@ -252,7 +255,8 @@ def write_fits_image(path, cube, grid, freq_hz, products, time, location, *, met
     written = []
     for suffix, idx, run in _product_groups(products):
         names = [products[i] for i in idx]
-        w = image_wcs(grid, f, names if run is not None else None, time, location, chan_width_hz=chan_width_hz)
+        w = image_wcs(grid, f, names if run is not None else None, time, location, chan_width_hz=chan_width_hz,
+                      pointing=pointing)
         data = np.ascontiguousarray(np.transpose(cube[:, idx], (1, 0, 2, 3)).astype(np.float32))
         if run is None:
             data = data[0]  # (nchan, N, N): no STOKES axis for products without a code

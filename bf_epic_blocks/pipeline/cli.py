@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -94,6 +95,10 @@ def _replay(args):
     return 0
 
 
+#: the interpreter's thread switch interval during ``bf-epic run`` (see :func:`main`)
+SWITCH_INTERVAL_S = 0.001
+
+
 def _setup_logging(args):
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     logging.basicConfig(level=level, format="%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
@@ -140,6 +145,11 @@ def main(argv=None):
         if args.command == "batch":
             return _batch(args, cfg)
         from .runner import run
+        # The block threads share one interpreter lock and give it up at every CUDA call and file read;
+        # a thread taking it back waits up to the switch interval while another runs Python. 1 ms (not
+        # Python's 5 ms) shortens those waits: 18.4x -> 21.1x real time steady for a 24-channel TBF
+        # recording in 5,000-frame gulps (medians of three, one H100, 2026-11-25; 0.2 ms was no better).
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         summary = run(cfg, show_progress=False if args.no_progress else None)
         if args.summary_json:
             with open(args.summary_json, "w") as fh:
@@ -197,5 +207,22 @@ def _yaml(cfg):
     return yaml.safe_dump(cfg, sort_keys=False, default_flow_style=None)
 
 
+def entry():
+    """The ``bf-epic`` console script: :func:`main`, then a prompt exit with its status.
+
+    When ``main`` returns, every block thread has joined and every output file is closed; what is
+    left is interpreter teardown (CuPy's memory pools and handles, the CUDA context, module cleanup),
+    0.45 s of a 3.5-s run on an H100 (2026-11-25). Logging and the output streams are flushed, then
+    the process ends without it. In-process callers (tests, notebooks) use :func:`main`."""
+    rc = main()
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(rc if isinstance(rc, int) else 1)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -59,7 +59,9 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       rcvbuf_mb: float > 0           (default 64; socket receive buffer asked for, MiB)
       sequences: int >= 0            (default 1; streams to image before stopping, 0 = until stopped)
       # either kind
-      gulp_nframe: int >= 1          (default 1024; frames (time samples) per ring gulp)
+      gulp_nframe: int >= 1 | auto   (default auto; frames (time samples) per ring gulp. auto: 1024,
+                                     but a capture file imaged on a GPU gets ~64 MiB of samples per
+                                     gulp, 5,376 frames for 24 LWA-SV channels: see runner.gulp_frames)
     calibration:
       cable: bool                    (default true)
       gains_table: path to a .npz / .yaml / .yml table (default null = none; must exist)
@@ -375,7 +377,7 @@ OUTPUT_CUBE = Section({
 }, what="a cube mapping {dtype, average_channels, images_per_file}")
 
 SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf", "tbx", "file", "udp"), REQUIRED),
-                 "gulp_nframe": Key(Int(1), 1024)}
+                 "gulp_nframe": Key(Int(1, auto=True), "auto")}
 SOURCE_SIMULATED = {
     "start": Key(TimeStr(), DEFAULT_START),
     "duration_s": Key(Float(0.0, lo_open=True), 2.0),

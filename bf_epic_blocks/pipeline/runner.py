@@ -234,6 +234,32 @@ def warm_live_imager(cfg, station):
     return img.warm_up(dtype)
 
 
+#: ``source.gulp_nframe: auto`` for a capture file imaged on a GPU: about this many bytes of 4-bit
+#: samples per gulp. There the block threads' host work per gulp (they share one interpreter lock), not
+#: the GPU, sets the pace: a 24-channel, 10-s LWA-SV recording ran at 12x real time in 1,024-frame
+#: gulps and 18-21x in 5,000-frame ones (`bf-epic run`, one H100, 2026-11-25).
+AUTO_GULP_BYTES = 64 << 20
+#: ``auto`` everywhere else: live streams (latency), simulated skies and every CPU pipeline (compute
+#: bound, and a CPU gulp is unpacked to 8-byte complex samples)
+AUTO_GULP_FRAMES = 1024
+
+
+def gulp_frames(cfg, dev, nchan=None, nstand=None):
+    """Frames per source gulp: ``source.gulp_nframe``, or for ``auto`` (see :data:`AUTO_GULP_BYTES`)
+    1,024, or ~64 MiB of samples (a multiple of 256 frames) for a capture file of ``nchan`` channels and
+    ``nstand`` stands on a GPU (``dev`` 'gpu' or 'gpus'; several GPUs round it to whole integrations)."""
+    g = cfg["source"]["gulp_nframe"]
+    if g != "auto":
+        return int(g)
+    n = AUTO_GULP_FRAMES
+    if dev in ("gpu", "gpus") and cfg["source"]["kind"] in ("tbf", "tbx", "file") and nchan and nstand:
+        n = max(n, AUTO_GULP_BYTES // (2 * int(nchan) * int(nstand)) // 256 * 256)
+    if dev == "gpus":
+        acc = int(cfg["imager"]["accumulate_frames"])
+        n = acc * max(1, round(n / acc))
+    return n
+
+
 def build_graph(cfg, progress=None):
     """Blocks for ``cfg`` inside a new Pipeline (not yet run)."""
     from ..blocks import CalFoldBlock, DFTImagerBlock, bfp
@@ -253,15 +279,22 @@ def build_graph(cfg, progress=None):
         if cfg["calibration"].get("gains_table"):
             raise ValueError(f"device {cfg['device']!r}: calibration.gains_table (time-variable gains) needs "
                              "CalFoldBlock, which runs on one device; use a single GPU")
-        if int(cfg["source"]["gulp_nframe"]) % int(cfg["imager"]["accumulate_frames"]):
-            raise ValueError(f"device {cfg['device']!r}: source.gulp_nframe ({cfg['source']['gulp_nframe']}) must "
-                             f"be a multiple of imager.accumulate_frames ({cfg['imager']['accumulate_frames']}) "
-                             "when the channels are sharded over several GPUs")
     src_cfg, im = cfg["source"], cfg["imager"]
     fmt = capture_format(src_cfg)
-    info = _scan(src_cfg["path"], report=False, fmt=fmt) if fmt is not None else None
+    # scanned once, here (the source block is handed the result): its warnings are logged here
+    info = _scan(src_cfg["path"], fmt=fmt) if fmt is not None else None
     station = load_station_for(cfg, info)
-    gulp = int(src_cfg["gulp_nframe"])
+    nchan = None
+    if info is not None:
+        cb = channel_block_range(cfg, info)
+        nchan = cb[1] - cb[0] if cb else int(info.nchan)
+    gulp = gulp_frames(cfg, dev, nchan, station.nstand)
+    if src_cfg["gulp_nframe"] == "auto":
+        log.info("gulp: %d frames (source.gulp_nframe: auto)", gulp)
+    if dev == "gpus" and gulp % int(im["accumulate_frames"]):
+        raise ValueError(f"device {cfg['device']!r}: source.gulp_nframe ({gulp}) must "
+                         f"be a multiple of imager.accumulate_frames ({im['accumulate_frames']}) "
+                         "when the channels are sharded over several GPUs")
     outdir = cfg["output"]["dir"]
     block = None  # a channel block of a TBF file (source.channel_block), or all channels
     feed = None   # a block between the source and the rest (Bifrost's copy of a capture to the GPU)
@@ -273,7 +306,7 @@ def build_graph(cfg, progress=None):
             block = channel_block_range(cfg, info)
             cls = TBXSourceBlock if fmt == "tbx" else TBFSourceBlock
             source = cls(src_cfg["path"], gulp, station=station, progress=progress, space=space,
-                         channels=block[:2] if block else None)
+                         channels=block[:2] if block else None, scanned={src_cfg["path"]: info})
         elif src_cfg["kind"] == "udp":
             from ..blocks.udp_source import UDPSourceBlock
             nframe_total = None
@@ -484,8 +517,8 @@ def plan(cfg):
     nblk = sum([any(p in ("XX", "I", "Q") for p in prods), any(p in ("YY", "I", "Q") for p in prods),
                 needs_cross(prods)])
     acc = int(im["accumulate_frames"])
-    gulp = int(src["gulp_nframe"])
     dev = device_kind(cfg["device"])
+    gulp = gulp_frames(cfg, dev, nchan, station.nstand)
     method, precision, pick = imaging_mode(cfg, npix, nstand_any, nchan)
     per_image = cost.route_cmacs(acc, nstand_any, npix, 2, nblk)
     per_gulp = {k: v * nchan * gulp / acc for k, v in per_image.items()}

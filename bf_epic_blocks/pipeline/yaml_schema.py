@@ -113,13 +113,17 @@ def _fmt_num(x) -> str:
 
 
 class Int:
-    def __init__(self, min: int | None = None):
-        self.min = min
+    """An integer (>= ``min``); with ``auto``, the string 'auto' too (resolved where the value is used)."""
+
+    def __init__(self, min: int | None = None, auto: bool = False):
+        self.min, self.auto = min, auto
 
     def describe(self) -> str:
-        return "an integer" + (f" >= {self.min}" if self.min is not None else "")
+        return "an integer" + (f" >= {self.min}" if self.min is not None else "") + (" or 'auto'" if self.auto else "")
 
     def __call__(self, v, ctx):
+        if self.auto and v == "auto":
+            return v
         if isinstance(v, bool) or not isinstance(v, int) or (self.min is not None and v < self.min):
             raise BadValue(f"expected {self.describe()}, got {v!r}")
         return int(v)

@@ -7,9 +7,9 @@
 """
 from .catalogue import (KNOWN_SOURCES, REF_FREQ_HZ, Source, SourceDirections, as_location, as_time,
                         icrs_to_lm, lm_to_icrs, north_angle_deg, resolve_source, resolve_sources,
-                        source_directions, zenith_icrs)
+                        source_directions, zenith_icrs, zenith_pointings)
 from .efield import quantize_ci4, simulate_efield
 
 __all__ = ["KNOWN_SOURCES", "REF_FREQ_HZ", "Source", "SourceDirections", "as_location", "as_time",
            "icrs_to_lm", "lm_to_icrs", "north_angle_deg", "resolve_source", "resolve_sources",
-           "source_directions", "zenith_icrs", "quantize_ci4", "simulate_efield"]
+           "source_directions", "zenith_icrs", "zenith_pointings", "quantize_ci4", "simulate_efield"]

@@ -5,7 +5,8 @@
 * :func:`source_directions`: their direction cosines (l East, m North, n Up; PHYSICS.md) seen from
   a station at a time, through astropy ``AltAz`` (no refraction).
 * Time, place and frames for the image writers: :func:`as_time`, :func:`as_location`,
-  :func:`zenith_icrs`, :func:`north_angle_deg`, :func:`lm_to_icrs`, :func:`icrs_to_lm`.
+  :func:`zenith_icrs`, :func:`north_angle_deg`, :func:`zenith_pointings` (many times at once),
+  :func:`lm_to_icrs`, :func:`icrs_to_lm`.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import numpy as np
 from ..imaging.pixels import azalt_from_lm, lm_from_azalt
 
 __all__ = ["KNOWN_SOURCES", "Source", "SourceDirections", "resolve_source", "resolve_sources",
-           "source_directions", "REF_FREQ_HZ", "zenith_icrs", "north_angle_deg", "lm_to_icrs", "icrs_to_lm",
+           "source_directions", "REF_FREQ_HZ", "zenith_icrs", "north_angle_deg", "zenith_pointings", "lm_to_icrs", "icrs_to_lm",
            "as_time", "as_location"]
 
 log = logging.getLogger(__name__)
@@ -237,24 +238,40 @@ def _altaz_frame(time, location):
     return AltAz(obstime=as_time(time), location=as_location(location))  # pressure 0: no refraction
 
 
-def zenith_icrs(time, location) -> tuple[float, float]:
-    """(ra_deg, dec_deg) in ICRS of the local zenith at ``time``."""
+def zenith_pointings(times, location):
+    """(ra_deg, dec_deg, north_deg) of the local zenith in ICRS at each of ``times`` (an astropy Time,
+    scalar or 1-D array, or anything :func:`as_time` takes): arrays shaped like ``times``.
+
+    ``north_deg`` is the position angle (deg, East of ICRS North) of local North (+m) as seen at the
+    zenith. One vectorised transform for all the times: the numbers are those of a transform per
+    time (erfa is elementwise), so an image series' WCS costs one call per batch, not per image."""
     import astropy.units as u
-    from astropy.coordinates import SkyCoord
+    from astropy.coordinates import AltAz, SkyCoord
+    from astropy.time import Time
+    t = times if isinstance(times, Time) else as_time(times)
+    scalar = t.isscalar
+    t = t.reshape(-1) if not scalar else t.reshape(1)
+    n = t.shape[0]
+    d = 0.05  # deg: a short step keeps aberration's non-rotation part negligible in the angle
+    frame = AltAz(obstime=t, location=as_location(location))   # pressure 0: no refraction
     with _iers_offline():
-        z = SkyCoord(az=0 * u.deg, alt=90 * u.deg, frame=_altaz_frame(time, location)).icrs
-    return float(z.ra.deg), float(z.dec.deg)
+        c = SkyCoord(az=np.zeros((2, n)) * u.deg, alt=np.array([[90.0] * n, [90.0 - d] * n]) * u.deg,
+                     frame=frame).icrs
+    ra, dec, north = c.ra.deg[0], c.dec.deg[0], c[0].position_angle(c[1]).deg
+    if scalar:
+        return float(ra[0]), float(dec[0]), float(north[0])
+    return np.asarray(ra, np.float64), np.asarray(dec, np.float64), np.asarray(north, np.float64)
+
+
+def zenith_icrs(time, location) -> tuple[float, float]:
+    """(ra_deg, dec_deg) in ICRS of the local zenith at ``time`` (see :func:`zenith_pointings`)."""
+    ra, dec, _ = zenith_pointings(as_time(time), location)
+    return ra, dec
 
 
 def north_angle_deg(time, location) -> float:
     """Position angle (deg, East of ICRS North) of local North (+m) as seen at the zenith."""
-    import astropy.units as u
-    from astropy.coordinates import SkyCoord
-    frame = _altaz_frame(time, location)
-    d = 0.05  # deg: a short step keeps aberration's non-rotation part negligible in the angle
-    with _iers_offline():
-        c = SkyCoord(az=[0.0, 0.0] * u.deg, alt=[90.0, 90.0 - d] * u.deg, frame=frame).icrs
-    return float(c[0].position_angle(c[1]).deg)
+    return zenith_pointings(as_time(time), location)[2]
 
 
 def lm_to_icrs(pixels_lm, time, location):
