@@ -257,3 +257,47 @@ def test_the_console_script_exits_with_mains_status(tmp_path):
     bad = subprocess.run([sys.executable, "-c", code, "validate", str(tmp_path / "none.yaml")], capture_output=True,
                          text=True, timeout=300)
     assert bad.returncode == 2 and "none.yaml" in bad.stderr
+
+
+def _writer_in_a_helper(monkeypatch):
+    """Make the runner's image writer use a helper process (as it does on a GPU) on this CPU."""
+    from bf_epic_blocks.blocks import image_writer
+
+    class Helped(image_writer.ImageWriterBlock):
+        def __init__(self, *a, **k):
+            k["processes"] = 1
+            super().__init__(*a, **k)
+    monkeypatch.setattr(image_writer, "ImageWriterBlock", Helped)
+
+
+def test_a_helper_process_writes_the_same_files(tmp_path, monkeypatch):
+    """The image writer's helper process (bf-epic run on a GPU) writes byte for byte the FITS files the
+    writer's own thread writes, all of them by the time the run returns, in the same order."""
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    tbf = _small_tbf(tmp_path / "rec.tbf", ntime=1200)
+    y = _recording_yaml(tmp_path, tbf)
+    own = runner.run(load_config(y, ["device=cpu", f"output.dir={tmp_path / 'own'}"]), show_progress=False)
+    _writer_in_a_helper(monkeypatch)
+    from bf_epic_blocks.blocks import image_writer
+    image_writer.start_helper()               # started ahead, as bf-epic run does: the writer takes it
+    helped = runner.run(load_config(y, ["device=cpu", f"output.dir={tmp_path / 'helped'}"]), show_progress=False)
+    assert not image_writer._STARTED
+    assert own["images"] == helped["images"] == 4
+    names = [Path(f).name for f in own["files"]]
+    assert names == [Path(f).name for f in helped["files"]] and len(names) == 4
+    for n in names:
+        assert (tmp_path / "own" / n).read_bytes() == (tmp_path / "helped" / n).read_bytes(), n
+
+
+def test_a_failure_in_the_helper_process_fails_the_run_by_name(tmp_path, monkeypatch):
+    """A file the helper process cannot write is an error naming the image, not a run that ends
+    'successfully' with files missing."""
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    y = _recording_yaml(tmp_path, _small_tbf(tmp_path / "rec.tbf", ntime=600))
+    out = tmp_path / "out"
+    (out / "rec_s00_i0001.fits").mkdir(parents=True)      # a folder where a FITS file must go
+    _writer_in_a_helper(monkeypatch)
+    with pytest.raises(Exception, match=r"rec_s00_i0001 failed in the helper process"):
+        runner.run(load_config(y, ["device=cpu", f"output.dir={out}"]), show_progress=False)

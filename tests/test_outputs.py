@@ -97,15 +97,14 @@ def test_zenith_pointings_of_a_series_put_each_image_on_its_own_sky():
 def test_image_writer_pointing_batches_match_each_images_time():
     """The image writer computes its FITS pointings for a batch of integrations at once: the
     pointing it gives integration j (across batch boundaries, and going back) is that of j's own time."""
-    from bf_epic_blocks.blocks.image_writer import ImageWriterBlock
+    from bf_epic_blocks.blocks.image_writer import POINTING_BATCH, integration_pointing
     from bf_epic_blocks.io.tbf import time_tag_to_time
     from bf_epic_blocks.sky import zenith_pointings
-    w = ImageWriterBlock.__new__(ImageWriterBlock)
-    w.hdr, w.loc, w.int_ticks = {"time_tag": int(TIME.unix) * 196_000_000}, LOC, 196_000_000 * 60
-    w._pointings = (0, None)
-    for j in (0, 5, ImageWriterBlock.POINTING_BATCH + 3, 2):
-        want = zenith_pointings(time_tag_to_time(w.hdr["time_tag"] + j * w.int_ticks), LOC)
-        assert w._pointing(j) == want, j
+    tag0, ticks = int(TIME.unix) * 196_000_000, 196_000_000 * 60
+    for j in (0, 5, POINTING_BATCH + 3, 2):
+        want = zenith_pointings(time_tag_to_time(tag0 + j * ticks), LOC)
+        assert integration_pointing(LOC, tag0, ticks, j) == want, j
+        assert integration_pointing((LOC.lon.deg, LOC.lat.deg, LOC.height.to_value(u.m)), tag0, ticks, j) == want
 
 
 def _cyga_cube(grid, nchan=3, products=("I", "Q")):

@@ -5,12 +5,18 @@ WCS (one file per integration; channels with uneven spacing are split into runs 
 and an all-sky PNG of the channel-mean of the first product; pixel lists and tracked patches
 become pixel tables (FITS binary tables) and a small PNG of the patch. The writing itself lives
 in :mod:`bf_epic_blocks.io.fits` and :mod:`bf_epic_blocks.io.quicklook`.
+
+With ``processes=1`` the grid files are written by a helper process: astropy's FITS, WCS and
+coordinate work is several milliseconds of interpreter time per image, and in the block's own
+thread it holds the interpreter lock that a GPU pipeline's source and imager threads need between
+their CUDA calls (`bf-epic run` uses the helper on a GPU).
 """
 from __future__ import annotations
 
 import logging
 import os
 import warnings
+from collections import deque
 
 import numpy as np
 
@@ -52,12 +58,19 @@ class ImageWriterBlock(bfp.SinkBlock):
                 table carries the directions of its own integration (the header has the first).
     run_index : when the input holds only channel block ``run_index`` of a larger channel set (see
                 :func:`channel_runs`), name its files ``_r<run_index>`` as the whole set's would be.
+    processes : 0 (write in the block's thread) or 1: grid images (FITS and PNG) are written, in order,
+                by a helper process (spawned when the block is made, so its imports overlap the
+                pipeline's start); at most ``MAX_PENDING`` integrations wait for it, and each sequence's
+                files are all written when the sequence ends. Call :meth:`close` when the pipeline is done.
     ``written`` lists the files written. Each file records, as NONFINIT, the non-finite voltage samples
     zeroed upstream in its integration (from the tally the header's ``nonfinite`` names; 0 without one).
     """
 
+    #: integrations handed to the helper process and not yet written, at most
+    MAX_PENDING = 32
+
     def __init__(self, iring, outdir, prefix="image", fits=True, png=True, table=False, location=None,
-                 label_sources=True, pixels_fn=None, *args, run_index=None, **kwargs):
+                 label_sources=True, pixels_fn=None, *args, run_index=None, processes=0, **kwargs):
         super().__init__(iring, *args, **kwargs)
         self.outdir, self.prefix = str(outdir), prefix
         self.do_fits, self.do_png, self.do_table = fits, png, table
@@ -65,16 +78,68 @@ class ImageWriterBlock(bfp.SinkBlock):
         self.run_index = run_index
         self.written = []
         self.frames = 0
+        if processes not in (0, 1):
+            raise ValueError(f"ImageWriterBlock: processes must be 0 or 1, got {processes!r}")
+        self._pool, self._pending = None, deque()
+        if processes:
+            # one started ahead by start_helper (bf-epic run does, as soon as it has read the YAML), or a new one
+            self._pool, ready = _STARTED.pop(0) if _STARTED else _new_helper(png)
+            self._pending.append(("(helper start)", ready))
+
+    def _hand_over(self, stem, fn, job):
+        """Write ``fn(job)`` -> paths: here, or queued for the helper process (in order)."""
+        if self._pool is None:
+            self.written += fn(job)
+            return
+        while len(self._pending) >= self.MAX_PENDING:
+            self._collect(self._pending[0])
+        try:
+            fut = self._pool.submit(fn, job)
+        except Exception as e:       # BrokenProcessPool: the helper died (an earlier image says why, if any)
+            self.flush()
+            raise RuntimeError(f"ImageWriterBlock: cannot hand {stem} to the helper process: "
+                               f"{type(e).__name__}: {e}") from e
+        self._pending.append((stem, fut))
+        while self._pending and self._pending[0][1].done():
+            self._collect(self._pending[0])
+
+    def _collect(self, item):
+        stem, fut = item
+        try:
+            paths = fut.result()
+        except Exception as e:
+            self.close()
+            raise RuntimeError(f"ImageWriterBlock: writing {stem} failed in the helper process: "
+                               f"{type(e).__name__}: {e}") from e
+        finally:
+            if self._pending and self._pending[0] is item:
+                self._pending.popleft()
+        self.written += paths or []
+
+    def flush(self):
+        """Wait until every integration handed to the helper process is written."""
+        while self._pending:
+            self._collect(self._pending[0])
+
+    def close(self):
+        """Stop the helper process (after :meth:`flush`, or at once after an error); idempotent."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+    def on_sequence_end(self, iseq):
+        self.flush()
 
     def on_sequence(self, iseq):
-        from astropy.coordinates import EarthLocation
         hdr = iseq.header
         self.hdr = hdr
         os.makedirs(self.outdir, exist_ok=True)
         st = hdr.get("station", {})
         loc = self.location
         if loc is None and "lat_deg" in st:
-            loc = EarthLocation.from_geodetic(st["lon_deg"], st["lat_deg"], st.get("elev_m", 0.0))
+            # (lon_deg, lat_deg, height_m): what io.fits and sky take as a place (as_location), and what
+            # crosses to the helper process without astropy being imported here
+            loc = (float(st["lon_deg"]), float(st["lat_deg"]), float(st.get("elev_m", 0.0)))
         if loc is None:
             raise ValueError("ImageWriterBlock: no station location: give location= or a header station with lat/lon")
         self.loc = loc
@@ -91,53 +156,13 @@ class ImageWriterBlock(bfp.SinkBlock):
         self.acc = int(hdr["imager"].get("accumulate_frames", 1))
         self.seq_index = getattr(self, "seq_index", -1) + 1
         self.frames_in_seq = 0
-        self._pointings = (0, None)
 
     def _time(self, j):
         from ..io.tbf import time_tag_to_time
         return time_tag_to_time(int(self.hdr["time_tag"]) + j * self.int_ticks)
 
-    #: images whose zenith pointings (a FITS image's WCS) are computed in one astropy transform: one
-    #: image's transform costs ~15 ms of interpreter time, 64 images' ~20 ms (this thread holds the
-    #: GIL throughout, so a per-image transform slowed the source and imager threads)
-    POINTING_BATCH = 64
-
-    def _pointing(self, j):
-        """(ra_deg, dec_deg, north_deg) of the zenith at the start of integration ``j``."""
-        from ..sky import zenith_pointings
-        from ..io.tbf import time_tag_to_time
-        j0, batch = self._pointings
-        if batch is None or not j0 <= j < j0 + len(batch[0]):
-            tags = int(self.hdr["time_tag"]) + (j + np.arange(self.POINTING_BATCH)) * self.int_ticks
-            j0, batch = j, zenith_pointings(time_tag_to_time(tags), self.loc)
-            self._pointings = (j0, batch)
-        return tuple(float(v[j - j0]) for v in batch)
-
-    def _labels(self, t):
-        if not self.label_sources:
-            return None
-        from ..sky import KNOWN_SOURCES, icrs_to_lm
-        names, ra, dec = [], [], []
-        for s in KNOWN_SOURCES.values():
-            names.append(s.name)
-            ra.append(s.ra_deg)
-            dec.append(s.dec_deg)
-        lm, alt = icrs_to_lm(np.array(ra), np.array(dec), t, self.loc)
-        out = [(n, float(l), float(m)) for n, (l, m), a in zip(names, lm, alt) if np.isfinite(a) and a > 0]
-        try:  # the Sun is near: go to AltAz directly (via ICRS would add a parallax of degrees)
-            from astropy.coordinates import AltAz, get_body
-            from ..station.offline import iers_table
-            iers_table()
-            sun = get_body("sun", t, self.loc).transform_to(AltAz(obstime=t, location=self.loc))
-            if sun.alt.deg > 0:
-                alt_r, az_r = sun.alt.rad, sun.az.rad
-                out.append(("Sun", float(np.cos(alt_r) * np.sin(az_r)), float(np.cos(alt_r) * np.cos(az_r))))
-        except Exception as e:  # decoration only
-            log.debug("no Sun position: %s", e)
-        return out
-
     def on_data(self, ispan):
-        from ..io import fits as fits_out, quicklook
+        from ..io import fits as fits_out
         data = to_numpy(span_array(ispan))
         imager = self.hdr["imager"]
         common = dict(method=f"{imager['kind']}:{imager['method']}", precision=imager["precision"],
@@ -145,7 +170,6 @@ class ImageWriterBlock(bfp.SinkBlock):
                       int_time_s=self.int_ticks / FS_HZ, nantenna=imager.get("nant_used"))
         for k in range(data.shape[0]):
             j = self.frames_in_seq
-            t = self._time(j)
             stem = os.path.join(self.outdir, f"{self.prefix}_s{self.seq_index:02d}_i{j:04d}")
             frame = data[k]
             common["nonfinite"] = self.tally.count(j * self.acc, (j + 1) * self.acc) if self.tally else 0
@@ -158,22 +182,16 @@ class ImageWriterBlock(bfp.SinkBlock):
                                          f"are {len(runs)} runs of even spacing, not one")
                     if width is None:
                         width = self.hdr.get("chan_bw_hz")
-                for r, (a, b) in enumerate(runs):
-                    rstem = (stem if len(runs) == 1 and self.run_index is None
-                             else f"{stem}_r{r if self.run_index is None else self.run_index}")
-                    if self.do_fits:
-                        self.written += fits_out.write_fits_image(
-                            f"{rstem}.fits", frame[a:b], self.grid, self.freq[a:b], self.products, t, self.loc,
-                            chan_width_hz=width if b - a == 1 else None, pointing=self._pointing(j), **common)
-                    if self.do_png:  # channel mean of the first product, one PNG per FITS file
-                        with np.errstate(all="ignore"), warnings.catch_warnings():
-                            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels below the horizon
-                            mean = np.nanmean(frame[a:b, 0], axis=0)
-                        title = (f"{self.hdr.get('station', {}).get('name', '')} {self.products[0]}  {t.isot[:19]} UTC  "
-                                 f"{self.freq[a] / 1e6:.2f}-{self.freq[b - 1] / 1e6:.2f} MHz")
-                        self.written.append(quicklook.quicklook_png(f"{rstem}.png", mean, self.grid, title=title,
-                                                                    sources=self._labels(t)))
+                stems = [(stem if len(runs) == 1 and self.run_index is None
+                          else f"{stem}_r{r if self.run_index is None else self.run_index}", a, b)
+                         for r, (a, b) in enumerate(runs)]
+                job = dict(frame=np.array(frame), runs=stems, grid=self.grid, freq=self.freq, products=self.products,
+                           loc=self.loc, time_tag0=int(self.hdr["time_tag"]), int_ticks=self.int_ticks, j=j,
+                           width=width, fits=self.do_fits, png=self.do_png, label_sources=self.label_sources,
+                           station=self.hdr.get("station", {}).get("name", ""), common=dict(common))
+                self._hand_over(stem, write_grid_integration, job)
             else:
+                t = self._time(j)
                 lm = np.asarray(self.hdr["pixels"]["lm"])
                 if self.hdr["pixels"]["kind"] == "track" and self.pixels_fn is not None:
                     lm = np.asarray(self.pixels_fn(int(self.hdr["time_tag"]) + j * self.int_ticks))
@@ -184,6 +202,120 @@ class ImageWriterBlock(bfp.SinkBlock):
                     self.written.append(_patch_png(f"{stem}.png", frame, lm, self.products, t))
             self.frames_in_seq += 1
             self.frames += 1
+
+
+#: integrations whose zenith pointings (a FITS image's WCS) are computed in one astropy transform: one
+#: image's transform costs ~15 ms of interpreter time, 64 images' ~20 ms
+POINTING_BATCH = 64
+_POINTINGS = {}
+
+
+def integration_pointing(location, time_tag0, int_ticks, j):
+    """(ra_deg, dec_deg, north_deg) of the zenith at the start of integration ``j`` of a sequence that
+    starts at ``time_tag0`` (196 MHz ticks) with integrations of ``int_ticks``: from a batch of
+    :data:`POINTING_BATCH` integrations computed together (:func:`~bf_epic_blocks.sky.zenith_pointings`)."""
+    from ..io.tbf import time_tag_to_time
+    from ..sky import as_location, zenith_pointings
+    loc = as_location(location)
+    key = (tuple(float(v.to_value("m")) for v in loc.to_geocentric()), int(time_tag0), int(int_ticks))
+    j0, batch = _POINTINGS.get(key, (0, None))
+    if batch is None or not j0 <= j < j0 + len(batch[0]):
+        tags = int(time_tag0) + (j + np.arange(POINTING_BATCH)) * int(int_ticks)
+        j0, batch = j, zenith_pointings(time_tag_to_time(tags), loc)
+        if len(_POINTINGS) > 16:
+            _POINTINGS.clear()
+        _POINTINGS[key] = (j0, batch)
+    return tuple(float(v[j - j0]) for v in batch)
+
+
+def write_grid_integration(job):
+    """One integration's grid files (FITS cube and/or PNG per run of evenly spaced channels); returns
+    the paths. Runs in the writer's thread or in its helper process; ``job`` is what
+    :meth:`ImageWriterBlock.on_data` puts together (the frame and everything needed to place it)."""
+    from ..io import fits as fits_out, quicklook
+    from ..io.tbf import time_tag_to_time
+    frame, freq, grid, products, loc = job["frame"], job["freq"], job["grid"], job["products"], job["loc"]
+    j = job["j"]
+    t = time_tag_to_time(job["time_tag0"] + j * job["int_ticks"])
+    written = []
+    for rstem, a, b in job["runs"]:
+        if job["fits"]:
+            written += fits_out.write_fits_image(
+                f"{rstem}.fits", frame[a:b], grid, freq[a:b], products, t, loc,
+                chan_width_hz=job["width"] if b - a == 1 else None,
+                pointing=integration_pointing(loc, job["time_tag0"], job["int_ticks"], j), **job["common"])
+        if job["png"]:  # channel mean of the first product, one PNG per FITS file
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels below the horizon
+                mean = np.nanmean(frame[a:b, 0], axis=0)
+            title = (f"{job['station']} {products[0]}  {t.isot[:19]} UTC  "
+                     f"{freq[a] / 1e6:.2f}-{freq[b - 1] / 1e6:.2f} MHz")
+            written.append(quicklook.quicklook_png(f"{rstem}.png", mean, grid, title=title,
+                                                   sources=_labels(t, loc) if job["label_sources"] else None))
+    return written
+
+
+def _labels(t, location):
+    """Catalogue sources (and the Sun) above the horizon at ``t``: [(name, l, m)] for a quicklook."""
+    from ..sky import KNOWN_SOURCES, as_location, icrs_to_lm
+    loc = as_location(location)
+    names, ra, dec = [], [], []
+    for s in KNOWN_SOURCES.values():
+        names.append(s.name)
+        ra.append(s.ra_deg)
+        dec.append(s.dec_deg)
+    lm, alt = icrs_to_lm(np.array(ra), np.array(dec), t, loc)
+    out = [(n, float(l), float(m)) for n, (l, m), a in zip(names, lm, alt) if np.isfinite(a) and a > 0]
+    try:  # the Sun is near: go to AltAz directly (via ICRS would add a parallax of degrees)
+        from astropy.coordinates import AltAz, get_body
+        from ..station.offline import iers_table
+        iers_table()
+        sun = get_body("sun", t, loc).transform_to(AltAz(obstime=t, location=loc))
+        if sun.alt.deg > 0:
+            alt_r, az_r = sun.alt.rad, sun.az.rad
+            out.append(("Sun", float(np.cos(alt_r) * np.sin(az_r)), float(np.cos(alt_r) * np.cos(az_r))))
+    except Exception as e:  # decoration only
+        log.debug("no Sun position: %s", e)
+    return out
+
+
+_STARTED = []   # helper processes started ahead, each taken by the next ImageWriterBlock(processes=1)
+
+
+def _new_helper(png):
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    # spawn, not fork: the parent has threads and a CUDA context
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_helper_init,
+                               initargs=(bool(png),))
+    return pool, pool.submit(_helper_ready)
+
+
+def start_helper(png=False):
+    """Start an image writer's helper process now, for the next ``ImageWriterBlock(processes=1)``: its
+    start (a Python with numpy and astropy, ~1.5 s on an H100 host) then overlaps the parent's own."""
+    _STARTED.append(_new_helper(png))
+
+
+def stop_helpers():
+    """Stop helper processes started ahead and not taken by a writer."""
+    while _STARTED:
+        _STARTED.pop()[0].shutdown(wait=False, cancel_futures=True)
+
+
+def _helper_init(png):
+    """The helper process: astropy and LSL kept offline as in the parent, and the imports its first
+    image would otherwise wait for made at once (they overlap the pipeline's start)."""
+    from ..station.offline import configure_offline
+    configure_offline()
+    import astropy.coordinates  # noqa: F401
+    from ..io import fits  # noqa: F401  (astropy.io.fits, astropy.wcs)
+    if png:
+        from ..io import quicklook  # noqa: F401  (matplotlib)
+
+
+def _helper_ready():
+    return []
 
 
 def _patch_png(path, frame, lm, products, t):

@@ -113,8 +113,6 @@ def main(argv=None):
     _setup_logging(args)
     if args.command == "replay":
         return _replay(args)
-    from ..station.offline import configure_offline
-    configure_offline()
     from .config import ConfigError, load_config
     try:
         overrides = list(args.overrides)
@@ -133,6 +131,13 @@ def main(argv=None):
     except (OSError, ValueError) as e:
         print(f"bf-epic: cannot read {args.file}: {e}", file=sys.stderr)
         return 2
+    helper = args.command == "run" and _writes_images_on_a_gpu(cfg)
+    if helper:
+        # the image writer's helper process (see ImageWriterBlock) starts now, beside this one's set-up
+        from ..blocks.image_writer import start_helper
+        start_helper(png=bool(cfg["output"]["png"]))
+    from ..station.offline import configure_offline
+    configure_offline()      # before anything imports lsl (the config above does not)
     try:
         if args.command == "validate":
             print(json.dumps(cfg, indent=2, default=str) if args.json else f"{args.file}: valid\n" + _yaml(cfg))
@@ -166,6 +171,17 @@ def main(argv=None):
             log.exception("failed")
         print(f"bf-epic: {args.command} failed: {e}", file=sys.stderr)
         return 1
+    finally:
+        if helper:
+            from ..blocks.image_writer import stop_helpers
+            stop_helpers()
+
+
+def _writes_images_on_a_gpu(cfg):
+    """Whether ``bf-epic run`` of ``cfg`` writes image files from a GPU pipeline (which does so through
+    the image writer's helper process)."""
+    out = cfg.get("output", {})
+    return str(cfg.get("device", "cpu")).startswith("gpu") and bool(out.get("fits") or out.get("png"))
 
 
 def _batch(args, cfg):

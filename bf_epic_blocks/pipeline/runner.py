@@ -388,10 +388,13 @@ def build_graph(cfg, progress=None):
         out = cfg["output"]
         writer = search = cube = None
         if out["fits"] or out["png"] or out["table"]:
+            # on a GPU the files are written by a helper process: astropy's per-image work would hold the
+            # interpreter lock the source and imager threads need (ImageWriterBlock's docstring)
             writer = ImageWriterBlock(imager, outdir, prefix=out["prefix"], fits=out["fits"], png=out["png"],
                                       table=out["table"], location=None,   # the header's station (this table), built in its thread
                                       pixels_fn=pixels if callable(pixels) else None,
-                                      run_index=block[2] if block and block[3] > 1 else None)
+                                      run_index=block[2] if block and block[3] > 1 else None,
+                                      processes=1 if dev in ("gpu", "gpus") else 0)
         if im.get("search"):
             from ..blocks.transient_search import TransientSearchBlock
             sc = im["search"]
@@ -444,7 +447,11 @@ def run(cfg, show_progress=None):
              "" if g.calfold is g.source else "calfold -> ", cfg["imager"]["kind"], g.outdir)
     try:
         g.pipeline.run()
+        if g.writer is not None:
+            g.writer.flush()        # files its helper process still writes
     finally:
+        if g.writer is not None:
+            g.writer.close()
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0
