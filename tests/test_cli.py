@@ -301,3 +301,30 @@ def test_a_failure_in_the_helper_process_fails_the_run_by_name(tmp_path, monkeyp
     _writer_in_a_helper(monkeypatch)
     with pytest.raises(Exception, match=r"rec_s00_i0001 failed in the helper process"):
         runner.run(load_config(y, ["device=cpu", f"output.dir={out}"]), show_progress=False)
+
+
+def test_a_helper_that_cannot_start_is_not_a_lost_image(tmp_path):
+    """A script without a ``__main__`` guard cannot spawn the writer's helper process (Python's spawn
+    re-runs the script in the child, which refuses): the images are then written in the writer's own
+    thread, every one, with a warning -- not a failed run."""
+    import subprocess
+    import sys
+    _small_tbf(tmp_path / "rec.tbf", ntime=900)
+    y = _recording_yaml(tmp_path, tmp_path / "rec.tbf")
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "from bf_epic_blocks.blocks import image_writer\n"
+        "from bf_epic_blocks.pipeline import runner\n"
+        "from bf_epic_blocks.pipeline.config import load_config\n"
+        "class Helped(image_writer.ImageWriterBlock):\n"
+        "    def __init__(self, *a, **k):\n"
+        "        k['processes'] = 1\n"
+        "        super().__init__(*a, **k)\n"
+        "image_writer.ImageWriterBlock = Helped\n"
+        f"s = runner.run(load_config({str(y)!r}, ['device=cpu']), show_progress=False)\n"
+        "print('files', len(s['files']), 'images', s['images'])\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600, cwd=str(tmp_path))
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "files 3 images 3" in out.stdout, (out.stdout, out.stderr[-2000:])
+    assert "the helper process ended" in out.stderr
+    assert sorted(p.name for p in (tmp_path / "out").glob("*.fits")) == [f"rec_s00_i000{i}.fits" for i in range(3)]

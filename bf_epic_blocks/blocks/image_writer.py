@@ -17,6 +17,7 @@ import logging
 import os
 import warnings
 from collections import deque
+from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
@@ -84,7 +85,7 @@ class ImageWriterBlock(bfp.SinkBlock):
         if processes:
             # one started ahead by start_helper (bf-epic run does, as soon as it has read the YAML), or a new one
             self._pool, ready = _STARTED.pop(0) if _STARTED else _new_helper(png)
-            self._pending.append(("(helper start)", ready))
+            self._pending.append(("(helper start)", ready, _helper_ready, None))
 
     def _hand_over(self, stem, fn, job):
         """Write ``fn(job)`` -> paths: here, or queued for the helper process (in order)."""
@@ -93,27 +94,42 @@ class ImageWriterBlock(bfp.SinkBlock):
             return
         while len(self._pending) >= self.MAX_PENDING:
             self._collect(self._pending[0])
+        if self._pool is None:      # the helper was lost while we waited: write here
+            self.written += fn(job)
+            return
         try:
             fut = self._pool.submit(fn, job)
-        except Exception as e:       # BrokenProcessPool: the helper died (an earlier image says why, if any)
-            self.flush()
-            raise RuntimeError(f"ImageWriterBlock: cannot hand {stem} to the helper process: "
-                               f"{type(e).__name__}: {e}") from e
-        self._pending.append((stem, fut))
-        while self._pending and self._pending[0][1].done():
+        except BrokenProcessPool:
+            self._pending.append((stem, None, fn, job))
+            self.flush()            # says why once, and writes what was queued here, in order
+            return
+        self._pending.append((stem, fut, fn, job))
+        while self._pending and self._pending[0][1] is not None and self._pending[0][1].done():
             self._collect(self._pending[0])
 
     def _collect(self, item):
-        stem, fut = item
+        """The oldest queued integration: its paths from the helper, or its error. A helper that cannot
+        start or dies (a script that spawns it without a ``__main__`` guard, a crash) is not a lost image:
+        that and every later queued integration are written here, with a warning."""
+        stem, fut, fn, job = item
+        self._pending.popleft()
+        if fut is None:
+            self.written += fn(job)
+            return
         try:
             paths = fut.result()
+        except BrokenProcessPool as e:
+            log.warning("ImageWriterBlock: the helper process ended (%s); images are written in this thread "
+                        "from %s on", e, stem)
+            self.close()
+            self.written += fn(job)
+            while self._pending:
+                self._collect(self._pending[0][:1] + (None,) + self._pending[0][2:])
+            return
         except Exception as e:
             self.close()
             raise RuntimeError(f"ImageWriterBlock: writing {stem} failed in the helper process: "
                                f"{type(e).__name__}: {e}") from e
-        finally:
-            if self._pending and self._pending[0] is item:
-                self._pending.popleft()
         self.written += paths or []
 
     def flush(self):
@@ -314,7 +330,7 @@ def _helper_init(png):
         from ..io import quicklook  # noqa: F401  (matplotlib)
 
 
-def _helper_ready():
+def _helper_ready(_=None):
     return []
 
 
