@@ -138,7 +138,10 @@ class ImageWriterBlock(bfp.SinkBlock):
             self._collect(self._pending[0])
 
     def close(self):
-        """Stop the helper process (after :meth:`flush`, or at once after an error); idempotent."""
+        """Stop the helper process (after :meth:`flush`, or at once after an error) and wait for it to
+        end: a helper left running when this process ends would never be told to stop, and would hold
+        this process's output streams open (a caller reading them to the end would wait for ever).
+        Idempotent."""
         pool, self._pool = self._pool, None
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
@@ -322,8 +325,12 @@ def stop_helpers():
 def _helper_init(png):
     """The helper process: astropy and LSL kept offline as in the parent, and the imports its first
     image would otherwise wait for made at once (they overlap the pipeline's start)."""
+    import atexit
     from ..station.offline import configure_offline
     configure_offline()
+    # once told to stop, the helper ends without its interpreter's teardown (astropy's and NumPy's modules,
+    # ~0.4 s): its files are closed by then, and its parent waits for it (ImageWriterBlock.close)
+    atexit.register(os._exit, 0)
     import astropy.coordinates  # noqa: F401
     from ..io import fits  # noqa: F401  (astropy.io.fits, astropy.wcs)
     if png:
