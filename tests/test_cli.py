@@ -283,6 +283,8 @@ def test_a_helper_process_writes_the_same_files(tmp_path, monkeypatch):
     image_writer.start_helper()               # started ahead, as bf-epic run does: the writer takes it
     helped = runner.run(load_config(y, ["device=cpu", f"output.dir={tmp_path / 'helped'}"]), show_progress=False)
     assert not image_writer._STARTED
+    import multiprocessing
+    assert not multiprocessing.active_children()      # the helper has ended: none left holding our streams
     assert own["images"] == helped["images"] == 4
     names = [Path(f).name for f in own["files"]]
     assert names == [Path(f).name for f in helped["files"]] and len(names) == 4
