@@ -81,40 +81,62 @@ class ImageWriterBlock(bfp.SinkBlock):
         self.frames = 0
         if processes not in (0, 1):
             raise ValueError(f"ImageWriterBlock: processes must be 0 or 1, got {processes!r}")
-        self._pool, self._pending = None, deque()
+        self._pool, self._ready, self._pending = None, None, deque()
+        self.helper_files = 0     # of ``written``, the files the helper process wrote
         if processes:
             # one started ahead by start_helper (bf-epic run does, as soon as it has read the YAML), or a new one
-            self._pool, ready = _STARTED.pop(0) if _STARTED else _new_helper(png)
-            self._pending.append(("(helper start)", ready, _helper_ready, None))
+            self._pool, self._ready = _STARTED.pop(0) if _STARTED else _new_helper(png)
+
+    def _write_here(self, stem, fn, job):
+        try:
+            self.written += fn(job)
+        except Exception as e:
+            raise RuntimeError(f"ImageWriterBlock: writing {stem} failed: {type(e).__name__}: {e}") from e
+
+    def _helper_up(self):
+        """True once the helper process has started (and from then on); False while it is still starting,
+        or when it could not start (a script that spawns it without a ``__main__`` guard, a crash): its
+        images are then written here, with a warning -- not lost."""
+        if self._pool is None:
+            return False
+        if self._ready is not None:
+            if not self._ready.done():
+                return False
+            try:
+                self._ready.result()
+            except Exception as e:  # noqa: BLE001 - BrokenProcessPool, or the initializer's own error
+                log.warning("ImageWriterBlock: the helper process could not start (%s: %s); images are written "
+                            "in the writer's thread", type(e).__name__, e)
+                self.close()
+                return False
+            self._ready = None
+        return True
 
     def _hand_over(self, stem, fn, job):
-        """Write ``fn(job)`` -> paths: here, or queued for the helper process (in order)."""
-        if self._pool is None:
-            self.written += fn(job)
+        """Write ``fn(job)`` -> paths: queued for the helper process once it has started (in order), else here
+        (so a short run does not wait for the helper's start, ~1.5 s)."""
+        if not self._pending and not self._helper_up():
+            self._write_here(stem, fn, job)
             return
         while len(self._pending) >= self.MAX_PENDING:
             self._collect(self._pending[0])
-        if self._pool is None:      # the helper was lost while we waited: write here
-            self.written += fn(job)
-            return
         try:
-            fut = self._pool.submit(fn, job)
+            fut = self._pool.submit(fn, job) if self._pool is not None else None
         except BrokenProcessPool:
-            self._pending.append((stem, None, fn, job))
-            self.flush()            # says why once, and writes what was queued here, in order
-            return
+            fut = None
         self._pending.append((stem, fut, fn, job))
+        if fut is None:
+            self.flush()            # the helper is gone: what was queued is written here, in order
         while self._pending and self._pending[0][1] is not None and self._pending[0][1].done():
             self._collect(self._pending[0])
 
     def _collect(self, item):
-        """The oldest queued integration: its paths from the helper, or its error. A helper that cannot
-        start or dies (a script that spawns it without a ``__main__`` guard, a crash) is not a lost image:
-        that and every later queued integration are written here, with a warning."""
+        """The oldest queued integration: its paths from the helper, or its error. A helper that dies is
+        not a lost image: that and every later queued integration are written here, with a warning."""
         stem, fut, fn, job = item
         self._pending.popleft()
         if fut is None:
-            self.written += fn(job)
+            self._write_here(stem, fn, job)
             return
         try:
             paths = fut.result()
@@ -122,7 +144,7 @@ class ImageWriterBlock(bfp.SinkBlock):
             log.warning("ImageWriterBlock: the helper process ended (%s); images are written in this thread "
                         "from %s on", e, stem)
             self.close()
-            self.written += fn(job)
+            self._write_here(stem, fn, job)
             while self._pending:
                 self._collect(self._pending[0][:1] + (None,) + self._pending[0][2:])
             return
@@ -131,6 +153,7 @@ class ImageWriterBlock(bfp.SinkBlock):
             raise RuntimeError(f"ImageWriterBlock: writing {stem} failed in the helper process: "
                                f"{type(e).__name__}: {e}") from e
         self.written += paths or []
+        self.helper_files += len(paths or [])
 
     def flush(self):
         """Wait until every integration handed to the helper process is written."""
@@ -140,11 +163,12 @@ class ImageWriterBlock(bfp.SinkBlock):
     def close(self):
         """Stop the helper process (after :meth:`flush`, or at once after an error) and wait for it to
         end: a helper left running when this process ends would never be told to stop, and would hold
-        this process's output streams open (a caller reading them to the end would wait for ever).
-        Idempotent."""
+        this process's output streams open (a caller reading them to the end would wait for ever). One
+        still starting is stopped at once. Idempotent."""
         pool, self._pool = self._pool, None
+        ready, self._ready = self._ready, None
         if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+            _stop(pool, starting=ready is not None and not ready.done())
 
     def on_sequence_end(self, iseq):
         self.flush()
@@ -307,7 +331,7 @@ def _new_helper(png):
     # spawn, not fork: the parent has threads and a CUDA context
     pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_helper_init,
                                initargs=(bool(png),))
-    return pool, pool.submit(_helper_ready)
+    return pool, pool.submit(_helper_ready)   # done when the helper has started and imported
 
 
 def start_helper(png=False):
@@ -319,7 +343,20 @@ def start_helper(png=False):
 def stop_helpers():
     """Stop helper processes started ahead and not taken by a writer."""
     while _STARTED:
-        _STARTED.pop()[0].shutdown(wait=False, cancel_futures=True)
+        pool, ready = _STARTED.pop()
+        _stop(pool, starting=not ready.done())
+
+
+def _stop(pool, starting):
+    """Shut a helper pool down and wait for its process to end; one still starting (importing) is
+    terminated rather than waited for."""
+    if starting:
+        for proc in list(getattr(pool, "_processes", {}).values()):   # (no public way to stop a worker)
+            proc.terminate()
+    try:
+        pool.shutdown(wait=True, cancel_futures=True)
+    except Exception as e:  # noqa: BLE001 - a terminated worker breaks the pool: nothing left to do
+        log.debug("helper pool shutdown: %s", e)
 
 
 def _helper_init(png):
