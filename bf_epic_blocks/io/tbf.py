@@ -255,7 +255,28 @@ def _open_frames(path) -> tuple[np.memmap | np.ndarray, dict]:
                     first_chan0=int(h["first_chan"]))
 
 
-def scan_tbf(path, *, chunk_frames: int = 65536, warn: bool = True) -> TBFInfo:
+def release_rows(mm, i0, i1):
+    """Unmap rows [i0, i1) of a file memory map from this process (``madvise(MADV_DONTNEED)``; the
+    kernel keeps them in its page cache): without it every page a pass touched would stay in the
+    process's resident set, so a run's memory would grow with the file's length (a 30-s, 9.3-GB TBF
+    recording held 9.3 GB resident after the header pass). No-op where the call is missing."""
+    import mmap as _mmap
+    m = getattr(mm, "_mmap", None)
+    advice = getattr(_mmap, "MADV_DONTNEED", None)
+    if m is None or advice is None or i1 <= i0:
+        return
+    fb = mm.shape[1] if mm.ndim == 2 else 1
+    page = _mmap.PAGESIZE
+    base = int(mm.offset) if hasattr(mm, "offset") else 0
+    a = (base + i0 * fb) // page * page          # whole pages (a page shared with the next row goes too:
+    b = min(len(m), base + i1 * fb)              # it is mapped again, from the page cache, if read again)
+    try:
+        m.madvise(advice, a, b - a)
+    except (OSError, ValueError):
+        pass
+
+
+def scan_tbf(path, *, chunk_frames: int = 8192, warn: bool = True) -> TBFInfo:
     """Header pass: validate every complete frame and find the (time tag, channel block) grid.
 
     Raises TBFError (with the byte offset) for a bad sync word, a frame id or stand count unlike
@@ -267,6 +288,7 @@ def scan_tbf(path, *, chunk_frames: int = 65536, warn: bool = True) -> TBFInfo:
     for i0 in range(0, nframe, chunk_frames):
         i1 = min(nframe, i0 + chunk_frames)
         h = np.ascontiguousarray(mm[i0:i1, :HEADER_BYTES]).view(_HEADER_DTYPE).ravel()
+        release_rows(mm, i0, i1)
         problems = []
         bad = np.flatnonzero(h["sync"] != SYNC_WORD)
         if bad.size:
@@ -366,6 +388,7 @@ def _gather(mm, info, frames: np.ndarray, t0: int, t1: int, prev_tag, header_byt
     frames, ti, bi = frames[keep], ti[keep], bi[keep]
     if frames.size:
         payload = np.asarray(mm[frames, header_bytes:])  # fancy index: reads only these frames
+        release_rows(mm, int(frames.min()), int(frames.max()) + 1)
         out[ti, bi] = payload.reshape(len(frames), nc, ns, 2)
     tags, stats = _gulp_stats(info, t0, t1, prev_tag, len(frames), nt * nb, len(cell) - len(keep))
     return data_cls(data=out.reshape(nt, nb * nc, ns, 2), time_tags=tags.copy(),

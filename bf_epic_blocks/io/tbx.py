@@ -46,7 +46,7 @@ from typing import Iterator, NamedTuple
 import numpy as np
 
 from .formats import SYNC_WORD, CaptureGrid
-from .tbf import FS_HZ, TBFData, _check_gulp, _iter_gulps
+from .tbf import FS_HZ, TBFData, _check_gulp, _iter_gulps, release_rows
 
 __all__ = ["TBXData", "TBXInfo", "TBXError", "TBXWarning", "TBXFrame", "TBXHeader", "read_tbx", "iter_tbx_gulps",
            "scan_tbx", "parse_tbx_frame", "parse_tbx_header", "tbx_frame_bytes", "pack_tbx_frame", "write_tbx",
@@ -263,7 +263,7 @@ def _open_frames(path):
     return mm, h0, dict(path=path, frame_bytes=fb, nframe=nframe, truncated=size - nframe * fb)
 
 
-def scan_tbx(path, *, chunk_frames: int = 65536, warn: bool = True) -> TBXInfo:
+def scan_tbx(path, *, chunk_frames: int = 8192, warn: bool = True) -> TBXInfo:
     """Header pass: validate every complete frame and find the (time tag, channel block) grid.
 
     Raises TBXError (with the byte offset) for a bad sync word, a frame id other than 8, a stand or
@@ -276,6 +276,7 @@ def scan_tbx(path, *, chunk_frames: int = 65536, warn: bool = True) -> TBXInfo:
     for i0 in range(0, nframe, chunk_frames):
         i1 = min(nframe, i0 + chunk_frames)
         h = np.ascontiguousarray(mm[i0:i1, :HEADER_BYTES]).view(HEADER_DTYPE).ravel()
+        release_rows(mm, i0, i1)
         problems = []
         bad = np.flatnonzero(h["sync"] != SYNC_WORD)
         if bad.size:
