@@ -362,3 +362,10 @@ def test_a_short_run_does_not_wait_for_the_helper(tmp_path, monkeypatch):
     assert time.perf_counter() - t0 < 20
     assert s["images"] == 2 and len(s["files"]) == 2 and made[0].helper_files == 0
     assert not multiprocessing.active_children()
+
+
+@pytest.mark.parametrize("bad", [2, -1, "1", True])
+def test_image_writer_processes_is_checked(bad):
+    from bf_epic_blocks.blocks.image_writer import ImageWriterBlock
+    with pytest.raises(ValueError, match="processes must be 0 or 1"):
+        ImageWriterBlock(None, "/tmp/unused", processes=bad)

@@ -72,6 +72,8 @@ class ImageWriterBlock(bfp.SinkBlock):
 
     def __init__(self, iring, outdir, prefix="image", fits=True, png=True, table=False, location=None,
                  label_sources=True, pixels_fn=None, *args, run_index=None, processes=0, **kwargs):
+        if isinstance(processes, bool) or processes not in (0, 1):
+            raise ValueError(f"ImageWriterBlock: processes must be 0 or 1, got {processes!r}")
         super().__init__(iring, *args, **kwargs)
         self.outdir, self.prefix = str(outdir), prefix
         self.do_fits, self.do_png, self.do_table = fits, png, table
@@ -79,8 +81,6 @@ class ImageWriterBlock(bfp.SinkBlock):
         self.run_index = run_index
         self.written = []
         self.frames = 0
-        if processes not in (0, 1):
-            raise ValueError(f"ImageWriterBlock: processes must be 0 or 1, got {processes!r}")
         self._pool, self._ready, self._pending = None, None, deque()
         self.helper_files = 0     # of ``written``, the files the helper process wrote
         if processes:
