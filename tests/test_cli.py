@@ -369,3 +369,21 @@ def test_image_writer_processes_is_checked(bad):
     from bf_epic_blocks.blocks.image_writer import ImageWriterBlock
     with pytest.raises(ValueError, match="processes must be 0 or 1"):
         ImageWriterBlock(None, "/tmp/unused", processes=bad)
+
+
+def test_a_writer_that_cannot_have_a_helper_writes_itself(tmp_path, monkeypatch, caplog):
+    """Where no process can be started (a daemonic Dask worker may not have children) the writer says so
+    and writes every image in its own thread."""
+    from bf_epic_blocks.blocks import image_writer
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    made = _writer_in_a_helper(monkeypatch)
+
+    def no_children(png):
+        raise AssertionError("daemonic processes are not allowed to have children")
+    monkeypatch.setattr(image_writer, "_new_helper", no_children)
+    y = _recording_yaml(tmp_path, _small_tbf(tmp_path / "rec.tbf", ntime=600))
+    with caplog.at_level("WARNING"):
+        s = runner.run(load_config(y, ["device=cpu"]), show_progress=False)
+    assert s["images"] == 2 and len(s["files"]) == 2 and made[0].helper_files == 0
+    assert "no helper process (AssertionError" in caplog.text

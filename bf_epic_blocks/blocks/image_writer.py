@@ -85,7 +85,11 @@ class ImageWriterBlock(bfp.SinkBlock):
         self.helper_files = 0     # of ``written``, the files the helper process wrote
         if processes:
             # one started ahead by start_helper (bf-epic run does, as soon as it has read the YAML), or a new one
-            self._pool, self._ready = _STARTED.pop(0) if _STARTED else _new_helper(png)
+            try:
+                self._pool, self._ready = _STARTED.pop(0) if _STARTED else _new_helper(png)
+            except Exception as e:  # noqa: BLE001 - e.g. inside a daemonic process (a Dask worker), which may not fork
+                log.warning("ImageWriterBlock: no helper process (%s: %s); images are written in the writer's "
+                            "thread", type(e).__name__, e)
 
     def _write_here(self, stem, fn, job):
         try:
@@ -331,7 +335,11 @@ def _new_helper(png):
     # spawn, not fork: the parent has threads and a CUDA context
     pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_helper_init,
                                initargs=(bool(png),))
-    return pool, pool.submit(_helper_ready)   # done when the helper has started and imported
+    try:
+        return pool, pool.submit(_helper_ready)   # done when the helper has started and imported
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
 
 
 def start_helper(png=False):

@@ -135,7 +135,10 @@ def main(argv=None):
     if helper:
         # the image writer's helper process (see ImageWriterBlock) starts now, beside this one's set-up
         from ..blocks.image_writer import start_helper
-        start_helper(png=bool(cfg["output"]["png"]))
+        try:
+            start_helper(png=bool(cfg["output"]["png"]))
+        except Exception as e:  # noqa: BLE001 - the writer then starts its own, or writes in its thread
+            log.debug("image writer helper not started ahead: %s", e)
     from ..station.offline import configure_offline
     configure_offline()      # before anything imports lsl (the config above does not)
     try:
