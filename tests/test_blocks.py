@@ -390,3 +390,23 @@ def test_the_runner_warms_a_live_imager_before_its_socket_opens(sets):
     yml = Path(__file__).resolve().parents[1] / "pipelines" / "lwasv_udp_live.yaml"
     cfg = load_config(yml, ["device=gpu", "imager.grid.size=16", "imager.accumulate_frames=64", *sets])
     assert warm_live_imager(cfg, load_station("lwasv")) > 0
+
+
+def test_header_values_become_plain_json():
+    """efield_header turns NumPy arrays and scalars (at any depth, in lists and tuples too) into the
+    Python values JSON writes, and leaves plain values as they are (the fast path for lists of them)."""
+    import json
+    from bf_epic_blocks.blocks.headers import efield_header
+    station = {"xyz_m": np.arange(6.0).reshape(2, 3), "flags": [[False, np.bool_(True)], (True, False)],
+               "cable_delay_s": [[[1e-9, 2e-9], [np.float32(3e-9), 4e-9]], [[5e-9, 6e-9], [7e-9, 8e-9]]],
+               "stand_ids": np.array([7, 9], np.int16), "name": "x", "lat_deg": np.float64(34.1)}
+    hdr = efield_header("h", 0, [60e6, 60.025e6], 4e-5, station, extra=(np.int64(3), [np.float32(0.5)]))
+    st = hdr["station"]
+    assert st["xyz_m"] == [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0]] and type(st["xyz_m"][1][2]) is float
+    assert st["flags"] == [[False, True], [True, False]] and type(st["flags"][0][1]) is bool
+    assert type(st["flags"][1]) is list
+    assert st["cable_delay_s"][0][1][0] == float(np.float32(3e-9)) and type(st["cable_delay_s"][0][1][0]) is float
+    assert st["stand_ids"] == [7, 9] and type(st["stand_ids"][0]) is int
+    assert type(st["lat_deg"]) is float and st["lat_deg"] == 34.1
+    assert hdr["extra"] == [3, [0.5]] and type(hdr["extra"][0]) is int
+    assert json.loads(json.dumps(hdr)) == hdr
