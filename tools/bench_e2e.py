@@ -12,6 +12,9 @@ Rows (each `bf-epic run` is a subprocess, timed from outside, as a user would se
 * simulated: `pipelines/lwasv_sim_allsky.yaml` (2 s, 16 channels), the same measures.
 * recording from disk: the last precision again after the file's pages are dropped from the page
   cache (``posix_fadvise(DONTNEED)``), so it is read from the disk.
+* memory against length: the first 20% of the file as its own recording, and (``long``) a recording
+  ``--long-factor`` times as long (default 3: 30 s, 9.25 GB), with its peak resident set over the
+  short one's; the long row also shows the sustained rate once start-up is spread thinner.
 * start-up: the first of those runs with CuPy's kernel cache pointed at an empty folder
   (`CUPY_CACHE_DIR`): seconds to the first image file, and the whole run.
 * source alone: the simulated sky's generator (`sky.fastsim.make_gulp`) for 16, 24 and 784
@@ -23,7 +26,8 @@ Rows (each `bf-epic run` is a subprocess, timed from outside, as a user would se
 
 usage: python tools/bench_e2e.py [--device gpu|cpu] [--seconds 10] [--nchan 24] [--precisions fp16,fp32]
                                  [--gulps auto,1024,5000]
-                                 [--skip recording,tbx,simulated,startup,source,core] [--json PATH]
+                                 [--long-factor 3] [--skip recording,long,tbx,simulated,startup,source,core]
+                                 [--json PATH]
 """
 from __future__ import annotations
 
@@ -282,6 +286,8 @@ def main(argv=None):
     ap.add_argument("--gulps", default="auto,1024,5000",
                     help="source.gulp_nframe values for the recordings (the first is the main row: auto, the default)")
     ap.add_argument("--workdir", default=None, help="where the recording is written (default: a temp folder)")
+    ap.add_argument("--long-factor", type=float, default=3.0,
+                    help="the 'long' row: a recording this many times --seconds (0 or 1: none)")
     ap.add_argument("--skip", default="", help="comma list of rows to leave out")
     ap.add_argument("--json")
     a = ap.parse_args(argv)
@@ -349,6 +355,20 @@ def main(argv=None):
         show(f"recording {a.seconds / 5:g} s (peak memory)", res["recording_short"])
         short.unlink()
         tbf.unlink()
+        if "long" not in skip and a.long_factor > 1:
+            # a longer recording: the sustained rate once start-up is spread thinner, and peak memory
+            # against length (it must not grow with the file)
+            long_s = a.seconds * a.long_factor
+            longf = work / "long.tbf"
+            nb, wt = write_recording(longf, long_s, a.nchan, seed=2)
+            print(f"wrote {longf}: {nb / 1e9:.2f} GB in {wt:.1f} s", flush=True)
+            recording_yaml(work / "long.yaml", longf, work / "rec", a.device, prec, gulp=gulps[0])
+            res["recording_long"] = run_cli(work / "long.yaml", long_s, work / "rec")
+            res["recording_long"]["bytes"] = nb
+            res["recording_long"]["peak_rss_vs_short"] = (res["recording_long"]["peak_rss_mb"]
+                                                          / res["recording_short"]["peak_rss_mb"])
+            show(f"recording {long_s:g} s, {prec}, gulp {gulps[0]}", res["recording_long"])
+            longf.unlink()
     if "tbx" not in skip:
         tbx = work / "recording.tbx"
         nbytes, wt = write_recording(tbx, a.seconds, a.nchan, fmt="tbx")
