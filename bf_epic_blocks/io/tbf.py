@@ -267,7 +267,8 @@ def release_rows(mm, i0, i1):
         return
     fb = mm.shape[1] if mm.ndim == 2 else 1
     page = _mmap.PAGESIZE
-    base = int(mm.offset) if hasattr(mm, "offset") else 0
+    # where the array starts in the mapping (NumPy maps from the offset rounded down to the granularity)
+    base = int(getattr(mm, "offset", 0)) % _mmap.ALLOCATIONGRANULARITY
     a = (base + i0 * fb) // page * page          # whole pages (a page shared with the next row goes too:
     b = min(len(m), base + i1 * fb)              # it is mapped again, from the page cache, if read again)
     try:
