@@ -124,40 +124,45 @@ class ImageWriterBlock(bfp.SinkBlock):
             return
         while len(self._pending) >= self.MAX_PENDING:
             self._collect(self._pending[0])
+        # the frame is a view of the span, which the ring reuses once on_data returns; the helper's
+        # pickling happens later, on the pool's own thread
+        job = dict(job, frame=np.array(job["frame"]))
         try:
-            fut = self._pool.submit(fn, job) if self._pool is not None else None
-        except BrokenProcessPool:
-            fut = None
+            fut = self._pool.submit(fn, job)
+        except BrokenProcessPool as e:
+            self._pending.append((stem, None, fn, job))
+            self._helper_lost(e, stem)
+            return
         self._pending.append((stem, fut, fn, job))
-        if fut is None:
-            self.flush()            # the helper is gone: what was queued is written here, in order
-        while self._pending and self._pending[0][1] is not None and self._pending[0][1].done():
+        while self._pending and self._pending[0][1].done():
             self._collect(self._pending[0])
 
     def _collect(self, item):
-        """The oldest queued integration: its paths from the helper, or its error. A helper that dies is
-        not a lost image: that and every later queued integration are written here, with a warning."""
+        """The oldest queued integration: its paths from the helper, or its error."""
         stem, fut, fn, job = item
-        self._pending.popleft()
-        if fut is None:
-            self._write_here(stem, fn, job)
-            return
         try:
             paths = fut.result()
         except BrokenProcessPool as e:
-            log.warning("ImageWriterBlock: the helper process ended (%s); images are written in this thread "
-                        "from %s on", e, stem)
-            self.close()
-            self._write_here(stem, fn, job)
-            while self._pending:
-                self._collect(self._pending[0][:1] + (None,) + self._pending[0][2:])
+            self._helper_lost(e, stem)
             return
         except Exception as e:
+            self._pending.popleft()
             self.close()
             raise RuntimeError(f"ImageWriterBlock: writing {stem} failed in the helper process: "
                                f"{type(e).__name__}: {e}") from e
+        self._pending.popleft()
         self.written += paths or []
         self.helper_files += len(paths or [])
+
+    def _helper_lost(self, err, stem):
+        """A helper that died is not a lost image: every integration still queued (from ``stem`` on) is
+        written here, and so is every later one, with a warning."""
+        log.warning("ImageWriterBlock: the helper process ended (%s); images are written in this thread "
+                    "from %s on", err, stem)
+        self.close()
+        while self._pending:
+            s, _, fn, job = self._pending.popleft()
+            self._write_here(s, fn, job)
 
     def flush(self):
         """Wait until every integration handed to the helper process is written."""
@@ -382,7 +387,7 @@ def _helper_init(png):
         from ..io import quicklook  # noqa: F401  (matplotlib)
 
 
-def _helper_ready(_=None):
+def _helper_ready():
     return []
 
 

@@ -131,7 +131,10 @@ def main(argv=None):
     except (OSError, ValueError) as e:
         print(f"bf-epic: cannot read {args.file}: {e}", file=sys.stderr)
         return 2
-    helper = args.command == "run" and _writes_images_on_a_gpu(cfg)
+    helper = False
+    if args.command == "run":
+        from .runner import writes_through_helper
+        helper = writes_through_helper(cfg)
     if helper:
         # the image writer's helper process (see ImageWriterBlock) starts now, beside this one's set-up
         from ..blocks.image_writer import start_helper
@@ -178,13 +181,6 @@ def main(argv=None):
         if helper:
             from ..blocks.image_writer import stop_helpers
             stop_helpers()
-
-
-def _writes_images_on_a_gpu(cfg):
-    """Whether ``bf-epic run`` of ``cfg`` writes image files from a GPU pipeline (which does so through
-    the image writer's helper process)."""
-    out = cfg.get("output", {})
-    return str(cfg.get("device", "cpu")).startswith("gpu") and bool(out.get("fits") or out.get("png"))
 
 
 def _batch(args, cfg):

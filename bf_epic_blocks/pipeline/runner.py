@@ -260,6 +260,15 @@ def gulp_frames(cfg, dev, nchan=None, nstand=None):
     return n
 
 
+def writes_through_helper(cfg):
+    """Whether the image writer of ``cfg`` writes its grid images through a helper process: on a GPU
+    (astropy's per-image work would hold the interpreter lock the source and imager threads share; see
+    ImageWriterBlock), when there are FITS or PNG grid images to write."""
+    out, im = cfg["output"], cfg["imager"]
+    return (str(cfg["device"]).startswith("gpu") and bool(out["fits"] or out["png"])
+            and im.get("track") is None)
+
+
 def build_graph(cfg, progress=None):
     """Blocks for ``cfg`` inside a new Pipeline (not yet run)."""
     from ..blocks import CalFoldBlock, DFTImagerBlock, bfp
@@ -394,7 +403,7 @@ def build_graph(cfg, progress=None):
                                       table=out["table"], location=None,   # the header's station (this table), built in its thread
                                       pixels_fn=pixels if callable(pixels) else None,
                                       run_index=block[2] if block and block[3] > 1 else None,
-                                      processes=1 if dev in ("gpu", "gpus") else 0)
+                                      processes=1 if writes_through_helper(cfg) else 0)
         if im.get("search"):
             from ..blocks.transient_search import TransientSearchBlock
             sc = im["search"]
