@@ -78,33 +78,69 @@ def _as_freqs(freq_hz, xp):
     return f
 
 
+def _checked_geometry(xyz_m, freq_hz, pixels_lm):
+    """Positions, frequencies and pixels checked and ``n`` formed on the host (small arrays; on a GPU
+    each check would be a kernel to compile on a machine with an empty kernel cache, ~0.1-0.2 s each):
+    (xyz (nant, 3), f (nchan,), lm (npix, 2), n (npix,)) as float64 NumPy arrays."""
+    xyz = _as_positions(to_numpy(xyz_m), np)
+    f = _as_freqs(to_numpy(freq_hz), np)
+    lm = check_lm(to_numpy(pixels_lm))
+    return xyz, f, lm, n_from_lm(lm[:, 0], lm[:, 1])
+
+
+def _path_m(xyz, lm, n):
+    """Path difference (metres) for each pixel-antenna pair, float64 (npix, nant)."""
+    return lm[:, 0:1] * xyz[None, :, 0] + lm[:, 1:2] * xyz[None, :, 1] + n[:, None] * xyz[None, :, 2]
+
+
 def geometric_phase_cycles(xyz_m, freq_hz, pixels_lm):
     """Fractional phase in cycles, reduced to [-0.5, 0.5]: nu/c * (s_k . r_a), float64.
 
-    Shapes: xyz_m (nant, 3), freq_hz (nchan,), pixels_lm (npix, 2) -> (nchan, npix, nant).
-    The reduction happens in float64 before any cast, which is what keeps fp32 exact near the
-    horizon and on long baselines.
+    Shapes: xyz_m (nant, 3), freq_hz (nchan,), pixels_lm (npix, 2) -> (nchan, npix, nant), on the
+    device of ``xyz_m``/``pixels_lm``. The reduction happens in float64 before any cast, which is
+    what keeps fp32 exact near the horizon and on long baselines.
     """
     xp = get_xp(xyz_m, pixels_lm)
-    xyz = _as_positions(xyz_m, xp)
-    f = _as_freqs(freq_hz, xp)
-    lm = check_lm(pixels_lm)
-    n = n_from_lm(lm[:, 0], lm[:, 1])
-    # Path difference (metres) for each pixel-antenna pair, float64.
-    path = lm[:, 0:1] * xyz[None, :, 0] + lm[:, 1:2] * xyz[None, :, 1] + n[:, None] * xyz[None, :, 2]
-    cyc = (f[:, None, None] / SPEED_OF_LIGHT_M_S) * path[None]
+    xyz, f, lm, n = _checked_geometry(xyz_m, freq_hz, pixels_lm)
+    path = xp.asarray(_path_m(xyz, lm, n))
+    cyc = xp.asarray(f[:, None, None] / SPEED_OF_LIGHT_M_S) * path[None]
     cyc -= xp.rint(cyc)
     return cyc
+
+
+#: G from the path on a GPU in one kernel: the same float64 steps as :func:`geometric_operator`'s
+#: array form (cycles = nu/c * path, minus rint, times 2 pi: 6.283185307179586 is 2.0 * math.pi),
+#: then cos/sin in the operator's type
+_GEOM_SRC = {
+    "complex64": ("float64 path, float64 fc, float32 sig", "complex64 out",
+                  "double cyc = fc * path; cyc -= rint(cyc); const float a = (float)(6.283185307179586 * cyc);"
+                  "out = complex<float>(cosf(a), sinf(a) * sig);"),
+    "complex128": ("float64 path, float64 fc, float64 sig", "complex128 out",
+                   "double cyc = fc * path; cyc -= rint(cyc); const double a = 6.283185307179586 * cyc;"
+                   "out = complex<double>(cos(a), sin(a) * sig);"),
+}
+_GEOM_KERNELS = {}
 
 
 def geometric_operator(xyz_m, freq_hz, pixels_lm, precision="fp32"):
     """G[c, k, a] = exp(-SIGMA 2 pi i nu_c (s_k . r_a) / c), complex (nchan, npix, nant).
 
     Unnormalised and unweighted; trigonometry after the float64 range reduction (fp32 for
-    precision "fp32": the argument is already within [-pi, pi], so this is exact to fp32).
+    precision "fp32": the argument is already within [-pi, pi], so this is exact to fp32). On a GPU
+    the whole (nchan, npix, nant) array is one kernel (one compile on a new machine, not eight).
     """
     rdt, cdt = _check_precision(precision)
     xp = get_xp(xyz_m, pixels_lm)
+    if xp.__name__ == "cupy":
+        xyz, f, lm, n = _checked_geometry(xyz_m, freq_hz, pixels_lm)
+        key = np.dtype(cdt).name
+        if key not in _GEOM_KERNELS:
+            _GEOM_KERNELS[key] = xp.ElementwiseKernel(*_GEOM_SRC[key], f"bf_geometric_{key}")
+        path = xp.asarray(_path_m(xyz, lm, n))[None]
+        fc = xp.asarray(f / SPEED_OF_LIGHT_M_S)[:, None, None]
+        out = xp.empty((f.shape[0], lm.shape[0], xyz.shape[0]), dtype=cdt)
+        _GEOM_KERNELS[key](path, fc, float(-SIGMA), out)
+        return out
     ang = (2.0 * math.pi) * geometric_phase_cycles(xyz_m, freq_hz, pixels_lm)
     ang = ang.astype(rdt, copy=False)
     out = xp.empty(ang.shape, dtype=cdt)
@@ -218,54 +254,63 @@ class DFTOperator:
         self.rdtype, self.cdtype = check_precision(precision, xp)
         self.precision = precision
         self.xp = xp
-        xyz = _as_positions(xyz_m, xp)
-        f = _as_freqs(freq_hz, xp)
-        lm = check_lm(xp.asarray(pixels_lm))
+        # The bookkeeping below (checks, flags, indices, norms) is on small arrays and runs on the host;
+        # its results go to the operator's device at the end. On a GPU each of these steps would be a
+        # kernel of its own, and on a machine with an empty kernel cache each kernel costs a ~0.1-0.2 s
+        # compile: ~30 of them were ~4 s of a cold first image (H100, 2026-11-25).
+        hxyz, hf, hlm, _ = _checked_geometry(xyz_m, freq_hz, pixels_lm)
         if npol not in (1, 2):
             raise ValueError(f"npol must be 1 or 2, got {npol}")
-        nchan, nant_in, npix = int(f.shape[0]), int(xyz.shape[0]), int(lm.shape[0])
+        nchan, nant_in, npix = int(hf.shape[0]), int(hxyz.shape[0]), int(hlm.shape[0])
         self.nchan, self.npol, self.npix, self.nant_in = nchan, npol, npix, nant_in
-        self.freq_hz, self.pixels_lm = f, lm
+        self.freq_hz, self.pixels_lm = xp.asarray(hf), xp.asarray(hlm)
+        f, lm = self.freq_hz, self.pixels_lm
 
-        w = _broadcast_weights(weights, nchan, nant_in, npol, xp)
+        w = _broadcast_weights(None if weights is None else to_numpy(weights), nchan, nant_in, npol, np)
         live = w != 0
-        keep = xp.any(live, axis=(0, 2))
-        self.keep_index = xp.flatnonzero(keep)
-        self.all_kept = int(self.keep_index.shape[0]) == nant_in
-        self.nant = int(self.keep_index.shape[0])
+        keep_index = np.flatnonzero(live.any(axis=(0, 2)))
+        self.all_kept = int(keep_index.shape[0]) == nant_in
+        self.nant = int(keep_index.shape[0])
         if self.nant == 0:
             raise ValueError("every antenna is flagged (all weights are 0): there is nothing to image")
-        w = w[:, self.keep_index, :]
-        live = live[:, self.keep_index, :]
+        w = w[:, keep_index, :]
+        live = live[:, keep_index, :]
         n_live = live.sum(axis=1)  # (nchan, npol): N_A per channel and pol
-        self.n_live = n_live
-        self.dead = n_live == 0
-        self.any_dead = host_any(self.dead)  # host flag: result() needs no device sync per image
+        dead = n_live == 0
+        self.any_dead = bool(dead.any())  # host flag: result() needs no device sync per image
         if self.any_dead:
             log.warning("%d channel-pol combinations have every antenna flagged; their images are NaN",
-                        int(self.dead.sum()))
+                        int(dead.sum()))
         # Channels with every antenna of every pol flagged cost nothing: they are left out of the
         # GEMMs and come back as NaN images.
-        chan_live = ~xp.all(self.dead, axis=1)
-        self.chan_index = None if host_all(chan_live) else xp.flatnonzero(chan_live)
-        if self.chan_index is not None and int(self.chan_index.shape[0]) == 0:
+        chan_live = ~dead.all(axis=1)
+        chan_index = None if chan_live.all() else np.flatnonzero(chan_live)
+        if chan_index is not None and int(chan_index.shape[0]) == 0:
             raise ValueError("every channel has every antenna flagged: there is nothing to image")
-        # 1/N_A is applied to the image (norm), not to the data, so that integer voltages with
-        # unit weights stay integers (exact in fp16/tf32 and in integer covariances).
-        self.norm = xp.where(self.dead, 0.0, 1.0 / xp.maximum(n_live, 1))       # (nchan, npol) float64
-        self.data_weights = w.astype(self.cdtype)                                # (nchan, nant, npol)
-        self.weights128 = w                                                      # for integer covariances
-        self.data_live = live
-        self.partial_flags = not host_all(live)
-        self.unit_weights = host_all((w == 0) | (w == 1))
-        self.xyz_m = xyz[self.keep_index]
-        live_sel = live if self.chan_index is None else live[self.chan_index]
-        self.sel = _Selection(xp, self.chan_index, None if self.all_kept else self.keep_index,
-                              live_sel if self.partial_flags else None, nchan, nant_in)
+        self.partial_flags = not bool(live.all())
+        self.unit_weights = bool(((w == 0) | (w == 1)).all())
+        live_sel = live if chan_index is None else live[chan_index]
         # fp16 covariance operands: R' = w R w^H / T <= 2 * 127^2 * max|w|^2, scaled by a power of two
         # into fp16's range (chosen once, on the host, from the weights)
-        wmax = float(xp.abs(w).max())
+        wmax = float(np.abs(w).max())
         self.cov_scale = 2.0 ** -math.ceil(math.log2(wmax * wmax)) if self.precision in FP16 and wmax > 0 else 1.0
+        hxyz_kept = hxyz[keep_index]
+        # 1/N_A is applied to the image (norm), not to the data, so that integer voltages with
+        # unit weights stay integers (exact in fp16/tf32 and in integer covariances).
+        norm = np.where(dead, 0.0, 1.0 / np.maximum(n_live, 1))                # (nchan, npol) float64
+
+        self.keep_index = xp.asarray(keep_index)
+        self.n_live = xp.asarray(n_live)
+        self.dead = xp.asarray(dead)
+        self.chan_index = None if chan_index is None else xp.asarray(chan_index)
+        self.norm = xp.asarray(norm)
+        self.data_weights = xp.asarray(w.astype(self.cdtype))                    # (nchan, nant, npol)
+        self.weights128 = xp.asarray(w)                                          # for integer covariances
+        self.data_live = xp.asarray(live)
+        self.xyz_m = xp.asarray(hxyz_kept)
+        live_sel = xp.asarray(live_sel) if self.partial_flags else None
+        self.sel = _Selection(xp, self.chan_index, None if self.all_kept else self.keep_index, live_sel,
+                              nchan, nant_in)
 
         G = geometric_operator(self.xyz_m, f, lm, "fp64" if precision == "fp64" else "fp32")  # (nchan, npix, nant)
         b = _check_pattern(pattern, nchan, npix, nant_in, npol, xp)

@@ -1,0 +1,132 @@
+"""Where a `bf-epic run` spends its start-up: every CUDA kernel compile, and the time line of a run.
+
+Runs `bf-epic run YAML --set device=gpu` in this process (so CuPy's compiler can be watched) with
+CuPy's kernel cache pointed at an empty folder (``--cold``, the default) or at the user's cache
+(``--warm``), and prints:
+
+* each NVRTC compile: seconds, the thread (block) that asked, the project function that asked
+  (the innermost frame in ``bf_epic_blocks``), and the kernel's first line;
+* totals: compiles, their seconds, the run's wall, and seconds from this script's start to the first
+  image file.
+
+usage: python tools/cold_start.py YAML [--warm] [--set KEY=VALUE ...] [--json PATH]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import threading
+import time
+import traceback
+from pathlib import Path
+
+T0 = time.perf_counter()
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def _caller():
+    for fr in reversed(traceback.extract_stack()[:-3]):
+        if "bf_epic_blocks" in fr.filename and "cold_start" not in fr.filename:
+            return f"{Path(fr.filename).name}:{fr.name}:{fr.lineno}"
+    return "?"
+
+
+def watch_compiles(records):
+    """Wrap CuPy's NVRTC entry points so each compile is timed and attributed (where CuPy calls them
+    through Python attributes; :func:`cache_listing` sees every compile in any case)."""
+    from cupy.cuda import compiler
+    for name in ("compile_using_nvrtc", "_compile_using_nvrtc"):
+        orig = getattr(compiler, name, None)
+        if orig is None:
+            continue
+
+        def wrapped(source, *a, __orig=orig, **k):
+            t = time.perf_counter()
+            try:
+                return __orig(source, *a, **k)
+            finally:
+                first = next((ln for ln in str(source).splitlines() if "__global__" in ln), "")
+                records.append({"s": time.perf_counter() - t, "at": t - T0,
+                                "thread": threading.current_thread().name, "caller": _caller(),
+                                "kernel": first.strip()[:140]})
+        setattr(compiler, name, wrapped)
+
+
+def cache_listing(folder, t_start_wall):
+    """Every kernel CuPy compiled into ``folder`` (``CUPY_CACHE_SAVE_CUDA_SOURCE=1`` keeps its source
+    beside it): [(seconds since the run started, seconds since the previous file, first line)] by time.
+    Compiles run one after another, so the gap to the previous file is about the compile's time."""
+    rows = []
+    for p in Path(folder).rglob("*"):
+        if p.suffix in (".cu", ".tmp") or not p.is_file():
+            continue
+        src = p.with_name(p.name + ".cu")
+        first = ""
+        if src.exists():
+            first = next((ln for ln in src.read_text(errors="replace").splitlines() if "__global__" in ln), "")
+        rows.append([p.stat().st_mtime - t_start_wall, first.strip()[:140]])
+    rows.sort()
+    prev = 0.0
+    out = []
+    for at, first in rows:
+        out.append({"at": at, "gap_s": at - prev, "kernel": first})
+        prev = at
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("yaml")
+    ap.add_argument("--warm", action="store_true", help="use the user's kernel cache (default: an empty one)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    if not args.warm:
+        os.environ["CUPY_CACHE_DIR"] = tempfile.mkdtemp(prefix="cupy_cold_")
+        os.environ["CUPY_CACHE_SAVE_CUDA_SOURCE"] = "1"
+    wall0 = time.time() - (time.perf_counter() - T0)
+    t_imp = time.perf_counter()
+    import cupy  # noqa: F401
+    t_cupy = time.perf_counter() - t_imp
+    records = []
+    watch_compiles(records)
+    out = Path(tempfile.mkdtemp(prefix="cold_out_"))
+    seen = []
+    stop = threading.Event()
+
+    def watch():
+        while not stop.is_set() and not seen:
+            if any(out.rglob("*.fits")):
+                seen.append(time.perf_counter() - T0)
+            time.sleep(0.01)
+    threading.Thread(target=watch, daemon=True).start()
+    from bf_epic_blocks.pipeline.cli import main as cli_main
+    sets = ["device=gpu", f"output.dir={out}"] + args.set
+    argv = ["run", args.yaml, "--no-progress", "-q"] + [x for s in sets for x in ("--set", s)]
+    t_run = time.perf_counter()
+    rc = cli_main(argv)
+    wall = time.perf_counter() - t_run
+    stop.set()
+    listing = cache_listing(os.environ["CUPY_CACHE_DIR"], wall0) if not args.warm else []
+    for r in listing:
+        print(f"file at {r['at']:6.2f} s (+{r['gap_s']:5.2f})  {r['kernel'][:110]}")
+    total = sum(r["s"] for r in records)
+    for r in sorted(records, key=lambda r: -r["s"]):
+        print(f"{r['s']:6.2f} s  at {r['at']:6.2f}  {r['thread'][:22]:22s} {r['caller'][:48]:48s} {r['kernel'][:90]}")
+    summary = {"yaml": args.yaml, "cold": not args.warm, "rc": rc, "import_cupy_s": t_cupy,
+               "run_wall_s": wall, "first_image_s": seen[0] if seen else None,
+               "compiles": len(records), "compile_s": total, "records": records,
+               "cache_files": listing}
+    print(f"rc {rc}; cupy import {t_cupy:.2f} s; run {wall:.2f} s; first image at {summary['first_image_s']} s "
+          f"from script start; {len(records)} compiles seen ({total:.2f} s), {len(listing)} kernels in the cache")
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=1))
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())
