@@ -240,3 +240,25 @@ def test_the_iers_cache_gives_astropy_s_own_earth_orientation(tmp_path):
     assert len(list((tmp_path / "bf_epic_blocks" / "iers").glob("iers_a-*.npz"))) == 1
     assert outs["first"] == outs["cached"] == outs["astropy"]
     assert outs["cached"].startswith("IERS_Auto ")
+
+
+def test_configure_offline_does_not_import_astropy_but_configures_it_when_it_loads(tmp_path):
+    """The offline settings cost no astropy import (~1 s on a GPU host, and a recording imaged on a GPU
+    needs none in the process that runs the blocks), yet whatever imports astropy later gets them,
+    IERS downloads off and internet access forbidden, before any code can use the modules."""
+    env = _fresh_env(tmp_path)
+    code = ("import sys\n"
+            "from bf_epic_blocks.station.offline import configure_offline as c\n"
+            "c()\n"
+            "print('astropy' in sys.modules)\n"
+            "from astropy.time import Time\n"
+            "from astropy.utils import iers\n"
+            "from astropy.utils.data import conf\n"
+            "print(iers.conf.auto_download, iers.conf.auto_max_age, iers.conf.iers_degraded_accuracy, "
+            "conf.allow_internet)\n")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120,
+                         cwd=str(Path(__file__).resolve().parents[1]))
+    assert out.returncode == 0, out.stderr
+    loaded, settings = out.stdout.strip().splitlines()
+    assert loaded == "False"
+    assert settings.split() == ["False", "None", "warn", "False"]

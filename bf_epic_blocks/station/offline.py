@@ -184,17 +184,74 @@ def iers_table():
     return table
 
 
+def _set_iers_conf(iers_module) -> None:
+    conf = iers_module.conf
+    conf.auto_download = False
+    conf.auto_max_age = None
+    conf.iers_degraded_accuracy = "warn"
+
+
+def _forbid_internet(data_module) -> None:
+    data_module.conf.allow_internet = False
+
+
+class _WhenLoaded:
+    """A meta-path finder that calls ``then(module)`` right after one of ``modules`` has executed.
+
+    Importing ``astropy.utils.iers`` costs ~1 s on a GPU host (it pulls in astropy.table, units,
+    time...), and a recording imaged on a GPU needs no astropy in the process that runs the blocks
+    at all (its FITS are written by a helper process). So :func:`configure_offline` does not import
+    astropy to set its options: they are applied by this hook the moment astropy's own modules load,
+    before any code can use them (the module is configured before its importer sees it)."""
+
+    def __init__(self, hooks):
+        self.hooks = dict(hooks)          # module name -> then(module)
+
+    def find_spec(self, name, path, target=None):
+        then = self.hooks.pop(name, None)
+        if then is None:
+            return None
+        if not self.hooks and self in sys.meta_path:
+            sys.meta_path.remove(self)
+        spec = None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, "find_spec"):
+                continue
+            spec = finder.find_spec(name, path, target)
+            if spec is not None:
+                break
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        inner = spec.loader
+
+        class _Loader:
+            def create_module(self, spec):
+                return inner.create_module(spec)
+
+            def exec_module(self, module):
+                inner.exec_module(module)
+                then(module)
+
+            def __getattr__(self, attr):      # get_code, get_source, is_package, ... for tools that ask
+                return getattr(inner, attr)
+        spec.loader = _Loader()
+        return spec
+
+
 def _configure_astropy(allow_internet: bool) -> None:
-    try:
-        from astropy.utils import iers
-        from astropy.utils.data import conf as data_conf
-    except ImportError:  # astropy absent: nothing to configure
-        return
-    iers.conf.auto_download = False
-    iers.conf.auto_max_age = None
-    iers.conf.iers_degraded_accuracy = "warn"
+    """astropy's IERS and data options (module docstring), set now where astropy's modules are already
+    loaded, else the moment they load (:class:`_WhenLoaded`); astropy is never imported here."""
+    hooks = {"astropy.utils.iers.iers": _set_iers_conf}
     if not allow_internet:
-        data_conf.allow_internet = False
+        hooks["astropy.utils.data"] = _forbid_internet
+    pending = {}
+    for name, then in hooks.items():
+        if name in sys.modules:
+            then(sys.modules[name])
+        else:
+            pending[name] = then
+    if pending:
+        sys.meta_path.insert(0, _WhenLoaded(pending))
 
 
 def configure_offline(*, respect_existing: bool = True, allow_internet: bool = False) -> Path | None:
