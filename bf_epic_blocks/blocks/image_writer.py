@@ -82,6 +82,7 @@ class ImageWriterBlock(bfp.SinkBlock):
         self.written = []
         self.frames = 0
         self._pool, self._ready, self._pending = None, None, deque()
+        self._held = deque()      # integrations waiting for a helper that is still starting
         self.helper_files = 0     # of ``written``, the files the helper process wrote
         if processes:
             # one started ahead by start_helper (bf-epic run does, as soon as it has read the YAML), or a new one
@@ -117,23 +118,46 @@ class ImageWriterBlock(bfp.SinkBlock):
         return True
 
     def _hand_over(self, stem, fn, job):
-        """Write ``fn(job)`` -> paths: queued for the helper process once it has started (in order), else here
-        (so a short run does not wait for the helper's start, ~1.5 s)."""
-        if not self._pending and not self._helper_up():
+        """Write ``fn(job)`` -> paths: queued for the helper process, in order. While the helper is still
+        starting, integrations are held here (not written here: writing in this thread holds the
+        interpreter lock the source and imager threads need, ~0.2 s per image with astropy's imports on
+        a GPU host, 2026-11-25) and handed over once it is up; beyond ``MAX_PENDING`` held, the oldest is
+        written here. Without a helper (none asked for, or it could not start) everything is written here."""
+        if self._pool is None:
             self._write_here(stem, fn, job)
             return
-        while len(self._pending) >= self.MAX_PENDING:
-            self._collect(self._pending[0])
         # the frame is a view of the span, which the ring reuses once on_data returns; the helper's
         # pickling happens later, on the pool's own thread
-        job = dict(job, frame=np.array(job["frame"]))
-        try:
-            fut = self._pool.submit(fn, job)
-        except BrokenProcessPool as e:
-            self._pending.append((stem, None, fn, job))
-            self._helper_lost(e, stem)
-            return
-        self._pending.append((stem, fut, fn, job))
+        self._held.append((stem, fn, dict(job, frame=np.array(job["frame"]))))
+        if self._pending or self._helper_up():
+            self._submit_held()
+        elif self._pool is None:          # the helper could not start: write here
+            self._write_held()
+        elif len(self._held) > self.MAX_PENDING:
+            s, f, j = self._held.popleft()
+            self._write_here(s, f, j)
+
+    def _write_held(self):
+        while self._held:
+            s, f, j = self._held.popleft()
+            self._write_here(s, f, j)
+
+    def _submit_held(self):
+        """Hand every held integration to the helper, oldest first (at most ``MAX_PENDING`` in flight)."""
+        while self._held:
+            stem, fn, job = self._held.popleft()
+            while len(self._pending) >= self.MAX_PENDING:
+                self._collect(self._pending[0])
+            if self._pool is None:        # lost while collecting: _helper_lost wrote what was queued
+                self._write_here(stem, fn, job)
+                continue
+            try:
+                fut = self._pool.submit(fn, job)
+            except BrokenProcessPool as e:
+                self._pending.append((stem, None, fn, job))
+                self._helper_lost(e, stem)
+                continue
+            self._pending.append((stem, fut, fn, job))
         while self._pending and self._pending[0][1].done():
             self._collect(self._pending[0])
 
@@ -164,8 +188,27 @@ class ImageWriterBlock(bfp.SinkBlock):
             s, _, fn, job = self._pending.popleft()
             self._write_here(s, fn, job)
 
+    #: at a sequence's end, seconds to wait for a helper still starting before writing its held
+    #: integrations here (its start is ~1.5-3 s from the run's launch on a GPU host, and overlaps it)
+    HELPER_WAIT_S = 10.0
+
     def flush(self):
-        """Wait until every integration handed to the helper process is written."""
+        """Wait until every integration handed to the helper process is written (one still starting is
+        waited for up to ``HELPER_WAIT_S``; what it has not taken by then is written here)."""
+        if self._held and self._pool is not None and not self._pending and self._ready is not None:
+            try:
+                self._ready.result(timeout=self.HELPER_WAIT_S)
+            except Exception:  # noqa: BLE001 - still starting (TimeoutError) or failed: _helper_up says which
+                pass
+            if not self._helper_up() and self._pool is not None:
+                log.warning("ImageWriterBlock: the helper process did not start within %.0f s; %d images are "
+                            "written in the writer's thread", self.HELPER_WAIT_S, len(self._held))
+                self.close()
+        if self._held:
+            if self._pool is not None and (self._pending or self._helper_up()):
+                self._submit_held()
+            else:
+                self._write_held()
         while self._pending:
             self._collect(self._pending[0])
 
