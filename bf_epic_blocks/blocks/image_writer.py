@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 import warnings
 from collections import deque
 from concurrent.futures.process import BrokenProcessPool
@@ -115,6 +116,7 @@ class ImageWriterBlock(bfp.SinkBlock):
                 self.close()
                 return False
             self._ready = None
+            log.debug("ImageWriterBlock: helper process up, %.2f s after it was started", _since_start(self._pool))
         return True
 
     def _hand_over(self, stem, fn, job):
@@ -377,12 +379,18 @@ def _labels(t, location):
 _STARTED = []   # helper processes started ahead, each taken by the next ImageWriterBlock(processes=1)
 
 
+def _since_start(pool):
+    t = getattr(pool, "_bf_started", None)
+    return float("nan") if t is None else time.perf_counter() - t
+
+
 def _new_helper(png):
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
     # spawn, not fork: the parent has threads and a CUDA context
     pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_helper_init,
                                initargs=(bool(png),))
+    pool._bf_started = time.perf_counter()
     try:
         return pool, pool.submit(_helper_ready)   # done when the helper has started and imported
     except BaseException:
