@@ -340,70 +340,61 @@ def test_a_helper_that_cannot_start_is_not_a_lost_image(tmp_path):
     assert sorted(p.name for p in (tmp_path / "out").glob("*.fits")) == [f"rec_s00_i000{i}.fits" for i in range(3)]
 
 
-def test_a_helper_that_never_comes_up_costs_a_run_at_most_the_wait(tmp_path, monkeypatch, caplog):
-    """A helper process that is still starting when the sequence ends is waited for at most
-    ``HELPER_WAIT_S``; then its images are written in the writer's own thread, with a warning, and no
-    process is left behind."""
+def _slow_helper(png):
+    """A helper process whose start takes 30 s."""
     import multiprocessing
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+    from bf_epic_blocks.blocks import image_writer
+    pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=time.sleep,
+                               initargs=(30,))
+    return pool, pool.submit(image_writer._helper_ready)
+
+
+def test_a_short_run_does_not_wait_for_the_helper(tmp_path, monkeypatch):
+    """A run whose images all come before the helper process is up writes them in the writer's thread
+    at the sequence's end, ends without waiting for the helper, and leaves no process."""
+    import multiprocessing
+    import time
     from bf_epic_blocks.pipeline import runner
     from bf_epic_blocks.pipeline.config import load_config
     from bf_epic_blocks.blocks import image_writer
     made = _writer_in_a_helper(monkeypatch)
-    import time
-    from concurrent.futures import ProcessPoolExecutor
-
-    def slow_helper(png):          # a helper whose start takes 30 s
-        pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=time.sleep,
-                                   initargs=(30,))
-        return pool, pool.submit(image_writer._helper_ready)
-    monkeypatch.setattr(image_writer, "_new_helper", slow_helper)
-    monkeypatch.setattr(image_writer.ImageWriterBlock, "HELPER_WAIT_S", 1.0)
+    monkeypatch.setattr(image_writer, "_new_helper", _slow_helper)
     y = _recording_yaml(tmp_path, _small_tbf(tmp_path / "rec.tbf", ntime=600))
     t0 = time.perf_counter()
-    with caplog.at_level("WARNING"):
-        s = runner.run(load_config(y, ["device=cpu"]), show_progress=False)
+    s = runner.run(load_config(y, ["device=cpu"]), show_progress=False)
     assert time.perf_counter() - t0 < 20
     assert s["images"] == 2 and len(s["files"]) == 2 and made[0].helper_files == 0
-    assert "did not start within 1 s; 2 images are written in the writer's thread" in caplog.text
     assert not multiprocessing.active_children()
 
 
-def test_images_wait_for_a_starting_helper_instead_of_taking_the_pipelines_thread(tmp_path, monkeypatch):
+def test_no_image_is_written_in_the_pipelines_interpreter_while_the_helper_starts(tmp_path, monkeypatch):
     """Integrations that arrive while the helper is still starting are held, not written in the writer's
-    thread (where astropy's work would hold the interpreter lock the source and imager threads need),
-    and all go to the helper once it is up: every file comes from the helper, as the writer's own
-    thread would write it."""
-    import multiprocessing
-    import time
-    from concurrent.futures import ProcessPoolExecutor
+    thread while the source and imager still run (astropy's work there holds the interpreter lock they
+    need between CUDA calls): the writer writes them only once the sequence's data is done (or hands
+    them to the helper when it is up), and no image is lost."""
     from bf_epic_blocks.pipeline import runner
     from bf_epic_blocks.pipeline.config import load_config
     from bf_epic_blocks.blocks import image_writer
-    tbf = _small_tbf(tmp_path / "rec.tbf", ntime=1200)
-    y = _recording_yaml(tmp_path, tbf)
-    own = runner.run(load_config(y, ["device=cpu", f"output.dir={tmp_path / 'own'}"]), show_progress=False)
     made = _writer_in_a_helper(monkeypatch)
-    real = image_writer._helper_init
+    monkeypatch.setattr(image_writer, "_new_helper", _slow_helper)
+    where = []
+    real_write, real_flush = image_writer.ImageWriterBlock._write_here, image_writer.ImageWriterBlock.flush
 
-    def late_helper(png):          # a helper whose start takes 3 s: the run's images all come before
-        pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_late_init,
-                                   initargs=(real, png))
-        return pool, pool.submit(image_writer._helper_ready)
-    monkeypatch.setattr(image_writer, "_new_helper", late_helper)
-    t0 = time.perf_counter()
-    helped = runner.run(load_config(y, ["device=cpu", f"output.dir={tmp_path / 'helped'}"]), show_progress=False)
-    assert time.perf_counter() - t0 < 30
-    assert made[0].helper_files == 4 == helped["images"]
-    assert [Path(f).name for f in own["files"]] == [Path(f).name for f in helped["files"]]
-    for n in (Path(f).name for f in own["files"]):
-        assert (tmp_path / "own" / n).read_bytes() == (tmp_path / "helped" / n).read_bytes(), n
-    assert not multiprocessing.active_children()
+    def flush(self):
+        where.append("end")
+        return real_flush(self)
 
-
-def _late_init(real, png):
-    import time
-    time.sleep(3)
-    real(png)
+    def write_here(self, stem, fn, job):
+        where.append("write")
+        return real_write(self, stem, fn, job)
+    monkeypatch.setattr(image_writer.ImageWriterBlock, "flush", flush)
+    monkeypatch.setattr(image_writer.ImageWriterBlock, "_write_here", write_here)
+    y = _recording_yaml(tmp_path, _small_tbf(tmp_path / "rec.tbf", ntime=1200))
+    s = runner.run(load_config(y, ["device=cpu"]), show_progress=False)
+    assert s["images"] == 4 and len(s["files"]) == 4 and made[0].helper_files == 0
+    assert where[0] == "end" and where.count("write") == 4, where
 
 
 @pytest.mark.parametrize("bad", [2, -1, "1", True])

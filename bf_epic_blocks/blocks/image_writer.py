@@ -121,10 +121,11 @@ class ImageWriterBlock(bfp.SinkBlock):
 
     def _hand_over(self, stem, fn, job):
         """Write ``fn(job)`` -> paths: queued for the helper process, in order. While the helper is still
-        starting, integrations are held here (not written here: writing in this thread holds the
-        interpreter lock the source and imager threads need, ~0.2 s per image with astropy's imports on
-        a GPU host, 2026-11-25) and handed over once it is up; beyond ``MAX_PENDING`` held, the oldest is
-        written here. Without a helper (none asked for, or it could not start) everything is written here."""
+        starting, integrations are held (not written in this thread while the pipeline runs: that holds
+        the interpreter lock the source and imager threads need, ~0.2 s per image with astropy's imports
+        on a GPU host, 2026-11-25) and handed over once it is up, or written at the sequence's end
+        (:meth:`flush`); beyond ``MAX_PENDING`` held, the oldest is written here. Without a helper (none
+        asked for, or it could not start) everything is written here."""
         if self._pool is None:
             self._write_here(stem, fn, job)
             return
@@ -190,27 +191,17 @@ class ImageWriterBlock(bfp.SinkBlock):
             s, _, fn, job = self._pending.popleft()
             self._write_here(s, fn, job)
 
-    #: at a sequence's end, seconds to wait for a helper still starting before writing its held
-    #: integrations here (its start is ~1.5-3 s from the run's launch on a GPU host, and overlaps it)
-    HELPER_WAIT_S = 10.0
-
     def flush(self):
-        """Wait until every integration handed to the helper process is written (one still starting is
-        waited for up to ``HELPER_WAIT_S``; what it has not taken by then is written here)."""
-        if self._held and self._pool is not None and not self._pending and self._ready is not None:
-            try:
-                self._ready.result(timeout=self.HELPER_WAIT_S)
-            except Exception:  # noqa: BLE001 - still starting (TimeoutError) or failed: _helper_up says which
-                pass
-            if not self._helper_up() and self._pool is not None:
-                log.warning("ImageWriterBlock: the helper process did not start within %.0f s; %d images are "
-                            "written in the writer's thread", self.HELPER_WAIT_S, len(self._held))
-                self.close()
-        if self._held:
+        """Every integration of the sequence written by the time this returns. Those held for a helper
+        that is still starting are written here, oldest first, until it is up (then it takes the rest):
+        the sequence's data is done, so this thread no longer competes with the source and imager, and
+        a short run waits for neither a slow helper nor an idle one."""
+        while self._held:
             if self._pool is not None and (self._pending or self._helper_up()):
                 self._submit_held()
-            else:
-                self._write_held()
+                break
+            s, f, j = self._held.popleft()
+            self._write_here(s, f, j)
         while self._pending:
             self._collect(self._pending[0])
 
