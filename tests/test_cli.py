@@ -353,7 +353,8 @@ def _slow_helper(png):
 
 def test_a_short_run_does_not_wait_for_the_helper(tmp_path, monkeypatch):
     """A run whose images all come before the helper process is up writes them in the writer's thread
-    at the sequence's end, ends without waiting for the helper, and leaves no process."""
+    at the sequence's end, waiting for a helper still starting at most ``HELPER_WAIT_S`` (not its 30-s
+    start), and leaves no process."""
     import multiprocessing
     import time
     from bf_epic_blocks.pipeline import runner
@@ -361,6 +362,7 @@ def test_a_short_run_does_not_wait_for_the_helper(tmp_path, monkeypatch):
     from bf_epic_blocks.blocks import image_writer
     made = _writer_in_a_helper(monkeypatch)
     monkeypatch.setattr(image_writer, "_new_helper", _slow_helper)
+    monkeypatch.setattr(image_writer.ImageWriterBlock, "HELPER_WAIT_S", 1.0)
     y = _recording_yaml(tmp_path, _small_tbf(tmp_path / "rec.tbf", ntime=600))
     t0 = time.perf_counter()
     s = runner.run(load_config(y, ["device=cpu"]), show_progress=False)
@@ -379,6 +381,7 @@ def test_no_image_is_written_in_the_pipelines_interpreter_while_the_helper_start
     from bf_epic_blocks.blocks import image_writer
     made = _writer_in_a_helper(monkeypatch)
     monkeypatch.setattr(image_writer, "_new_helper", _slow_helper)
+    monkeypatch.setattr(image_writer.ImageWriterBlock, "HELPER_WAIT_S", 0.5)
     where = []
     real_write, real_flush = image_writer.ImageWriterBlock._write_here, image_writer.ImageWriterBlock.flush
 
@@ -395,6 +398,40 @@ def test_no_image_is_written_in_the_pipelines_interpreter_while_the_helper_start
     s = runner.run(load_config(y, ["device=cpu"]), show_progress=False)
     assert s["images"] == 4 and len(s["files"]) == 4 and made[0].helper_files == 0
     assert where[0] == "end" and where.count("write") == 4, where
+
+
+def test_a_process_without_astropy_waits_for_a_starting_helper_rather_than_import_it(tmp_path, monkeypatch):
+    """Where writing here would first import astropy (a recording's run on a GPU), images held at the
+    sequence's end wait for a helper that is still starting, and all of them come from it, byte for byte
+    the files the writer's own thread writes."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.blocks import image_writer
+    y = _recording_yaml(tmp_path, _small_tbf(tmp_path / "rec.tbf", ntime=1200))
+    own = runner.run(load_config(y, ["device=cpu", f"output.dir={tmp_path / 'own'}"]), show_progress=False)
+    made = _writer_in_a_helper(monkeypatch)
+
+    def late_helper(png):          # a helper whose start takes 3 s: the run's images all come before
+        pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_late_init,
+                                   initargs=(png,))
+        return pool, pool.submit(image_writer._helper_ready)
+    monkeypatch.setattr(image_writer, "_new_helper", late_helper)
+    monkeypatch.setattr(image_writer, "_fits_loaded", lambda: False)
+    helped = runner.run(load_config(y, ["device=cpu", f"output.dir={tmp_path / 'helped'}"]), show_progress=False)
+    assert made[0].helper_files == 4 == helped["images"]
+    assert [Path(f).name for f in own["files"]] == [Path(f).name for f in helped["files"]]
+    for n in (Path(f).name for f in own["files"]):
+        assert (tmp_path / "own" / n).read_bytes() == (tmp_path / "helped" / n).read_bytes(), n
+    assert not multiprocessing.active_children()
+
+
+def _late_init(png):
+    import time
+    from bf_epic_blocks.blocks import image_writer
+    time.sleep(3)
+    image_writer._helper_init(png)
 
 
 @pytest.mark.parametrize("bad", [2, -1, "1", True])

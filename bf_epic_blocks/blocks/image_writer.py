@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 import time
 import warnings
 from collections import deque
@@ -191,11 +192,23 @@ class ImageWriterBlock(bfp.SinkBlock):
             s, _, fn, job = self._pending.popleft()
             self._write_here(s, fn, job)
 
+    #: at a sequence's end, seconds to wait for a helper still starting when writing here would first
+    #: have to import astropy (its start is ~1.5-3 s from the run's launch on a GPU host, and overlaps it)
+    HELPER_WAIT_S = 5.0
+
     def flush(self):
         """Every integration of the sequence written by the time this returns. Those held for a helper
-        that is still starting are written here, oldest first, until it is up (then it takes the rest):
-        the sequence's data is done, so this thread no longer competes with the source and imager, and
-        a short run waits for neither a slow helper nor an idle one."""
+        that is still starting: where this process has astropy's FITS and WCS already (a simulated
+        sky's run), written here, oldest first, until the helper is up (then it takes the rest: the
+        sequence's data is done, so this thread no longer competes with the source and imager); where
+        it has not, writing here would first import them (~1 s on a GPU host, more than what is left of
+        the helper's start), so the helper is waited for, at most ``HELPER_WAIT_S``."""
+        if self._held and self._ready is not None and self._pool is not None and not self._pending \
+                and not _fits_loaded():
+            try:
+                self._ready.result(timeout=self.HELPER_WAIT_S)
+            except Exception:  # noqa: BLE001 - still starting (TimeoutError) or failed: _helper_up says which
+                pass
         while self._held:
             if self._pool is not None and (self._pending or self._helper_up()):
                 self._submit_held()
@@ -368,6 +381,11 @@ def _labels(t, location):
 
 
 _STARTED = []   # helper processes started ahead, each taken by the next ImageWriterBlock(processes=1)
+
+
+def _fits_loaded():
+    """Whether this process has already imported what writing a FITS image here needs."""
+    return "astropy.wcs" in sys.modules and "astropy.io.fits" in sys.modules
 
 
 def _since_start(pool):
