@@ -4,10 +4,10 @@ Runs `bf-epic run YAML --set device=gpu` in this process (so CuPy's compiler can
 CuPy's kernel cache pointed at an empty folder (``--cold``, the default) or at the user's cache
 (``--warm``), and prints:
 
-* each NVRTC compile: seconds, the thread (block) that asked, the project function that asked
-  (the innermost frame in ``bf_epic_blocks``), and the kernel's first line;
-* totals: compiles, their seconds, the run's wall, and seconds from this script's start to the first
-  image file.
+* each kernel CuPy compiled into the (empty) cache, in order: when its file appeared, the gap to the
+  one before (compiles run one after another, so about its compile time), and its first line;
+* totals: kernels compiled, the run's wall, and seconds from this script's start to the first image
+  file.
 
 usage: python tools/cold_start.py YAML [--warm] [--set KEY=VALUE ...] [--json PATH]
 """
@@ -20,40 +20,11 @@ import sys
 import tempfile
 import threading
 import time
-import traceback
 from pathlib import Path
 
 T0 = time.perf_counter()
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-
-
-def _caller():
-    for fr in reversed(traceback.extract_stack()[:-3]):
-        if "bf_epic_blocks" in fr.filename and "cold_start" not in fr.filename:
-            return f"{Path(fr.filename).name}:{fr.name}:{fr.lineno}"
-    return "?"
-
-
-def watch_compiles(records):
-    """Wrap CuPy's NVRTC entry points so each compile is timed and attributed (where CuPy calls them
-    through Python attributes; :func:`cache_listing` sees every compile in any case)."""
-    from cupy.cuda import compiler
-    for name in ("compile_using_nvrtc", "_compile_using_nvrtc"):
-        orig = getattr(compiler, name, None)
-        if orig is None:
-            continue
-
-        def wrapped(source, *a, __orig=orig, **k):
-            t = time.perf_counter()
-            try:
-                return __orig(source, *a, **k)
-            finally:
-                first = next((ln for ln in str(source).splitlines() if "__global__" in ln), "")
-                records.append({"s": time.perf_counter() - t, "at": t - T0,
-                                "thread": threading.current_thread().name, "caller": _caller(),
-                                "kernel": first.strip()[:140]})
-        setattr(compiler, name, wrapped)
 
 
 def cache_listing(folder, t_start_wall):
@@ -92,8 +63,6 @@ def main():
     t_imp = time.perf_counter()
     import cupy  # noqa: F401
     t_cupy = time.perf_counter() - t_imp
-    records = []
-    watch_compiles(records)
     out = Path(tempfile.mkdtemp(prefix="cold_out_"))
     seen = []
     stop = threading.Event()
@@ -114,15 +83,11 @@ def main():
     listing = cache_listing(os.environ["CUPY_CACHE_DIR"], wall0) if not args.warm else []
     for r in listing:
         print(f"file at {r['at']:6.2f} s (+{r['gap_s']:5.2f})  {r['kernel'][:110]}")
-    total = sum(r["s"] for r in records)
-    for r in sorted(records, key=lambda r: -r["s"]):
-        print(f"{r['s']:6.2f} s  at {r['at']:6.2f}  {r['thread'][:22]:22s} {r['caller'][:48]:48s} {r['kernel'][:90]}")
     summary = {"yaml": args.yaml, "cold": not args.warm, "rc": rc, "import_cupy_s": t_cupy,
                "run_wall_s": wall, "first_image_s": seen[0] if seen else None,
-               "compiles": len(records), "compile_s": total, "records": records,
-               "cache_files": listing}
+               "compiles": len(listing), "cache_files": listing}
     print(f"rc {rc}; cupy import {t_cupy:.2f} s; run {wall:.2f} s; first image at {summary['first_image_s']} s "
-          f"from script start; {len(records)} compiles seen ({total:.2f} s), {len(listing)} kernels in the cache")
+          f"from script start; {len(listing)} kernels compiled")
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=1))
     return rc
