@@ -156,18 +156,22 @@ def _fresh_env(home):
     return env
 
 
+def _in_fresh_python(home, code):
+    """stdout of ``code`` run by a fresh interpreter whose home and cache folder are ``home``."""
+    out = subprocess.run([sys.executable, "-c", code], env=_fresh_env(home), capture_output=True, text=True,
+                         timeout=120, cwd=str(Path(__file__).resolve().parents[1]))
+    assert out.returncode == 0, out.stderr
+    return out.stdout
+
+
 def test_configure_offline_in_fresh_process(tmp_path):
     """A fresh interpreter: LSL must read our lsl.cfg (telemetry off, long refresh age)."""
-    env = _fresh_env(tmp_path)
     code = ("from bf_epic_blocks.station.offline import configure_offline as c\n"
             "d = c(); assert c() == d\n"
             "from lsl.config import LSL_CONFIG as L\n"
             "from astropy.utils import iers\n"
             "print(L.dirname, L.get('telemetry.enabled'), L.get('download.refresh_age'), iers.conf.auto_download)\n")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120,
-                         cwd=str(Path(__file__).resolve().parents[1]))
-    assert out.returncode == 0, out.stderr
-    dirname, enabled, age, auto = out.stdout.split()
+    dirname, enabled, age, auto = _in_fresh_python(tmp_path, code).split()
     assert Path(dirname) == tmp_path / "bf_epic_blocks" / "lslcfg"
     assert (enabled, age, auto) == ("False", "36500", "False")
     assert "enabled = False" in (tmp_path / "bf_epic_blocks" / "lslcfg" / "lsl.cfg").read_text()
@@ -215,7 +219,6 @@ def test_the_iers_cache_gives_astropy_s_own_earth_orientation(tmp_path):
     """iers_table(): the first process parses astropy's bundled IERS-A file and keeps the columns; a
     second one reads them instead of parsing (astropy's reader is made to fail there) and answers
     UT1-UTC, polar motion and a zenith's ICRS position value for value as astropy's parse does."""
-    env = _fresh_env(tmp_path)
     code = ("import sys\n"
             "from bf_epic_blocks.station.offline import configure_offline, iers_table\n"
             "configure_offline()\n"
@@ -246,7 +249,6 @@ def test_configure_offline_does_not_import_astropy_but_configures_it_when_it_loa
     """The offline settings cost no astropy import (~1 s on a GPU host, and a recording imaged on a GPU
     needs none in the process that runs the blocks), yet whatever imports astropy later gets them,
     IERS downloads off and internet access forbidden, before any code can use the modules."""
-    env = _fresh_env(tmp_path)
     code = ("import sys\n"
             "from bf_epic_blocks.station.offline import configure_offline as c\n"
             "c()\n"
@@ -256,9 +258,6 @@ def test_configure_offline_does_not_import_astropy_but_configures_it_when_it_loa
             "from astropy.utils.data import conf\n"
             "print(iers.conf.auto_download, iers.conf.auto_max_age, iers.conf.iers_degraded_accuracy, "
             "conf.allow_internet)\n")
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120,
-                         cwd=str(Path(__file__).resolve().parents[1]))
-    assert out.returncode == 0, out.stderr
-    loaded, settings = out.stdout.strip().splitlines()
+    loaded, settings = _in_fresh_python(tmp_path, code).strip().splitlines()
     assert loaded == "False"
     assert settings.split() == ["False", "None", "warn", "False"]
