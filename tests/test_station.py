@@ -156,10 +156,11 @@ def _fresh_env(home):
     return env
 
 
-def _in_fresh_python(home, code):
-    """stdout of ``code`` run by a fresh interpreter whose home and cache folder are ``home``."""
-    out = subprocess.run([sys.executable, "-c", code], env=_fresh_env(home), capture_output=True, text=True,
-                         timeout=120, cwd=str(Path(__file__).resolve().parents[1]))
+def _in_fresh_python(home, code, *args):
+    """stdout of ``code`` (with ``args`` as sys.argv[1:]) run by a fresh interpreter whose home and cache
+    folder are ``home``."""
+    out = subprocess.run([sys.executable, "-c", code, *args], env=_fresh_env(home), capture_output=True, text=True,
+                         timeout=180, cwd=str(Path(__file__).resolve().parents[1]))
     assert out.returncode == 0, out.stderr
     return out.stdout
 
@@ -234,12 +235,7 @@ def test_the_iers_cache_gives_astropy_s_own_earth_orientation(tmp_path):
             "tab = iers.earth_orientation_table.get()\n"
             "print(type(tab).__name__, list(t.ut1.jd2), [list(v.value) for v in tab.pm_xy(t.jd1, t.jd2)],\n"
             "      zenith_icrs('2026-11-25T04:00:00', (-106.9, 34.3, 1477.0)))\n")
-    outs = {}
-    for mode in ("astropy", "first", "cached"):
-        out = subprocess.run([sys.executable, "-c", code, mode], env=env, capture_output=True, text=True,
-                             timeout=180, cwd=str(Path(__file__).resolve().parents[1]))
-        assert out.returncode == 0, out.stderr
-        outs[mode] = out.stdout.strip()
+    outs = {mode: _in_fresh_python(tmp_path, code, mode).strip() for mode in ("astropy", "first", "cached")}
     assert len(list((tmp_path / "bf_epic_blocks" / "iers").glob("iers_a-*.npz"))) == 1
     assert outs["first"] == outs["cached"] == outs["astropy"]
     assert outs["cached"].startswith("IERS_Auto ")
