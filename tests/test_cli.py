@@ -457,3 +457,21 @@ def test_a_writer_that_cannot_have_a_helper_writes_itself(tmp_path, monkeypatch,
         s = runner.run(load_config(y, ["device=cpu"]), show_progress=False)
     assert s["images"] == 2 and len(s["files"]) == 2 and made[0].helper_files == 0
     assert "no helper process (AssertionError" in caplog.text
+
+
+@pytest.mark.parametrize("no_bytecode", [True, False])
+def test_a_run_without_bytecode_caches_says_so(tmp_path, no_bytecode):
+    """A Python told not to write bytecode (PYTHONDONTWRITEBYTECODE) recompiles every module it imports on
+    every run (~1 s of a GPU run's start): `bf-epic run` says so, with what to do, and only then."""
+    import os
+    import subprocess
+    import sys
+    y = _recording_yaml(tmp_path, _small_tbf(tmp_path / "rec.tbf", ntime=300))
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    if no_bytecode:
+        env["PYTHONDONTWRITEBYTECODE"] = "1"
+    out = subprocess.run([sys.executable, "-m", "bf_epic_blocks.pipeline.cli", "run", str(y), "--no-progress"],
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    said = "Python writes no bytecode caches here (PYTHONDONTWRITEBYTECODE)" in out.stderr
+    assert said == no_bytecode, out.stderr

@@ -161,6 +161,10 @@ def main(argv=None):
         # Python's 5 ms) shortens those waits: 18.4x -> 21.1x real time steady for a 24-channel TBF
         # recording in 5,000-frame gulps (medians of three, one H100, 2026-11-25; 0.2 ms was no better).
         sys.setswitchinterval(SWITCH_INTERVAL_S)
+        if sys.flags.dont_write_bytecode:
+            log.info("Python writes no bytecode caches here (PYTHONDONTWRITEBYTECODE): where the packages carry "
+                     "no .pyc, every run compiles NumPy, CuPy, astropy and bf_epic_blocks again (~1 s on a GPU "
+                     "host); unset it, or set PYTHONPYCACHEPREFIX to a writable folder and run once without it")
         summary = run(cfg, show_progress=False if args.no_progress else None)
         if args.summary_json:
             with open(args.summary_json, "w") as fh:
