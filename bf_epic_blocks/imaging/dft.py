@@ -257,7 +257,8 @@ class DFTOperator:
         # The bookkeeping below (checks, flags, indices, norms) is on small arrays and runs on the host;
         # its results go to the operator's device at the end. On a GPU each of these steps would be a
         # kernel of its own, and on a machine with an empty kernel cache each kernel costs a ~0.1-0.2 s
-        # compile: ~30 of them were ~4 s of a cold first image (H100, 2026-11-25).
+        # compile: with the phase array's eight, 39 kernels and ~8 s of a cold first image (H100,
+        # 2026-11-25: 14.8 -> 6.3 s for a TBF pipeline; tools/cold_start.py lists them).
         hxyz, hf, hlm, _ = _checked_geometry(xyz_m, freq_hz, pixels_lm)
         if npol not in (1, 2):
             raise ValueError(f"npol must be 1 or 2, got {npol}")

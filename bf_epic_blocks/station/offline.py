@@ -198,8 +198,8 @@ def _forbid_internet(data_module) -> None:
 class _WhenLoaded:
     """A meta-path finder that calls ``then(module)`` right after one of ``modules`` has executed.
 
-    Importing ``astropy.utils.iers`` costs ~1 s on a GPU host (it pulls in astropy.table, units,
-    time...), and a recording imaged on a GPU needs no astropy in the process that runs the blocks
+    Importing ``astropy.utils.iers`` pulls in astropy.table, units, time... (~1 s on a GPU host
+    without bytecode caches, 2026-11-25), and a recording imaged on a GPU needs no astropy in the process that runs the blocks
     at all (its FITS are written by a helper process). So :func:`configure_offline` does not import
     astropy to set its options: they are applied by this hook the moment astropy's own modules load,
     before any code can use them (the module is configured before its importer sees it)."""
