@@ -24,7 +24,6 @@ from concurrent.futures.process import BrokenProcessPool
 import numpy as np
 
 from ..imaging.calibration import FS_HZ
-from ..imaging.pixels import LMGrid
 from ._compat import bfp, span_array, to_numpy
 
 log = logging.getLogger(__name__)

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..conventions import SIGMA, SPEED_OF_LIGHT_M_S
 from . import cost
-from ._xp import get_xp, host_all, host_any, to_numpy
+from ._xp import get_xp, host_all, to_numpy
 from .gemm import (FP16, PRECISIONS, STACKED, check_precision, cmatmul, int_gram, pow2_scale, split_tf32, stack_operator,
                    stack_rhs, stacked_matmul)
 from .graphs import GraphCache
