@@ -119,16 +119,18 @@ def test_bad_output_is_refused():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
-def test_the_gpu_kernel_makes_the_numpy_twin_s_samples_bit_for_bit():
+@pytest.mark.parametrize("nsteady, nant", [(2, 256), (0, 256), (fastsim.MAX_REG_SRC + 2, 100)])
+def test_the_gpu_kernel_makes_the_numpy_twin_s_samples_bit_for_bit(nsteady, nant):
+    """Both CUDA kernels: sources in registers (few) and the generic one (more than MAX_REG_SRC)."""
     import cupy
-    s = scene(nant=256, nchan=3)
+    s = scene(nant=nant, nchan=3)
     bursts = [{"start_s": 0.002, "duration_s": 0.001, "dm": 5.0}]
-    w = np.concatenate([s["w"], s["w"][:, :1]], axis=1)
-    on0, on1 = fastsim.burst_windows(2, bursts, s["freq"], 40e-6)
+    w = np.concatenate([s["w"][:, np.arange(nsteady) % 2], s["w"][:, :1]], axis=1)
+    on0, on1 = fastsim.burst_windows(nsteady, bursts, s["freq"], 40e-6)
     keys, noise = fastsim.stream_keys(11), 200.0
     scale = 2.0 / fastsim.expected_rms(s["w"], noise)
     for dtype in (np.uint8, np.complex64):
-        ref = np.empty((512, 3, 256, 2), dtype)
+        ref = np.empty((512, 3, nant, 2), dtype)
         fastsim.make_gulp(ref, 4096, w, on0, on1, keys, noise, scale)
         got = cupy.empty(ref.shape, dtype)
         # in two gulps, neither a whole number of the kernel's 32-sample tiles
