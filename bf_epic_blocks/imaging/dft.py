@@ -129,23 +129,31 @@ def geometric_operator(xyz_m, freq_hz, pixels_lm, precision="fp32"):
     precision "fp32": the argument is already within [-pi, pi], so this is exact to fp32). On a GPU
     the whole (nchan, npix, nant) array is one kernel (one compile on a new machine, not eight).
     """
-    rdt, cdt = _check_precision(precision)
+    _check_precision(precision)
     xp = get_xp(xyz_m, pixels_lm)
+    return _geometric_from_host(xp, *_checked_geometry(xyz_m, freq_hz, pixels_lm), precision)
+
+
+def _geometric_from_host(xp, xyz, f, lm, n, precision):
+    """:func:`geometric_operator` from geometry already checked on the host (:func:`_checked_geometry`'s
+    float64 NumPy arrays), made in ``xp``: the operator's construction passes its own checked copies
+    rather than device ones that would be copied back and checked again."""
+    rdt, cdt = _check_precision(precision)
+    path = _path_m(xyz, lm, n)                                                    # (npix, nant) float64
     if xp.__name__ == "cupy":
-        xyz, f, lm, n = _checked_geometry(xyz_m, freq_hz, pixels_lm)
         key = np.dtype(cdt).name
         if key not in _GEOM_KERNELS:
             _GEOM_KERNELS[key] = xp.ElementwiseKernel(*_GEOM_SRC[key], f"bf_geometric_{key}")
-        path = xp.asarray(_path_m(xyz, lm, n))[None]
         fc = xp.asarray(f / SPEED_OF_LIGHT_M_S)[:, None, None]
         out = xp.empty((f.shape[0], lm.shape[0], xyz.shape[0]), dtype=cdt)
-        _GEOM_KERNELS[key](path, fc, float(-SIGMA), out)
+        _GEOM_KERNELS[key](xp.asarray(path)[None], fc, float(-SIGMA), out)
         return out
-    ang = (2.0 * math.pi) * geometric_phase_cycles(xyz_m, freq_hz, pixels_lm)
-    ang = ang.astype(rdt, copy=False)
-    out = xp.empty(ang.shape, dtype=cdt)
-    out.real = xp.cos(ang)
-    out.imag = xp.sin(ang)
+    cyc = (f[:, None, None] / SPEED_OF_LIGHT_M_S) * path[None]
+    cyc -= np.rint(cyc)
+    ang = ((2.0 * math.pi) * cyc).astype(rdt, copy=False)
+    out = np.empty(ang.shape, dtype=cdt)
+    out.real = np.cos(ang)
+    out.imag = np.sin(ang)
     out.imag *= -SIGMA
     return out
 
@@ -259,13 +267,12 @@ class DFTOperator:
         # kernel of its own, and on a machine with an empty kernel cache each kernel costs a ~0.1-0.2 s
         # compile: with the phase array's eight, 39 kernels and ~8 s of a cold first image (H100,
         # 2026-11-25: 14.8 -> 6.3 s for a TBF pipeline; tools/cold_start.py lists them).
-        hxyz, hf, hlm, _ = _checked_geometry(xyz_m, freq_hz, pixels_lm)
+        hxyz, hf, hlm, hn = _checked_geometry(xyz_m, freq_hz, pixels_lm)
         if npol not in (1, 2):
             raise ValueError(f"npol must be 1 or 2, got {npol}")
         nchan, nant_in, npix = int(hf.shape[0]), int(hxyz.shape[0]), int(hlm.shape[0])
         self.nchan, self.npol, self.npix, self.nant_in = nchan, npol, npix, nant_in
         self.freq_hz, self.pixels_lm = xp.asarray(hf), xp.asarray(hlm)
-        f, lm = self.freq_hz, self.pixels_lm
 
         w = _broadcast_weights(None if weights is None else to_numpy(weights), nchan, nant_in, npol, np)
         live = w != 0
@@ -313,7 +320,7 @@ class DFTOperator:
         self.sel = _Selection(xp, self.chan_index, None if self.all_kept else self.keep_index, live_sel,
                               nchan, nant_in)
 
-        G = geometric_operator(self.xyz_m, f, lm, "fp64" if precision == "fp64" else "fp32")  # (nchan, npix, nant)
+        G = _geometric_from_host(xp, hxyz_kept, hf, hlm, hn, "fp64" if precision == "fp64" else "fp32")  # (nchan, npix, nant)
         b = _check_pattern(pattern, nchan, npix, nant_in, npol, xp)
         self.pixel_pattern = None                             # (nchan|1, npix, npol|1) or None
         if b is not None and b.shape[2] != 1:

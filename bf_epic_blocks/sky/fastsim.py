@@ -4,19 +4,21 @@ Same data model as :func:`bf_epic_blocks.sky.simulate_efield` (module :mod:`.efi
 point sources of power S/2 per pol, geometric phase sigma = +1, cable delay and power gain applied
 to the sky signal, receiver noise of power ``noise_power`` added after them, dispersed bursts),
 made differently so that a GPU can make it at many times real time and a CPU twin gives the same
-samples:
+samples (to the last bit on the CPU; to the GPU's fast functions' rounding there, see below):
 
 * Every random number is a function of where it goes, not of a generator's state: a complex
   normal (variance 1 per real part) is Box-Muller of a 64-bit hash (splitmix64's finaliser) of a
   counter, with the counter for source s, pol p, channel c at absolute sample T
   ``((T nchan + c) nsrc + s) 2 + p`` and for the noise of antenna a ``((T nchan + c) nant + a) 2 + p``,
-  each stream with its own key from the seed. So a sample does not depend on the gulp size, a gulp
-  can be made anywhere, and the NumPy and CUDA versions below agree bit for bit: Box-Muller in
-  float32 made of IEEE operations only (+, -, *, sqrt and integer bit work: Cephes' polynomials
-  for log and sin/cos, relative error ~1e-7), which both sides round the same way. (Library
-  ``log``/``sin``/``cos`` differ between NumPy and CUDA by an ulp now and then; in float32 that
-  moved a 4-bit sample about once in 10^6, and in float64, which agreed, they cost the GPU half its
-  speed.)
+  each stream with its own key from the seed. So a sample does not depend on the gulp size and a
+  gulp can be made anywhere. The NumPy twin does Box-Muller in float32 from IEEE operations only
+  (+, -, *, sqrt and integer bit work: Cephes' polynomials for log and sin/cos, relative error
+  ~1e-7), so any machine gives its samples bit for bit. The CUDA kernel takes the same counters,
+  hash and 24-bit uniforms and the hardware's own log, sqrt and sin/cos with fused multiply-add:
+  its voltages are the twin's to ~1e-5 of their rms (worst of 4e8), and its 4-bit samples the
+  twin's except ~2 in 10^6 that sit on a rounding edge and land one step over (measured on an
+  H100, tested on every GPU run). The twin's IEEE-only polynomials on the GPU, which made the two
+  agree bit for bit, held the 784-channel sky to 15.3x real time against 26.7x.
 * The sky signal is X = sum_s e_s,p(T, c) W[c, s, a, p] + noise, with
   W = sqrt(S_s(nu_c) / 4) exp(sigma 2 pi i nu_c (s_hat . r_a) / c0) sqrt(G) exp(-2 pi i nu_c tau)
   (:func:`sky_weights`); a burst is a source whose e is zero outside its dispersed window of samples.
@@ -29,10 +31,11 @@ On a GPU one CUDA kernel writes the packed bytes (or complex64) straight into th
 nothing but the weights crosses the bus. A CUDA block makes a tile of 32 samples of one channel, so
 an antenna's weights are read once per tile, not once per sample. Up to ``MAX_REG_SRC`` sources
 (every shipped pipeline) the kernel is compiled for the source count: an antenna's weights stay in
-registers and the sample loop steps its counters. On an H100 that took the 784-channel, 4-source
-sky from 11.3x to 15.3x real time and 16 sources from 1.9x to 9.9x (same run, same bits;
-docs/bench/sky_kernel_h100.json). The kernel is bound by instruction issue (Nsight Compute: 82%
-of issue slots busy, integer work the busiest pipe), most of it the noise's Box-Muller.
+registers and the sample loop steps its counters: the 784-channel, 4-source sky went from 11.3x
+to 15.3x real time and 16 sources from 1.9x to 9.9x on an H100 (same run, same bits;
+docs/bench/sky_kernel_h100.json), then to 26.7x and 14.4x with the hardware functions
+(docs/bench/sky_kernel_fast_h100.json). It is bound by instruction issue (Nsight Compute: 82% of
+issue slots busy, integer work the busiest pipe), most of it the noise's Box-Muller.
 """
 from __future__ import annotations
 
@@ -73,8 +76,8 @@ def _mix64(z):
 
 
 # Box-Muller in float32 from IEEE operations only (+, -, *, sqrt, integer bit work): no library
-# log/sin/cos, whose results differ between NumPy and CUDA, so the two give the same bits. The
-# polynomials are Cephes' logf and sinf/cosf (relative error ~1e-7 on their ranges).
+# log/sin/cos, whose results differ between libraries and machines, so every CPU gives the same
+# bits. The polynomials are Cephes' logf and sinf/cosf (relative error ~1e-7 on their ranges).
 _LOG_P = (7.0376836292e-2, -1.1514610310e-1, 1.1676998740e-1, -1.2420140846e-1, 1.4249322787e-1,
           -1.6668057665e-1, 2.0000714765e-1, -2.4999993993e-1, 3.3333331174e-1)
 _F = np.float32
@@ -102,7 +105,7 @@ def _sincos_2pi(k2):
     """(cos, sin) of 2 pi k2 / 2^24 for integer k2 (int32) in [0, 2^24), float32: octant from the top 3
     bits, the angle within it from the other 21 (reflected in odd octants), Cephes' polynomials on
     [0, pi/4]. The octant's swaps and signs are bit operations (np.where on a mask that changes
-    every element is slow in NumPy), with the kernel's results bit for bit."""
+    every element is slow in NumPy)."""
     o = k2 >> 21
     j = k2 & 0x1FFFFF
     odd = o & 1
@@ -123,8 +126,8 @@ def _sincos_2pi(k2):
 
 def complex_normals(counter, key):
     """(re, im) float32 arrays: a standard normal pair for each uint64 counter: Box-Muller of its
-    hash, u1 = (top 24 bits + 1) / 2^24 in (0, 1], u2 = the next 24 bits / 2^24, in the float32
-    IEEE operations the CUDA kernel does, one for one (so the two agree bit for bit). Whole arrays,
+    hash, u1 = (top 24 bits + 1) / 2^24 in (0, 1], u2 = the next 24 bits / 2^24, in IEEE float32
+    operations only (the CUDA kernel: the same u1 and u2, its hardware functions). Whole arrays,
     not cache-sized pieces: the host twin runs on a thread per core, and a NumPy call lets the
     others run only while it works (pieces of 8,192 cost 4.6x on 16 cores, waiting for the GIL)."""
     h = _mix64(np.asarray(counter, np.uint64) ^ np.uint64(key))
@@ -180,41 +183,19 @@ __device__ __forceinline__ u64 mix64(u64 z) {
     z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
     return z ^ (z >> 31);
 }
-// Box-Muller in float32 from IEEE operations only, one for one as complex_normals does in NumPy
-// (compiled with --fmad=false: no fused multiply-add, which NumPy does not do either), so the GPU
-// and the host twin give the same bits; Cephes' logf and sinf/cosf polynomials. Constants go decimal ->
-// double -> float, as NumPy's np.float32(literal) does (decimal -> float directly may round otherwise)
-#define F(x) ((float)(x))
+// Box-Muller with the GPU's own log, sqrt and sin/cos (compiled with --use_fast_math): the NumPy
+// twin's counters, hash and bits of u1 and u2, so the same normals to ~1e-5 (the hardware functions'
+// rounding, not the IEEE-only polynomials the twin uses); those IEEE-only polynomials here cost the
+// kernel 1.7x (784 channels, 4 sources, H100: 15.3x -> 26.7x real time).
 __device__ __forceinline__ float2 cnormal(u64 ctr, u64 key) {
     const u64 h = mix64(ctr ^ key);
-    // log(u1), u1 = (top 24 bits + 1) / 2^24 = m 2^e
-    const float u = (float)(unsigned int)((h >> 40) + 1ULL) * (F(1.0) / F(16777216.0));   // 32-bit: exact
-    const int bits = __float_as_int(u);
-    int e = ((bits >> 23) & 0xFF) - 127;
-    float m = __int_as_float((bits & 0x7FFFFF) | 0x3F800000);
-    if (m > F(1.4142135)) { m = m * F(0.5); e = e + 1; }
-    const float ef = (float)e;
-    const float x = m - F(1.0), z = x * x;
-    float p = F(7.0376836292e-2);
-    p = p * x + -F(1.1514610310e-1); p = p * x + F(1.1676998740e-1); p = p * x + -F(1.2420140846e-1);
-    p = p * x + F(1.4249322787e-1); p = p * x + -F(1.6668057665e-1); p = p * x + F(2.0000714765e-1);
-    p = p * x + -F(2.4999993993e-1); p = p * x + F(3.3333331174e-1);
-    const float y = x * z * p + ef * -F(2.12194440e-4) - F(0.5) * z;
-    const float lg = (x + y) + ef * F(0.693359375);
-    const float r = sqrtf(-F(2.0) * lg);
-    // cos, sin of 2 pi u2, u2 = the next 24 bits / 2^24: octant, then the angle within it
-    const int k2 = (int)((h >> 16) & 0xFFFFFFULL);
-    const int o = k2 >> 21, j = k2 & 0x1FFFFF;
-    const float t = (float)((o & 1) ? (1 << 21) - j : j) * (float)(0.78539816339744830962 / 2097152.0);
-    const float zz = t * t;
-    const float sn = ((-F(1.9515295891e-4) * zz + F(8.3321608736e-3)) * zz - F(1.6666654611e-1)) * zz * t + t;
-    const float cs = ((F(2.443315711809948e-5) * zz - F(1.388731625493765e-3)) * zz + F(4.166664568298827e-2)) * zz * zz
-                     - F(0.5) * zz + F(1.0);
-    const bool swap = ((o + 1) & 2) != 0;
-    float c = swap ? sn : cs, s = swap ? cs : sn;
-    if ((o + 2) & 4) c = -c;
-    if (o >= 4) s = -s;
-    return make_float2(r * c, r * s);
+    const float u = (float)(unsigned int)((h >> 40) + 1ULL) * (1.0f / 16777216.0f);   // (0, 1], exact
+    const float r = sqrtf(fmaxf(-2.0f * __logf(u), 0.0f));
+    // the angle 2 pi k2 / 2^24 taken as (2 pi k2 / 2^24 - pi) + pi: __sincosf is accurate in [-pi, pi]
+    const float t = (float)(int)((h >> 16) & 0xFFFFFFULL) * (6.283185307179586f / 16777216.0f) - 3.14159265358979f;
+    float sn, cs;
+    __sincosf(t, &sn, &cs);
+    return make_float2(-r * cs, -r * sn);
 }
 // one block per (channel, tile of TILE samples): the sources' signals for the tile once in shared
 // memory, then one thread per antenna writes both pols of every sample (two ci4 bytes, or two
@@ -273,7 +254,7 @@ extern "C" __global__ void sim_gulp(unsigned char* out, int ci4, const float2* W
 // The same samples for a few sources (NSRC <= MAX_REG_SRC, fixed when compiled): an antenna's
 // weights held in registers for the whole tile and the sources' signals read from shared memory as
 // one float4 (both pols) per source, the noise counter and the output index stepped, not
-// recomputed. Every float operation is the generic kernel's, in its order, so the bits agree.
+// recomputed. Every float operation is the generic kernel's, in its order (same bits, tested).
 extern "C" __global__ void sim_gulp_few(unsigned char* __restrict__ out, int ci4, const float2* __restrict__ W,
                                         const long long* __restrict__ on0, const long long* __restrict__ on1,
                                         long long t0, int n, int nchan, int nant,
@@ -337,13 +318,12 @@ MAX_REG_SRC = 16    # up to this many sources, sim_gulp_few (weights in register
 
 def _gpu_kernel(nsrc):
     """(kernel, few): ``sim_gulp_few`` compiled for ``nsrc`` sources when nsrc <= MAX_REG_SRC, else the
-    generic ``sim_gulp``. Both without fused multiply-add: the same float32 operations as the NumPy
-    twin."""
+    generic ``sim_gulp``; both with the hardware's fast functions (module docstring)."""
     import cupy
     few = nsrc <= MAX_REG_SRC
     key = (cupy.cuda.Device().id, nsrc if few else -1)
     if key not in _GPU:
-        opts = ("--fmad=false",) + ((f"-DNSRC={nsrc}",) if few else ())
+        opts = ("--use_fast_math",) + ((f"-DNSRC={nsrc}",) if few else ())
         _GPU[key] = cupy.RawKernel(_KERNEL, "sim_gulp_few" if few else "sim_gulp", options=opts)
     return _GPU[key], few
 
