@@ -67,8 +67,27 @@ def test_equal_outputs_pass_and_differences_are_caught(tmp_path, sky):
     res = gpu_check.compare_dirs(g, c)
     assert not res["a.fits"]["ok"] and res["a.fits"]["rel_diff"] == pytest.approx(1e-3, rel=1e-3)
     assert not res["cube.h5"]["ok"] and res["cube.h5"]["ulp_diff"] >= 2
+    assert res["cube.h5"]["rel_diff_beyond_ulp"] > 1e-3
     assert not res["b.fits"]["ok"] and "NaN masks differ" in res["b.fits"]["problem"]
     assert not res["only_cpu.png"]["ok"]
+
+
+def test_a_cube_value_near_zero_may_move_many_of_its_units_but_not_the_cube_s_scale(tmp_path, sky):
+    """A simulated sky's GPU and CPU voltages differ by ~1e-5 of their rms: a cube value near zero then
+    moves by many of its own float16 units, yet by far less than 1e-5 of the cube's largest value."""
+    g, c = tmp_path / "gpu", tmp_path / "cpu"
+    ref = sky.copy()
+    ref[0, 5, 5] = 0.3                                   # float16 spacing there: 2.4e-4
+    _cube(c / "cube.h5", ref)
+    near = ref.copy()
+    near[0, 5, 5] += 5e-6 * np.nanmax(sky)                # ~2 of its units, 5e-6 of the cube's scale
+    _cube(g / "cube.h5", near)
+    res = gpu_check.compare_dirs(g, c)["cube.h5"]
+    assert res["ok"] and res["ulp_diff"] > 1.5 and res["rel_diff_beyond_ulp"] < 5e-6, res
+    near[0, 5, 5] += 1e-4 * np.nanmax(sky)                # 1e-4 of the scale: caught
+    _cube(g / "cube.h5", near)
+    res = gpu_check.compare_dirs(g, c)["cube.h5"]
+    assert not res["ok"] and res["rel_diff_beyond_ulp"] > 5e-5, res
 
 
 def test_candidate_tables_compare_by_their_candidates(tmp_path):
