@@ -74,7 +74,7 @@ def test_equal_outputs_pass_and_differences_are_caught(tmp_path, sky):
 
 def test_a_cube_value_near_zero_may_move_many_of_its_units_but_not_the_cube_s_scale(tmp_path, sky):
     """A simulated sky's GPU and CPU voltages differ by ~1e-5 of their rms: a cube value near zero then
-    moves by many of its own float16 units, yet by far less than 1e-5 of the cube's largest value."""
+    moves by many of its own float16 units, yet by less than one unit at the cube's largest value."""
     g, c = tmp_path / "gpu", tmp_path / "cpu"
     ref = sky.copy()
     ref[0, 5, 5] = 0.3                                   # float16 spacing there: 2.4e-4
@@ -84,10 +84,10 @@ def test_a_cube_value_near_zero_may_move_many_of_its_units_but_not_the_cube_s_sc
     _cube(g / "cube.h5", near)
     res = gpu_check.compare_dirs(g, c)["cube.h5"]
     assert res["ok"] and res["ulp_diff"] > 1.5 and res["rel_diff_beyond_ulp"] < 5e-6, res
-    near[0, 5, 5] += 1e-4 * np.nanmax(sky)                # 1e-4 of the scale: caught
+    near[0, 5, 5] += 1e-3 * np.nanmax(sky)                # 1e-3 of the scale, twice float16's 2^-11: caught
     _cube(g / "cube.h5", near)
     res = gpu_check.compare_dirs(g, c)["cube.h5"]
-    assert not res["ok"] and res["rel_diff_beyond_ulp"] > 5e-5, res
+    assert not res["ok"] and res["rel_diff_beyond_ulp"] > 5e-4 and res["allowed_beyond_ulp"] == 2.0 ** -11, res
 
 
 def test_candidate_tables_compare_by_their_candidates(tmp_path):
