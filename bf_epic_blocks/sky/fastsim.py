@@ -15,7 +15,7 @@ samples (to the last bit on the CPU; to the GPU's fast functions' rounding there
   (+, -, *, sqrt and integer bit work: Cephes' polynomials for log and sin/cos, relative error
   ~1e-7), so any machine gives its samples bit for bit. The CUDA kernel takes the same counters,
   hash and 24-bit uniforms and the hardware's own log, sqrt and sin/cos with fused multiply-add:
-  its voltages are the twin's to ~1e-5 of their rms (worst of 4e8), and its 4-bit samples the
+  its voltages are the twin's to 4e-5 of their rms (worst of 4e8; 1.5e-4 for noise alone), its 4-bit samples the
   twin's except ~2 in 10^6 that sit on a rounding edge and land one step over (measured on an
   H100, tested on every GPU run). The twin's IEEE-only polynomials on the GPU, which made the two
   agree bit for bit, held the 784-channel sky to 15.3x real time against 26.7x.
@@ -184,7 +184,7 @@ __device__ __forceinline__ u64 mix64(u64 z) {
     return z ^ (z >> 31);
 }
 // Box-Muller with the GPU's own log, sqrt and sin/cos (compiled with --use_fast_math): the NumPy
-// twin's counters, hash and bits of u1 and u2, so the same normals to ~1e-5 (the hardware functions'
+// twin's counters, hash and bits of u1 and u2, so the same normals to ~1e-4 (the hardware functions'
 // rounding, not the IEEE-only polynomials the twin uses); those IEEE-only polynomials here cost the
 // kernel 1.7x (784 channels, 4 sources, H100: 15.3x -> 26.7x real time).
 __device__ __forceinline__ float2 cnormal(u64 ctr, u64 key) {
