@@ -38,6 +38,7 @@ from cases import (lwasv_like_layout, pairs_to_complex, quantise4, reference_ima
 
 from bf_epic_blocks import imaging  # noqa: E402
 from bf_epic_blocks.imaging import cost, plan  # noqa: E402
+from bf_epic_blocks.imaging.fused import FUSED  # noqa: E402
 from bf_epic_blocks.imaging.gemm import PRECISIONS, precision_available  # noqa: E402
 
 C = 299792458.0
@@ -80,6 +81,22 @@ def naive_direct(xp, G, X, n):
     Y = X.transpose(1, 2, 3, 0).reshape(Cn, A, P * T)
     F = xp.matmul(G, Y).reshape(Cn, G.shape[1], P, T // n, n)
     return (F.real ** 2 + F.imag ** 2).mean(-1).transpose(3, 0, 2, 1)
+
+
+def gemm_floor(xp, nchan, npix, nant, ncol, run, repeat):
+    """[(name, seconds)]: cuBLAS' batched fp16 GEMM alone on the direct route's stacked shapes,
+    (nchan, 2 npix, 2 nant) . (nchan, 2 nant, ncol), fp32 accumulation, with fp32 and fp16 output --
+    what regime B would cost if the |F|^2 sums were free (the issue's floor row)."""
+    from bf_epic_blocks.imaging import gemm as G
+    a = xp.ones((nchan, 2 * npix, 2 * nant), xp.float16)
+    b = xp.ones((nchan, 2 * nant, ncol), xp.float16)
+    out = []
+    for name, dt, ot in (("floor-f32", xp.float32, G._CUDA_R_32F), ("floor-f16", xp.float16, G._CUDA_R_16F)):
+        c = xp.empty((nchan, 2 * npix, ncol), dt)
+        t, _ = run(lambda: G._gemm_ex(a, b, c, G._CUDA_R_16F, ot, G._COMPUTE["fp32"], np.float32, 0), repeat)
+        out.append((name, t))
+        del c
+    return out
 
 
 def hard_scenes():
@@ -200,7 +217,7 @@ def main(argv=None):
                 continue
             op = imaging.DFTOperator(xyzd, fd, lmd, npol=npol, precision=precision)
             for route in ("covariance", "direct"):
-                if big and route == "direct":
+                if (big and route == "direct") or (precision in FUSED and route == "covariance"):
                     continue
                 for inp, X in (("ci4", Qd), ("cf32", Xd)):
                     if route == "direct" and inp == "cf32":
@@ -222,6 +239,9 @@ def main(argv=None):
         refn = reference_image(Q, xyz, freq, grid.lm[sub], blocks, accumulate=n)
         t_naive_dir, img = run(lambda: naive_direct(xp, G, Xd, n), repeat)
         row(grid_n, "x64", "naive-dir", "fp32", "cf32", t_naive_dir, rel(img[..., sub], refn))
+        if gpu:   # the floor: cuBLAS' fp16 GEMM alone for the same shapes, the field written and nothing else
+            for name, t in gemm_floor(xp, nchan, grid.npix, len(xyz), npol * a.ntime, run, repeat):
+                row(grid_n, "x64", name, "fp16", "ci4", t, float("nan"), base=t_naive_dir)
         t_prev64 = None
         if prev is not None:
             pop = prev.DFTOperator(xyzd, fd, lmd, npol=npol, precision="fp32")
@@ -257,16 +277,25 @@ def main(argv=None):
     hard = []
     for name, hxyz, hf, hX, hlm in hard_scenes():
         href = reference_image(hX, hxyz, hf, hlm, ((0, 0), (1, 1)))
+        # the integer modes take 4-bit voltages only: the same scene quantised, against its own reference
+        hQ = quantise4(hX)
+        qref = reference_image(hQ, hxyz, hf, hlm, ((0, 0), (1, 1)))
         for precision in precisions:
             op = imaging.DFTOperator(xp.asarray(hxyz), xp.asarray(hf), xp.asarray(hlm), npol=2, precision=precision)
             for route in ("direct", "covariance"):
+                if precision in FUSED:
+                    if route == "direct":
+                        hard.append({"scene": name + " (4-bit)", "route": route, "precision": precision,
+                                     "rel_err": rel(op.image(xp.asarray(hQ), method=route), qref)})
+                    continue
                 err = rel(op.image(xp.asarray(hX), method=route), href)
                 hard.append({"scene": name, "route": route, "precision": precision, "rel_err": err})
     print("# hard scenes: worst error per route x precision")
     for precision in precisions:
         for route in ("direct", "covariance"):
-            e = max(h["rel_err"] for h in hard if h["route"] == route and h["precision"] == precision)
-            print(f"#   {route:<10} {precision:<8} {e:.1e}")
+            es = [h["rel_err"] for h in hard if h["route"] == route and h["precision"] == precision]
+            if es:
+                print(f"#   {route:<10} {precision:<8} {max(es):.1e}")
 
     out = {"benchmark": "bench_dft", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
            "machine": machine(xp), "device": a.device,
@@ -304,6 +333,7 @@ def write_table(result, device):
             errs += [h["rel_err"] for h in result["hard_scenes"] if h["route"] == route and h["precision"] == precision]
             best = min(case, key=lambda r: r["gulp_s"])
             new.append({"device": device, "method": route, "precision": precision,
+                        **({"input": "ci4"} if precision in FUSED else {}),
                         "bound": max(_round_up(3 * max(errs)), 1e-11),
                         "rate_cmac_s": float(f"{best['cmacs'] / best['gulp_s']:.3g}"),
                         "measured": f"{result['machine'].get('gpu', result['machine']['cpu'])}, "

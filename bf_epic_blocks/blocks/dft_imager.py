@@ -101,9 +101,10 @@ class DFTImagerBlock(bfp.TransformBlock):
         method, precision = self._asked
         device = "gpu" if self.gpus is not None else self._xp
         nant = int((~lay["flags"]).any(axis=1).sum())
+        bits = {"ci4": 4, "ci8": 8}.get(lay["dtype"])
         self.plan = plan.choose(self.tolerance, device, ntime=self.accumulate, nant=nant, npix=len(lm),
                                 npol=lay["npol"], nchan=lay["nchan"], products=self.products, method=method,
-                                precision=precision)
+                                precision=precision, sample_bits=bits)
         self.method, self.precision = self.plan.method, self.plan.precision
         log.info("%s: tolerance %.1e: %s", type(self).__name__, self.tolerance, self.plan.describe())
 

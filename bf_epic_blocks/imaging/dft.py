@@ -35,6 +35,7 @@ import numpy as np
 from ..conventions import SIGMA, SPEED_OF_LIGHT_M_S
 from . import cost
 from ._xp import get_xp, host_all, to_numpy
+from .fused import FUSED, FusedOperator
 from .gemm import (FP16, PRECISIONS, STACKED, check_precision, cmatmul, int_gram, pow2_scale, split_tf32, stack_operator,
                    stack_rhs, stacked_matmul)
 from .graphs import GraphCache
@@ -334,6 +335,13 @@ class DFTOperator:
                 self.pixel_pattern = b[:, :, 0, :].astype(self.cdtype)
         self.shared_geometry = self.G.shape[1] == 1
         self._derived = {}
+        #: the fused integer modes' operator (:mod:`.fused`), built now: never inside a graph capture
+        self.fused = None
+        if precision in FUSED:
+            if not self.shared_geometry:
+                raise ValueError(f"precision {precision!r} needs one operator for both pols; an antenna-dependent "
+                                 "pattern makes one per pol: use 'fp16x3' or 'fp32'")
+            self.fused = FusedOperator(self, precision)
         #: (nant_kept, npol) NaN/Inf samples zeroed so far in complex input (device array), or None
         self.nonfinite_counts = None
 
@@ -575,6 +583,13 @@ class ImageAccumulator:
             blocks.append((0, 1))
         self.blocks = blocks
         self.pols = sorted({p for b in blocks for p in b})
+        if op.precision in FUSED:
+            # the fused integer modes are a direct-route kernel for the pols' own powers
+            if method == "covariance" or self.cross:
+                raise ValueError(f"precision {op.precision!r} images the direct route's XX/YY powers (products "
+                                 f"XX, YY, I, Q); asked for method={method!r}, products {self.products}: "
+                                 "use 'fp16x3' or 'fp32' for the covariance route or cross-pol products")
+            method = "direct"
         if method == "auto":
             method = cost.choose_method(int(ntime_hint), op.nant, op.npix, op.npol, len(blocks))
         self.method = method
@@ -634,6 +649,8 @@ class ImageAccumulator:
         (g, C', nblk, A) autocorrelation sums or None), g = ntime // n."""
         op, xp = self.op, self.op.xp
         t = int(efield.shape[0])
+        if op.fused is not None:
+            return self._fused_sums(efield, ints, n)
         g = t // n
         per_chan = op.npix * len(self.pols) * t * np.dtype(op.cdtype).itemsize
         fast = ints and op.unit_weights and op.shared_geometry and per_chan <= op.chunk_bytes()
@@ -662,6 +679,20 @@ class ImageAccumulator:
                     lo, hi = max(j * n, t0) - t0, min((j + 1) * n, t0 + nt) - t0
                     part = xp.ascontiguousarray(Fc[..., lo:hi]).reshape(Fc.shape[0], op.npix, -1)
                     S[j, cs] += block_corr(part, self._bidx, hi - lo, npol=len(self.pols), scale=sc)[0]
+        return S, auto
+
+    def _fused_sums(self, efield, ints, n):
+        """:meth:`_direct_sums` in a fused integer mode: the GEMM and |F|^2 in one kernel (:mod:`.fused`)."""
+        op, t = self.op, int(efield.shape[0])
+        if not ints or n % 16 or not op.fused.supports(t, len(self.pols)):
+            raise ValueError(
+                f"precision {op.precision!r} images integer (re, im) voltages of at most 4 bits, in groups of a "
+                f"multiple of 16 samples and gulps of a multiple of {128 // len(self.pols)} samples; got "
+                f"{'integer' if ints else 'complex'} voltages, {t} samples in groups of {n}: use 'fp16x3' or 'fp32'")
+        S = op.fused.sums(efield, self.pols, n)                       # (g, C', nblk, K), blocks (p, p)
+        auto = None
+        if self.remove_autocorr:
+            auto = op.xp.moveaxis(self._auto_sums(op.prepare(efield[:(t // n) * n]), n), -1, 0)
         return S, auto
 
     def _fields(self, x, exact):

@@ -21,6 +21,10 @@ name         what the GEMM does                                                 
              scales them into range), fp32 accumulation; as accurate as tf32 at twice
              the rate; 4-bit voltages are exact in fp16
 ``bf16``     operands rounded to bf16 (7-bit mantissa), fp32 accumulation            GPU (tensor cores)
+``i8x2``     direct route, 4-bit integer voltages only: the operator as two int8     GPU (integer
+             pieces (resolution 1/(127*254) of each pixel row's largest element),   tensor cores)
+             the GEMM exact in int32 and |F|^2 summed in its epilogue (:mod:`.fused`)
+``i8x3``     as i8x2 with three pieces (resolution 1/(127*63^2))                     GPU (integer TC)
 ===========  =====================================================================  ===============
 
 The tensor-core modes are real GEMMs on the stacked form of the complex product
@@ -68,6 +72,8 @@ PRECISIONS = {
     "tf32": (np.float32, np.complex64, True),
     "fp16": (np.float32, np.complex64, True),
     "bf16": (np.float32, np.complex64, True),
+    "i8x2": (np.float32, np.complex64, True),
+    "i8x3": (np.float32, np.complex64, True),
 }
 
 #: modes computed as stacked real GEMMs (everything on tensor cores)

@@ -72,7 +72,7 @@ def candidates(device, table=None) -> list[dict]:
 
 
 def choose(tolerance, device="cpu", *, ntime=1024, nant=256, npix=3205, npol=2, nchan=1, products=None,
-           method="auto", precision=None, table=None) -> Plan:
+           method="auto", precision=None, table=None, sample_bits=None) -> Plan:
     """The fastest (route, precision) with a measured error bound <= ``tolerance`` on ``device``.
 
     device : 'cpu' | 'gpu' (or a pipeline device string: 'gpu:1', 'gpu:all'), or the array namespace
@@ -81,6 +81,9 @@ def choose(tolerance, device="cpu", *, ntime=1024, nant=256, npix=3205, npol=2, 
     the predicted time is for all ``nchan`` channels).
     method : 'auto' (either route) or 'direct' / 'covariance' to restrict the choice.
     precision : None (any) or a name to restrict the choice.
+    sample_bits : bits per real voltage component when the voltages reach the imager as integers (4 for
+    ci4), else None. Rows measured for one input only (``"input": "ci4"``: the fused integer modes,
+    which also image no cross-pol products) are candidates only when that input is what will come.
     Raises ValueError when nothing meets the tolerance, naming the most accurate option there is.
     """
     tol = check_tolerance(tolerance)
@@ -89,6 +92,8 @@ def choose(tolerance, device="cpu", *, ntime=1024, nant=256, npix=3205, npol=2, 
     nblk = (npol if any(p in ("XX", "YY", "I", "Q") for p in names) else 0) + (1 if needs_cross(names) else 0)
     device = device_kind(device)
     rows = candidates(device, table)
+    ints4 = sample_bits is not None and int(sample_bits) <= 4 and not needs_cross(names)
+    rows = [r for r in rows if r.get("input") is None or (r["input"] == "ci4" and ints4)]
     if method != "auto":
         rows = [r for r in rows if r["method"] == method]
     if precision is not None:

@@ -1,0 +1,462 @@
+"""The direct route's high-cadence imaging in one kernel: integer tensor-core GEMM with |F|^2 in its epilogue.
+
+Regime B (one image per 16 samples) spends its time after the GEMM when the field F = D X reaches
+memory: F is ~0.4-0.8 GB per 16-channel gulp, written by the GEMM and read back to square and sum
+(H100: GEMM 0.38-0.48 ms + power pass 0.17-0.32 ms). This module never lets F leave the registers.
+
+**Operands.** 4-bit voltages are exact int8. The operator D = G w (geometry times the folded gains,
+one row per pixel) is scaled per pixel row by s_k = max_a max(|Re D_ka|, |Im D_ka|) and written as
+``pieces`` int8 numbers in base ``b``:
+
+    D_ka / s_k * 127 = q1 + q2 / b + q3 / b^2 (+ rounding),   |q_i| <= 127
+
+so that  D X * 127 b^(pieces-1) / s_k = b^(pieces-1) Q1 X + ... + Q_pieces X  is an *integer*,
+summed exactly in int32 by the tensor cores (``mma.sync m16n8k32 s8.s8.s32``): the kernel runs the
+K loop once per piece and multiplies its int32 accumulators by b between pieces, so one set of
+accumulators serves every piece. b is the largest (<= 254 for two pieces, <= 63 for three) with
+no int32 overflow for 4-bit voltages: |acc| <= sum_k |x_k| * 127 (b^(p-1) + ... + 1) < 2^31.
+Larger samples (8-bit data) are checked on the device as they are laid out: any |x| above what the
+accumulators can hold (:func:`bases`) turns that call's images to NaN -- never a silently wrong image.
+
+=========  ==================================  ================================  ==================
+mode       operator resolution (of s_k)        int8 MMAs per complex MAC          image error, case P
+=========  ==================================  ================================  ==================
+``i8x2``   1 / (127 * 254) = 3.1e-5            8 (two pieces of the 4 real ones)  ~3e-6
+``i8x3``   1 / (127 * 63^2) = 2.0e-6           12                                 ~2e-7
+=========  ==================================  ================================  ==================
+
+(fp16 operands, for comparison: 2^-11 = 4.9e-4 relative.) After the integer GEMM, F is converted
+to float32 (6e-8 relative) and squared, and each 16 columns (16 samples of one pol) are summed in the
+epilogue: the kernel writes sum_t |F_kt|^2 per pixel, pol and 16-sample unit, scaled by
+(s_k / (127 b^(pieces-1)))^2.
+
+**Layout.** A: (C, PA, pieces, M, KD) int8, M = 2 Kpad rows: each run of 16 rows holds the real
+rows of 8 pixels then their imaginary rows (so one thread's accumulator fragment holds Re and Im of
+the same pixel), KD = 2 Apad with column 2a + (0 re | 1 im) -- the order of the (re, im) int8 pairs
+the voltages come in. Real row of pixel k: (Re D_ka, -Im D_ka) on (Re x_a, Im x_a); imaginary row:
+(Im D_ka, Re D_ka). PA = 1 when both pols share the gains, else 2. Kpad: pixels rounded up to 64;
+Apad: antennas rounded up to 32. B: (C, P' T, KD) int8, column p' T + t.
+
+All sizes in the kernel: block tile 128 rows x 128 columns x 64 K, four warps of 64 x 64, four
+cp.async stages (80 KB of shared memory), ``ldmatrix`` fragment loads.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ._xp import get_xp
+
+__all__ = ["FUSED", "PIECES", "bases", "quantise_operator", "layout_voltages", "fused_power",
+           "reference_power", "FusedOperator"]
+
+#: the fused modes and their number of int8 pieces
+PIECES = {"i8x2": 2, "i8x3": 3}
+FUSED = tuple(PIECES)
+_BASE0 = {2: 254, 3: 63}
+BM, BN = 128, 128   # default block tile (rows, columns): Kpad is a multiple of BM / 2
+_INT32_MAX = 2 ** 31 - 1
+
+
+def bases(pieces: int, kd: int) -> tuple[int, int]:
+    """(b, xmax) for ``pieces`` int8 pieces and KD = 2 Apad: the base, and the largest |sample| whose
+    sums cannot overflow int32 (at least 8, so 4-bit voltages are always exact; at most 128)."""
+    if pieces not in _BASE0:
+        raise ValueError(f"pieces must be one of {tuple(_BASE0)}, got {pieces!r}")
+    b = _BASE0[pieces]
+    while True:
+        cmax = 127 * sum(b ** i for i in range(pieces))
+        xmax = _INT32_MAX // (cmax * kd)
+        if xmax >= 8 or b <= 2:
+            break
+        b -= 1
+    if xmax < 8:
+        raise ValueError(f"{kd // 2} antennas are too many for int32 sums of {pieces} int8 pieces")
+    return b, min(int(xmax), 128)
+
+
+def _pad(n, m):
+    return -(-n // m) * m
+
+
+def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16):
+    """The operator as int8 pieces in the kernel's layout (module docstring).
+
+    G : complex (C, K, A_kept) geometric operator (live channels);  weights : complex (C, A_kept, P)
+    folded gains (0 = flagged);  keep_index : (A_kept,) input antenna of each kept antenna;
+    nant_in : antennas in the voltages.  Returns (A int8 (C, PA, pieces, M, KD), oscale float32
+    (C, PA, Kpad), base, xmax). Works in G's array namespace, ``chunk`` channels at a time.
+    """
+    xp = get_xp(G)
+    C, K, Ak = (int(s) for s in G.shape)
+    w = xp.asarray(weights)
+    P = int(w.shape[-1])
+    shared = P == 1 or bool(xp.all(w == w[..., :1]))
+    PA = 1 if shared else P
+    Kpad, Apad = _pad(K, 32 * CONFIG["WMW"]), _pad(nant_in, 32)
+    KD = 2 * Apad
+    b, xmax = bases(pieces, KD)
+    Aq = xp.zeros((C, PA, pieces, 2 * Kpad, KD), xp.int8)
+    osc = xp.zeros((C, PA, Kpad), xp.float32)
+    kidx = xp.asarray(keep_index)
+    for c0 in range(0, C, chunk):
+        cs = slice(c0, min(C, c0 + chunk))
+        nc = cs.stop - cs.start
+        for pa in range(PA):
+            D = G[cs].astype(xp.complex64) * w[cs, None, :, pa].astype(xp.complex64)       # (nc, K, Ak)
+            s = xp.maximum(xp.abs(D.real), xp.abs(D.imag)).max(axis=-1)                    # (nc, K)
+            s = xp.where(s > 0, s, xp.float32(1)).astype(xp.float32)
+            # residuals in float32: |d| <= 127 carries 7.6e-6 absolute rounding, well below the
+            # finest step 1/b^2 = 2.5e-4 (b = 63)
+            r = (D / s[..., None] * xp.float32(127)).astype(xp.complex64)
+            full = xp.zeros((nc, Kpad, Apad), xp.complex64)
+            full[:, :K, kidx] = r
+            dr, di = full.real.copy(), full.imag.copy()
+            for i in range(pieces):
+                qr, qi = xp.rint(dr), xp.rint(di)
+                dr, di = (dr - qr) * xp.float32(b), (di - qi) * xp.float32(b)
+                re_row = xp.stack([qr, -qi], axis=-1).reshape(nc, Kpad // 8, 8, KD)
+                im_row = xp.stack([qi, qr], axis=-1).reshape(nc, Kpad // 8, 8, KD)
+                Aq[cs, pa, i] = xp.concatenate([re_row, im_row], axis=2).reshape(nc, 2 * Kpad, KD).astype(xp.int8)
+            sc = (s.astype(xp.float64) / (127.0 * float(b) ** (pieces - 1))) ** 2
+            osc[cs, pa, :K] = sc.astype(xp.float32)
+    return Aq, osc, b, xmax
+
+
+def layout_voltages(pairs, chan, pols, KD, xmax, flag=None):
+    """Integer (re, im) voltages (T, C_in, A_in, P_in, 2) int8 -> B (C', P' T, KD) int8, column p' T + t.
+
+    chan : None (all channels) or (C',) input channel per live channel;  pols : the pols imaged
+    (a list, or on the GPU an int32 device array).  Antennas beyond A_in are zero. On the GPU any
+    |sample| > ``xmax`` sets ``flag[0]`` (int32, device).
+    """
+    xp = get_xp(pairs)
+    T, Cin, Ain, Pin = (int(s) for s in pairs.shape[:4])
+    if xp is np:
+        pols = [int(p) for p in pols]
+        x = pairs if chan is None else pairs[:, np.asarray(chan)]
+        x = x[:, :, :, pols]                                           # (T, C', A, P', 2)
+        out = np.zeros((x.shape[1], len(pols), T, KD), np.int8)
+        out[..., :2 * Ain] = x.transpose(1, 3, 0, 2, 4).reshape(x.shape[1], len(pols), T, 2 * Ain)
+        return out.reshape(x.shape[1], len(pols) * T, KD)
+    cmap = xp.arange(Cin, dtype=xp.int32) if chan is None else xp.asarray(chan, dtype=xp.int32)
+    pmap = xp.asarray(pols, dtype=xp.int32)
+    Cl, Pp = int(cmap.shape[0]), int(pmap.shape[0])
+    out = xp.empty((Cl, Pp * T, KD), xp.int8)
+    if flag is None:
+        flag = xp.zeros(1, xp.int32)
+    total = Cl * T * (KD // 16)
+    _kernel("bf_layout_i8")(((total + 255) // 256,), (256,),
+                            (xp.ascontiguousarray(pairs), out, cmap, pmap, flag, np.int32(T), np.int32(Cin),
+                             np.int32(Ain), np.int32(Pin), np.int32(Pp), np.int32(KD // 2), np.int32(Cl),
+                             np.int32(xmax)))
+    return out
+
+
+def reference_power(Aq, osc, Bv, T, n=16, base=None):
+    """NumPy emulation of the kernel, in int64: (C, P', T // 16, Kpad) float64 sums of |F|^2 per
+    16 samples, scaled. For tests: it checks the layout and the quantisation against a float64 DFT,
+    and the kernel against it."""
+    C, PA, NP, M, KD = Aq.shape
+    P = Bv.shape[1] // T
+    b = base if base is not None else bases(NP, KD)[0]
+    out = np.zeros((C, P, T // 16, M // 2))
+    for c in range(C):
+        for p in range(P):
+            pa = p if PA > 1 else 0
+            X = Bv[c, p * T:(p + 1) * T].astype(np.int64)                    # (T, KD)
+            acc = np.zeros((M, T), np.int64)
+            for i in range(NP):
+                acc = acc * b + Aq[c, pa, i].astype(np.int64) @ X.T
+            acc = acc.reshape(M // 16, 2, 8, T)                              # (blocks, re|im, 8, T)
+            pw = (acc.astype(np.float64) ** 2).sum(axis=1).reshape(M // 2, T // 16, 16).sum(-1)
+            out[c, p] = pw.T * osc[c, pa][None, :]
+    return out
+
+
+def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None):
+    """GPU: the fused GEMM and power sums. Aq, osc: :func:`quantise_operator`; Bv: :func:`layout_voltages`
+    (C', P T, KD); flag: int32 device scalar (nonzero: NaN images); npix: pixels kept (default Kpad).
+    Returns complex64 (T // 16, C', P, npix), imaginary part 0: [g, c, p, k] is the sum over samples
+    16 g .. 16 g + 15 of |F_pk|^2 -- the direct route's block sums as :mod:`.dft` keeps them."""
+    import cupy as cp
+    cfg = dict(CONFIG, **(config or {}))
+    C, PA, NP, M, KD = (int(s) for s in Aq.shape)
+    ncol = int(Bv.shape[1])
+    bm = 64 * cfg["WMW"]
+    if ncol != P * T or ncol % BN or KD % cfg["BK"] or M % bm or (PA > 1 and T % BN):
+        raise ValueError(f"fused imaging needs P*T a multiple of {BN} (and T too with per-pol gains), got T={T}, P={P}")
+    npix = int(M // 2 if npix is None else npix)
+    out = cp.empty((T // 16, C, P, npix), cp.complex64)
+    k, smem = _fused_kernel(NP, KD, cfg)
+    k((M // bm, ncol // BN, C), (32 * cfg["WMW"] * (BN // cfg["WN"]),), (Aq, Bv, osc, flag, out, np.int32(M), np.int32(ncol),
+                                                     np.int32(T), np.int32(PA), np.int32(_base_of(NP, KD)),
+                                                     np.int32(npix)),
+      shared_mem=smem)
+    return out
+
+
+def _base_of(pieces, kd):
+    return bases(pieces, kd)[0]
+
+
+class FusedOperator:
+    """The operator's int8 pieces and the call that images with them (made once per operator and mode).
+
+    op : a :class:`.dft.DFTOperator` on the GPU;  precision : 'i8x2' | 'i8x3'."""
+
+    def __init__(self, op, precision):
+        xp = op.xp
+        self.pieces = PIECES[precision]
+        w = op.data_weights if op.chan_index is None else op.data_weights[op.chan_index]
+        self.Aq, self.osc, self.base, self.xmax = quantise_operator(
+            op.live_G(0), w, op.keep_index, op.nant_in, self.pieces)
+        self.KD = int(self.Aq.shape[-1])
+        self.chan = (xp.arange(op.nchan, dtype=xp.int32) if op.chan_index is None
+                     else xp.asarray(op.chan_index, dtype=xp.int32))
+        self.npix = op.npix
+        self.flag = xp.zeros(1, xp.int32)
+        self._pmaps = {}
+
+    def supports(self, T, P):
+        """Whether gulps of T samples of P pols fit the kernel's tiles."""
+        PA = int(self.Aq.shape[1])
+        return (P * T) % BN == 0 and (PA == 1 or T % BN == 0) and T % 16 == 0
+
+    def sums(self, pairs, pols, n):
+        """(g, C', P', npix) complex64 sums of |F_p|^2 over groups of ``n`` samples (n % 16 == 0)."""
+        xp = get_xp(pairs)
+        T = int(pairs.shape[0])
+        P = len(pols)
+        key = tuple(pols)
+        if key not in self._pmaps:
+            self._pmaps[key] = xp.asarray(list(pols), dtype=xp.int32)
+        self.flag.fill(0)
+        Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag)
+        out = fused_power(self.Aq, self.osc, Bv, T, P, self.flag, self.npix)       # (T/16, C', P, K)
+        g, u = T // n, n // 16
+        if u > 1:
+            out = out[:g * u].reshape(g, u, *out.shape[1:]).sum(axis=1)
+        return out
+
+
+#: kernel shape (tuned on an H100, see tools/bench_dft.py): warps along M, K per stage, stages,
+#: B kept whole in shared memory across pieces, fragments double-buffered
+CONFIG = dict(WMW=2, WN=64, BK=64, ST=4, BFULL=1, FP=1, MINB=1)
+
+
+def _smem(cfg, kd):
+    bm = 64 * cfg["WMW"]
+    a = cfg["ST"] * bm * (cfg["BK"] + 16)
+    b = BN * (kd + 16) if cfg["BFULL"] else cfg["ST"] * BN * (cfg["BK"] + 16)
+    return a + b
+
+
+_SRC = r"""
+#define BM (64 * WMW)
+#define BN 128
+#define WNW (BN / WN)
+#define NI (WN / 8)
+#define NT (32 * WMW * WNW)
+#define LDA (BK + 16)
+#if BFULL
+#define LDB (KD + 16)
+#else
+#define LDB (BK + 16)
+#endif
+#define KS (BK / 32)
+
+__device__ __forceinline__ unsigned smem_u32(const void* p) { return (unsigned)__cvta_generic_to_shared(p); }
+__device__ __forceinline__ void cp_async16(unsigned dst, const void* src) {
+    asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" :: "r"(dst), "l"(src));
+}
+__device__ __forceinline__ void cp_commit() { asm volatile("cp.async.commit_group;\n" ::); }
+__device__ __forceinline__ void cp_wait() { asm volatile("cp.async.wait_group %0;\n" :: "n"(ST - 2)); }
+__device__ __forceinline__ void ldsm_x4(unsigned addr, unsigned& r0, unsigned& r1, unsigned& r2, unsigned& r3) {
+    asm volatile("ldmatrix.sync.aligned.m8n8.x4.shared.b16 {%0,%1,%2,%3}, [%4];\n"
+                 : "=r"(r0), "=r"(r1), "=r"(r2), "=r"(r3) : "r"(addr));
+}
+__device__ __forceinline__ void mma_s8(int* d, const unsigned* a, unsigned b0, unsigned b1) {
+    asm volatile("mma.sync.aligned.m16n8k32.row.col.s32.s8.s8.s32 {%0,%1,%2,%3}, {%4,%5,%6,%7}, {%8,%9}, "
+                 "{%0,%1,%2,%3};\n"
+                 : "+r"(d[0]), "+r"(d[1]), "+r"(d[2]), "+r"(d[3])
+                 : "r"(a[0]), "r"(a[1]), "r"(a[2]), "r"(a[3]), "r"(b0), "r"(b1));
+}
+
+// A (C, PA, NP, M, KD) int8; B (C, NCOL, KD) int8; osc (C, PA, M/2);
+// out (T/16, C, P, npix) complex64: the sums of 16 samples of pol p for each pixel, imaginary part 0
+extern "C" __global__ void __launch_bounds__(NT, MINB)
+bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict__ B, const float* __restrict__ osc,
+               const int* __restrict__ flag, float2* __restrict__ out, const int M, const int NCOL,
+               const int T, const int PA, const int base, const int npix)
+{
+    extern __shared__ __align__(16) unsigned char smem[];
+    unsigned char* sA = smem;
+    unsigned char* sB = smem + ST * BM * LDA;
+    const int tid = threadIdx.x, lane = tid & 31, warp = tid >> 5;
+    const int wm = warp / WNW, wn = warp % WNW;
+    const int m0 = blockIdx.x * BM, n0 = blockIdx.y * BN, c = blockIdx.z;
+    const int pa = PA > 1 ? n0 / T : 0;
+    const signed char* Ab = A + ((long long)(c * PA + pa) * NP * M + m0) * KD;
+    const signed char* Bb = B + ((long long)c * NCOL + n0) * KD;
+    const int KB = KD / BK, NIT = NP * KB;
+
+    int acc[4][NI][4];
+#pragma unroll
+    for (int i = 0; i < 4; i++)
+#pragma unroll
+        for (int j = 0; j < NI; j++)
+#pragma unroll
+            for (int e = 0; e < 4; e++) acc[i][j][e] = 0;
+
+    // one stage: BM rows x BK bytes of A (and BN x BK of B): 16-byte chunks spread over the threads
+#define CPR (BK / 16)
+#define LOAD(it_, st_) do { \
+        const int piece_ = (it_) / KB, kb_ = (it_) - piece_ * KB; \
+        const signed char* ap_ = Ab + (long long)piece_ * M * KD + kb_ * BK; \
+        const unsigned as_ = smem_u32(sA + (st_) * BM * LDA); \
+        _Pragma("unroll") for (int i_ = 0; i_ < BM * CPR / NT; i_++) { \
+            const int ch_ = tid + i_ * NT, row_ = ch_ / CPR, col_ = (ch_ % CPR) * 16; \
+            cp_async16(as_ + row_ * LDA + col_, ap_ + (long long)row_ * KD + col_); } \
+        if (!BFULL || piece_ == 0) { \
+            const signed char* bp_ = Bb + kb_ * BK; \
+            const unsigned bs_ = BFULL ? smem_u32(sB + kb_ * BK) : smem_u32(sB + (st_) * BN * LDB); \
+            _Pragma("unroll") for (int i_ = 0; i_ < BN * CPR / NT; i_++) { \
+                const int ch_ = tid + i_ * NT, row_ = ch_ / CPR, col_ = (ch_ % CPR) * 16; \
+                cp_async16(bs_ + row_ * LDB + col_, bp_ + (long long)row_ * KD + col_); } \
+        } } while (0)
+
+#pragma unroll
+    for (int s = 0; s < ST - 1; s++) { if (s < NIT) LOAD(s, s); cp_commit(); }
+
+    unsigned af[FP + 1][4][4], bf[FP + 1][NI][2];
+    for (int it = 0; it < NIT; it++) {
+        cp_wait();
+        __syncthreads();
+        { const int nx = it + ST - 1; if (nx < NIT) LOAD(nx, nx % ST); cp_commit(); }
+        const int st = it % ST, kb = it % KB;
+        const unsigned as = smem_u32(sA + st * BM * LDA);
+        const unsigned bs = BFULL ? smem_u32(sB + kb * BK) : smem_u32(sB + st * BN * LDB);
+#define FRAGS(ks_, f_) do { \
+            _Pragma("unroll") for (int mi = 0; mi < 4; mi++) { \
+                const int row = wm * 64 + mi * 16 + ((lane >> 3) & 1) * 8 + (lane & 7); \
+                const int col = (ks_) * 32 + (lane >> 4) * 16; \
+                ldsm_x4(as + row * LDA + col, af[f_][mi][0], af[f_][mi][1], af[f_][mi][2], af[f_][mi][3]); } \
+            _Pragma("unroll") for (int nj = 0; nj < NI / 2; nj++) { \
+                const int row = wn * WN + nj * 16 + (lane >> 4) * 8 + (lane & 7); \
+                const int col = (ks_) * 32 + ((lane >> 3) & 1) * 16; \
+                ldsm_x4(bs + row * LDB + col, bf[f_][2 * nj][0], bf[f_][2 * nj][1], bf[f_][2 * nj + 1][0], \
+                        bf[f_][2 * nj + 1][1]); } } while (0)
+#if FP
+        FRAGS(0, 0);
+#endif
+#pragma unroll
+        for (int ks = 0; ks < KS; ks++) {
+#if FP
+            const int f = ks & 1;
+            if (ks + 1 < KS) FRAGS(ks + 1, (ks + 1) & 1);
+#else
+            const int f = 0;
+            FRAGS(ks, 0);
+#endif
+#pragma unroll
+            for (int mi = 0; mi < 4; mi++)
+#pragma unroll
+                for (int ni = 0; ni < NI; ni++) mma_s8(acc[mi][ni], af[f][mi], bf[f][ni][0], bf[f][ni][1]);
+        }
+#if NP > 1
+        if (kb == KB - 1 && it + 1 < NIT) {
+#pragma unroll
+            for (int i = 0; i < 4; i++)
+#pragma unroll
+                for (int j = 0; j < NI; j++)
+#pragma unroll
+                    for (int e = 0; e < 4; e++) acc[i][j][e] *= base;
+        }
+#endif
+    }
+
+    const bool bad = flag[0] != 0;
+    const int Kp = M / 2, C = gridDim.z, P = NCOL / T, TU = T / 16;
+#pragma unroll
+    for (int mi = 0; mi < 4; mi++) {
+        const int pix = ((m0 + wm * 64 + mi * 16) >> 4) * 8 + (lane >> 2);
+        const float sc = osc[(long long)(c * PA + pa) * Kp + pix];
+#pragma unroll
+        for (int u = 0; u < NI / 2; u++) {
+            float s = 0.f;
+#pragma unroll
+            for (int h = 0; h < 2; h++) {
+                const int* a = acc[mi][2 * u + h];
+                const float r0 = (float)a[0], r1 = (float)a[1], i0 = (float)a[2], i1 = (float)a[3];
+                s += r0 * r0 + r1 * r1 + i0 * i0 + i1 * i1;
+            }
+            s += __shfl_xor_sync(0xffffffffu, s, 1);
+            s += __shfl_xor_sync(0xffffffffu, s, 2);
+            if ((lane & 3) == (u & 3) && pix < npix) {
+                const int unit = (n0 + wn * WN) / 16 + u, p = unit / TU, g = unit - p * TU;
+                out[(((long long)g * C + c) * P + p) * npix + pix] =
+                    make_float2(bad ? __int_as_float(0x7fc00000) : s * sc, 0.f);
+            }
+        }
+    }
+}
+
+"""
+
+_LAYOUT_SRC = r"""
+// (T, Cin, Ain, Pin, 2) int8 -> (Cl, P', T, 2 Apad) int8. One thread per (c', t, 8 antennas): it reads
+// their samples of every pol (one 32-byte stretch for two pols) and writes 16 bytes per imaged pol.
+extern "C" __global__ void bf_layout_i8(const signed char* __restrict__ x, signed char* __restrict__ out,
+                                        const int* __restrict__ cmap, const int* __restrict__ pmap,
+                                        int* __restrict__ flag, const int T, const int Cin, const int Ain,
+                                        const int Pin, const int Pp, const int Apad, const int Cl, const int xmax)
+{
+    const int J = Apad / 8;
+    long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    const long long total = (long long)Cl * T * J;
+    if (i >= total) return;
+    const int j = (int)(i % J); long long r = i / J;
+    const int t = (int)(r % T); const int c = (int)(r / T);
+    const signed char* src = x + (((long long)t * Cin + cmap[c]) * Ain) * Pin * 2;
+    bool bad = false;
+    for (int p = 0; p < Pp; p++) {
+        const int pp = pmap[p];
+        union { int4 v; signed char b[16]; } u;
+#pragma unroll
+        for (int e = 0; e < 8; e++) {
+            const int a = j * 8 + e;
+            signed char re = 0, im = 0;
+            if (a < Ain) {
+                re = src[((long long)a * Pin + pp) * 2];
+                im = src[((long long)a * Pin + pp) * 2 + 1];
+                bad |= abs((int)re) > xmax || abs((int)im) > xmax;
+            }
+            u.b[2 * e] = re; u.b[2 * e + 1] = im;
+        }
+        *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * T + t) * Apad + j * 8) * 2) = u.v;
+    }
+    if (bad) atomicOr(flag, 1);
+}
+"""
+
+_KERNELS: dict = {}
+
+
+def _kernel(name):
+    import cupy as cp
+    key = (name, cp.cuda.Device().id)
+    if key not in _KERNELS:
+        _KERNELS[key] = cp.RawKernel(_LAYOUT_SRC, name)
+    return _KERNELS[key]
+
+
+def _fused_kernel(pieces, kd, cfg):
+    import cupy as cp
+    key = ("fused", pieces, kd, tuple(sorted(cfg.items())), cp.cuda.Device().id)
+    if key not in _KERNELS:
+        opts = ("-std=c++17", f"-DNP={pieces}", f"-DKD={kd}") + tuple(f"-D{k}={v}" for k, v in sorted(cfg.items()))
+        k = cp.RawKernel(_SRC, "bf_fused_power", options=opts)
+        smem = _smem(cfg, kd)
+        k.max_dynamic_shared_size_bytes = smem
+        _KERNELS[key] = (k, smem)
+    return _KERNELS[key]

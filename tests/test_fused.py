@@ -1,0 +1,174 @@
+"""The fused integer modes (i8x2, i8x3): the operator in int8 pieces, the GEMM exact in int32, |F|^2
+summed in the kernel's epilogue. Truth: a float64 sum over antennas by the definition (truth.py),
+written without the package; the GPU kernel is also held to an int64 emulation of itself."""
+import numpy as np
+import pytest
+
+from bf_epic_blocks import imaging
+from bf_epic_blocks.imaging import fused, plan
+from bf_epic_blocks.imaging._xp import gpu_available
+from bf_epic_blocks.imaging.dft import DFTOperator
+from bf_epic_blocks.imaging.gemm import PrecisionUnavailable
+from truth import brute_fields
+
+GPU = pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
+#: per-mode error limits on the small scenes below (measured 1.1e-5 and 7.4e-7 with 40 antennas, where
+#: fewer antennas average the operator's rounding less than case P's 256)
+LIMIT = {"i8x2": 4e-5, "i8x3": 3e-6}
+
+
+def scene(nant=40, T=128, nchan=2, npix_grid=16, seed=0):
+    rng = np.random.default_rng(seed)
+    xyz = rng.normal(0, 30, (nant, 3)) * [1, 1, 0.05]
+    freq = 60e6 + 10e6 * np.arange(nchan)
+    lm = imaging.lm_grid(npix_grid).lm
+    Q = rng.integers(-8, 8, (T, nchan, nant, 2, 2)).astype(np.int8)
+    return xyz, freq, lm, Q
+
+
+def truth_powers(Q, xyz, freq, lm, weights, n):
+    """float64 sums over groups of n samples of |F_p|^2, F = sum_a w_a exp(-2 pi i nu s.r / c) x_a
+    (no 1/N_A): (g, C, P, K)."""
+    X = Q[..., 0].astype(np.float64) + 1j * Q[..., 1]
+    F = brute_fields(X, xyz, freq, lm, weights=weights)                 # (T, C, K, P), with 1/N_A
+    live = (np.broadcast_to(weights, (len(freq), len(xyz), 2)) != 0).sum(axis=1)   # (C, P)
+    F = F * live[None, :, None, :]
+    T = X.shape[0]
+    g = T // n
+    return (np.abs(F[:g * n]) ** 2).reshape(g, n, *F.shape[1:]).sum(1).transpose(0, 1, 3, 2)
+
+
+def test_bases_keep_int32_sums_exact():
+    for pieces in (2, 3):
+        for kd in (64, 512, 1024, 2048):
+            b, xmax = fused.bases(pieces, kd)
+            cmax = 127 * sum(b ** i for i in range(pieces))
+            assert cmax * kd * xmax < 2 ** 31 and xmax >= 8, (pieces, kd, b, xmax)
+    assert fused.bases(2, 512) == (254, 128)      # any int8 sample is exact with two pieces, 256 antennas
+    assert fused.bases(3, 512) == (63, 8)         # three pieces: 4-bit samples
+
+
+@pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
+def test_integer_pieces_image_within_limit_of_float64_truth(precision):
+    """The quantised operator and the int64 emulation of the kernel against a float64 sum, with complex
+    gains that differ by pol, flagged antennas, antennas not a multiple of 32, pixels not of 64."""
+    xyz, freq, lm, Q = scene(nant=37)
+    rng = np.random.default_rng(1)
+    w = np.exp(2j * np.pi * rng.random((2, 37, 2))) * rng.uniform(0.5, 2.0, (2, 37, 2))
+    w[:, 3, :] = 0          # a flagged antenna
+    w[1, 5, 1] = 0          # one flagged channel-pol
+    keep = np.flatnonzero((w != 0).any(axis=(0, 2)))
+    G = imaging.geometric_operator(xyz[keep], freq, lm, "fp64")
+    Aq, osc, b, xmax = fused.quantise_operator(G, w[:, keep], keep, len(xyz), fused.PIECES[precision])
+    assert Aq.shape[1] == 2 and Aq.shape[-1] % 64 == 0 and Aq.dtype == np.int8
+    assert np.abs(Aq).max() <= 127
+    Bv = fused.layout_voltages(Q, None, [0, 1], Aq.shape[-1], xmax)
+    got = fused.reference_power(Aq, osc, Bv, Q.shape[0])[..., :len(lm)]        # (C, P, T/16, K)
+    ref = truth_powers(Q, xyz, freq, lm, w, 16).transpose(1, 2, 0, 3)
+    err = np.abs(got - ref).max() / np.abs(ref).max()
+    assert err <= LIMIT[precision], err
+
+
+def test_layout_puts_each_sample_where_the_kernel_reads_it():
+    rng = np.random.default_rng(2)
+    Q = rng.integers(-8, 8, (64, 3, 5, 2, 2)).astype(np.int8)
+    B = fused.layout_voltages(Q, np.array([2, 0]), [1], 64, 8)
+    assert B.shape == (2, 64, 64)
+    for ci, c in enumerate((2, 0)):
+        for t in (0, 17, 63):
+            for a in range(5):
+                assert list(B[ci, t, 2 * a:2 * a + 2]) == list(Q[t, c, a, 1])
+            assert not B[ci, t, 10:].any()
+
+
+def test_the_planner_offers_integer_modes_only_for_4bit_voltages():
+    table = {"rows": [
+        {"device": "gpu", "method": "direct", "precision": "fp16", "bound": 9e-4, "rate_cmac_s": 2e13},
+        {"device": "gpu", "method": "direct", "precision": "i8x2", "input": "ci4", "bound": 2e-5, "rate_cmac_s": 4e13}]}
+    assert plan.choose(1e-3, "gpu", table=table).precision == "fp16"
+    assert plan.choose(1e-3, "gpu", table=table, sample_bits=4).precision == "i8x2"
+    assert plan.choose(1e-3, "gpu", table=table, sample_bits=8).precision == "fp16"
+    assert plan.choose(1e-3, "gpu", table=table, sample_bits=4, products=("I", "U")).precision == "fp16"
+
+
+def test_integer_modes_need_a_gpu():
+    xyz, freq, lm, Q = scene()
+    with pytest.raises(PrecisionUnavailable, match="tensor cores"):
+        DFTOperator(xyz, freq, lm, npol=2, precision="i8x2")
+
+
+# ----------------------------------------------------------------------------------------- GPU
+@GPU
+@pytest.mark.gpu
+@pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
+def test_gpu_kernel_equals_its_int64_emulation(precision):
+    import cupy as cp
+    xyz, freq, lm, Q = scene(nant=70, T=256, nchan=3, npix_grid=24, seed=3)
+    rng = np.random.default_rng(4)
+    w = np.exp(2j * np.pi * rng.random((3, 70, 2)))
+    G = imaging.geometric_operator(xyz, freq, lm, "fp32")
+    Aq, osc, b, xmax = fused.quantise_operator(cp.asarray(G), cp.asarray(w), np.arange(70), 70,
+                                               fused.PIECES[precision])
+    flag = cp.zeros(1, cp.int32)
+    Bv = fused.layout_voltages(cp.asarray(Q), None, cp.asarray([0, 1], dtype=cp.int32), int(Aq.shape[-1]), xmax, flag)
+    assert np.array_equal(Bv.get(), fused.layout_voltages(Q, None, [0, 1], int(Aq.shape[-1]), xmax))
+    npix = len(lm)
+    got = fused.fused_power(Aq, osc, Bv, 256, 2, flag, npix).get()               # (16, C, P, K) complex
+    assert not got.imag.any()
+    got = got.real.transpose(1, 2, 0, 3)
+    ref = fused.reference_power(Aq.get(), osc.get(), Bv.get(), 256, base=b)[..., :npix]
+    assert np.abs(got - ref).max() <= 1e-6 * np.abs(ref).max()
+    assert int(flag.get()[0]) == 0
+
+
+@GPU
+@pytest.mark.gpu
+@pytest.mark.parametrize("precision,n", [("i8x2", 16), ("i8x3", 16), ("i8x2", 64)])
+def test_gpu_operator_images_within_limit_of_float64_truth(precision, n):
+    """DFTOperator in a fused mode, through image(accumulate=n), with a dead channel and flags: the
+    images (1/N_A^2 and 1/n applied) against the float64 definition; NaN where a channel is dead."""
+    import cupy as cp
+    xyz, freq, lm, Q = scene(nant=48, T=256, nchan=3, seed=5)
+    w = np.ones((3, 48, 2))
+    w[:, 7] = 0
+    w[2] = 0                                                 # a dead channel
+    op = DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(lm), npol=2, weights=cp.asarray(w),
+                     precision=precision)
+    img = op.image(cp.asarray(Q), ("XX", "YY", "I"), accumulate=n).get()          # (g, C, 3, K)
+    again = op.image(cp.asarray(Q), ("XX", "YY", "I"), accumulate=n).get()        # a graph replay
+    assert np.array_equal(np.isnan(img), np.isnan(again)) and np.allclose(img, again, rtol=1e-6, equal_nan=True)
+    live = (w != 0).sum(axis=1)
+    ref = truth_powers(Q, xyz, freq, lm, w, n)[:, :2] / n / (live[None, :2, :, None] ** 2)   # (g, 2, P, K)
+    ref = np.concatenate([ref, ref.sum(axis=2, keepdims=True)], axis=2)
+    err = np.abs(img[:, :2] - ref).max() / np.abs(ref).max()
+    assert err <= LIMIT[precision], err
+    assert np.isnan(img[:, 2]).all()
+
+
+@GPU
+@pytest.mark.gpu
+def test_gpu_samples_beyond_what_int32_holds_give_nan_not_a_wrong_image():
+    import cupy as cp
+    xyz, freq, lm, Q = scene(nant=40, T=128, seed=6)
+    op = DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(lm), npol=2, precision="i8x3")
+    ok = op.image(cp.asarray(Q), accumulate=16, method="direct").get()
+    assert np.isfinite(ok).all()
+    Q8 = Q.copy()
+    Q8[3, 0, 0, 0, 0] = 100                      # an 8-bit sample: three pieces hold 4-bit sums only
+    bad = op.image(cp.asarray(Q8), accumulate=16, method="direct").get()
+    assert np.isnan(bad).all()
+
+
+@GPU
+@pytest.mark.gpu
+def test_gpu_integer_modes_refuse_what_they_do_not_image():
+    import cupy as cp
+    xyz, freq, lm, Q = scene(nant=40, T=128, seed=7)
+    op = DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(lm), npol=2, precision="i8x2")
+    X = cp.asarray(Q[..., 0] + 1j * Q[..., 1], dtype=cp.complex64)
+    with pytest.raises(ValueError, match="integer"):
+        op.image(X, accumulate=16)
+    with pytest.raises(ValueError, match="cross-pol|covariance"):
+        op.image(cp.asarray(Q), ("I", "U"), accumulate=16)
+    with pytest.raises(ValueError, match="multiple of 16"):
+        op.image(cp.asarray(Q), accumulate=8)
