@@ -100,8 +100,11 @@ def test_integer_modes_need_a_gpu():
 # ----------------------------------------------------------------------------------------- GPU
 @GPU
 @pytest.mark.gpu
+@pytest.mark.parametrize("portable", [False, True])
 @pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
-def test_gpu_kernel_equals_its_int64_emulation(precision):
+def test_gpu_kernel_equals_its_int64_emulation(precision, portable):
+    """The device's kernel (on Hopper the warpgroup one) and the portable mma.sync one, each against the
+    int64 emulation: the integer sums are exact, so only float32's squares and sums differ."""
     import cupy as cp
     xyz, freq, lm, Q = scene(nant=70, T=256, nchan=3, npix_grid=24, seed=3)
     rng = np.random.default_rng(4)
@@ -113,7 +116,7 @@ def test_gpu_kernel_equals_its_int64_emulation(precision):
     Bv = fused.layout_voltages(cp.asarray(Q), None, cp.asarray([0, 1], dtype=cp.int32), int(Aq.shape[-1]), xmax, flag)
     assert np.array_equal(Bv.get(), fused.layout_voltages(Q, None, [0, 1], int(Aq.shape[-1]), xmax))
     npix = len(lm)
-    got = fused.fused_power(Aq, osc, Bv, 256, 2, flag, npix).get()               # (16, C, P, K) complex
+    got = fused.fused_power(Aq, osc, Bv, 256, 2, flag, npix, {} if portable else None).get()   # (16, C, P, K)
     assert not got.imag.any()
     got = got.real.transpose(1, 2, 0, 3)
     ref = fused.reference_power(Aq.get(), osc.get(), Bv.get(), 256, base=b)[..., :npix]
