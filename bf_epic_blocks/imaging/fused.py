@@ -152,7 +152,8 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None):
     if flag is None:
         flag = xp.zeros(1, xp.int32)
     total = Cl * T * (KD // 16)
-    _kernel("bf_layout_i8")(((total + 255) // 256,), (256,),
+    name = "bf_layout_i8_p2" if Pin == 2 and Ain % 8 == 0 else "bf_layout_i8"
+    _kernel(name)(((total + 255) // 256,), (256,),
                             (xp.ascontiguousarray(pairs), out, cmap, pmap, flag, np.int32(T), np.int32(Cin),
                              np.int32(Ain), np.int32(Pin), np.int32(Pp), np.int32(KD // 2), np.int32(Cl),
                              np.int32(xmax)))
@@ -183,8 +184,8 @@ def reference_power(Aq, osc, Bv, T, n=16, base=None):
 def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None):
     """GPU: the fused GEMM and power sums. Aq, osc: :func:`quantise_operator`; Bv: :func:`layout_voltages`
     (C', P T, KD); flag: int32 device scalar (nonzero: NaN images); npix: pixels kept (default Kpad).
-    Returns complex64 (T // 16, C', P, npix), imaginary part 0: [g, c, p, k] is the sum over samples
-    16 g .. 16 g + 15 of |F_pk|^2 -- the direct route's block sums as :mod:`.dft` keeps them."""
+    Returns float32 (T // 16, C', P, npix): [g, c, p, k] is the sum over samples 16 g .. 16 g + 15
+    of |F_pk|^2 -- the direct route's block sums of the pols' own powers, as :mod:`.dft` keeps them."""
     import cupy as cp
     C, PA, NP, M, KD = (int(s) for s in Aq.shape)
     cfg = config if config is not None else kernel_config(KD, cp.cuda.Device().compute_capability)
@@ -195,10 +196,13 @@ def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None):
     if ncol != P * T or ncol % BN or KD % cfg["BK"] or M % bm or (PA > 1 and T % BN):
         raise ValueError(f"fused imaging needs P*T a multiple of {BN} (and T too with per-pol gains), got T={T}, P={P}")
     npix = int(M // 2 if npix is None else npix)
-    out = cp.empty((T // 16, C, P, npix), cp.complex64)
+    out = cp.empty((T // 16, C, P, npix), cp.float32)
     k, smem = _fused_kernel(NP, KD, cfg)
     nt = 256 if cfg.get("WG") else 32 * cfg["WMW"] * (BN // cfg["WN"])
-    k((M // bm, ncol // BN, C), (nt,), (Aq, Bv, osc, flag, out, np.int32(M), np.int32(ncol),
+    bn = cfg.get("WGN", BN)
+    if ncol % bn:
+        raise ValueError(f"fused imaging needs P*T a multiple of {bn}, got T={T}, P={P}")
+    k((M // bm, ncol // bn, C), (nt,), (Aq, Bv, osc, flag, out, np.int32(M), np.int32(ncol),
                                                      np.int32(T), np.int32(PA), np.int32(_base_of(NP, KD)),
                                                      np.int32(npix)),
       shared_mem=smem)
@@ -233,7 +237,7 @@ class FusedOperator:
         return (P * T) % BN == 0 and (PA == 1 or T % BN == 0) and T % 16 == 0
 
     def sums(self, pairs, pols, n):
-        """(g, C', P', npix) complex64 sums of |F_p|^2 over groups of ``n`` samples (n % 16 == 0)."""
+        """(g, C', P', npix) float32 sums of |F_p|^2 over groups of ``n`` samples (n % 16 == 0)."""
         xp = get_xp(pairs)
         T = int(pairs.shape[0])
         P = len(pols)
@@ -255,13 +259,13 @@ class FusedOperator:
 #: kernel with 128-byte-swizzled operands, 128-byte K stages, three stages: 0.52 against 0.86 ms for
 #: i8x2 in one run (case P, regime B).
 CONFIG = dict(WMW=2, WN=64, BK=64, ST=4, BFULL=1, FP=1, MINB=1)
-WG_CONFIG = dict(WG=1, BK=128, ST=3)
+WG_CONFIG = dict(WG=1, BK=128, ST=3, WGN=128)
 _SMEM_MAX = 227 * 1024
 
 
 def kernel_config(kd, device_cc):
     """The kernel shape for KD = 2 Apad on a device of compute capability ``device_cc`` ('90', '80')."""
-    if str(device_cc) == "90" and WG_CONFIG["ST"] * 128 * WG_CONFIG["BK"] + BN * kd <= _SMEM_MAX:
+    if str(device_cc) == "90" and _smem(WG_CONFIG, kd) <= _SMEM_MAX:
         return dict(WG_CONFIG)
     if _smem(CONFIG, kd) <= _SMEM_MAX:
         return dict(CONFIG)
@@ -269,6 +273,9 @@ def kernel_config(kd, device_cc):
 
 
 def _smem(cfg, kd):
+    """Dynamic shared memory of a kernel shape: A's stages plus B (whole, or its stages)."""
+    if cfg.get("WG"):
+        return cfg["ST"] * 128 * cfg["BK"] + cfg["WGN"] * kd
     bm = 64 * cfg["WMW"]
     a = cfg["ST"] * bm * (cfg["BK"] + 16)
     b = BN * (kd + 16) if cfg["BFULL"] else cfg["ST"] * BN * (cfg["BK"] + 16)
@@ -307,10 +314,10 @@ __device__ __forceinline__ void mma_s8(int* d, const unsigned* a, unsigned b0, u
 }
 
 // A (C, PA, NP, M, KD) int8; B (C, NCOL, KD) int8; osc (C, PA, M/2);
-// out (T/16, C, P, npix) complex64: the sums of 16 samples of pol p for each pixel, imaginary part 0
+// out (T/16, C, P, npix) float32: the sums over 16 samples of pol p for each pixel
 extern "C" __global__ void __launch_bounds__(NT, MINB)
 bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict__ B, const float* __restrict__ osc,
-               const int* __restrict__ flag, float2* __restrict__ out, const int M, const int NCOL,
+               const int* __restrict__ flag, float* __restrict__ out, const int M, const int NCOL,
                const int T, const int PA, const int base, const int npix)
 {
     extern __shared__ __align__(16) unsigned char smem[];
@@ -418,8 +425,7 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
             s += __shfl_xor_sync(0xffffffffu, s, 2);
             if ((lane & 3) == (u & 3) && pix < npix) {
                 const int unit = (n0 + wn * WN) / 16 + u, p = unit / TU, g = unit - p * TU;
-                out[(((long long)g * C + c) * P + p) * npix + pix] =
-                    make_float2(bad ? __int_as_float(0x7fc00000) : s * sc, 0.f);
+                out[(((long long)g * C + c) * P + p) * npix + pix] = bad ? __int_as_float(0x7fc00000) : s * sc;
             }
         }
     }
@@ -433,8 +439,9 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
 #: memory across pieces, cp.async stages for A. Same operands, sums and output as ``_SRC``.
 _SRC_WG = r"""
 #define BM 128
-#define BN 128
+#define BN WGN
 #define NT 256
+#define NACC (WGN / 2)
 #define CPR (BK / 16)
 #define BTILE(kb) ((kb) * BN * BK)    // B kept whole: one BN x BK tile per K block
 #define DIST (ST - 1)                 // stages loaded ahead
@@ -454,16 +461,25 @@ __device__ __forceinline__ unsigned long long mdesc(unsigned addr, unsigned lbo,
 // byte offset of 16-byte chunk j (of 8) of row r in the 128-byte-swizzled layout: 8-row x 128-byte
 // atoms (1 KB), chunk j of row r stored at j ^ (r % 8) -- what the descriptor's swizzle mode reads
 __device__ __forceinline__ int soff(int r, int j) { return (r >> 3) * 1024 + (r & 7) * 128 + ((j ^ (r & 7)) << 4); }
+#if WGN == 256
+__device__ __forceinline__ void wg_mma(int* d, unsigned long long da, unsigned long long db, int scale) {
+    asm volatile("{\n.reg .pred p;\nsetp.ne.b32 p, %130, 0;\n"
+                 "wgmma.mma_async.sync.aligned.m64n256k32.s32.s8.s8 {%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15, %16, %17, %18, %19, %20, %21, %22, %23, %24, %25, %26, %27, %28, %29, %30, %31, %32, %33, %34, %35, %36, %37, %38, %39, %40, %41, %42, %43, %44, %45, %46, %47, %48, %49, %50, %51, %52, %53, %54, %55, %56, %57, %58, %59, %60, %61, %62, %63, %64, %65, %66, %67, %68, %69, %70, %71, %72, %73, %74, %75, %76, %77, %78, %79, %80, %81, %82, %83, %84, %85, %86, %87, %88, %89, %90, %91, %92, %93, %94, %95, %96, %97, %98, %99, %100, %101, %102, %103, %104, %105, %106, %107, %108, %109, %110, %111, %112, %113, %114, %115, %116, %117, %118, %119, %120, %121, %122, %123, %124, %125, %126, %127}, %128, %129, p;\n}\n"
+                 : "+r"(d[0]), "+r"(d[1]), "+r"(d[2]), "+r"(d[3]), "+r"(d[4]), "+r"(d[5]), "+r"(d[6]), "+r"(d[7]), "+r"(d[8]), "+r"(d[9]), "+r"(d[10]), "+r"(d[11]), "+r"(d[12]), "+r"(d[13]), "+r"(d[14]), "+r"(d[15]), "+r"(d[16]), "+r"(d[17]), "+r"(d[18]), "+r"(d[19]), "+r"(d[20]), "+r"(d[21]), "+r"(d[22]), "+r"(d[23]), "+r"(d[24]), "+r"(d[25]), "+r"(d[26]), "+r"(d[27]), "+r"(d[28]), "+r"(d[29]), "+r"(d[30]), "+r"(d[31]), "+r"(d[32]), "+r"(d[33]), "+r"(d[34]), "+r"(d[35]), "+r"(d[36]), "+r"(d[37]), "+r"(d[38]), "+r"(d[39]), "+r"(d[40]), "+r"(d[41]), "+r"(d[42]), "+r"(d[43]), "+r"(d[44]), "+r"(d[45]), "+r"(d[46]), "+r"(d[47]), "+r"(d[48]), "+r"(d[49]), "+r"(d[50]), "+r"(d[51]), "+r"(d[52]), "+r"(d[53]), "+r"(d[54]), "+r"(d[55]), "+r"(d[56]), "+r"(d[57]), "+r"(d[58]), "+r"(d[59]), "+r"(d[60]), "+r"(d[61]), "+r"(d[62]), "+r"(d[63]), "+r"(d[64]), "+r"(d[65]), "+r"(d[66]), "+r"(d[67]), "+r"(d[68]), "+r"(d[69]), "+r"(d[70]), "+r"(d[71]), "+r"(d[72]), "+r"(d[73]), "+r"(d[74]), "+r"(d[75]), "+r"(d[76]), "+r"(d[77]), "+r"(d[78]), "+r"(d[79]), "+r"(d[80]), "+r"(d[81]), "+r"(d[82]), "+r"(d[83]), "+r"(d[84]), "+r"(d[85]), "+r"(d[86]), "+r"(d[87]), "+r"(d[88]), "+r"(d[89]), "+r"(d[90]), "+r"(d[91]), "+r"(d[92]), "+r"(d[93]), "+r"(d[94]), "+r"(d[95]), "+r"(d[96]), "+r"(d[97]), "+r"(d[98]), "+r"(d[99]), "+r"(d[100]), "+r"(d[101]), "+r"(d[102]), "+r"(d[103]), "+r"(d[104]), "+r"(d[105]), "+r"(d[106]), "+r"(d[107]), "+r"(d[108]), "+r"(d[109]), "+r"(d[110]), "+r"(d[111]), "+r"(d[112]), "+r"(d[113]), "+r"(d[114]), "+r"(d[115]), "+r"(d[116]), "+r"(d[117]), "+r"(d[118]), "+r"(d[119]), "+r"(d[120]), "+r"(d[121]), "+r"(d[122]), "+r"(d[123]), "+r"(d[124]), "+r"(d[125]), "+r"(d[126]), "+r"(d[127])
+                 : "l"(da), "l"(db), "r"(scale));
+}
+#else
 __device__ __forceinline__ void wg_mma(int* d, unsigned long long da, unsigned long long db, int scale) {
     asm volatile("{\n.reg .pred p;\nsetp.ne.b32 p, %66, 0;\n"
                  "wgmma.mma_async.sync.aligned.m64n128k32.s32.s8.s8 {%0, %1, %2, %3, %4, %5, %6, %7, %8, %9, %10, %11, %12, %13, %14, %15, %16, %17, %18, %19, %20, %21, %22, %23, %24, %25, %26, %27, %28, %29, %30, %31, %32, %33, %34, %35, %36, %37, %38, %39, %40, %41, %42, %43, %44, %45, %46, %47, %48, %49, %50, %51, %52, %53, %54, %55, %56, %57, %58, %59, %60, %61, %62, %63}, %64, %65, p;\n}\n"
                  : "+r"(d[0]), "+r"(d[1]), "+r"(d[2]), "+r"(d[3]), "+r"(d[4]), "+r"(d[5]), "+r"(d[6]), "+r"(d[7]), "+r"(d[8]), "+r"(d[9]), "+r"(d[10]), "+r"(d[11]), "+r"(d[12]), "+r"(d[13]), "+r"(d[14]), "+r"(d[15]), "+r"(d[16]), "+r"(d[17]), "+r"(d[18]), "+r"(d[19]), "+r"(d[20]), "+r"(d[21]), "+r"(d[22]), "+r"(d[23]), "+r"(d[24]), "+r"(d[25]), "+r"(d[26]), "+r"(d[27]), "+r"(d[28]), "+r"(d[29]), "+r"(d[30]), "+r"(d[31]), "+r"(d[32]), "+r"(d[33]), "+r"(d[34]), "+r"(d[35]), "+r"(d[36]), "+r"(d[37]), "+r"(d[38]), "+r"(d[39]), "+r"(d[40]), "+r"(d[41]), "+r"(d[42]), "+r"(d[43]), "+r"(d[44]), "+r"(d[45]), "+r"(d[46]), "+r"(d[47]), "+r"(d[48]), "+r"(d[49]), "+r"(d[50]), "+r"(d[51]), "+r"(d[52]), "+r"(d[53]), "+r"(d[54]), "+r"(d[55]), "+r"(d[56]), "+r"(d[57]), "+r"(d[58]), "+r"(d[59]), "+r"(d[60]), "+r"(d[61]), "+r"(d[62]), "+r"(d[63])
                  : "l"(da), "l"(db), "r"(scale));
 }
+#endif
 
 extern "C" __global__ void __launch_bounds__(NT)
 bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict__ B, const float* __restrict__ osc,
-               const int* __restrict__ flag, float2* __restrict__ out, const int M, const int NCOL,
+               const int* __restrict__ flag, float* __restrict__ out, const int M, const int NCOL,
                const int T, const int PA, const int base, const int npix)
 {
     extern __shared__ __align__(1024) unsigned char smem[];
@@ -475,9 +491,9 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
     const signed char* Ab = A + ((long long)(c * PA + pa) * NP * M + m0) * KD;
     const signed char* Bb = B + ((long long)c * NCOL + n0) * KD;
     const int KB = KD / BK, NIT = NP * KB;
-    int d[64];
+    int d[NACC];
 #pragma unroll
-    for (int i = 0; i < 64; i++) d[i] = 0;
+    for (int i = 0; i < NACC; i++) d[i] = 0;
 
 #define LOAD(it_, st_) do { \
         const int piece_ = (it_) / KB, kb_ = (it_) - piece_ * KB; \
@@ -504,7 +520,7 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
 #if NP > 1
         if (kb == 0 && it > 0) {   // a new piece: everything so far times the base
 #pragma unroll
-            for (int i = 0; i < 64; i++) d[i] *= base;
+            for (int i = 0; i < NACC; i++) d[i] *= base;
         }
 #endif
         const unsigned as = smem_u32(sA + st * BM * BK) + soff(wgi * 64, 0);
@@ -523,7 +539,7 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
     const int pix = ((m0 + wgi * 64 + wq * 16) >> 4) * 8 + (lane >> 2);
     const float sc = osc[(long long)(c * PA + pa) * Kp + pix];
 #pragma unroll
-    for (int u = 0; u < 8; u++) {
+    for (int u = 0; u < WGN / 16; u++) {
         float s = 0.f;
 #pragma unroll
         for (int h = 0; h < 2; h++) {
@@ -535,7 +551,7 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
         s += __shfl_xor_sync(0xffffffffu, s, 2);
         if ((lane & 3) == (u & 3) && pix < npix) {
             const int unit = n0 / 16 + u, p = unit / TU, g = unit - p * TU;
-            out[(((long long)g * C + c) * P + p) * npix + pix] = make_float2(bad ? __int_as_float(0x7fc00000) : s * sc, 0.f);
+            out[(((long long)g * C + c) * P + p) * npix + pix] = bad ? __int_as_float(0x7fc00000) : s * sc;
         }
     }
 }
@@ -575,6 +591,41 @@ extern "C" __global__ void bf_layout_i8(const signed char* __restrict__ x, signe
     }
     if (bad) atomicOr(flag, 1);
 }
+
+// The same for two input pols and antennas a multiple of 8 (the stations' case): two 16-byte loads
+// per thread, the pols separated by byte permutes, the range checked four bytes at a time.
+extern "C" __global__ void bf_layout_i8_p2(const signed char* __restrict__ x, signed char* __restrict__ out,
+                                           const int* __restrict__ cmap, const int* __restrict__ pmap,
+                                           int* __restrict__ flag, const int T, const int Cin, const int Ain,
+                                           const int Pin, const int Pp, const int Apad, const int Cl, const int xmax)
+{
+    const int J = Apad / 8, Jin = Ain / 8;
+    long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    const long long total = (long long)Cl * T * J;
+    if (i >= total) return;
+    const int j = (int)(i % J); long long r = i / J;
+    const int t = (int)(r % T); const int c = (int)(r / T);
+    unsigned w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+    if (j < Jin) {   // antennas 8j .. 8j+7: (re0, im0, re1, im1) bytes per antenna, one word each
+        const int4* src = reinterpret_cast<const int4*>(x + (((long long)t * Cin + cmap[c]) * Ain + j * 8) * 4);
+        const int4 u0 = src[0], u1 = src[1];
+        w[0] = u0.x; w[1] = u0.y; w[2] = u0.z; w[3] = u0.w; w[4] = u1.x; w[5] = u1.y; w[6] = u1.z; w[7] = u1.w;
+        if (xmax < 128) {
+            const unsigned lim = 0x01010101u * (unsigned)xmax;
+            unsigned over = 0;
+#pragma unroll
+            for (int e = 0; e < 8; e++) over |= __vcmpgtu4(__vabsss4(w[e]), lim);
+            if (over) atomicOr(flag, 1);
+        }
+    }
+    for (int p = 0; p < Pp; p++) {
+        const unsigned sel = pmap[p] == 0 ? 0x5410u : 0x7632u;    // low or high halves of two words
+        int4 o;
+        o.x = __byte_perm(w[0], w[1], sel); o.y = __byte_perm(w[2], w[3], sel);
+        o.z = __byte_perm(w[4], w[5], sel); o.w = __byte_perm(w[6], w[7], sel);
+        *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * T + t) * Apad + j * 8) * 2) = o;
+    }
+}
 """
 
 _KERNELS: dict = {}
@@ -595,7 +646,7 @@ def _fused_kernel(pieces, kd, cfg):
         opts = ("-std=c++17", f"-DNP={pieces}", f"-DKD={kd}") + tuple(f"-D{k}={v}" for k, v in sorted(cfg.items()))
         if cfg.get("WG"):
             k = cp.RawKernel(_SRC_WG, "bf_fused_power", options=opts + ("-arch=sm_90a",))
-            smem = cfg["ST"] * 128 * cfg["BK"] + BN * kd
+            smem = _smem(cfg, kd)
         else:
             k = cp.RawKernel(_SRC, "bf_fused_power", options=opts)
             smem = _smem(cfg, kd)

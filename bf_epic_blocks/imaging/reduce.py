@@ -157,6 +157,23 @@ extern "C" __global__ void bf_products(
     }
     out[idx] = v;
 }
+
+// the same for real block sums (the fused integer modes' |F_p|^2): Im corr = 0
+extern "C" __global__ void bf_products_real(
+    const float* __restrict__ corr, const float* __restrict__ s, const float* __restrict__ coef,
+    float* __restrict__ out, const long long G, const int C, const int nblk, const int nprod, const int K)
+{
+    long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    long long total = G * C * nprod * K;
+    if (idx >= total) return;
+    int k = (int)(idx % K); long long r = idx / K;
+    int p = (int)(r % nprod); r /= nprod;
+    int c = (int)(r % C); long long g = r / C;
+    const float* cr = corr + ((g * C + c) * nblk) * K + k;
+    float v = 0.f;
+    for (int b = 0; b < nblk; ++b) v += s[c * nblk + b] * coef[(p * nblk + b) * 2] * cr[(long long)b * K];
+    out[idx] = v;
+}
 """
 
 _KERNELS = {}
@@ -165,7 +182,8 @@ _KERNELS = {}
 def _raw(name):
     if name not in _KERNELS:
         import cupy as cp
-        src = {"bf_block_corr": _BLOCK_CORR_SRC, "bf_row_dot": _ROW_DOT_SRC, "bf_products": _PRODUCTS_SRC}[name]
+        src = {"bf_block_corr": _BLOCK_CORR_SRC, "bf_row_dot": _ROW_DOT_SRC, "bf_products": _PRODUCTS_SRC,
+               "bf_products_real": _PRODUCTS_SRC}[name]
         _KERNELS[name] = cp.RawKernel(src, name)
     return _KERNELS[name]
 
@@ -281,12 +299,22 @@ def product_coefficients(products, blocks):
 def products_from_blocks(corr, scale, coef):
     """Real products (..., C, nprod, K) = sum_b scale[c, b] (coef Re + coef Im) of corr (..., C, nblk, K).
 
-    corr : complex block correlations; scale : real (C, nblk); coef : :func:`product_coefficients`.
-    One CUDA kernel on the GPU (complex64 input), array code elsewhere."""
+    corr : complex block correlations, or real ones (float32: the pols' own powers, Im = 0);
+    scale : real (C, nblk); coef : :func:`product_coefficients`.
+    One CUDA kernel on the GPU (complex64 or float32 input), array code elsewhere."""
     xp = get_xp(corr)
     lead = corr.shape[:-3]
     C, nblk, K = corr.shape[-3:]
     nprod = coef.shape[0]
+    if xp is not np and corr.dtype == xp.float32:
+        corr = xp.ascontiguousarray(corr)
+        G = int(np.prod(lead)) if lead else 1
+        out = xp.empty(lead + (C, nprod, K), xp.float32)
+        total = G * C * nprod * K
+        _raw("bf_products_real")(((total + 255) // 256,), (256,),
+                                 (corr, xp.ascontiguousarray(scale, dtype=xp.float32), coef, out, np.int64(G),
+                                  np.int32(C), np.int32(nblk), np.int32(nprod), np.int32(K)))
+        return out
     if xp is np or corr.dtype != xp.complex64:
         c = xp.asarray(coef, dtype=corr.real.dtype)
         z = corr * scale[..., None]
