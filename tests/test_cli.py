@@ -475,3 +475,23 @@ def test_a_run_without_bytecode_caches_says_so(tmp_path, no_bytecode):
     assert out.returncode == 0, out.stderr
     said = "Python writes no bytecode caches here (PYTHONDONTWRITEBYTECODE)" in out.stderr
     assert said == no_bytecode, out.stderr
+
+
+def test_plan_offers_the_integer_modes_only_when_4bit_voltages_reach_the_imager(capsys):
+    """The transient pipeline at 16 samples per image: on one GPU with the calibration folded and a
+    quantised sky, the tolerance may pick a fused integer mode; with an unquantised sky (complex
+    voltages), on the CPU, or with a gains table (a CalFoldBlock makes the voltages complex), it may not."""
+    import json
+    from bf_epic_blocks.imaging.fused import FUSED
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import imager_sample_bits
+    base = ["plan", str(PIPES / "lwasv_sim_transient.yaml"), "--set", "imager.tolerance=1e-4", "--json"]
+    assert cli.main(base + ["--set", "device=gpu"]) == 0
+    assert json.loads(capsys.readouterr().out)["tolerance_pick"]["precision"] in FUSED
+    assert cli.main(base + ["--set", "device=gpu", "--set", "source.quantize=false"]) == 0
+    assert json.loads(capsys.readouterr().out)["tolerance_pick"]["precision"] not in FUSED
+    cfg = load_config(PIPES / "lwasv_sim_transient.yaml", ["device=gpu"])
+    assert imager_sample_bits(cfg, "gpu") == 4
+    assert imager_sample_bits(cfg, "cpu") is None and imager_sample_bits(cfg, "gpus") is None
+    cfg["calibration"]["gains_table"] = "gains.csv"
+    assert imager_sample_bits(cfg, "gpu") is None

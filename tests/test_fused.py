@@ -73,12 +73,13 @@ def test_layout_puts_each_sample_where_the_kernel_reads_it():
     rng = np.random.default_rng(2)
     Q = rng.integers(-8, 8, (64, 3, 5, 2, 2)).astype(np.int8)
     B = fused.layout_voltages(Q, np.array([2, 0]), [1], 64, 8)
-    assert B.shape == (2, 64, 64)
+    assert B.shape == (2, 128, 64)       # 64 samples padded to a whole block of 128 columns with zeros
     for ci, c in enumerate((2, 0)):
         for t in (0, 17, 63):
             for a in range(5):
                 assert list(B[ci, t, 2 * a:2 * a + 2]) == list(Q[t, c, a, 1])
             assert not B[ci, t, 10:].any()
+        assert not B[ci, 64:].any()
 
 
 def test_the_planner_offers_integer_modes_only_for_4bit_voltages():
@@ -125,12 +126,13 @@ def test_gpu_kernel_equals_its_int64_emulation(precision, portable):
 
 @GPU
 @pytest.mark.gpu
-@pytest.mark.parametrize("precision,n", [("i8x2", 16), ("i8x3", 16), ("i8x2", 64)])
-def test_gpu_operator_images_within_limit_of_float64_truth(precision, n):
+@pytest.mark.parametrize("precision,n,T", [("i8x2", 16, 256), ("i8x3", 16, 256), ("i8x2", 64, 256), ("i8x2", 16, 208)])
+def test_gpu_operator_images_within_limit_of_float64_truth(precision, n, T):
     """DFTOperator in a fused mode, through image(accumulate=n), with a dead channel and flags: the
-    images (1/N_A^2 and 1/n applied) against the float64 definition; NaN where a channel is dead."""
+    images (1/N_A^2 and 1/n applied) against the float64 definition; NaN where a channel is dead.
+    208 samples: a sequence's last gulp, which is not a whole block of the kernel's columns."""
     import cupy as cp
-    xyz, freq, lm, Q = scene(nant=48, T=256, nchan=3, seed=5)
+    xyz, freq, lm, Q = scene(nant=48, T=T, nchan=3, seed=5)
     w = np.ones((3, 48, 2))
     w[:, 7] = 0
     w[2] = 0                                                 # a dead channel
@@ -196,3 +198,19 @@ def test_gpu_layout_equals_numpy_and_flags_what_int32_cannot_hold(nant, pols):
                                     kd, xmax, flag)
         assert np.array_equal(got.get(), fused.layout_voltages(q, chan, pols, kd, xmax))
         assert int(flag.get()[0]) == (1 if bad is not None and abs(bad) > xmax else 0), (xmax, bad)
+
+
+@GPU
+@pytest.mark.gpu
+def test_gpu_an_integration_split_across_gulps_in_any_lengths_equals_truth():
+    """A pipeline's integration that a gulp boundary splits arrives in pieces of any length (the
+    sequence's last 4 samples, say): accumulated with add(), the image equals the float64 one."""
+    import cupy as cp
+    xyz, freq, lm, Q = scene(nant=40, T=132, nchan=2, seed=9)
+    op = DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(lm), npol=2, precision="i8x2")
+    acc = op.accumulator(("XX", "YY"), method="direct")
+    for a, b in ((0, 100), (100, 128), (128, 132)):
+        acc.add(cp.asarray(Q[a:b]))
+    img = acc.result().get()                                            # (C, 2, K)
+    ref = truth_powers(Q, xyz, freq, lm, np.ones((2, 40, 2)), 132)[0] / 132 / 40 ** 2     # (C, P, K)
+    assert np.abs(img - ref).max() / np.abs(ref).max() <= LIMIT["i8x2"]

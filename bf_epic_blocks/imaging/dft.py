@@ -684,11 +684,11 @@ class ImageAccumulator:
     def _fused_sums(self, efield, ints, n):
         """:meth:`_direct_sums` in a fused integer mode: the GEMM and |F|^2 in one kernel (:mod:`.fused`)."""
         op, t = self.op, int(efield.shape[0])
-        if not ints or n % 16 or not op.fused.supports(t, len(self.pols)):
+        if not ints or not op.fused.supports(t, n):
             raise ValueError(
-                f"precision {op.precision!r} images integer (re, im) voltages of at most 4 bits, in groups of a "
-                f"multiple of 16 samples and gulps of a multiple of {128 // len(self.pols)} samples; got "
-                f"{'integer' if ints else 'complex'} voltages, {t} samples in groups of {n}: use 'fp16x3' or 'fp32'")
+                f"precision {op.precision!r} images integer (re, im) voltages of at most 4 bits in groups of a "
+                f"multiple of 16 samples; got {'integer' if ints else 'complex'} voltages, {t} samples in groups "
+                f"of {n}: use 'fp16x3' or 'fp32'")
         S = op.fused.sums(efield, self.pols, n)                       # (g, C', nblk, K), blocks (p, p)
         auto = None
         if self.remove_autocorr:

@@ -129,8 +129,15 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16):
     return Aq, osc, b, xmax
 
 
+def padded_ntime(T):
+    """Samples per pol in the kernel's B: T rounded up to a whole block of columns (the extra samples
+    are zeros, whose power is zero and is not returned)."""
+    return _pad(int(T), BN)
+
+
 def layout_voltages(pairs, chan, pols, KD, xmax, flag=None):
-    """Integer (re, im) voltages (T, C_in, A_in, P_in, 2) int8 -> B (C', P' T, KD) int8, column p' T + t.
+    """Integer (re, im) voltages (T, C_in, A_in, P_in, 2) int8 -> B (C', P' Tp, KD) int8, column
+    p' Tp + t, Tp = :func:`padded_ntime` (T); samples t >= T are zero.
 
     chan : None (all channels) or (C',) input channel per live channel;  pols : the pols imaged
     (a list, or on the GPU an int32 device array).  Antennas beyond A_in are zero. On the GPU any
@@ -138,23 +145,24 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None):
     """
     xp = get_xp(pairs)
     T, Cin, Ain, Pin = (int(s) for s in pairs.shape[:4])
+    Tp = padded_ntime(T)
     if xp is np:
         pols = [int(p) for p in pols]
         x = pairs if chan is None else pairs[:, np.asarray(chan)]
         x = x[:, :, :, pols]                                           # (T, C', A, P', 2)
-        out = np.zeros((x.shape[1], len(pols), T, KD), np.int8)
-        out[..., :2 * Ain] = x.transpose(1, 3, 0, 2, 4).reshape(x.shape[1], len(pols), T, 2 * Ain)
-        return out.reshape(x.shape[1], len(pols) * T, KD)
+        out = np.zeros((x.shape[1], len(pols), Tp, KD), np.int8)
+        out[:, :, :T, :2 * Ain] = x.transpose(1, 3, 0, 2, 4).reshape(x.shape[1], len(pols), T, 2 * Ain)
+        return out.reshape(x.shape[1], len(pols) * Tp, KD)
     cmap = xp.arange(Cin, dtype=xp.int32) if chan is None else xp.asarray(chan, dtype=xp.int32)
     pmap = xp.asarray(pols, dtype=xp.int32)
     Cl, Pp = int(cmap.shape[0]), int(pmap.shape[0])
-    out = xp.empty((Cl, Pp * T, KD), xp.int8)
+    out = xp.empty((Cl, Pp * Tp, KD), xp.int8)
     if flag is None:
         flag = xp.zeros(1, xp.int32)
-    total = Cl * T * (KD // 16)
+    total = Cl * Tp * (KD // 16)
     name = "bf_layout_i8_p2" if Pin == 2 and Ain % 8 == 0 else "bf_layout_i8"
     _kernel(name)(((total + 255) // 256,), (256,),
-                            (xp.ascontiguousarray(pairs), out, cmap, pmap, flag, np.int32(T), np.int32(Cin),
+                            (xp.ascontiguousarray(pairs), out, cmap, pmap, flag, np.int32(T), np.int32(Tp), np.int32(Cin),
                              np.int32(Ain), np.int32(Pin), np.int32(Pp), np.int32(KD // 2), np.int32(Cl),
                              np.int32(xmax)))
     return out
@@ -231,13 +239,15 @@ class FusedOperator:
         self.flag = xp.zeros(1, xp.int32)
         self._pmaps = {}
 
-    def supports(self, T, P):
-        """Whether gulps of T samples of P pols fit the kernel's tiles."""
-        PA = int(self.Aq.shape[1])
-        return (P * T) % BN == 0 and (PA == 1 or T % BN == 0) and T % 16 == 0
+    @staticmethod
+    def supports(T, n):
+        """Whether groups of ``n`` of T samples can be summed: the kernel sums 16 samples at a time, and
+        pads a gulp with zero samples to whole tiles, so n must be a multiple of 16 -- or all T samples
+        (one integration's part in this gulp, any length)."""
+        return n % 16 == 0 or n == T
 
     def sums(self, pairs, pols, n):
-        """(g, C', P', npix) float32 sums of |F_p|^2 over groups of ``n`` samples (n % 16 == 0)."""
+        """(g, C', P', npix) float32 sums of |F_p|^2 over groups of ``n`` samples (:meth:`supports`)."""
         xp = get_xp(pairs)
         T = int(pairs.shape[0])
         P = len(pols)
@@ -246,10 +256,14 @@ class FusedOperator:
             self._pmaps[key] = xp.asarray(list(pols), dtype=xp.int32)
         self.flag.fill(0)
         Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag)
-        out = fused_power(self.Aq, self.osc, Bv, T, P, self.flag, self.npix)       # (T/16, C', P, K)
+        out = fused_power(self.Aq, self.osc, Bv, padded_ntime(T), P, self.flag, self.npix)   # (Tp/16, C', P, K)
+        if n == T:                                  # one group: every 16-sample unit, the last one partial
+            u = -(-T // 16)
+            return out[:u].sum(axis=0, keepdims=True) if u > 1 else out[:1]
         g, u = T // n, n // 16
+        out = out[:g * u]
         if u > 1:
-            out = out[:g * u].reshape(g, u, *out.shape[1:]).sum(axis=1)
+            out = out.reshape(g, u, *out.shape[1:]).sum(axis=1)
         return out
 
 
@@ -562,16 +576,17 @@ _LAYOUT_SRC = r"""
 // their samples of every pol (one 32-byte stretch for two pols) and writes 16 bytes per imaged pol.
 extern "C" __global__ void bf_layout_i8(const signed char* __restrict__ x, signed char* __restrict__ out,
                                         const int* __restrict__ cmap, const int* __restrict__ pmap,
-                                        int* __restrict__ flag, const int T, const int Cin, const int Ain,
-                                        const int Pin, const int Pp, const int Apad, const int Cl, const int xmax)
+                                        int* __restrict__ flag, const int T, const int Tp, const int Cin,
+                                        const int Ain, const int Pin, const int Pp, const int Apad, const int Cl,
+                                        const int xmax)
 {
     const int J = Apad / 8;
     long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
-    const long long total = (long long)Cl * T * J;
+    const long long total = (long long)Cl * Tp * J;
     if (i >= total) return;
     const int j = (int)(i % J); long long r = i / J;
-    const int t = (int)(r % T); const int c = (int)(r / T);
-    const signed char* src = x + (((long long)t * Cin + cmap[c]) * Ain) * Pin * 2;
+    const int t = (int)(r % Tp); const int c = (int)(r / Tp);
+    const signed char* src = x + (((long long)min(t, T - 1) * Cin + cmap[c]) * Ain) * Pin * 2;
     bool bad = false;
     for (int p = 0; p < Pp; p++) {
         const int pp = pmap[p];
@@ -580,14 +595,14 @@ extern "C" __global__ void bf_layout_i8(const signed char* __restrict__ x, signe
         for (int e = 0; e < 8; e++) {
             const int a = j * 8 + e;
             signed char re = 0, im = 0;
-            if (a < Ain) {
+            if (a < Ain && t < T) {
                 re = src[((long long)a * Pin + pp) * 2];
                 im = src[((long long)a * Pin + pp) * 2 + 1];
                 bad |= abs((int)re) > xmax || abs((int)im) > xmax;
             }
             u.b[2 * e] = re; u.b[2 * e + 1] = im;
         }
-        *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * T + t) * Apad + j * 8) * 2) = u.v;
+        *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * Tp + t) * Apad + j * 8) * 2) = u.v;
     }
     if (bad) atomicOr(flag, 1);
 }
@@ -596,17 +611,18 @@ extern "C" __global__ void bf_layout_i8(const signed char* __restrict__ x, signe
 // per thread, the pols separated by byte permutes, the range checked four bytes at a time.
 extern "C" __global__ void bf_layout_i8_p2(const signed char* __restrict__ x, signed char* __restrict__ out,
                                            const int* __restrict__ cmap, const int* __restrict__ pmap,
-                                           int* __restrict__ flag, const int T, const int Cin, const int Ain,
-                                           const int Pin, const int Pp, const int Apad, const int Cl, const int xmax)
+                                           int* __restrict__ flag, const int T, const int Tp, const int Cin,
+                                           const int Ain, const int Pin, const int Pp, const int Apad, const int Cl,
+                                           const int xmax)
 {
     const int J = Apad / 8, Jin = Ain / 8;
     long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
-    const long long total = (long long)Cl * T * J;
+    const long long total = (long long)Cl * Tp * J;
     if (i >= total) return;
     const int j = (int)(i % J); long long r = i / J;
-    const int t = (int)(r % T); const int c = (int)(r / T);
+    const int t = (int)(r % Tp); const int c = (int)(r / Tp);
     unsigned w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
-    if (j < Jin) {   // antennas 8j .. 8j+7: (re0, im0, re1, im1) bytes per antenna, one word each
+    if (j < Jin && t < T) {   // antennas 8j .. 8j+7: (re0, im0, re1, im1) bytes per antenna, one word each
         const int4* src = reinterpret_cast<const int4*>(x + (((long long)t * Cin + cmap[c]) * Ain + j * 8) * 4);
         const int4 u0 = src[0], u1 = src[1];
         w[0] = u0.x; w[1] = u0.y; w[2] = u0.z; w[3] = u0.w; w[4] = u1.x; w[5] = u1.y; w[6] = u1.z; w[7] = u1.w;
@@ -623,7 +639,7 @@ extern "C" __global__ void bf_layout_i8_p2(const signed char* __restrict__ x, si
         int4 o;
         o.x = __byte_perm(w[0], w[1], sel); o.y = __byte_perm(w[2], w[3], sel);
         o.z = __byte_perm(w[4], w[5], sel); o.w = __byte_perm(w[6], w[7], sel);
-        *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * T + t) * Apad + j * 8) * 2) = o;
+        *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * Tp + t) * Apad + j * 8) * 2) = o;
     }
 }
 """

@@ -163,9 +163,20 @@ def _pixels(cfg, station):
     return lm_grid(g["size"], cell=g.get("cell"), min_elevation_deg=im.get("min_elevation_deg") or 0.0)
 
 
-def imaging_mode(cfg, npix, nstand, nchan):
+def imager_sample_bits(cfg, dev):
+    """4 when 4-bit integer voltages reach the DFT imager on one GPU (every file and live format here is
+    ci4, and so is a quantised simulated sky; the calibration is folded into the operator, so no
+    CalFoldBlock turns them complex), else None: what makes the fused integer modes candidates."""
+    src = cfg["source"]
+    if dev != "gpu" or not folds_calibration(cfg, dev):
+        return None
+    return 4 if src["kind"] != "simulated" or src.get("quantize") else None
+
+
+def imaging_mode(cfg, npix, nstand, nchan, sample_bits=None):
     """(method, precision, Plan or None): the configured route and precision, or the tolerance's pick
-    (:func:`bf_epic_blocks.imaging.plan.choose`) for this device and problem."""
+    (:func:`bf_epic_blocks.imaging.plan.choose`) for this device and problem (``sample_bits``: see
+    :func:`imager_sample_bits`)."""
     im = cfg["imager"]
     if im.get("tolerance") is None:
         return im["method"], im["precision"], None
@@ -173,7 +184,7 @@ def imaging_mode(cfg, npix, nstand, nchan):
     # the device string ('cpu', 'gpu:0', 'gpu:all'): planning for a GPU needs no CuPy and no GPU
     pick = planner.choose(im["tolerance"], cfg["device"], ntime=int(im["accumulate_frames"]), nant=nstand, npix=npix,
                           npol=2, nchan=nchan, products=im["products"], method=im["method"],
-                          precision=im["precision"])
+                          precision=im["precision"], sample_bits=sample_bits)
     return pick.method, pick.precision, pick
 
 
@@ -221,7 +232,8 @@ def warm_live_imager(cfg, station):
     fold = folds_calibration(cfg, "gpu")
     pixels = _pixels(cfg, station)
     npix = pixels.npix if hasattr(pixels, "npix") else im["track"]["size"] ** 2
-    method, precision, _ = imaging_mode(cfg, npix, int((~station.flags).any(axis=1).sum()), 1)
+    method, precision, _ = imaging_mode(cfg, npix, int((~station.flags).any(axis=1).sum()), 1,
+                                        imager_sample_bits(cfg, "gpu"))
     dtype = "ci4" if fold else "cf32"
     hdr = efield_header("warm-up", 0, [60e6, 60.025e6], 4e-5, {"xyz_m": np.zeros((8, 3))}, dtype=dtype)
     pattern = None if cal.get("pattern") in (None, "none") else cal["pattern"]
@@ -381,7 +393,8 @@ def build_graph(cfg, progress=None):
         if im["kind"] == "dft":
             npix = pixels.npix if hasattr(pixels, "npix") else im["track"]["size"] ** 2
             method, precision, pick = imaging_mode(cfg, npix, int((~station.flags).any(axis=1).sum()),
-                                                   len(channel_freqs(cfg)) if src_cfg["kind"] == "simulated" else 1)
+                                                   len(channel_freqs(cfg)) if src_cfg["kind"] == "simulated" else 1,
+                                                   imager_sample_bits(cfg, dev))
             if pick is not None:
                 log.info("imager.tolerance %.1e: %s", im["tolerance"], pick.describe())
             if fold:
@@ -535,7 +548,9 @@ def plan(cfg):
     acc = int(im["accumulate_frames"])
     dev = device_kind(cfg["device"])
     gulp = gulp_frames(cfg, dev, nchan, station.nstand)
-    method, precision, pick = imaging_mode(cfg, npix, nstand_any, nchan)
+    several = cfg["device"].endswith(":all") or "," in cfg["device"]
+    method, precision, pick = imaging_mode(cfg, npix, nstand_any, nchan,
+                                           imager_sample_bits(cfg, "gpus" if several else dev))
     per_image = cost.route_cmacs(acc, nstand_any, npix, 2, nblk)
     per_gulp = {k: v * nchan * gulp / acc for k, v in per_image.items()}
     bytes_ = {k: v * nchan for k, v in
