@@ -11,7 +11,7 @@ one row per pixel) is scaled per pixel row by s_k = max_a max(|Re D_ka|, |Im D_k
     D_ka / s_k * 127 = q1 + q2 / b + q3 / b^2 (+ rounding),   |q_i| <= 127
 
 so that  D X * 127 b^(pieces-1) / s_k = b^(pieces-1) Q1 X + ... + Q_pieces X  is an *integer*,
-summed exactly in int32 by the tensor cores (``mma.sync m16n8k32 s8.s8.s32``): the kernel runs the
+summed exactly in int32 by the integer tensor cores (s8 x s8 -> s32): the kernel runs the
 K loop once per piece and multiplies its int32 accumulators by b between pieces, so one set of
 accumulators serves every piece. b is the largest (<= 254 for two pieces, <= 63 for three) with
 no int32 overflow for 4-bit voltages: |acc| <= sum_k |x_k| * 127 (b^(p-1) + ... + 1) < 2^31.
@@ -21,8 +21,8 @@ accumulators can hold (:func:`bases`) turns that call's images to NaN -- never a
 =========  ==================================  ================================  ==================
 mode       operator resolution (of s_k)        int8 MMAs per complex MAC          image error, case P
 =========  ==================================  ================================  ==================
-``i8x2``   1 / (127 * 254) = 3.1e-5            8 (two pieces of the 4 real ones)  ~3e-6
-``i8x3``   1 / (127 * 63^2) = 2.0e-6           12                                 ~2e-7
+``i8x2``   1 / (127 * 254) = 3.1e-5            8 (two pieces of the 4 real ones)  3.1e-6 (H100)
+``i8x3``   1 / (127 * 63^2) = 2.0e-6           12                                 3.5e-7 (H100)
 =========  ==================================  ================================  ==================
 
 (fp16 operands, for comparison: 2^-11 = 4.9e-4 relative.) After the integer GEMM, F is converted
@@ -35,7 +35,8 @@ rows of 8 pixels then their imaginary rows (so one thread's accumulator fragment
 the same pixel), KD = 2 Apad with column 2a + (0 re | 1 im) -- the order of the (re, im) int8 pairs
 the voltages come in. Real row of pixel k: (Re D_ka, -Im D_ka) on (Re x_a, Im x_a); imaginary row:
 (Im D_ka, Re D_ka). PA = 1 when both pols share the gains, else 2. Kpad: pixels rounded up to 64;
-Apad: antennas rounded up to 64. B: (C, P' T, KD) int8, column p' T + t.
+Apad: antennas rounded up to 64. B: (C, P' Tp, KD) int8, column p' Tp + t, Tp = T rounded up to
+a whole block of 128 columns (zero samples beyond T).
 
 **Kernels.** Both take 128-row x 128-column blocks of (pixel rows, samples) and keep B whole in
 shared memory, so that the pieces after the first reread only A:
@@ -53,8 +54,8 @@ import numpy as np
 
 from ._xp import get_xp
 
-__all__ = ["FUSED", "PIECES", "bases", "quantise_operator", "layout_voltages", "fused_power",
-           "reference_power", "FusedOperator"]
+__all__ = ["FUSED", "PIECES", "bases", "quantise_operator", "padded_ntime", "layout_voltages", "fused_power",
+           "reference_power", "kernel_config", "FusedOperator"]
 
 #: the fused modes and their number of int8 pieces
 PIECES = {"i8x2": 2, "i8x3": 3}
