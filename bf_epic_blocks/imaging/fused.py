@@ -297,7 +297,39 @@ def _smem(cfg, kd):
     return a + b
 
 
-_SRC = r"""
+#: what both kernels share: cp.async staging (ST stages, ST - 1 loaded ahead) and the epilogue
+_COMMON = r"""
+__device__ __forceinline__ unsigned smem_u32(const void* p) { return (unsigned)__cvta_generic_to_shared(p); }
+__device__ __forceinline__ void cp_async16(unsigned dst, const void* src) {
+    asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" :: "r"(dst), "l"(src));
+}
+__device__ __forceinline__ void cp_commit() { asm volatile("cp.async.commit_group;\n" ::); }
+__device__ __forceinline__ void cp_wait() { asm volatile("cp.async.wait_group %0;\n" :: "n"(ST - 2)); }
+
+// One pixel's sum of |F|^2 over 16 columns: two 8-column accumulator fragments (real rows in
+// [0], [1], imaginary rows in [2], [3]) of the 4 lanes of a quad, summed in float32 and across the
+// quad; lane u % 4 writes it to out[g, c, p, pix] (unit = p TU + g), NaN if the range flag is up.
+__device__ __forceinline__ void put_unit(float* __restrict__ out, const int* f0, const int* f1, const int lane,
+                                         const int u, const int unit, const int c, const int pix, const float sc,
+                                         const bool bad, const int C, const int P, const int TU, const int npix)
+{
+    float s = 0.f;
+#pragma unroll
+    for (int h = 0; h < 2; h++) {
+        const int* a = h ? f1 : f0;
+        const float r0 = (float)a[0], r1 = (float)a[1], i0 = (float)a[2], i1 = (float)a[3];
+        s += r0 * r0 + r1 * r1 + i0 * i0 + i1 * i1;
+    }
+    s += __shfl_xor_sync(0xffffffffu, s, 1);
+    s += __shfl_xor_sync(0xffffffffu, s, 2);
+    if ((lane & 3) == (u & 3) && pix < npix) {
+        const int p = unit / TU, g = unit - p * TU;
+        out[(((long long)g * C + c) * P + p) * npix + pix] = bad ? __int_as_float(0x7fc00000) : s * sc;
+    }
+}
+"""
+
+_SRC = _COMMON + r"""
 #define BM (64 * WMW)
 #define BN 128
 #define WNW (BN / WN)
@@ -311,12 +343,6 @@ _SRC = r"""
 #endif
 #define KS (BK / 32)
 
-__device__ __forceinline__ unsigned smem_u32(const void* p) { return (unsigned)__cvta_generic_to_shared(p); }
-__device__ __forceinline__ void cp_async16(unsigned dst, const void* src) {
-    asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" :: "r"(dst), "l"(src));
-}
-__device__ __forceinline__ void cp_commit() { asm volatile("cp.async.commit_group;\n" ::); }
-__device__ __forceinline__ void cp_wait() { asm volatile("cp.async.wait_group %0;\n" :: "n"(ST - 2)); }
 __device__ __forceinline__ void ldsm_x4(unsigned addr, unsigned& r0, unsigned& r1, unsigned& r2, unsigned& r3) {
     asm volatile("ldmatrix.sync.aligned.m8n8.x4.shared.b16 {%0,%1,%2,%3}, [%4];\n"
                  : "=r"(r0), "=r"(r1), "=r"(r2), "=r"(r3) : "r"(addr));
@@ -428,31 +454,19 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
         const int pix = ((m0 + wm * 64 + mi * 16) >> 4) * 8 + (lane >> 2);
         const float sc = osc[(long long)(c * PA + pa) * Kp + pix];
 #pragma unroll
-        for (int u = 0; u < NI / 2; u++) {
-            float s = 0.f;
-#pragma unroll
-            for (int h = 0; h < 2; h++) {
-                const int* a = acc[mi][2 * u + h];
-                const float r0 = (float)a[0], r1 = (float)a[1], i0 = (float)a[2], i1 = (float)a[3];
-                s += r0 * r0 + r1 * r1 + i0 * i0 + i1 * i1;
-            }
-            s += __shfl_xor_sync(0xffffffffu, s, 1);
-            s += __shfl_xor_sync(0xffffffffu, s, 2);
-            if ((lane & 3) == (u & 3) && pix < npix) {
-                const int unit = (n0 + wn * WN) / 16 + u, p = unit / TU, g = unit - p * TU;
-                out[(((long long)g * C + c) * P + p) * npix + pix] = bad ? __int_as_float(0x7fc00000) : s * sc;
-            }
-        }
+        for (int u = 0; u < NI / 2; u++)
+            put_unit(out, acc[mi][2 * u], acc[mi][2 * u + 1], lane, u, (n0 + wn * WN) / 16 + u, c, pix, sc, bad,
+                     C, P, TU, npix);
     }
 }
 
 """
 
-#: Hopper (sm_90a) form of the kernel: warpgroup MMA (``wgmma.mma_async m64n128k32 s8``) reading both
-#: operands from shared memory in the canonical no-swizzle K-major layout (8-row x 16-byte core
-#: matrices stored whole, 128 B each). Two warpgroups per block (128 x 128 tile), B whole in shared
-#: memory across pieces, cp.async stages for A. Same operands, sums and output as ``_SRC``.
-_SRC_WG = r"""
+#: Hopper (sm_90a) form of the kernel: warpgroup MMA (``wgmma.mma_async m64nNk32 s8``) reading both
+#: operands from shared memory in the 128-byte-swizzled K-major layout (8-row x 128-byte atoms).
+#: Two warpgroups per block (128 x WGN tile), B whole in shared memory across pieces, cp.async
+#: stages for A. Same operands, sums and output as ``_SRC``.
+_SRC_WG = _COMMON + r"""
 #define BM 128
 #define BN WGN
 #define NT 256
@@ -461,14 +475,8 @@ _SRC_WG = r"""
 #define BTILE(kb) ((kb) * BN * BK)    // B kept whole: one BN x BK tile per K block
 #define DIST (ST - 1)                 // stages loaded ahead
 
-__device__ __forceinline__ unsigned smem_u32(const void* p) { return (unsigned)__cvta_generic_to_shared(p); }
-__device__ __forceinline__ void cp_async16(unsigned dst, const void* src) {
-    asm volatile("cp.async.cg.shared.global [%0], [%1], 16;\n" :: "r"(dst), "l"(src));
-}
-__device__ __forceinline__ void cp_commit() { asm volatile("cp.async.commit_group;\n" ::); }
-__device__ __forceinline__ void cp_wait() { asm volatile("cp.async.wait_group %0;\n" :: "n"(DIST - 1)); }
 // shared-memory matrix descriptor: start >> 4 (bits 0-13), leading (K) byte offset >> 4 (16-29),
-// stride (M/N) byte offset >> 4 (32-45), no swizzle
+// stride (M/N) byte offset >> 4 (32-45), 128-byte swizzle (bits 62-63 = 1)
 __device__ __forceinline__ unsigned long long mdesc(unsigned addr, unsigned lbo, unsigned sbo) {
     return (unsigned long long)((addr & 0x3FFFF) >> 4) | ((unsigned long long)(lbo >> 4) << 16)
          | ((unsigned long long)(sbo >> 4) << 32) | (1ull << 62);
@@ -554,21 +562,8 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
     const int pix = ((m0 + wgi * 64 + wq * 16) >> 4) * 8 + (lane >> 2);
     const float sc = osc[(long long)(c * PA + pa) * Kp + pix];
 #pragma unroll
-    for (int u = 0; u < WGN / 16; u++) {
-        float s = 0.f;
-#pragma unroll
-        for (int h = 0; h < 2; h++) {
-            const int* a = d + 4 * (2 * u + h);
-            const float r0 = (float)a[0], r1 = (float)a[1], i0 = (float)a[2], i1 = (float)a[3];
-            s += r0 * r0 + r1 * r1 + i0 * i0 + i1 * i1;
-        }
-        s += __shfl_xor_sync(0xffffffffu, s, 1);
-        s += __shfl_xor_sync(0xffffffffu, s, 2);
-        if ((lane & 3) == (u & 3) && pix < npix) {
-            const int unit = n0 / 16 + u, p = unit / TU, g = unit - p * TU;
-            out[(((long long)g * C + c) * P + p) * npix + pix] = bad ? __int_as_float(0x7fc00000) : s * sc;
-        }
-    }
+    for (int u = 0; u < WGN / 16; u++)
+        put_unit(out, d + 8 * u, d + 8 * u + 4, lane, u, n0 / 16 + u, c, pix, sc, bad, C, P, TU, npix);
 }
 """
 

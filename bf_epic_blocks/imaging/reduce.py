@@ -138,9 +138,13 @@ extern "C" __global__ void bf_row_dot(
 # combination of Re and Im of the blocks (I = Re XX + Re YY, V = -2 Im XY, ...):
 # out[g, c, p, k] = sum_b s[c, b] (a[p, b] Re corr[g, c, b, k] + i[p, b] Im corr[g, c, b, k]).
 _PRODUCTS_SRC = r"""
-extern "C" __global__ void bf_products(
-    const float2* __restrict__ corr, const float* __restrict__ s, const float* __restrict__ coef,
-    float* __restrict__ out, const long long G, const int C, const int nblk, const int nprod, const int K)
+__device__ __forceinline__ float2 corr_at(const float2* p, long long i) { return p[i]; }
+__device__ __forceinline__ float2 corr_at(const float* p, long long i) { return make_float2(p[i], 0.f); }
+
+template <typename TC>
+__device__ void products(const TC* __restrict__ corr, const float* __restrict__ s, const float* __restrict__ coef,
+                         float* __restrict__ out, const long long G, const int C, const int nblk, const int nprod,
+                         const int K)
 {
     long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
     long long total = G * C * nprod * K;
@@ -148,32 +152,24 @@ extern "C" __global__ void bf_products(
     int k = (int)(idx % K); long long r = idx / K;
     int p = (int)(r % nprod); r /= nprod;
     int c = (int)(r % C); long long g = r / C;
-    const float2* cr = corr + ((g * C + c) * nblk) * K + k;
+    const TC* cr = corr + ((g * C + c) * nblk) * K + k;
     float v = 0.f;
     for (int b = 0; b < nblk; ++b) {
-        float2 z = cr[(long long)b * K];
+        float2 z = corr_at(cr, (long long)b * K);
         float sb = s[c * nblk + b];
         v += sb * (coef[(p * nblk + b) * 2] * z.x + coef[(p * nblk + b) * 2 + 1] * z.y);
     }
     out[idx] = v;
 }
 
-// the same for real block sums (the fused integer modes' |F_p|^2): Im corr = 0
-extern "C" __global__ void bf_products_real(
-    const float* __restrict__ corr, const float* __restrict__ s, const float* __restrict__ coef,
-    float* __restrict__ out, const long long G, const int C, const int nblk, const int nprod, const int K)
-{
-    long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
-    long long total = G * C * nprod * K;
-    if (idx >= total) return;
-    int k = (int)(idx % K); long long r = idx / K;
-    int p = (int)(r % nprod); r /= nprod;
-    int c = (int)(r % C); long long g = r / C;
-    const float* cr = corr + ((g * C + c) * nblk) * K + k;
-    float v = 0.f;
-    for (int b = 0; b < nblk; ++b) v += s[c * nblk + b] * coef[(p * nblk + b) * 2] * cr[(long long)b * K];
-    out[idx] = v;
-}
+// complex block correlations; real ones (the fused integer modes' |F_p|^2: Im = 0)
+extern "C" __global__ void bf_products(const float2* corr, const float* s, const float* coef, float* out,
+                                       const long long G, const int C, const int nblk, const int nprod, const int K)
+{ products(corr, s, coef, out, G, C, nblk, nprod, K); }
+extern "C" __global__ void bf_products_real(const float* corr, const float* s, const float* coef, float* out,
+                                            const long long G, const int C, const int nblk, const int nprod,
+                                            const int K)
+{ products(corr, s, coef, out, G, C, nblk, nprod, K); }
 """
 
 _KERNELS = {}
@@ -306,16 +302,8 @@ def products_from_blocks(corr, scale, coef):
     lead = corr.shape[:-3]
     C, nblk, K = corr.shape[-3:]
     nprod = coef.shape[0]
-    if xp is not np and corr.dtype == xp.float32:
-        corr = xp.ascontiguousarray(corr)
-        G = int(np.prod(lead)) if lead else 1
-        out = xp.empty(lead + (C, nprod, K), xp.float32)
-        total = G * C * nprod * K
-        _raw("bf_products_real")(((total + 255) // 256,), (256,),
-                                 (corr, xp.ascontiguousarray(scale, dtype=xp.float32), coef, out, np.int64(G),
-                                  np.int32(C), np.int32(nblk), np.int32(nprod), np.int32(K)))
-        return out
-    if xp is np or corr.dtype != xp.complex64:
+    real = xp is not np and corr.dtype == xp.float32
+    if xp is np or not (real or corr.dtype == xp.complex64):
         c = xp.asarray(coef, dtype=corr.real.dtype)
         z = corr * scale[..., None]
         return xp.einsum("...cbk,pb->...cpk", z.real, c[..., 0]) + xp.einsum("...cbk,pb->...cpk", z.imag, c[..., 1])
@@ -323,9 +311,9 @@ def products_from_blocks(corr, scale, coef):
     G = int(np.prod(lead)) if lead else 1
     out = xp.empty(lead + (C, nprod, K), xp.float32)
     total = G * C * nprod * K
-    _raw("bf_products")(((total + 255) // 256,), (256,),
-                        (corr, xp.ascontiguousarray(scale, dtype=xp.float32), coef, out, np.int64(G), np.int32(C),
-                         np.int32(nblk), np.int32(nprod), np.int32(K)))
+    _raw("bf_products_real" if real else "bf_products")(
+        ((total + 255) // 256,), (256,), (corr, xp.ascontiguousarray(scale, dtype=xp.float32), coef, out,
+                                          np.int64(G), np.int32(C), np.int32(nblk), np.int32(nprod), np.int32(K)))
     return out
 
 
