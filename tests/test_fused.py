@@ -214,3 +214,12 @@ def test_gpu_an_integration_split_across_gulps_in_any_lengths_equals_truth():
     img = acc.result().get()                                            # (C, 2, K)
     ref = truth_powers(Q, xyz, freq, lm, np.ones((2, 40, 2)), 132)[0] / 132 / 40 ** 2     # (C, P, K)
     assert np.abs(img - ref).max() / np.abs(ref).max() <= LIMIT["i8x2"]
+
+
+def test_kernel_shape_falls_back_where_the_hopper_kernel_or_shared_memory_does_not_fit():
+    assert fused.kernel_config(512, "90").get("WG")               # an H100, 256 antennas: warpgroup kernel
+    assert not fused.kernel_config(512, "80").get("WG")           # an A100: the portable mma.sync kernel
+    big = fused.kernel_config(4096, "90")                          # 2048 antennas: B no longer fits whole
+    assert not big.get("WG") and big["BFULL"] == 0
+    with pytest.raises(ValueError, match="too many"):
+        fused.bases(3, 2 ** 20)
