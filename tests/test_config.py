@@ -391,3 +391,22 @@ def test_calibration_folded_into_the_imager_only_where_it_should_be(yaml_dir):
     assert folds_calibration(udp, "gpu") and folds_calibration(udp, "gpus") and not folds_calibration(udp, "cpu")
     ws = dict(base, imager=dict(base["imager"], kind="wstack"))
     assert not folds_calibration(ws, "gpu") and not folds_calibration(ws, "gpus")
+
+
+def test_the_fused_integer_modes_are_refused_where_they_cannot_image(tmp_path):
+    """imager.precision i8x2/i8x3 needs 4-bit voltages at one GPU's DFT imager, XX/YY powers and whole
+    16-sample units: each way of breaking that is named up front, not met as a failed block mid-run."""
+    (tmp_path / "gains.npz").write_bytes(b"PK")
+    base = "source: {kind: simulated}\ndevice: gpu\nimager: {accumulate_frames: 16, precision: i8x2}\n"
+    cfg = load_config(base)
+    assert cfg["imager"]["precision"] == "i8x2"
+    for extra, words in ((["imager.products=[I, U]"], "cross-pol"),
+                         (["imager.method=covariance"], "direct-route"),
+                         (["imager.accumulate_frames=24"], "multiple of 16"),
+                         (["source.quantize=false"], "quantize is false"),
+                         ([f"calibration.gains_table={tmp_path / 'gains.npz'}"], "turns the voltages complex"),
+                         (["device=gpu:all"], "several GPUs")):
+        with pytest.raises(ConfigError, match=words):
+            load_config(base, extra)
+    with pytest.raises(ConfigError, match="tensor cores"):
+        load_config(base, ["device=cpu"])

@@ -157,6 +157,7 @@ from typing import Iterable
 
 import yaml
 
+from ..imaging.fused import FUSED as _FUSED
 from ..imaging.gemm import PRECISIONS as _PRECISIONS
 from ..imaging.products import PRESETS, VALID as VALID_PRODUCTS, resolve_products
 from .yaml_schema import (INVALID, REQUIRED, BadValue, Bool, Choice, Context, File, Float, Int, Key, ListOf, Section,
@@ -628,6 +629,33 @@ def load_config(path_or_text, overrides: Iterable[str] = (), *, base_dir=None) -
     return cfg
 
 
+def _check_fused(cfg, src, im, ctx):
+    """imager.precision i8x2 / i8x3 (the direct route's fused integer modes) images what it can: 4-bit
+    voltages reaching one GPU's DFT imager (no gains table, whose CalFoldBlock makes them complex; a
+    quantised simulated sky), the pols' own powers (XX, YY, I, Q), whole 16-sample units per image."""
+    if not (is_valid(im) and is_valid(im["precision"]) and im["precision"] in _FUSED):
+        return
+    p, why = im["precision"], []
+    if is_valid(im["kind"]) and im["kind"] != "dft":
+        why.append(f"imager.kind is {im['kind']!r} (the fused modes are the DFT imager's)")
+    if is_valid(im["method"]) and im["method"] == "covariance":
+        why.append("imager.method is 'covariance' (they are a direct-route kernel)")
+    if is_valid(im["products"]) and any(x not in ("XX", "YY", "I", "Q") for x in im["products"]):
+        why.append(f"imager.products {im['products']} need cross-pol terms (they image XX, YY, I, Q)")
+    if is_valid(im["accumulate_frames"]) and im["accumulate_frames"] % 16:
+        why.append(f"imager.accumulate_frames {im['accumulate_frames']} is not a multiple of 16 samples")
+    cal = cfg["calibration"]
+    if is_valid(cal) and is_valid(cal.get("gains_table")) and cal.get("gains_table"):
+        why.append("calibration.gains_table turns the voltages complex (CalFoldBlock) before the imager")
+    if is_valid(src) and src["kind"] == "simulated" and is_valid(src["quantize"]) and not src["quantize"]:
+        why.append("source.quantize is false (complex voltages, not 4-bit integers)")
+    if is_valid(cfg["device"]) and (cfg["device"].endswith(":all") or "," in cfg["device"]):
+        why.append(f"device {cfg['device']!r} is several GPUs (measured on one only)")
+    if why:
+        ctx.error("imager.precision", f"{p!r} images 4-bit voltages on one GPU's direct route; here "
+                                      + "; ".join(why) + ": use fp16x3 or fp32, or imager.tolerance")
+
+
 def _fill_and_cross_check(cfg: dict, default_name: str, ctx: Context) -> None:
     """Defaults that depend on other keys, and rules spanning sections (run on a valid tree)."""
     if cfg["name"] is None:
@@ -645,6 +673,7 @@ def _fill_and_cross_check(cfg: dict, default_name: str, ctx: Context) -> None:
             and cfg["device"] == "cpu" and _PRECISIONS[im["precision"]][2]:
         ctx.error("imager.precision", f"{im['precision']!r} needs tensor cores (device: gpu); on the CPU use "
                                       "fp32 or fp64, or imager.tolerance to let the imager pick")
+    _check_fused(cfg, src, im, ctx)
     if is_valid(st) and is_valid(src) and st.get("name") == "auto" and src["kind"] != "tbf":
         ctx.error("station.name", "'auto' takes the station from a TBF file's frame id; with a "
                                   f"{src['kind']} source name the station (lwasv, lwana, lwa1)")
