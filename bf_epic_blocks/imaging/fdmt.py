@@ -45,8 +45,9 @@ class FDMTPlan:
     across the band (every integer; the trials are rows of the result).
 
     ``order`` sorts the channels by frequency (ascending); ``levels`` is a list, bottom-up, of merges
-    ``(lo_range, hi_range, d_L (n,), d_U (n,), o (n,))`` per range of that level, each range a pair
-    of channel indices (first, last) in sorted order.
+    ``(range, (lo_range, hi_range, row_L (n,), row_U (n,), o (n,)))`` per range of that level, each
+    range a pair of channel indices (first, last) in sorted order, ``row_*`` the rows of the halves'
+    arrays that hold the sweeps d_L and d_U (made here, once, not on every transform).
     """
 
     def __init__(self, freq, dmax):
@@ -90,7 +91,14 @@ class FDMTPlan:
         by = {}
         for r in merges:
             by.setdefault(depth(r), []).append(r)
-        self.levels = [[(r, merges[r]) for r in sorted(by[k])] for k in sorted(by)]
+
+        def sweeps(r):
+            return np.zeros(1, np.int64) if r[0] == r[1] else need[r]
+
+        def rows(r):
+            L, U, dL, dU, o = merges[r]
+            return L, U, np.searchsorted(sweeps(L), dL), np.searchsorted(sweeps(U), dU), o
+        self.levels = [[(r, rows(r)) for r in sorted(by[k])] for k in sorted(by)]
 
     def rows(self):
         """Shifted-add rows the transform does (its cost in units of one T x npix add)."""
@@ -114,10 +122,8 @@ def fdmt(images, plan: FDMTPlan):
     state = {(c, c): x[c][None] for c in range(plan.nchan)}
     t = np.arange(T)
     for level in plan.levels:
-        for rng, (L, U, dL, dU, o) in level:
+        for rng, (L, U, rowL, rowU, o) in level:
             aL, aU = state.pop(L), state.pop(U)
-            rowL = np.searchsorted(_sweeps(plan, L), dL)
-            rowU = np.searchsorted(_sweeps(plan, U), dU)
             # A_U read o images back, zero before its first time: one gather from a zero-padded copy
             oc = np.minimum(o, T)
             pad = int(oc.max()) if oc.size else 0
@@ -128,18 +134,14 @@ def fdmt(images, plan: FDMTPlan):
     return state[(0, plan.nchan - 1)]
 
 
-def _sweeps(plan, rng):
-    return np.zeros(1, np.int64) if rng[0] == rng[1] else plan.need[rng]
-
-
 def effective_back(plan: FDMTPlan):
     """(dmax + 1, nchan) int64: how many images before t each channel (in the caller's order) is read
     for trial d -- what :func:`fdmt` sums, from the same merge tables."""
     back = {(c, c): np.zeros((1, 1), np.int64) for c in range(plan.nchan)}       # (n sweeps, channels)
     for level in plan.levels:
-        for rng, (L, U, dL, dU, o) in level:
-            bL = back.pop(L)[np.searchsorted(_sweeps(plan, L), dL)]
-            bU = back.pop(U)[np.searchsorted(_sweeps(plan, U), dU)] + o[:, None]
+        for rng, (L, U, rowL, rowU, o) in level:
+            bL = back.pop(L)[rowL]
+            bU = back.pop(U)[rowU] + o[:, None]
             back[rng] = np.concatenate([bL, bU], axis=1)
     top = back[(0, plan.nchan - 1)]
     out = np.empty_like(top)

@@ -159,7 +159,7 @@ import yaml
 
 from ..imaging.fused import FUSED as _FUSED
 from ..imaging.gemm import PRECISIONS as _PRECISIONS
-from ..imaging.products import PRESETS, VALID as VALID_PRODUCTS, resolve_products
+from ..imaging.products import PRESETS, VALID as VALID_PRODUCTS, needs_cross, resolve_products
 from .yaml_schema import (INVALID, REQUIRED, BadValue, Bool, Choice, Context, File, Float, Int, Key, ListOf, Section,
                           Str, TimeStr, did_you_mean, is_valid, join_path, key_lines, run_check)
 
@@ -640,7 +640,7 @@ def _check_fused(cfg, src, im, ctx):
         why.append(f"imager.kind is {im['kind']!r} (the fused modes are the DFT imager's)")
     if is_valid(im["method"]) and im["method"] == "covariance":
         why.append("imager.method is 'covariance' (they are a direct-route kernel)")
-    if is_valid(im["products"]) and any(x not in ("XX", "YY", "I", "Q") for x in im["products"]):
+    if is_valid(im["products"]) and needs_cross(im["products"]):
         why.append(f"imager.products {im['products']} need cross-pol terms (they image XX, YY, I, Q)")
     if is_valid(im["accumulate_frames"]) and im["accumulate_frames"] % 16:
         why.append(f"imager.accumulate_frames {im['accumulate_frames']} is not a multiple of 16 samples")
