@@ -5,6 +5,7 @@ import pytest
 
 from bf_epic_blocks import imaging
 from bf_epic_blocks.imaging import plan
+from bf_epic_blocks.imaging._xp import gpu_available
 from bf_epic_blocks.imaging.dft import DFTOperator
 from bf_epic_blocks.imaging.fused import FUSED
 from bf_epic_blocks.imaging.gemm import PRECISIONS, precision_available
@@ -400,3 +401,31 @@ def test_the_gpu_pick_meets_its_bound_on_case_p(tol):
     err = rel_err(img, _oracle_xx_yy(cupy, X, xyz, freq, lm))
     print(f"tolerance {tol:.0e}: {pick.method} {pick.precision}, bound {pick.bound:.1e}, measured {err:.2e}")
     assert err <= pick.bound <= tol
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
+@pytest.mark.parametrize("real,lead", [(True, (70000,)), (False, (3, 5)), (True, (2,))])
+def test_products_kernel_equals_the_definition(real, lead):
+    """The products kernel against its definition written out in NumPy: out[..., c, p, k] =
+    sum_b scale[c, b] (a[p, b] Re corr + i[p, b] Im corr), with more (g, c) rows than one grid row
+    holds (70,000), complex and real (the fused modes') correlations."""
+    import cupy as cp
+    from bf_epic_blocks.imaging.reduce import product_coefficients, products_from_blocks
+    rng = np.random.default_rng(7)
+    blocks = [(0, 0), (1, 1)] if real else [(0, 0), (1, 1), (0, 1)]
+    products = ("I", "Q", "XX") if real else ("I", "Q", "U", "V")
+    C, K = 2, 37
+    shape = lead + (C, len(blocks), K)
+    corr = rng.normal(size=shape).astype(np.float32)
+    if not real:
+        corr = (corr + 1j * rng.normal(size=shape)).astype(np.complex64)
+    scale = rng.uniform(0.5, 2, (C, len(blocks))).astype(np.float32)
+    coef = np.asarray(product_coefficients(products, blocks), np.float64)        # (nprod, nblk, 2)
+    got = products_from_blocks(cp.asarray(corr), cp.asarray(scale), cp.asarray(coef, np.float32)).get()
+    z = corr.astype(np.complex128) * scale[..., None]
+    want = np.zeros(lead + (C, len(products), K))
+    for p in range(len(products)):
+        for b in range(len(blocks)):
+            want[..., :, p, :] += coef[p, b, 0] * z[..., :, b, :].real + coef[p, b, 1] * z[..., :, b, :].imag
+    assert np.allclose(got, want, rtol=1e-5, atol=1e-5)

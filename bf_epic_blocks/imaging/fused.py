@@ -211,7 +211,8 @@ def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None):
     bn = cfg.get("WGN", BN)
     if ncol % bn:
         raise ValueError(f"fused imaging needs P*T a multiple of {bn}, got T={T}, P={P}")
-    k((M // bm, ncol // bn, C), (nt,), (Aq, Bv, osc, flag, out, np.int32(M), np.int32(ncol),
+    mt = int(cfg.get("MT", 1))
+    k((-(-(M // bm) // mt), ncol // bn, C), (nt,), (Aq, Bv, osc, flag, out, np.int32(M), np.int32(ncol),
                                                      np.int32(T), np.int32(PA), np.int32(_base_of(NP, KD)),
                                                      np.int32(npix)),
       shared_mem=smem)
@@ -272,9 +273,11 @@ class FusedOperator:
 #: mma.sync kernel (warps along M, warp N tile, K per stage, stages, B kept whole across pieces,
 #: fragments double-buffered, blocks per SM), and on Hopper (compute capability 9.0) the warpgroup
 #: kernel with 128-byte-swizzled operands, 128-byte K stages, three stages: 0.52 against 0.86 ms for
-#: i8x2 in one run (case P, regime B).
+#: i8x2 in one run (case P, regime B); four row tiles per block (B loaded once for them, the next
+#: tile's loads in flight during an epilogue): 0.50 -> 0.46-0.47 ms (i8x2), 0.70 -> 0.65-0.66 ms (i8x3),
+#: bit-equal. Keeping a wgmma group in flight (WAIT=1), more stages or 256-column tiles: no gain.
 CONFIG = dict(WMW=2, WN=64, BK=64, ST=4, BFULL=1, FP=1, MINB=1)
-WG_CONFIG = dict(WG=1, BK=128, ST=3, WGN=128)
+WG_CONFIG = dict(WG=1, BK=128, ST=3, WGN=128, MT=4)
 _SMEM_MAX = 227 * 1024
 
 
@@ -473,7 +476,12 @@ _SRC_WG = _COMMON + r"""
 #define NACC (WGN / 2)
 #define CPR (BK / 16)
 #define BTILE(kb) ((kb) * BN * BK)    // B kept whole: one BN x BK tile per K block
-#define DIST (ST - 1)                 // stages loaded ahead
+#ifndef WAIT
+#define WAIT 0                        // wgmma groups left in flight at the end of an iteration
+#endif
+#ifndef DIST
+#define DIST (ST - 1 - WAIT)          // stages loaded ahead: the stage a load overwrites was read by a
+#endif                                // group that has completed (DIST <= ST - 1 - WAIT)
 
 // shared-memory matrix descriptor: start >> 4 (bits 0-13), leading (K) byte offset >> 4 (16-29),
 // stride (M/N) byte offset >> 4 (32-45), 128-byte swizzle (bits 62-63 = 1)
@@ -500,6 +508,10 @@ __device__ __forceinline__ void wg_mma(int* d, unsigned long long da, unsigned l
 }
 #endif
 
+#ifndef MT
+#define MT 1                          // row tiles per block, one after another: B loaded once for all
+#endif                                // of them, the next tile's loads in flight during an epilogue
+
 extern "C" __global__ void __launch_bounds__(NT)
 bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict__ B, const float* __restrict__ osc,
                const int* __restrict__ flag, float* __restrict__ out, const int M, const int NCOL,
@@ -509,39 +521,47 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
     unsigned char* sA = smem;                       // ST stages of BM x BK
     unsigned char* sB = smem + ST * BM * BK;        // B whole: KD / BK tiles of BN x BK
     const int tid = threadIdx.x, lane = tid & 31, warp = tid >> 5, wgi = warp >> 2, wq = warp & 3;
-    const int m0 = blockIdx.x * BM, n0 = blockIdx.y * BN, c = blockIdx.z;
+    const int mt0 = blockIdx.x * MT, ntile = min(MT, M / BM - mt0);   // this block's row tiles
+    const int n0 = blockIdx.y * BN, c = blockIdx.z;
     const int pa = PA > 1 ? n0 / T : 0;
-    const signed char* Ab = A + ((long long)(c * PA + pa) * NP * M + m0) * KD;
+    const signed char* Ab = A + ((long long)(c * PA + pa) * NP * M + (long long)mt0 * BM) * KD;
     const signed char* Bb = B + ((long long)c * NCOL + n0) * KD;
-    const int KB = KD / BK, NIT = NP * KB;
+    const int KB = KD / BK, NIT = NP * KB, NALL = ntile * NIT;
     int d[NACC];
 #pragma unroll
     for (int i = 0; i < NACC; i++) d[i] = 0;
 
-#define LOAD(it_, st_) do { \
-        const int piece_ = (it_) / KB, kb_ = (it_) - piece_ * KB; \
-        const signed char* ap_ = Ab + (long long)piece_ * M * KD + kb_ * BK; \
+#define LOAD(g_, st_) do { \
+        const int tile_ = (g_) / NIT, it_ = (g_) - tile_ * NIT; \
+        const int piece_ = it_ / KB, kb_ = it_ - piece_ * KB; \
+        const signed char* ap_ = Ab + ((long long)piece_ * M + tile_ * BM) * KD + kb_ * BK; \
         unsigned char* as_ = sA + (st_) * BM * BK; \
         _Pragma("unroll") for (int i_ = 0; i_ < BM * CPR / NT; i_++) { \
             const int ch_ = tid + i_ * NT, row_ = ch_ / CPR, j_ = ch_ % CPR; \
             cp_async16(smem_u32(as_ + soff(row_, j_)), ap_ + (long long)row_ * KD + j_ * 16); } \
-        if (piece_ == 0) { \
+        if ((g_) < KB) { \
             const signed char* bp_ = Bb + kb_ * BK; \
             _Pragma("unroll") for (int i_ = 0; i_ < BN * CPR / NT; i_++) { \
                 const int ch_ = tid + i_ * NT, row_ = ch_ / CPR, j_ = ch_ % CPR; \
                 cp_async16(smem_u32(sB + BTILE(kb_) + soff(row_, j_)), bp_ + (long long)row_ * KD + j_ * 16); } \
         } } while (0)
 
+    const bool bad = flag[0] != 0;
+    const int Kp = M / 2, C = gridDim.z, P = NCOL / T, TU = T / 16;
 #pragma unroll
-    for (int s = 0; s < DIST; s++) { if (s < NIT) LOAD(s, s); cp_commit(); }
-    for (int it = 0; it < NIT; it++) {
-        cp_wait();
+    for (int s = 0; s < DIST; s++) { if (s < NALL) LOAD(s, s); cp_commit(); }
+    for (int g = 0; g < NALL; g++) {
+        asm volatile("cp.async.wait_group %0;\n" :: "n"(DIST - 1));   // stage g has landed (own loads)
         asm volatile("fence.proxy.async.shared::cta;\n" ::: "memory");
-        __syncthreads();   // stage it has landed for all, and every warpgroup's wgmma of it - 1 is done
-        { const int nx = it + DIST; if (nx < NIT) LOAD(nx, nx % ST); cp_commit(); }
-        const int st = it % ST, kb = it % KB;
+        __syncthreads();   // stage g has landed for all, and every warpgroup's wgmma of g - 1 - WAIT is done
+        { const int nx = g + DIST; if (nx < NALL) LOAD(nx, nx % ST); cp_commit(); }
+        const int tile = g / NIT, it = g - tile * NIT;
+        const int st = g % ST, kb = it % KB;
 #if NP > 1
         if (kb == 0 && it > 0) {   // a new piece: everything so far times the base
+#if WAIT > 0
+            asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+#endif
 #pragma unroll
             for (int i = 0; i < NACC; i++) d[i] *= base;
         }
@@ -549,21 +569,25 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
         const unsigned as = smem_u32(sA + st * BM * BK) + soff(wgi * 64, 0);
         const unsigned bs = smem_u32(sB + BTILE(kb));
         asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory");
-        // k32 steps inside the 128-byte atom: the start address moves 32 bytes, the swizzle follows
+        // k32 steps inside the 128-byte atom: the start address moves 32 bytes, the swizzle follows;
+        // a tile's first step ignores the accumulators (scale-d 0): no reset between tiles
 #pragma unroll
         for (int ks = 0; ks < BK / 32; ks++)
-            wg_mma(d, mdesc(as + ks * 32, 16, 1024), mdesc(bs + ks * 32, 16, 1024), 1);
+            wg_mma(d, mdesc(as + ks * 32, 16, 1024), mdesc(bs + ks * 32, 16, 1024), (it | ks) != 0);
         asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory");
-        asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
-    }
-
-    const bool bad = flag[0] != 0;
-    const int Kp = M / 2, C = gridDim.z, P = NCOL / T, TU = T / 16;
-    const int pix = ((m0 + wgi * 64 + wq * 16) >> 4) * 8 + (lane >> 2);
-    const float sc = osc[(long long)(c * PA + pa) * Kp + pix];
+        asm volatile("wgmma.wait_group.sync.aligned %0;\n" :: "n"(WAIT) : "memory");
+        if (it == NIT - 1) {       // the tile's epilogue, while the next tile's first stages load
+#if WAIT > 0
+            asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+#endif
+            const int m0 = (mt0 + tile) * BM;
+            const int pix = ((m0 + wgi * 64 + wq * 16) >> 4) * 8 + (lane >> 2);
+            const float sc = osc[(long long)(c * PA + pa) * Kp + pix];
 #pragma unroll
-    for (int u = 0; u < WGN / 16; u++)
-        put_unit(out, d + 8 * u, d + 8 * u + 4, lane, u, n0 / 16 + u, c, pix, sc, bad, C, P, TU, npix);
+            for (int u = 0; u < WGN / 16; u++)
+                put_unit(out, d + 8 * u, d + 8 * u + 4, lane, u, n0 / 16 + u, c, pix, sc, bad, C, P, TU, npix);
+        }
+    }
 }
 """
 

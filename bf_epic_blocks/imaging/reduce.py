@@ -138,28 +138,39 @@ extern "C" __global__ void bf_row_dot(
 # combination of Re and Im of the blocks (I = Re XX + Re YY, V = -2 Im XY, ...):
 # out[g, c, p, k] = sum_b s[c, b] (a[p, b] Re corr[g, c, b, k] + i[p, b] Im corr[g, c, b, k]).
 _PRODUCTS_SRC = r"""
+#define MAXB 4      // correlation blocks: XX, YY, XY at most
 __device__ __forceinline__ float2 corr_at(const float2* p, long long i) { return p[i]; }
 __device__ __forceinline__ float2 corr_at(const float* p, long long i) { return make_float2(p[i], 0.f); }
 
+// One thread per pixel k of a (g, c) row (grid.y strides over the rows): every block's value read
+// once for all products, and no 64-bit index division (which made the first form 3x slower).
 template <typename TC>
 __device__ void products(const TC* __restrict__ corr, const float* __restrict__ s, const float* __restrict__ coef,
                          float* __restrict__ out, const long long G, const int C, const int nblk, const int nprod,
                          const int K)
 {
-    long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
-    long long total = G * C * nprod * K;
-    if (idx >= total) return;
-    int k = (int)(idx % K); long long r = idx / K;
-    int p = (int)(r % nprod); r /= nprod;
-    int c = (int)(r % C); long long g = r / C;
-    const TC* cr = corr + ((g * C + c) * nblk) * K + k;
-    float v = 0.f;
-    for (int b = 0; b < nblk; ++b) {
-        float2 z = corr_at(cr, (long long)b * K);
-        float sb = s[c * nblk + b];
-        v += sb * (coef[(p * nblk + b) * 2] * z.x + coef[(p * nblk + b) * 2 + 1] * z.y);
+    const int k = blockIdx.x * blockDim.x + threadIdx.x;
+    if (k >= K) return;
+    for (long long row = blockIdx.y; row < G * C; row += gridDim.y) {
+        const int c = (int)(row % C);
+        const TC* cr = corr + row * nblk * K + k;
+        float zr[MAXB], zi[MAXB];
+#pragma unroll
+        for (int b = 0; b < MAXB; ++b) {
+            if (b < nblk) {
+                const float2 z = corr_at(cr, (long long)b * K);
+                const float sb = s[c * nblk + b];
+                zr[b] = sb * z.x; zi[b] = sb * z.y;
+            }
+        }
+        for (int p = 0; p < nprod; ++p) {
+            float v = 0.f;
+#pragma unroll
+            for (int b = 0; b < MAXB; ++b)
+                if (b < nblk) v += coef[(p * nblk + b) * 2] * zr[b] + coef[(p * nblk + b) * 2 + 1] * zi[b];
+            out[(row * nprod + p) * K + k] = v;
+        }
     }
-    out[idx] = v;
 }
 
 // complex block correlations; real ones (the fused integer modes' |F_p|^2: Im = 0)
@@ -310,9 +321,10 @@ def products_from_blocks(corr, scale, coef):
     corr = xp.ascontiguousarray(corr)
     G = int(np.prod(lead)) if lead else 1
     out = xp.empty(lead + (C, nprod, K), xp.float32)
-    total = G * C * nprod * K
+    if nblk > 4:
+        raise ValueError(f"products_from_blocks: at most 4 correlation blocks, got {nblk}")
     _raw("bf_products_real" if real else "bf_products")(
-        ((total + 255) // 256,), (256,), (corr, xp.ascontiguousarray(scale, dtype=xp.float32), coef, out,
+        ((K + 255) // 256, max(1, min(G * C, 65535))), (256,), (corr, xp.ascontiguousarray(scale, dtype=xp.float32), coef, out,
                                           np.int64(G), np.int32(C), np.int32(nblk), np.int32(nprod), np.int32(K)))
     return out
 
