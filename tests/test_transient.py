@@ -89,6 +89,50 @@ def test_search_finds_dispersed_burst_at_expected_snr(xp):
     assert found.snr[k] == pytest.approx(expect, rel=0.2)
 
 
+def test_the_tree_search_finds_a_burst_at_its_dm_across_a_wide_band(xp):
+    """96 channels over 19 MHz from 74 MHz (a band the shifted sums would need ~1,300 trials for): the
+    tree searches every sweep, and a width-2 burst at DM 0.9 is found at its pixel, its arrival at
+    the band top and its sweep (+-1: the tree's channels sit within 1-2 images of the curve)."""
+    from bf_epic_blocks.imaging.transient import dispersion_delay_s
+    rng = np.random.default_rng(1)
+    nchan, npix, dt = 96, 50, 16 * DT
+    f = 74e6 + 200e3 * np.arange(nchan)
+    x = rng.normal(10, 1, (3000, nchan, npix)).astype(np.float32)
+    dm, pix, e0 = 0.9, 17, 2000
+    _inject(x, pix, e0, 2, 3.0, np.rint(dispersion_delay_s(dm, f, f.max()) / dt).astype(int))
+    s = TransientSearch(f, dt, npix, 300, dms=[3.0], widths=(1, 2, 4), threshold=7, dedisperse="auto",
+                        max_batch=64, xp=xp)
+    per_dm = dispersion_delay_s(1.0, f.min(), f.max()) / dt              # images of sweep per unit DM
+    assert s.dedisperse == "tree" and s.nser == round(3.0 * per_dm) + 1 == 1304
+    assert s.dms[1] == pytest.approx(1 / per_dm)
+    found = Crossings.concat([s.push(xp.asarray(x[a:a + 64])) for a in range(0, 3000, 64)])
+    k = int(np.argmax(found.snr))
+    assert found.pixel[k] == pix and found.image[k] == e0
+    assert abs(found.series[k] - round(dm * per_dm)) <= 1
+    assert found.snr[k] > 0.8 * 3.0 * np.sqrt(2) * np.sqrt(nchan)     # most of the exact sums' S/N
+
+
+def test_many_series_are_searched_in_chunks_with_the_same_result(monkeypatch):
+    """The statistics of many trials run a chunk of series at a time (bounded temporaries): the same
+    crossings, S/N and state as all at once."""
+    rng = np.random.default_rng(2)
+    f = 74e6 + 25e3 * np.arange(8)
+    x = rng.normal(5, 1, (400, 8, 30)).astype(np.float32)
+    _inject(x, 3, 300, 2, 2.5, np.zeros(8, int))
+    runs = []
+    for chunk in (TransientSearch.CHUNK_BYTES, 64 * 30 * 8 * 2):       # all at once; two series per chunk
+        monkeypatch.setattr(TransientSearch, "CHUNK_BYTES", chunk)
+        s = TransientSearch(f, 16 * DT, 30, 50, dms=[0, 0.2, 0.4, 0.6, 0.8], threshold=4, max_batch=64)
+        c = Crossings.concat([s.push(x[a:a + 64]) for a in range(0, 400, 64)])
+        order = np.lexsort((c.pixel, c.width_index, c.series, c.end_image))
+        runs.append((c.take(order), s.statistics()))
+    (a, sa), (b, sb) = runs
+    assert len(a) > 0 and len(a) == len(b)
+    for k in Crossings.FIELDS:
+        assert np.allclose(getattr(a, k), getattr(b, k), rtol=1e-12), k
+    assert np.allclose(sa[1], sb[1], rtol=1e-12)
+
+
 # ------------------------------------------------------------------------------ end to end
 @pytest.fixture(scope="module")
 def array24():
@@ -590,7 +634,9 @@ def test_an_overrun_search_counts_every_image_searched_or_lost(tmp_path):
 
 
 @pytest.mark.parametrize("kw, name", [({"max_pixels": 0}, "max_pixels"), ({"sky_fraction": 1.5}, "sky_fraction"),
-                                      ({"hold": -1}, "hold"), ({"hold": 2.5}, "hold"), ({"window": 2}, "window")])
+                                      ({"hold": -1}, "hold"), ({"hold": 2.5}, "hold"), ({"window": 2}, "window"),
+                                      ({"dedisperse": "fft"}, "dedisperse"),
+                                      ({"dedisperse": "tree", "average_channels": False}, "dedisperse")])
 def test_bad_search_settings_are_named(kw, name):
     args = {"window": 10, **kw}
     with pytest.raises(ValueError, match=name):

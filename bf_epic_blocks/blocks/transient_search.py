@@ -51,7 +51,8 @@ class TransientSearchBlock(bfp.SinkBlock):
         cell of its pixel: a grid coarser than the beam sees a source between pixels at a fraction
         of its peak). 2 allows for the fit and for a sidelobe's own best DM and width; 0 keeps
         every row.
-    max_pixels, sky_fraction : see :class:`~bf_epic_blocks.imaging.transient.TransientSearch`.
+    max_pixels, sky_fraction, dedisperse : see :class:`~bf_epic_blocks.imaging.transient.TransientSearch`
+        (with 'tree' the trials are every sweep up to max(dms)'s and each candidate's DM is its sweep's).
 
     ``candidates`` is the astropy Table of all candidates so far; ``search_stats`` counts images
     searched, trials per width, crossings, resets and images lost; ``written`` lists the files.
@@ -60,7 +61,7 @@ class TransientSearchBlock(bfp.SinkBlock):
     def __init__(self, iring, threshold=6.0, window_s=1.0, dms=(0.0,), widths=(1, 2, 4, 8), average_channels=True,
                  product=None, outdir=None, prefix="transients", table_format="ecsv", png=True, space_link=None,
                  time_link=None, lc_before=32, lc_after=32, location=None, sidelobe_factor=2.0, max_pixels=32,
-                 sky_fraction=0.1, *args, **kwargs):
+                 sky_fraction=0.1, dedisperse="shifts", *args, **kwargs):
         super().__init__(iring, *args, **kwargs)
         if table_format not in ("ecsv", "fits"):
             raise ValueError(f"TransientSearchBlock: table_format must be 'ecsv' or 'fits', got {table_format!r}")
@@ -76,6 +77,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         if not sidelobe_factor >= 0:
             raise ValueError(f"TransientSearchBlock: sidelobe_factor must be >= 0, got {sidelobe_factor!r}")
         self.sidelobe_factor, self.max_pixels, self.sky_fraction = float(sidelobe_factor), max_pixels, sky_fraction
+        self.dedisperse = dedisperse
         self.rows, self.written = [], []
         self.candidates = None
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
@@ -111,7 +113,8 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), window, dms=self.dms,
                                       widths=self.widths, threshold=self.threshold,
                                       average_channels=self.average_channels, xp=self.xp,
-                                      max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, hold=hold)
+                                      max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, hold=hold,
+                                      dedisperse=self.dedisperse)
         st = hdr.get("station") or {}
         self._beam_ants = []            # antenna positions per polarisation, for the sidelobe test
         if st.get("xyz_m") is not None:
@@ -142,7 +145,9 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.search_stats["sequences"] += 1
         log.info("TransientSearchBlock %s: %d pixels, %d channels, window %d images (%.3f s), DMs %s, widths %s, "
                  "threshold %.1f", hdr.get("name"), len(lay["lm"]), lay["nchan"], window, window * lay["dt_s"],
-                 self.dms, self.widths, self.threshold)
+                 self.dms if self.search.dedisperse == "shifts" else
+                 f"every sweep 0-{self.search.shift} images (DM 0-{self.search.dms[-1]:.3g}, tree)",
+                 self.widths, self.threshold)
 
     # ------------------------------------------------------------------ per gulp
     def _lose(self, lost, why):
@@ -219,7 +224,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         # time and DM only, never to a point crossing
         xy[cr.skywide.astype(bool)] = 1e12
         labels, peaks = cluster_crossings(cr.image, xy, cr.series, cr.snr, time_link=self._tlink,
-                                          space_link=self._space, series_link=len(self.dms))
+                                          space_link=self._space, series_link=len(self.search.dms))
         if final:
             done = np.ones(labels.max() + 1, bool)
         else:
@@ -364,7 +369,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         gx, gy = (int(lay["pixel_index"][p] % grid.size), int(lay["pixel_index"][p] // grid.size)) if grid else (-1, -1)
         self.rows.append({"time_utc": t, "sequence": str(self.hdr.get("name", "")), "image": e, "pixel": p,
                           "grid_x": gx, "grid_y": gy, "l": l, "m": m, "ra_deg": ra, "dec_deg": dec,
-                          "snr": float(cr.snr[k]), "dm": self.dms[ser] if s.average else 0.0,
+                          "snr": float(cr.snr[k]), "dm": s.dms[ser] if s.average else 0.0,
                           "channel": -1 if s.average else ser, "width": w, "width_ms": w * lay["dt_s"] * 1e3,
                           "nmembers": nmembers, "nsidelobes": 0, "kind": "sky-wide" if cr.skywide[k] else "point",
                           "sky_fraction": sky_fraction, "lightcurve": lc})
@@ -395,7 +400,8 @@ class TransientSearchBlock(bfp.SinkBlock):
         from ..io import candidates as cio
         lay = self.lay
         meta = {"threshold": self.threshold, "window_s": self.window_s, "window_images": self.search.window,
-                "dms": self.dms, "widths": self.widths, "dt_s": lay["dt_s"], "f_ref_mhz": float(lay["freq_hz"].max() / 1e6),
+                "dms": self.dms, "dedisperse": self.search.dedisperse, "widths": self.widths, "dt_s": lay["dt_s"],
+                "f_ref_mhz": float(lay["freq_hz"].max() / 1e6),
                 "average_channels": self.average_channels, "product": lay["products"][self._prod],
                 "lightcurve_first": -self.lc_before, "trials_per_width": list(self.search_stats["trials_per_width"]),
                 "time_reference": "event start at the highest channel frequency (f_ref_mhz)"}

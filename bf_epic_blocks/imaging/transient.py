@@ -43,6 +43,9 @@ __all__ = ["DISPERSION_CONSTANT_S", "dispersion_delay_s", "dm_delays", "Transien
 
 #: Dispersion constant, seconds * GHz^2 per (pc cm^-3).
 DISPERSION_CONSTANT_S = 4.149e-3
+#: ``dedisperse="auto"`` uses the tree (:mod:`.fdmt`) from this many channels up: shifted sums cost
+#: trials x channels adds per pixel-image, the tree ~trials x log2(channels)
+TREE_CHANNELS = 64
 
 
 def dispersion_delay_s(dm, freq_hz, ref_freq_hz):
@@ -113,6 +116,11 @@ class TransientSearch:
     threshold : S/N above which a trial is a crossing.
     average_channels : True (dedisperse and average the channels) or False (search each channel).
     xp : numpy or cupy; max_batch : images processed per internal step (bounds memory).
+    dedisperse : 'shifts' (each DM trial a sum of shifted channels: ``dms`` as given), 'tree' (the
+        streaming FDMT of :mod:`.fdmt`: every sweep from 0 to the largest DM's, one image apart, each
+        channel within 1-2 images of the dispersion curve; ``dms`` becomes the DM of each sweep,
+        ``sweep / (delay per unit DM across the band)``), or 'auto' (the tree from
+        ``TREE_CHANNELS`` channels). pixel_chunk : pixels per pass of the tree (its working memory).
     max_pixels : at most this many crossings (the brightest) are kept per trial image (series, value,
         width), so a bright event costs what a faint one does (default 32).
     hold : values kept beyond what the search itself needs (window + widest boxcar + a batch), so
@@ -127,7 +135,8 @@ class TransientSearch:
     """
 
     def __init__(self, freq_hz, dt_s, npix, window, dms=(0.0,), widths=(1, 2, 4, 8), threshold=6.0,
-                 average_channels=True, xp=np, max_batch=256, max_pixels=32, sky_fraction=0.1, hold=0):
+                 average_channels=True, xp=np, max_batch=256, max_pixels=32, sky_fraction=0.1, hold=0,
+                 dedisperse="shifts", pixel_chunk=None):
         self.freq_hz = np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))
         if self.freq_hz.ndim != 1 or not np.all(self.freq_hz > 0):
             raise ValueError(f"freq_hz: expected a 1-D array of positive frequencies, got {freq_hz!r}")
@@ -153,13 +162,35 @@ class TransientSearch:
         if not 0 < sky_fraction <= 1:
             raise ValueError(f"sky_fraction: expected a fraction in (0, 1], got {sky_fraction!r}")
         self.max_pixels, self.sky_fraction = int(max_pixels), float(sky_fraction)
-        self.delays = dm_delays(dms, self.freq_hz, dt_s)                 # (ndm, nchan)
-        self.delay_max = self.delays.max(axis=1)                          # (ndm,)
+        if dedisperse == "auto":
+            dedisperse = "tree" if self.average and self.nchan >= TREE_CHANNELS else "shifts"
+        if dedisperse not in ("shifts", "tree"):
+            raise ValueError(f"dedisperse: expected 'shifts', 'tree' or 'auto', got {dedisperse!r}")
+        if dedisperse == "tree" and not self.average:
+            raise ValueError("dedisperse: 'tree' dedisperses the channels' average; with average_channels=False "
+                             "use 'shifts'")
+        self.dedisperse = dedisperse
+        self._tree = None
+        if dedisperse == "tree":
+            # every sweep from 0 to the largest DM's, one image apart: row s is read s images back at
+            # the highest channel and 0 at the lowest (fdmt.py), the DM of a sweep from the band's edges
+            from .fdmt import FDMTPlan, StreamingFDMT, effective_back
+            per_dm = float(dispersion_delay_s(1.0, self.freq_hz.min(), self.freq_hz.max())) / self.dt_s
+            smax = int(np.rint(max(dms) * per_dm))
+            plan = FDMTPlan(self.freq_hz, smax)
+            self._tree = StreamingFDMT(plan, self.npix, xp=xp, pixel_chunk=pixel_chunk)
+            self.dms = [float(x) for x in (np.arange(smax + 1) / per_dm if per_dm > 0 else np.zeros(1))]
+            self._back = effective_back(plan)                              # (nsweep, nchan)
+            self.delay_max = np.arange(smax + 1)
+            self.delays = self.delay_max[:, None] - self._back
+        else:
+            self.delays = dm_delays(dms, self.freq_hz, dt_s)                 # (ndm, nchan)
+            self.delay_max = self.delays.max(axis=1)                          # (ndm,)
+            # channel c of trial d is read `back[d, c]` images before the newest one
+            self._back = (self.delay_max[:, None] - self.delays) if self.average else None
         self.shift = int(self.delay_max.max()) if self.average else 0     # channel history needed
         self.wmax = max(widths)
-        self.nser = len(dms) if self.average else self.nchan
-        # channel c of trial d is read `back[d, c]` images before the newest one
-        self._back = (self.delay_max[:, None] - self.delays) if self.average else None
+        self.nser = len(self.dms) if self.average else self.nchan
         if int(hold) != hold or hold < 0:
             raise ValueError(f"hold: expected an integer number of values >= 0, got {hold!r}")
         self.capacity = self.window + self.wmax + self.max_batch + int(hold)
@@ -173,7 +204,10 @@ class TransientSearch:
         self.first_image = int(next_image)       # sequence index of the first image since the reset
         self.nimages = 0                         # images pushed since the reset
         self.nvalues = 0                         # dedispersed values since the reset
-        self._chan = xp.zeros((self.nchan, self.shift, self.npix), dtype=xp.float32)
+        # the channels' recent past: their own history (shifted sums) or the tree's rings
+        self._chan = xp.zeros((self.nchan, 0 if self._tree else self.shift, self.npix), dtype=xp.float32)
+        if self._tree is not None:
+            self._tree.reset()
         self._hist = xp.zeros((self.nser, self.capacity, self.npix), dtype=xp.float32)
         self._ref = None                         # per-pixel offset of the sums (nser, npix)
         self._s1 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
@@ -196,6 +230,11 @@ class TransientSearch:
         if not self.average:
             return xp.ascontiguousarray(xp.moveaxis(x, 0, 1))
         B = x.shape[0]
+        if self._tree is not None:
+            out = self._tree.push(xp.ascontiguousarray(xp.moveaxis(x, 0, 1)))
+            out *= 1.0 / self.nchan
+            first = max(0, self.shift - self.nimages)      # values before the tree has every channel's past
+            return out[:, first:] if first < B else out[:, :0]
         ext = xp.concatenate([self._chan, xp.moveaxis(x, 0, 1)], axis=1)   # (nchan, shift + B, npix)
         self._chan = xp.ascontiguousarray(ext[:, ext.shape[1] - self.shift:])
         first = max(0, self.shift - self.nimages)          # first new image whose values are complete
@@ -211,6 +250,10 @@ class TransientSearch:
         out *= 1.0 / self.nchan
         return out
 
+    #: working memory of one series chunk's float64 sums (bytes): a search of many series (a tree's
+    #: every sweep) runs them in chunks, so its temporaries do not grow with the trials
+    CHUNK_BYTES = 256 * 2**20
+
     def _push_values(self, v):
         """Append series values (nser, B, npix); returns crossings found among them."""
         xp = self.xp
@@ -219,23 +262,34 @@ class TransientSearch:
             return Crossings()
         if self._ref is None:
             self._ref = v[:, 0].astype(xp.float32)
-        v = v - self._ref[:, None, :]                                       # offset about the reference
-        n0, W, wmax = self.nvalues, self.window, self.wmax
-        n = np.arange(n0, n0 + B)
-        self._ring_write(n0, v)
+        n0 = self.nvalues
+        step = max(1, min(self.nser, self.CHUNK_BYTES // max(1, B * self.npix * 8)))
+        found = [self._push_chunk(v[s0:s0 + step], slice(s0, min(self.nser, s0 + step)), n0)
+                 for s0 in range(0, self.nser, step)]
         self.nvalues += B
+        return Crossings.concat(found)
+
+    def _push_chunk(self, v, ss, n0):
+        """:meth:`_push_values` for the series ``ss`` (a slice), values v (len ss, B, npix) from value n0."""
+        xp = self.xp
+        B, ns = v.shape[1], v.shape[0]
+        v = v - self._ref[ss, None, :]                                      # offset about the reference
+        W, wmax = self.window, self.wmax
+        n = np.arange(n0, n0 + B)
+        self._ring_write(n0, v, ss)
         # running sums: value n - wmax enters the window of value n, n - wmax - W leaves it
         enter, leave = n - wmax, n - wmax - W
-        de = xp.zeros((self.nser, B, self.npix), dtype=xp.float64)
+        de = xp.zeros((ns, B, self.npix), dtype=xp.float64)
         dl = xp.zeros_like(de)
         ne, nl = int((enter >= 0).sum()), int((leave >= 0).sum())
         if ne:
-            de[:, B - ne:] = self._ring_read(int(enter[B - ne]), ne)
+            de[:, B - ne:] = self._ring_read(int(enter[B - ne]), ne, ss)
         if nl:
-            dl[:, B - nl:] = self._ring_read(int(leave[B - nl]), nl)
-        s1 = self._s1[:, None] + xp.cumsum(de - dl, axis=1)                  # (nser, B, npix) after value n
-        s2 = self._s2[:, None] + xp.cumsum(de * de - dl * dl, axis=1)
-        self._s1, self._s2 = s1[:, -1].copy(), s2[:, -1].copy()
+            dl[:, B - nl:] = self._ring_read(int(leave[B - nl]), nl, ss)
+        s1 = self._s1[ss, None] + xp.cumsum(de - dl, axis=1)                 # (ns, B, npix) after value n
+        s2 = self._s2[ss, None] + xp.cumsum(de * de - dl * dl, axis=1)
+        del de, dl
+        self._s1[ss], self._s2[ss] = s1[:, -1], s2[:, -1]
         ok = n >= W + wmax - 1                                              # window full for these
         if not ok.any():
             return Crossings()
@@ -243,11 +297,12 @@ class TransientSearch:
         s1, s2 = s1[:, k0:], s2[:, k0:]
         mean = s1 / W
         sigma = xp.sqrt(xp.maximum(s2 - s1 * mean, 0.0) / (W - 1))
+        del s1, s2
         # boxcar sums over the newest w values, from a cumulative sum of the last wmax - 1 + B' values
         nb = B - k0
         first = n0 + k0 - (wmax - 1)
-        c = xp.cumsum(self._ring_read(first, n0 + B - first).astype(xp.float64), axis=1)
-        c = xp.concatenate([xp.zeros((self.nser, 1, self.npix), dtype=xp.float64), c], axis=1)
+        c = xp.cumsum(self._ring_read(first, n0 + B - first, ss).astype(xp.float64), axis=1)
+        c = xp.concatenate([xp.zeros((ns, 1, self.npix), dtype=xp.float64), c], axis=1)
         out = []
         with np.errstate(divide="ignore", invalid="ignore"):
             for wi, w in enumerate(self.widths):
@@ -258,6 +313,7 @@ class TransientSearch:
                 if found is None:
                     continue
                 s, b, p, val, frac, sky = found
+                s = s + ss.start
                 nval = n0 + k0 + b
                 dmax = self.delay_max[s] if self.average else 0
                 end = self.value_image(nval)
@@ -298,21 +354,21 @@ class TransientSearch:
             p, val = idx[s, b, j], top[s, b, j].astype(np.float64)
         return s, b, p, val, frac_all[s, b], skyrow[s, b].astype(np.int64)
 
-    def _ring_read(self, first, count):
-        """Values [first, first + count) of the circular history, (nser, count, npix) (a view when
-        they do not wrap)."""
+    def _ring_read(self, first, count, ss=slice(None)):
+        """Values [first, first + count) of the circular history of the series ``ss``, (nser, count,
+        npix) (a view when they do not wrap)."""
         a = first % self.capacity
         if a + count <= self.capacity:
-            return self._hist[:, a:a + count]
+            return self._hist[ss, a:a + count]
         k = self.capacity - a
-        return self.xp.concatenate([self._hist[:, a:], self._hist[:, :count - k]], axis=1)
+        return self.xp.concatenate([self._hist[ss, a:], self._hist[ss, :count - k]], axis=1)
 
-    def _ring_write(self, first, v):
+    def _ring_write(self, first, v, ss=slice(None)):
         a, count = first % self.capacity, v.shape[1]
         k = min(count, self.capacity - a)
-        self._hist[:, a:a + k] = v[:, :k]
+        self._hist[ss, a:a + k] = v[:, :k]
         if k < count:
-            self._hist[:, :count - k] = v[:, k:]
+            self._hist[ss, :count - k] = v[:, k:]
 
     # ------------------------------------------------------------------ public
     def push(self, images):

@@ -95,6 +95,9 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
         dms: list of float >= 0      (default [0.0]; trial DMs, pc cm^-3)
         widths: list of int >= 1     (default [1, 2, 4, 8]; boxcar widths in images)
         average_channels: bool       (default true; dedisperse and average, else per channel)
+        dedisperse: auto | shifts | tree (default auto: the tree from 64 channels; shifts: each DM of
+                                     `dms` a sum of shifted channels; tree: the streaming FDMT over
+                                     every sweep from 0 to max(dms)'s, one image apart)
         product: str                 (default null = the first product)
         table: ecsv | fits           (default ecsv; <prefix>_candidates.<table> in output.dir)
         png: bool                    (default true; sky with the candidates and their light curves)
@@ -363,6 +366,7 @@ IMAGER_SEARCH = Section({
     "dms": Key(ListOf(Float(0.0), "DMs >= 0"), [0.0]),
     "widths": Key(ListOf(Int(1), "integers >= 1"), [1, 2, 4, 8]),
     "average_channels": Key(Bool(), True),
+    "dedisperse": Key(Choice("auto", "shifts", "tree"), "auto"),
     "product": Key(Str(r"\S+", "a product name"), None),
     "table": Key(Choice("ecsv", "fits"), "ecsv"),
     "png": Key(Bool(), True),

@@ -425,6 +425,7 @@ def build_graph(cfg, progress=None):
                                           product=sc["product"], outdir=outdir, prefix=out["prefix"],
                                           table_format=sc["table"], png=sc["png"], location=None,
                                           max_pixels=sc["max_pixels"], sky_fraction=sc["sky_fraction"],
+                                          dedisperse=sc["dedisperse"],
                                           sidelobe_factor=sc["sidelobe_factor"])
         if out.get("cube"):
             from ..blocks.cube_writer import ImageCubeWriterBlock
