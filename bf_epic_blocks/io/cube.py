@@ -163,11 +163,13 @@ class ImageCubeWriter:
         self.close()
 
     def append(self, images):
-        """Append ``(n, nchan, nprod, npix)`` images (the next ones in time)."""
+        """Append ``(n, nchan, nprod, npix)`` images (the next ones in time); when channels are averaged,
+        also ``(n, 1, nprod, npix)``: their channel mean, already taken."""
         x = to_numpy(images)
-        if x.ndim != 4 or x.shape[1:] != self.shape:
+        mean_given = self.average and x.ndim == 4 and x.shape[1] == 1 and x.shape[2:] == self.shape[1:]
+        if not mean_given and (x.ndim != 4 or x.shape[1:] != self.shape):
             raise ValueError(f"images: expected (n, nchan, nprod, npix) = (n,) + {self.shape}, got {x.shape}")
-        if self.average:
+        if self.average and not mean_given:
             x = x.mean(axis=1, keepdims=True, dtype=np.float32)
         if self.dtype == np.float16:
             big = np.abs(x) > FLOAT16_MAX

@@ -118,6 +118,10 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       png: bool                      (default true)
       table: bool                    (default false)
       prefix: str                    (default: name)
+      integrate:                     FITS / PNG of longer images than the imager's (default null = each
+                                     image as the imager makes it)
+        seconds: float > 0           (default 1.0; the mean of round(seconds / image length) images)
+        average_channels: bool       (default true; one band-averaged image)
       cube:                          HDF5 image cubes with a time axis (default null = none)
         dtype: float32 | float16     (default float32)
         average_channels: bool       (default false)
@@ -375,6 +379,11 @@ IMAGER_SEARCH = Section({
     "sidelobe_factor": Key(Float(0.0), 2.0),
 }, what="a search mapping {threshold, window_s, dms, widths, ...}")
 
+OUTPUT_INTEGRATE = Section({
+    "seconds": Key(Float(0.0, lo_open=True), 1.0),
+    "average_channels": Key(Bool(), True),
+}, what="an integrate mapping {seconds, average_channels}")
+
 OUTPUT_CUBE = Section({
     "dtype": Key(Choice("float32", "float16"), "float32"),
     "average_channels": Key(Bool(), False),
@@ -490,6 +499,7 @@ SCHEMA = Section({
         "png": Key(Bool(), True),
         "table": Key(Bool(), False),
         "prefix": Key(Str(r"[^/\\\s]+", "a file-name prefix without spaces or slashes"), None),
+        "integrate": Key(OUTPUT_INTEGRATE, None),
         "cube": Key(OUTPUT_CUBE, None),
     }, what="an output mapping"), {}),
 }, what="a pipeline mapping")

@@ -410,9 +410,16 @@ def build_graph(cfg, progress=None):
         out = cfg["output"]
         writer = search = cube = None
         if out["fits"] or out["png"] or out["table"]:
+            images = imager
+            if out.get("integrate"):
+                # longer (band-averaged) images for the files: the imager's own cadence stays for the
+                # search and the cube
+                from ..blocks.integrate import ImageIntegratorBlock
+                it = out["integrate"]
+                images = ImageIntegratorBlock(imager, seconds=it["seconds"], average_channels=it["average_channels"])
             # on a GPU the files are written by a helper process: astropy's per-image work would hold the
             # interpreter lock the source and imager threads need (ImageWriterBlock's docstring)
-            writer = ImageWriterBlock(imager, outdir, prefix=out["prefix"], fits=out["fits"], png=out["png"],
+            writer = ImageWriterBlock(images, outdir, prefix=out["prefix"], fits=out["fits"], png=out["png"],
                                       table=out["table"], location=None,   # the header's station (this table), built in its thread
                                       pixels_fn=pixels if callable(pixels) else None,
                                       run_index=block[2] if block and block[3] > 1 else None,

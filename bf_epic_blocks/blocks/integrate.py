@@ -1,0 +1,120 @@
+"""ImageIntegratorBlock: longer images from an imager's short ones -- the mean of every ``nimage``
+images, and optionally of all channels (a band-averaged image).
+
+Why a block: at 0.64-ms cadence over a whole tuning the imager makes ~1.2 million channel images a
+second, which no disk takes; a station keeps their band mean at a cadence it chooses (1 s: one
+FITS + PNG a second), and the image writer downstream writes those as it writes any imager's.
+
+Output header (docs/HEADERS.md, "Written by DFTImagerBlock"), from the input's: the time scale's
+step and ``imager.integration_ticks`` times ``nimage``; with ``average_channels`` one channel at the
+band's mean frequency, ``freq_hz`` [mean] and the frequency scale's step the band's width
+(nchan x the channel spacing); ``integrated = {images, average_channels, nchan_in}``. Pixels, products
+and the pixel layout are unchanged; a pixel NaN in any input (below the horizon) stays NaN.
+
+Images at the end of a sequence that do not fill an integration are counted
+(``int_stats['images_dropped_partial']``) and logged, as the imagers do with frames.
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from ..imaging._xp import get_xp
+from ._compat import bfp, span_array
+from .headers import derived_header, image_layout
+
+log = logging.getLogger(__name__)
+
+
+class ImageIntegratorBlock(bfp.TransformBlock):
+    """Mean of every ``nimage`` consecutive images (and of the channels, with ``average_channels``).
+
+    iring : an imager's output ring (grid or pixel list; any space: sums stay where the ring lives,
+    float64 per output pixel).  nimage : images per output; or seconds : the output's length, made
+    ``max(1, round(seconds / image length))`` images of each sequence (its header's time scale).
+    """
+
+    def __init__(self, iring, nimage=None, average_channels=True, *args, seconds=None, **kwargs):
+        if (nimage is None) == (seconds is None):
+            raise ValueError("ImageIntegratorBlock: give nimage (images) or seconds, one of them")
+        if nimage is not None and (isinstance(nimage, bool) or int(nimage) != nimage or nimage < 1):
+            raise ValueError(f"ImageIntegratorBlock: nimage must be a positive integer, got {nimage!r}")
+        if seconds is not None and not seconds > 0:
+            raise ValueError(f"ImageIntegratorBlock: seconds must be > 0, got {seconds!r}")
+        super().__init__(iring, *args, **kwargs)
+        self.nimage = None if nimage is None else int(nimage)
+        self.seconds, self.average_channels = seconds, bool(average_channels)
+        self.int_stats = {"images_in": 0, "images_out": 0, "images_dropped_partial": 0}
+
+    def define_valid_input_spaces(self):
+        return "any"
+
+    def define_output_nframes(self, input_nframe):
+        """At most this many integrations end in a gulp of ``input_nframe`` images (all of them, while
+        the length in images is not yet known)."""
+        return max(1, math.ceil(input_nframe / self.nimage)) if self.nimage else max(1, input_nframe)
+
+    def on_sequence(self, iseq):
+        ihdr = iseq.header
+        lay = image_layout(ihdr, "ImageIntegratorBlock")
+        if self.seconds is not None:
+            self.nimage = max(1, int(round(self.seconds / lay["dt_s"])))
+        self._n = 0
+        self._sum = None
+        ohdr = derived_header(ihdr)
+        t = ohdr["_tensor"]
+        t["scales"] = list(t.get("scales") or [None] * len(t["shape"]))
+        t["scales"][0] = [lay["t0_s"], lay["dt_s"] * self.nimage]
+        f = np.asarray(lay["freq_hz"], np.float64)
+        if self.average_channels and len(f) > 1:
+            step = float(f[1] - f[0])
+            t["shape"] = [t["shape"][0], 1] + list(t["shape"][2:])
+            t["scales"][1] = [float(f.mean()), step * len(f)]
+            ohdr["freq_hz"] = [float(f.mean())]
+        imager = dict(ohdr.get("imager") or {})
+        if "integration_ticks" in imager:
+            imager["integration_ticks"] = int(imager["integration_ticks"]) * self.nimage
+        ohdr["imager"] = imager
+        ohdr["integrated"] = {"images": self.nimage, "average_channels": self.average_channels,
+                              "nchan_in": int(lay["nchan"])}
+        log.info("ImageIntegratorBlock %s: the mean of every %d images (%.3f s)%s", ihdr.get("name"), self.nimage,
+                 self.nimage * lay["dt_s"], f", {len(f)} channels averaged" if self.average_channels else "")
+        return ohdr
+
+    def on_data(self, ispan, ospan):
+        x = span_array(ispan)
+        out = span_array(ospan)
+        xp = get_xp(x)
+        n = x.shape[0]
+        nout = 0
+        pos = 0
+        while pos < n:
+            take = min(self.nimage - self._n, n - pos)
+            part = x[pos:pos + take]
+            if self.average_channels:
+                part = part.mean(axis=1, keepdims=True, dtype=xp.float64)
+            s = part.sum(axis=0, dtype=xp.float64)
+            self._sum = s if self._sum is None else self._sum + s
+            self._n += take
+            pos += take
+            if self._n == self.nimage:
+                out[nout] = (self._sum / self.nimage).astype(out.dtype)
+                nout += 1
+                self._sum, self._n = None, 0
+        self.int_stats["images_in"] += n
+        self.int_stats["images_out"] += nout
+        return nout
+
+    def on_sequence_end(self, iseq):
+        if self._n:
+            self.int_stats["images_dropped_partial"] += self._n
+            log.warning("ImageIntegratorBlock: %d images at the end of sequence %s did not fill an integration of %d "
+                        "and were not written", self._n, iseq.header.get("name"), self.nimage)
+            self._sum, self._n = None, 0
+
+
+def image_integrator(iring, nimage=None, *args, **kwargs):
+    """Functional form of :class:`ImageIntegratorBlock`."""
+    return ImageIntegratorBlock(iring, nimage, *args, **kwargs)

@@ -1,0 +1,88 @@
+"""ImageIntegratorBlock: the mean of every N images (and of the channels), against NumPy means of the
+same images; its header (time step, one channel at the band's mean frequency); and through
+`bf-epic run`, band-averaged FITS equal to the mean of the per-channel images the cube keeps."""
+import numpy as np
+import pytest
+
+from bf_epic_blocks import imaging
+from bf_epic_blocks.blocks import ArraySinkBlock, ArraySourceBlock, ImageIntegratorBlock, bfp, image_layout
+from test_transient import DT, image_header
+
+
+@pytest.mark.parametrize("average,gulp", [(True, 64), (False, 7), (True, 500)])
+def test_integrations_are_the_means_of_their_images(average, gulp):
+    rng = np.random.default_rng(3)
+    grid = imaging.lm_grid(16)
+    freq = 74e6 + 25e3 * np.arange(5)
+    x = rng.normal(5.0, 1.0, (230, 5, 1, 16, 16)).astype(np.float32)
+    x[..., ~grid.mask.reshape(16, 16)] = np.nan                     # below the horizon, as the imager leaves it
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, image_header(grid, freq, 16 * DT), gulp_nframe=gulp)
+        it = ImageIntegratorBlock(src, 50, average_channels=average)
+        sink = ArraySinkBlock(it)
+        p.run()
+    got = sink.result(0)
+    want = x[:200].reshape(4, 50, 5, 1, 16, 16).astype(np.float64).mean(axis=1)
+    if average:
+        want = want.mean(axis=1, keepdims=True)
+    assert got.shape == want.shape == ((4, 1, 1, 16, 16) if average else (4, 5, 1, 16, 16))
+    ok = np.isfinite(want)
+    assert np.array_equal(np.isfinite(got), ok)
+    assert np.allclose(got[ok], want[ok], rtol=1e-6)
+    lay = image_layout(sink.headers[0])
+    assert lay["dt_s"] == pytest.approx(50 * 16 * DT)
+    assert np.allclose(lay["freq_hz"], [freq.mean()] if average else freq)
+    assert it.int_stats == {"images_in": 230, "images_out": 4, "images_dropped_partial": 30}
+
+
+def test_bad_lengths_are_named():
+    with pytest.raises(ValueError, match="nimage"):
+        ImageIntegratorBlock(None, 0)
+    with pytest.raises(ValueError, match="one of them"):
+        ImageIntegratorBlock(None)
+    with pytest.raises(ValueError, match="seconds"):
+        ImageIntegratorBlock(None, seconds=-1)
+
+
+def test_wholeband_pipeline_made_small(tmp_path):
+    """pipelines/lwasv_sim_wholeband.yaml with 16 channels on a 16x16 grid (the CPU's share of it): the
+    tree search finds the burst at its DM (+-1 sweep), arrival and place; each band-averaged FITS is
+    the mean of the per-channel images the cube keeps over its second (here 0.1 s)."""
+    from pathlib import Path
+    from astropy.coordinates import SkyCoord
+    from astropy.io import fits
+    from bf_epic_blocks.imaging.transient import dispersion_delay_s
+    from bf_epic_blocks.io.candidates import read_candidates
+    from bf_epic_blocks.io.cube import read_image_cube
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import run
+    yaml = Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_wholeband.yaml"
+    cfg = load_config(yaml, [f"output.dir={tmp_path}", "source.duration_s=0.42", "source.channels.count=16",
+                             "imager.grid.size=16", "imager.search.window_s=0.06", "imager.search.dms=[1.0]",
+                             "imager.search.threshold=7", "output.integrate.seconds=0.1",
+                             "output.cube.dtype=float32", "output.cube.average_channels=false",
+                             "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.3, duration_s: 0.0015, "
+                             "flux_jy: 2000.0, dm: 0.6}]"])
+    summary = run(cfg, show_progress=False)
+    dt = 16 * DT
+    tab = read_candidates(tmp_path / "lwasv_sim_wholeband_candidates.ecsv")
+    best = tab[int(np.argmax(tab["snr"]))]
+    print(tab["snr", "dm", "width", "image", "ra_deg", "dec_deg"])
+    freq = (2960 + np.arange(16)) * 25e3
+    step = 1.0 / (dispersion_delay_s(1.0, freq.min(), freq.max()) / dt)       # DM per sweep
+    assert abs(best["dm"] - 0.6) <= 1.01 * step and best["snr"] > 10
+    assert abs(best["image"] - 0.3 / dt) <= 1
+    sep = SkyCoord(best["ra_deg"], best["dec_deg"], unit="deg").separation(SkyCoord(310.0, 20.0, unit="deg")).deg
+    assert sep < 1.5 * np.degrees(2 / 16)                       # within ~one 7-degree cell
+    cube = read_image_cube(next(tmp_path.glob("*_cube_*.h5")))
+    imgs = cube["images"]                                                     # (n, 16, 1, npix)
+    n = int(round(0.1 / dt))
+    files = sorted(tmp_path.glob("lwasv_sim_wholeband_*.fits"))
+    assert len(files) == summary["images"] // n == 4
+    for k, f in enumerate(files):
+        with fits.open(f) as h:
+            data, hdr = h[0].data, h[0].header
+        assert data.shape[-3] == 1 and hdr["CRVAL3"] == pytest.approx(freq.mean())
+        want = imgs[k * n:(k + 1) * n].astype(np.float64).mean(axis=(0, 1))[0]      # (npix,)
+        got = data.reshape(-1)[cube["pixel_index"]]
+        assert np.allclose(got, want, rtol=2e-6)
