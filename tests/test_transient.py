@@ -133,6 +133,37 @@ def test_many_series_are_searched_in_chunks_with_the_same_result(monkeypatch):
     assert np.allclose(sa[1], sb[1], rtol=1e-12)
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
+@pytest.mark.parametrize("dedisperse,widths", [("shifts", (1, 2, 4, 8)), ("tree", (1, 3, 16))])
+def test_the_gpu_statistics_kernel_equals_the_array_code(monkeypatch, dedisperse, widths):
+    """On the GPU the statistics run in one kernel: the same crossings (S/N to float32), the same
+    window statistics and history as the array code, over pushes that straddle the window's filling,
+    a bright flash (sky-wide rows, the brightest-pixels cap) and a burst."""
+    import cupy as cp
+    rng = np.random.default_rng(4)
+    f = 74e6 + 100e3 * np.arange(24)
+    x = rng.normal(5, 1, (700, 24, 300)).astype(np.float32)
+    _inject(x, 17, 500, 2, 2.0, np.zeros(24, int))
+    x[600:602] += 30.0
+    runs = []
+    for fused in (True, False):
+        monkeypatch.setattr(TransientSearch, "FUSED_STATS", fused)
+        s = TransientSearch(f, 16 * DT, 300, 60, dms=[0.0, 0.5, 1.0] if dedisperse == "shifts" else [1.0],
+                            widths=widths, threshold=5, dedisperse=dedisperse, max_batch=64, xp=cp)
+        c = Crossings.concat([s.push(cp.asarray(x[a:a + b])) for a, b in ((0, 37), (37, 100), (137, 563))])
+        order = np.lexsort((c.pixel, c.width_index, c.series, c.end_image))
+        mean, sig = s.statistics()
+        runs.append((c.take(order), mean.get(), sig.get(), s._hist.get()))
+    (a, ma, sa, ha), (b, mb, sb, hb) = runs
+    assert len(a) > 10 and len(a) == len(b)
+    for k in Crossings.FIELDS:
+        tol = dict(rtol=2e-6) if k in ("snr", "frac") else dict(rtol=0, atol=0)
+        assert np.allclose(getattr(a, k), getattr(b, k), **tol), k
+    assert a.skywide.any()
+    assert np.array_equal(ha, hb) and np.allclose(ma, mb, rtol=1e-12) and np.allclose(sa, sb, rtol=1e-9)
+
+
 # ------------------------------------------------------------------------------ end to end
 @pytest.fixture(scope="module")
 def array24():

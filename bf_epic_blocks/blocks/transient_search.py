@@ -114,7 +114,9 @@ class TransientSearchBlock(bfp.SinkBlock):
                                       widths=self.widths, threshold=self.threshold,
                                       average_channels=self.average_channels, xp=self.xp,
                                       max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, hold=hold,
-                                      dedisperse=self.dedisperse)
+                                      dedisperse=self.dedisperse,
+                                      # the tree's many trials: a history of one gulp's batch, not 256
+                                      **({"max_batch": 64} if self.dedisperse == "tree" else {}))
         st = hdr.get("station") or {}
         self._beam_ants = []            # antenna positions per polarisation, for the sidelobe test
         if st.get("xyz_m") is not None:

@@ -154,7 +154,8 @@ class StreamingFDMT:
     dedispersed values, equal to :func:`fdmt` of the whole series so far at those times.
 
     plan : :class:`FDMTPlan`;  npix : pixels per image;  xp : numpy or cupy;  pixel_chunk : pixels
-    per pass (bounds the working memory: ``(nchan + plan.rows()) x B x pixel_chunk`` float32).
+    per pass (the working memory is ``(nchan + plan.rows()) x B x pixel_chunk`` float32; default:
+    as many as fit in ``WORK_BYTES`` for the block being pushed).
 
     State: in each merge the upper half's rows are read up to ``o`` images back, so every row any
     merge reads that way keeps its last ``max o`` values in a ring (float32 ``(sum max o, npix)``:
@@ -163,6 +164,9 @@ class StreamingFDMT:
     order), then each merge's output rows, level by level; a level is one gather-add over all its
     rows (one CUDA kernel on the GPU; the same array code on the CPU).
     """
+
+    #: working memory of one pass when ``pixel_chunk`` is not given (bytes)
+    WORK_BYTES = 1 << 30
 
     def __init__(self, plan: FDMTPlan, npix, xp=np, pixel_chunk=None):
         self.plan, self.npix, self.xp = plan, int(npix), xp
@@ -210,7 +214,7 @@ class StreamingFDMT:
 
     def memory_bytes(self, B):
         """Device bytes: the ring, and the working array of a block of ``B`` images."""
-        pc = self.pixel_chunk or self.npix
+        pc = min(self.npix, self.pixel_chunk or max(1, self.WORK_BYTES // (4 * self.nrow * B)))
         return 4 * (self.ring_size * self.npix + self.nrow * B * pc)
 
     def push(self, images):
@@ -226,7 +230,7 @@ class StreamingFDMT:
             return out
         if not np.array_equal(plan.order, np.arange(plan.nchan)):
             x = x[xp.asarray(plan.order)]
-        pc = min(self.npix, self.pixel_chunk or self.npix)
+        pc = min(self.npix, self.pixel_chunk or max(1, self.WORK_BYTES // (4 * self.nrow * B)))
         for p0 in range(0, self.npix, pc):
             p1 = min(self.npix, p0 + pc)
             W = xp.empty((self.nrow, B, p1 - p0), xp.float32)

@@ -1,7 +1,9 @@
 """Streaming transient search on image time series: dedispersion, sliding statistics, boxcars.
 
-One code path for NumPy and CuPy (the arrays' namespace does the work, where they live); no
-kernel has to differ between the two, so there is no RawKernel.
+One code path for NumPy and CuPy (the arrays' namespace does the work, where they live), with two
+CUDA kernels where the array code's passes cost too much on the GPU: the tree dedispersion's
+(:mod:`.fdmt`) and the statistics' (:data:`_STATS_SRC`: the ring, the running sums and every
+boxcar's S/N in one pass per series and pixel, checked against the array code on the GPU).
 
 Definitions (all times in images; ``dt`` = seconds per image)
 -------------------------------------------------------------
@@ -212,6 +214,7 @@ class TransientSearch:
         self._ref = None                         # per-pixel offset of the sums (nser, npix)
         self._s1 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
         self._s2 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
+        self._widths_dev = None
 
     @property
     def ready(self):
@@ -269,10 +272,15 @@ class TransientSearch:
         self.nvalues += B
         return Crossings.concat(found)
 
+    #: on the GPU, the statistics in one kernel (False: the array code, as on the CPU)
+    FUSED_STATS = True
+
     def _push_chunk(self, v, ss, n0):
         """:meth:`_push_values` for the series ``ss`` (a slice), values v (len ss, B, npix) from value n0."""
         xp = self.xp
         B, ns = v.shape[1], v.shape[0]
+        if xp is not np and self.FUSED_STATS and self.wmax <= _STATS_MAXW:
+            return self._push_chunk_gpu(v, ss, n0)
         v = v - self._ref[ss, None, :]                                      # offset about the reference
         W, wmax = self.window, self.wmax
         n = np.arange(n0, n0 + B)
@@ -321,14 +329,59 @@ class TransientSearch:
                                      width_index=np.full(s.size, wi), pixel=p, snr=val, frac=frac, skywide=sky))
         return Crossings.concat(out)
 
-    def _crossings(self, snr):
+    def _push_chunk_gpu(self, v, ss, n0):
+        """:meth:`_push_chunk` in one CUDA kernel: a thread per (series, pixel) runs through the B new
+        values in order (the ring write, the running float64 sums, the widths' boxcars from the newest
+        values it holds), writing float32 S/N per width and counting crossings per trial image; the
+        crossings are then taken from the widths and trial images that have any (one copy to the host)."""
+        xp = self.xp
+        ns, B = int(v.shape[0]), int(v.shape[1])
+        W, wmax = self.window, self.wmax
+        k0 = max(0, W + wmax - 1 - n0)                                      # first value whose window is full
+        nb = max(0, B - k0)
+        nw = len(self.widths)
+        snr = xp.empty((nw, ns, max(nb, 1), self.npix), xp.float32)
+        count = xp.zeros((nw, ns, max(nb, 1)), xp.int32)
+        if self._widths_dev is None:
+            self._widths_dev = xp.asarray(np.asarray(self.widths, np.int32))
+        v = xp.ascontiguousarray(v, dtype=xp.float32)
+        hist = self._hist[ss]                                                  # a view: (ns, capacity, npix)
+        s1, s2 = self._s1[ss], self._s2[ss]
+        ref = self._ref[ss]
+        k = _stats_kernel(wmax)
+        threads = 128
+        k(((self.npix + threads - 1) // threads, ns), (threads,),
+          (v, ref, hist, s1, s2, snr, count, self._widths_dev, np.int32(nw), np.int32(B), np.int32(self.npix),
+           np.int32(self.capacity), np.int64(hist.strides[0] // 4), np.int64(n0), np.int32(W), np.int32(k0),
+           np.int32(nb), np.float32(self.threshold)))
+        if nb == 0:
+            return Crossings()
+        cnt = to_numpy(count)
+        out = []
+        for wi, w in enumerate(self.widths):
+            if not cnt[wi].any():
+                continue
+            found = self._crossings(snr[wi], cnt[wi])
+            if found is None:
+                continue
+            s, b, p, val, frac, sky = found
+            s = s + ss.start
+            nval = n0 + k0 + b
+            dmax = self.delay_max[s] if self.average else 0
+            end = self.value_image(nval)
+            out.append(Crossings(image=end - w + 1 - dmax, end_image=end, series=s,
+                                 width_index=np.full(s.size, wi), pixel=p, snr=val, frac=frac, skywide=sky))
+        return Crossings.concat(out)
+
+    def _crossings(self, snr, count=None):
         """Crossings of one width's S/N cube (nser, nb, npix), bounded whatever the sky does: per trial
         image (series, value) at most ``max_pixels`` (its brightest), and a trial image with more than
         ``sky_fraction`` of its pixels over the threshold gives one sky-wide crossing at its peak.
         Reduced where the arrays live; returns host (series, value, pixel, snr, frac, skywide) or None."""
         xp = self.xp
         over = snr > self.threshold                           # NaN (sigma 0) never crosses
-        count = to_numpy(over.sum(axis=2))                    # (nser, nb)
+        if count is None:
+            count = to_numpy(over.sum(axis=2))                # (nser, nb)
         if not count.any():
             return None
         frac_all = count / self.npix
@@ -439,6 +492,77 @@ class TransientSearch:
             vals = self._hist[series, self.xp.asarray(n[keep] % self.capacity), pixel]
             out[keep] = to_numpy(vals).astype(np.float64) + float(to_numpy(self._ref[series, pixel]))
         return out
+
+
+#: widest boxcar the statistics kernel holds in registers (wider ones use the array code)
+_STATS_MAXW = 64
+
+_STATS_SRC = r"""
+// One thread per (series s = blockIdx.y, pixel p): the B new values v[s, i, p] in order. Same sums as
+// TransientSearch._push_chunk: the value (minus ref) into the ring; value n - wmax enters and
+// n - wmax - W leaves the window's float64 sums; from value k0 on, per width w the boxcar mean of the
+// newest w values against the window: snr = (box / w - mean) sqrt(w) / sigma, and a count per trial
+// image of the pixels over the threshold.
+extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const float* __restrict__ ref,
+        float* __restrict__ hist, double* __restrict__ S1, double* __restrict__ S2, float* __restrict__ snr,
+        int* __restrict__ count, const int* __restrict__ widths, const int nw, const int B, const int npix,
+        const int cap, const long long hstride, const long long n0, const int W, const int k0, const int nb,
+        const float thr)
+{
+    const int p = blockIdx.x * blockDim.x + threadIdx.x;
+    if (p >= npix) return;
+    const int s = blockIdx.y, ns = gridDim.y;
+    float* h = hist + s * hstride + p;                       // value n at h[(n % cap) * npix]
+    const long long sp = (long long)s * npix + p;
+    double s1 = S1[sp], s2 = S2[sp];
+    const float r = ref[sp];
+    float last[WMAX];                                        // last[j]: value n - j (offset), j < wmax
+#pragma unroll
+    for (int j = 1; j < WMAX; j++) {
+        const long long m = n0 - j;
+        last[j] = m >= 0 ? h[(m % cap) * npix] : 0.f;
+    }
+    for (int i = 0; i < B; i++) {
+        const long long n = n0 + i;
+        const float x = v[((long long)s * B + i) * npix + p] - r;
+        h[(n % cap) * npix] = x;
+#pragma unroll
+        for (int j = WMAX - 1; j > 0; j--) last[j] = last[j - 1];
+        last[0] = x;
+        const long long e = n - WMAX, l = n - WMAX - W;
+        const double de = e >= 0 ? (double)h[(e % cap) * npix] : 0.0;
+        const double dl = l >= 0 ? (double)h[(l % cap) * npix] : 0.0;
+        s1 += de - dl;
+        s2 += de * de - dl * dl;
+        if (i < k0) continue;
+        const double mean = s1 / W;
+        const double sigma = sqrt(fmax(s2 - s1 * mean, 0.0) / (W - 1));
+        const int b = i - k0;
+        for (int wi = 0; wi < nw; wi++) {
+            const int w = widths[wi];
+            double box = 0.0;
+#pragma unroll
+            for (int j = 0; j < WMAX; j++) if (j < w) box += (double)last[j];
+            const double z = (box / w - mean) * sqrt((double)w) / sigma;
+            const float zf = (float)z;
+            snr[(((long long)wi * ns + s) * nb + b) * npix + p] = zf;
+            if (zf > thr) atomicAdd(&count[((long long)wi * ns + s) * nb + b], 1);
+        }
+    }
+    S1[sp] = s1;
+    S2[sp] = s2;
+}
+"""
+
+_STATS_KERNELS: dict = {}
+
+
+def _stats_kernel(wmax):
+    import cupy as cp
+    key = (int(wmax), cp.cuda.Device().id)
+    if key not in _STATS_KERNELS:
+        _STATS_KERNELS[key] = cp.RawKernel(_STATS_SRC, "bf_search_stats", options=(f"-DWMAX={int(wmax)}",))
+    return _STATS_KERNELS[key]
 
 
 def beam_power(xyz_m, freq_hz, lm_from, lm_to, *, remove_autocorr=False):
