@@ -516,10 +516,11 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
     const long long sp = (long long)s * npix + p;
     double s1 = S1[sp], s2 = S2[sp];
     const float r = ref[sp];
-    float last[WMAX];                                        // last[j]: value n - j (offset), j < wmax
+    // last[j]: value n - j (offset), j < wmax; before value n0 is shifted in, last[j] = value n0 - 1 - j
+    float last[WMAX];
 #pragma unroll
-    for (int j = 1; j < WMAX; j++) {
-        const long long m = n0 - j;
+    for (int j = 0; j < WMAX; j++) {
+        const long long m = n0 - 1 - j;
         last[j] = m >= 0 ? h[(m % cap) * npix] : 0.f;
     }
     for (int i = 0; i < B; i++) {
