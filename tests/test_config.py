@@ -74,7 +74,7 @@ def test_realistic_file_validates_and_resolves_paths(yaml_dir, monkeypatch):
     assert cfg["imager"]["epsilon"] == 1e-4
     assert cfg["device"] == "gpu:1"
     assert cfg["output"] == {"dir": "out/tbf", "fits": True, "png": True, "table": False,
-                             "prefix": "lwasv_tbf_allsky", "cube": None}
+                             "prefix": "lwasv_tbf_allsky", "integrate": None, "cube": None}
 
 
 def test_minimal_simulated_defaults():

@@ -539,6 +539,30 @@ def test_cpu_and_gpu_find_the_same_candidates():
     assert out[0].search_stats["crossings"] == out[1].search_stats["crossings"]
 
 
+def test_a_flood_of_crossings_is_bounded_counted_and_the_brightest_kept(monkeypatch, caplog):
+    """A bright source that steps (as a simulator's refreshed sky did) puts every trial of its pixels over
+    the threshold for a whole window: the block clusters at most MAX_PENDING crossings (the brightest),
+    counts the rest and says so once, and still reports the brightest event where it is."""
+    monkeypatch.setattr(TransientSearchBlock, "MAX_PENDING", 200)
+    rng = np.random.default_rng(6)
+    grid = imaging.lm_grid(24)
+    freq = 74e6 + 25e3 * np.arange(8)
+    x = rng.normal(5.0, 0.5, (500, 8, 1, 24, 24)).astype(np.float32)
+    flat = x.reshape(500, 8, 1, -1)
+    pix = np.flatnonzero(grid.mask)
+    flat[300:, :, 0, pix[:40]] += 3.0                   # a step on 40 pixels (under the sky-wide fraction)
+    flat[420:422, :, 0, pix[200]] += 40.0               # and a brighter burst elsewhere
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, image_header(grid, freq, 16 * DT), gulp_nframe=64)
+        srch = TransientSearchBlock(src, threshold=6, window_s=100 * 16 * DT, dms=[0.0, 0.5])
+        p.run()
+    st = srch.search_stats
+    assert st["crossings_dropped"] > 0 and st["crossings"] > 200
+    assert sum("crossings pending" in r.message for r in caplog.records) == 1
+    best = srch.candidates[int(np.argmax(srch.candidates["snr"]))]
+    assert best["pixel"] == 200 and best["image"] == 420          # the imaged pixels are numbered in order
+
+
 # ------------------------------------------------------------------------------ the YAML pipeline
 def test_transient_pipeline_yaml_end_to_end(tmp_path):
     """pipelines/lwasv_sim_transient.yaml, made small: the burst is the brightest candidate, on the sky

@@ -82,7 +82,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.candidates = None
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
                              "images_lost": 0, "trials_per_width": [0] * len(self.widths), "sequences": 0,
-                             "sky_wide": 0, "sidelobes_folded": 0}
+                             "sky_wide": 0, "sidelobes_folded": 0, "crossings_dropped": 0}
         self._sky = None
 
     # ------------------------------------------------------------------ set-up
@@ -196,8 +196,33 @@ class TransientSearchBlock(bfp.SinkBlock):
         self._j += n
         self.search_stats["images"] += n
         self.search_stats["crossings"] += len(cr)
-        self._pending = Crossings.concat([self._pending, cr])
+        self._pending = self._bounded(Crossings.concat([self._pending, cr]))
         self._finish(final=False)
+
+    #: pending crossings clustered at most (the brightest; a flood beyond is counted and logged)
+    MAX_PENDING = 100_000
+
+    def _bounded(self, cr):
+        """What the clustering is given, bounded whatever the sky does. With the tree (every sweep a
+        trial) a crossing's trials and widths at one (event image, pixel) are one crossing, its
+        brightest: the clusters link all trials anyway and keep their peak, so only ``nmembers``
+        changes meaning (crossings per image and pixel). Beyond ``MAX_PENDING`` the faintest are
+        dropped (``search_stats['crossings_dropped']``): a bright source that steps, or RFI, can put
+        millions over the threshold, whose friends-of-friends pairs grow as their square."""
+        if self.search.dedisperse == "tree" and len(cr) > 1:
+            key = cr.image.astype(np.int64) * (len(self._xy) + 1) + np.where(cr.skywide > 0, len(self._xy), cr.pixel)
+            order = np.lexsort((-cr.snr, key))
+            first = np.r_[True, key[order][1:] != key[order][:-1]]
+            cr = cr.take(np.sort(order[first]))
+        if len(cr) > self.MAX_PENDING:
+            keep = np.sort(np.argpartition(-cr.snr, self.MAX_PENDING - 1)[:self.MAX_PENDING])
+            lost = len(cr) - self.MAX_PENDING
+            if not self.search_stats["crossings_dropped"]:
+                log.warning("TransientSearchBlock: more than %d crossings pending (a flood: a bright source that "
+                            "steps, RFI?); the faintest are dropped and counted", self.MAX_PENDING)
+            self.search_stats["crossings_dropped"] += lost
+            cr = cr.take(keep)
+        return cr
 
     def on_skip(self, islices, ospans):
         lost = _compat.frames_lost_at_end(islices, self._j)   # those before a later span: in on_data

@@ -35,6 +35,9 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       noise_power: float >= 0        (default 1000.0)
       seed: int                      (default 1)
       quantize: bool                 (default true)
+      refresh_s: float > 0           (default 1.0; seconds of data between recomputations of the
+                                     sources' directions: the sky turns 0.004 deg a second, and a bright
+                                     source's step at each recomputation is what a sensitive search sees)
       transients: list of dispersed bursts {ra_deg, dec_deg, start_s: float >= 0 (s after start, at the
                band's highest channel), duration_s: float > 0, flux_jy: float >= 0, dm: float >= 0
                (default 0), name: str (optional)}   (default [])
@@ -404,6 +407,7 @@ SOURCE_SIMULATED = {
     "noise_power": Key(Float(0.0), 1000.0),
     "seed": Key(Int(), 1),
     "quantize": Key(Bool(), True),
+    "refresh_s": Key(Float(0.0, lo_open=True), 1.0),
     "transients": Key(ListOf(TRANSIENT, "burst mappings"), []),
 }
 SOURCE_TBF = {

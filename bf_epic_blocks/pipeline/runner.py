@@ -367,6 +367,7 @@ def build_graph(cfg, progress=None):
             source = SimSkySourceBlock(station, freq, src_cfg["start"], src_cfg["duration_s"], src_cfg["sources"],
                                        gulp, noise_power=src_cfg["noise_power"], seed=src_cfg["seed"],
                                        quantize=src_cfg["quantize"], progress=progress, space=space,
+                                       refresh_s=src_cfg["refresh_s"],
                                        transients=[{k: v for k, v in t.items() if v is not None}
                                                    for t in src_cfg.get("transients") or []])
             nframe_total = source.nframe
