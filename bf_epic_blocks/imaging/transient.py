@@ -317,17 +317,21 @@ class TransientSearch:
                 e = np.arange(wmax - 1, wmax - 1 + nb) + 1
                 box = c[:, e] - c[:, e - w]
                 snr = (box / w - mean) * math.sqrt(w) / sigma
-                found = self._crossings(snr)
-                if found is None:
-                    continue
-                s, b, p, val, frac, sky = found
-                s = s + ss.start
-                nval = n0 + k0 + b
-                dmax = self.delay_max[s] if self.average else 0
-                end = self.value_image(nval)
-                out.append(Crossings(image=end - w + 1 - dmax, end_image=end, series=s,
-                                     width_index=np.full(s.size, wi), pixel=p, snr=val, frac=frac, skywide=sky))
+                out.append(self._as_crossings(self._crossings(snr), ss, n0 + k0, wi))
         return Crossings.concat(out)
+
+    def _as_crossings(self, found, ss, first, wi):
+        """:class:`Crossings` of width ``wi`` from :meth:`_crossings`' indices (series within the chunk
+        ``ss``, value within the values from ``first`` on)."""
+        if found is None:
+            return Crossings()
+        s, b, p, val, frac, sky = found
+        s = s + ss.start
+        w = self.widths[wi]
+        dmax = self.delay_max[s] if self.average else 0
+        end = self.value_image(first + b)
+        return Crossings(image=end - w + 1 - dmax, end_image=end, series=s, width_index=np.full(s.size, wi),
+                         pixel=p, snr=val, frac=frac, skywide=sky)
 
     def _push_chunk_gpu(self, v, ss, n0):
         """:meth:`_push_chunk` in one CUDA kernel: a thread per (series, pixel) runs through the B new
@@ -357,21 +361,8 @@ class TransientSearch:
         if nb == 0:
             return Crossings()
         cnt = to_numpy(count)
-        out = []
-        for wi, w in enumerate(self.widths):
-            if not cnt[wi].any():
-                continue
-            found = self._crossings(snr[wi], cnt[wi])
-            if found is None:
-                continue
-            s, b, p, val, frac, sky = found
-            s = s + ss.start
-            nval = n0 + k0 + b
-            dmax = self.delay_max[s] if self.average else 0
-            end = self.value_image(nval)
-            out.append(Crossings(image=end - w + 1 - dmax, end_image=end, series=s,
-                                 width_index=np.full(s.size, wi), pixel=p, snr=val, frac=frac, skywide=sky))
-        return Crossings.concat(out)
+        return Crossings.concat([self._as_crossings(self._crossings(snr[wi], cnt[wi]), ss, n0 + k0, wi)
+                                 for wi in range(nw) if cnt[wi].any()])
 
     def _crossings(self, snr, count=None):
         """Crossings of one width's S/N cube (nser, nb, npix), bounded whatever the sky does: per trial
