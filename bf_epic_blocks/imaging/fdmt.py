@@ -1,12 +1,11 @@
 """Tree dedispersion (the fast dispersion measure transform, FDMT; Zackay & Ofek 2017) of image series.
 
 Why: incoherent dedispersion by shifted sums costs ``ntrial x nchan`` adds per pixel and image. At the
-whole band's cadence (784 channels of LWA-SV, 0.64-ms images, DM 0-3: a sweep of ~1,875 images, so
-~1,876 trials one image apart) that is ~1.5e6 adds per pixel-image; the tree needs ~``ntrial x
-log2(nchan)`` (~2e4; 17,090 rows of shifted adds against 1,470,000 for 784 channels and sweeps
-0-1,875). This module is the transform only (array code, NumPy or CuPy; one gather-add per merge).
-:mod:`.transient`'s streaming search still dedisperses by shifted sums per (DM, channel); running it
-on this transform, over pixel chunks, is what the whole band needs next.
+whole band's cadence (784 channels of LWA-SV from 74 MHz, 0.64-ms images, DM 0-3: a sweep of 1,330
+images, so 1,331 trials one image apart) that is ~1.0e6 adds per pixel-image; the tree needs
+~``ntrial x log2(nchan)`` (12,283 rows of shifted adds against 1,043,504). :func:`fdmt` transforms a
+whole series (array code, NumPy or CuPy; one gather-add per merge); :class:`StreamingFDMT` does the
+same a block at a time, for :mod:`.transient`'s streaming search (``dedisperse='tree'``).
 
 Definitions (images, channels sorted by frequency; f in any unit)
 -------------------------------------------------------------------
