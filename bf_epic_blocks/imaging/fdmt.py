@@ -197,7 +197,8 @@ class StreamingFDMT:
             if self.ring_rows.size else np.zeros(0, np.int64)
         self.ring_size = int(ring_len.sum())
         top = (0, plan.nchan - 1)
-        self.top = np.arange(plan.dmax + 1) + (base[top] if plan.nchan > 1 else 0)
+        t0 = base[top] if plan.nchan > 1 else 0
+        self.top = slice(t0, t0 + plan.dmax + 1)          # the whole band's rows: one contiguous run
         self.pixel_chunk = int(pixel_chunk) if pixel_chunk else None
         self._dev = None
         if xp is not np:
@@ -238,7 +239,7 @@ class StreamingFDMT:
                 self._levels_host(W, p0, p1, B)
             else:
                 self._levels_gpu(W, p0, p1, B)
-            out[:, :, p0:p1] = W[self.top]
+            out[:, :, p0:p1] = W[self.top]                 # a slice: copied once, not gathered first
         self.ntime += B
         return out
 

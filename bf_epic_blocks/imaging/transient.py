@@ -234,7 +234,7 @@ class TransientSearch:
             return xp.ascontiguousarray(xp.moveaxis(x, 0, 1))
         B = x.shape[0]
         if self._tree is not None:
-            out = self._tree.push(xp.ascontiguousarray(xp.moveaxis(x, 0, 1)))
+            out = self._tree.push(xp.moveaxis(x, 0, 1))   # a view: the tree copies each pixel chunk once
             out *= 1.0 / self.nchan
             first = max(0, self.shift - self.nimages)      # values before the tree has every channel's past
             return out[:, first:] if first < B else out[:, :0]
