@@ -211,11 +211,21 @@ class StreamingFDMT:
         """Forget the past (its values count as 0, as :func:`fdmt`'s before its first time)."""
         self.ring = self.xp.zeros((self.ring_size, self.npix), self.xp.float32)
         self.ntime = 0
+        self._phase_at = -1
+
+    def _chunk(self, B):
+        """Pixels per pass for a block of ``B`` images: ``pixel_chunk``, or as many as ``WORK_BYTES``
+        holds, evened out over the passes and rounded up to a warp's 32 (a 321-pixel chunk ran its
+        second 256-thread block a quarter full)."""
+        if self.pixel_chunk:
+            return min(self.npix, self.pixel_chunk)
+        most = max(1, self.WORK_BYTES // (4 * self.nrow * B))
+        npass = -(-self.npix // most)
+        return min(self.npix, -(-(-(-self.npix // npass)) // 32) * 32)
 
     def memory_bytes(self, B):
         """Device bytes: the ring, and the working array of a block of ``B`` images."""
-        pc = min(self.npix, self.pixel_chunk or max(1, self.WORK_BYTES // (4 * self.nrow * B)))
-        return 4 * (self.ring_size * self.npix + self.nrow * B * pc)
+        return 4 * (self.ring_size * self.npix + self.nrow * B * self._chunk(B))
 
     def push(self, images):
         """(nchan, B, npix) new images (channels in the plan's order of ``freq``) -> (dmax + 1, B, npix)
@@ -230,7 +240,7 @@ class StreamingFDMT:
             return out
         if not np.array_equal(plan.order, np.arange(plan.nchan)):
             x = x[xp.asarray(plan.order)]
-        pc = min(self.npix, self.pixel_chunk or max(1, self.WORK_BYTES // (4 * self.nrow * B)))
+        pc = self._chunk(B)
         for p0 in range(0, self.npix, pc):
             p1 = min(self.npix, p0 + pc)
             W = xp.empty((self.nrow, B, p1 - p0), xp.float32)
@@ -262,57 +272,82 @@ class StreamingFDMT:
 
     def _levels_gpu(self, W, p0, p1, B):
         pc = p1 - p0
-        bx = min(256, pc)
+        bx = min(128, pc)
         grid_x = -(-pc // bx)
         k_level, k_ring = _gpu_kernels()
         rbase, rlen, rrows = self._dev_ring
+        if self._phase_at != self.ntime:
+            # each ring row's slot of time ntime, once per push: the kernels then index the rings in
+            # 32-bit arithmetic (a 64-bit modulo per element made the level kernel compute-bound)
+            self._phase = self.xp.asarray((self.ntime % np.maximum(self.ring_len, 1)).astype(np.int32))
+            self._phase_at = self.ntime
+        Y = 65535                                                  # CUDA's largest grid y: rows in slices
         for k in range(len(self._levels)):
             out, inL, inU, o = self._dev[k]
-            n = int(out.shape[0])
-            k_level((grid_x, B, n), (bx,), (W, self.ring, out, inL, inU, o, rbase, rlen, np.int32(B), np.int32(pc),
-                                            np.int32(self.npix), np.int32(p0), np.int64(self.ntime)))
-        if int(rrows.shape[0]):
-            k_ring((grid_x, B, int(rrows.shape[0])), (bx,), (W, self.ring, rrows, rbase, rlen, np.int32(B),
-                                                             np.int32(pc), np.int32(self.npix), np.int32(p0),
-                                                             np.int64(self.ntime)))
+            for j in range(0, int(out.shape[0]), Y):
+                k_level((grid_x, min(Y, int(out.shape[0]) - j)), (bx,),
+                        (W, self.ring, out[j:], inL[j:], inU[j:], o[j:], rbase, rlen, self._phase, np.int32(B),
+                         np.int32(pc), np.int32(self.npix), np.int32(p0)))
+        for j in range(0, int(rrows.shape[0]), Y):
+            k_ring((grid_x, min(Y, int(rrows.shape[0]) - j)), (bx,),
+                   (W, self.ring, rrows[j:], rbase, rlen, self._phase, np.int32(B), np.int32(pc), np.int32(self.npix),
+                    np.int32(p0)))
 
 
 _FDMT_SRC = r"""
 // One level of the streaming FDMT: W[out[j], t, p] = W[inL[j], t, p] + (the upper half's row inU[j]
-// o[j] images back: in this block, or in its ring). grid (pixel blocks, B, rows).
+// o[j] images back: in this block, or in its ring). grid (pixel blocks, rows); each thread walks the
+// block's B times (a thread per element made ~230,000 short blocks per level). phase[u]: the slot of
+// row u's ring that holds the time just before this block's first (ring time tau0 mod rlen[u]), so
+// the ring index is 32-bit: phase + s, s in [-rlen, -1].
 extern "C" __global__ void bf_fdmt_level(float* __restrict__ W, const float* __restrict__ ring,
                                          const int* __restrict__ out, const int* __restrict__ inL,
                                          const int* __restrict__ inU, const int* __restrict__ o,
                                          const long long* __restrict__ rbase, const int* __restrict__ rlen,
-                                         const int B, const int pc, const int ld, const int p0, const long long tau0)
+                                         const int* __restrict__ phase,
+                                         const int B, const int pc, const int ld, const int p0)
 {
     const int p = blockIdx.x * blockDim.x + threadIdx.x;
     if (p >= pc) return;
-    const int t = blockIdx.y, j = blockIdx.z;
-    const int u = inU[j], s = t - o[j];
-    float b;
-    if (s >= 0) {
-        b = W[((long long)u * B + s) * pc + p];
-    } else {
-        const long long L = rlen[u];
-        const long long m = (((tau0 + s) % L) + L) % L;
-        b = ring[(rbase[u] + m) * ld + p0 + p];
+    const int j = blockIdx.y;
+    const int u = inU[j], oj = o[j], ph = phase[u], L = rlen[u];
+    const float* wl = W + (long long)inL[j] * B * pc + p;
+    const float* wu = W + (long long)u * B * pc + p;
+    const float* rg = ring + rbase[u] * ld + p0 + p;
+    float* wo = W + (long long)out[j] * B * pc + p;
+    #pragma unroll 4
+    for (int t = 0; t < B; ++t) {
+        const int s = t - oj;
+        float b;
+        if (s >= 0) {
+            b = wu[(long long)s * pc];
+        } else {
+            int m = ph + s;
+            if (m < 0) m += L;
+            b = rg[(long long)m * ld];
+        }
+        wo[(long long)t * pc] = wl[(long long)t * pc] + b;
     }
-    W[((long long)out[j] * B + t) * pc + p] = W[((long long)inL[j] * B + t) * pc + p] + b;
 }
 
 // Each ring row keeps its newest rlen values: block times t >= B - rlen go to slot (tau0 + t) % rlen.
+// grid (pixel blocks, ring rows).
 extern "C" __global__ void bf_fdmt_ring(const float* __restrict__ W, float* __restrict__ ring,
                                         const int* __restrict__ rows, const long long* __restrict__ rbase,
-                                        const int* __restrict__ rlen, const int B, const int pc, const int ld,
-                                        const int p0, const long long tau0)
+                                        const int* __restrict__ rlen, const int* __restrict__ phase,
+                                        const int B, const int pc, const int ld, const int p0)
 {
     const int p = blockIdx.x * blockDim.x + threadIdx.x;
     if (p >= pc) return;
-    const int t = blockIdx.y, g = rows[blockIdx.z];
+    const int g = rows[blockIdx.y];
     const int L = rlen[g];
-    if (t < B - L) return;
-    ring[(rbase[g] + (tau0 + t) % L) * ld + p0 + p] = W[((long long)g * B + t) * pc + p];
+    const float* w = W + (long long)g * B * pc + p;
+    float* rg = ring + rbase[g] * ld + p0 + p;
+    int m = (phase[g] + max(0, B - L)) % L;
+    for (int t = max(0, B - L); t < B; ++t) {
+        rg[(long long)m * ld] = w[(long long)t * pc];
+        if (++m == L) m = 0;
+    }
 }
 """
 
