@@ -514,28 +514,39 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
         const long long m = n0 - 1 - j;
         last[j] = m >= 0 ? h[(m % cap) * npix] : 0.f;
     }
+    // ring slots of value n (written), n - wmax (entering the window) and n - wmax - W (leaving it),
+    // advanced by one per value: one 64-bit modulo each per thread, not per value
+    int in = (int)(n0 % cap);
+    int ie = (int)(((n0 - WMAX) % cap + cap) % cap);
+    int il = (int)(((n0 - WMAX - W) % cap + cap) % cap);
     for (int i = 0; i < B; i++) {
         const long long n = n0 + i;
         const float x = v[((long long)s * B + i) * npix + p] - r;
-        h[(n % cap) * npix] = x;
+        h[(long long)in * npix] = x;
 #pragma unroll
         for (int j = WMAX - 1; j > 0; j--) last[j] = last[j - 1];
         last[0] = x;
         const long long e = n - WMAX, l = n - WMAX - W;
-        const double de = e >= 0 ? (double)h[(e % cap) * npix] : 0.0;
-        const double dl = l >= 0 ? (double)h[(l % cap) * npix] : 0.0;
+        const double de = e >= 0 ? (double)h[(long long)ie * npix] : 0.0;
+        const double dl = l >= 0 ? (double)h[(long long)il * npix] : 0.0;
+        if (++in == cap) in = 0;
+        if (++ie == cap) ie = 0;
+        if (++il == cap) il = 0;
         s1 += de - dl;
         s2 += de * de - dl * dl;
         if (i < k0) continue;
         const double mean = s1 / W;
-        const double sigma = sqrt(fmax(s2 - s1 * mean, 0.0) / (W - 1));
+        // one division and one square root per value; per width only products
+        // (box / w - mean) sqrt(w) / sigma = (box - w mean) / sqrt(w) * (1 / sigma); sigma 0 gives
+        // inf or NaN, as the quotient did
+        const double isig = 1.0 / sqrt(fmax(s2 - s1 * mean, 0.0) / (W - 1));
         const int b = i - k0;
         for (int wi = 0; wi < nw; wi++) {
             const int w = widths[wi];
             double box = 0.0;
 #pragma unroll
             for (int j = 0; j < WMAX; j++) if (j < w) box += (double)last[j];
-            const double z = (box / w - mean) * sqrt((double)w) / sigma;
+            const double z = (box - w * mean) * rsqrt((double)w) * isig;
             const float zf = (float)z;
             snr[(((long long)wi * ns + s) * nb + b) * npix + p] = zf;
             if (zf > thr) atomicAdd(&count[((long long)wi * ns + s) * nb + b], 1);
