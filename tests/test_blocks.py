@@ -306,6 +306,11 @@ def test_imager_folding_static_calibration_equals_calfold(xp, scene, gulp, accum
     scale = np.nanmax(np.abs(core))
     assert np.nanmax(np.abs(got - core)) / scale <= 1e-6
     assert np.nanmax(np.abs(got - ref_sink.result(0))) / scale <= 1e-6
+    # the cable terms were folded in: the image header leaves them behind (they are nstand x npol x
+    # nchan, 16 MB of JSON per ring at 784 channels) and keeps the rest of the station
+    st = sink.headers[0]["station"]
+    assert "cable_delay_s" not in st and "cable_gain" not in st
+    np.testing.assert_array_equal(st["xyz_m"], s["xyz"])
 
 
 def _ngpu():

@@ -22,7 +22,7 @@ from ..imaging.pixels import GridPlacement, LMGrid, check_lm
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
 from ..runtime.dtypes import int8_pairs_decoder
-from .headers import derived_header, efield_header, efield_layout
+from .headers import derived_image_header, efield_header, efield_layout
 from .nonfinite import get_tally, is_float_dtype, new_tally, zero_and_count
 
 log = logging.getLogger(__name__)
@@ -174,7 +174,7 @@ class DFTImagerBlock(bfp.TransformBlock):
         dt, t0 = lay["dt_s"], lay["t0_s"]
         f = lay["freq_hz"]
         fscale = [float(f[0]), float(f[1] - f[0]) if len(f) > 1 else 0.0]
-        ohdr = derived_header(ihdr)
+        ohdr = derived_image_header(ihdr)
         # float input not cleaned upstream: zero and count non-finite samples here
         self.tally = None
         if is_float_dtype(lay["dtype"]) and get_tally(ihdr) is None:

@@ -143,6 +143,22 @@ def derived_header(hdr):
     return copy.deepcopy(hdr)
 
 
+#: station keys that describe voltages channel by channel: an imager's output leaves them behind
+VOLTAGE_STATION_KEYS = ("cable_delay_s", "cable_gain")
+
+
+def derived_image_header(hdr):
+    """:func:`derived_header` for an imager's output: the same, without ``station.cable_delay_s`` /
+    ``cable_gain`` (nstation x npol x nchan). Nothing after an imager can apply cable terms (the imager
+    folded them in, or they were not asked for), and at a whole band's 784 channels they are 16 MB of
+    JSON that every later ring copied and checked (several seconds of a run's start, holding the
+    interpreter lock)."""
+    st = hdr.get("station")
+    if isinstance(st, dict) and any(k in st for k in VOLTAGE_STATION_KEYS):
+        hdr = {**hdr, "station": {k: v for k, v in st.items() if k not in VOLTAGE_STATION_KEYS}}
+    return derived_header(hdr)
+
+
 def image_layout(hdr, who="block"):
     """Validate an image header written by the imagers (docs/HEADERS.md); returns a dict with
     ``kind`` ('grid' or 'list'), ``grid`` (LMGrid or None), ``lm`` (npix, 2) of the imaged pixels,
