@@ -70,6 +70,23 @@ def _inject(x, pix, first_image, nimg, amp, delays):
         x[first_image + d:first_image + d + nimg, c, pix] += amp
 
 
+def test_a_flash_over_a_few_pixels_is_one_sky_wide_crossing(xp):
+    """Fewer pixels than max_pixels (a pixel list, a tracked source or a small grid) and a flash over
+    all of them: one sky-wide crossing per trial image at the brightest pixel (the old code raised
+    'assignment destination is read-only' writing that peak into a broadcast index array)."""
+    rng = np.random.default_rng(3)
+    freq = 74e6 + 25e3 * np.arange(4)
+    s = TransientSearch(freq, 16 * DT, 12, 60, widths=[1], threshold=6.0, xp=xp)
+    assert s.max_pixels >= 12
+    x = rng.normal(5.0, 1.0, (200, 4, 12)).astype(np.float32)
+    x[150] += 20.0
+    x[150, :, 7] += 20.0                                  # the brightest pixel of the flash
+    c = Crossings.concat([s.push(xp.asarray(x[a:a + 50])) for a in range(0, 200, 50)])
+    sky = c.skywide.astype(bool)
+    assert sky.sum() == 1 and c.end_image[sky][0] == 150 and c.pixel[sky][0] == 7
+    assert np.all(c.end_image[~sky] != 150)
+
+
 def test_search_finds_dispersed_burst_at_expected_snr(xp):
     rng = np.random.default_rng(11)
     freq = 74e6 + 25e3 * np.arange(16)

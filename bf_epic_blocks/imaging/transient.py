@@ -384,8 +384,9 @@ class TransientSearch:
         else:
             k = min(self.max_pixels, self.npix)
             masked = xp.where(over, snr, -xp.inf)
+            # (a writable copy when every pixel is kept: a sky-wide row's peak is written into it below)
             idx = xp.argpartition(-masked, k - 1, axis=2)[:, :, :k] if k < self.npix else \
-                xp.broadcast_to(xp.arange(self.npix), masked.shape)
+                xp.broadcast_to(xp.arange(self.npix), masked.shape).copy()
             top = to_numpy(xp.take_along_axis(masked, idx, axis=2))
             idx = to_numpy(idx)
             if skyrow.any():                                   # the peak alone stands for a sky-wide row
