@@ -10,7 +10,7 @@ from bf_epic_blocks import imaging
 from bf_epic_blocks.blocks import ArraySourceBlock, DFTImagerBlock, TransientSearchBlock, bfp, efield_header
 from bf_epic_blocks.imaging._xp import gpu_available
 from bf_epic_blocks.imaging.calibration import FS_HZ
-from bf_epic_blocks.imaging.transient import Crossings, TransientSearch, expected_false_rate
+from bf_epic_blocks.imaging.transient import Crossings, TransientSearch, dm_delays, expected_false_rate
 from bf_epic_blocks.io.candidates import read_candidates
 from bf_epic_blocks.sky import simulate_efield
 from bf_epic_blocks.sky.catalogue import icrs_to_lm
@@ -349,6 +349,55 @@ def test_a_flash_is_one_sky_wide_row_and_a_burst_elsewhere_stays_a_point(tmp_pat
     pts = t[t["kind"] == "point"]
     assert len(pts) == 1 and pts["image"][0] == 600 and (pts["grid_y"][0], pts["grid_x"][0]) == pix
     assert srch.search_stats["sky_wide"] == 1
+
+
+def test_dm_sidelobe_snr_counts_the_channel_images_two_sweeps_share():
+    """Analytic cases: the burst's own trial gets its S/N back; a trial whose sweep never meets it, 0;
+    two sweeps that cross get the channel-images they share (counted by brute force here)."""
+    from bf_epic_blocks.imaging.transient import dm_delays, dm_sidelobe_snr
+    f = 74e6 + 25e3 * np.arange(256)
+    dt = 16 * DT
+    assert dm_sidelobe_snr(f, dt, (1000, 1.5, 8, 300.0), (1000, 1.5, 8), slack=0) == pytest.approx(300.0)
+    assert dm_sidelobe_snr(f, dt, (1000, 1.5, 4, 300.0), (1000, 1.5, 8), slack=0) == pytest.approx(300.0 * 4 / np.sqrt(32))
+    assert dm_sidelobe_snr(f, dt, (1000, 1.5, 8, 300.0), (1200, 1.5, 8)) == 0.0
+    db, df = dm_delays([1.5, 2.0], f, dt)
+    ef = 1000 - (df - db)[-1] + 3                           # the sweeps cross near the band's foot
+    shared = sum(len(set(range(1000 + db[c], 1000 + db[c] + 8)) & set(range(ef + df[c], ef + df[c] + 8)))
+                 for c in range(len(f)))
+    assert shared > 0
+    assert dm_sidelobe_snr(f, dt, (1000, 1.5, 8, 300.0), (ef, 2.0, 8), slack=0) == pytest.approx(300.0 * shared / (256 * 8))
+
+
+@pytest.mark.parametrize("factor", [2.0, 0.0])
+def test_a_bright_dispersed_burst_s_dm_sidelobes_fold_into_it(tmp_path, factor):
+    """The tree search over a wide band sees a bright burst (S/N ~260) in trials of other DMs whose
+    sweeps cross its own near the band's foot: S/N ~7.5-8 at DM ~2.0, 0.14 s before it (the whole-band
+    run on the H100: S/N 9.4 at DM 2.38, 0.24 s before its S/N-370 burst). They fold into the burst's
+    row (one row, nsidelobes counts them; the old code: three rows); sidelobe_factor 0 keeps them."""
+    rng = np.random.default_rng(2)
+    nchan, nimg, width = 256, 3400, 6
+    freq = 74e6 + 19.6e6 / nchan * np.arange(nchan)
+    grid = imaging.lm_grid(6)
+    N = grid.size
+    valid = np.flatnonzero(grid.mask.ravel())
+    x = rng.normal(0.0, 1.0, (nimg, nchan, 1, N * N)).astype(np.float32)
+    d = dm_delays([1.5], freq, 16 * DT)[0]
+    amp = 300.0 / np.sqrt(nchan * width)                  # band-mean S/N 300 over its 6 images
+    for c in range(nchan):
+        x[1500 + d[c]:1500 + d[c] + width, c, 0, valid[2]] += amp
+    with bfp.Pipeline() as pl:
+        src = ArraySourceBlock(x.reshape(nimg, nchan, 1, N, N), image_header(grid, freq, 16 * DT), gulp_nframe=64)
+        srch = TransientSearchBlock(src, threshold=7.5, window_s=0.2, dms=[2.2], dedisperse="tree", widths=[1, 2, 4, 8],
+                                    outdir=str(tmp_path), png=False, sidelobe_factor=factor)
+        pl.run()
+    t = read_candidates(tmp_path / "transients_candidates.ecsv")
+    t.sort("snr", reverse=True)
+    assert t["pixel"][0] == 2 and abs(t["image"][0] - 1500) <= 2 and abs(t["dm"][0] - 1.5) < 0.01
+    if factor == 0:
+        assert len(t) >= 2 and np.all(t["nsidelobes"] == 0) and np.all(t["dm"][1:] > 1.8)
+        return
+    assert len(t) == 1, t["image", "pixel", "snr", "dm", "nsidelobes"]
+    assert t["nsidelobes"][0] >= 1 and srch.search_stats["sidelobes_folded"] == t["nsidelobes"][0]
 
 
 @pytest.mark.parametrize("factor", [2.0, 0.0])

@@ -40,7 +40,7 @@ import numpy as np
 
 from ._xp import to_numpy
 
-__all__ = ["DISPERSION_CONSTANT_S", "dispersion_delay_s", "dm_delays", "TransientSearch", "Crossings",
+__all__ = ["DISPERSION_CONSTANT_S", "dispersion_delay_s", "dm_delays", "dm_sidelobe_snr", "TransientSearch", "Crossings",
            "cluster_crossings", "expected_false_rate", "beam_power", "ArrayBeam", "locate_point_source"]
 
 #: Dispersion constant, seconds * GHz^2 per (pc cm^-3).
@@ -64,6 +64,26 @@ def dm_delays(dms, freq_hz, dt_s):
     f = np.asarray(freq_hz, dtype=np.float64)
     d = dispersion_delay_s(np.asarray(dms, dtype=np.float64)[:, None], f[None, :], f.max())
     return np.rint(d / float(dt_s)).astype(np.int64)
+
+
+def dm_sidelobe_snr(freq_hz, dt_s, bright, faint, slack=1):
+    """The S/N a dispersed burst puts into a trial of another DM and time at its pixel: its DM
+    sidelobe (the "bow tie" of a bright burst in DM and time).
+
+    ``bright`` = (image, dm, width, snr): the burst as found (image: its first image at the band's
+    highest channel, the search's event time); ``faint`` = (image, dm, width): the other trial's event.
+    A burst of S/N S found with boxcar w_b puts into the faint trial's boxcar (w_f images from its
+    sweep) the fraction of its channel-images the two sweeps share: with L_c images of overlap in
+    channel c (each sweep's delays as :func:`dm_delays` rounds them, widened by ``slack`` images
+    each side for the tree's rounding), S/N = S * sum_c L_c / (nchan * sqrt(w_b * w_f)).
+    Independent of the noise level; 0 where the sweeps never meet in the band."""
+    f = np.asarray(freq_hz, dtype=np.float64).ravel()
+    (eb, dmb, wb, snr), (ef, dmf, wf) = bright, faint
+    d = dm_delays([float(dmb), float(dmf)], f, dt_s)
+    ab = int(eb) + d[0] - slack
+    af = int(ef) + d[1] - slack
+    over = np.minimum(ab + int(wb) + 2 * slack, af + int(wf) + 2 * slack) - np.maximum(ab, af)
+    return float(snr) * float(np.clip(over, 0, None).sum()) / (f.size * math.sqrt(float(wb) * float(wf)))
 
 
 def expected_false_rate(threshold, window, widths):
