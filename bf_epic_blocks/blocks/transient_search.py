@@ -50,7 +50,10 @@ class TransientSearchBlock(bfp.SinkBlock):
         antenna pattern; :func:`~bf_epic_blocks.imaging.transient.locate_point_source`, within a
         cell of its pixel: a grid coarser than the beam sees a source between pixels at a fraction
         of its peak). 2 allows for the fit and for a sidelobe's own best DM and width; 0 keeps
-        every row.
+        every row. With dedispersion the same factor folds a burst's DM sidelobes: fainter candidates
+        near its pixel, within a sweep of it in time, whose trial's sweep crosses the burst's in the
+        band (:func:`~bf_epic_blocks.imaging.transient.dm_sidelobe_snr` gives what the burst puts
+        there).
     max_pixels, sky_fraction, dedisperse : see :class:`~bf_epic_blocks.imaging.transient.TransientSearch`
         (with 'tree' the trials are every sweep up to max(dms)'s and each candidate's DM is its sweep's).
 
