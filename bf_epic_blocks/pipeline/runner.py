@@ -459,6 +459,10 @@ def block_timing(blocks, t0):
     return out
 
 
+#: seconds without a finished gulp anywhere before ``run`` logs where each block is (:mod:`.watchdog`)
+STALL_WARN_S = 60.0
+
+
 def run(cfg, show_progress=None):
     """Build and run the pipeline; returns a summary dict (files written, frame counts, timing)."""
     bar = None
@@ -477,7 +481,9 @@ def run(cfg, show_progress=None):
     log.info("running %s: %s source -> %s%s imager -> %s", cfg["name"], cfg["source"]["kind"],
              "" if g.calfold is g.source else "calfold -> ", cfg["imager"]["kind"], g.outdir)
     try:
-        g.pipeline.run()
+        from .watchdog import StallWatchdog
+        with StallWatchdog(g.pipeline.blocks, STALL_WARN_S):
+            g.pipeline.run()
         if g.writer is not None:
             g.writer.flush()        # files its helper process still writes
     finally:
