@@ -70,6 +70,30 @@ def _inject(x, pix, first_image, nimg, amp, delays):
         x[first_image + d:first_image + d + nimg, c, pix] += amp
 
 
+@pytest.mark.parametrize("dedisperse", ["tree", "shifts"])
+def test_memory_bytes_is_what_the_search_allocates(dedisperse):
+    """TransientSearch.memory_bytes (what `bf-epic plan` prints) against the arrays a search really
+    holds after pushes (NumPy nbytes), and its working part against the largest push's peak; sizing
+    without allocating (allocate=False) gives the same numbers."""
+    import tracemalloc
+    rng = np.random.default_rng(1)
+    f = 74e6 + 25e3 * np.arange(80)
+    kw = dict(window=40, dms=[0.3], widths=[1, 4], dedisperse=dedisperse, max_batch=32, hold=10)
+    s = TransientSearch(f, 16 * DT, 50, **kw)
+    x = rng.normal(5, 1, (96, 80, 50)).astype(np.float32)
+    s.push(x[:64])
+    tracemalloc.start()
+    s.push(x[64:])
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    mem = s.memory_bytes()
+    held = s._hist.nbytes + s._s1.nbytes + s._s2.nbytes + s._ref.nbytes
+    held += s._tree.ring.nbytes if dedisperse == "tree" else s._chan.nbytes
+    assert sum(v for k, v in mem.items() if k != "working") == held
+    assert 0.5 * peak <= mem["working"] <= 3 * peak
+    assert TransientSearch(f, 16 * DT, 50, allocate=False, **kw).memory_bytes() == mem
+
+
 def test_a_flash_over_a_few_pixels_is_one_sky_wide_crossing(xp):
     """Fewer pixels than max_pixels (a pixel list, a tracked source or a small grid) and a flash over
     all of them: one sky-wide crossing per trial image at the brightest pixel (the old code raised

@@ -18,12 +18,34 @@ import os
 
 import numpy as np
 
-from ..imaging.transient import Crossings, TransientSearch, cluster_crossings, dm_delays, dm_sidelobe_snr
+from ..imaging.transient import (TREE_CHANNELS, Crossings, TransientSearch, cluster_crossings, dm_delays,
+                                 dm_sidelobe_snr)
 from . import _compat
 from ._compat import bfp, span_array
 from .headers import image_layout, station_location
 
 log = logging.getLogger(__name__)
+
+
+def search_settings(freq_hz, dt_s, window_s, dms, widths, average_channels=True, time_link=None, lc_after=32,
+                    dedisperse="shifts"):
+    """The :class:`~bf_epic_blocks.imaging.transient.TransientSearch` keywords the block uses for images
+    at ``freq_hz`` every ``dt_s`` seconds (``window``, ``dms``, ``widths``, ``average_channels``,
+    ``hold``, ``dedisperse`` resolved, ``max_batch`` for the tree), and the time link in images;
+    ``bf-epic plan`` sizes the search with the same."""
+    widths = [int(w) for w in widths]
+    window = max(3, int(round(float(window_s) / dt_s)))
+    tlink = max(widths) if time_link is None else int(time_link)
+    shift = int(dm_delays(dms, freq_hz, dt_s).max()) if average_channels else 0
+    if dedisperse == "auto":
+        dedisperse = "tree" if average_channels and len(np.atleast_1d(freq_hz)) >= TREE_CHANNELS else "shifts"
+    # an event is finished (and looked back at: its window, its boxcar on every pixel) at most this
+    # many values after it, gulps being pushed a batch at a time (on_data)
+    kw = dict(window=window, dms=[float(d) for d in dms], widths=widths, average_channels=bool(average_channels),
+              hold=tlink + 2 * max(widths) + shift + int(lc_after), dedisperse=dedisperse)
+    if dedisperse == "tree":
+        kw["max_batch"] = 64            # the tree's many trials: a history of one gulp's batch, not 256
+    return kw, tlink
 
 
 class TransientSearchBlock(bfp.SinkBlock):
@@ -106,20 +128,12 @@ class TransientSearchBlock(bfp.SinkBlock):
             raise ValueError(f"TransientSearchBlock: product {self.product!r} not in the images' products "
                              f"{lay['products']}")
         self.lay, self.hdr = lay, hdr
-        window = max(3, int(round(self.window_s / lay["dt_s"])))
         self.xp = self._xp()
-        self._tlink = max(self.widths) if self.time_link is None else int(self.time_link)
-        shift = int(dm_delays(self.dms, lay["freq_hz"], lay["dt_s"]).max()) if self.average_channels else 0
-        # an event is finished (and looked back at: its window, its boxcar on every pixel) at most this
-        # many values after it, gulps being pushed a batch at a time (on_data)
-        hold = self._tlink + 2 * max(self.widths) + shift + self.lc_after
-        self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), window, dms=self.dms,
-                                      widths=self.widths, threshold=self.threshold,
-                                      average_channels=self.average_channels, xp=self.xp,
-                                      max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, hold=hold,
-                                      dedisperse=self.dedisperse,
-                                      # the tree's many trials: a history of one gulp's batch, not 256
-                                      **({"max_batch": 64} if self.dedisperse == "tree" else {}))
+        kw, self._tlink = search_settings(lay["freq_hz"], lay["dt_s"], self.window_s, self.dms, self.widths,
+                                          self.average_channels, self.time_link, self.lc_after, self.dedisperse)
+        self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), threshold=self.threshold,
+                                      xp=self.xp, max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, **kw)
+        window = self.search.window
         st = hdr.get("station") or {}
         self._beam_ants = []            # antenna positions per polarisation, for the sidelobe test
         if st.get("xyz_m") is not None:

@@ -154,7 +154,8 @@ class StreamingFDMT:
 
     plan : :class:`FDMTPlan`;  npix : pixels per image;  xp : numpy or cupy;  pixel_chunk : pixels
     per pass (the working memory is ``(nchan + plan.rows()) x B x pixel_chunk`` float32; default:
-    as many as fit in ``WORK_BYTES`` for the block being pushed).
+    as many as fit in ``WORK_BYTES`` for the block being pushed);  allocate : False makes the tables
+    and sizes only (:meth:`memory_bytes`), no ring.
 
     State: in each merge the upper half's rows are read up to ``o`` images back, so every row any
     merge reads that way keeps its last ``max o`` values in a ring (float32 ``(sum max o, npix)``:
@@ -167,7 +168,7 @@ class StreamingFDMT:
     #: working memory of one pass when ``pixel_chunk`` is not given (bytes)
     WORK_BYTES = 1 << 30
 
-    def __init__(self, plan: FDMTPlan, npix, xp=np, pixel_chunk=None):
+    def __init__(self, plan: FDMTPlan, npix, xp=np, pixel_chunk=None, allocate=True):
         self.plan, self.npix, self.xp = plan, int(npix), xp
         base, nrow = {}, plan.nchan
         for level in plan.levels:
@@ -205,7 +206,8 @@ class StreamingFDMT:
             self._dev = {k: [xp.asarray(a.astype(np.int32)) for a in lv] for k, lv in enumerate(self._levels)}
             self._dev_ring = (xp.asarray(self.ring_base), xp.asarray(self.ring_len.astype(np.int32)),
                               xp.asarray(self.ring_rows.astype(np.int32)))
-        self.reset()
+        if allocate:                                    # (False: sizes only, e.g. for a plan)
+            self.reset()
 
     def reset(self):
         """Forget the past (its values count as 0, as :func:`fdmt`'s before its first time)."""

@@ -158,7 +158,7 @@ class TransientSearch:
 
     def __init__(self, freq_hz, dt_s, npix, window, dms=(0.0,), widths=(1, 2, 4, 8), threshold=6.0,
                  average_channels=True, xp=np, max_batch=256, max_pixels=32, sky_fraction=0.1, hold=0,
-                 dedisperse="shifts", pixel_chunk=None):
+                 dedisperse="shifts", pixel_chunk=None, allocate=True):
         self.freq_hz = np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))
         if self.freq_hz.ndim != 1 or not np.all(self.freq_hz > 0):
             raise ValueError(f"freq_hz: expected a 1-D array of positive frequencies, got {freq_hz!r}")
@@ -200,7 +200,7 @@ class TransientSearch:
             per_dm = float(dispersion_delay_s(1.0, self.freq_hz.min(), self.freq_hz.max())) / self.dt_s
             smax = int(np.rint(max(dms) * per_dm))
             plan = FDMTPlan(self.freq_hz, smax)
-            self._tree = StreamingFDMT(plan, self.npix, xp=xp, pixel_chunk=pixel_chunk)
+            self._tree = StreamingFDMT(plan, self.npix, xp=xp, pixel_chunk=pixel_chunk, allocate=allocate)
             self.dms = [float(x) for x in (np.arange(smax + 1) / per_dm if per_dm > 0 else np.zeros(1))]
             self._back = effective_back(plan)                              # (nsweep, nchan)
             self.delay_max = np.arange(smax + 1)
@@ -216,7 +216,32 @@ class TransientSearch:
         if int(hold) != hold or hold < 0:
             raise ValueError(f"hold: expected an integer number of values >= 0, got {hold!r}")
         self.capacity = self.window + self.wmax + self.max_batch + int(hold)
-        self.reset(0)
+        if allocate:                             # (False: the sizes only, for :meth:`memory_bytes`)
+            self.reset(0)
+
+    @property
+    def tree_rows(self):
+        """Shifted-add rows per image and pixel of the tree (None for shifted sums)."""
+        return self._tree.plan.rows() if self._tree is not None else None
+
+    def memory_bytes(self):
+        """Bytes the search holds where its arrays live (the GPU's memory with CuPy), by part:
+        ``history`` (every series' last ``capacity`` values, float32), ``statistics`` (the window
+        sums, float64, and offsets), ``channels`` (shifted sums: each channel's last ``shift`` images)
+        or ``tree`` (the tree's rings), and ``working``, the most a push of ``max_batch`` images adds
+        while it runs (the tree's pass and its output, one chunk of S/N values)."""
+        B, P = self.max_batch, self.npix
+        step = max(1, min(self.nser, self.CHUNK_BYTES // max(1, B * P * 8)))
+        working = 4 * len(self.widths) * step * B * P + 4 * self.nser * B * P
+        parts = {"history": 4 * self.nser * self.capacity * P, "statistics": (8 + 8 + 4) * self.nser * P}
+        if self._tree is not None:
+            parts["tree"] = 4 * self._tree.ring_size * P
+            working += self._tree.memory_bytes(B) - parts["tree"]
+        else:
+            parts["channels"] = 4 * self.nchan * self.shift * P if self.average else 0
+            working += 4 * self.nchan * (self.shift + B) * P if self.average else 0     # the joined past
+        parts["working"] = working
+        return parts
 
     # ------------------------------------------------------------------ state
     def reset(self, next_image=0):

@@ -607,8 +607,50 @@ def plan(cfg):
         d["tolerance_pick"] = {"method": pick.method, "precision": pick.precision, "bound": pick.bound}
     if im["kind"] == "dft":
         lines.append(f"  predicted on {dev}: {t_gulp * 1e3:.2f} ms per gulp of {gulp * dt * 1e3:.2f} ms of data "
-                     f"-> real-time factor {rt:.2f} (rates measured for {chosen} x {precision}, "
+                     f"-> real-time factor {rt:.2f} for the imaging (rates measured for {chosen} x {precision}, "
                      "bf_epic_blocks/imaging/measured.json)")
     else:
         lines.append("  (run time of the w-stacking/MOFF imagers: see tools/bench_wstack.py)")
+    if im.get("search"):
+        d["search"], text = _plan_search(im["search"], freq, acc * dt, npix, dev,
+                                         t_gulp / (gulp * dt) if t_gulp == t_gulp else float("nan"))
+        lines += text
     return d, "\n".join(lines)
+
+
+def _plan_search(sc, freq, dt_img, npix, dev, imaging_s_per_s):
+    """The transient search's part of :func:`plan`: its trials, the memory it holds where it runs
+    (:meth:`TransientSearch.memory_bytes`, sized as the block sizes it) and, where rates were measured
+    (``search`` in measured.json, tools/bench_search.py), its seconds per second of data and the
+    real-time factor of imaging and search together. Returns (dict, lines)."""
+    from ..blocks.transient_search import search_settings
+    from ..imaging import plan as planner
+    from ..imaging.transient import TransientSearch
+    kw, _ = search_settings(freq, dt_img, sc["window_s"], sc["dms"], sc["widths"], sc["average_channels"],
+                            dedisperse=sc["dedisperse"])
+    s = TransientSearch(freq, dt_img, npix, allocate=False, **kw)
+    mem = s.memory_bytes()
+
+    def size(b):
+        return f"{b / 2**30:.1f} GiB" if b >= 2**30 else f"{b / 2**20:.1f} MiB"
+    rows = s.tree_rows
+    how = (f"tree dedispersion, {s.nser} trials (every sweep to DM {max(sc['dms']):g}), {rows} tree rows"
+           if rows else f"shifted sums, {s.nser} trial(s)" if s.average else f"each of {s.nser} channels")
+    d = {"dedisperse": s.dedisperse, "trials": s.nser, "tree_rows": rows, "memory_bytes": mem,
+         "history_values": s.capacity}
+    lines = [f"  transient search: {how}, widths {s.widths}; holds {size(sum(mem.values()))} where it runs "
+             f"(history {size(mem['history'])}: {s.capacity} values per trial; "
+             + ", ".join(f"{k} {size(mem[k])}" for k in mem if k != "history") + ")"]
+    rate = planner.load_table().get("search", {}).get(dev)
+    ips = 1.0 / dt_img
+    if rate and rows:
+        t = (rows * npix * ips * rate["tree_s_per_row_pixel_image"]
+             + s.nser * len(s.widths) * npix * ips * rate["statistics_s_per_trial_width_pixel_image"])
+        both = imaging_s_per_s + t
+        d.update(predicted_s_per_s=t, imaging_and_search_realtime_factor=1.0 / both if both > 0 else float("nan"))
+        lines.append(f"  predicted search on {dev}: {t:.2f} s per second of data; imaging and search together "
+                     f"-> real-time factor {1.0 / both:.2f} (the source and writers not counted; search rates "
+                     f"measured in {rate['measured']})")
+    else:
+        lines.append(f"  (search time on {dev}: not measured for this dedispersion; tools/bench_search.py)")
+    return d, lines
