@@ -123,3 +123,40 @@ def test_bench_e2e_steady_rate_is_the_imager_s_own_pace():
     assert r["rt_steady"] == pytest.approx(10.0)          # 10 of 11 s of data in 1.0 s
     assert r["ms_per_gulp_DFTImager"] == pytest.approx(2.0) and r["ms_per_gulp_ImageWriter"] == pytest.approx(500.0)
     assert "rt_steady" not in bench_e2e.steady_rate({"DFTImagerBlock_0": dict(blocks["DFTImagerBlock_0"], ngulp=1)}, 1.0)
+
+
+def test_bench_wholeband_growth_sees_flat_and_growing_memory():
+    """tools/bench_wholeband.py: memory 'growth' is the last quarter's peak over the first quarter's,
+    within the flowing span only (start-up allocations before it do not count)."""
+    import bench_wholeband as bw
+    flat = [(0.5, 100.0)] + [(t, 5000.0 + (t % 3)) for t in np.arange(2.0, 22.0, 1.0)]
+    assert bw.growth(flat, 2.0, 21.0) == (5000.0 + 2 % 3, 5002.0, 0.0)
+    grows = [(t, 5000.0 + 10 * t) for t in np.arange(2.0, 22.0, 1.0)]
+    first, peak, g = bw.growth(grows, 2.0, 21.0)
+    assert peak == 5210.0 and g == pytest.approx(5210.0 - 5060.0)
+    assert bw.growth([(1.0, None)], 0.0, 2.0) == (None, None, None)
+
+
+def test_bench_wholeband_runs_the_cli_and_finds_the_burst(tmp_path):
+    """The benchmark on the whole-band YAML made small (16 channels, 16x16, the CPU): it runs `bf-epic
+    run`, times it, samples the run's memory and checks the injected burst against the candidates:
+    within one DM trial and 1.5 cells; a burst the YAML does not hold is reported not found."""
+    import json
+    import bench_wholeband as bw
+    small = ["source.duration_s=0.42", "source.channels.count=16", "imager.grid.size=16",
+             "imager.search.window_s=0.06", "imager.search.dms=[1.0]", "imager.search.threshold=7",
+             "output.integrate.seconds=0.1"]
+    bursts = ("source.transients=[{name: B1, ra_deg: 310.0, dec_deg: 20.0, start_s: 0.3, duration_s: 0.0015, "
+              "flux_jy: 2000.0, dm: 0.6}, {name: faint, ra_deg: 200.0, dec_deg: 40.0, start_s: 0.2, "
+              "duration_s: 0.0015, flux_jy: 0.001, dm: 0.3}]")
+    argv = ["--device", "cpu", "--sample-s", "0.2", "--json", str(tmp_path / "bw.json")]
+    for s in small + [bursts]:
+        argv += ["--set", s]
+    out = bw.main(argv)
+    r = out["run"]
+    assert 0 < r["rt_whole"] < r["rt_pipeline"] and r["rt_flowing"] > 0 and r["images"] > 0
+    b1, faint = r["bursts"]
+    assert b1["found"] and abs(b1["dm_off_trials"]) <= 1 and b1["offset_cells"] <= 1.5 and b1["snr"] > 10
+    assert not faint["found"] and faint.get("snr") is None
+    assert r["rss_mib"]["peak"] > 100
+    assert json.loads((tmp_path / "bw.json").read_text())["run"]["bursts"][0]["found"]

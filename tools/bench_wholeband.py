@@ -1,0 +1,232 @@
+"""The whole band through `bf-epic run`: real-time factor, memory over the run, and the injected burst.
+
+One run of ``pipelines/lwasv_sim_wholeband.yaml`` (or ``--yaml``) as a subprocess, timed from
+outside, as an operator runs it (``--set`` overrides pass through; the default is the YAML's 60 s on
+``--device gpu``). Printed and written as JSON:
+
+* whole run: data seconds / process wall; pipeline: data seconds / the runner's own wall;
+  flowing: data seconds / the time from the search's first images to its last (the search is where
+  every image ends; without one, the imager), the figure the whole-band issue asks for (>= 1.5x).
+* memory, sampled every ``--sample-s``: the GPU's used memory (``nvidia-smi``, where there is one) and
+  the run's resident set (``/proc``): first, peak, and the growth from the first quarter of the
+  flowing time to the last (flat means ~0).
+* each injected burst (``source.transients``): the brightest candidate within ``--match-s`` of its
+  arrival, its DM off the burst's in trials (the tree's one-image sweep step), its place off the
+  burst's in grid cells (the truth's own RA/Dec against the candidate's), and whether that is within
+  the issue's bounds (+-1 trial, <= 1.5 cells); and how many other candidates the run listed.
+
+usage: python tools/bench_wholeband.py [--device gpu] [--seconds 60] [--set KEY=VALUE ...]
+                                       [--sample-s 2] [--json PATH]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tools"))
+from bench_e2e import child_env  # noqa: E402
+from cases import bf_epic_command, write_json  # noqa: E402
+
+
+def gpu_used_mib():
+    """Used memory of the first GPU in MiB (``nvidia-smi``), or None where there is none."""
+    exe = shutil.which("nvidia-smi")
+    if exe is None:
+        return None
+    try:
+        out = subprocess.run([exe, "--query-gpu=memory.used", "--format=csv,noheader,nounits"],
+                             capture_output=True, text=True, timeout=10).stdout.split()
+        return float(out[0]) if out else None
+    except (OSError, subprocess.SubprocessError, ValueError):
+        return None
+
+
+def rss_mib(pid):
+    """Resident set of process ``pid`` in MiB (Linux ``/proc``), or None."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return float(line.split()[1]) / 1024
+    except OSError:
+        return None
+    return None
+
+
+def growth(samples, t0, t1):
+    """(first, peak, growth) of ``samples`` [(t, value)] within [t0, t1]: growth is the peak of the last
+    quarter of that span minus the peak of its first quarter (None where either quarter is empty)."""
+    vals = [(t, v) for t, v in samples if v is not None and t0 <= t <= t1]
+    if not vals:
+        return None, None, None
+    q = (t1 - t0) / 4
+    first = [v for t, v in vals if t <= t0 + q]
+    last = [v for t, v in vals if t >= t1 - q]
+    g = (max(last) - max(first)) if first and last else None
+    return vals[0][1], max(v for _, v in vals), g
+
+
+def burst_checks(cfg, table):
+    """Each injected burst against the run's candidate table (astropy Table or None)."""
+    from astropy.coordinates import SkyCoord
+    from bf_epic_blocks.imaging.transient import dispersion_delay_s
+    from bf_epic_blocks.pipeline.runner import channel_freqs
+    src, im = cfg["source"], cfg["imager"]
+    freq = np.asarray(channel_freqs(cfg))
+    dt_img = int(im["accumulate_frames"]) / float(src["channels"]["width_hz"])
+    per_dm = float(dispersion_delay_s(1.0, freq.min(), freq.max())) / dt_img      # sweep images per unit DM
+    cell_deg = float(np.degrees(2.0 / int(im["grid"]["size"])))                  # l, m cell at the zenith
+    start = np.datetime64(str(src["start"]).replace("Z", ""))
+    out = []
+    for tr in src.get("transients") or []:
+        row = {"name": tr.get("name"), "dm": tr["dm"], "ra_deg": tr["ra_deg"], "dec_deg": tr["dec_deg"],
+               "start_s": tr["start_s"], "found": False}
+        if table is not None and len(table):
+            t = np.array([(np.datetime64(str(v).replace("Z", "")) - start) / np.timedelta64(1, "us") / 1e6
+                          for v in table["time_utc"]])
+            near = np.flatnonzero(np.abs(t - tr["start_s"]) <= MATCH_S)
+            if near.size:
+                k = near[np.argmax(np.asarray(table["snr"])[near])]
+                sep = SkyCoord(float(table["ra_deg"][k]), float(table["dec_deg"][k]), unit="deg").separation(
+                    SkyCoord(tr["ra_deg"], tr["dec_deg"], unit="deg")).deg
+                d_trials = (float(table["dm"][k]) - tr["dm"]) * per_dm
+                row.update(found=bool(abs(d_trials) <= 1.0 + 1e-9 and sep <= 1.5 * cell_deg),
+                           snr=float(table["snr"][k]), dm_found=float(table["dm"][k]), dm_off_trials=d_trials,
+                           time_off_s=float(t[k] - tr["start_s"]), offset_deg=float(sep),
+                           offset_cells=float(sep / cell_deg))
+        out.append(row)
+    return out
+
+
+#: seconds between a burst's arrival and a candidate that may be it
+MATCH_S = 0.05
+
+
+def run(args):
+    from bf_epic_blocks.io.candidates import read_candidates
+    from bf_epic_blocks.pipeline.config import load_config
+    sets = [f"device={args.device}"] + ([f"source.duration_s={args.seconds}"] if args.seconds else []) + args.set
+    outdir = Path(tempfile.mkdtemp(prefix="bench_wholeband_"))
+    cfg = load_config(args.yaml, sets + [f"output.dir={outdir}"])
+    data_s = float(cfg["source"]["duration_s"])
+    summary = outdir / "summary.json"
+    cmd = bf_epic_command() + ["run", str(args.yaml), "--no-progress", "-q", "--summary-json", str(summary)]
+    for s in sets + [f"output.dir={outdir}"]:
+        cmd += ["--set", s]
+    samples_gpu, samples_rss = [], []
+    stop = threading.Event()
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile("w+") as err:
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=child_env())
+
+        def sample():
+            while not stop.is_set():
+                t = time.perf_counter() - t0
+                if args.device.startswith("gpu"):
+                    samples_gpu.append((t, gpu_used_mib()))
+                samples_rss.append((t, rss_mib(p.pid)))
+                stop.wait(args.sample_s)
+        th = threading.Thread(target=sample, daemon=True)
+        th.start()
+        rc = p.wait()
+        wall = time.perf_counter() - t0
+        stop.set()
+        th.join()
+        if rc:
+            err.seek(0)
+            raise SystemExit(f"bf-epic run failed ({rc}): {err.read()[-3000:]}")
+    info = json.loads(summary.read_text())
+    blocks = info.get("blocks", {})
+    sink = next((b for n, b in blocks.items() if n.startswith("TransientSearch")), None) or \
+        next((b for n, b in blocks.items() if n.startswith(("DFTImager", "WStack"))), None)
+    flow = None
+    if sink and sink["last_data_s"] is not None and sink["last_data_s"] > sink["first_data_s"]:
+        # the runner's block times are seconds after its own start, which is after the process's
+        lag = wall - info["wall_s"]
+        flow = (sink["first_data_s"] + lag, sink["last_data_s"] + lag)
+    cands = sorted(outdir.glob("*_candidates.ecsv"))
+    table = read_candidates(cands[0]) if cands else None
+    window = flow or (0.0, wall)
+    gpu = growth(samples_gpu, *window)
+    rss = growth(samples_rss, *window)
+    bursts = burst_checks(cfg, table)
+    found = [b for b in bursts if b.get("snr") is not None]
+    row = {"data_s": data_s, "wall_s": wall, "pipeline_s": info["wall_s"], "rt_whole": data_s / wall,
+           "rt_pipeline": data_s / info["wall_s"],
+           "flowing_s": None if flow is None else flow[1] - flow[0],
+           "rt_flowing": None if flow is None else data_s / (flow[1] - flow[0]),
+           "first_images_at_s": None if flow is None else flow[0],
+           "gpu_mib": dict(zip(("first", "peak", "growth"), gpu)),
+           "rss_mib": dict(zip(("first", "peak", "growth"), rss)),
+           "images": info.get("images"), "search": info.get("search"), "bursts": bursts,
+           "other_candidates": (len(table) - len(found)) if table is not None else 0,
+           "blocks": blocks}
+    out = {"benchmark": "bench_wholeband", "date": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime()),
+           "yaml": str(args.yaml), "sets": sets, "machine": machine(args.device), "run": row,
+           "samples": {"gpu_mib": samples_gpu, "rss_mib": samples_rss}}
+    shutil.rmtree(outdir, ignore_errors=True)
+    return out
+
+
+def machine(device):
+    info = {"host": os.uname().nodename, "ncpu": os.cpu_count()}
+    if device.startswith("gpu") and shutil.which("nvidia-smi"):
+        r = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True)
+        info["gpu"] = r.stdout.strip().splitlines()[0] if r.stdout.strip() else None
+    return info
+
+
+def fmt(v, spec):
+    return "-" if v is None else format(v, spec)
+
+
+def show(out):
+    r = out["run"]
+    print(f"# bench_wholeband: {out['yaml']} {' '.join('--set ' + s for s in out['sets'])} on {out['machine']}")
+    print("data s   wall s  whole x  pipeline x  flowing x  first images s  GPU MiB first/peak/growth  "
+          "RSS MiB first/peak/growth")
+    g, m = r["gpu_mib"], r["rss_mib"]
+    gpu = f"{fmt(g['first'], '.0f')}/{fmt(g['peak'], '.0f')}/{fmt(g['growth'], '+.0f')}"
+    rss = f"{fmt(m['first'], '.0f')}/{fmt(m['peak'], '.0f')}/{fmt(m['growth'], '+.0f')}"
+    print(f"{r['data_s']:6.1f}  {r['wall_s']:7.1f}  {r['rt_whole']:7.3f}  {r['rt_pipeline']:10.3f}  "
+          f"{fmt(r['rt_flowing'], '9.3f')}  {fmt(r['first_images_at_s'], '14.1f')}  {gpu:>26}  {rss:>25}")
+    for b in r["bursts"]:
+        if b.get("snr") is None:
+            print(f"burst {b['name']}: DM {b['dm']} at {b['start_s']} s: NOT FOUND")
+        else:
+            print(f"burst {b['name']}: DM {b['dm']} at {b['start_s']} s: found DM {b['dm_found']:.4f} "
+                  f"({b['dm_off_trials']:+.2f} trials), {b['time_off_s'] * 1e3:+.1f} ms, {b['offset_deg']:.2f} deg "
+                  f"({b['offset_cells']:.2f} cells), S/N {b['snr']:.1f}: {'within' if b['found'] else 'OUTSIDE'} "
+                  "+-1 trial and 1.5 cells")
+    print(f"other candidates: {r['other_candidates']}")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--yaml", type=Path, default=REPO / "pipelines" / "lwasv_sim_wholeband.yaml")
+    ap.add_argument("--device", default="gpu")
+    ap.add_argument("--seconds", type=float, default=None, help="source.duration_s (default: the YAML's)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="more overrides")
+    ap.add_argument("--sample-s", type=float, default=2.0, help="seconds between memory samples")
+    ap.add_argument("--json", help="write the result here")
+    args = ap.parse_args(argv)
+    out = run(args)
+    show(out)
+    if args.json:
+        write_json(args.json, out)
+    return out
+
+
+if __name__ == "__main__":
+    main()
