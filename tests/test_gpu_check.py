@@ -160,3 +160,18 @@ def test_bench_wholeband_runs_the_cli_and_finds_the_burst(tmp_path):
     assert not faint["found"] and faint.get("snr") is None
     assert r["rss_mib"]["peak"] > 100
     assert json.loads((tmp_path / "bw.json").read_text())["run"]["bursts"][0]["found"]
+
+
+def test_bench_scrunch_costs_and_snr_make_sense():
+    """tools/bench_scrunch.py (a prediction, not a search mode): with no trial at half rate the split
+    costs what the full search does; lower split DMs cost less; a burst searched at half rate keeps at
+    most its full-rate S/N and a narrow one loses more than a wide one; a pulse filling one full-rate
+    image exactly, alone, keeps 1/sqrt(2) at half rate (twice the noise, the same signal)."""
+    import bench_scrunch as bs
+    assert bs.cost(3.0)["ratio"] == pytest.approx(1.0)
+    r = [bs.cost(d)["ratio"] for d in (0.75, 1.5, 2.25)]
+    assert r[0] < r[1] < r[2] < 1.0
+    narrow, wide = bs.snr_retained(2.0, 0.32e-3), bs.snr_retained(2.0, 2.56e-3)
+    assert 0.5 < narrow[0] < wide[0] <= 1.0 and narrow[1] <= narrow[0]
+    one = bs.best_snr(np.array([1.0]), np.array([2.0]), 2, (1,)) / bs.best_snr(np.array([1.0]), np.array([2.0]), 1, (1,))
+    assert one == pytest.approx(1 / np.sqrt(2))
