@@ -28,7 +28,6 @@ usage: python tools/bench_scrunch.py [--d1 0.75,1,1.25,1.5,2,3] [--widths-ms 0.3
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -57,7 +56,8 @@ def cost(d1, freq=FREQ, dt=DT, dm_max=DM_MAX, nw=len(WIDTHS), rates=None):
     from bf_epic_blocks.imaging.fdmt import FDMTPlan
     from bf_epic_blocks.imaging.transient import dispersion_delay_s
     if rates is None:
-        t = json.loads((REPO / "bf_epic_blocks" / "imaging" / "measured.json").read_text())["search"]["gpu"]
+        from bf_epic_blocks.imaging.plan import load_table
+        t = load_table()["search"]["gpu"]
         rates = (t["tree_s_per_row_pixel_image"], t["statistics_s_per_trial_width_pixel_image"])
     rt, rs = rates
     per_dm = float(dispersion_delay_s(1.0, freq.min(), freq.max())) / dt

@@ -40,6 +40,10 @@ from bench_e2e import child_env  # noqa: E402
 from cases import bf_epic_command, write_json  # noqa: E402
 
 
+#: seconds between a burst's arrival and a candidate that may be it
+MATCH_S = 0.05
+
+
 def gpu_used_mib():
     """Used memory of the first GPU in MiB (``nvidia-smi``), or None where there is none."""
     exe = shutil.which("nvidia-smi")
@@ -107,10 +111,6 @@ def burst_checks(cfg, table):
                            offset_cells=float(sep / cell_deg))
         out.append(row)
     return out
-
-
-#: seconds between a burst's arrival and a candidate that may be it
-MATCH_S = 0.05
 
 
 def run(args):

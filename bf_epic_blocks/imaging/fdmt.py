@@ -223,7 +223,8 @@ class StreamingFDMT:
             return min(self.npix, self.pixel_chunk)
         most = max(1, self.WORK_BYTES // (4 * self.nrow * B))
         npass = -(-self.npix // most)
-        return min(self.npix, -(-(-(-self.npix // npass)) // 32) * 32)
+        per = -(-self.npix // npass)
+        return min(self.npix, -(-per // 32) * 32)
 
     def memory_bytes(self, B):
         """Device bytes: the ring, and the working array of a block of ``B`` images."""
