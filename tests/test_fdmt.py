@@ -115,3 +115,102 @@ def test_the_gpu_stream_equals_the_host_s():
     for a, b in ((0, 64), (64, 70), (70, 300)):
         h, d = host.push(x[:, a:b]), dev.push(cp.asarray(x[:, a:b])).get()
         assert np.abs(h - d).max() <= 1e-5 * np.abs(h).max()
+
+
+# ---------------------------------------------------------------- float16 storage
+def _fp16_bound(x, nchan):
+    """What float16 storage may cost a sum (its ~log2(nchan) + 1 roundings of 2^-11 of a partial sum no
+    larger than the whole's bound), as a fraction of that bound: loose by ~3x against what is seen."""
+    return (np.log2(max(nchan, 2)) + 2) * 2.0 ** -11
+
+
+@pytest.mark.parametrize("nchan,dmax,blocks,chunk,npix", [(40, 30, [7, 50, 1, 92], 2, 5), (300, 120, [64, 64, 100, 3], 32, 67),
+                                                          (13, 9, [60], None, 3)])
+def test_float16_storage_is_within_its_rounding_of_the_float64_sums(nchan, dmax, blocks, chunk, npix):
+    """Sky-like images (a positive mean, 10% noise) at a scale float16 could not hold unscaled (1e7): once
+    every channel has its past (t >= dmax), the stream in float16 equals the float64 shifted sums far
+    below the sums' noise -- it stores the fluctuations about each channel's first image, so its
+    rounding is of those, not of the mean -- and well inside float16's rounding of the fluctuations;
+    pixel chunks with an odd last one (the even rows' spare pixel)."""
+    rng = np.random.default_rng(nchan + 1)
+    f = rng.permutation(60e6 + 25e3 * np.arange(nchan))
+    plan = FDMTPlan(f, dmax)
+    T = sum(blocks)
+    x = (1e7 * rng.normal(1.0, 0.1, size=(nchan, T, npix))).astype(np.float32)
+    s = StreamingFDMT(plan, npix, pixel_chunk=chunk, precision="fp16")
+    got, t = [], 0
+    for b in blocks:
+        got.append(s.push(x[:, t:t + b], factor=0.5))
+        t += b
+    got = np.concatenate(got, axis=1)[:, dmax:]
+    want = 0.5 * gathered_sums(x, effective_back(plan))[:, dmax:]
+    assert got.dtype == np.float32 and np.isfinite(got).all()
+    noise = 0.5 * 1e7 * 0.1 * np.sqrt(nchan)                        # of a sum
+    fluct = 0.5 * 1e7 * 0.1 * np.sqrt(2) * 4 * nchan                # bound of a sum of fluctuations (4 sigma)
+    assert np.abs(got - want).max() < _fp16_bound(x, nchan) * fluct
+    # rms 1e-3 of the noise here; rounding the whole values (the first version) measured 0.055 of it
+    assert np.sqrt(np.mean((got - want) ** 2)) < 0.005 * noise
+    assert s.ring.dtype == np.float16 and s.rescales == 0
+
+
+def test_float16_storage_rescales_before_a_flash_would_overflow():
+    """A flash 1e5 times the sky in one push: the rings are rescaled first (the past's sums stay right),
+    nothing overflows, and every sum is within float16's rounding of its own largest fluctuation."""
+    rng = np.random.default_rng(5)
+    f = 74e6 + 25e3 * np.arange(64)
+    plan = FDMTPlan(f, 40)
+    x = rng.normal(100.0, 10.0, size=(64, 192, 4)).astype(np.float32)
+    x[:, 100:104, 2] *= 1e5
+    s = StreamingFDMT(plan, 4, precision="fp16")
+    got = np.concatenate([s.push(x[:, a:a + 64]) for a in (0, 64, 128)], axis=1)[:, 40:]
+    want = gathered_sums(x, effective_back(plan))[:, 40:]
+    assert s.rescales == 1 and np.isfinite(got).all()
+    flash = np.abs(got[..., 2] - want[..., 2]).max() / np.abs(want[..., 2]).max()
+    assert flash < _fp16_bound(x, 64)
+    quiet = np.abs(got[..., 0] - want[..., 0]).max() / (64 * 10.0 * np.sqrt(2) * 4)
+    assert quiet < _fp16_bound(x, 64)                                   # the other pixels: as before
+
+
+def test_float16_storage_names_bad_input():
+    plan = FDMTPlan(74e6 + 25e3 * np.arange(8), 4)
+    with pytest.raises(ValueError, match="precision"):
+        StreamingFDMT(plan, 3, precision="fp8")
+    s = StreamingFDMT(plan, 3, precision="fp16")
+    x = np.ones((8, 5, 3), np.float32)
+    x[2, 1, 0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        s.push(x)
+
+
+def test_float16_halves_the_rings():
+    f = 74e6 + 25e3 * np.arange(784)
+    plan = FDMTPlan(f, 1330)
+    a, b = StreamingFDMT(plan, 3205, allocate=False), StreamingFDMT(plan, 3205, allocate=False, precision="fp16")
+    assert b.memory_bytes(64) == 2 * (444050 * 3206 + b.nrow * 64 * (b._chunk(64) + b._chunk(64) % 2))
+    ring_a, ring_b = 4 * 444050 * 3205, 2 * 444050 * 3206                # 5.7 GB -> 2.8 GB
+    assert a.memory_bytes(64) - ring_a <= StreamingFDMT.WORK_BYTES + 2 * 4 * a.nrow * 64 * 32
+    assert b.memory_bytes(64) - ring_b <= StreamingFDMT.WORK_BYTES + 2 * 2 * b.nrow * 64 * 32
+    assert b._chunk(64) >= 1.9 * a._chunk(64)                            # the same pass: twice the pixels
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not __import__("bf_epic_blocks.imaging._xp", fromlist=["x"]).gpu_available(),
+                    reason="needs CuPy and a CUDA device")
+@pytest.mark.parametrize("npix,chunk", [(37, 16), (37, None), (64, 32)])
+def test_the_gpu_float16_stream_equals_the_host_s_bit_for_bit(npix, chunk):
+    """The same float32 steps rounded once to float16 on both: equal bits; odd pixel counts (the spare
+    pixel of a pair), a flash that rescales mid-stream."""
+    import cupy as cp
+    rng = np.random.default_rng(4)
+    f = 74e6 + 25e3 * np.arange(200)
+    plan = FDMTPlan(f, 90)
+    x = rng.normal(50.0, 5.0, size=(200, 300, npix)).astype(np.float32)
+    x[:, 150:152, 3] *= 1e4
+    host = StreamingFDMT(plan, npix, pixel_chunk=chunk, precision="fp16")
+    dev = StreamingFDMT(plan, npix, xp=cp, pixel_chunk=chunk, precision="fp16")
+    for a, b in ((0, 64), (64, 70), (70, 300)):
+        h, d = host.push(x[:, a:b], factor=0.25), dev.push(cp.asarray(x[:, a:b]), factor=0.25).get()
+        assert np.array_equal(h, d)
+    assert host.rescales == dev.rescales == 1
+    want = 0.25 * gathered_sums(x[:, :300], effective_back(plan))[:, 70:]
+    assert np.abs(h - want).max() / np.abs(want).max() < _fp16_bound(x, 200)

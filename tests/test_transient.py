@@ -153,6 +153,32 @@ def test_the_tree_search_finds_a_burst_at_its_dm_across_a_wide_band(xp):
     assert found.snr[k] > 0.8 * 3.0 * np.sqrt(2) * np.sqrt(nchan)     # most of the exact sums' S/N
 
 
+def test_a_float16_tree_finds_the_burst_the_float32_tree_finds_at_its_s_n(xp):
+    """The tree storing float16 (the whole band's setting): the same brightest candidate -- pixel, arrival,
+    sweep, width -- as float32 storage, its S/N within 1%, and the window statistics within 1% of the
+    noise (float16's rounding, ~3e-4 of each sum rms, against a noise of 10% / sqrt(64) of it)."""
+    from bf_epic_blocks.imaging.transient import dispersion_delay_s
+    rng = np.random.default_rng(11)
+    nchan, npix, dt = 64, 20, 16 * DT
+    f = 74e6 + 300e3 * np.arange(nchan)
+    x = rng.normal(10, 1, (1600, nchan, npix)).astype(np.float32)
+    dm, pix, e0 = 0.6, 7, 1300
+    _inject(x, pix, e0, 2, 2.5, np.rint(dispersion_delay_s(dm, f, f.max()) / dt).astype(int))
+    best, stats = [], []
+    for prec in ("fp32", "fp16"):
+        s = TransientSearch(f, dt, npix, 200, dms=[1.0], widths=(1, 2, 4), threshold=7, dedisperse="tree",
+                            max_batch=64, xp=xp, tree_precision=prec)
+        found = Crossings.concat([s.push(xp.asarray(x[a:a + 64])) for a in range(0, 1600, 64)])
+        k = int(np.argmax(found.snr))
+        best.append((found.pixel[k], found.image[k], found.series[k], found.width_index[k], found.snr[k]))
+        stats.append([to_np(a) for a in s.statistics()])
+    (p32, i32, s32, w32, z32), (p16, i16, s16, w16, z16) = best
+    assert (p16, i16, s16, w16) == (p32, i32, s32, w32) and p32 == pix and abs(i32 - e0) <= 1
+    assert z16 == pytest.approx(z32, rel=0.01) and z32 > 20
+    (m32, sg32), (m16, sg16) = stats
+    assert np.abs(m16 - m32).max() < 0.01 * sg32.mean() and np.abs(sg16 / sg32 - 1).max() < 0.01
+
+
 def test_many_series_are_searched_in_chunks_with_the_same_result(monkeypatch):
     """The statistics of many trials run a chunk of series at a time (bounded temporaries): the same
     crossings, S/N and state as all at once."""
@@ -780,7 +806,7 @@ def test_an_overrun_search_counts_every_image_searched_or_lost(tmp_path):
 
 @pytest.mark.parametrize("kw, name", [({"max_pixels": 0}, "max_pixels"), ({"sky_fraction": 1.5}, "sky_fraction"),
                                       ({"hold": -1}, "hold"), ({"hold": 2.5}, "hold"), ({"window": 2}, "window"),
-                                      ({"dedisperse": "fft"}, "dedisperse"),
+                                      ({"dedisperse": "fft"}, "dedisperse"), ({"tree_precision": "fp8"}, "tree_precision"),
                                       ({"dedisperse": "tree", "average_channels": False}, "dedisperse")])
 def test_bad_search_settings_are_named(kw, name):
     args = {"window": 10, **kw}

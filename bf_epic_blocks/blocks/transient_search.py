@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 
 
 def search_settings(freq_hz, dt_s, window_s, dms, widths, average_channels=True, time_link=None, lc_after=32,
-                    dedisperse="shifts"):
+                    dedisperse="shifts", tree_precision="fp32"):
     """The :class:`~bf_epic_blocks.imaging.transient.TransientSearch` keywords the block uses for images
     at ``freq_hz`` every ``dt_s`` seconds (``window``, ``dms``, ``widths``, ``average_channels``,
     ``hold``, ``dedisperse`` resolved, ``max_batch`` for the tree), and the time link in images;
@@ -42,7 +42,8 @@ def search_settings(freq_hz, dt_s, window_s, dms, widths, average_channels=True,
     # an event is finished (and looked back at: its window, its boxcar on every pixel) at most this
     # many values after it, gulps being pushed a batch at a time (on_data)
     kw = dict(window=window, dms=[float(d) for d in dms], widths=widths, average_channels=bool(average_channels),
-              hold=tlink + 2 * max(widths) + shift + int(lc_after), dedisperse=dedisperse)
+              hold=tlink + 2 * max(widths) + shift + int(lc_after), dedisperse=dedisperse,
+              tree_precision=tree_precision)
     if dedisperse == "tree":
         kw["max_batch"] = 64            # the tree's many trials: a history of one gulp's batch, not 256
     return kw, tlink
@@ -78,6 +79,8 @@ class TransientSearchBlock(bfp.SinkBlock):
         there).
     max_pixels, sky_fraction, dedisperse : see :class:`~bf_epic_blocks.imaging.transient.TransientSearch`
         (with 'tree' the trials are every sweep up to max(dms)'s and each candidate's DM is its sweep's).
+    tree_precision : 'fp32' (default) or 'fp16', what the tree stores (half its memory traffic; see
+        :class:`~bf_epic_blocks.imaging.fdmt.StreamingFDMT`).
 
     ``candidates`` is the astropy Table of all candidates so far; ``search_stats`` counts images
     searched, trials per width, crossings, resets and images lost; ``written`` lists the files.
@@ -86,7 +89,7 @@ class TransientSearchBlock(bfp.SinkBlock):
     def __init__(self, iring, threshold=6.0, window_s=1.0, dms=(0.0,), widths=(1, 2, 4, 8), average_channels=True,
                  product=None, outdir=None, prefix="transients", table_format="ecsv", png=True, space_link=None,
                  time_link=None, lc_before=32, lc_after=32, location=None, sidelobe_factor=2.0, max_pixels=32,
-                 sky_fraction=0.1, dedisperse="shifts", *args, **kwargs):
+                 sky_fraction=0.1, dedisperse="shifts", *args, tree_precision="fp32", **kwargs):
         super().__init__(iring, *args, **kwargs)
         if table_format not in ("ecsv", "fits"):
             raise ValueError(f"TransientSearchBlock: table_format must be 'ecsv' or 'fits', got {table_format!r}")
@@ -102,7 +105,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         if not sidelobe_factor >= 0:
             raise ValueError(f"TransientSearchBlock: sidelobe_factor must be >= 0, got {sidelobe_factor!r}")
         self.sidelobe_factor, self.max_pixels, self.sky_fraction = float(sidelobe_factor), max_pixels, sky_fraction
-        self.dedisperse = dedisperse
+        self.dedisperse, self.tree_precision = dedisperse, tree_precision
         self.rows, self.written = [], []
         self.candidates = None
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
@@ -130,7 +133,8 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.lay, self.hdr = lay, hdr
         self.xp = self._xp()
         kw, self._tlink = search_settings(lay["freq_hz"], lay["dt_s"], self.window_s, self.dms, self.widths,
-                                          self.average_channels, self.time_link, self.lc_after, self.dedisperse)
+                                          self.average_channels, self.time_link, self.lc_after, self.dedisperse,
+                                          self.tree_precision)
         self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), threshold=self.threshold,
                                       xp=self.xp, max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, **kw)
         window = self.search.window

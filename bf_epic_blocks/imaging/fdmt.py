@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._xp import get_xp
+from ._xp import get_xp, to_numpy
 
 __all__ = ["FDMTPlan", "fdmt", "effective_back", "StreamingFDMT"]
 
@@ -153,9 +153,23 @@ class StreamingFDMT:
     dedispersed values, equal to :func:`fdmt` of the whole series so far at those times.
 
     plan : :class:`FDMTPlan`;  npix : pixels per image;  xp : numpy or cupy;  pixel_chunk : pixels
-    per pass (the working memory is ``(nchan + plan.rows()) x B x pixel_chunk`` float32; default:
+    per pass (the working memory is ``(nchan + plan.rows()) x B x pixel_chunk`` values; default:
     as many as fit in ``WORK_BYTES`` for the block being pushed);  allocate : False makes the tables
     and sizes only (:meth:`memory_bytes`), no ring.
+    precision : 'fp32' (default) or 'fp16': the values the tree stores (its rows and rings) -- each
+    add is done in float32 and rounded to float16: half the tree's memory traffic (the tree is bound
+    by it) and half its rings. What is stored is each value less its channel and pixel's value in
+    the first image after a reset (``ref``; added back, summed over the channels, in float32 as the
+    rows are copied out), so float16's 11 bits carry the fluctuations, not the sky's mean: a sum's
+    error after its ~log2(nchan) roundings is ~3e-4 of the fluctuations' size rms, far below their
+    noise. (A first version rounded whole values: ~3e-4 of the value, 0.16 sigma of the whole band's
+    noise at a S/N-369 burst's peak, enough to move the burst's best trial by two sweeps.) The past
+    before the first push counts as equal to ``ref`` (float32: as 0), so the first ``dmax`` images'
+    values, which lack part of the band's past, differ accordingly (a search does not use them).
+    Values are scaled by a power of two so that a whole-band sum of the largest fluctuation pushed
+    sits near ``FP16_HEAD`` (float16 overflows at 65,504); a later push whose sums could pass
+    ``FP16_LIMIT`` (a flash) rescales the rings first (exact: powers of two), counted in
+    ``rescales``. The output is float32 in the input's units either way.
 
     State: in each merge the upper half's rows are read up to ``o`` images back, so every row any
     merge reads that way keeps its last ``max o`` values in a ring (float32 ``(sum max o, npix)``:
@@ -167,9 +181,18 @@ class StreamingFDMT:
 
     #: working memory of one pass when ``pixel_chunk`` is not given (bytes)
     WORK_BYTES = 1 << 30
+    #: float16 storage: a whole-band sum of the largest value is scaled to about this ...
+    FP16_HEAD = 2.0 ** 8
+    #: ... and the rings are rescaled before a push whose sums could pass this (float16's largest: 65,504)
+    FP16_LIMIT = 2.0 ** 14
 
-    def __init__(self, plan: FDMTPlan, npix, xp=np, pixel_chunk=None, allocate=True):
-        self.plan, self.npix, self.xp = plan, int(npix), xp
+    def __init__(self, plan: FDMTPlan, npix, xp=np, pixel_chunk=None, allocate=True, precision="fp32"):
+        if precision not in ("fp32", "fp16"):
+            raise ValueError(f"precision: the tree stores 'fp32' or 'fp16' values, got {precision!r}")
+        self.plan, self.npix, self.xp, self.precision = plan, int(npix), xp, precision
+        self.dtype = np.float16 if precision == "fp16" else np.float32
+        # float16 rows are read two pixels at a time (one 4-byte load per thread): an even row length
+        self.ld = self.npix + (self.npix % 2 if precision == "fp16" else 0)
         base, nrow = {}, plan.nchan
         for level in plan.levels:
             for rng, (L, U, rowL, rowU, o) in level:
@@ -210,10 +233,46 @@ class StreamingFDMT:
             self.reset()
 
     def reset(self):
-        """Forget the past (its values count as 0, as :func:`fdmt`'s before its first time)."""
-        self.ring = self.xp.zeros((self.ring_size, self.npix), self.xp.float32)
+        """Forget the past (its values count as 0, as :func:`fdmt`'s before its first time; float16: as
+        the next push's first image)."""
+        self.ring = self.xp.zeros((self.ring_size, self.ld), self.dtype)
         self.ntime = 0
         self._phase_at = -1
+        self.scale = None           # float16: the values' scale (a power of two), set by the first push
+        self.ref = None             # float16: (nchan, npix) float32, each channel's first image since the reset
+        self._ref_sum = None        # (npix,) float32: ref summed over the channels (in float64, on the host)
+        self.rescales = 0
+
+    def _set_ref_and_scale(self, x):
+        """float16: the reference (the first push's first image) and the scale (a power of two) under
+        which no sum of this push or of the past can overflow; returns the scale."""
+        xp = self.xp
+        if self.ref is None:
+            self.ref = xp.ascontiguousarray(x[:, 0])
+            self._ref_sum = xp.asarray(to_numpy(self.ref).astype(np.float64).sum(axis=0).astype(np.float32))
+        if xp is np:
+            amax = float(np.max(np.abs(x - self.ref[:, None])))
+        else:
+            # per (channel, image), then on the host: a whole-array ReductionKernel runs as one block
+            # (it made the float16 tree 8x slower than float32 at the whole band, H100)
+            amax = float(to_numpy(_abs_dev_max(xp)(x, self.ref[:, None, :], axis=2)).max())
+        if not np.isfinite(amax):
+            raise ValueError("images: non-finite values reached the tree (NaN or Inf)")
+        bound = amax * self.plan.nchan                 # no sum of nchan values can exceed it
+        if self.scale is not None and bound * self.scale <= self.FP16_LIMIT:
+            return self.scale
+        new = 2.0 ** np.floor(np.log2(self.FP16_HEAD / bound)) if bound > 0 else 1.0
+        if self.scale is None:
+            self.scale = new
+        elif new < self.scale:                         # a brighter push: the past rescaled to match
+            f = np.float32(new / self.scale)
+            if xp is np:
+                self.ring[...] = (self.ring.astype(np.float32) * f).astype(np.float16)
+            else:
+                xp.multiply(self.ring, f, out=self.ring, casting="unsafe")
+            self.scale = new
+            self.rescales += 1
+        return self.scale
 
     def _chunk(self, B):
         """Pixels per pass for a block of ``B`` images: ``pixel_chunk``, or as many as ``WORK_BYTES``
@@ -221,18 +280,21 @@ class StreamingFDMT:
         second 256-thread block a quarter full)."""
         if self.pixel_chunk:
             return min(self.npix, self.pixel_chunk)
-        most = max(1, self.WORK_BYTES // (4 * self.nrow * B))
+        most = max(1, self.WORK_BYTES // (np.dtype(self.dtype).itemsize * self.nrow * B))
         npass = -(-self.npix // most)
         per = -(-self.npix // npass)
         return min(self.npix, -(-per // 32) * 32)
 
     def memory_bytes(self, B):
         """Device bytes: the ring, and the working array of a block of ``B`` images."""
-        return 4 * (self.ring_size * self.npix + self.nrow * B * self._chunk(B))
+        pc = self._chunk(B)
+        pc += pc % 2 if self.dtype is np.float16 else 0          # (float16 rows: even)
+        return np.dtype(self.dtype).itemsize * (self.ring_size * self.ld + self.nrow * B * pc)
 
-    def push(self, images):
+    def push(self, images, factor=1.0):
         """(nchan, B, npix) new images (channels in the plan's order of ``freq``) -> (dmax + 1, B, npix)
-        float32: row d, time t is the sum over channels of I_c(t - back(d, c)) (:func:`effective_back`)."""
+        float32: row d, time t is the sum over channels of I_c(t - back(d, c)) (:func:`effective_back`),
+        times ``factor`` (e.g. 1 / nchan for the channels' mean: applied as the rows are copied out)."""
         xp, plan = self.xp, self.plan
         x = xp.asarray(images, dtype=xp.float32)
         if x.ndim != 3 or x.shape[0] != plan.nchan or x.shape[2] != self.npix:
@@ -241,18 +303,36 @@ class StreamingFDMT:
         out = xp.empty((plan.dmax + 1, B, self.npix), xp.float32)
         if B == 0:
             return out
+        half = self.dtype is np.float16
         if not np.array_equal(plan.order, np.arange(plan.nchan)):
             x = x[xp.asarray(plan.order)]
+        scale = self._set_ref_and_scale(x) if half else 1.0
         pc = self._chunk(B)
         for p0 in range(0, self.npix, pc):
             p1 = min(self.npix, p0 + pc)
-            W = xp.empty((self.nrow, B, p1 - p0), xp.float32)
-            W[:plan.nchan] = x[:, :, p0:p1]
+            n = p1 - p0
+            W = xp.empty((self.nrow, B, n + n % 2 if half else n), self.dtype)
+            if not half:
+                W[:plan.nchan] = x[:, :, p0:p1]
+            elif xp is np:
+                W[:plan.nchan, :, :n] = (x[:, :, p0:p1] - self.ref[:, None, p0:p1]) * np.float32(scale)
+            else:
+                _in_half(xp)(x[:, :, p0:p1], self.ref[:, None, p0:p1], np.float32(scale), W[:plan.nchan, :, :n])
+            if W.shape[2] > n:
+                W[:plan.nchan, :, n:] = 0                 # the even row's spare pixel
             if xp is np:
                 self._levels_host(W, p0, p1, B)
             else:
                 self._levels_gpu(W, p0, p1, B)
-            out[:, :, p0:p1] = W[self.top]                 # a slice: copied once, not gathered first
+            # a slice: copied (and scaled) once, not gathered first
+            if not half:
+                xp.multiply(W[self.top], np.float32(factor), out=out[:, :, p0:p1])
+            else:
+                a, b = np.float32(factor / scale), np.float32(factor)
+                if xp is np:
+                    out[:, :, p0:p1] = W[self.top, :, :n].astype(np.float32) * a + self._ref_sum[p0:p1] * b
+                else:
+                    _out_half(xp)(W[self.top, :, :n], self._ref_sum[p0:p1], a, b, out[:, :, p0:p1])
         self.ntime += B
         return out
 
@@ -266,18 +346,20 @@ class StreamingFDMT:
                 r, tt = np.nonzero(old)
                 u = inU[r]
                 at = (self.ntime + s[r, tt]) % self.ring_len[u]
-                b[r, tt] = self.ring[self.ring_base[u] + at, p0:p1]
+                b[r, tt] = self.ring[self.ring_base[u] + at, p0:p0 + W.shape[2]]
             W[out] = W[inL] + b
         for g in self.ring_rows:                                           # keep each ring row's last values
             L = int(self.ring_len[g])
             t0 = max(0, B - L)
-            self.ring[self.ring_base[g] + (self.ntime + np.arange(t0, B)) % L, p0:p1] = W[g, t0:]
+            self.ring[self.ring_base[g] + (self.ntime + np.arange(t0, B)) % L, p0:p0 + W.shape[2]] = W[g, t0:]
 
     def _levels_gpu(self, W, p0, p1, B):
-        pc = p1 - p0
+        # float16: a thread per pair of pixels (one 4-byte __half2 load); rows and rings of even length
+        per = 2 if self.dtype is np.float16 else 1
+        pc, ld, q0 = W.shape[2] // per, self.ld // per, p0 // per
         bx = min(128, pc)
         grid_x = -(-pc // bx)
-        k_level, k_ring = _gpu_kernels()
+        k_level, k_ring = _gpu_kernels(self.precision)
         rbase, rlen, rrows = self._dev_ring
         if self._phase_at != self.ntime:
             # each ring row's slot of time ntime, once per push: the kernels index the rings in 32-bit
@@ -292,20 +374,34 @@ class StreamingFDMT:
             for j in range(0, int(out.shape[0]), Y):
                 k_level((grid_x, min(Y, int(out.shape[0]) - j)), (bx,),
                         (W, self.ring, out[j:], inL[j:], inU[j:], o[j:], rbase, rlen, self._phase, np.int32(B),
-                         np.int32(pc), np.int32(self.npix), np.int32(p0)))
+                         np.int32(pc), np.int32(ld), np.int32(q0)))
         for j in range(0, int(rrows.shape[0]), Y):
             k_ring((grid_x, min(Y, int(rrows.shape[0]) - j)), (bx,),
-                   (W, self.ring, rrows[j:], rbase, rlen, self._phase, np.int32(B), np.int32(pc), np.int32(self.npix),
-                    np.int32(p0)))
+                   (W, self.ring, rrows[j:], rbase, rlen, self._phase, np.int32(B), np.int32(pc), np.int32(ld),
+                    np.int32(q0)))
 
 
 _FDMT_SRC = r"""
+// VT: the stored value -- float, or (HALF) a pair of adjacent pixels' float16 values, added in float32
+// and rounded once (as NumPy's float16 add: the CPU's path gives the same bits).
+#ifdef HALF
+#include <cuda_fp16.h>
+typedef __half2 VT;
+__device__ __forceinline__ VT vadd(VT a, VT b) {
+    const float2 x = __half22float2(a), y = __half22float2(b);
+    return __floats2half2_rn(x.x + y.x, x.y + y.y);
+}
+#else
+typedef float VT;
+__device__ __forceinline__ VT vadd(VT a, VT b) { return a + b; }
+#endif
+
 // One level of the streaming FDMT: W[out[j], t, p] = W[inL[j], t, p] + (the upper half's row inU[j]
 // o[j] images back: in this block, or in its ring). grid (pixel blocks, rows); each thread walks the
 // block's B times (a thread per element made ~230,000 short blocks per level). phase[u]: the slot of
 // row u's ring that holds the time just before this block's first (ring time tau0 mod rlen[u]), so
-// the ring index is 32-bit: phase + s, s in [-rlen, -1].
-extern "C" __global__ void bf_fdmt_level(float* __restrict__ W, const float* __restrict__ ring,
+// the ring index is 32-bit: phase + s, s in [-rlen, -1]. pc, ld, p0 count VT (pixel pairs for HALF).
+extern "C" __global__ void bf_fdmt_level(VT* __restrict__ W, const VT* __restrict__ ring,
                                          const int* __restrict__ out, const int* __restrict__ inL,
                                          const int* __restrict__ inU, const int* __restrict__ o,
                                          const long long* __restrict__ rbase, const int* __restrict__ rlen,
@@ -316,14 +412,14 @@ extern "C" __global__ void bf_fdmt_level(float* __restrict__ W, const float* __r
     if (p >= pc) return;
     const int j = blockIdx.y;
     const int u = inU[j], oj = o[j], ph = phase[u], L = rlen[u];
-    const float* wl = W + (long long)inL[j] * B * pc + p;
-    const float* wu = W + (long long)u * B * pc + p;
-    const float* rg = ring + rbase[u] * ld + p0 + p;
-    float* wo = W + (long long)out[j] * B * pc + p;
+    const VT* wl = W + (long long)inL[j] * B * pc + p;
+    const VT* wu = W + (long long)u * B * pc + p;
+    const VT* rg = ring + rbase[u] * ld + p0 + p;
+    VT* wo = W + (long long)out[j] * B * pc + p;
     #pragma unroll 4
     for (int t = 0; t < B; ++t) {
         const int s = t - oj;
-        float b;
+        VT b;
         if (s >= 0) {
             b = wu[(long long)s * pc];
         } else {
@@ -331,13 +427,13 @@ extern "C" __global__ void bf_fdmt_level(float* __restrict__ W, const float* __r
             if (m < 0) m += L;
             b = rg[(long long)m * ld];
         }
-        wo[(long long)t * pc] = wl[(long long)t * pc] + b;
+        wo[(long long)t * pc] = vadd(wl[(long long)t * pc], b);
     }
 }
 
 // Each ring row keeps its newest rlen values: block times t >= B - rlen go to slot (tau0 + t) % rlen.
 // grid (pixel blocks, ring rows).
-extern "C" __global__ void bf_fdmt_ring(const float* __restrict__ W, float* __restrict__ ring,
+extern "C" __global__ void bf_fdmt_ring(const VT* __restrict__ W, VT* __restrict__ ring,
                                         const int* __restrict__ rows, const long long* __restrict__ rbase,
                                         const int* __restrict__ rlen, const int* __restrict__ phase,
                                         const int B, const int pc, const int ld, const int p0)
@@ -346,8 +442,8 @@ extern "C" __global__ void bf_fdmt_ring(const float* __restrict__ W, float* __re
     if (p >= pc) return;
     const int g = rows[blockIdx.y];
     const int L = rlen[g];
-    const float* w = W + (long long)g * B * pc + p;
-    float* rg = ring + rbase[g] * ld + p0 + p;
+    const VT* w = W + (long long)g * B * pc + p;
+    VT* rg = ring + rbase[g] * ld + p0 + p;
     int m = (phase[g] + max(0, B - L)) % L;
     for (int t = max(0, B - L); t < B; ++t) {
         rg[(long long)m * ld] = w[(long long)t * pc];
@@ -359,10 +455,40 @@ extern "C" __global__ void bf_fdmt_ring(const float* __restrict__ W, float* __re
 _FDMT_KERNELS: dict = {}
 
 
-def _gpu_kernels():
+def _gpu_kernels(precision="fp32"):
     import cupy as cp
-    dev = cp.cuda.Device().id
-    if dev not in _FDMT_KERNELS:
-        mod = cp.RawModule(code=_FDMT_SRC)
-        _FDMT_KERNELS[dev] = (mod.get_function("bf_fdmt_level"), mod.get_function("bf_fdmt_ring"))
-    return _FDMT_KERNELS[dev]
+    key = (cp.cuda.Device().id, precision)
+    if key not in _FDMT_KERNELS:
+        mod = cp.RawModule(code=_FDMT_SRC, options=("-DHALF",) if precision == "fp16" else ())
+        _FDMT_KERNELS[key] = (mod.get_function("bf_fdmt_level"), mod.get_function("bf_fdmt_ring"))
+    return _FDMT_KERNELS[key]
+
+
+_EW: dict = {}
+
+
+def _abs_dev_max(cp):
+    """max |x - ref| over the given axis (NaN counts as Inf, so that a non-finite value is seen:
+    fmaxf would drop a NaN)."""
+    if "absmax" not in _EW:
+        _EW["absmax"] = cp.ReductionKernel("float32 x, float32 r", "float32 y",
+                                           "x != x ? __int_as_float(0x7f800000) : fabsf(__fsub_rn(x, r))",
+                                           "fmaxf(a, b)", "y = a", "0.0f", "bf_abs_dev_max")
+    return _EW["absmax"]
+
+
+def _in_half(cp):
+    """float16 storage of (x - ref) * scale, each step rounded as NumPy's float32 does (no fused multiply-add)."""
+    if "in" not in _EW:
+        _EW["in"] = cp.ElementwiseKernel("float32 x, float32 r, float32 s", "float16 w",
+                                         "w = __fmul_rn(__fsub_rn(x, r), s)", "bf_fdmt_in_half")
+    return _EW["in"]
+
+
+def _out_half(cp):
+    """float32 rows out of float16 storage: w * a + ref_sum * b, rounded as NumPy does."""
+    if "out" not in _EW:
+        _EW["out"] = cp.ElementwiseKernel("float16 w, float32 k, float32 a, float32 b", "float32 o",
+                                          "o = __fadd_rn(__fmul_rn((float)w, a), __fmul_rn(k, b))",
+                                          "bf_fdmt_out_half")
+    return _EW["out"]

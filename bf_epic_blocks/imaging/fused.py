@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._xp import get_xp
+from ._xp import get_xp, to_numpy
 
 __all__ = ["FUSED", "PIECES", "bases", "quantise_operator", "padded_ntime", "layout_voltages", "fused_power",
            "reference_power", "kernel_config", "FusedOperator"]
@@ -98,7 +98,10 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16):
     C, K, Ak = (int(s) for s in G.shape)
     w = xp.asarray(weights)
     P = int(w.shape[-1])
-    shared = P == 1 or bool(xp.all(w == w[..., :1]))
+    # decided on the host (a few MB): on a GPU the whole-array test was a CUB reduction, whose
+    # compilation py-spy put at 7.4 s of a fresh machine's first whole-band image (H100, 2026-11-25)
+    wh = to_numpy(weights)
+    shared = P == 1 or bool(np.all(wh == wh[..., :1]))
     PA = 1 if shared else P
     Kpad, Apad = _pad(K, 64), _pad(nant_in, 64)          # rows a multiple of 128, KD of 128
     KD = 2 * Apad

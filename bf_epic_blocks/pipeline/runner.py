@@ -433,7 +433,7 @@ def build_graph(cfg, progress=None):
                                           product=sc["product"], outdir=outdir, prefix=out["prefix"],
                                           table_format=sc["table"], png=sc["png"], location=None,
                                           max_pixels=sc["max_pixels"], sky_fraction=sc["sky_fraction"],
-                                          dedisperse=sc["dedisperse"],
+                                          dedisperse=sc["dedisperse"], tree_precision=sc["tree_precision"],
                                           sidelobe_factor=sc["sidelobe_factor"])
         if out.get("cube"):
             from ..blocks.cube_writer import ImageCubeWriterBlock
@@ -627,7 +627,7 @@ def _plan_search(sc, freq, dt_img, npix, dev, imaging_s_per_s):
     from ..imaging import plan as planner
     from ..imaging.transient import TransientSearch
     kw, _ = search_settings(freq, dt_img, sc["window_s"], sc["dms"], sc["widths"], sc["average_channels"],
-                            dedisperse=sc["dedisperse"])
+                            dedisperse=sc["dedisperse"], tree_precision=sc["tree_precision"])
     s = TransientSearch(freq, dt_img, npix, allocate=False, **kw)
     mem = s.memory_bytes()
 
@@ -643,8 +643,9 @@ def _plan_search(sc, freq, dt_img, npix, dev, imaging_s_per_s):
              + ", ".join(f"{k} {size(mem[k])}" for k in mem if k != "history") + ")"]
     rate = planner.load_table().get("search", {}).get(dev)
     ips = 1.0 / dt_img
-    if rate and rows:
-        t = (rows * npix * ips * rate["tree_s_per_row_pixel_image"]
+    tree_key = "tree_fp16_s_per_row_pixel_image" if sc["tree_precision"] == "fp16" else "tree_s_per_row_pixel_image"
+    if rate and rows and tree_key in rate:
+        t = (rows * npix * ips * rate[tree_key]
              + s.nser * len(s.widths) * npix * ips * rate["statistics_s_per_trial_width_pixel_image"])
         both = imaging_s_per_s + t
         d.update(predicted_s_per_s=t, imaging_and_search_realtime_factor=1.0 / both if both > 0 else float("nan"))
