@@ -214,3 +214,20 @@ def test_the_gpu_float16_stream_equals_the_host_s_bit_for_bit(npix, chunk):
     assert host.rescales == dev.rescales == 1
     want = 0.25 * gathered_sums(x[:, :300], effective_back(plan))[:, 70:]
     assert np.abs(h - want).max() / np.abs(want).max() < _fp16_bound(x, 200)
+
+
+def test_float16_reference_is_the_first_image_not_a_view_of_the_caller_s_buffer():
+    """A caller that pushes one image at a time from a buffer it reuses (a ring's span) must not move
+    the reference: the stream equals the float64 sums as with fresh arrays."""
+    rng = np.random.default_rng(8)
+    plan = FDMTPlan(74e6 + 25e3 * np.arange(16), 6)
+    x = rng.normal(100.0, 10.0, size=(16, 40, 3)).astype(np.float32)
+    s = StreamingFDMT(plan, 3, precision="fp16")
+    buf = np.empty((16, 1, 3), np.float32)
+    got = []
+    for t in range(40):
+        buf[...] = x[:, t:t + 1]
+        got.append(s.push(buf))
+    got = np.concatenate(got, axis=1)[:, 6:]
+    want = gathered_sums(x, effective_back(plan))[:, 6:]
+    assert np.abs(got - want).max() < _fp16_bound(x, 16) * 16 * 10.0 * np.sqrt(2) * 4

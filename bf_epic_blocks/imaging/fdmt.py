@@ -248,7 +248,7 @@ class StreamingFDMT:
         which no sum of this push or of the past can overflow; returns the scale."""
         xp = self.xp
         if self.ref is None:
-            self.ref = xp.ascontiguousarray(x[:, 0])
+            self.ref = x[:, 0].copy()       # a copy: x may be a view of the caller's (reused) buffer
             self._ref_sum = xp.asarray(to_numpy(self.ref).astype(np.float64).sum(axis=0).astype(np.float32))
         if xp is np:
             amax = float(np.max(np.abs(x - self.ref[:, None])))
