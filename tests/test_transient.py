@@ -130,17 +130,26 @@ def test_search_finds_dispersed_burst_at_expected_snr(xp):
     assert found.snr[k] == pytest.approx(expect, rel=0.2)
 
 
+def _dispersed_burst(seed, nchan, npix, chan_hz, nimg, dm, pix, e0, amp):
+    """Noise images (mean 10, sigma 1) over ``nchan`` channels of ``chan_hz`` from 74 MHz, one per 16
+    samples, with a width-2 burst of ``amp`` at DM ``dm`` arriving at the band top at image ``e0``:
+    (f, dt, x (nimg, nchan, npix))."""
+    from bf_epic_blocks.imaging.transient import dispersion_delay_s
+    rng = np.random.default_rng(seed)
+    dt = 16 * DT
+    f = 74e6 + chan_hz * np.arange(nchan)
+    x = rng.normal(10, 1, (nimg, nchan, npix)).astype(np.float32)
+    _inject(x, pix, e0, 2, amp, np.rint(dispersion_delay_s(dm, f, f.max()) / dt).astype(int))
+    return f, dt, x
+
+
 def test_the_tree_search_finds_a_burst_at_its_dm_across_a_wide_band(xp):
     """96 channels over 19 MHz from 74 MHz (a band the shifted sums would need ~1,300 trials for): the
     tree searches every sweep, and a width-2 burst at DM 0.9 is found at its pixel, its arrival at
     the band top and its sweep (+-1: the tree's channels sit within 1-2 images of the curve)."""
     from bf_epic_blocks.imaging.transient import dispersion_delay_s
-    rng = np.random.default_rng(1)
-    nchan, npix, dt = 96, 50, 16 * DT
-    f = 74e6 + 200e3 * np.arange(nchan)
-    x = rng.normal(10, 1, (3000, nchan, npix)).astype(np.float32)
-    dm, pix, e0 = 0.9, 17, 2000
-    _inject(x, pix, e0, 2, 3.0, np.rint(dispersion_delay_s(dm, f, f.max()) / dt).astype(int))
+    nchan, npix, dm, pix, e0 = 96, 50, 0.9, 17, 2000
+    f, dt, x = _dispersed_burst(1, nchan, npix, 200e3, 3000, dm, pix, e0, 3.0)
     s = TransientSearch(f, dt, npix, 300, dms=[3.0], widths=(1, 2, 4), threshold=7, dedisperse="auto",
                         max_batch=64, xp=xp)
     per_dm = dispersion_delay_s(1.0, f.min(), f.max()) / dt              # images of sweep per unit DM
@@ -156,14 +165,9 @@ def test_the_tree_search_finds_a_burst_at_its_dm_across_a_wide_band(xp):
 def test_a_float16_tree_finds_the_burst_the_float32_tree_finds_at_its_s_n(xp):
     """The tree storing float16 (the whole band's setting): the same brightest candidate -- pixel, arrival,
     sweep, width -- as float32 storage, its S/N within 1%, and the window statistics within 1% of the
-    noise (float16's rounding, ~3e-4 of each sum rms, against a noise of 10% / sqrt(64) of it)."""
-    from bf_epic_blocks.imaging.transient import dispersion_delay_s
-    rng = np.random.default_rng(11)
-    nchan, npix, dt = 64, 20, 16 * DT
-    f = 74e6 + 300e3 * np.arange(nchan)
-    x = rng.normal(10, 1, (1600, nchan, npix)).astype(np.float32)
-    dm, pix, e0 = 0.6, 7, 1300
-    _inject(x, pix, e0, 2, 2.5, np.rint(dispersion_delay_s(dm, f, f.max()) / dt).astype(int))
+    noise (float16 rounds the fluctuations about each channel's first image, not the sums)."""
+    npix, pix, e0 = 20, 7, 1300
+    f, dt, x = _dispersed_burst(11, 64, npix, 300e3, 1600, 0.6, pix, e0, 2.5)
     best, stats = [], []
     for prec in ("fp32", "fp16"):
         s = TransientSearch(f, dt, npix, 200, dms=[1.0], widths=(1, 2, 4), threshold=7, dedisperse="tree",

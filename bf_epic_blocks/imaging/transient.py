@@ -144,7 +144,7 @@ class TransientSearch:
         ``sweep / (delay per unit DM across the band)``), or 'auto' (the tree from
         ``TREE_CHANNELS`` channels). pixel_chunk : pixels per pass of the tree (its working memory).
     tree_precision : 'fp32' or 'fp16', the values the tree stores (:class:`~.fdmt.StreamingFDMT`:
-        float16 halves its memory traffic and rings at ~3e-4 of each sum's value rms; the S/N and
+        float16 halves its memory traffic and rings, rounding fluctuations about a reference; the S/N and
         every later step stay float32/float64).
     max_pixels : at most this many crossings (the brightest) are kept per trial image (series, value,
         width), so a bright event costs what a faint one does (default 32).

@@ -102,8 +102,8 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
                                      `dms` a sum of shifted channels; tree: the streaming FDMT over
                                      every sweep from 0 to max(dms)'s, one image apart)
         tree_precision: fp32 | fp16  (default fp32; what the tree stores: fp16 halves its memory traffic
-                                     and rings, ~3e-4 of each sum rms -- ~0.2% more noise for 16-sample
-                                     images over 784 channels; keep fp32 for long integrations)
+                                     and rings; it rounds the fluctuations about each channel's first
+                                     image, ~1e-3 of the sums' noise rms)
         product: str                 (default null = the first product)
         table: ecsv | fits           (default ecsv; <prefix>_candidates.<table> in output.dir)
         png: bool                    (default true; sky with the candidates and their light curves)
