@@ -71,6 +71,7 @@ def test_plan_reports_the_whole_band_search_and_what_it_costs(capsys):
     assert sd["history_values"] == 312 + 8 + 64 + (8 + 16 + 1330 + 32)
     assert sd["memory_bytes"]["history"] == 1331 * sd["history_values"] * 3205 * 4
     assert sd["memory_bytes"]["tree"] == 2 * 444050 * 3206          # the YAML's float16 tree (even rows)
+    assert sd["tree_precision"] == "fp16" and "12283 tree rows stored as fp16" in text
     assert 0 < sd["imaging_and_search_realtime_factor"] < d["realtime_factor"]
     assert "transient search: tree dedispersion, 1331 trials" in text and "imaging and search together" in text
     assert cli.main(["plan", str(PIPES / "lwasv_sim_wholeband.yaml"), "--set", "device=gpu"]) == 0

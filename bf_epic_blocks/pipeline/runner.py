@@ -634,9 +634,11 @@ def _plan_search(sc, freq, dt_img, npix, dev, imaging_s_per_s):
     def size(b):
         return f"{b / 2**30:.1f} GiB" if b >= 2**30 else f"{b / 2**20:.1f} MiB"
     rows = s.tree_rows
-    how = (f"tree dedispersion, {s.nser} trials (every sweep to DM {max(sc['dms']):g}), {rows} tree rows"
+    how = (f"tree dedispersion, {s.nser} trials (every sweep to DM {max(sc['dms']):g}), {rows} tree rows "
+           f"stored as {sc['tree_precision']}"
            if rows else f"shifted sums, {s.nser} trial(s)" if s.average else f"each of {s.nser} channels")
     d = {"dedisperse": s.dedisperse, "trials": s.nser, "tree_rows": rows, "memory_bytes": mem,
+         "tree_precision": sc["tree_precision"] if rows else None,
          "history_values": s.capacity}
     lines = [f"  transient search: {how}, widths {s.widths}; holds {size(sum(mem.values()))} where it runs "
              f"(history {size(mem['history'])}: {s.capacity} values per trial; "
