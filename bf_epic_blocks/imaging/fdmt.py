@@ -163,7 +163,10 @@ class StreamingFDMT:
     rows are copied out), so float16's 11 bits carry the fluctuations, not the sky's mean: a sum's
     error after its ~log2(nchan) roundings is ~3e-4 of the fluctuations' size rms, far below their
     noise. (A first version rounded whole values: ~3e-4 of the value, 0.16 sigma of the whole band's
-    noise at a S/N-369 burst's peak, enough to move the burst's best trial by two sweeps.) The past
+    noise at a S/N-369 burst's peak, enough to move the burst's best trial by two sweeps.) The
+    reference holds until a reset, so a sky that drifts by D since then is rounded at ~3e-4 D: below
+    the noise while D is under ~1,000 noise sigmas of a value -- for 0.64-ms images (sigma ~18% of the
+    sky) any drift; for 1-s integrations (~0.5%) a pixel's whole brightness. The past
     before the first push counts as equal to ``ref`` (float32: as 0), so the first ``dmax`` images'
     values, which lack part of the band's past, differ accordingly (a search does not use them).
     Values are scaled by a power of two so that a whole-band sum of the largest fluctuation pushed
