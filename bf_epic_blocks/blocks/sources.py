@@ -283,8 +283,10 @@ class SimSkySourceBlock(bfp.SourceBlock):
     freq_hz : channel centres; ``start`` : astropy Time (or ISO string); ``duration_s`` : length.
     sources, noise_power, seed : as :func:`bf_epic_blocks.sky.simulate_efield`. The samples are made
               by :mod:`bf_epic_blocks.sky.fastsim` where the ring lives (one CUDA kernel per gulp
-              on a GPU, its NumPy twin on the host): every sample is a function of the seed and its
-              place, so runs repeat exactly whatever the gulp size, and GPU and CPU give the same data.
+              on a GPU, its NumPy twin on the host): every sample is a function of the seed, its
+              place and the number of sky columns, so runs repeat exactly whatever the gulp size, and
+              GPU and CPU give the same data. (A source's counter counts the columns: adding a burst,
+              even one that starts later, gives the steady sources other signals; the noise stays.)
     quantize : True writes 'ci4' scaled like an F-engine (rms 2 units, from the model's expected
               power), False writes 'cf32'.
     transients : dispersed bursts, ``[{ra_deg, dec_deg, start_s, duration_s, flux_jy, dm}]`` with
