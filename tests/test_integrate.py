@@ -88,16 +88,6 @@ def test_wholeband_pipeline_made_small(tmp_path):
         assert np.allclose(got, want, rtol=2e-6)
 
 
-def _truth_weights(station, freq_hz):
-    """PHYSICS.md's calibration written out here (not the package's): w_a = exp(+2 pi i nu tau_a) /
-    sqrt(G_a), 0 for a flagged antenna or a gain <= 0; (nchan, nstand, 2)."""
-    tau = np.moveaxis(np.asarray(station.cable_delay_s(freq_hz), np.float64), -1, 0)    # (nchan, nstand, 2)
-    g = np.moveaxis(np.asarray(station.cable_gain(freq_hz), np.float64), -1, 0)
-    ok = (g > 0) & np.isfinite(g) & np.isfinite(tau) & ~np.asarray(station.flags)[None, :, :2]
-    return np.where(ok, np.exp(2j * np.pi * np.asarray(freq_hz)[:, None, None] * np.where(ok, tau, 0.0))
-                    / np.sqrt(np.where(ok, g, 1.0)), 0.0)
-
-
 @pytest.mark.parametrize("device", ["cpu", pytest.param("gpu", marks=[
     pytest.mark.gpu, pytest.mark.skipif(not imaging._xp.gpu_available(), reason="needs CuPy and a CUDA device")])])
 def test_wholeband_images_equal_a_float64_evaluation(tmp_path, device):
@@ -107,7 +97,7 @@ def test_wholeband_images_equal_a_float64_evaluation(tmp_path, device):
     writes them) of the very voltages the simulator made, within the YAML's tolerance (1e-4: the mode
     the tolerance picks on that device, i8x2 on a GPU)."""
     from pathlib import Path
-    from truth import brute_image
+    from truth import brute_image, calibration_weights
     from bf_epic_blocks.blocks.sources import SimSkySourceBlock
     from bf_epic_blocks.io.cube import read_image_cube
     from bf_epic_blocks.pipeline.config import load_config
@@ -119,7 +109,7 @@ def test_wholeband_images_equal_a_float64_evaluation(tmp_path, device):
                              "output.png=false", "output.cube.dtype=float32", "output.cube.average_channels=false"])
     run(cfg, show_progress=False)
     cube = read_image_cube(next(tmp_path.glob("*_cube_*.h5")))
-    imgs, pix = cube["images"], cube["pixel_index"]                          # (n, 16, 1, npix)
+    imgs = cube["images"]                                                    # (n, 16, 1, npix)
     # the same voltages again (every sample is a function of the seed and its place), to the host
     src = cfg["source"]
     station = load_station_for(cfg)
@@ -137,7 +127,8 @@ def test_wholeband_images_equal_a_float64_evaluation(tmp_path, device):
     acc = cfg["imager"]["accumulate_frames"]
     assert imgs.shape[0] == x.shape[0] // acc and imgs.shape[1] == 16
     lm = _pixels(cfg, station).lm
-    w = _truth_weights(station, freq)
+    w = calibration_weights(np.moveaxis(station.cable_delay_s(freq), -1, 0),
+                            np.moveaxis(station.cable_gain(freq), -1, 0), station.flags, freq)
     rng = np.random.default_rng(22)
     errs = []
     for j, c in zip(rng.integers(0, imgs.shape[0], 6), rng.integers(0, 16, 6)):

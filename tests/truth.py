@@ -67,6 +67,16 @@ def brute_image(efield, xyz_m, freq_hz, lm, products, remove_autocorr=False, wei
     return np.stack([table[p] for p in products], axis=1)
 
 
+def calibration_weights(delay_s, gain, flags, freq_hz):
+    """Direction-independent weights w_a = exp(+2 pi i nu tau_a) / sqrt(G_a) (PHYSICS.md's calibration),
+    0 for a flagged antenna or a gain <= 0: delay_s, gain (nchan, nant, 2), flags (nant, >= 2) ->
+    complex128 (nchan, nant, 2)."""
+    tau, g = np.asarray(delay_s, np.float64), np.asarray(gain, np.float64)
+    ok = (g > 0) & np.isfinite(g) & np.isfinite(tau) & ~np.asarray(flags, bool)[None, :, :2]
+    nu = np.asarray(freq_hz, np.float64)[:, None, None]
+    return np.where(ok, np.exp(2j * np.pi * nu * np.where(ok, tau, 0.0)) / np.sqrt(np.where(ok, g, 1.0)), 0.0)
+
+
 def point_source_efield(xyz_m, freq_hz, l, m, power, ntime, npol=1, rng=None):
     """Voltages of one point source of the given power per pol (sigma = +1, constant-modulus signal).
 
