@@ -265,17 +265,16 @@ class StreamingFDMT:
         if self.scale is not None and bound * self.scale <= self.FP16_LIMIT:
             return self.scale
         new = 2.0 ** np.floor(np.log2(self.FP16_HEAD / bound)) if bound > 0 else 1.0
-        if self.scale is None:
-            self.scale = new
-        elif new < self.scale:                         # a brighter push: the past rescaled to match
+        if self.scale is not None:
+            # a brighter push (past FP16_LIMIT, so new <= scale / 64): the past rescaled to match
             f = np.float32(new / self.scale)
             if xp is np:
                 self.ring[...] = (self.ring.astype(np.float32) * f).astype(np.float16)
             else:
                 xp.multiply(self.ring, f, out=self.ring, casting="unsafe")
-            self.scale = new
             self.rescales += 1
-        return self.scale
+        self.scale = new
+        return new
 
     def _chunk(self, B):
         """Pixels per pass for a block of ``B`` images: ``pixel_chunk``, or as many as ``WORK_BYTES``
