@@ -88,6 +88,29 @@ def test_wholeband_pipeline_made_small(tmp_path):
         assert np.allclose(got, want, rtol=2e-6)
 
 
+def test_search_with_a_minimum_elevation(tmp_path):
+    """imager.min_elevation_deg leaves the pixels below it NaN on the grid; the image header says which
+    pixels were imaged (pixels.index), so the search takes only those (it had taken every pixel above the
+    horizon, and the tree refused the NaN) and still finds the burst."""
+    from pathlib import Path
+    from bf_epic_blocks.io.candidates import read_candidates
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import run
+    yaml = Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_wholeband.yaml"
+    cfg = load_config(yaml, [f"output.dir={tmp_path}", "source.duration_s=0.42", "source.channels.count=16",
+                             "imager.grid.size=16", "imager.min_elevation_deg=20", "imager.search.window_s=0.06",
+                             "imager.search.dms=[1.0]", "imager.search.threshold=7", "output.integrate=null",
+                             "output.fits=false", "output.png=false", "output.cube=null",
+                             "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.3, duration_s: 0.0015, "
+                             "flux_jy: 2000.0, dm: 0.6}]"])
+    summary = run(cfg, show_progress=False)
+    tab = read_candidates(tmp_path / "lwasv_sim_wholeband_candidates.ecsv")
+    best = tab[int(np.argmax(tab["snr"]))]
+    assert abs(best["image"] - 0.3 / (16 * DT)) <= 1 and best["snr"] > 10
+    from bf_epic_blocks.imaging.pixels import lm_grid
+    assert summary["search"]["trials_per_width"][0] % lm_grid(16, min_elevation_deg=20).npix == 0
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("gpu", marks=[
     pytest.mark.gpu, pytest.mark.skipif(not imaging._xp.gpu_available(), reason="needs CuPy and a CUDA device")])])
 def test_wholeband_images_equal_a_float64_evaluation(tmp_path, device):

@@ -22,7 +22,7 @@ from ..imaging.pixels import GridPlacement, LMGrid, check_lm
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
 from ..runtime.dtypes import int8_pairs_decoder
-from .headers import derived_image_header, efield_header, efield_layout
+from .headers import derived_image_header, efield_header, efield_layout, grid_pixels_header
 from .nonfinite import get_tally, is_float_dtype, new_tally, zero_and_count
 
 log = logging.getLogger(__name__)
@@ -188,7 +188,7 @@ class DFTImagerBlock(bfp.TransformBlock):
             ax0 = float(g.axis[0])
             scales = [[t0, dt * self.accumulate], fscale, None, [ax0, g.cell], [ax0, g.cell]]
             units = ["s", "Hz", None, None, None]
-            ohdr["pixels"] = {"kind": "grid", "size": g.size, "cell": g.cell, "npix_imaged": g.npix}
+            ohdr["pixels"] = grid_pixels_header(g)
             self._place = GridPlacement(np.flatnonzero(g.mask), g.size * g.size, self._xp)
         else:
             shape = [-1, lay["nchan"], nprod, len(lm)]

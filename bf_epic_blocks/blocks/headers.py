@@ -161,12 +161,12 @@ def derived_image_header(hdr):
 
 def image_layout(hdr, who="block"):
     """Validate an image header written by the imagers (docs/HEADERS.md); returns a dict with
-    ``kind`` ('grid' or 'list'), ``grid`` (LMGrid or None), ``lm`` (npix, 2) of the imaged pixels,
+    ``kind`` ('grid' or 'list'), ``grid`` (LMGrid of the imaged pixels, or None), ``lm`` (npix, 2) of the imaged pixels,
     ``pixel_index`` (npix,) flat indices into the frame's pixel axes (N*N for grids), nchan, nprod,
     products, freq_hz (nchan,), t0_s, dt_s (seconds per image), time_tag, integration_ticks,
     frame_shape (the frame's axes after time).
     """
-    from ..imaging.pixels import lm_grid
+    from ..imaging.pixels import LMGrid, lm_grid
     t = _tensor(hdr, who)
     labels = list(t.get("labels") or [])
     shape = list(t["shape"])
@@ -178,6 +178,18 @@ def image_layout(hdr, who="block"):
         if shape[3:] != [grid.size, grid.size]:
             raise ValueError(f"{who}: image shape {shape} does not match the {grid.size}x{grid.size} grid")
         kind, lm, index = "grid", grid.lm, np.flatnonzero(grid.mask)
+        if pix.get("index") is not None:
+            # only some of the pixels above the horizon imaged (a minimum elevation; one GPU's part)
+            sub = np.asarray(pix["index"], dtype=np.int64).ravel()
+            pos = np.searchsorted(index, sub)
+            if sub.size == 0 or np.any(pos >= index.size) or np.any(index[np.minimum(pos, index.size - 1)] != sub) \
+                    or np.any(np.diff(sub) <= 0):
+                raise ValueError(f"{who}: header pixels.index must be increasing flat indices of pixels above the "
+                                 f"horizon of the {grid.size}x{grid.size} grid")
+            lm, index = lm[pos], sub
+            mask = np.zeros_like(grid.mask)
+            mask.flat[sub] = True
+            grid = LMGrid(size=grid.size, cell=grid.cell, lm=lm, mask=mask)
     elif labels == ["time", "freq", "pol", "pixel"] and len(shape) == 4 and shape[0] == -1:
         grid = None
         lm = np.asarray((hdr.get("pixels") or {}).get("lm"), dtype=np.float64)
@@ -210,6 +222,18 @@ def image_layout(hdr, who="block"):
     return {"kind": kind, "grid": grid, "lm": lm, "pixel_index": index, "nchan": nchan, "nprod": nprod,
             "products": products, "freq_hz": freq, "t0_s": t0_s, "dt_s": dt_s,
             "time_tag": int(hdr.get("time_tag", 0)), "integration_ticks": ticks, "frame_shape": shape[1:]}
+
+
+def grid_pixels_header(grid):
+    """The image header's ``pixels`` for an :class:`~bf_epic_blocks.imaging.pixels.LMGrid`: kind, size,
+    cell, npix_imaged, and ``index`` (the imaged pixels' flat indices, increasing) where they are not
+    all the pixels above the horizon (a minimum elevation, or one part of a pixel split), so that
+    readers (:func:`image_layout`) take exactly the pixels that hold values."""
+    from ..imaging.pixels import lm_grid
+    out = {"kind": "grid", "size": int(grid.size), "cell": float(grid.cell), "npix_imaged": int(grid.npix)}
+    if not np.array_equal(grid.mask, lm_grid(grid.size, cell=grid.cell).mask):
+        out["index"] = np.flatnonzero(grid.mask).tolist()
+    return out
 
 
 def station_location(hdr):

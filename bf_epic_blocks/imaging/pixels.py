@@ -80,6 +80,20 @@ class LMGrid:
         """Pixel-centre coordinates along l (columns) and m (rows): (i - N//2) * cell."""
         return (np.arange(self.size) - self.size // 2) * self.cell
 
+    def part(self, k: int, n: int) -> "LMGrid":
+        """The k-th of ``n`` parts of this grid's kept pixels: contiguous runs in their row-major
+        order, sizes differing by at most one, on the same N x N grid (the others not kept). Several
+        GPUs image and search one part each (the pipeline's pixel split)."""
+        if int(n) != n or n < 1 or int(k) != k or not 0 <= k < n:
+            raise ValueError(f"LMGrid.part: k must be in 0..n-1 with n >= 1, got k={k!r}, n={n!r}")
+        if n > self.npix:
+            raise ValueError(f"LMGrid.part: cannot share {self.npix} pixel(s) among {n} parts")
+        edges = np.linspace(0, self.npix, int(n) + 1).round().astype(int)
+        keep = np.flatnonzero(self.mask)[edges[k]:edges[k + 1]]
+        mask = np.zeros_like(self.mask)
+        mask.flat[keep] = True
+        return LMGrid(size=self.size, cell=self.cell, lm=self.lm[edges[k]:edges[k + 1]].copy(), mask=mask)
+
     def to_image(self, values):
         """Scatter (..., npix) values back onto (..., N, N) [m, l] images, NaN outside the kept set."""
         xp = get_xp(values)
