@@ -6,8 +6,10 @@ outside, as an operator runs it (``--set`` overrides pass through; the default i
 
 * whole run: data seconds / process wall; pipeline: data seconds / the runner's own wall;
   flowing: data seconds / the time from the search's first images to its last (the search is where
-  every image ends; without one, the imager), the figure the whole-band issue asks for (>= 1.5x).
-* memory, sampled every ``--sample-s``: the GPU's used memory (``nvidia-smi``, where there is one) and
+  every image ends; without one, the imager; several GPUs' searches: the first's first to the last's
+  last), the figure the whole-band issue asks for (>= 1.5x).
+* memory, sampled every ``--sample-s``: the GPU's used memory (``nvidia-smi``, where there is one;
+  with several GPUs the fullest one's) and
   the run's resident set (``/proc``): first, peak, and the growth from the first quarter of the
   flowing time to the last (flat means ~0).
 * each injected burst (``source.transients``): the brightest candidate within ``--match-s`` of its
@@ -52,7 +54,7 @@ def gpu_used_mib():
     try:
         out = subprocess.run([exe, "--query-gpu=memory.used", "--format=csv,noheader,nounits"],
                              capture_output=True, text=True, timeout=10).stdout.split()
-        return float(out[0]) if out else None
+        return max(float(v) for v in out) if out else None       # several GPUs: the fullest
     except (OSError, subprocess.SubprocessError, ValueError):
         return None
 
@@ -148,10 +150,15 @@ def run(args):
             raise SystemExit(f"bf-epic run failed ({rc}): {err.read()[-3000:]}")
     info = json.loads(summary.read_text())
     blocks = info.get("blocks", {})
-    sink = next((b for n, b in blocks.items() if n.startswith("TransientSearch")), None) or \
-        next((b for n, b in blocks.items() if n.startswith(("DFTImager", "WStack"))), None)
+    # the searches (one per GPU of a pixel split), else the imagers: from the first's first images to
+    # the last's last
+    parts = [b for n, b in blocks.items() if n.startswith("TransientSearch")] or \
+        [b for n, b in blocks.items() if n.startswith(("DFTImager", "WStack"))]
+    parts = [b for b in parts if b["first_data_s"] is not None and b["last_data_s"] is not None]
+    sink = {"first_data_s": min(b["first_data_s"] for b in parts),
+            "last_data_s": max(b["last_data_s"] for b in parts)} if parts else None
     flow = None
-    if sink and sink["last_data_s"] is not None and sink["last_data_s"] > sink["first_data_s"]:
+    if sink and sink["last_data_s"] > sink["first_data_s"]:
         # the runner's block times are seconds after its own start, which is after the process's
         lag = wall - info["wall_s"]
         flow = (sink["first_data_s"] + lag, sink["last_data_s"] + lag)

@@ -10,5 +10,6 @@ from .cube_writer import ImageCubeWriterBlock, image_cube_writer  # noqa: F401
 from .dft_imager import DFTImagerBlock, dft_imager  # noqa: F401
 from .headers import efield_header, efield_layout, image_layout  # noqa: F401
 from .integrate import ImageIntegratorBlock, image_integrator  # noqa: F401
+from .pixel_merge import PixelMergeBlock, pixel_merge  # noqa: F401
 from .transient_search import TransientSearchBlock, transient_search  # noqa: F401
 from .wstack import WStackBlock, wstack  # noqa: F401

@@ -188,7 +188,7 @@ class DFTImagerBlock(bfp.TransformBlock):
             ax0 = float(g.axis[0])
             scales = [[t0, dt * self.accumulate], fscale, None, [ax0, g.cell], [ax0, g.cell]]
             units = ["s", "Hz", None, None, None]
-            ohdr["pixels"] = grid_pixels_header(g)
+            ohdr["pixels"] = grid_pixels_header(g.size, g.cell, g.mask)
             self._place = GridPlacement(np.flatnonzero(g.mask), g.size * g.size, self._xp)
         else:
             shape = [-1, lay["nchan"], nprod, len(lm)]

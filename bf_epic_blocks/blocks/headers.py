@@ -224,15 +224,17 @@ def image_layout(hdr, who="block"):
             "time_tag": int(hdr.get("time_tag", 0)), "integration_ticks": ticks, "frame_shape": shape[1:]}
 
 
-def grid_pixels_header(grid):
-    """The image header's ``pixels`` for an :class:`~bf_epic_blocks.imaging.pixels.LMGrid`: kind, size,
-    cell, npix_imaged, and ``index`` (the imaged pixels' flat indices, increasing) where they are not
-    all the pixels above the horizon (a minimum elevation, or one part of a pixel split), so that
-    readers (:func:`image_layout`) take exactly the pixels that hold values."""
+def grid_pixels_header(size, cell, mask):
+    """The image header's ``pixels`` for images on a ``size`` x ``size`` l, m grid of step ``cell`` of which
+    the pixels where ``mask`` (N, N) holds are imaged: kind, size, cell, npix_imaged, and ``index`` (their
+    flat indices, increasing) where they are not all the pixels above the horizon (a minimum elevation,
+    or one part of a pixel split), so that readers (:func:`image_layout`) take exactly the pixels that
+    hold values."""
     from ..imaging.pixels import lm_grid
-    out = {"kind": "grid", "size": int(grid.size), "cell": float(grid.cell), "npix_imaged": int(grid.npix)}
-    if not np.array_equal(grid.mask, lm_grid(grid.size, cell=grid.cell).mask):
-        out["index"] = np.flatnonzero(grid.mask).tolist()
+    mask = np.asarray(mask, bool)
+    out = {"kind": "grid", "size": int(size), "cell": float(cell), "npix_imaged": int(mask.sum())}
+    if not np.array_equal(mask, lm_grid(int(size), cell=cell).mask):
+        out["index"] = np.flatnonzero(mask).tolist()
     return out
 
 

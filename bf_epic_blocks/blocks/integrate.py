@@ -22,6 +22,7 @@ import math
 import numpy as np
 
 from ..imaging._xp import get_xp
+from . import _compat
 from ._compat import bfp, span_array
 from .headers import derived_header, image_layout
 
@@ -34,9 +35,11 @@ class ImageIntegratorBlock(bfp.TransformBlock):
     iring : an imager's output ring (grid or pixel list; any space: sums stay where the ring lives,
     float64 per output pixel).  nimage : images per output; or seconds : the output's length, made
     ``max(1, round(seconds / image length))`` images of each sequence (its header's time scale).
+    space : the output ring's space (default the input's): 'system' brings the (small) results to
+    the host, as a pixel split's parts do before :class:`~.pixel_merge.PixelMergeBlock` joins them.
     """
 
-    def __init__(self, iring, nimage=None, average_channels=True, *args, seconds=None, **kwargs):
+    def __init__(self, iring, nimage=None, average_channels=True, *args, seconds=None, space=None, **kwargs):
         if (nimage is None) == (seconds is None):
             raise ValueError("ImageIntegratorBlock: give nimage (images) or seconds, one of them")
         if nimage is not None and (isinstance(nimage, bool) or int(nimage) != nimage or nimage < 1):
@@ -47,6 +50,8 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         self.nimage = None if nimage is None else int(nimage)
         self.seconds, self.average_channels = seconds, bool(average_channels)
         self.int_stats = {"images_in": 0, "images_out": 0, "images_dropped_partial": 0}
+        if space is not None:
+            self.orings = [self.create_ring(space=space)]
 
     def define_valid_input_spaces(self):
         return "any"
@@ -90,6 +95,11 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         n = x.shape[0]
         nout = 0
         pos = 0
+        if self.nimage == 1:
+            # each image its own output (the band mean of each, a pixel split's parts): all at once
+            part = x.mean(axis=1, keepdims=True, dtype=xp.float64) if self.average_channels else x
+            out[:n] = _to_space(part.astype(out.dtype), out)
+            pos = nout = n
         while pos < n:
             take = min(self.nimage - self._n, n - pos)
             part = x[pos:pos + take]
@@ -100,7 +110,7 @@ class ImageIntegratorBlock(bfp.TransformBlock):
             self._n += take
             pos += take
             if self._n == self.nimage:
-                out[nout] = (self._sum / self.nimage).astype(out.dtype)
+                out[nout] = _to_space((self._sum / self.nimage).astype(out.dtype), out)
                 nout += 1
                 self._sum, self._n = None, 0
         self.int_stats["images_in"] += n
@@ -113,6 +123,11 @@ class ImageIntegratorBlock(bfp.TransformBlock):
             log.warning("ImageIntegratorBlock: %d images at the end of sequence %s did not fill an integration of %d "
                         "and were not written", self._n, iseq.header.get("name"), self.nimage)
             self._sum, self._n = None, 0
+
+
+def _to_space(a, out):
+    """``a`` where ``out`` lives (a GPU result for a host output ring is copied to the host)."""
+    return _compat.to_numpy(a) if isinstance(out, np.ndarray) else a
 
 
 def image_integrator(iring, nimage=None, *args, **kwargs):

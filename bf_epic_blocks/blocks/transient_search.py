@@ -106,6 +106,9 @@ class TransientSearchBlock(bfp.SinkBlock):
             raise ValueError(f"TransientSearchBlock: sidelobe_factor must be >= 0, got {sidelobe_factor!r}")
         self.sidelobe_factor, self.max_pixels, self.sky_fraction = float(sidelobe_factor), max_pixels, sky_fraction
         self.dedisperse, self.tree_precision = dedisperse, tree_precision
+        #: fit every point candidate's source at once (a pixel split's part: SearchParts folds the other
+        #: parts' sidelobes with it), not only when a fainter one needs it
+        self.fit_every_row = False
         self.rows, self.written = [], []
         self.candidates = None
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
@@ -384,27 +387,33 @@ class TransientSearchBlock(bfp.SinkBlock):
         searched pixels (the header's station, flags and antenna pattern), or None where the product
         is not a power the beam describes (Q, U, V, cross-hands)."""
         if self._beam is None:
-            from ..imaging import patterns
-            from ..imaging.transient import ArrayBeam
-            prod = self.lay["products"][self._prod]
-            npol = len(self._beam_ants)
-            w = {"I": [1.0] * npol, "XX": [1.0] + [0.0] * (npol - 1), "YY": [0.0, 1.0][:npol]}.get(prod)
-            if w is None or not any(w):
-                self._beam = False
-                return None
-            pp, name = None, (self.hdr.get("imager") or {}).get("pattern")
-            if name:
-                try:
-                    b = patterns.pattern_array(name, np.asarray(self.lay["lm"]), self.lay["freq_hz"], npol)
-                    b = np.abs(_compat.to_numpy(b)) ** 2                  # (nchan|1, npix, nant|1, npol|1)
-                    b = np.broadcast_to(b.mean(axis=(0, 2)), (len(self.lay["lm"]), npol))
-                    pp = (b * np.asarray(w)[None]).sum(axis=1) / sum(w)
-                except (ValueError, TypeError) as exc:
-                    log.warning("TransientSearchBlock: antenna pattern %r not known here (%s); the sidelobe "
-                                "test takes it as 1", name, exc)
-            self._beam = ArrayBeam(self._beam_ants, w, self.lay["freq_hz"], self.lay["lm"],
-                                   pattern_power=pp, remove_autocorr=self._autocorr_removed)
+            self._beam = self.beam_on(self.lay["lm"]) or False
         return self._beam or None
+
+    def beam_on(self, lm):
+        """The :class:`~bf_epic_blocks.imaging.transient.ArrayBeam` of the searched product on the pixels
+        ``lm`` (npix, 2), or None where the product is not a power the beam describes or the header
+        has no antennas."""
+        from ..imaging import patterns
+        from ..imaging.transient import ArrayBeam
+        prod = self.lay["products"][self._prod]
+        npol = len(self._beam_ants)
+        w = {"I": [1.0] * npol, "XX": [1.0] + [0.0] * (npol - 1), "YY": [0.0, 1.0][:npol]}.get(prod)
+        if not npol or w is None or not any(w):
+            return None
+        lm = np.asarray(lm, np.float64).reshape(-1, 2)
+        pp, name = None, (self.hdr.get("imager") or {}).get("pattern")
+        if name:
+            try:
+                b = patterns.pattern_array(name, lm, self.lay["freq_hz"], npol)
+                b = np.abs(_compat.to_numpy(b)) ** 2                  # (nchan|1, npix, nant|1, npol|1)
+                b = np.broadcast_to(b.mean(axis=(0, 2)), (len(lm), npol))
+                pp = (b * np.asarray(w)[None]).sum(axis=1) / sum(w)
+            except (ValueError, TypeError) as exc:
+                log.warning("TransientSearchBlock: antenna pattern %r not known here (%s); the sidelobe "
+                            "test takes it as 1", name, exc)
+        return ArrayBeam(self._beam_ants, w, self.lay["freq_hz"], lm, pattern_power=pp,
+                         remove_autocorr=self._autocorr_removed)
 
     def _fitted(self, r):
         """The S/N (npix,) that recent point row ``r``'s event puts at every pixel: the point source
@@ -419,6 +428,13 @@ class TransientSearchBlock(bfp.SinkBlock):
                 from ..imaging.transient import locate_point_source
                 lm_fit, model, explained = locate_point_source(r["snr_image"], r["sigma_image"], beam,
                                                                self.lay["lm"][r["pixel"]], self._cell)
+                # the fitted source itself (position, amplitude in flux units), for what it puts on
+                # pixels this search does not hold: a pixel split's other parts (SearchParts)
+                p = r["pixel"]
+                b = float(beam.at(np.asarray(lm_fit).reshape(1, 2))[0, p])
+                sg = float(_compat.to_numpy(r["sigma_image"])[p])
+                if b > 0 and model[p] > 0:
+                    self.rows[r["row"]]["_fit"] = (float(lm_fit[0]), float(lm_fit[1]), float(model[p]) * sg / b)
                 log.debug("row %d: point source fitted at l %.4f m %.4f (pixel %d at %s), explains %.0f%% of its "
                           "S/N image", r["row"], lm_fit[0], lm_fit[1], r["pixel"], self.lay["lm"][r["pixel"]],
                           100 * explained)
@@ -454,7 +470,9 @@ class TransientSearchBlock(bfp.SinkBlock):
                           "snr": float(cr.snr[k]), "dm": s.dms[ser] if s.average else 0.0,
                           "channel": -1 if s.average else ser, "width": w, "width_ms": w * lay["dt_s"] * 1e3,
                           "nmembers": nmembers, "nsidelobes": 0, "kind": "sky-wide" if cr.skywide[k] else "point",
-                          "sky_fraction": sky_fraction, "lightcurve": lc})
+                          "sky_fraction": sky_fraction, "lightcurve": lc,
+                          # (not a column: the window sigma at its pixel, for merging a pixel split's parts)
+                          "_sigma": float(self._sigma[ser, p]) if self._sigma is not None else float("nan")})
         self.search_stats["candidates"] += 1
         if not cr.skywide[k]:
             # kept for the sidelobe test of fainter candidates at the same time: the event's boxcar S/N
@@ -470,6 +488,8 @@ class TransientSearchBlock(bfp.SinkBlock):
                                  "dm": float(s.dms[ser]) if s.average else 0.0, "width": w,
                                  "sigma": float(self._sigma[ser, p]) if self._sigma is not None else float("nan"),
                                  "snr_image": img, "sigma_image": None if ws is None else ws[1]})
+            if self.fit_every_row and self.sidelobe_factor:
+                self._fitted(self._recent[-1])    # (its "_fit": for a pixel split's merge)
         if cr.skywide[k]:
             self.search_stats["sky_wide"] += 1
             log.warning("sky-wide event: %s UTC, peak S/N %.1f at l %.3f m %.3f, %.0f%% of the sky over the "
@@ -479,33 +499,42 @@ class TransientSearchBlock(bfp.SinkBlock):
         log.info("transient candidate: %s UTC, S/N %.1f, DM %g, width %d, l %.3f m %.3f, RA %.2f Dec %.2f",
                  t.isot, cr.snr[k], self.rows[-1]["dm"], w, l, m, ra, dec)
 
-    def _write(self):
-        from ..io import candidates as cio
+    def meta(self):
+        """The candidate table's metadata (the search's settings and its trial counts)."""
         lay = self.lay
-        meta = {"threshold": self.threshold, "window_s": self.window_s, "window_images": self.search.window,
+        return {"threshold": self.threshold, "window_s": self.window_s, "window_images": self.search.window,
                 "dms": self.dms, "dedisperse": self.search.dedisperse, "widths": self.widths, "dt_s": lay["dt_s"],
                 "f_ref_mhz": float(lay["freq_hz"].max() / 1e6),
                 "average_channels": self.average_channels, "product": lay["products"][self._prod],
                 "lightcurve_first": -self.lc_before, "trials_per_width": list(self.search_stats["trials_per_width"]),
                 "time_reference": "event start at the highest channel frequency (f_ref_mhz)"}
-        self.candidates = cio.candidate_table(self.rows, meta, lc_length=self.lc_before + self.lc_after + 1)
+
+    def _write(self):
+        from ..io import candidates as cio
+        self.candidates = cio.candidate_table(self.rows, self.meta(), lc_length=self.lc_before + self.lc_after + 1)
         mean, _ = self.search.statistics()
         self._sky = _compat.to_numpy(mean[0])
         if self.outdir is None:
             return
-        os.makedirs(self.outdir, exist_ok=True)
-        stem = os.path.join(self.outdir, f"{self.prefix}_candidates")
-        path = cio.write_candidates(f"{stem}.{self.table_format}", self.candidates)
-        if path not in self.written:
-            self.written.append(path)
-        if self.png:
-            sky = self._sky if np.all(np.isfinite(self._sky)) else np.zeros(len(lay["lm"]))
-            png = cio.candidates_png(f"{stem}.png", self.candidates, sky, grid=lay["grid"], lm=lay["lm"],
-                                     dt_s=lay["dt_s"],
-                                     title=f"{len(self.candidates)} candidate(s) above {self.threshold:g} sigma "
-                                           f"({lay['products'][self._prod]}); sky: window mean")
-            if png not in self.written:
-                self.written.append(png)
+        for path in write_candidate_files(self.outdir, self.prefix, self.table_format, self.png, self.candidates,
+                                          self._sky, self.lay, self.threshold, self.lay["products"][self._prod]):
+            if path not in self.written:
+                self.written.append(path)
+
+
+def write_candidate_files(outdir, prefix, table_format, png, table, sky, lay, threshold, product):
+    """``<prefix>_candidates.<table_format>`` (and its PNG: ``sky`` (npix,) on the layout's pixels, with
+    the candidates) in ``outdir``; returns the paths written."""
+    from ..io import candidates as cio
+    os.makedirs(outdir, exist_ok=True)
+    stem = os.path.join(outdir, f"{prefix}_candidates")
+    out = [cio.write_candidates(f"{stem}.{table_format}", table)]
+    if png:
+        sky = sky if np.all(np.isfinite(sky)) else np.zeros(len(lay["lm"]))
+        out.append(cio.candidates_png(f"{stem}.png", table, sky, grid=lay["grid"], lm=lay["lm"], dt_s=lay["dt_s"],
+                                      title=f"{len(table)} candidate(s) above {threshold:g} sigma ({product}); "
+                                            "sky: window mean"))
+    return out
 
 
 def transient_search(iring, *args, **kwargs):

@@ -92,6 +92,13 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
                                      --set imager.tolerance=... replaces the file's precision)
       min_elevation_deg: float in [0, 90) (default 0; grid pixels below this elevation are not imaged)
       epsilon: float in (0, 0.1]     (default 1e-4; accuracy target of wstack / moff)
+      split: auto | channels | pixels (default auto; how several GPUs share the dft imager's work.
+                                     channels: each GPU images some channels, the images meet on the
+                                     host. pixels: each GPU reads or simulates the whole source, images
+                                     every channel for its part of the grid and searches it; only the
+                                     band-averaged images and the candidates meet (a grid, and a file
+                                     or simulated source). auto: pixels where there is a search and
+                                     pixels can be, else channels)
       search:                        transient search on the images (default null = none)
         threshold: float > 0         (default 6.0; S/N)
         window_s: float > 0          (default 1.0; sliding mean/variance window)
@@ -116,8 +123,8 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
             on one GPU with static calibration (no gains_table) and a file or simulated source, the
             dft imager folds the cable terms into its operator and no CalFoldBlock runs;
             or several GPUs of the host: 'gpu:all' or a list [0, 1] (returned as 'gpu:all' / 'gpu:0,1'):
-            the dft imager shards the channels across them (no CalFoldBlock then: cable terms are
-            folded into the operators; calibration.gains_table needs a single device)
+            the dft imager splits the work across them as imager.split says (no CalFoldBlock then:
+            cable terms are folded into the operators; calibration.gains_table needs a single device)
     output:
       dir: path                      (default 'output/<name>'; relative to the working directory)
       fits: bool                     (default true)
@@ -176,7 +183,8 @@ from ..imaging.products import PRESETS, VALID as VALID_PRODUCTS, needs_cross, re
 from .yaml_schema import (INVALID, REQUIRED, BadValue, Bool, Choice, Context, File, Float, Int, Key, ListOf, Section,
                           Str, TimeStr, did_you_mean, is_valid, join_path, key_lines, run_check)
 
-__all__ = ["ConfigError", "load_config", "apply_overrides", "parse_device", "schema_keys",
+__all__ = ["ConfigError", "load_config", "apply_overrides", "parse_device", "resolved_split", "several_gpus",
+           "schema_keys",
            "STATIONS", "CATALOGUE_SOURCES", "DEFAULT_START", "NPOL"]
 
 PRECISION_NAMES = tuple(_PRECISIONS)
@@ -327,6 +335,22 @@ def _station_post(out, given, path, ctx):
         ctx.error(path, "give either station.name or station.ssmif, not both")
     elif "name" not in given and "ssmif" not in given:
         out["name"] = "lwasv"
+
+
+def resolved_split(cfg) -> str:
+    """'pixels' or 'channels': how several GPUs share the dft imager (``imager.split``; auto: pixels
+    where a search runs on a grid from a file or simulated source). Meaningful only for several GPUs."""
+    im, src = cfg["imager"], cfg["source"]
+    split = im.get("split", "auto")
+    if split != "auto":
+        return split
+    can = im.get("kind") == "dft" and im.get("track") is None and src.get("kind") != "udp"
+    return "pixels" if can and im.get("search") else "channels"
+
+
+def several_gpus(device) -> bool:
+    """Whether a (resolved) device string names several GPUs ('gpu:all', 'gpu:0,1')."""
+    return isinstance(device, str) and (device.endswith(":all") or "," in device)
 
 
 def _imager_post(out, given, path, ctx):
@@ -499,6 +523,7 @@ SCHEMA = Section({
         "min_elevation_deg": Key(Float(0.0, 90.0, hi_open=True), 0.0),
         "epsilon": Key(Float(0.0, 0.1, lo_open=True), 1e-4),
         "search": Key(IMAGER_SEARCH, None),
+        "split": Key(Choice("auto", "channels", "pixels"), "auto"),
     }, post=_imager_post, what="an imager mapping"), {}),
     "device": Key(Device(), "cpu"),
     "output": Key(Section({
@@ -671,8 +696,9 @@ def _check_fused(cfg, src, im, ctx):
         why.append("calibration.gains_table turns the voltages complex (CalFoldBlock) before the imager")
     if is_valid(src) and src["kind"] == "simulated" and is_valid(src["quantize"]) and not src["quantize"]:
         why.append("source.quantize is false (complex voltages, not 4-bit integers)")
-    if is_valid(cfg["device"]) and (cfg["device"].endswith(":all") or "," in cfg["device"]):
-        why.append(f"device {cfg['device']!r} is several GPUs (measured on one only)")
+    if is_valid(cfg["device"]) and several_gpus(cfg["device"]) and resolved_split(cfg) != "pixels":
+        why.append(f"device {cfg['device']!r} is several GPUs sharing the channels (measured on one only; "
+                   "imager.split: pixels gives each GPU a whole imager)")
     if why:
         ctx.error("imager.precision", f"{p!r} images 4-bit voltages on one GPU's direct route; here "
                                       + "; ".join(why) + ": use fp16x3 or fp32, or imager.tolerance")
@@ -696,6 +722,17 @@ def _fill_and_cross_check(cfg: dict, default_name: str, ctx: Context) -> None:
         ctx.error("imager.precision", f"{im['precision']!r} needs tensor cores (device: gpu); on the CPU use "
                                       "fp32 or fp64, or imager.tolerance to let the imager pick")
     _check_fused(cfg, src, im, ctx)
+    if is_valid(im) and is_valid(src) and im.get("split") == "pixels":
+        why = [w for w, bad in (("imager.kind is not dft", im["kind"] != "dft"),
+                                ("imager.track follows a source (a grid is split)", im.get("track") is not None),
+                                ("the source is live (udp): each GPU would need its own copy of the packets",
+                                 src["kind"] == "udp"),
+                                ("calibration.gains_table needs CalFoldBlock on one device",
+                                 bool(is_valid(cfg["calibration"]) and cfg["calibration"].get("gains_table"))))
+               if bad]
+        if why:
+            ctx.error("imager.split", "'pixels' cannot be used here: " + "; ".join(why) + "; use split: channels "
+                                      "or auto")
     if is_valid(st) and is_valid(src) and st.get("name") == "auto" and src["kind"] != "tbf":
         ctx.error("station.name", "'auto' takes the station from a TBF file's frame id; with a "
                                   f"{src['kind']} source name the station (lwasv, lwana, lwa1)")

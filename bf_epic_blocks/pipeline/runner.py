@@ -47,6 +47,8 @@ class Graph:
     outdir: str
     search: object = None
     cube: object = None
+    parts: list | None = None      # a pixel split: (source, imager, search or None) per part
+
 
     @property
     def sinks(self):
@@ -189,7 +191,8 @@ def imaging_mode(cfg, npix, nstand, nchan, sample_bits=None):
 
 
 def _device(cfg):
-    """('cpu', None), ('gpu', index), or ('gpus', [indices]) for several GPUs (channels sharded)."""
+    """('cpu', None), ('gpu', index), or ('gpus', [indices]) for several GPUs (channels sharded, or the
+    grid's pixels split: :func:`~.config.resolved_split`)."""
     dev = cfg["device"]
     if dev == "cpu":
         return "cpu", None
@@ -281,17 +284,25 @@ def writes_through_helper(cfg):
             and im.get("track") is None)
 
 
-def build_graph(cfg, progress=None):
-    """Blocks for ``cfg`` inside a new Pipeline (not yet run)."""
+def build_graph(cfg, progress=None, parts=None):
+    """Blocks for ``cfg`` inside a new Pipeline (not yet run).
+
+    parts : None (what ``device`` and ``imager.split`` say), or the devices of a pixel split to build
+        whatever ``device`` says: GPU indices, or None for a part on the CPU (the tests run a split of
+        two CPU parts, which must give what one graph gives)."""
     from ..blocks import CalFoldBlock, DFTImagerBlock, bfp
-    from ..blocks.image_writer import ImageWriterBlock
-    from ..blocks.sources import SimSkySourceBlock, TBFSourceBlock, TBXSourceBlock
     from ..imaging.calibration import GainTable
+    from .config import resolved_split
 
     if cfg["imager"]["kind"] != "dft" and cfg["calibration"].get("pattern") not in (None, "none"):
         raise ValueError(f"calibration.pattern: the {cfg['imager']['kind']} imager cannot fold an antenna pattern "
                          f"({cfg['calibration']['pattern']!r}); set calibration.pattern: none or use imager.kind: dft")
-    dev, devs = _device(cfg)
+    dev, devs = _device(cfg) if parts is None else ("gpu" if parts[0] is not None else "cpu", None)
+    split = list(parts) if parts is not None else list(devs) if dev == "gpus" and resolved_split(cfg) == "pixels" \
+        else None
+    if split is not None:
+        _check_pixel_split(cfg, split)
+        dev = "gpu" if split[0] is not None else "cpu"    # each part is a one-device pipeline
     # several GPUs: pinned host rings ('cuda_host'), from which each GPU pulls its channels asynchronously
     space = {"gpu": "cuda", "gpus": "cuda_host"}.get(dev, "system")
     if dev == "gpus":
@@ -320,15 +331,16 @@ def build_graph(cfg, progress=None):
     block = None  # a channel block of a TBF file (source.channel_block), or all channels
     feed = None   # a block between the source and the rest (Bifrost's copy of a capture to the GPU)
     # one GPU: every block's thread uses it (a device chosen here would hold in this thread only)
-    scope = bfp.block_scope(gpu=devs) if dev == "gpu" else contextlib.nullcontext()
+    scope = bfp.block_scope(gpu=devs) if dev == "gpu" and split is None else contextlib.nullcontext()
+    cal = cfg["calibration"]
+    pattern = None if cal.get("pattern") in (None, "none") else cal["pattern"]
+    pixels = _pixels(cfg, station)
     with bfp.Pipeline() as p, scope:
-        if fmt is not None:
-            nframe_total = int(info.ntime)
-            block = channel_block_range(cfg, info)
-            cls = TBXSourceBlock if fmt == "tbx" else TBFSourceBlock
-            source = cls(src_cfg["path"], gulp, station=station, progress=progress, space=space,
-                         channels=block[:2] if block else None, scanned={src_cfg["path"]: info})
-        elif src_cfg["kind"] == "udp":
+        if split is not None:
+            return _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern, progress)
+        if fmt is not None or src_cfg["kind"] != "udp":
+            source, nframe_total, block = _recorded_source(cfg, fmt, info, station, gulp, space, progress)
+        else:
             from ..blocks.udp_source import UDPSourceBlock
             nframe_total = None
             if dev == "gpu" and im["kind"] == "dft":
@@ -362,21 +374,10 @@ def build_graph(cfg, progress=None):
                                         start_timeout_s=src_cfg["start_timeout_s"],
                                         rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20),
                                         sequences=src_cfg["sequences"], progress=progress, space=space)
-        else:
-            freq = channel_freqs(cfg)
-            source = SimSkySourceBlock(station, freq, src_cfg["start"], src_cfg["duration_s"], src_cfg["sources"],
-                                       gulp, noise_power=src_cfg["noise_power"], seed=src_cfg["seed"],
-                                       quantize=src_cfg["quantize"], progress=progress, space=space,
-                                       refresh_s=src_cfg["refresh_s"],
-                                       transients=[{k: v for k, v in t.items() if v is not None}
-                                                   for t in src_cfg.get("transients") or []])
-            nframe_total = source.nframe
         feed = source if feed is None else feed  # what the blocks after the source read
-        cal = cfg["calibration"]
         gains = cal.get("gains_table")
         if gains:
             gains = GainTable.load(gains)
-        pattern = None if cal.get("pattern") in (None, "none") else cal["pattern"]
         # Live packets never wait for the imager, yet the blocks read them *guaranteed*: the capture
         # thread keeps receiving whatever the blocks do, and its bounded queue is the one place
         # where a pipeline that cannot keep up loses data (whole gulps, written as zeros and counted
@@ -389,59 +390,157 @@ def build_graph(cfg, progress=None):
             calfold = feed
         else:
             calfold = CalFoldBlock(feed, cable=bool(cal["cable"]), gains=gains, pattern=pattern)
-        pixels = _pixels(cfg, station)
         common = dict(products=im["products"], remove_autocorr=im["remove_autocorr"])
         if im["kind"] == "dft":
-            npix = pixels.npix if hasattr(pixels, "npix") else im["track"]["size"] ** 2
-            method, precision, pick = imaging_mode(cfg, npix, int((~station.flags).any(axis=1).sum()),
-                                                   len(channel_freqs(cfg)) if src_cfg["kind"] == "simulated" else 1,
-                                                   imager_sample_bits(cfg, dev))
-            if pick is not None:
-                log.info("imager.tolerance %.1e: %s", im["tolerance"], pick.describe())
             if fold:
                 common.update(cable=bool(cal["cable"]), pattern=pattern or False)
             if dev == "gpus":
                 common.update(gpus=devs)
-            imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], method=method,
-                                    precision=precision, **common)
+            imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"],
+                                    **_imaging_mode_kw(cfg, pixels, station, dev), **common)
         else:
             from ..blocks.wstack import WStackBlock
             imager = WStackBlock(calfold, pixels, im["accumulate_frames"], epsilon=im["epsilon"],
                                  moff=(im["kind"] == "moff"), **common)
-        out = cfg["output"]
-        writer = search = cube = None
-        if out["fits"] or out["png"] or out["table"]:
-            images = imager
-            if out.get("integrate"):
-                # longer (band-averaged) images for the files: the imager's own cadence stays for the
-                # search and the cube
-                from ..blocks.integrate import ImageIntegratorBlock
-                it = out["integrate"]
-                images = ImageIntegratorBlock(imager, seconds=it["seconds"], average_channels=it["average_channels"])
-            # on a GPU the files are written by a helper process: astropy's per-image work would hold the
-            # interpreter lock the source and imager threads need (ImageWriterBlock's docstring)
-            writer = ImageWriterBlock(images, outdir, prefix=out["prefix"], fits=out["fits"], png=out["png"],
-                                      table=out["table"], location=None,   # the header's station (this table), built in its thread
-                                      pixels_fn=pixels if callable(pixels) else None,
-                                      run_index=block[2] if block and block[3] > 1 else None,
-                                      processes=1 if writes_through_helper(cfg) else 0)
-        if im.get("search"):
-            from ..blocks.transient_search import TransientSearchBlock
-            sc = im["search"]
-            search = TransientSearchBlock(imager, threshold=sc["threshold"], window_s=sc["window_s"], dms=sc["dms"],
-                                          widths=sc["widths"], average_channels=sc["average_channels"],
-                                          product=sc["product"], outdir=outdir, prefix=out["prefix"],
-                                          table_format=sc["table"], png=sc["png"], location=None,
-                                          max_pixels=sc["max_pixels"], sky_fraction=sc["sky_fraction"],
-                                          dedisperse=sc["dedisperse"], tree_precision=sc["tree_precision"],
-                                          sidelobe_factor=sc["sidelobe_factor"])
-        if out.get("cube"):
-            from ..blocks.cube_writer import ImageCubeWriterBlock
-            cc = out["cube"]
-            cube = ImageCubeWriterBlock(imager, outdir, prefix=f"{out['prefix']}_cube", dtype=cc["dtype"],
-                                        average_channels=cc["average_channels"],
-                                        images_per_file=cc["images_per_file"], location=None)
+        search = _search_block(cfg, imager, outdir) if im.get("search") else None
+        writer, cube = _output_blocks(cfg, imager, pixels, block)
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube)
+
+
+def _imaging_mode_kw(cfg, pixels, station, dev):
+    """{method, precision} for the DFT imager on ``dev`` ('cpu', 'gpu', 'gpus'): the configured ones, or
+    the tolerance's pick for ``pixels`` (logged)."""
+    im = cfg["imager"]
+    npix = pixels.npix if hasattr(pixels, "npix") else im["track"]["size"] ** 2
+    method, precision, pick = imaging_mode(cfg, npix, int((~station.flags).any(axis=1).sum()),
+                                           len(channel_freqs(cfg)) if cfg["source"]["kind"] == "simulated" else 1,
+                                           imager_sample_bits(cfg, dev))
+    if pick is not None:
+        log.info("imager.tolerance %.1e: %s", im["tolerance"], pick.describe())
+    return {"method": method, "precision": precision}
+
+
+def _recorded_source(cfg, fmt, info, station, gulp, space, progress):
+    """(source block, frames in all, channel block or None) for a capture file or the simulated sky."""
+    from ..blocks.sources import SimSkySourceBlock, TBFSourceBlock, TBXSourceBlock
+    src_cfg = cfg["source"]
+    if fmt is not None:
+        block = channel_block_range(cfg, info)
+        cls = TBXSourceBlock if fmt == "tbx" else TBFSourceBlock
+        source = cls(src_cfg["path"], gulp, station=station, progress=progress, space=space,
+                     channels=block[:2] if block else None, scanned={src_cfg["path"]: info})
+        return source, int(info.ntime), block
+    source = SimSkySourceBlock(station, channel_freqs(cfg), src_cfg["start"], src_cfg["duration_s"], src_cfg["sources"],
+                               gulp, noise_power=src_cfg["noise_power"], seed=src_cfg["seed"],
+                               quantize=src_cfg["quantize"], progress=progress, space=space,
+                               refresh_s=src_cfg["refresh_s"],
+                               transients=[{k: v for k, v in t.items() if v is not None}
+                                           for t in src_cfg.get("transients") or []])
+    return source, source.nframe, None
+
+
+def _search_block(cfg, images, outdir):
+    """The TransientSearchBlock ``imager.search`` asks for, on ``images`` (files in ``outdir``; None: none)."""
+    from ..blocks.transient_search import TransientSearchBlock
+    sc, out = cfg["imager"]["search"], cfg["output"]
+    return TransientSearchBlock(images, threshold=sc["threshold"], window_s=sc["window_s"], dms=sc["dms"],
+                                widths=sc["widths"], average_channels=sc["average_channels"],
+                                product=sc["product"], outdir=outdir, prefix=out["prefix"],
+                                table_format=sc["table"], png=sc["png"], location=None,
+                                max_pixels=sc["max_pixels"], sky_fraction=sc["sky_fraction"],
+                                dedisperse=sc["dedisperse"], tree_precision=sc["tree_precision"],
+                                sidelobe_factor=sc["sidelobe_factor"])
+
+
+def _output_blocks(cfg, images, pixels, block):
+    """(image writer or None, cube writer or None) on ``images``, as ``output`` asks."""
+    from ..blocks.image_writer import ImageWriterBlock
+    out = cfg["output"]
+    writer = cube = None
+    if out["fits"] or out["png"] or out["table"]:
+        files = images
+        if out.get("integrate"):
+            # longer (band-averaged) images for the files: the imager's own cadence stays for the
+            # search and the cube
+            from ..blocks.integrate import ImageIntegratorBlock
+            it = out["integrate"]
+            files = ImageIntegratorBlock(images, seconds=it["seconds"], average_channels=it["average_channels"])
+        # on a GPU the files are written by a helper process: astropy's per-image work would hold the
+        # interpreter lock the source and imager threads need (ImageWriterBlock's docstring)
+        writer = ImageWriterBlock(files, out["dir"], prefix=out["prefix"], fits=out["fits"], png=out["png"],
+                                  table=out["table"], location=None,   # the header's station (this table), built in its thread
+                                  pixels_fn=pixels if callable(pixels) else None,
+                                  run_index=block[2] if block and block[3] > 1 else None,
+                                  processes=1 if writes_through_helper(cfg) else 0)
+    if out.get("cube"):
+        from ..blocks.cube_writer import ImageCubeWriterBlock
+        cc = out["cube"]
+        cube = ImageCubeWriterBlock(images, out["dir"], prefix=f"{out['prefix']}_cube", dtype=cc["dtype"],
+                                    average_channels=cc["average_channels"],
+                                    images_per_file=cc["images_per_file"], location=None)
+    return writer, cube
+
+
+def _check_pixel_split(cfg, split):
+    """A clear error where a pixel split cannot run (what config validation says for ``split: pixels``)."""
+    im, src = cfg["imager"], cfg["source"]
+    why = [w for w, bad in (("the imager is not dft", im["kind"] != "dft"),
+                            ("imager.track follows a source (a grid is split)", im.get("track") is not None),
+                            ("the source is live (udp)", src["kind"] == "udp"),
+                            ("calibration.gains_table needs CalFoldBlock on one device",
+                             bool(cfg["calibration"].get("gains_table"))),
+                            ("a split needs two or more parts", len(split) < 2)) if bad]
+    if why:
+        raise ValueError("a pixel split (imager.split: pixels over several GPUs) cannot run here: " + "; ".join(why))
+
+
+def _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern, progress):
+    """The graph of a pixel split: per part (GPU), source -> DFTImagerBlock (its part of the grid, every
+    channel) -> TransientSearchBlock, and the band mean of each image to the host; PixelMergeBlock joins
+    the parts' images for the files and the cube, :class:`~..blocks.search_parts.SearchParts` their
+    candidates once the run is over. Nothing crosses between GPUs: each reads (or simulates) the
+    whole source itself."""
+    from ..blocks import DFTImagerBlock, bfp
+    from ..blocks.integrate import ImageIntegratorBlock
+    from ..blocks.pixel_merge import PixelMergeBlock
+    from ..blocks.search_parts import SearchParts
+    im, out, cal = cfg["imager"], cfg["output"], cfg["calibration"]
+    n = len(split)
+    dev = "gpu" if split[0] is not None else "cpu"
+    # what the files and the cube are made of: the band mean of each image where every one of them
+    # averages the channels (the whole band: 20 MB/s to the host, not 15 GB/s)
+    wants = []
+    if out["fits"] or out["png"] or out["table"]:
+        wants.append(bool(out.get("integrate") and out["integrate"]["average_channels"]))
+    if out.get("cube"):
+        wants.append(bool(out["cube"]["average_channels"]))
+    average = bool(wants) and all(wants)
+    sources, imagers, searches, hosts = [], [], [], []
+    nframe_total = block = None
+    for k, d in enumerate(split):
+        part = pixels.part(k, n)
+        with bfp.block_scope(gpu=d) if d is not None else contextlib.nullcontext():
+            source, nframe_total, block = _recorded_source(cfg, fmt, info, station, gulp,
+                                                           "cuda" if d is not None else "system",
+                                                           progress if k == 0 else None)
+            imager = DFTImagerBlock(source, part, im["accumulate_frames"], products=im["products"],
+                                    remove_autocorr=im["remove_autocorr"], cable=bool(cal["cable"]),
+                                    pattern=pattern or False, **_imaging_mode_kw(cfg, part, station, dev))
+            if im.get("search"):
+                searches.append(_search_block(cfg, imager, None))
+            if wants:
+                hosts.append(ImageIntegratorBlock(imager, nimage=1, average_channels=average, space="system"))
+        sources.append(source)
+        imagers.append(imager)
+    log.info("pixel split: %d parts (%s), %s pixels each, every channel imaged and searched where it is made",
+             n, ", ".join("cpu" if d is None else f"gpu:{d}" for d in split),
+             "/".join(str(pixels.part(k, n).npix) for k in range(n)))
+    search = SearchParts(searches, out["dir"], out["prefix"], im["search"]["table"], im["search"]["png"]) \
+        if searches else None
+    merged = PixelMergeBlock(hosts) if hosts else None
+    writer, cube = _output_blocks(cfg, merged, pixels, block) if merged is not None else (None, None)
+    return Graph(p, sources[0], sources[0], imagers[0], writer, nframe_total, station, out["dir"], search, cube,
+                 parts=list(zip(sources, imagers, searches or [None] * n)))
 
 
 def block_timing(blocks, t0):
@@ -463,8 +562,9 @@ def block_timing(blocks, t0):
 STALL_WARN_S = 60.0
 
 
-def run(cfg, show_progress=None):
-    """Build and run the pipeline; returns a summary dict (files written, frame counts, timing)."""
+def run(cfg, show_progress=None, parts=None):
+    """Build and run the pipeline; returns a summary dict (files written, frame counts, timing).
+    ``parts``: see :func:`build_graph`."""
     bar = None
     if show_progress is None:
         show_progress = sys.stderr.isatty()
@@ -474,7 +574,7 @@ def run(cfg, show_progress=None):
         bar = tqdm(total=None, unit="frame", desc=cfg["name"], unit_scale=True)
         progress = bar.update
     t0, t0_unix = time.perf_counter(), time.time()
-    g = build_graph(cfg, progress=progress)
+    g = build_graph(cfg, progress=progress, parts=parts)
     if bar is not None:
         bar.total = g.nframe_total
         bar.refresh()
@@ -484,6 +584,8 @@ def run(cfg, show_progress=None):
         from .watchdog import StallWatchdog
         with StallWatchdog(g.pipeline.blocks, STALL_WARN_S):
             g.pipeline.run()
+        if hasattr(g.search, "finish"):
+            g.search.finish()       # a pixel split's parts' candidates, one table
         if g.writer is not None:
             g.writer.flush()        # files its helper process still writes
     finally:

@@ -1,0 +1,138 @@
+"""The pixel split (several GPUs, each imaging and searching its own part of the grid): the parts
+cover the sky once; PixelMergeBlock joins parts into the grid and names parts that do not fit; and
+through `bf-epic run` a split of two parts (on the CPU here; two H100s in the GPU check) gives the
+images and the candidate table one graph gives, with the burst where it was injected."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bf_epic_blocks import imaging
+from bf_epic_blocks.blocks import (ArraySinkBlock, ArraySourceBlock, ImageIntegratorBlock, PixelMergeBlock, bfp,
+                                   image_layout)
+from bf_epic_blocks.blocks.headers import grid_pixels_header
+from test_transient import DT, image_header
+
+YAML = Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_wholeband.yaml"
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 7])
+def test_grid_parts_cover_the_sky_once(n):
+    grid = imaging.lm_grid(16)
+    parts = [grid.part(k, n) for k in range(n)]
+    masks = np.stack([p.mask for p in parts])
+    assert np.array_equal(masks.sum(axis=0), grid.mask.astype(int))          # every pixel in one part
+    assert max(p.npix for p in parts) - min(p.npix for p in parts) <= 1
+    assert np.array_equal(np.concatenate([p.lm for p in parts]), grid.lm)     # in the grid's own order
+    for p in parts:
+        assert np.array_equal(p.lm, grid.lm[np.isin(np.flatnonzero(grid.mask), np.flatnonzero(p.mask))])
+    with pytest.raises(ValueError, match="k must be"):
+        grid.part(n, n)
+    with pytest.raises(ValueError, match="cannot share"):
+        grid.part(0, grid.npix + 1)
+
+
+def _part_images(grid, part, x):
+    """``x`` with only ``part``'s pixels kept (NaN elsewhere), as that part's imager leaves them."""
+    y = x.copy()
+    y[..., ~part.mask] = np.nan
+    return y
+
+
+def test_merge_block_joins_the_parts_and_names_what_does_not_fit():
+    rng = np.random.default_rng(5)
+    grid = imaging.lm_grid(16)
+    freq = 74e6 + 25e3 * np.arange(4)
+    x = rng.normal(5.0, 1.0, (96, 4, 1, 16, 16)).astype(np.float32)
+    x[..., ~grid.mask] = np.nan
+    parts = [grid.part(k, 3) for k in range(3)]
+    with bfp.Pipeline() as p:
+        srcs = []
+        for part in parts:
+            hdr = image_header(grid, freq, 16 * DT)
+            hdr["pixels"] = grid_pixels_header(part.size, part.cell, part.mask)
+            srcs.append(ArraySourceBlock(_part_images(grid, part, x), hdr, gulp_nframe=32))
+        host = [ImageIntegratorBlock(s, nimage=1, average_channels=True, space="system") for s in srcs]
+        sink = ArraySinkBlock(PixelMergeBlock(host))
+        p.run()
+    got = sink.result(0)
+    want = x.astype(np.float64).mean(axis=1, keepdims=True)
+    assert got.shape == want.shape
+    assert np.array_equal(np.isfinite(got), np.isfinite(want))
+    ok = np.isfinite(want)
+    assert np.allclose(got[ok], want[ok], rtol=1e-6)
+    lay = image_layout(sink.headers[0])
+    assert "index" not in sink.headers[0]["pixels"] and lay["lm"].shape == grid.lm.shape   # the whole sky again
+
+    # two parts holding the same pixels: named, not merged
+    with pytest.raises(Exception, match="overlap"):
+        with bfp.Pipeline() as p:
+            hdr = image_header(grid, freq, 16 * DT)
+            hdr["pixels"] = grid_pixels_header(parts[0].size, parts[0].cell, parts[0].mask)
+            a = ArraySourceBlock(_part_images(grid, parts[0], x), hdr, gulp_nframe=32)
+            b = ArraySourceBlock(_part_images(grid, parts[0], x), dict(hdr), gulp_nframe=32)
+            ArraySinkBlock(PixelMergeBlock([a, b]))
+            p.run()
+
+
+def _gpus():
+    try:
+        import cupy
+        return cupy.cuda.runtime.getDeviceCount()
+    except Exception:       # no CuPy, no driver
+        return 0
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("gpu", marks=[
+    pytest.mark.gpu, pytest.mark.skipif(_gpus() < 2, reason="needs two CUDA GPUs")])])
+def test_pixel_split_through_run_equals_one_graph(tmp_path, device):
+    """The whole-band pipeline made small (16 channels, 16x16 grid, a burst at DM 0.6), run as one graph
+    and as a split of two parts (on the CPU; or device gpu:0 against gpu:all, the split over the GPUs
+    present): the burst is found where it was injected, and the split gives the same candidate table
+    (the burst's beam sidelobe in the other part, S/N 8, folded into it as one graph folds it),
+    band-averaged FITS and cube."""
+    from astropy.io import fits
+    from bf_epic_blocks.io.candidates import read_candidates
+    from bf_epic_blocks.io.cube import read_image_cube
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import run
+    got = {}
+    runs = (("one", None, "cpu"), ("split", [None, None], "cpu")) if device == "cpu" else \
+        (("one", None, "gpu:0"), ("split", None, "gpu:all"))
+    for tag, parts, dev in runs:
+        out = tmp_path / tag
+        cfg = load_config(YAML, [f"output.dir={out}", f"device={dev}", "source.duration_s=0.42", "source.channels.count=16",
+                                 "imager.grid.size=16", "imager.search.window_s=0.06", "imager.search.dms=[1.0]",
+                                 "imager.search.threshold=7", "output.integrate.seconds=0.1",
+                                 "output.cube.dtype=float32", "output.png=false",
+                                 "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.3, "
+                                 "duration_s: 0.0015, flux_jy: 2000.0, dm: 0.6}]"])
+        summary = run(cfg, show_progress=False, parts=parts)
+        tab = read_candidates(out / "lwasv_sim_wholeband_candidates.ecsv")
+        cube = read_image_cube(next(out.glob("*_cube_*.h5")))["images"]
+        files = [fits.getdata(f) for f in sorted(out.glob("*_s00_i*.fits"))]
+        got[tag] = (summary, tab, cube, files)
+    (s1, t1, c1, f1), (s2, t2, c2, f2) = got["one"], got["split"]
+    assert s2["search"]["parts"] == 2
+    best = t2[int(np.argmax(t2["snr"]))]
+    assert abs(best["image"] - 0.3 / (16 * DT)) <= 1 and abs(best["dm"] - 0.6) < 0.1 and best["snr"] > 10
+    assert len(t1) == len(t2) >= 1
+    for col in ("image", "pixel", "grid_x", "grid_y", "width", "nmembers", "nsidelobes", "kind"):
+        assert list(t1[col]) == list(t2[col]), col
+    for col in ("snr", "dm", "ra_deg", "dec_deg", "l", "m"):
+        assert np.allclose(t1[col], t2[col], rtol=1e-6), col
+    assert s1["search"]["trials_per_width"] == s2["search"]["trials_per_width"]
+    assert c1.shape == c2.shape and np.allclose(c1, c2, rtol=2e-6, equal_nan=True)
+    assert len(f1) == len(f2) == 4
+    for a, b in zip(f1, f2):
+        assert np.allclose(a, b, rtol=2e-6, equal_nan=True)
+
+
+def test_split_is_checked():
+    from bf_epic_blocks.pipeline.config import ConfigError, load_config, resolved_split
+    cfg = load_config(YAML, ["device=gpu:all"])
+    assert resolved_split(cfg) == "pixels"                       # a search on a grid: auto splits pixels
+    assert resolved_split(load_config(YAML, ["imager.search=null"])) == "channels"
+    with pytest.raises(ConfigError, match="imager.split.*tracked|imager.track follows"):
+        load_config(YAML, ["imager.split=pixels", "imager.grid=null",
+                           "imager.track={source: CygA, size: 8, fov_deg: 5}"])
