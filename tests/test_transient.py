@@ -206,11 +206,15 @@ def test_many_series_are_searched_in_chunks_with_the_same_result(monkeypatch):
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
-@pytest.mark.parametrize("dedisperse,widths", [("shifts", (1, 2, 4, 8)), ("tree", (1, 3, 16))])
-def test_the_gpu_statistics_kernel_equals_the_array_code(monkeypatch, dedisperse, widths):
+@pytest.mark.parametrize("dedisperse,widths,one_series_per_chunk", [("shifts", (1, 2, 4, 8), False),
+                                                                    ("shifts", (1, 2, 4, 8), True),
+                                                                    ("tree", (1, 3, 16), False)])
+def test_the_gpu_statistics_kernel_equals_the_array_code(monkeypatch, dedisperse, widths, one_series_per_chunk):
     """On the GPU the statistics run in one kernel: the same crossings (S/N to float32), the same
     window statistics and history as the array code, over pushes that straddle the window's filling,
-    a bright flash (sky-wide rows, the brightest-pixels cap) and a burst."""
+    a bright flash (sky-wide rows, the brightest-pixels cap) and a burst. A chunk of trials is run a
+    second time, from its saved window sums, only where it has a crossing: with one series per chunk
+    some chunks of a push have crossings (the burst's DM) and some have none."""
     import cupy as cp
     rng = np.random.default_rng(4)
     f = 74e6 + 100e3 * np.arange(24)
@@ -218,11 +222,13 @@ def test_the_gpu_statistics_kernel_equals_the_array_code(monkeypatch, dedisperse
     _inject(x, 17, 500, 2, 2.0, np.zeros(24, int))
     x[600:602] += 30.0
     runs = []
+    if one_series_per_chunk:
+        monkeypatch.setattr(TransientSearch, "CHUNK_BYTES", 1)
     for fused in (True, False):
         monkeypatch.setattr(TransientSearch, "FUSED_STATS", fused)
         s = TransientSearch(f, 16 * DT, 300, 60, dms=[0.0, 0.5, 1.0] if dedisperse == "shifts" else [1.0],
                             widths=widths, threshold=5, dedisperse=dedisperse, max_batch=64, xp=cp)
-        c = Crossings.concat([s.push(cp.asarray(x[a:a + b])) for a, b in ((0, 37), (37, 100), (137, 563))])
+        c = Crossings.concat([s.push(cp.asarray(x[a:a + b])) for a, b in ((0, 37), (37, 100), (137, 400), (537, 163))])
         order = np.lexsort((c.pixel, c.width_index, c.series, c.end_image))
         mean, sig = s.statistics()
         runs.append((c.take(order), mean.get(), sig.get(), s._hist.get()))

@@ -387,30 +387,45 @@ class TransientSearch:
     def _push_chunk_gpu(self, v, ss, n0):
         """:meth:`_push_chunk` in one CUDA kernel: a thread per (series, pixel) runs through the B new
         values in order (the ring write, the running float64 sums, the widths' boxcars from the newest
-        values it holds), writing float32 S/N per width and counting crossings per trial image; the
-        crossings are then taken from the widths and trial images that have any (one copy to the host)."""
+        values it holds), counting crossings per trial image. Only a chunk that has any is run again,
+        from its saved window sums, writing its float32 S/N per width (the ring writes repeat the same
+        values); the crossings are then taken from the widths and trial images that have any (one copy
+        to the host). Why: the S/N cube was half the kernel's memory traffic (16 of 32 bytes per trial
+        value) and nearly every chunk of a real search has no crossing at all."""
         xp = self.xp
         ns, B = int(v.shape[0]), int(v.shape[1])
         W, wmax = self.window, self.wmax
         k0 = max(0, W + wmax - 1 - n0)                                      # first value whose window is full
         nb = max(0, B - k0)
         nw = len(self.widths)
-        snr = xp.empty((nw, ns, max(nb, 1), self.npix), xp.float32)
         count = xp.zeros((nw, ns, max(nb, 1)), xp.int32)
         if self._widths_dev is None:
             self._widths_dev = xp.asarray(np.asarray(self.widths, np.int32))
+            self._no_snr = xp.empty(1, xp.float32)
         v = xp.ascontiguousarray(v, dtype=xp.float32)
         hist = self._hist[ss]                                                  # a view: (ns, capacity, npix)
-        s1, s2 = self._s1[ss], self._s2[ss]
+        s1, s2 = self._s1[ss], self._s2[ss]                                    # views: the kernel updates them
         ref = self._ref[ss]
         k = _stats_kernel(wmax)
         threads = 128
-        k(((self.npix + threads - 1) // threads, ns), (threads,),
-          (v, ref, hist, s1, s2, snr, count, self._widths_dev, np.int32(nw), np.int32(B), np.int32(self.npix),
-           np.int32(self.capacity), np.int64(hist.strides[0] // 4), np.int64(n0), np.int32(W), np.int32(k0),
-           np.int32(nb), np.float32(self.threshold)))
+        grid = ((self.npix + threads - 1) // threads, ns)
+
+        def run(snr, write):
+            k(grid, (threads,), (v, ref, hist, s1, s2, snr, count, self._widths_dev, np.int32(nw), np.int32(B),
+                                 np.int32(self.npix), np.int32(self.capacity), np.int64(hist.strides[0] // 4),
+                                 np.int64(n0), np.int32(W), np.int32(k0), np.int32(nb), np.float32(self.threshold),
+                                 np.int32(write)))
+        saved = (s1.copy(), s2.copy()) if nb else None
+        run(self._no_snr, 0)
         if nb == 0:
             return Crossings()
+        cnt = to_numpy(count)
+        if not cnt.any():
+            return Crossings()
+        s1[...], s2[...] = saved
+        count.fill(0)
+        snr = xp.empty((nw, ns, nb, self.npix), xp.float32)
+        run(snr, 1)
         cnt = to_numpy(count)
         return Crossings.concat([self._as_crossings(self._crossings(snr[wi], cnt[wi]), ss, n0 + k0, wi)
                                  for wi in range(nw) if cnt[wi].any()])
@@ -544,13 +559,14 @@ _STATS_SRC = r"""
 // One thread per (series s = blockIdx.y, pixel p): the B new values v[s, i, p] in order. Same sums as
 // TransientSearch._push_chunk: the value (minus ref) into the ring; value n - wmax enters and
 // n - wmax - W leaves the window's float64 sums; from value k0 on, per width w the boxcar mean of the
-// newest w values against the window: snr = (box / w - mean) sqrt(w) / sigma, and a count per trial
-// image of the pixels over the threshold.
+// newest w values against the window: snr = (box / w - mean) sqrt(w) / sigma (written only when
+// write_snr: a chunk is run again, densely, only if it has a crossing), and a count per trial image of
+// the pixels over the threshold.
 extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const float* __restrict__ ref,
         float* __restrict__ hist, double* __restrict__ S1, double* __restrict__ S2, float* __restrict__ snr,
         int* __restrict__ count, const int* __restrict__ widths, const int nw, const int B, const int npix,
         const int cap, const long long hstride, const long long n0, const int W, const int k0, const int nb,
-        const float thr)
+        const float thr, const int write_snr)
 {
     const int p = blockIdx.x * blockDim.x + threadIdx.x;
     if (p >= npix) return;
@@ -604,7 +620,7 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
 #pragma unroll
             for (int j = 0; j < WMAX; j++) if (j < w) box += last[j];
             const float zf = (box - (float)w * meanf) * rsqrtf((float)w) * isig;
-            snr[(((long long)wi * ns + s) * nb + b) * npix + p] = zf;
+            if (write_snr) snr[(((long long)wi * ns + s) * nb + b) * npix + p] = zf;
             if (zf > thr) atomicAdd(&count[((long long)wi * ns + s) * nb + b], 1);
         }
     }
