@@ -318,8 +318,11 @@ class TransientSearch:
             self._ref = v[:, 0].astype(xp.float32)
         n0 = self.nvalues
         step = max(1, min(self.nser, self.CHUNK_BYTES // max(1, B * self.npix * 8)))
-        found = [self._push_chunk(v[s0:s0 + step], slice(s0, min(self.nser, s0 + step)), n0)
-                 for s0 in range(0, self.nser, step)]
+        if xp is not np and self.FUSED_STATS and self.wmax <= _STATS_MAXW:
+            found = [self._push_values_gpu(v, n0, step)]
+        else:
+            found = [self._push_chunk(v[s0:s0 + step], slice(s0, min(self.nser, s0 + step)), n0)
+                     for s0 in range(0, self.nser, step)]
         self.nvalues += B
         return Crossings.concat(found)
 
@@ -330,8 +333,6 @@ class TransientSearch:
         """:meth:`_push_values` for the series ``ss`` (a slice), values v (len ss, B, npix) from value n0."""
         xp = self.xp
         B, ns = v.shape[1], v.shape[0]
-        if xp is not np and self.FUSED_STATS and self.wmax <= _STATS_MAXW:
-            return self._push_chunk_gpu(v, ss, n0)
         v = v - self._ref[ss, None, :]                                      # offset about the reference
         W, wmax = self.window, self.wmax
         n = np.arange(n0, n0 + B)
@@ -384,51 +385,59 @@ class TransientSearch:
         return Crossings(image=end - w + 1 - dmax, end_image=end, series=s, width_index=np.full(s.size, wi),
                          pixel=p, snr=val, frac=frac, skywide=sky)
 
-    def _push_chunk_gpu(self, v, ss, n0):
-        """:meth:`_push_chunk` in one CUDA kernel: a thread per (series, pixel) runs through the B new
-        values in order (the ring write, the running float64 sums, the widths' boxcars from the newest
-        values it holds), counting crossings per trial image. Only a chunk that has any is run again,
-        from its saved window sums, writing its float32 S/N per width (the ring writes repeat the same
-        values); the crossings are then taken from the widths and trial images that have any (one copy
-        to the host). Why: the S/N cube was half the kernel's memory traffic (16 of 32 bytes per trial
-        value) and nearly every chunk of a real search has no crossing at all."""
+    def _push_values_gpu(self, v, n0, step):
+        """:meth:`_push_values` on the GPU, the statistics in one CUDA kernel: a thread per (series, pixel)
+        runs through the B new values in order (the ring write, the running float64 sums, the widths'
+        boxcars from the newest values it holds), counting crossings per trial image. One launch for
+        every series, then one copy of the counts to the host; only a chunk of ``step`` series that has
+        a crossing is run again, from its saved window sums, writing its float32 S/N per width (the
+        ring writes repeat the same values), and its crossings are taken from the widths and trial
+        images that have any.
+
+        Why: the S/N cube was half the kernel's memory traffic (16 of 32 bytes per trial value) and
+        nearly every chunk of a real search has no crossing; and a host wait per chunk (9 a gulp at the
+        whole band's 1,331 trials) left the kernels waiting on Python: at half the pixels (a pixel
+        split's part) the statistics took longer than at all of them."""
         xp = self.xp
         ns, B = int(v.shape[0]), int(v.shape[1])
         W, wmax = self.window, self.wmax
         k0 = max(0, W + wmax - 1 - n0)                                      # first value whose window is full
         nb = max(0, B - k0)
         nw = len(self.widths)
-        count = xp.zeros((nw, ns, max(nb, 1)), xp.int32)
         if self._widths_dev is None:
             self._widths_dev = xp.asarray(np.asarray(self.widths, np.int32))
             self._no_snr = xp.empty(1, xp.float32)
         v = xp.ascontiguousarray(v, dtype=xp.float32)
-        hist = self._hist[ss]                                                  # a view: (ns, capacity, npix)
-        s1, s2 = self._s1[ss], self._s2[ss]                                    # views: the kernel updates them
-        ref = self._ref[ss]
         k = _stats_kernel(wmax)
         threads = 128
-        grid = ((self.npix + threads - 1) // threads, ns)
 
-        def run(snr, write):
-            k(grid, (threads,), (v, ref, hist, s1, s2, snr, count, self._widths_dev, np.int32(nw), np.int32(B),
-                                 np.int32(self.npix), np.int32(self.capacity), np.int64(hist.strides[0] // 4),
-                                 np.int64(n0), np.int32(W), np.int32(k0), np.int32(nb), np.float32(self.threshold),
-                                 np.int32(write)))
-        saved = (s1.copy(), s2.copy()) if nb else None
-        run(self._no_snr, 0)
+        def run(ss, snr, count, write):
+            hist, s1, s2 = self._hist[ss], self._s1[ss], self._s2[ss]         # views: the kernel updates them
+            k(((self.npix + threads - 1) // threads, ss.stop - ss.start), (threads,),
+              (v[ss], self._ref[ss], hist, s1, s2, snr, count, self._widths_dev, np.int32(nw), np.int32(B),
+               np.int32(self.npix), np.int32(self.capacity), np.int64(hist.strides[0] // 4), np.int64(n0),
+               np.int32(W), np.int32(k0), np.int32(nb), np.float32(self.threshold), np.int32(write)))
+        count = xp.zeros((nw, ns, max(nb, 1)), xp.int32)
+        saved = (self._s1.copy(), self._s2.copy()) if nb else None
+        run(slice(0, ns), self._no_snr, count, 0)
         if nb == 0:
             return Crossings()
         cnt = to_numpy(count)
         if not cnt.any():
             return Crossings()
-        s1[...], s2[...] = saved
-        count.fill(0)
-        snr = xp.empty((nw, ns, nb, self.npix), xp.float32)
-        run(snr, 1)
-        cnt = to_numpy(count)
-        return Crossings.concat([self._as_crossings(self._crossings(snr[wi], cnt[wi]), ss, n0 + k0, wi)
-                                 for wi in range(nw) if cnt[wi].any()])
+        out = []
+        for s0 in range(0, ns, step):
+            ss = slice(s0, min(ns, s0 + step))
+            if not cnt[:, ss].any():
+                continue
+            self._s1[ss], self._s2[ss] = saved[0][ss], saved[1][ss]
+            c = xp.zeros((nw, ss.stop - s0, nb), xp.int32)
+            snr = xp.empty((nw, ss.stop - s0, nb, self.npix), xp.float32)
+            run(ss, snr, c, 1)
+            cc = to_numpy(c)
+            out += [self._as_crossings(self._crossings(snr[wi], cc[wi]), ss, n0 + k0, wi)
+                    for wi in range(nw) if cc[wi].any()]
+        return Crossings.concat(out)
 
     def _crossings(self, snr, count=None):
         """Crossings of one width's S/N cube (nser, nb, npix), bounded whatever the sky does: per trial
