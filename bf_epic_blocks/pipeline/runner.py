@@ -665,9 +665,15 @@ def plan(cfg):
     acc = int(im["accumulate_frames"])
     dev = device_kind(cfg["device"])
     gulp = gulp_frames(cfg, dev, nchan, station.nstand)
-    several = cfg["device"].endswith(":all") or "," in cfg["device"]
+    from .config import resolved_split, several_gpus
+    several = several_gpus(cfg["device"])
+    nparts = _pixel_parts(cfg) if several and resolved_split(cfg) == "pixels" else None
+    if nparts:
+        # a pixel split: each GPU a whole one-GPU imager and search for its part; the figures are per GPU
+        npix = -(-npix // nparts)
+        pix_txt += f"; split over {nparts} GPUs: {npix} pixels each (the figures below are per GPU)"
     method, precision, pick = imaging_mode(cfg, npix, nstand_any, nchan,
-                                           imager_sample_bits(cfg, "gpus" if several else dev))
+                                           imager_sample_bits(cfg, "gpus" if several and not nparts else dev))
     per_image = cost.route_cmacs(acc, nstand_any, npix, 2, nblk)
     per_gulp = {k: v * nchan * gulp / acc for k, v in per_image.items()}
     bytes_ = {k: v * nchan for k, v in
@@ -718,6 +724,24 @@ def plan(cfg):
                                          t_gulp / (gulp * dt) if t_gulp == t_gulp else float("nan"))
         lines += text
     return d, "\n".join(lines)
+
+
+def _pixel_parts(cfg):
+    """How many GPUs a pixel split of ``cfg['device']`` has: the list's length, or for 'gpu:all' the
+    GPUs present (2 where none can be counted: planning needs no GPU; the text says so)."""
+    spec = cfg["device"].split(":", 1)[1]
+    if spec != "all":
+        return len(spec.split(","))
+    from ..imaging._xp import cupy_or_none
+    cp = cupy_or_none()
+    try:
+        n = cp.cuda.runtime.getDeviceCount() if cp is not None else 0
+    except Exception:               # CuPy without a driver
+        n = 0
+    if n < 2:
+        log.info("plan: device gpu:all, but %d GPU(s) can be counted here: planned for 2", n)
+        return 2
+    return n
 
 
 def _plan_search(sc, freq, dt_img, npix, dev, imaging_s_per_s):
