@@ -136,3 +136,94 @@ def test_split_is_checked():
     with pytest.raises(ConfigError, match="imager.split.*tracked|imager.track follows"):
         load_config(YAML, ["imager.split=pixels", "imager.grid=null",
                            "imager.track={source: CygA, size: 8, fov_deg: 5}"])
+
+
+def test_pixel_split_of_a_capture_file_equals_one_graph(tmp_path):
+    """A TBX capture (LSL's LWA-NA test file, 312 channels) split over two parts: each reads the file
+    itself, images its half of the grid with the cable terms folded into its operator, and the parts'
+    per-channel images (no band mean here: the writer keeps every channel) meet on one grid; the FITS
+    equal one graph's (CalFoldBlock on the voltages, then the imager) to float32 rounding."""
+    from astropy.io import fits
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import run
+    yaml = YAML.parent / "lwana_tbx_allsky.yaml"
+    data = {}
+    for tag, parts in (("one", None), ("split", [None, None])):
+        out = tmp_path / tag
+        cfg = load_config(yaml, [f"output.dir={out}", "output.png=false", "imager.grid.size=32"])
+        summary = run(cfg, show_progress=False, parts=parts)
+        data[tag] = [fits.getdata(f) for f in sorted(out.glob("*.fits"))]
+        assert summary["frames_imaged"] == 1
+    assert len(data["one"]) == len(data["split"]) >= 1
+    for a, b in zip(data["one"], data["split"]):
+        assert a.shape == b.shape and np.array_equal(np.isfinite(a), np.isfinite(b))
+        ok = np.isfinite(a)
+        assert np.abs(a[ok] - b[ok]).max() <= 1e-5 * np.abs(a[ok]).max()
+
+
+def _row(part, gx, gy, image, snr, dm=1.0, kind="point", width=2, sky_fraction=0.0):
+    """A candidate row as a part's search writes it: ``pixel`` its index among ``part``'s pixels."""
+    from astropy.time import Time
+    part_pixel = int(np.flatnonzero(np.flatnonzero(part.mask) == gy * part.size + gx)[0])
+    return {"time_utc": Time("2024-06-01T10:00:00", scale="utc"), "sequence": "s", "image": image,
+            "pixel": part_pixel, "grid_x": gx, "grid_y": gy, "l": (gx - 8) / 8, "m": (gy - 8) / 8, "ra_deg": 0.0,
+            "dec_deg": 0.0, "snr": snr, "dm": dm, "channel": -1, "width": width, "width_ms": 1.28, "nmembers": 2,
+            "nsidelobes": 0, "kind": kind, "sky_fraction": sky_fraction, "lightcurve": np.zeros(3), "_sigma": 1.0}
+
+
+def _part_block(grid, part, rows, freq):
+    """What SearchParts reads of a part's TransientSearchBlock (no beam: only the DM and sky-wide rules)."""
+    import types
+    lay = {"pixel_index": np.flatnonzero(part.mask), "lm": part.lm, "grid": part, "freq_hz": freq, "dt_s": 16 * DT,
+           "products": ["I"]}
+    stats = {"images": 100, "images_searched": 90, "crossings": len(rows), "candidates": len(rows), "resets": 0,
+             "images_lost": 0, "trials_per_width": [10, 10], "sequences": 1, "sky_wide": 0, "sidelobes_folded": 0,
+             "crossings_dropped": 0}
+    return types.SimpleNamespace(
+        name="TransientSearchBlock", lay=lay, rows=rows, search_stats=stats, sidelobe_factor=2.0, _tlink=8,
+        _space=2.0, search=types.SimpleNamespace(wmax=8, shift=40, average=True, dms=[0.0, 0.5, 1.0, 1.5]),
+        beam_on=lambda lm: None, lc_before=1, lc_after=1, threshold=6.0, _prod=0, _sky=np.zeros(part.npix),
+        meta=lambda: {"threshold": 6.0, "trials_per_width": [10, 10]})
+
+
+def test_search_parts_fold_what_another_part_explains(tmp_path):
+    """SearchParts' rules across parts: a sky-wide event both halves saw is one row (the larger sky
+    fraction); a fainter candidate in the other half beside a burst, at another DM, within what the
+    burst's DM sidelobe puts there, is folded into it; one the sidelobe cannot explain (too bright, or
+    far in time) stays a row; pixels are renumbered over the whole sky."""
+    from bf_epic_blocks.blocks.search_parts import SearchParts
+    from bf_epic_blocks.imaging.transient import dm_sidelobe_snr
+    grid = imaging.lm_grid(16)
+    a, b = grid.part(0, 2), grid.part(1, 2)
+    freq = 74e6 + 25e3 * np.arange(64)
+    # the last pixel of part a and the first of part b: neighbours on the grid (same row or the next)
+    qa, qb = np.flatnonzero(a.mask)[-1], np.flatnonzero(b.mask)[0]
+    ax, ay, bx, by = qa % 16, qa // 16, qb % 16, qb // 16
+    assert np.hypot(ax - bx, ay - by) <= 2.0
+    bright = (500, 1.0, 2, 300.0)
+
+    def sidelobe(dm):
+        """(image, S/N) where the burst's sweep puts most into the trial of ``dm``: its DM sidelobe."""
+        e = max(range(500, 560), key=lambda e: dm_sidelobe_snr(freq, 16 * DT, bright, (e, dm, 2)))
+        return e, dm_sidelobe_snr(freq, 16 * DT, bright, (e, dm, 2))
+    (e5, s5), (e25, s25) = sidelobe(0.5), sidelobe(0.25)
+    assert s5 > 3 and s25 > 3                          # real sidelobes
+    rows_a = [_row(a, ax, ay, image=500, snr=300.0, dm=1.0),
+              _row(a, 3, 3, image=2000, snr=40.0, kind="sky-wide", sky_fraction=0.3)]
+    rows_b = [_row(b, bx, by, image=e5, snr=0.9 * 2 * s5, dm=0.5),              # folded: within 2x the sidelobe
+              _row(b, bx, by, image=e25, snr=3.0 * s25, dm=0.25),               # 3x: a source of its own
+              _row(b, 12, 12, image=900, snr=8.0, dm=0.5),                       # far in time: its own row
+              _row(b, 9, 9, image=2001, snr=35.0, kind="sky-wide", sky_fraction=0.5)]
+    sp = SearchParts([_part_block(grid, a, rows_a, freq), _part_block(grid, b, rows_b, freq)], tmp_path, "t",
+                     "ecsv", png=False)
+    tab = sp.finish()
+    assert len(tab) == 4                         # the burst, the bright other-DM row, the far one, one sky-wide
+    burst_row = tab[tab["snr"] == 300.0][0]
+    assert burst_row["nsidelobes"] == 1 and burst_row["nmembers"] == 4
+    sky = tab[tab["kind"] == "sky-wide"]
+    assert len(sky) == 1 and sky["snr"][0] == 40.0 and sky["sky_fraction"][0] == 0.5
+    whole = np.flatnonzero(grid.mask)
+    assert set(tab["pixel"]) == {int(np.searchsorted(whole, q)) for q in (qa, qb, 12 * 16 + 12, 3 * 16 + 3)}
+    assert sp.search_stats["sidelobes_folded"] == 2 and sp.search_stats["candidates"] == 4
+    assert sp.search_stats["trials_per_width"] == [20, 20] and sp.search_stats["images"] == 100
+    assert (tmp_path / "t_candidates.ecsv").exists()

@@ -84,8 +84,12 @@ class SearchParts:
         from ..imaging.pixels import LMGrid
         from .transient_search import write_candidate_files
         b0 = self.blocks[0]
-        if not all(getattr(b, "lay", None) is not None for b in self.blocks):
-            raise RuntimeError("SearchParts.finish: a part's search saw no sequence (did the pipeline run?)")
+        seen = [getattr(b, "lay", None) is not None for b in self.blocks]
+        if not any(seen):
+            return None                       # no sequence reached the searches: nothing to write, as one search
+        if not all(seen):
+            raise RuntimeError("SearchParts.finish: some parts' searches saw a sequence and some did not: the "
+                               "parts must be fed the same source")
         lays = [b.lay for b in self.blocks]
         index = np.concatenate([lay["pixel_index"] for lay in lays])
         order = np.argsort(index, kind="stable")
