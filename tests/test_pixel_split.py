@@ -227,3 +227,17 @@ def test_search_parts_fold_what_another_part_explains(tmp_path):
     assert sp.search_stats["sidelobes_folded"] == 2 and sp.search_stats["candidates"] == 4
     assert sp.search_stats["trials_per_width"] == [20, 20] and sp.search_stats["images"] == 100
     assert (tmp_path / "t_candidates.ecsv").exists()
+
+
+def test_plan_of_a_split_is_per_gpu():
+    """`bf-epic plan` of a pixel split plans each GPU's part (half the pixels, the one-GPU modes: i8x2 for
+    4-bit voltages at 1e-4) and needs no GPU to do it."""
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import plan
+    one, _ = plan(load_config(YAML, ["device=gpu"]))
+    two, text = plan(load_config(YAML, ["device=gpu:0,1"]))
+    assert one["pixels"] == 3205 and two["pixels"] == 1603 and "split over 2 GPUs" in text
+    assert two["tolerance_pick"]["precision"] == one["tolerance_pick"]["precision"] == "i8x2"
+    assert two["search"]["memory_bytes"]["history"] < 0.51 * one["search"]["memory_bytes"]["history"]
+    chans, _ = plan(load_config(YAML, ["device=gpu:0,1", "imager.split=channels", "imager.tolerance=1e-3"]))
+    assert chans["pixels"] == 3205 and chans["tolerance_pick"]["precision"] not in ("i8x2", "i8x3")
