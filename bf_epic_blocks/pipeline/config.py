@@ -183,8 +183,8 @@ from ..imaging.products import PRESETS, VALID as VALID_PRODUCTS, needs_cross, re
 from .yaml_schema import (INVALID, REQUIRED, BadValue, Bool, Choice, Context, File, Float, Int, Key, ListOf, Section,
                           Str, TimeStr, did_you_mean, is_valid, join_path, key_lines, run_check)
 
-__all__ = ["ConfigError", "load_config", "apply_overrides", "parse_device", "resolved_split", "several_gpus",
-           "schema_keys",
+__all__ = ["ConfigError", "load_config", "apply_overrides", "parse_device", "pixel_split_problems", "resolved_split",
+           "several_gpus", "schema_keys",
            "STATIONS", "CATALOGUE_SOURCES", "DEFAULT_START", "NPOL"]
 
 PRECISION_NAMES = tuple(_PRECISIONS)
@@ -337,15 +337,24 @@ def _station_post(out, given, path, ctx):
         out["name"] = "lwasv"
 
 
+def pixel_split_problems(cfg) -> list[str]:
+    """Why ``cfg`` cannot split a grid's pixels over several GPUs (empty: it can)."""
+    im, src, cal = cfg["imager"], cfg["source"], cfg.get("calibration") or {}
+    return [why for why, bad in (
+        ("imager.kind is not dft", im.get("kind") != "dft"),
+        ("imager.track follows a source (a grid is split)", im.get("track") is not None),
+        ("the source is live (udp): each GPU would need its own copy of the packets", src.get("kind") == "udp"),
+        ("calibration.gains_table needs CalFoldBlock on one device", bool(cal.get("gains_table")))) if bad]
+
+
 def resolved_split(cfg) -> str:
     """'pixels' or 'channels': how several GPUs share the dft imager (``imager.split``; auto: pixels
     where a search runs on a grid from a file or simulated source). Meaningful only for several GPUs."""
-    im, src = cfg["imager"], cfg["source"]
+    im = cfg["imager"]
     split = im.get("split", "auto")
     if split != "auto":
         return split
-    can = im.get("kind") == "dft" and im.get("track") is None and src.get("kind") != "udp"
-    return "pixels" if can and im.get("search") else "channels"
+    return "pixels" if im.get("search") and not pixel_split_problems(cfg) else "channels"
 
 
 def several_gpus(device) -> bool:
@@ -722,14 +731,8 @@ def _fill_and_cross_check(cfg: dict, default_name: str, ctx: Context) -> None:
         ctx.error("imager.precision", f"{im['precision']!r} needs tensor cores (device: gpu); on the CPU use "
                                       "fp32 or fp64, or imager.tolerance to let the imager pick")
     _check_fused(cfg, src, im, ctx)
-    if is_valid(im) and is_valid(src) and im.get("split") == "pixels":
-        why = [w for w, bad in (("imager.kind is not dft", im["kind"] != "dft"),
-                                ("imager.track follows a source (a grid is split)", im.get("track") is not None),
-                                ("the source is live (udp): each GPU would need its own copy of the packets",
-                                 src["kind"] == "udp"),
-                                ("calibration.gains_table needs CalFoldBlock on one device",
-                                 bool(is_valid(cfg["calibration"]) and cfg["calibration"].get("gains_table"))))
-               if bad]
+    if is_valid(im) and is_valid(src) and is_valid(cfg["calibration"]) and im.get("split") == "pixels":
+        why = pixel_split_problems(cfg)
         if why:
             ctx.error("imager.split", "'pixels' cannot be used here: " + "; ".join(why) + "; use split: channels "
                                       "or auto")

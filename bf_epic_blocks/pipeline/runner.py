@@ -49,7 +49,6 @@ class Graph:
     cube: object = None
     parts: list | None = None      # a pixel split: (source, imager, search or None) per part
 
-
     @property
     def sinks(self):
         return [b for b in (self.writer, self.search, self.cube) if b is not None]
@@ -483,13 +482,8 @@ def _output_blocks(cfg, images, pixels, block):
 
 def _check_pixel_split(cfg, split):
     """A clear error where a pixel split cannot run (what config validation says for ``split: pixels``)."""
-    im, src = cfg["imager"], cfg["source"]
-    why = [w for w, bad in (("the imager is not dft", im["kind"] != "dft"),
-                            ("imager.track follows a source (a grid is split)", im.get("track") is not None),
-                            ("the source is live (udp)", src["kind"] == "udp"),
-                            ("calibration.gains_table needs CalFoldBlock on one device",
-                             bool(cfg["calibration"].get("gains_table"))),
-                            ("a split needs two or more parts", len(split) < 2)) if bad]
+    from .config import pixel_split_problems
+    why = pixel_split_problems(cfg) + (["a split needs two or more parts"] if len(split) < 2 else [])
     if why:
         raise ValueError("a pixel split (imager.split: pixels over several GPUs) cannot run here: " + "; ".join(why))
 
