@@ -83,7 +83,7 @@ def _gpus():
         return 0
 
 
-@pytest.mark.parametrize("device", ["cpu", pytest.param("gpu", marks=[
+@pytest.mark.parametrize("device", ["cpu", "cpu3", pytest.param("gpu", marks=[
     pytest.mark.gpu, pytest.mark.skipif(_gpus() < 2, reason="needs two CUDA GPUs")])])
 def test_pixel_split_through_run_equals_one_graph(tmp_path, device):
     """The whole-band pipeline made small (16 channels, 16x16 grid, a burst at DM 0.6), run as one graph
@@ -97,7 +97,8 @@ def test_pixel_split_through_run_equals_one_graph(tmp_path, device):
     from bf_epic_blocks.pipeline.config import load_config
     from bf_epic_blocks.pipeline.runner import run
     got = {}
-    runs = (("one", None, "cpu"), ("split", [None, None], "cpu")) if device == "cpu" else \
+    nparts = 3 if device == "cpu3" else 2          # (any number of parts: three on the CPU)
+    runs = (("one", None, "cpu"), ("split", [None] * nparts, "cpu")) if device.startswith("cpu") else \
         (("one", None, "gpu:0"), ("split", None, "gpu:all"))
     for tag, parts, dev in runs:
         out = tmp_path / tag
@@ -113,7 +114,7 @@ def test_pixel_split_through_run_equals_one_graph(tmp_path, device):
         files = [fits.getdata(f) for f in sorted(out.glob("*_s00_i*.fits"))]
         got[tag] = (summary, tab, cube, files)
     (s1, t1, c1, f1), (s2, t2, c2, f2) = got["one"], got["split"]
-    assert s2["search"]["parts"] == 2
+    assert s2["search"]["parts"] == (nparts if device.startswith("cpu") else _gpus())
     best = t2[int(np.argmax(t2["snr"]))]
     assert abs(best["image"] - 0.3 / (16 * DT)) <= 1 and abs(best["dm"] - 0.6) < 0.1 and best["snr"] > 10
     assert len(t1) == len(t2) >= 1
