@@ -47,7 +47,6 @@ class Graph:
     outdir: str
     search: object = None
     cube: object = None
-    parts: list | None = None      # a pixel split: (source, imager, search or None) per part
 
     @property
     def sinks(self):
@@ -533,8 +532,7 @@ def _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern,
         if searches else None
     merged = PixelMergeBlock(hosts) if hosts else None
     writer, cube = _output_blocks(cfg, merged, pixels, block) if merged is not None else (None, None)
-    return Graph(p, sources[0], sources[0], imagers[0], writer, nframe_total, station, out["dir"], search, cube,
-                 parts=list(zip(sources, imagers, searches or [None] * n)))
+    return Graph(p, sources[0], sources[0], imagers[0], writer, nframe_total, station, out["dir"], search, cube)
 
 
 def block_timing(blocks, t0):
