@@ -137,6 +137,11 @@ def test_split_is_checked():
     with pytest.raises(ConfigError, match="imager.split.*tracked|imager.track follows"):
         load_config(YAML, ["imager.split=pixels", "imager.grid=null",
                            "imager.track={source: CygA, size: 8, fov_deg: 5}"])
+    # live packets: one receiver, so a search on several GPUs shares the channels; pixels is refused
+    live = YAML.parent / "lwasv_udp_live.yaml"
+    assert resolved_split(load_config(live, ["device=gpu:all", "imager.search={dms: [0.0]}"])) == "channels"
+    with pytest.raises(ConfigError, match="source is live"):
+        load_config(live, ["device=gpu:all", "imager.split=pixels"])
 
 
 def test_pixel_split_of_a_capture_file_equals_one_graph(tmp_path):
