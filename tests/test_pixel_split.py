@@ -183,7 +183,8 @@ def _part_block(grid, part, rows, freq):
     lay = {"pixel_index": np.flatnonzero(part.mask), "lm": part.lm, "grid": part, "freq_hz": freq, "dt_s": 16 * DT,
            "products": ["I"]}
     stats = {"images": 100, "images_searched": 90, "crossings": len(rows), "candidates": len(rows), "resets": 0,
-             "images_lost": 0, "trials_per_width": [10, 10], "sequences": 1, "sky_wide": 0, "sidelobes_folded": 0,
+             "images_lost": 0, "trials_per_width": [10, 10], "sequences": 1,
+             "sky_wide": sum(r["kind"] == "sky-wide" for r in rows), "sidelobes_folded": 0,
              "crossings_dropped": 0}
     return types.SimpleNamespace(
         name="TransientSearchBlock", lay=lay, rows=rows, search_stats=stats, sidelobe_factor=2.0, _tlink=8,
@@ -231,6 +232,7 @@ def test_search_parts_fold_what_another_part_explains(tmp_path):
     whole = np.flatnonzero(grid.mask)
     assert set(tab["pixel"]) == {int(np.searchsorted(whole, q)) for q in (qa, qb, 12 * 16 + 12, 3 * 16 + 3)}
     assert sp.search_stats["sidelobes_folded"] == 2 and sp.search_stats["candidates"] == 4
+    assert sp.search_stats["sky_wide"] == 1
     assert sp.search_stats["trials_per_width"] == [20, 20] and sp.search_stats["images"] == 100
     assert (tmp_path / "t_candidates.ecsv").exists()
 

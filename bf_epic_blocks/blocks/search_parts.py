@@ -23,7 +23,8 @@ rules the block applies within a part (its ``sidelobe_factor``):
 
 Then it writes the one table and PNG the single-GPU block would write (pixel numbers over the whole
 sky). ``search_stats`` adds the parts' trial and crossing counts; counts of the stream (images,
-resets, images lost, sequences) are the largest any part saw (they see the same images).
+resets, images lost, sequences) are the largest any part saw (they see the same images); candidates
+and sky-wide events are those of the merged table.
 """
 from __future__ import annotations
 
@@ -62,7 +63,7 @@ class SearchParts:
     def name(self):
         return "SearchParts(" + ", ".join(b.name for b in self.blocks) + ")"
 
-    def _stats(self, folded, ncand):
+    def _stats(self, folded, ncand, nsky=None):
         out = {}
         for key in self.blocks[0].search_stats:
             vals = [b.search_stats[key] for b in self.blocks]
@@ -74,6 +75,8 @@ class SearchParts:
                 out[key] = sum(vals)
         out["sidelobes_folded"] += folded
         out["candidates"] = ncand
+        if nsky is not None:            # a sky-wide event both halves saw is one row, counted once
+            out["sky_wide"] = nsky
         out["parts"] = len(self.blocks)
         return out
 
@@ -107,7 +110,7 @@ class SearchParts:
         meta["trials_per_width"] = self._stats(0, 0)["trials_per_width"]
         meta["pixel_split_parts"] = len(self.blocks)
         self.candidates = cio.candidate_table(kept, meta, lc_length=b0.lc_before + b0.lc_after + 1)
-        self.search_stats = self._stats(folded, len(kept))
+        self.search_stats = self._stats(folded, len(kept), sum(r["kind"] == "sky-wide" for r in kept))
         if folded:
             log.info("pixel split: %d candidate(s) of one part folded into another part's brighter one", folded)
         if self.outdir is not None:
