@@ -508,31 +508,30 @@ def _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern,
     if out.get("cube"):
         wants.append(bool(out["cube"]["average_channels"]))
     average = bool(wants) and all(wants)
-    sources, imagers, searches, hosts = [], [], [], []
+    parts = [pixels.part(k, n) for k in range(n)]
+    mode = _imaging_mode_kw(cfg, parts[0], station, dev)       # the parts differ by a pixel at most: one pick
+    first, searches, hosts = None, [], []
     nframe_total = block = None
-    for k, d in enumerate(split):
-        part = pixels.part(k, n)
+    for k, (d, part) in enumerate(zip(split, parts)):
         with bfp.block_scope(gpu=d) if d is not None else contextlib.nullcontext():
             source, nframe_total, block = _recorded_source(cfg, fmt, info, station, gulp,
                                                            "cuda" if d is not None else "system",
                                                            progress if k == 0 else None)
             imager = DFTImagerBlock(source, part, im["accumulate_frames"], products=im["products"],
                                     remove_autocorr=im["remove_autocorr"], cable=bool(cal["cable"]),
-                                    pattern=pattern or False, **_imaging_mode_kw(cfg, part, station, dev))
+                                    pattern=pattern or False, **mode)
             if im.get("search"):
                 searches.append(_search_block(cfg, imager, None))
             if wants:
                 hosts.append(ImageIntegratorBlock(imager, nimage=1, average_channels=average, space="system"))
-        sources.append(source)
-        imagers.append(imager)
+        first = first or (source, imager)
     log.info("pixel split: %d parts (%s), %s pixels each, every channel imaged and searched where it is made",
-             n, ", ".join("cpu" if d is None else f"gpu:{d}" for d in split),
-             "/".join(str(pixels.part(k, n).npix) for k in range(n)))
+             n, ", ".join("cpu" if d is None else f"gpu:{d}" for d in split), "/".join(str(q.npix) for q in parts))
     search = SearchParts(searches, out["dir"], out["prefix"], im["search"]["table"], im["search"]["png"]) \
         if searches else None
     merged = PixelMergeBlock(hosts) if hosts else None
     writer, cube = _output_blocks(cfg, merged, pixels, block) if merged is not None else (None, None)
-    return Graph(p, sources[0], sources[0], imagers[0], writer, nframe_total, station, out["dir"], search, cube)
+    return Graph(p, first[0], first[0], first[1], writer, nframe_total, station, out["dir"], search, cube)
 
 
 def block_timing(blocks, t0):
