@@ -223,3 +223,51 @@ def test_kernel_shape_falls_back_where_the_hopper_kernel_or_shared_memory_does_n
     assert not big.get("WG") and big["BFULL"] == 0
     with pytest.raises(ValueError, match="too many"):
         fused.bases(3, 2 ** 20)
+
+
+@GPU
+@pytest.mark.gpu
+@pytest.mark.parametrize("nant,pols", [(72, [0, 1]), (72, [1]), (70, [0, 1])])
+def test_gpu_ci4_bytes_lay_out_as_their_unpacked_pairs(nant, pols):
+    """ci4 bytes laid out for the kernel as they are read (the stations' case, antennas a multiple of 8
+    and two pols, decoded in the layout kernel; others unpacked first) equal the NumPy layout of the
+    same voltages as int8 pairs, every 4-bit value (-8 included) and the zero padding."""
+    import cupy as cp
+    from bf_epic_blocks.runtime.dtypes import pack_ci4
+    rng = np.random.default_rng(12)
+    Q = rng.integers(-8, 8, (50, 3, nant, 2, 2)).astype(np.int8)
+    Q[0, 0, 0, 0] = (-8, 7)
+    b = pack_ci4(Q[..., 0] + 1j * Q[..., 1].astype(np.float64))
+    kd = 2 * (-(-nant // 64) * 64)
+    chan = np.array([2, 0])
+    got = fused.layout_voltages(cp.asarray(b), cp.asarray(chan, dtype=cp.int32), cp.asarray(pols, dtype=cp.int32),
+                                kd, 8, ci4=True)
+    assert np.array_equal(got.get(), fused.layout_voltages(Q, chan, pols, kd, 8))
+
+
+@GPU
+@pytest.mark.gpu
+def test_gpu_images_from_ci4_bytes_on_the_grid_equal_float64_truth():
+    """The whole-band imager's path: ci4 bytes straight into the fused kernel, the products placed on
+    the grid in one pass (ImageAccumulator.images(ci4=True, place=, out=)), against the float64
+    definition, and equal to the same images from unpacked pairs placed afterwards."""
+    import cupy as cp
+    from bf_epic_blocks.imaging.pixels import GridPlacement
+    from bf_epic_blocks.runtime.dtypes import pack_ci4
+    xyz, freq, _, Q = scene(nant=48, T=256, nchan=3, seed=13)
+    grid = imaging.lm_grid(16)
+    op = DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(grid.lm), npol=2, precision="i8x2")
+    acc = op.accumulator(("I",), method="direct")
+    assert acc.takes_ci4
+    place = GridPlacement(np.flatnonzero(grid.mask), grid.size ** 2, cp)
+    b = cp.asarray(pack_ci4(Q[..., 0] + 1j * Q[..., 1].astype(np.float64)))
+    out = cp.full((16, 3, 1, grid.size ** 2), -7.0, cp.float32)
+    acc.images(b, 16, ci4=True, place=place, out=out)
+    got = out.get()
+    ref = truth_powers(Q, xyz, freq, grid.lm, np.ones((3, 48, 2)), 16).sum(axis=2) / 16 / 48 ** 2   # (g, C, K)
+    on = grid.mask.ravel()
+    assert np.isnan(got[..., ~on]).all() and np.isfinite(got[..., on]).all()
+    err = np.abs(got[:, :, 0][..., on] - ref).max() / np.abs(ref).max()
+    assert err <= LIMIT["i8x2"], err
+    pairs = place(acc.images(cp.asarray(Q), 16)).get()
+    assert np.array_equal(got, pairs, equal_nan=True)

@@ -295,3 +295,33 @@ def test_geometric_operator_against_float64_phases(xp, precision, tol):
     cyc = freq[:, None, None] / C * path[None]
     ref = np.exp(-2j * np.pi * (cyc - np.round(cyc)))
     assert np.abs(to_np(G) - ref).max() <= tol
+
+
+@pytest.mark.parametrize("precision,tol", [("fp64", 1e-12), ("fp32", 2e-6)])
+def test_images_placed_on_the_grid_in_the_products_pass_equal_the_definition(xp, scene, precision, tol):
+    """images(place=, out=) -- on the GPU the products kernel writes the grid's cells itself, the
+    pattern's |B_p|^2 and the pols' sum in the same pass -- against the float64 definition placed on
+    the grid by hand: a voltage pattern, one group per 8 samples, a dead channel (NaN), NaN off the grid."""
+    xyz, freq, X, _ = scene
+    grid = imaging.lm_grid(12)
+    lm = grid.lm
+    rng = np.random.default_rng(11)
+    B = rng.uniform(0.2, 1.0, (1, len(lm), 1, 2)) * np.exp(1j * rng.uniform(0, 1, (1, len(lm), 1, 2)))
+    w = np.ones((3, 24, 2))
+    w[1] = 0                                                    # a dead channel
+    prods = ("I", "XX", "Q")
+    op = imaging.DFTOperator(xp.asarray(xyz), xp.asarray(freq), xp.asarray(lm), npol=2, weights=xp.asarray(w),
+                             pattern=xp.asarray(B), precision=precision)
+    acc = op.accumulator(prods, method="direct")
+    place = px.GridPlacement(np.flatnonzero(grid.mask), grid.size ** 2, xp)
+    out = xp.full((5, 3, len(prods), grid.size ** 2), -7.0, dtype=op.rdtype)
+    got = acc.images(xp.asarray(X), 8, place=place, out=out)
+    assert got is out
+    got = to_np(out)
+    for g in range(5):
+        ref = brute_image(X[8 * g:8 * (g + 1)], xyz, freq, lm, prods, weights=w, pattern=B)   # (C, nprod, K)
+        cells = np.full((3, len(prods), grid.size ** 2), np.nan)
+        cells[..., grid.mask.ravel()] = ref
+        cells[1] = np.nan
+        assert np.array_equal(np.isnan(got[g]), np.isnan(cells))
+        assert rel_err(got[g], cells) <= tol, g

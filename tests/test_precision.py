@@ -405,11 +405,16 @@ def test_the_gpu_pick_meets_its_bound_on_case_p(tol):
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
-@pytest.mark.parametrize("real,lead", [(True, (70000,)), (False, (3, 5)), (True, (2,))])
-def test_products_kernel_equals_the_definition(real, lead):
+@pytest.mark.parametrize("real,lead,weighted,placed", [(True, (70000,), False, False), (False, (3, 5), False, False),
+                                                        (True, (2,), False, False), (True, (70000,), True, True),
+                                                        (True, (4,), "per channel", True),
+                                                        (False, (3, 5), "per channel", False)])
+def test_products_kernel_equals_the_definition(real, lead, weighted, placed):
     """The products kernel against its definition written out in NumPy: out[..., c, p, k] =
-    sum_b scale[c, b] (a[p, b] Re corr + i[p, b] Im corr), with more (g, c) rows than one grid row
-    holds (70,000), complex and real (the fused modes') correlations."""
+    sum_b scale[c, b] (a[p, b] Re w corr + i[p, b] Im w corr), with more (g, c) rows than one grid row
+    holds (70,000), complex and real (the fused modes') correlations, a per-pixel weight w (the
+    pattern's B_p conj(B_q), shared by the channels or per channel) and the products placed on a grid
+    in the same pass (cells with no pixel NaN)."""
     import cupy as cp
     from bf_epic_blocks.imaging.reduce import product_coefficients, products_from_blocks
     rng = np.random.default_rng(7)
@@ -422,10 +427,27 @@ def test_products_kernel_equals_the_definition(real, lead):
         corr = (corr + 1j * rng.normal(size=shape)).astype(np.complex64)
     scale = rng.uniform(0.5, 2, (C, len(blocks))).astype(np.float32)
     coef = np.asarray(product_coefficients(products, blocks), np.float64)        # (nprod, nblk, 2)
-    got = products_from_blocks(cp.asarray(corr), cp.asarray(scale), cp.asarray(coef, np.float32)).get()
+    w = None
+    if weighted:
+        w = (rng.uniform(0.2, 1, (C if weighted == "per channel" else 1, len(blocks), K))
+             * np.exp(1j * rng.uniform(0, 6, (1, len(blocks), K)))).astype(np.complex64)
+    gather = None
+    if placed:
+        gather = np.full(50, -1, np.int32)
+        gather[rng.choice(50, K, replace=False)] = np.arange(K)
+    got = products_from_blocks(cp.asarray(corr), cp.asarray(scale), cp.asarray(coef, np.float32),
+                               weight=None if w is None else cp.asarray(w),
+                               gather=None if gather is None else cp.asarray(gather)).get()
     z = corr.astype(np.complex128) * scale[..., None]
+    if w is not None:
+        z = z * w
     want = np.zeros(lead + (C, len(products), K))
     for p in range(len(products)):
         for b in range(len(blocks)):
             want[..., :, p, :] += coef[p, b, 0] * z[..., :, b, :].real + coef[p, b, 1] * z[..., :, b, :].imag
-    assert np.allclose(got, want, rtol=1e-5, atol=1e-5)
+    if gather is not None:
+        cells = np.full(want.shape[:-1] + (gather.size,), np.nan)
+        cells[..., gather >= 0] = want[..., gather[gather >= 0]]
+        want = cells
+        assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.allclose(got, want, rtol=1e-5, atol=1e-5, equal_nan=True)

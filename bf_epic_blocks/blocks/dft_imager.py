@@ -21,7 +21,7 @@ from ..imaging.dft import DFTOperator
 from ..imaging.pixels import GridPlacement, LMGrid, check_lm
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
-from ..runtime.dtypes import int8_pairs_decoder
+from ..runtime.dtypes import ci4_bytes, int8_pairs_decoder
 from .headers import derived_image_header, efield_header, efield_layout, grid_pixels_header
 from .nonfinite import get_tally, is_float_dtype, new_tally, zero_and_count
 
@@ -222,6 +222,17 @@ class DFTImagerBlock(bfp.TransformBlock):
             out[j:j + g] = imgs
         self._count(g)
 
+    def _write_made(self, out, j, g, make):
+        """g images made straight into output frames j .. j + g by ``make(place=, out=)``
+        (:meth:`ImageAccumulator.images`: on the GPU the products are placed on the grid as they are formed)."""
+        dst = out[j:j + g]
+        if self._place is not None:
+            N = self.pixels.size
+            make(place=self._place, out=dst.reshape(dst.shape[:3] + (N * N,)))
+        else:
+            dst[...] = make()
+        self._count(g)
+
     def _count(self, g):
         self.img_stats["images"] += g
         self.img_stats["frames_imaged"] += g * self.accumulate
@@ -321,10 +332,18 @@ class DFTImagerBlock(bfp.TransformBlock):
                                               remove_autocorr=self.remove_autocorr, method=self._acc.method,
                                               decode=decode if x is None else None, static_out=True)[None]
                     else:
-                        # several whole integrations in this gulp: one batched pass (one GEMM for all)
-                        if x is None:
+                        # several whole integrations in this gulp: one batched pass (one GEMM for all),
+                        # the products placed on the grid in the same pass; a fused mode lays ci4 bytes
+                        # out for its kernel as they are (no unpacked copy)
+                        ci4 = x is None and self._lay["dtype"] == "ci4" and self._acc.takes_ci4
+                        if x is None and not ci4:
                             x = decode(idata)
-                        imgs = self._acc.images(x[pos:pos + g * self.accumulate], self.accumulate)
+                        sl = slice(pos, pos + g * self.accumulate)
+                        self._write_made(out, nout, g, lambda **kw: self._acc.images(
+                            ci4_bytes(idata[sl]) if ci4 else x[sl], self.accumulate, ci4=ci4, **kw))
+                        nout += g
+                        pos += g * self.accumulate
+                        continue
                     self._write(out, nout, imgs)
                     nout += g
                     pos += g * self.accumulate

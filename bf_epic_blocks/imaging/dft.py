@@ -42,7 +42,7 @@ from .graphs import GraphCache
 from .layout import cov_rhs, direct_rhs, gram_rows
 from .reduce import block_corr, group_power, product_coefficients, products_from_blocks, row_dot
 from .pixels import check_lm, n_from_lm
-from .products import combine, needs_cross, resolve_products
+from .products import needs_cross, resolve_products
 
 log = logging.getLogger(__name__)
 
@@ -755,29 +755,53 @@ class ImageAccumulator:
         self._wn += t
 
     # ------------------------------------------------------------------ results
-    def images(self, efield, n):
+    @property
+    def takes_ci4(self):
+        """Whether :meth:`images` takes ci4 bytes as they are (``ci4=True``): a fused integer mode's
+        direct route without autocorrelation removal lays the bytes out for its kernel in one pass."""
+        return self.op.fused is not None and self.method == "direct" and not self.remove_autocorr
+
+    def images(self, efield, n, *, ci4=False, place=None, out=None):
         """One image per ``n`` consecutive samples of ``efield``: (ntime // n, nchan, nprod, npix).
 
         Independent of (and leaving untouched) any integration in progress. Direct route: one batched
-        pass; covariance route: one exact covariance per group (chosen only for long groups)."""
+        pass; covariance route: one exact covariance per group (chosen only for long groups).
+
+        ci4 : ``efield`` is ci4 bytes, uint8 (ntime, nchan, nant, npol) (high nibble real), imaged
+            without unpacking (only where :attr:`takes_ci4`).
+        place, out : a :class:`.pixels.GridPlacement` and the float32 (ntime // n, nchan, nprod, N)
+            array the images are placed into (cells with no pixel NaN; on the GPU in the same pass as
+            the products). Returns ``out``."""
         op, xp = self.op, self.op.xp
+        if ci4:
+            if not self.takes_ci4:
+                raise ValueError("ImageAccumulator.images: ci4 bytes are imaged as they are only by a fused "
+                                 "integer mode's direct route without autocorrelation removal")
+            t, c, a, p = efield.shape
+            if efield.dtype != np.uint8 or (c, a, p) != (op.nchan, op.nant_in, op.npol):
+                raise ValueError(f"ci4 bytes must be uint8 (ntime, {op.nchan}, {op.nant_in}, {op.npol}), got "
+                                 f"{efield.dtype} {tuple(efield.shape)}")
+            g = t // n
+            S = op.fused.sums(efield[:g * n], self.pols, n, ci4=True)
+            return self._finish(S, 1.0 / n, place=place, out=out)
         ints = op._check_efield(efield)
         g = int(efield.shape[0]) // n
         if g == 0:
-            return xp.zeros((0, op.nchan, len(self.products), op.npix), op.rdtype)
+            return out if out is not None else xp.zeros((0, op.nchan, len(self.products), op.npix), op.rdtype)
         efield = efield[:g * n]
         if self.method == "covariance":
-            out = []
             sub = ImageAccumulator(op, self.products, remove_autocorr=self.remove_autocorr, method="covariance")
+            imgs = []
             for i in range(g):
                 sub.add(efield[i * n:(i + 1) * n])
-                out.append(sub.result())
+                imgs.append(sub.result())
                 sub.reset()
-            return xp.stack(out)
+            imgs = xp.stack(imgs)
+            return imgs if place is None else place(imgs, out=out)
         S, auto = self._direct_sums(efield, ints, n)                        # (g, C', nblk, K)
         if auto is not None:
             S = S - self._autocorr_term(auto)
-        return self._finish(S, 1.0 / n)
+        return self._finish(S, 1.0 / n, place=place, out=out)
 
     def result(self):
         """The image (nchan, nprod, npix), real, in the operator's precision; NaN where all antennas of a
@@ -791,31 +815,36 @@ class ImageAccumulator:
             corr = corr - self._autocorr_term(self._auto)
         return self._finish(corr, 1.0 / self.ntime)
 
-    def _finish(self, corr, factor):
-        """(..., C', nblk, K) complex correlation sums, times ``factor`` -> (..., nchan, nprod, K) products."""
+    def _finish(self, corr, factor, place=None, out=None):
+        """(..., C', nblk, K) complex correlation sums, times ``factor`` -> (..., nchan, nprod, K) products;
+        with a :class:`.pixels.GridPlacement` ``place``, placed into ``out`` (..., nchan, nprod, N)."""
         xp, op = self.op.xp, self.op
-        if self._bw is None:
-            # one pass: scale, 1/N_A^2 and the products' Re/Im combinations together (reduce.py)
-            if self._coef is None:
-                self._coef = xp.asarray(product_coefficients(self.products, self.blocks))
-            out = products_from_blocks(corr, self._blkscale[..., 0] * op.rdtype(factor), self._coef)
-            out = out.astype(op.rdtype, copy=False)
-        else:
-            corr = corr * (self._blkscale * op.rdtype(factor)) * self._bw
-            get = {blk: corr[..., i, :] for i, blk in enumerate(self.blocks)}
-            xx, yy, xy = get.get((0, 0)), get.get((1, 1)), get.get((0, 1))
-            out = combine(self.products, xx.real if xx is not None else None,
-                          yy.real if yy is not None else None, xy).astype(op.rdtype, copy=False)
+        # one pass: scale, 1/N_A^2, the pattern and the products' Re/Im combinations together (reduce.py);
+        # on the GPU also the placement on the grid when every channel is live
+        if self._coef is None:
+            self._coef = xp.asarray(product_coefficients(self.products, self.blocks))
+        scale = self._blkscale[..., 0] * op.rdtype(factor)
+        gather = None if place is None or op.chan_index is not None or out is None else place.gather
+        if gather is not None and out.dtype == np.float32 and out.flags.c_contiguous:
+            products_from_blocks(corr, scale, self._coef, weight=self._bw, gather=gather, out=out)
+            self._fill_dead(out)
+            return out
+        res = products_from_blocks(corr, scale, self._coef, weight=self._bw).astype(op.rdtype, copy=False)
         if op.chan_index is not None:
-            full = xp.full(out.shape[:-3] + (op.nchan,) + out.shape[-2:], xp.nan, dtype=op.rdtype)
-            full[..., op.chan_index, :, :] = out
-            out = full
+            full = xp.full(res.shape[:-3] + (op.nchan,) + res.shape[-2:], xp.nan, dtype=op.rdtype)
+            full[..., op.chan_index, :, :] = res
+            res = full
+        self._fill_dead(res)
+        return res if place is None else place(res, out=out)
+
+    def _fill_dead(self, res):
+        """NaN where all antennas of a contributing channel-pol are flagged (res: (..., nchan, nprod, cells))."""
+        op, xp = self.op, self.op.xp
         if op.any_dead:
             for k, name in enumerate(self.products):
                 pols = {"XX": (0,), "YY": (1,)}.get(name, tuple(range(op.npol)))
                 bad = xp.any(op.dead[:, list(pols)], axis=1)
-                out[..., bad, k, :] = xp.nan
-        return out
+                res[..., bad, k, :] = xp.nan
 
     def _autocorr_term(self, auto):
         """sum_a D^p_ka conj(D^q_ka) sum_t x_ap conj(x_aq): (..., C', nblk, K); data already weighted."""

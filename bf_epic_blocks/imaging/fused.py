@@ -139,15 +139,37 @@ def padded_ntime(T):
     return _pad(int(T), BN)
 
 
-def layout_voltages(pairs, chan, pols, KD, xmax, flag=None):
+def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False):
     """Integer (re, im) voltages (T, C_in, A_in, P_in, 2) int8 -> B (C', P' Tp, KD) int8, column
     p' Tp + t, Tp = :func:`padded_ntime` (T); samples t >= T are zero.
 
     chan : None (all channels) or (C',) input channel per live channel;  pols : the pols imaged
     (a list, or on the GPU an int32 device array).  Antennas beyond A_in are zero. On the GPU any
     |sample| > ``xmax`` sets ``flag[0]`` (int32, device).
+    ci4 : ``pairs`` are ci4 bytes, uint8 (T, C_in, A_in, P_in), decoded as they are read (on the GPU
+        for two pols and antennas a multiple of 8 -- the stations' case -- in the layout kernel itself:
+        no unpacked copy; |x| <= 8 <= xmax always).
     """
     xp = get_xp(pairs)
+    if ci4:
+        from ..runtime.dtypes import unpack_int8_pairs
+        if pairs.dtype != np.uint8 or pairs.ndim != 4:
+            raise ValueError(f"ci4 bytes must be uint8 (T, C, A, P), got {pairs.dtype} {tuple(pairs.shape)}")
+        T, Cin, Ain, Pin = (int(s) for s in pairs.shape)
+        if xp is np or not (Pin == 2 and Ain % 8 == 0):
+            pairs = unpack_int8_pairs(pairs, "ci4")
+        else:
+            Tp = padded_ntime(T)
+            cmap = xp.arange(Cin, dtype=xp.int32) if chan is None else xp.asarray(chan, dtype=xp.int32)
+            pmap = xp.asarray(pols, dtype=xp.int32)
+            Cl, Pp = int(cmap.shape[0]), int(pmap.shape[0])
+            out = xp.empty((Cl, Pp * Tp, KD), xp.int8)
+            total = Cl * Tp * (KD // 16)
+            _kernel("bf_layout_ci4_p2")(((total + 255) // 256,), (256,),
+                                        (xp.ascontiguousarray(pairs), out, cmap, pmap, np.int32(T), np.int32(Tp),
+                                         np.int32(Cin), np.int32(Ain), np.int32(Pp), np.int32(KD // 2),
+                                         np.int32(Cl)))
+            return out
     T, Cin, Ain, Pin = (int(s) for s in pairs.shape[:4])
     Tp = padded_ntime(T)
     if xp is np:
@@ -251,8 +273,9 @@ class FusedOperator:
         (one integration's part in this gulp, any length)."""
         return n % 16 == 0 or n == T
 
-    def sums(self, pairs, pols, n):
-        """(g, C', P', npix) float32 sums of |F_p|^2 over groups of ``n`` samples (:meth:`supports`)."""
+    def sums(self, pairs, pols, n, ci4=False):
+        """(g, C', P', npix) float32 sums of |F_p|^2 over groups of ``n`` samples (:meth:`supports`);
+        ``ci4``: ``pairs`` are ci4 bytes (T, C, A, P) uint8, laid out without unpacking."""
         xp = get_xp(pairs)
         T = int(pairs.shape[0])
         P = len(pols)
@@ -260,7 +283,7 @@ class FusedOperator:
         if key not in self._pmaps:
             self._pmaps[key] = xp.asarray(list(pols), dtype=xp.int32)
         self.flag.fill(0)
-        Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag)
+        Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4)
         out = fused_power(self.Aq, self.osc, Bv, padded_ntime(T), P, self.flag, self.npix)   # (Tp/16, C', P, K)
         if n == T:                                  # one group: every 16-sample unit, the last one partial
             u = -(-T // 16)
@@ -663,6 +686,39 @@ extern "C" __global__ void bf_layout_i8_p2(const signed char* __restrict__ x, si
         o.x = __byte_perm(w[0], w[1], sel); o.y = __byte_perm(w[2], w[3], sel);
         o.z = __byte_perm(w[4], w[5], sel); o.w = __byte_perm(w[6], w[7], sel);
         *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * Tp + t) * Apad + j * 8) * 2) = o;
+    }
+}
+"""
+
+_LAYOUT_SRC += r"""
+// ci4 bytes (T, Cin, Ain, 2) uint8 (high nibble real, two's complement) -> (Cl, P', T, 2 Apad) int8, for
+// antennas a multiple of 8: one 16-byte load per thread (8 antennas x 2 pols), decoded in registers, so
+// the unpacked int8 pairs (twice the bytes) are never written and read back. 4-bit values need no range check.
+extern "C" __global__ void bf_layout_ci4_p2(const unsigned char* __restrict__ x, signed char* __restrict__ out,
+                                            const int* __restrict__ cmap, const int* __restrict__ pmap,
+                                            const int T, const int Tp, const int Cin, const int Ain, const int Pp,
+                                            const int Apad, const int Cl)
+{
+    const int J = Apad / 8, Jin = Ain / 8;
+    long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    const long long total = (long long)Cl * Tp * J;
+    if (i >= total) return;
+    const int j = (int)(i % J); long long r = i / J;
+    const int t = (int)(r % Tp); const int c = (int)(r / Tp);
+    uint4 u = make_uint4(0u, 0u, 0u, 0u);                   // padding: nibbles 0, values 0
+    if (j < Jin && t < T)
+        u = *reinterpret_cast<const uint4*>(x + (((long long)t * Cin + cmap[c]) * Ain + j * 8) * 2);
+    const unsigned w[4] = {u.x, u.y, u.z, u.w};
+    for (int p = 0; p < Pp; p++) {
+        const int pp = pmap[p];
+        union { int4 v; signed char b[16]; } o;
+#pragma unroll
+        for (int e = 0; e < 8; e++) {     // byte 2 e + pp: antenna e, pol pp
+            const unsigned b = (w[e >> 1] >> (8 * (((e & 1) << 1) + pp))) & 0xFFu;
+            o.b[2 * e] = (signed char)((int)((b >> 4) ^ 8u) - 8);
+            o.b[2 * e + 1] = (signed char)((int)((b & 15u) ^ 8u) - 8);
+        }
+        *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * Tp + t) * Apad + j * 8) * 2) = o.v;
     }
 }
 """

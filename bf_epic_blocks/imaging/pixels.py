@@ -129,6 +129,12 @@ class GridPlacement:
             gather[index] = np.arange(index.size, dtype=np.int32)
             self._gather = xp.asarray(gather)
 
+    @property
+    def gather(self):
+        """On the GPU, the int32 (n,) pixel of each cell (-1: none), for kernels that place as they
+        write (:func:`.reduce.products_from_blocks`); None on the CPU."""
+        return self._gather
+
     def __call__(self, values, out=None):
         """(..., npix) real or complex -> ``out`` (..., n) (a new array of the values' dtype if None;
         values are cast to a given ``out``'s dtype)."""

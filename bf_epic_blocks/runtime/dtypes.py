@@ -162,6 +162,16 @@ def unpack_int8_pairs(data, dtype_str, xp=None):
     raise TypeError(f"integer pairs come from 'ci4' or 'ci8' data, not {dtype_str!r}")
 
 
+def ci4_bytes(data, xp=None):
+    """The bytes of a 'ci4' span array, uint8 of the same shape (high nibble real, two's complement),
+    whatever its storage form: for kernels that decode as they read (:mod:`..imaging.fused`)."""
+    xp = _xp_of(data, xp)
+    names = getattr(data.dtype, 'names', None)
+    if names:
+        data = data[names[0]]
+    return data.view(xp.uint8)
+
+
 def _pairs_ci4(data):
     return unpack_int8_pairs(data, 'ci4')
 
