@@ -231,3 +231,30 @@ def test_float16_reference_is_the_first_image_not_a_view_of_the_caller_s_buffer(
     got = np.concatenate(got, axis=1)[:, 6:]
     want = gathered_sums(x, effective_back(plan))[:, 6:]
     assert np.abs(got - want).max() < _fp16_bound(x, 16) * 16 * 10.0 * np.sqrt(2) * 4
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not __import__("bf_epic_blocks.imaging._xp", fromlist=["x"]).gpu_available(),
+                    reason="needs CuPy and a CUDA device")
+def test_the_gpu_float16_stream_reads_the_search_s_strided_view_and_names_nan():
+    """The search hands the tree a (nchan, B, npix) view of its (B, nchan, npix) images: the scale's
+    maximum (one kernel over the strided view) and the sums equal the host's bit for bit, through a
+    flash that rescales; a NaN anywhere is named, as on the host."""
+    import cupy as cp
+    rng = np.random.default_rng(14)
+    f = 74e6 + 25e3 * np.arange(96)
+    plan = FDMTPlan(f, 40)
+    x = rng.normal(50.0, 5.0, size=(160, 96, 37)).astype(np.float32)          # (B, nchan, npix)
+    x[90:92, :, 36] *= 1e4
+    host = StreamingFDMT(plan, 37, precision="fp16")
+    dev = StreamingFDMT(plan, 37, xp=cp, precision="fp16")
+    xd = cp.asarray(x)
+    for a, b in ((0, 64), (64, 160)):
+        h = host.push(np.moveaxis(x[a:b], 0, 1))
+        d = dev.push(cp.moveaxis(xd[a:b], 0, 1)).get()
+        assert np.array_equal(h, d)
+    assert host.rescales == dev.rescales == 1
+    bad = xd[:5].copy()
+    bad[3, 50, 36] = cp.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        dev.push(cp.moveaxis(bad, 0, 1))

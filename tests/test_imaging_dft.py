@@ -325,3 +325,15 @@ def test_images_placed_on_the_grid_in_the_products_pass_equal_the_definition(xp,
         cells[1] = np.nan
         assert np.array_equal(np.isnan(got[g]), np.isnan(cells))
         assert rel_err(got[g], cells) <= tol, g
+
+
+def test_take_pixels_of_a_ring_span_s_product_equals_take(xp):
+    """The search's pixels off the grid (one kernel on the GPU) from a strided view, as a ring span's
+    product slice gives it, equal NumPy's take."""
+    rng = np.random.default_rng(15)
+    span = rng.normal(size=(7, 5, 3, 8, 8)).astype(np.float32)          # (time, chan, product, m, l)
+    index = np.sort(rng.choice(64, 41, replace=False))
+    view = xp.asarray(span)[:, :, 1].reshape(7, 5, -1)
+    got = px.take_pixels(view, xp.asarray(index, dtype=np.int32))
+    assert to_np(got).shape == (7, 5, 41)
+    assert np.array_equal(to_np(got), span[:, :, 1].reshape(7, 5, -1)[..., index])

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..imaging.transient import (TREE_CHANNELS, Crossings, TransientSearch, cluster_crossings, dm_delays,
                                  dm_sidelobe_snr)
+from ..imaging.pixels import take_pixels
 from . import _compat
 from ._compat import bfp, span_array
 from .headers import image_layout, station_location
@@ -193,7 +194,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         data = span_array(ispan)
         n = data.shape[0]
         with _compat.stream_context():
-            x = self.xp.take(data[:, :, self._prod].reshape(n, self.lay["nchan"], -1), self._index, axis=-1)
+            x = take_pixels(data[:, :, self._prod].reshape(n, self.lay["nchan"], -1), self._index)
             if not getattr(self, "guarantee", True):
                 if self.xp is not np:   # the copy must be done before asking what was overwritten
                     self.xp.cuda.get_current_stream().synchronize()

@@ -154,6 +154,51 @@ class GridPlacement:
         return out
 
 
+def take_pixels(values, index):
+    """(A, B, ncell) float32 -> (A, B, npix) the cells ``index`` (int32 device array on the GPU), a new
+    contiguous array: the inverse of :class:`GridPlacement`. ``values`` may be a strided view whose
+    last axis is contiguous (a product of a ring span). On the GPU one kernel with 32-bit indexing
+    (CuPy's ``take`` took 0.98 ms for a whole-band gulp on an H200, its generic index arithmetic
+    running well below the memory's speed); elsewhere ``take``."""
+    from ._xp import get_xp
+    xp = get_xp(values)
+    if xp is np or values.ndim != 3 or values.dtype != np.float32 or values.strides[-1] != 4:
+        return xp.take(values, index, axis=-1)
+    A, B, ncell = (int(v) for v in values.shape)
+    npix = int(index.shape[0])
+    out = xp.empty((A, B, npix), xp.float32)
+    if out.size == 0:
+        return out
+    sa, sb = (int(v) // 4 for v in values.strides[:2])
+    rows = A * B
+    _take_kernel(xp)(((npix + 255) // 256, min(rows, 65535)), (256,),
+                     (values, xp.asarray(index, dtype=xp.int32), out, np.int32(A), np.int32(B), np.int32(npix),
+                      np.int64(sa), np.int64(sb)))
+    return out
+
+
+_TAKE_SRC = r"""
+extern "C" __global__ void bf_take_pixels(const float* __restrict__ v, const int* __restrict__ index,
+                                          float* __restrict__ out, const int A, const int B, const int npix,
+                                          const long long sa, const long long sb)
+{
+    const int p = blockIdx.x * blockDim.x + threadIdx.x;
+    if (p >= npix) return;
+    const int k = index[p];
+    for (int r = blockIdx.y; r < A * B; r += gridDim.y) {
+        const int a = r / B, b = r - a * B;
+        out[(long long)r * npix + p] = v[a * sa + b * sb + k];
+    }
+}
+"""
+
+
+def _take_kernel(cp):
+    if "take" not in _PLACE:
+        _PLACE["take"] = cp.RawKernel(_TAKE_SRC, "bf_take_pixels")
+    return _PLACE["take"]
+
+
 _PLACE = {}
 
 
