@@ -82,6 +82,33 @@ def test_layout_puts_each_sample_where_the_kernel_reads_it():
         assert not B[ci, 64:].any()
 
 
+def test_tiles_put_each_byte_where_the_swizzled_kernel_reads_it():
+    """The bulk-copy kernel's tiles against the swizzle written out byte by byte: byte k of row m sits in
+    tile (m // 128, k // 128) at (r // 8) 1024 + (r % 8) 128 + 16 (j ^ r % 8) + k % 16, r = m % 128,
+    j = (k % 128) // 16 -- and quantise_operator(tiled=True) is the tiled logical operator."""
+    rng = np.random.default_rng(16)
+    A = rng.integers(-127, 128, (2, 1, 2, 256, 384)).astype(np.int8)            # (C, PA, pieces, M, KD)
+    At = fused.tile_operator(A)
+    assert At.shape == (2, 1, 2, 2, 3, fused.TILE)
+    Bv = rng.integers(-8, 8, (2, 256, 384)).astype(np.int8)
+    Bt = fused.tile_voltages(Bv)
+    assert Bt.shape == (2, 2, 3, fused.TILE)
+    for c, piece, m, k in zip(rng.integers(0, 2, 800), rng.integers(0, 2, 800), rng.integers(0, 256, 800),
+                              rng.integers(0, 384, 800)):
+        r, j = m % 128, (k % 128) // 16
+        off = (r // 8) * 1024 + (r % 8) * 128 + 16 * (j ^ (r % 8)) + k % 16
+        assert At[c, 0, m // 128, piece, k // 128, off] == A[c, 0, piece, m, k]
+        assert Bt[c, m // 128, k // 128, off] == Bv[c, m, k]
+    xyz, freq, lm, Q = scene(nant=37)
+    G = imaging.geometric_operator(xyz, freq, lm, "fp64")
+    w = np.ones((2, 37, 2))
+    plain = fused.quantise_operator(G, w, np.arange(37), 37, 2)
+    tiled = fused.quantise_operator(G, w, np.arange(37), 37, 2, tiled=True)
+    assert np.array_equal(tiled[0], fused.tile_operator(plain[0])) and np.array_equal(tiled[1], plain[1])
+    assert np.array_equal(fused.layout_voltages(Q, None, [0, 1], 128, 8, tiled=True),
+                          fused.tile_voltages(fused.layout_voltages(Q, None, [0, 1], 128, 8)))
+
+
 def test_the_planner_offers_integer_modes_only_for_4bit_voltages():
     table = {"rows": [
         {"device": "gpu", "method": "direct", "precision": "fp16", "bound": 9e-4, "rate_cmac_s": 2e13},
@@ -101,11 +128,12 @@ def test_integer_modes_need_a_gpu():
 # ----------------------------------------------------------------------------------------- GPU
 @GPU
 @pytest.mark.gpu
-@pytest.mark.parametrize("portable", [False, True])
+@pytest.mark.parametrize("portable", [False, True, "cp.async", "bulk"])
 @pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
 def test_gpu_kernel_equals_its_int64_emulation(precision, portable):
-    """The device's kernel (on Hopper the warpgroup one) and the portable mma.sync one, each against the
-    int64 emulation: the integer sums are exact, so only float32's squares and sums differ."""
+    """The device's kernel (on Hopper the warpgroup one, its operands in bulk-copied tiles or staged by
+    cp.async) and the portable mma.sync one, each against the int64 emulation: the integer sums are
+    exact, so only float32's squares and sums differ."""
     import cupy as cp
     xyz, freq, lm, Q = scene(nant=70, T=256, nchan=3, npix_grid=24, seed=3)
     rng = np.random.default_rng(4)
@@ -117,7 +145,12 @@ def test_gpu_kernel_equals_its_int64_emulation(precision, portable):
     Bv = fused.layout_voltages(cp.asarray(Q), None, cp.asarray([0, 1], dtype=cp.int32), int(Aq.shape[-1]), xmax, flag)
     assert np.array_equal(Bv.get(), fused.layout_voltages(Q, None, [0, 1], int(Aq.shape[-1]), xmax))
     npix = len(lm)
-    got = fused.fused_power(Aq, osc, Bv, 256, 2, flag, npix, {} if portable else None).get()   # (16, C, P, K)
+    cc = cp.cuda.Device().compute_capability
+    if portable in ("cp.async", "bulk") and cc != "90":
+        pytest.skip("the warpgroup kernels need compute capability 9.0")
+    config = {True: {}, False: None, "cp.async": dict(fused.WG_CONFIG, BULK=0),
+              "bulk": dict(fused.WG_CONFIG, BULK=1)}[portable]
+    got = fused.fused_power(Aq, osc, Bv, 256, 2, flag, npix, config).get()   # (16, C, P, K)
     got = got.transpose(1, 2, 0, 3)
     ref = fused.reference_power(Aq.get(), osc.get(), Bv.get(), 256, base=b)[..., :npix]
     assert np.abs(got - ref).max() <= 1e-6 * np.abs(ref).max()
@@ -197,6 +230,10 @@ def test_gpu_layout_equals_numpy_and_flags_what_int32_cannot_hold(nant, pols):
         got = fused.layout_voltages(cp.asarray(q), cp.asarray(chan, dtype=cp.int32), cp.asarray(pols, dtype=cp.int32),
                                     kd, xmax, flag)
         assert np.array_equal(got.get(), fused.layout_voltages(q, chan, pols, kd, xmax))
+        if kd % 128 == 0:
+            tiled = fused.layout_voltages(cp.asarray(q), cp.asarray(chan, dtype=cp.int32),
+                                          cp.asarray(pols, dtype=cp.int32), kd, xmax, tiled=True)
+            assert np.array_equal(tiled.get(), fused.layout_voltages(q, chan, pols, kd, xmax, tiled=True))
         assert int(flag.get()[0]) == (1 if bad is not None and abs(bad) > xmax else 0), (xmax, bad)
 
 
@@ -243,6 +280,9 @@ def test_gpu_ci4_bytes_lay_out_as_their_unpacked_pairs(nant, pols):
     got = fused.layout_voltages(cp.asarray(b), cp.asarray(chan, dtype=cp.int32), cp.asarray(pols, dtype=cp.int32),
                                 kd, 8, ci4=True)
     assert np.array_equal(got.get(), fused.layout_voltages(Q, chan, pols, kd, 8))
+    tiled = fused.layout_voltages(cp.asarray(b), cp.asarray(chan, dtype=cp.int32), cp.asarray(pols, dtype=cp.int32),
+                                  kd, 8, ci4=True, tiled=True)
+    assert np.array_equal(tiled.get(), fused.layout_voltages(Q, chan, pols, kd, 8, tiled=True))
 
 
 @GPU

@@ -42,9 +42,12 @@ a whole block of 128 columns (zero samples beyond T).
 shared memory, so that the pieces after the first reread only A:
 
 * Hopper (compute capability 9.0, compiled for sm_90a): two warpgroups, each ``wgmma.mma_async
-  m64n128k32 s32.s8.s8`` on 128-byte-swizzled shared memory, 128-byte K stages loaded by cp.async,
-  three stages. Its accumulator fragment has the mma.sync layout per 8 columns, so the epilogue
-  is the same.
+  m64n128k32 s32.s8.s8`` on 128-byte-swizzled shared memory, three 128-byte K stages. By default the
+  operands are stored in 16-KB tiles already in that swizzled order (:func:`tile_operator`, and the
+  layout kernels' ``tiled`` output), so a ninth warp brings each stage in with one bulk copy
+  (``cp.async.bulk``) counted on an mbarrier, and the MMA warps free stages by mbarriers of their own
+  (``_SRC_WGB``); ``BULK=0`` keeps the form that stages by cp.async and __syncthreads (``_SRC_WG``).
+  Its accumulator fragment has the mma.sync layout per 8 columns, so the epilogue is the same.
 * elsewhere: four warps of 64 x 64, ``mma.sync m16n8k32`` with ``ldmatrix`` fragment loads
   (double-buffered), four 64-byte K stages. On an H100 it runs at 0.6x the Hopper kernel's speed.
 """
@@ -86,13 +89,15 @@ def _pad(n, m):
     return -(-n // m) * m
 
 
-def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16):
+def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tiled=False):
     """The operator as int8 pieces in the kernel's layout (module docstring).
 
     G : complex (C, K, A_kept) geometric operator (live channels);  weights : complex (C, A_kept, P)
     folded gains (0 = flagged);  keep_index : (A_kept,) input antenna of each kept antenna;
     nant_in : antennas in the voltages.  Returns (A int8 (C, PA, pieces, M, KD), oscale float32
     (C, PA, Kpad), base, xmax). Works in G's array namespace, ``chunk`` channels at a time.
+    tiled : A in the bulk-copy kernel's tiles instead, (C, PA, M/128, pieces, KD/128, 16384)
+    (:func:`tile_operator`), made chunk by chunk (no second whole copy of A).
     """
     xp = get_xp(G)
     C, K, Ak = (int(s) for s in G.shape)
@@ -106,7 +111,8 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16):
     Kpad, Apad = _pad(K, 64), _pad(nant_in, 64)          # rows a multiple of 128, KD of 128
     KD = 2 * Apad
     b, xmax = bases(pieces, KD)
-    Aq = xp.zeros((C, PA, pieces, 2 * Kpad, KD), xp.int8)
+    Aq = xp.zeros((C, PA, 2 * Kpad // 128, pieces, KD // 128, TILE) if tiled else (C, PA, pieces, 2 * Kpad, KD),
+                  xp.int8)
     osc = xp.zeros((C, PA, Kpad), xp.float32)
     kidx = xp.asarray(keep_index)
     for c0 in range(0, C, chunk):
@@ -122,12 +128,19 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16):
             full = xp.zeros((nc, Kpad, Apad), xp.complex64)
             full[:, :K, kidx] = r
             dr, di = full.real.copy(), full.imag.copy()
+            part = xp.empty((nc, pieces, 2 * Kpad, KD), xp.int8) if tiled else None
             for i in range(pieces):
                 qr, qi = xp.rint(dr), xp.rint(di)
                 dr, di = (dr - qr) * xp.float32(b), (di - qi) * xp.float32(b)
                 re_row = xp.stack([qr, -qi], axis=-1).reshape(nc, Kpad // 8, 8, KD)
                 im_row = xp.stack([qi, qr], axis=-1).reshape(nc, Kpad // 8, 8, KD)
-                Aq[cs, pa, i] = xp.concatenate([re_row, im_row], axis=2).reshape(nc, 2 * Kpad, KD).astype(xp.int8)
+                piece = xp.concatenate([re_row, im_row], axis=2).reshape(nc, 2 * Kpad, KD).astype(xp.int8)
+                if tiled:
+                    part[:, i] = piece
+                else:
+                    Aq[cs, pa, i] = piece
+            if tiled:
+                Aq[cs, pa] = tile_operator(part[:, None])[:, 0]
             sc = (s.astype(xp.float64) / (127.0 * float(b) ** (pieces - 1))) ** 2
             osc[cs, pa, :K] = sc.astype(xp.float32)
     return Aq, osc, b, xmax
@@ -139,7 +152,36 @@ def padded_ntime(T):
     return _pad(int(T), BN)
 
 
-def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False):
+#: bytes of one bulk-copied tile: 128 rows x 128 bytes (one K stage of A, one K block of B)
+TILE = 128 * 128
+
+
+def _tile_rows(X):
+    """(..., R, KD) int8 -> (..., R/128, KD/128, 16384): 128-row x 128-byte tiles, each in the
+    128-byte-swizzled order the warpgroup MMA reads (chunk j of row r at 16 (j ^ r % 8) in the row's
+    128 bytes, rows in 8-row atoms of 1 KB) -- what ``soff`` in the kernels computes."""
+    xp = get_xp(X)
+    *lead, R, KD = (int(v) for v in X.shape)
+    n = len(lead)
+    X = X.reshape(*lead, R // 128, 16, 8, KD // 128, 8, 16)                   # (.., mt, r8, rlo, kb, j, b)
+    X = X.transpose(*range(n), n, n + 3, n + 1, n + 2, n + 4, n + 5)         # (.., mt, kb, r8, rlo, j, b)
+    ar = xp.arange(8)
+    X = X[(slice(None),) * (n + 3) + (ar[:, None], ar[None, :] ^ ar[:, None])]   # stored chunk j' = chunk j' ^ rlo
+    return xp.ascontiguousarray(X).reshape(*lead, R // 128, KD // 128, TILE)
+
+
+def tile_operator(Aq):
+    """Logical A (C, PA, pieces, M, KD) -> the bulk-copy kernel's (C, PA, M/128, pieces, KD/128, 16384):
+    each block's K stages one contiguous 16-KB tile after another."""
+    return get_xp(Aq).ascontiguousarray(_tile_rows(Aq).swapaxes(2, 3))
+
+
+def tile_voltages(Bv):
+    """Logical B (C, NCOL, KD) -> the bulk-copy kernel's (C, NCOL/128, KD/128, 16384)."""
+    return _tile_rows(Bv)
+
+
+def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False, tiled=False):
     """Integer (re, im) voltages (T, C_in, A_in, P_in, 2) int8 -> B (C', P' Tp, KD) int8, column
     p' Tp + t, Tp = :func:`padded_ntime` (T); samples t >= T are zero.
 
@@ -149,6 +191,8 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False):
     ci4 : ``pairs`` are ci4 bytes, uint8 (T, C_in, A_in, P_in), decoded as they are read (on the GPU
         for two pols and antennas a multiple of 8 -- the stations' case -- in the layout kernel itself:
         no unpacked copy; |x| <= 8 <= xmax always).
+    tiled : B in the bulk-copy kernel's tiles, (C', P' Tp / 128, KD / 128, 16384) (:func:`tile_voltages`),
+        written there by the GPU kernels directly.
     """
     xp = get_xp(pairs)
     if ci4:
@@ -163,12 +207,12 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False):
             cmap = xp.arange(Cin, dtype=xp.int32) if chan is None else xp.asarray(chan, dtype=xp.int32)
             pmap = xp.asarray(pols, dtype=xp.int32)
             Cl, Pp = int(cmap.shape[0]), int(pmap.shape[0])
-            out = xp.empty((Cl, Pp * Tp, KD), xp.int8)
+            out = xp.empty(_b_shape(Cl, Pp * Tp, KD, tiled), xp.int8)
             total = Cl * Tp * (KD // 16)
             _kernel("bf_layout_ci4_p2")(((total + 255) // 256,), (256,),
                                         (xp.ascontiguousarray(pairs), out, cmap, pmap, np.int32(T), np.int32(Tp),
                                          np.int32(Cin), np.int32(Ain), np.int32(Pp), np.int32(KD // 2),
-                                         np.int32(Cl)))
+                                         np.int32(Cl), np.int32(tiled)))
             return out
     T, Cin, Ain, Pin = (int(s) for s in pairs.shape[:4])
     Tp = padded_ntime(T)
@@ -178,11 +222,12 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False):
         x = x[:, :, :, pols]                                           # (T, C', A, P', 2)
         out = np.zeros((x.shape[1], len(pols), Tp, KD), np.int8)
         out[:, :, :T, :2 * Ain] = x.transpose(1, 3, 0, 2, 4).reshape(x.shape[1], len(pols), T, 2 * Ain)
-        return out.reshape(x.shape[1], len(pols) * Tp, KD)
+        out = out.reshape(x.shape[1], len(pols) * Tp, KD)
+        return tile_voltages(out) if tiled else out
     cmap = xp.arange(Cin, dtype=xp.int32) if chan is None else xp.asarray(chan, dtype=xp.int32)
     pmap = xp.asarray(pols, dtype=xp.int32)
     Cl, Pp = int(cmap.shape[0]), int(pmap.shape[0])
-    out = xp.empty((Cl, Pp * Tp, KD), xp.int8)
+    out = xp.empty(_b_shape(Cl, Pp * Tp, KD, tiled), xp.int8)
     if flag is None:
         flag = xp.zeros(1, xp.int32)
     total = Cl * Tp * (KD // 16)
@@ -190,8 +235,12 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False):
     _kernel(name)(((total + 255) // 256,), (256,),
                             (xp.ascontiguousarray(pairs), out, cmap, pmap, flag, np.int32(T), np.int32(Tp), np.int32(Cin),
                              np.int32(Ain), np.int32(Pin), np.int32(Pp), np.int32(KD // 2), np.int32(Cl),
-                             np.int32(xmax)))
+                             np.int32(xmax), np.int32(tiled)))
     return out
+
+
+def _b_shape(C, ncol, KD, tiled):
+    return (C, ncol // 128, KD // 128, TILE) if tiled else (C, ncol, KD)
 
 
 def reference_power(Aq, osc, Bv, T, n=16, base=None):
@@ -221,18 +270,28 @@ def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None):
     Returns float32 (T // 16, C', P, npix): [g, c, p, k] is the sum over samples 16 g .. 16 g + 15
     of |F_pk|^2 -- the direct route's block sums of the pols' own powers, as :mod:`.dft` keeps them."""
     import cupy as cp
-    C, PA, NP, M, KD = (int(s) for s in Aq.shape)
+    if Aq.ndim == 6:                                 # already in the bulk-copy kernel's tiles
+        C, PA, MT_, NP, KB_, _ = (int(s) for s in Aq.shape)
+        M, KD = 128 * MT_, 128 * KB_
+    else:
+        C, PA, NP, M, KD = (int(s) for s in Aq.shape)
     cfg = config if config is not None else kernel_config(KD, cp.cuda.Device().compute_capability)
     if not cfg.get("WG"):
         cfg = dict(CONFIG, **cfg)
-    ncol = int(Bv.shape[1])
+    if cfg.get("BULK"):
+        # tiles for the bulk copies (the pipeline's arrays come tiled; tests' logical ones are tiled here)
+        Aq = Aq if Aq.ndim == 6 else tile_operator(Aq)
+        Bv = Bv if Bv.ndim == 4 else tile_voltages(Bv)
+    elif Aq.ndim == 6 or Bv.ndim == 4:
+        raise ValueError("tiled operands need the bulk-copy kernel (config BULK=1)")
+    ncol = int(Bv.shape[1]) * (128 if Bv.ndim == 4 else 1)
     bm = 128 if cfg.get("WG") else 64 * cfg["WMW"]
     if ncol != P * T or ncol % BN or KD % cfg["BK"] or M % bm or (PA > 1 and T % BN):
         raise ValueError(f"fused imaging needs P*T a multiple of {BN} (and T too with per-pol gains), got T={T}, P={P}")
     npix = int(M // 2 if npix is None else npix)
     out = cp.empty((T // 16, C, P, npix), cp.float32)
     k, smem = _fused_kernel(NP, KD, cfg)
-    nt = 256 if cfg.get("WG") else 32 * cfg["WMW"] * (BN // cfg["WN"])
+    nt = 288 if cfg.get("BULK") else 256 if cfg.get("WG") else 32 * cfg["WMW"] * (BN // cfg["WN"])
     bn = cfg.get("WGN", BN)
     if ncol % bn:
         raise ValueError(f"fused imaging needs P*T a multiple of {bn}, got T={T}, P={P}")
@@ -254,12 +313,16 @@ class FusedOperator:
     op : a :class:`.dft.DFTOperator` on the GPU;  precision : 'i8x2' | 'i8x3'."""
 
     def __init__(self, op, precision):
+        import cupy as cp
         xp = op.xp
         self.pieces = PIECES[precision]
         w = op.data_weights if op.chan_index is None else op.data_weights[op.chan_index]
+        kd = 2 * _pad(op.nant_in, 64)
+        self.config = kernel_config(kd, cp.cuda.Device().compute_capability)
+        self.tiled = bool(self.config.get("BULK"))   # operands in the bulk-copy kernel's tiles
         self.Aq, self.osc, self.base, self.xmax = quantise_operator(
-            op.live_G(0), w, op.keep_index, op.nant_in, self.pieces)
-        self.KD = int(self.Aq.shape[-1])
+            op.live_G(0), w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled)
+        self.KD = kd
         self.chan = (xp.arange(op.nchan, dtype=xp.int32) if op.chan_index is None
                      else xp.asarray(op.chan_index, dtype=xp.int32))
         self.npix = op.npix
@@ -283,8 +346,10 @@ class FusedOperator:
         if key not in self._pmaps:
             self._pmaps[key] = xp.asarray(list(pols), dtype=xp.int32)
         self.flag.fill(0)
-        Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4)
-        out = fused_power(self.Aq, self.osc, Bv, padded_ntime(T), P, self.flag, self.npix)   # (Tp/16, C', P, K)
+        Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4,
+                             tiled=self.tiled)
+        out = fused_power(self.Aq, self.osc, Bv, padded_ntime(T), P, self.flag, self.npix,
+                          self.config)                                          # (Tp/16, C', P, K)
         if n == T:                                  # one group: every 16-sample unit, the last one partial
             u = -(-T // 16)
             return out[:u].sum(axis=0, keepdims=True) if u > 1 else out[:1]
@@ -302,8 +367,11 @@ class FusedOperator:
 #: i8x2 in one run (case P, regime B); four row tiles per block (B loaded once for them, the next
 #: tile's loads in flight during an epilogue): 0.50 -> 0.46-0.47 ms (i8x2), 0.70 -> 0.65-0.66 ms (i8x3),
 #: bit-equal. Keeping a wgmma group in flight (WAIT=1), more stages or 256-column tiles: no gain.
+#: BULK=1 (the default on Hopper): stages by bulk copies from one producer warp, mbarriers instead
+#: of __syncthreads (``_SRC_WGB``): 0.461-0.470 -> 0.423-0.430 ms, bit-equal, 96 registers instead of
+#: 110 (H100, 2026-11-25 23:39 UTC; a wgmma group left in flight there: 0.427-0.428, not kept).
 CONFIG = dict(WMW=2, WN=64, BK=64, ST=4, BFULL=1, FP=1, MINB=1)
-WG_CONFIG = dict(WG=1, BK=128, ST=3, WGN=128, MT=4)
+WG_CONFIG = dict(WG=1, BK=128, ST=3, WGN=128, MT=4, BULK=1)
 _SMEM_MAX = 227 * 1024
 
 
@@ -317,7 +385,10 @@ def kernel_config(kd, device_cc):
 
 
 def _smem(cfg, kd):
-    """Dynamic shared memory of a kernel shape: A's stages plus B (whole, or its stages)."""
+    """Dynamic shared memory of a kernel shape: A's stages plus B (whole, or its stages); the bulk-copy
+    kernel also its mbarriers (8 bytes each: full and empty per stage, one for B)."""
+    if cfg.get("BULK"):
+        return (cfg["ST"] + kd // 128) * TILE + 8 * (2 * cfg["ST"] + 1)
     if cfg.get("WG"):
         return cfg["ST"] * 128 * cfg["BK"] + cfg["WGN"] * kd
     bm = 64 * cfg["WMW"]
@@ -617,14 +688,160 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
 }
 """
 
+#: the warpgroup-MMA helpers both Hopper kernels share (descriptor, swizzle, the MMA itself)
+_WG_HELPERS = _SRC_WG[_SRC_WG.index("// shared-memory matrix descriptor"):_SRC_WG.index("#ifndef MT")]
+
+#: Hopper form with bulk copies: the same MMAs, sums and output as ``_SRC_WG``, but each K stage of A
+#: (a contiguous 16-KB tile, pre-swizzled by :func:`tile_operator`) and the block's whole B (its K blocks,
+#: by the layout kernels) arrive by ``cp.async.bulk`` issued from one thread of a ninth (producer) warp,
+#: completion counted on an mbarrier per stage, and the eight MMA warps free a stage by an mbarrier of
+#: their own: no per-stage address arithmetic in the MMA warps and no __syncthreads in the loop (the
+#: cp.async form spent 209 M warp instructions on 0.84 M wgmma, its tensor pipe 51% busy; ncu, H200).
+_SRC_WGB = _COMMON + r"""
+#define BM 128
+#define BN 128
+#define NT 288                        // 8 MMA warps (two warpgroups) + 1 producer warp
+#define NACC 64
+#define TILE 16384
+#define WGN 128
+""" + _WG_HELPERS + r"""
+#ifndef MT
+#define MT 4
+#endif
+#ifndef WAIT1
+#define WAIT1 0
+#endif
+
+__device__ __forceinline__ void mbar_init(unsigned a, unsigned n) {
+    asm volatile("mbarrier.init.shared::cta.b64 [%0], %1;\n" :: "r"(a), "r"(n) : "memory");
+}
+__device__ __forceinline__ void mbar_wait(unsigned a, unsigned parity) {
+    asm volatile("{\n.reg .pred P1;\nLAB_WAIT:\n"
+                 "mbarrier.try_wait.parity.shared::cta.b64 P1, [%0], %1;\n"
+                 "@P1 bra DONE;\nbra LAB_WAIT;\nDONE:\n}\n" :: "r"(a), "r"(parity) : "memory");
+}
+__device__ __forceinline__ void mbar_arrive(unsigned a) {
+    asm volatile("mbarrier.arrive.shared::cta.b64 _, [%0];\n" :: "r"(a) : "memory");
+}
+__device__ __forceinline__ void mbar_expect(unsigned a, unsigned bytes) {
+    asm volatile("mbarrier.arrive.expect_tx.shared::cta.b64 _, [%0], %1;\n" :: "r"(a), "r"(bytes) : "memory");
+}
+__device__ __forceinline__ void bulk_load(unsigned dst, const void* src, unsigned bytes, unsigned bar) {
+    asm volatile("cp.async.bulk.shared::cluster.global.mbarrier::complete_tx::bytes [%0], [%1], %2, [%3];\n"
+                 :: "r"(dst), "l"(src), "r"(bytes), "r"(bar) : "memory");
+}
+
+// A tiled (C, PA, M/128, NP, KD/128, TILE); B tiled (C, NCOL/128, KD/128, TILE); osc, flag, out as _SRC_WG
+extern "C" __global__ void __launch_bounds__(NT, 2)
+bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict__ B, const float* __restrict__ osc,
+               const int* __restrict__ flag, float* __restrict__ out, const int M, const int NCOL,
+               const int T, const int PA, const int base, const int npix)
+{
+    extern __shared__ __align__(1024) unsigned char smem[];
+    constexpr int KB = KD / 128, NIT = NP * KB;
+    unsigned char* sA = smem;                       // ST stages of one tile
+    unsigned char* sB = smem + ST * TILE;           // B whole: KB tiles
+    const unsigned bar0 = smem_u32(smem + (ST + KB) * TILE);   // full[ST], empty[ST], B's: 8 bytes each
+    const unsigned fullb = bar0, emptyb = bar0 + 8 * ST, bbar = bar0 + 16 * ST;
+    const int tid = threadIdx.x, lane = tid & 31, warp = tid >> 5;
+    const int MTILES = M / BM, mt0 = blockIdx.x * MT, ntile = min(MT, MTILES - mt0);
+    const int n0 = blockIdx.y * BN, c = blockIdx.z;
+    const int pa = PA > 1 ? n0 / T : 0;
+    const int NALL = ntile * NIT;
+    if (tid == 0) {
+        for (int s = 0; s < ST; s++) { mbar_init(fullb + 8 * s, 1); mbar_init(emptyb + 8 * s, 8); }
+        mbar_init(bbar, 1);
+        asm volatile("fence.mbarrier_init.release.cluster;\n" ::: "memory");
+    }
+    __syncthreads();
+    if (warp == 8) {                                // the producer warp: one thread issues every copy
+        if (lane == 0) {
+            const signed char* Ab = A + ((long long)(c * PA + pa) * MTILES + mt0) * NIT * TILE;
+            mbar_expect(bbar, KB * TILE);
+            bulk_load(smem_u32(sB), B + ((long long)c * (NCOL / BN) + blockIdx.y) * KB * TILE, KB * TILE, bbar);
+            for (int g = 0; g < NALL; g++) {
+                const int s = g % ST;
+                if (g >= ST) mbar_wait(emptyb + 8 * s, ((g / ST) - 1) & 1);   // its last use is done
+                mbar_expect(fullb + 8 * s, TILE);
+                bulk_load(smem_u32(sA + s * TILE), Ab + (long long)g * TILE, TILE, fullb + 8 * s);
+            }
+        }
+        return;
+    }
+    const int wgi = warp >> 2, wq = warp & 3;
+    int d[NACC];
+#pragma unroll
+    for (int i = 0; i < NACC; i++) d[i] = 0;
+    const bool bad = flag[0] != 0;
+    const int Kp = M / 2, C = gridDim.z, P = NCOL / T, TU = T / 16;
+    mbar_wait(bbar, 0);
+    int pend = -1;                                  // the stage whose MMAs may still be running
+    for (int g = 0; g < NALL; g++) {
+        const int s = g % ST;
+        const int tile = g / NIT, it = g - tile * NIT, kb = it % KB;
+        mbar_wait(fullb + 8 * s, (g / ST) & 1);
+        __syncwarp();
+#if NP > 1
+        if (kb == 0 && it > 0) {   // a new piece: everything so far times the base, once it is all summed
+            asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+            if (pend >= 0 && lane == 0) mbar_arrive(emptyb + 8 * pend);
+            pend = -1;
+#pragma unroll
+            for (int i = 0; i < NACC; i++) d[i] *= base;
+        }
+#endif
+        const unsigned as = smem_u32(sA + s * TILE) + soff(wgi * 64, 0);
+        const unsigned bs = smem_u32(sB + kb * TILE);
+        asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory");
+#pragma unroll
+        for (int ks = 0; ks < 4; ks++)
+            wg_mma(d, mdesc(as + ks * 32, 16, 1024), mdesc(bs + ks * 32, 16, 1024), (it | ks) != 0);
+        asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory");
+#if WAIT1
+        // one group left in flight: the tensor cores go on to this stage while the previous one is freed
+        asm volatile("wgmma.wait_group.sync.aligned 1;\n" ::: "memory");
+        if (pend >= 0 && lane == 0) mbar_arrive(emptyb + 8 * pend);   // this warp is done reading it
+        pend = s;
+        if (it == NIT - 1) {
+            asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+            if (lane == 0) mbar_arrive(emptyb + 8 * s);
+            pend = -1;
+        }
+#else
+        asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory");
+        __syncwarp();
+        if (lane == 0) mbar_arrive(emptyb + 8 * s);   // this warp is done reading stage s
+#endif
+        if (it == NIT - 1) {
+            const int m0 = (mt0 + tile) * BM;
+            const int pix = ((m0 + wgi * 64 + wq * 16) >> 4) * 8 + (lane >> 2);
+            const float sc = osc[(long long)(c * PA + pa) * Kp + pix];
+#pragma unroll
+            for (int u = 0; u < WGN / 16; u++)
+                put_unit(out, d + 8 * u, d + 8 * u + 4, lane, u, n0 / 16 + u, c, pix, sc, bad, C, P, TU, npix);
+        }
+    }
+}
+"""
+
 _LAYOUT_SRC = r"""
+// byte offset of the 16 bytes (16-byte chunk jj of the KD bytes) of column col of channel c in B:
+// (C, NCOL, KD) row-major, or tiled (C, NCOL/128, KD/128, 128 x 128 bytes in the swizzled order of
+// the warpgroup MMA: chunk j of row r at (r / 8) 1024 + (r % 8) 128 + 16 (j ^ r % 8)), for bulk copies
+__device__ __forceinline__ long long b_offset(int c, int col, int jj, int ncol, int kd, int tiled) {
+    if (!tiled) return ((long long)c * ncol + col) * kd + jj * 16;
+    const int r = col & 127;
+    return (((long long)c * (ncol >> 7) + (col >> 7)) * (kd >> 7) + (jj >> 3)) * 16384
+           + (r >> 3) * 1024 + (r & 7) * 128 + (((jj & 7) ^ (r & 7)) << 4);
+}
+
 // (T, Cin, Ain, Pin, 2) int8 -> (Cl, P', T, 2 Apad) int8. One thread per (c', t, 8 antennas): it reads
 // their samples of every pol (one 32-byte stretch for two pols) and writes 16 bytes per imaged pol.
 extern "C" __global__ void bf_layout_i8(const signed char* __restrict__ x, signed char* __restrict__ out,
                                         const int* __restrict__ cmap, const int* __restrict__ pmap,
                                         int* __restrict__ flag, const int T, const int Tp, const int Cin,
                                         const int Ain, const int Pin, const int Pp, const int Apad, const int Cl,
-                                        const int xmax)
+                                        const int xmax, const int tiled)
 {
     const int J = Apad / 8;
     long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
@@ -648,7 +865,7 @@ extern "C" __global__ void bf_layout_i8(const signed char* __restrict__ x, signe
             }
             u.b[2 * e] = re; u.b[2 * e + 1] = im;
         }
-        *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * Tp + t) * Apad + j * 8) * 2) = u.v;
+        *reinterpret_cast<int4*>(out + b_offset(c, p * Tp + t, j, Pp * Tp, 2 * Apad, tiled)) = u.v;
     }
     if (bad) atomicOr(flag, 1);
 }
@@ -659,7 +876,7 @@ extern "C" __global__ void bf_layout_i8_p2(const signed char* __restrict__ x, si
                                            const int* __restrict__ cmap, const int* __restrict__ pmap,
                                            int* __restrict__ flag, const int T, const int Tp, const int Cin,
                                            const int Ain, const int Pin, const int Pp, const int Apad, const int Cl,
-                                           const int xmax)
+                                           const int xmax, const int tiled)
 {
     const int J = Apad / 8, Jin = Ain / 8;
     long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
@@ -685,7 +902,7 @@ extern "C" __global__ void bf_layout_i8_p2(const signed char* __restrict__ x, si
         int4 o;
         o.x = __byte_perm(w[0], w[1], sel); o.y = __byte_perm(w[2], w[3], sel);
         o.z = __byte_perm(w[4], w[5], sel); o.w = __byte_perm(w[6], w[7], sel);
-        *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * Tp + t) * Apad + j * 8) * 2) = o;
+        *reinterpret_cast<int4*>(out + b_offset(c, p * Tp + t, j, Pp * Tp, 2 * Apad, tiled)) = o;
     }
 }
 """
@@ -697,7 +914,7 @@ _LAYOUT_SRC += r"""
 extern "C" __global__ void bf_layout_ci4_p2(const unsigned char* __restrict__ x, signed char* __restrict__ out,
                                             const int* __restrict__ cmap, const int* __restrict__ pmap,
                                             const int T, const int Tp, const int Cin, const int Ain, const int Pp,
-                                            const int Apad, const int Cl)
+                                            const int Apad, const int Cl, const int tiled)
 {
     const int J = Apad / 8, Jin = Ain / 8;
     long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
@@ -718,7 +935,7 @@ extern "C" __global__ void bf_layout_ci4_p2(const unsigned char* __restrict__ x,
             o.b[2 * e] = (signed char)((int)((b >> 4) ^ 8u) - 8);
             o.b[2 * e + 1] = (signed char)((int)((b & 15u) ^ 8u) - 8);
         }
-        *reinterpret_cast<int4*>(out + ((((long long)c * Pp + p) * Tp + t) * Apad + j * 8) * 2) = o.v;
+        *reinterpret_cast<int4*>(out + b_offset(c, p * Tp + t, j, Pp * Tp, 2 * Apad, tiled)) = o.v;
     }
 }
 """
@@ -739,12 +956,15 @@ def _fused_kernel(pieces, kd, cfg):
     key = ("fused", pieces, kd, tuple(sorted(cfg.items())), cp.cuda.Device().id)
     if key not in _KERNELS:
         opts = ("-std=c++17", f"-DNP={pieces}", f"-DKD={kd}") + tuple(f"-D{k}={v}" for k, v in sorted(cfg.items()))
-        if cfg.get("WG"):
+        if cfg.get("BULK"):
+            opts = ("-std=c++17", f"-DNP={pieces}", f"-DKD={kd}", f"-DST={cfg['ST']}", f"-DMT={cfg.get('MT', 1)}",
+                    f"-DWAIT1={int(cfg.get('WAIT1', 0))}")
+            k = cp.RawKernel(_SRC_WGB, "bf_fused_power", options=opts + ("-arch=sm_90a",))
+        elif cfg.get("WG"):
             k = cp.RawKernel(_SRC_WG, "bf_fused_power", options=opts + ("-arch=sm_90a",))
-            smem = _smem(cfg, kd)
         else:
             k = cp.RawKernel(_SRC, "bf_fused_power", options=opts)
-            smem = _smem(cfg, kd)
+        smem = _smem(cfg, kd)
         k.max_dynamic_shared_size_bytes = smem
         _KERNELS[key] = (k, smem)
     return _KERNELS[key]
