@@ -311,3 +311,14 @@ def test_gpu_images_from_ci4_bytes_on_the_grid_equal_float64_truth():
     assert err <= LIMIT["i8x2"], err
     pairs = place(acc.images(cp.asarray(Q), 16)).get()
     assert np.array_equal(got, pairs, equal_nan=True)
+
+
+def test_ci4_bytes_decode_to_their_pairs():
+    """The layout's own ci4 decoding (for shapes the GPU's ci4 layout kernel does not take) against the
+    runtime's unpacking, every byte value."""
+    from bf_epic_blocks.runtime.dtypes import unpack_int8_pairs
+    b = np.arange(256, dtype=np.uint8).reshape(4, 2, 8, 4)
+    assert np.array_equal(fused._ci4_pairs(b), unpack_int8_pairs(b, "ci4"))
+    Q = unpack_int8_pairs(b, "ci4")                                       # (T, C, A, P, 2)
+    assert np.array_equal(fused.layout_voltages(b[..., :2], None, [0, 1], 128, 8, ci4=True),
+                          fused.layout_voltages(Q[..., :2, :], None, [0, 1], 128, 8))

@@ -782,6 +782,8 @@ class ImageAccumulator:
                 raise ValueError(f"ci4 bytes must be uint8 (ntime, {op.nchan}, {op.nant_in}, {op.npol}), got "
                                  f"{efield.dtype} {tuple(efield.shape)}")
             g = t // n
+            if not op.fused.supports(g * n, n):
+                raise ValueError(f"precision {op.precision!r} images groups of a multiple of 16 samples, got {n}")
             S = op.fused.sums(efield[:g * n], self.pols, n, ci4=True)
             return self._finish(S, 1.0 / n, place=place, out=out)
         ints = op._check_efield(efield)

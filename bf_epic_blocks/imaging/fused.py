@@ -196,12 +196,11 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False, tiled=Fal
     """
     xp = get_xp(pairs)
     if ci4:
-        from ..runtime.dtypes import unpack_int8_pairs
         if pairs.dtype != np.uint8 or pairs.ndim != 4:
             raise ValueError(f"ci4 bytes must be uint8 (T, C, A, P), got {pairs.dtype} {tuple(pairs.shape)}")
         T, Cin, Ain, Pin = (int(s) for s in pairs.shape)
         if xp is np or not (Pin == 2 and Ain % 8 == 0):
-            pairs = unpack_int8_pairs(pairs, "ci4")
+            pairs = _ci4_pairs(pairs)
         else:
             Tp = padded_ntime(T)
             cmap = xp.arange(Cin, dtype=xp.int32) if chan is None else xp.asarray(chan, dtype=xp.int32)
@@ -237,6 +236,14 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False, tiled=Fal
                              np.int32(Ain), np.int32(Pin), np.int32(Pp), np.int32(KD // 2), np.int32(Cl),
                              np.int32(xmax), np.int32(tiled)))
     return out
+
+
+def _ci4_pairs(b):
+    """ci4 bytes (uint8: high nibble real, two's complement) -> int8 (..., 2) (re, im) pairs."""
+    xp = get_xp(b)
+    re = ((b >> 4) ^ 8).astype(xp.int8) - 8
+    im = ((b & 15) ^ 8).astype(xp.int8) - 8
+    return xp.stack([re, im], axis=-1).astype(xp.int8)
 
 
 def _b_shape(C, ncol, KD, tiled):
