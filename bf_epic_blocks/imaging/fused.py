@@ -835,16 +835,6 @@ _LAYOUT_SRC = r"""
 // byte offset of the 16 bytes (16-byte chunk jj of the KD bytes) of column col of channel c in B:
 // (C, NCOL, KD) row-major, or tiled (C, NCOL/128, KD/128, 128 x 128 bytes in the swizzled order of
 // the warpgroup MMA: chunk j of row r at (r / 8) 1024 + (r % 8) 128 + 16 (j ^ r % 8)), for bulk copies
-// this thread's (channel, sample, group of 8 antennas) of the layout kernels; false past the end
-__device__ __forceinline__ bool layout_thread(const int Cl, const int Tp, const int J, int& c, int& t, int& j) {
-    const long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
-    if (i >= (long long)Cl * Tp * J) return false;
-    j = (int)(i % J);
-    const long long r = i / J;
-    t = (int)(r % Tp); c = (int)(r / Tp);
-    return true;
-}
-
 __device__ __forceinline__ long long b_offset(int c, int col, int jj, int ncol, int kd, int tiled) {
     if (!tiled) return ((long long)c * ncol + col) * kd + jj * 16;
     const int r = col & 127;
@@ -861,8 +851,11 @@ extern "C" __global__ void bf_layout_i8(const signed char* __restrict__ x, signe
                                         const int xmax, const int tiled)
 {
     const int J = Apad / 8;
-    int c, t, j;
-    if (!layout_thread(Cl, Tp, J, c, t, j)) return;
+    long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    const long long total = (long long)Cl * Tp * J;
+    if (i >= total) return;
+    const int j = (int)(i % J); long long r = i / J;
+    const int t = (int)(r % Tp); const int c = (int)(r / Tp);
     const signed char* src = x + (((long long)min(t, T - 1) * Cin + cmap[c]) * Ain) * Pin * 2;
     bool bad = false;
     for (int p = 0; p < Pp; p++) {
@@ -893,8 +886,11 @@ extern "C" __global__ void bf_layout_i8_p2(const signed char* __restrict__ x, si
                                            const int xmax, const int tiled)
 {
     const int J = Apad / 8, Jin = Ain / 8;
-    int c, t, j;
-    if (!layout_thread(Cl, Tp, J, c, t, j)) return;
+    long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    const long long total = (long long)Cl * Tp * J;
+    if (i >= total) return;
+    const int j = (int)(i % J); long long r = i / J;
+    const int t = (int)(r % Tp); const int c = (int)(r / Tp);
     unsigned w[8] = {0, 0, 0, 0, 0, 0, 0, 0};
     if (j < Jin && t < T) {   // antennas 8j .. 8j+7: (re0, im0, re1, im1) bytes per antenna, one word each
         const int4* src = reinterpret_cast<const int4*>(x + (((long long)t * Cin + cmap[c]) * Ain + j * 8) * 4);
@@ -928,8 +924,11 @@ extern "C" __global__ void bf_layout_ci4_p2(const unsigned char* __restrict__ x,
                                             const int Apad, const int Cl, const int tiled)
 {
     const int J = Apad / 8, Jin = Ain / 8;
-    int c, t, j;
-    if (!layout_thread(Cl, Tp, J, c, t, j)) return;
+    long long i = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    const long long total = (long long)Cl * Tp * J;
+    if (i >= total) return;
+    const int j = (int)(i % J); long long r = i / J;
+    const int t = (int)(r % Tp); const int c = (int)(r / Tp);
     uint4 u = make_uint4(0u, 0u, 0u, 0u);                   // padding: nibbles 0, values 0
     if (j < Jin && t < T)
         u = *reinterpret_cast<const uint4*>(x + (((long long)t * Cin + cmap[c]) * Ain + j * 8) * 2);
