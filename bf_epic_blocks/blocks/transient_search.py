@@ -154,7 +154,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         self._beam = None               # ArrayBeam on the searched pixels, made when first needed
         self._fits = {}                 # row -> fitted S/N model of that point event at every pixel
         self._recent = []               # point rows that may have sidelobes still to come
-        self._index = self.xp.asarray(lay["pixel_index"])
+        self._index = self.xp.asarray(lay["pixel_index"], dtype=np.int32)   # take_pixels' form: no cast a gulp
         if lay["grid"] is not None:
             N = lay["grid"].size
             self._xy = np.column_stack([lay["pixel_index"] % N, lay["pixel_index"] // N]).astype(np.float64)

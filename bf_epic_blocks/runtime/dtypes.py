@@ -147,9 +147,7 @@ def unpack_int8_pairs(data, dtype_str, xp=None):
     xp = _xp_of(data, xp)
     names = getattr(data.dtype, 'names', None)
     if kind == 'nibble':
-        if names:
-            data = data[names[0]]
-        b = data.view(xp.uint8)
+        b = ci4_bytes(data, xp)
         if xp is not np:
             out = xp.empty(b.shape + (2,), xp.int8)
             _nibble_kernel("pairs")(b, out)
