@@ -822,3 +822,64 @@ def test_bad_search_settings_are_named(kw, name):
     args = {"window": 10, **kw}
     with pytest.raises(ValueError, match=name):
         TransientSearch([74e6], 0.64e-3, 5, args.pop("window"), **args)
+
+
+@pytest.mark.parametrize("dedisperse,nchan", [("tree", 784), ("shifts", 24)])
+def test_the_warm_up_twin_takes_every_crossing_path_and_leaves_the_search_alone(dedisperse, nchan):
+    """The warm-up's small twin (same widths, threshold, dedispersion, precision) crosses through both
+    of the crossing paths (points, and a flash's sky-wide rows) and asks for an event's window, boxcar
+    and light curve; the search itself stays as it was. On the CPU the warm-up does nothing."""
+    f = 74e6 + 25e3 * np.arange(nchan)
+    s = TransientSearch(f, 16 * DT, 50, 312, dms=[3.0] if dedisperse == "tree" else [0.0, 1.0], threshold=7.5,
+                        dedisperse=dedisperse, tree_precision="fp16" if dedisperse == "tree" else "fp32")
+    hist = s._hist.copy()
+    found = s._warm_twin()
+    assert found.skywide.any() and (found.skywide == 0).any() and found.snr.max() > 50
+    assert s.nvalues == 0 and s.nimages == 0 and np.array_equal(s._hist, hist)
+    assert s.warm_up() == 0.0
+
+
+_WARM_SCRIPT = r"""
+import os, sys, numpy as np, cupy as cp
+from bf_epic_blocks.imaging.transient import TransientSearch
+f = 74e6 + 25e3 * np.arange(64)
+s = TransientSearch(f, 6.4e-4, 300, 40, dms=[0.5], threshold=7.0, dedisperse="tree", tree_precision="fp16",
+                    max_batch=64, xp=cp)
+if sys.argv[1] == "warm":
+    s.warm_up()
+cache = os.environ["CUPY_CACHE_DIR"]
+rng = np.random.default_rng(1)
+x = rng.normal(10.0, 1.0, (200, 64, 300)).astype(np.float32)
+s.push(cp.asarray(x[:100]))                       # the stream's own kernels (compiled by any first gulp)
+cp.cuda.get_current_stream().synchronize()
+before = len(os.listdir(cache))
+x[150, :, 7] += 40.0                              # a burst (DM ~0 at this resolution) and a flash
+x[170] += 60.0
+found = s.push(cp.asarray(x[100:]))
+k = int(np.argmax(found.snr)); ser = int(found.series[k]); n = int(found.end_image[k]) - s.first_image - s.shift
+s.window_statistics(ser, n); s.box_image(ser, n, 1); s.series_values(ser, int(found.pixel[k]), n - 4, n + 2)
+s.statistics()
+cp.cuda.get_current_stream().synchronize()
+print("crossings", len(found), "compiled at the burst", len(os.listdir(cache)) - before)
+"""
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
+def test_gpu_after_the_warm_up_the_first_burst_compiles_nothing(tmp_path):
+    """With an empty kernel cache (a fresh machine), the first burst compiled the crossing path's
+    kernels in the middle of the stream (~3 s at the whole band); after warm_up() it compiles none."""
+    import os
+    import subprocess
+    import sys
+    out = {}
+    for mode in ("cold", "warm"):
+        env = dict(os.environ, CUPY_CACHE_DIR=str(tmp_path / mode), CUPY_CACHE_IN_MEMORY="0")
+        r = subprocess.run([sys.executable, "-c", _WARM_SCRIPT, mode], env=env, capture_output=True, text=True,
+                           timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+        words = r.stdout.split()
+        out[mode] = (int(words[1]), int(words[-1]))
+    assert out["cold"][0] > 0 and out["warm"][0] > 0
+    assert out["cold"][1] > 0, out            # the test can fail: without the warm-up the burst compiles
+    assert out["warm"][1] == 0, out

@@ -141,6 +141,12 @@ class TransientSearchBlock(bfp.SinkBlock):
                                           self.tree_precision)
         self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), threshold=self.threshold,
                                       xp=self.xp, max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, **kw)
+        if not getattr(self, "_warmed", False):
+            # the crossing path's kernels compiled now, not at the first burst (TransientSearch.warm_up)
+            dt = self.search.warm_up()
+            self._warmed = True
+            if dt:
+                log.info("TransientSearchBlock: the candidate path's GPU kernels warmed up in %.2f s", dt)
         window = self.search.window
         st = hdr.get("station") or {}
         self._beam_ants = []            # antenna positions per polarisation, for the sidelobe test

@@ -138,7 +138,7 @@ extern "C" __global__ void bf_row_dot(
 # combination of Re and Im of the blocks (I = Re XX + Re YY, V = -2 Im XY, ...):
 # out[g, c, p, k] = sum_b s[c, b] (a[p, b] Re corr[g, c, b, k] + i[p, b] Im corr[g, c, b, k]).
 _PRODUCTS_SRC = r"""
-#define MAXB 4      // correlation blocks: XX, YY, XY at most
+// MAXB: correlation blocks held (2: the pols' own powers; 4: XX, YY, XY at most)
 __device__ __forceinline__ float2 corr_at(const float2* p, long long i) { return p[i]; }
 __device__ __forceinline__ float2 corr_at(const float* p, long long i) { return make_float2(p[i], 0.f); }
 
@@ -147,16 +147,28 @@ __device__ __forceinline__ float2 corr_at(const float* p, long long i) { return 
 // block's value once for all products. (A thread per (g, c) row, re-reading the weights per row, ran
 // latency-bound at a third of the memory's speed: 1.9 ms for a whole-band gulp on an H200.)
 #define RUN 16
-template <typename TC>
+#define MAXP 4      // products
+template <int MAXB, typename TC>
 __device__ void products(const TC* __restrict__ corr, const float* __restrict__ s, const float* __restrict__ coef,
                          const float2* __restrict__ w, const int Cw, const int* __restrict__ gather,
                          float* __restrict__ out, const long long G, const int C, const int nblk, const int nprod,
                          const int K, const int Kout, const float fill)
 {
+    // SUB groups' values are requested before any is used: SUB x nblk loads in flight a thread
+    constexpr int SUB = MAXB <= 2 ? 8 : 4;
     const int j = blockIdx.x * blockDim.x + threadIdx.x;
     if (j >= Kout) return;
     const int k = gather ? gather[j] : j;
     const long long g0 = (long long)blockIdx.z * RUN, g1 = min(G, g0 + RUN);
+    float cr_[MAXP][MAXB], ci_[MAXP][MAXB];   // the products' coefficients, in registers
+#pragma unroll
+    for (int p = 0; p < MAXP; ++p)
+#pragma unroll
+        for (int b = 0; b < MAXB; ++b) {
+            const bool on = p < nprod && b < nblk;
+            cr_[p][b] = on ? coef[(p * nblk + b) * 2] : 0.f;
+            ci_[p][b] = on ? coef[(p * nblk + b) * 2 + 1] : 0.f;
+        }
     for (int c = blockIdx.y; c < C; c += gridDim.y) {
         if (k < 0) {
             for (long long g = g0; g < g1; ++g)
@@ -167,30 +179,41 @@ __device__ void products(const TC* __restrict__ corr, const float* __restrict__ 
         float sb[MAXB];
 #pragma unroll
         for (int b = 0; b < MAXB; ++b) {
+            wb[b] = make_float2(0.f, 0.f);
+            sb[b] = 0.f;
             if (b < nblk) {
                 wb[b] = w ? w[((long long)(Cw == 1 ? 0 : c) * nblk + b) * K + k] : make_float2(1.f, 0.f);
                 sb[b] = s[c * nblk + b];
             }
         }
-#pragma unroll 4
-        for (long long g = g0; g < g1; ++g) {
-            const long long row = g * C + c;
-            const TC* cr = corr + row * nblk * K + k;
-            float zr[MAXB], zi[MAXB];
+        for (long long ga = g0; ga < g1; ga += SUB) {
+            // every value of SUB groups requested first (the loads' latency overlapped), then used
+            float2 z[SUB][MAXB];
 #pragma unroll
-            for (int b = 0; b < MAXB; ++b) {
-                if (b < nblk) {
-                    const float2 z = corr_at(cr, (long long)b * K);
-                    const float2 v = wb[b];
-                    zr[b] = sb[b] * (z.x * v.x - z.y * v.y); zi[b] = sb[b] * (z.x * v.y + z.y * v.x);
-                }
-            }
-            for (int p = 0; p < nprod; ++p) {
-                float v = 0.f;
+            for (int u = 0; u < SUB; ++u)
 #pragma unroll
                 for (int b = 0; b < MAXB; ++b)
-                    if (b < nblk) v += coef[(p * nblk + b) * 2] * zr[b] + coef[(p * nblk + b) * 2 + 1] * zi[b];
-                out[(row * nprod + p) * Kout + j] = v;
+                    z[u][b] = (b < nblk && ga + u < g1)
+                              ? corr_at(corr + ((ga + u) * C + c) * nblk * K + k, (long long)b * K)
+                              : make_float2(0.f, 0.f);
+#pragma unroll
+            for (int u = 0; u < SUB; ++u) {
+                if (ga + u >= g1) break;
+                const long long row = (ga + u) * C + c;
+                float zr[MAXB], zi[MAXB];
+#pragma unroll
+                for (int b = 0; b < MAXB; ++b) {
+                    const float2 v = wb[b], q = z[u][b];
+                    zr[b] = sb[b] * (q.x * v.x - q.y * v.y); zi[b] = sb[b] * (q.x * v.y + q.y * v.x);
+                }
+#pragma unroll
+                for (int p = 0; p < MAXP; ++p) {
+                    if (p >= nprod) break;
+                    float v = 0.f;
+#pragma unroll
+                    for (int b = 0; b < MAXB; ++b) v += cr_[p][b] * zr[b] + ci_[p][b] * zi[b];
+                    out[(row * nprod + p) * Kout + j] = v;
+                }
             }
         }
     }
@@ -200,12 +223,18 @@ __device__ void products(const TC* __restrict__ corr, const float* __restrict__ 
 extern "C" __global__ void bf_products(const float2* corr, const float* s, const float* coef, const float2* w,
                                        const int Cw, const int* gather, float* out, const long long G, const int C,
                                        const int nblk, const int nprod, const int K, const int Kout, const float fill)
-{ products(corr, s, coef, w, Cw, gather, out, G, C, nblk, nprod, K, Kout, fill); }
+{ products<4>(corr, s, coef, w, Cw, gather, out, G, C, nblk, nprod, K, Kout, fill); }
 extern "C" __global__ void bf_products_real(const float* corr, const float* s, const float* coef, const float2* w,
                                             const int Cw, const int* gather, float* out, const long long G,
                                             const int C, const int nblk, const int nprod, const int K,
                                             const int Kout, const float fill)
-{ products(corr, s, coef, w, Cw, gather, out, G, C, nblk, nprod, K, Kout, fill); }
+{ products<4>(corr, s, coef, w, Cw, gather, out, G, C, nblk, nprod, K, Kout, fill); }
+// the same for one or two blocks (the registers of two: more threads a SM, more loads in flight)
+extern "C" __global__ void bf_products_real2(const float* corr, const float* s, const float* coef, const float2* w,
+                                             const int Cw, const int* gather, float* out, const long long G,
+                                             const int C, const int nblk, const int nprod, const int K,
+                                             const int Kout, const float fill)
+{ products<2>(corr, s, coef, w, Cw, gather, out, G, C, nblk, nprod, K, Kout, fill); }
 """
 
 _KERNELS = {}
@@ -215,7 +244,7 @@ def _raw(name):
     if name not in _KERNELS:
         import cupy as cp
         src = {"bf_block_corr": _BLOCK_CORR_SRC, "bf_row_dot": _ROW_DOT_SRC, "bf_products": _PRODUCTS_SRC,
-               "bf_products_real": _PRODUCTS_SRC}[name]
+               "bf_products_real": _PRODUCTS_SRC, "bf_products_real2": _PRODUCTS_SRC}[name]
         _KERNELS[name] = cp.RawKernel(src, name)
     return _KERNELS[name]
 
@@ -365,8 +394,8 @@ def products_from_blocks(corr, scale, coef, weight=None, gather=None, out=None):
     elif out.shape != shape or out.dtype != xp.float32 or not out.flags.c_contiguous:
         raise ValueError(f"products_from_blocks: out must be C-contiguous float32 {shape}, got "
                          f"{out.dtype} {tuple(out.shape)}")
-    if nblk > 4:
-        raise ValueError(f"products_from_blocks: at most 4 correlation blocks, got {nblk}")
+    if nblk > 4 or nprod > 4:
+        raise ValueError(f"products_from_blocks: at most 4 correlation blocks and 4 products, got {nblk} and {nprod}")
     if weight is not None:
         weight = xp.ascontiguousarray(weight, dtype=xp.complex64)
         if weight.shape[-2:] != (nblk, K) or weight.shape[0] not in (1, C):
@@ -374,7 +403,7 @@ def products_from_blocks(corr, scale, coef, weight=None, gather=None, out=None):
     wp = weight if weight is not None else np.uint64(0)
     cw = np.int32(1 if weight is None else weight.shape[0])
     gp = xp.asarray(gather, dtype=xp.int32) if gather is not None else np.uint64(0)
-    _raw("bf_products_real" if real else "bf_products")(
+    _raw(("bf_products_real2" if nblk <= 2 else "bf_products_real") if real else "bf_products")(
         ((kout + 255) // 256, max(1, min(C, 65535)), -(-G // 16)), (256,),
         (corr, xp.ascontiguousarray(scale, dtype=xp.float32), coef, wp, cw, gp, out, np.int64(G), np.int32(C),
          np.int32(nblk), np.int32(nprod), np.int32(K), np.int32(kout), np.float32(np.nan)))

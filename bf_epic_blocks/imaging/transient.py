@@ -35,6 +35,7 @@ Candidates: :func:`cluster_crossings` groups crossings that are close in time, s
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
@@ -490,6 +491,58 @@ class TransientSearch:
         if k < count:
             self._hist[ss, :count - k] = v[:, k:]
 
+    # ------------------------------------------------------------------ warm-up
+    def warm_up(self):
+        """Run every GPU kernel this search's candidates need, once, on a small twin (same widths,
+        threshold, dedispersion, tree precision and caps; 16 channels, 64 pixels), through a
+        dispersed burst and a sky-wide flash, then forget the twin; returns the seconds it took
+        (0 on the CPU). This search's own state is untouched.
+
+        Why: CuPy compiles a kernel at its first use (0.1 s each on an empty kernel cache), and the
+        crossing path (the dense S/N rerun, the brightest-pixel caps, the event's window statistics
+        and boxcar, its light curve) is first used at the first burst: ~3 s of compiling there
+        stalled a whole-band run (H100, a fresh machine) while the imager's ring filled -- for a
+        live stream, packets lost at the very event. Call before data flows."""
+        if self.xp is np:
+            return 0.0
+        t0 = time.perf_counter()
+        self._warm_twin()
+        self.xp.cuda.get_current_stream().synchronize()
+        return time.perf_counter() - t0
+
+    def _warm_twin(self):
+        """:meth:`warm_up`'s work on any array namespace; returns the twin's crossings."""
+        xp = self.xp
+        nchan = min(self.nchan, 16)
+        freq = self.freq_hz[np.linspace(0, self.nchan - 1, nchan).round().astype(int)]
+        npix, window = 64, 8
+        if self.average:
+            span = float(dispersion_delay_s(1.0, freq.min(), freq.max())) / self.dt_s
+            dms = [min(max(self.dms), 6.0 / span) if span > 0 else 0.0]
+        else:
+            dms = [0.0]
+        twin = TransientSearch(freq, self.dt_s, npix, window, dms=dms, widths=self.widths,
+                               threshold=self.threshold, average_channels=self.average, xp=xp,
+                               max_batch=16, max_pixels=min(self.max_pixels, 4), sky_fraction=self.sky_fraction,
+                               dedisperse=self.dedisperse, tree_precision=self._tree.precision if self._tree else "fp32")
+        rng = np.random.default_rng(0)
+        n = window + twin.wmax + twin.shift + 40
+        x = rng.normal(10.0, 1.0, (n, nchan, npix)).astype(np.float32)
+        t_b = n - 24
+        for c in range(nchan):                                  # a dispersed burst at pixel 5
+            x[t_b - int(twin.delays[-1, c]) if self.average else t_b, c, 5] += 40.0
+        x[n - 8] += 60.0                                        # a sky-wide flash
+        found = Crossings.concat([twin.push(xp.asarray(x[a:a + 16])) for a in range(0, n, 16)])
+        twin.statistics()
+        if len(found):
+            k = int(np.argmax(found.snr))
+            ser, pix = int(found.series[k]), int(found.pixel[k])
+            n_end = int(found.end_image[k]) - twin.first_image - twin.shift
+            twin.window_statistics(ser, n_end)
+            twin.box_image(ser, n_end, self.widths[0])
+            twin.series_values(ser, pix, n_end - 4, n_end + 2)
+        return found
+
     # ------------------------------------------------------------------ public
     def push(self, images):
         """Search new images ``(nimage, nchan, npix)`` (the next ones in time); returns Crossings."""
@@ -592,47 +645,64 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
         const long long m = n0 - 1 - j;
         last[j] = m >= 0 ? h[(m % cap) * npix] : 0.f;
     }
-    // ring slots of value n (written), n - wmax (entering the window) and n - wmax - W (leaving it),
-    // advanced by one per value: one 64-bit modulo each per thread, not per value
+    // Ring slots of value n (written) and n - wmax - W (leaving the window), advanced by one per value:
+    // one 64-bit modulo each per thread, not per value. The value entering the window, n - wmax, is
+    // last[WMAX - 1] before value n is shifted in: held, not read back. The capacity (>= W + wmax + B)
+    // keeps the slots this push writes apart from those it reads, so a run of U values' loads is issued
+    // before any of their stores (a load after each store serialised every value on the memory's
+    // latency: 45% of an H100's memory speed).
     int in = (int)(n0 % cap);
-    int ie = (int)(((n0 - WMAX) % cap + cap) % cap);
     int il = (int)(((n0 - WMAX - W) % cap + cap) % cap);
-    for (int i = 0; i < B; i++) {
-        const long long n = n0 + i;
-        const float x = v[((long long)s * B + i) * npix + p] - r;
-        h[(long long)in * npix] = x;
+#define U 4
+    for (int i0 = 0; i0 < B; i0 += U) {
+        float xv[U], lv[U];
 #pragma unroll
-        for (int j = WMAX - 1; j > 0; j--) last[j] = last[j - 1];
-        last[0] = x;
-        const long long e = n - WMAX, l = n - WMAX - W;
-        const double de = e >= 0 ? (double)h[(long long)ie * npix] : 0.0;
-        const double dl = l >= 0 ? (double)h[(long long)il * npix] : 0.0;
-        if (++in == cap) in = 0;
-        if (++ie == cap) ie = 0;
-        if (++il == cap) il = 0;
-        s1 += de - dl;
-        s2 += de * de - dl * dl;
-        if (i < k0) continue;
-        // The window's sums stay float64 (they run the whole stream); what is formed from them per
-        // value is float32 -- values about the reference, a few sigma wide, an S/N written as float32
-        // anyway. The float64 division, square root and per-width boxes and rsqrt this replaced made
-        // the kernel compute-bound (ncu: SM 72%, DRAM 32%; 0.98 ms per 163 trials of a 64-image gulp).
-        // (box / w - mean) sqrt(w) / sigma = (box - w mean) * rsqrt(w) * (1 / sigma); sigma 0 gives
-        // inf or NaN, as before.
-        const double mean = s1 * invW;
-        const float meanf = (float)mean;
-        const float isig = rsqrtf((float)(fmax(s2 - s1 * mean, 0.0) * invW1));
-        const int b = i - k0;
-        for (int wi = 0; wi < nw; wi++) {
-            const int w = widths[wi];
-            float box = 0.f;
+        for (int u = 0; u < U; u++) {
+            const int i = i0 + u;
+            int iu = il + u;
+            if (iu >= cap) iu -= cap;
+            xv[u] = i < B ? v[((long long)s * B + i) * npix + p] : 0.f;
+            lv[u] = (i < B && n0 + i - WMAX - W >= 0) ? h[(long long)iu * npix] : 0.f;
+        }
 #pragma unroll
-            for (int j = 0; j < WMAX; j++) if (j < w) box += last[j];
-            const float zf = (box - (float)w * meanf) * rsqrtf((float)w) * isig;
-            if (write_snr) snr[(((long long)wi * ns + s) * nb + b) * npix + p] = zf;
-            if (zf > thr) atomicAdd(&count[((long long)wi * ns + s) * nb + b], 1);
+        for (int u = 0; u < U; u++) {
+            const int i = i0 + u;
+            if (i >= B) break;
+            const long long n = n0 + i;
+            const float x = xv[u] - r;
+            h[(long long)in * npix] = x;
+            const double de = n - WMAX >= 0 ? (double)last[WMAX - 1] : 0.0;
+            const double dl = (double)lv[u];
+#pragma unroll
+            for (int j = WMAX - 1; j > 0; j--) last[j] = last[j - 1];
+            last[0] = x;
+            if (++in == cap) in = 0;
+            if (++il == cap) il = 0;
+            s1 += de - dl;
+            s2 += de * de - dl * dl;
+            if (i < k0) continue;
+            // The window's sums stay float64 (they run the whole stream); what is formed from them per
+            // value is float32 -- values about the reference, a few sigma wide, an S/N written as float32
+            // anyway. The float64 division, square root and per-width boxes and rsqrt this replaced made
+            // the kernel compute-bound (ncu: SM 72%, DRAM 32%; 0.98 ms per 163 trials of a 64-image gulp).
+            // (box / w - mean) sqrt(w) / sigma = (box - w mean) * rsqrt(w) * (1 / sigma); sigma 0 gives
+            // inf or NaN, as before.
+            const double mean = s1 * invW;
+            const float meanf = (float)mean;
+            const float isig = rsqrtf((float)(fmax(s2 - s1 * mean, 0.0) * invW1));
+            const int b = i - k0;
+            for (int wi = 0; wi < nw; wi++) {
+                const int w = widths[wi];
+                float box = 0.f;
+#pragma unroll
+                for (int j = 0; j < WMAX; j++) if (j < w) box += last[j];
+                const float zf = (box - (float)w * meanf) * rsqrtf((float)w) * isig;
+                if (write_snr) snr[(((long long)wi * ns + s) * nb + b) * npix + p] = zf;
+                if (zf > thr) atomicAdd(&count[((long long)wi * ns + s) * nb + b], 1);
+            }
         }
     }
+#undef U
     S1[sp] = s1;
     S2[sp] = s2;
 }
