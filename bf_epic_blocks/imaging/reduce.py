@@ -147,7 +147,6 @@ __device__ __forceinline__ float2 corr_at(const float* p, long long i) { return 
 // block's value once for all products. (A thread per (g, c) row, re-reading the weights per row, ran
 // latency-bound at a third of the memory's speed: 1.9 ms for a whole-band gulp on an H200.)
 #define RUN 16
-#define MAXP 4      // products
 template <int MAXB, typename TC>
 __device__ void products(const TC* __restrict__ corr, const float* __restrict__ s, const float* __restrict__ coef,
                          const float2* __restrict__ w, const int Cw, const int* __restrict__ gather,
@@ -160,15 +159,6 @@ __device__ void products(const TC* __restrict__ corr, const float* __restrict__ 
     if (j >= Kout) return;
     const int k = gather ? gather[j] : j;
     const long long g0 = (long long)blockIdx.z * RUN, g1 = min(G, g0 + RUN);
-    float cr_[MAXP][MAXB], ci_[MAXP][MAXB];   // the products' coefficients, in registers
-#pragma unroll
-    for (int p = 0; p < MAXP; ++p)
-#pragma unroll
-        for (int b = 0; b < MAXB; ++b) {
-            const bool on = p < nprod && b < nblk;
-            cr_[p][b] = on ? coef[(p * nblk + b) * 2] : 0.f;
-            ci_[p][b] = on ? coef[(p * nblk + b) * 2 + 1] : 0.f;
-        }
     for (int c = blockIdx.y; c < C; c += gridDim.y) {
         if (k < 0) {
             for (long long g = g0; g < g1; ++g)
@@ -206,12 +196,11 @@ __device__ void products(const TC* __restrict__ corr, const float* __restrict__ 
                     const float2 v = wb[b], q = z[u][b];
                     zr[b] = sb[b] * (q.x * v.x - q.y * v.y); zi[b] = sb[b] * (q.x * v.y + q.y * v.x);
                 }
-#pragma unroll
-                for (int p = 0; p < MAXP; ++p) {
-                    if (p >= nprod) break;
+                for (int p = 0; p < nprod; ++p) {
                     float v = 0.f;
 #pragma unroll
-                    for (int b = 0; b < MAXB; ++b) v += cr_[p][b] * zr[b] + ci_[p][b] * zi[b];
+                    for (int b = 0; b < MAXB; ++b)
+                        if (b < nblk) v += coef[(p * nblk + b) * 2] * zr[b] + coef[(p * nblk + b) * 2 + 1] * zi[b];
                     out[(row * nprod + p) * Kout + j] = v;
                 }
             }
@@ -394,8 +383,8 @@ def products_from_blocks(corr, scale, coef, weight=None, gather=None, out=None):
     elif out.shape != shape or out.dtype != xp.float32 or not out.flags.c_contiguous:
         raise ValueError(f"products_from_blocks: out must be C-contiguous float32 {shape}, got "
                          f"{out.dtype} {tuple(out.shape)}")
-    if nblk > 4 or nprod > 4:
-        raise ValueError(f"products_from_blocks: at most 4 correlation blocks and 4 products, got {nblk} and {nprod}")
+    if nblk > 4:
+        raise ValueError(f"products_from_blocks: at most 4 correlation blocks, got {nblk}")
     if weight is not None:
         weight = xp.ascontiguousarray(weight, dtype=xp.complex64)
         if weight.shape[-2:] != (nblk, K) or weight.shape[0] not in (1, C):

@@ -493,8 +493,8 @@ class TransientSearch:
 
     # ------------------------------------------------------------------ warm-up
     def warm_up(self):
-        """Run every GPU kernel this search's candidates need, once, on a small twin (same widths,
-        threshold, dedispersion, tree precision and caps; 16 channels, 64 pixels), through a
+        """Run every GPU kernel this search's candidates need, once, on a small twin (same pixels, window,
+        widths, threshold, dedispersion, tree precision and caps; 16 channels), through a
         dispersed burst and a sky-wide flash, then forget the twin; returns the seconds it took
         (0 on the CPU). This search's own state is untouched.
 
@@ -515,32 +515,38 @@ class TransientSearch:
         xp = self.xp
         nchan = min(self.nchan, 16)
         freq = self.freq_hz[np.linspace(0, self.nchan - 1, nchan).round().astype(int)]
-        npix, window = 64, 8
+        # the same pixels and window: CuPy's argpartition, CUB's argmax and its reductions' block shapes
+        # are specialised on the lengths they reduce (a twin of 64 pixels and 8 images left 4 to compile)
+        npix, window = self.npix, self.window
         if self.average:
             span = float(dispersion_delay_s(1.0, freq.min(), freq.max())) / self.dt_s
             dms = [min(max(self.dms), 6.0 / span) if span > 0 else 0.0]
         else:
             dms = [0.0]
+        B = self.max_batch                     # pushes as long as the search's: the S/N rerun's shapes
         twin = TransientSearch(freq, self.dt_s, npix, window, dms=dms, widths=self.widths,
                                threshold=self.threshold, average_channels=self.average, xp=xp,
-                               max_batch=16, max_pixels=min(self.max_pixels, 4), sky_fraction=self.sky_fraction,
+                               max_batch=B, max_pixels=self.max_pixels, sky_fraction=self.sky_fraction,
                                dedisperse=self.dedisperse, tree_precision=self._tree.precision if self._tree else "fp32")
         rng = np.random.default_rng(0)
-        n = window + twin.wmax + twin.shift + 40
+        n = -(-(window + twin.wmax + twin.shift) // B) * B + 2 * B
         x = rng.normal(10.0, 1.0, (n, nchan, npix)).astype(np.float32)
-        t_b = n - 24
-        for c in range(nchan):                                  # a dispersed burst at pixel 5
-            x[t_b - int(twin.delays[-1, c]) if self.average else t_b, c, 5] += 40.0
-        x[n - 8] += 60.0                                        # a sky-wide flash
-        found = Crossings.concat([twin.push(xp.asarray(x[a:a + 16])) for a in range(0, n, 16)])
+        t_b = n - B // 2
+        for c in range(nchan):                                  # a dispersed burst at pixel 0
+            x[t_b - int(twin.delays[-1, c]) if self.average else t_b, c, 0] += 40.0
+        x[n - B // 4] += 60.0                                   # a sky-wide flash
+        found = Crossings.concat([twin.push(xp.asarray(x[a:a + B])) for a in range(0, n, B)])
         twin.statistics()
         if len(found):
             k = int(np.argmax(found.snr))
             ser, pix = int(found.series[k]), int(found.pixel[k])
-            n_end = int(found.end_image[k]) - twin.first_image - twin.shift
-            twin.window_statistics(ser, n_end)
-            twin.box_image(ser, n_end, self.widths[0])
-            twin.series_values(ser, pix, n_end - 4, n_end + 2)
+            # an event's window, boxcars and light curve, at every value still held: reads of the history
+            # that wrap around its end take other kernels than those that do not
+            for n_end in range(twin.nvalues - twin.capacity + twin.window + twin.wmax, twin.nvalues):
+                twin.window_statistics(ser, n_end)
+                for w in self.widths:
+                    twin.box_image(ser, n_end, w)
+                twin.series_values(ser, pix, n_end - 4, n_end + 2)
         return found
 
     # ------------------------------------------------------------------ public
