@@ -148,35 +148,6 @@ def effective_back(plan: FDMTPlan):
     return out
 
 
-class StoredRows:
-    """A float16 tree's dedispersed rows as it stores them: the float32 rows are
-    ``w * a + kb`` (``w`` (dmax + 1, B, npix) float16, ``a`` a float32 number, ``kb`` (npix,) float32),
-    each step rounded once in float32 -- what :meth:`StreamingFDMT.push` returns, bit for bit.
-
-    Why: the search's statistics kernel forms the float32 value itself as it reads ``w``, so the rows
-    cross memory once at 2 bytes a value, not as a float32 copy written and read back (H100: the copy
-    out 1.09 ms and half the statistics kernel's reads, of a ~36-ms whole-band gulp)."""
-
-    def __init__(self, w, a, kb):
-        self.w, self.a, self.kb = w, np.float32(a), kb
-
-    @property
-    def shape(self):
-        return self.w.shape
-
-    def __getitem__(self, key):
-        """Rows and times (the pixel axis whole): ``rows[:, first:]``, ``rows[ss]``."""
-        key = key if isinstance(key, tuple) else (key,)
-        if len(key) > 2:
-            raise IndexError("StoredRows: index rows and times only")
-        return StoredRows(self.w[key], self.a, self.kb)
-
-    def values(self):
-        """The float32 rows, (dmax + 1, B, npix)."""
-        xp = get_xp(self.w)
-        return self.w.astype(xp.float32) * self.a + self.kb
-
-
 class StreamingFDMT:
     """:func:`fdmt` on a stream: images arrive a block at a time, each call returns the block's
     dedispersed values, equal to :func:`fdmt` of the whole series so far at those times.
@@ -323,21 +294,18 @@ class StreamingFDMT:
         pc += pc % 2 if self.dtype is np.float16 else 0          # (float16 rows: even)
         return np.dtype(self.dtype).itemsize * (self.ring_size * self.ld + self.nrow * B * pc)
 
-    def push(self, images, factor=1.0, stored=False):
+    def push(self, images, factor=1.0):
         """(nchan, B, npix) new images (channels in the plan's order of ``freq``) -> (dmax + 1, B, npix)
         float32: row d, time t is the sum over channels of I_c(t - back(d, c)) (:func:`effective_back`),
-        times ``factor`` (e.g. 1 / nchan for the channels' mean: applied as the rows are copied out).
-        ``stored`` (float16 storage only): the same rows as :class:`StoredRows`, not made float32 here."""
+        times ``factor`` (e.g. 1 / nchan for the channels' mean: applied as the rows are copied out)."""
         xp, plan = self.xp, self.plan
-        if stored and self.dtype is not np.float16:
-            raise ValueError("push(stored=True): the rows are stored as float16 only with precision='fp16'")
         x = xp.asarray(images, dtype=xp.float32)
         if x.ndim != 3 or x.shape[0] != plan.nchan or x.shape[2] != self.npix:
             raise ValueError(f"images: expected (nchan={plan.nchan}, B, npix={self.npix}), got {tuple(x.shape)}")
         B = int(x.shape[1])
-        out = xp.empty((plan.dmax + 1, B, self.npix), np.float16 if stored else xp.float32)
+        out = xp.empty((plan.dmax + 1, B, self.npix), xp.float32)
         if B == 0:
-            return StoredRows(out, 1.0, xp.zeros(self.npix, xp.float32)) if stored else out
+            return out
         half = self.dtype is np.float16
         if not np.array_equal(plan.order, np.arange(plan.nchan)):
             x = x[xp.asarray(plan.order)]
@@ -364,19 +332,11 @@ class StreamingFDMT:
                 xp.multiply(W[self.top], np.float32(factor), out=out[:, :, p0:p1])
             else:
                 a, b = np.float32(factor / scale), np.float32(factor)
-                if stored:
-                    if xp is np:
-                        out[:, :, p0:p1] = W[self.top, :, :n]
-                    else:
-                        _out_half_gpu(xp, W, self.top.start, plan.dmax + 1, None, a, b, out, p0, n)
-                elif xp is np:
+                if xp is np:
                     out[:, :, p0:p1] = W[self.top, :, :n].astype(np.float32) * a + self._ref_sum[p0:p1] * b
                 else:
                     _out_half_gpu(xp, W, self.top.start, plan.dmax + 1, self._ref_sum, a, b, out, p0, n)
         self.ntime += B
-        if stored:
-            a, b = np.float32(factor / scale), np.float32(factor)
-            return StoredRows(out, a, self._ref_sum * b)
         return out
 
     def _levels_host(self, W, p0, p1, B):
@@ -584,25 +544,6 @@ extern "C" __global__ void bf_fdmt_in_half(const float* __restrict__ x, const fl
 
 // float32 rows out of float16 storage: out[r, p0 + p] = W[t0 B + r, p] a + ksum[p0 + p] bk for rows r of
 // (D, B) and p < n (rounded as NumPy does). out: (D B, npix) float32; W: rows of ld2 pixel pairs.
-// the same rows kept as stored: out (D B, npix) float16 (StoredRows)
-extern "C" __global__ void bf_fdmt_out_stored(const __half2* __restrict__ W, __half* __restrict__ out,
-                                              const int rows, const long long t0B, const int n, const int ld2,
-                                              const int p0, const int npix)
-{
-    const int q = blockIdx.x * blockDim.x + threadIdx.x;
-    if (q >= ld2) return;
-    const int p = 2 * q;
-    const bool has1 = p + 1 < n;
-    if (p >= n) return;
-#pragma unroll 4
-    for (int r = blockIdx.y; r < rows; r += gridDim.y) {
-        const __half2 h = W[(t0B + r) * ld2 + q];
-        __half* o = out + (long long)r * npix + p0 + p;
-        o[0] = __low2half(h);
-        if (has1) o[1] = __high2half(h);
-    }
-}
-
 extern "C" __global__ void bf_fdmt_out_half(const __half2* __restrict__ W, const float* __restrict__ ksum,
                                             const float a, const float bk, float* __restrict__ out, const int rows,
                                             const long long t0B, const int n, const int ld2, const int p0,
@@ -629,7 +570,7 @@ def _half_kernel(cp, name):
     key = ("half", cp.cuda.Device().id)
     if key not in _EW:
         mod = cp.RawModule(code=_HALF_SRC)
-        _EW[key] = {k: mod.get_function(k) for k in ("bf_fdmt_in_half", "bf_fdmt_out_half", "bf_fdmt_out_stored")}
+        _EW[key] = {k: mod.get_function(k) for k in ("bf_fdmt_in_half", "bf_fdmt_out_half")}
     return _EW[key][name]
 
 
@@ -650,16 +591,10 @@ def _in_half_gpu(cp, x, ref, scale, W, p0, n):
 
 def _out_half_gpu(cp, W, t0, D, ksum, a, b, out, p0, n):
     """out[:, :, p0:p0 + n] = W[t0:t0 + D, :, :n] * a + ksum[p0:p0 + n] * b (float32 rows out of float16
-    storage); with ``ksum`` None the float16 rows as stored. W (nrow, B, ld) float16; out (D, B, npix)
-    float32 (float16 for ksum None) contiguous."""
+    storage). W (nrow, B, ld) float16; out (D, B, npix) float32 contiguous."""
     B, npix = int(out.shape[1]), int(out.shape[2])
     ld2 = int(W.shape[2]) // 2
     rows = D * B
-    if ksum is None:
-        _half_kernel(cp, "bf_fdmt_out_stored")(
-            ((ld2 + 127) // 128, min(rows, 512)), (128,),
-            (W, out, np.int32(rows), np.int64(t0 * B), np.int32(n), np.int32(ld2), np.int32(p0), np.int32(npix)))
-        return
     _half_kernel(cp, "bf_fdmt_out_half")(
         ((ld2 + 127) // 128, min(rows, 512)), (128,),
         (W, ksum, np.float32(a), np.float32(b), out, np.int32(rows), np.int64(t0 * B), np.int32(n), np.int32(ld2),

@@ -286,9 +286,8 @@ class TransientSearch:
             return xp.ascontiguousarray(xp.moveaxis(x, 0, 1))
         B = x.shape[0]
         if self._tree is not None:
-            # a view: the tree copies each pixel chunk once, and scales its sums to means as it copies out;
-            # for the statistics kernel a float16 tree's rows as stored (the kernel makes them float32)
-            out = self._tree.push(xp.moveaxis(x, 0, 1), factor=1.0 / self.nchan, stored=self._stats_read_stored())
+            # a view: the tree copies each pixel chunk once, and scales its sums to means as it copies out
+            out = self._tree.push(xp.moveaxis(x, 0, 1), factor=1.0 / self.nchan)
             first = max(0, self.shift - self.nimages)      # values before the tree has every channel's past
             return out[:, first:] if first < B else out[:, :0]
         ext = xp.concatenate([self._chan, xp.moveaxis(x, 0, 1)], axis=1)   # (nchan, shift + B, npix)
@@ -310,27 +309,17 @@ class TransientSearch:
     #: every sweep) runs them in chunks, so its temporaries do not grow with the trials
     CHUNK_BYTES = 256 * 2**20
 
-    def _fused_stats(self):
-        return self.xp is not np and self.FUSED_STATS and self.wmax <= _STATS_MAXW
-
-    def _stats_read_stored(self):
-        """True when the statistics kernel reads a float16 tree's rows as stored (:class:`.fdmt.StoredRows`)."""
-        return self._tree is not None and self._tree.dtype is np.float16 and self._fused_stats()
-
     def _push_values(self, v):
-        """Append series values (nser, B, npix) (or :class:`.fdmt.StoredRows`); returns crossings found among them."""
+        """Append series values (nser, B, npix); returns crossings found among them."""
         xp = self.xp
         B = v.shape[1]
         if B == 0:
             return Crossings()
         if self._ref is None:
-            first = v[:, :1].values()[:, 0] if hasattr(v, "values") else v[:, 0]
-            self._ref = first.astype(xp.float32)
+            self._ref = v[:, 0].astype(xp.float32)
         n0 = self.nvalues
         step = max(1, min(self.nser, self.CHUNK_BYTES // max(1, B * self.npix * 8)))
-        if hasattr(v, "values") and not self._fused_stats():
-            v = v.values()
-        if self._fused_stats():
+        if xp is not np and self.FUSED_STATS and self.wmax <= _STATS_MAXW:
             found = [self._push_values_gpu(v, n0, step)]
         else:
             found = [self._push_chunk(v[s0:s0 + step], slice(s0, min(self.nser, s0 + step)), n0)
@@ -419,20 +408,14 @@ class TransientSearch:
         if self._widths_dev is None:
             self._widths_dev = xp.asarray(np.asarray(self.widths, np.int32))
             self._no_snr = xp.empty(1, xp.float32)
-        stored = hasattr(v, "values")
-        if stored:      # float16 rows as the tree stores them: value = w * a + kb[p], made in the kernel
-            a, kb = np.float32(v.a), xp.ascontiguousarray(v.kb, dtype=xp.float32)
-            v = xp.ascontiguousarray(v.w)
-        else:
-            a, kb = np.float32(1.0), self._no_snr
-            v = xp.ascontiguousarray(v, dtype=xp.float32)
-        k = _stats_kernel(wmax, stored)
+        v = xp.ascontiguousarray(v, dtype=xp.float32)
+        k = _stats_kernel(wmax)
         threads = 128
 
         def run(ss, snr, count, write):
             hist, s1, s2 = self._hist[ss], self._s1[ss], self._s2[ss]         # views: the kernel updates them
             k(((self.npix + threads - 1) // threads, ss.stop - ss.start), (threads,),
-              (v[ss], a, kb, self._ref[ss], hist, s1, s2, snr, count, self._widths_dev, np.int32(nw), np.int32(B),
+              (v[ss], self._ref[ss], hist, s1, s2, snr, count, self._widths_dev, np.int32(nw), np.int32(B),
                np.int32(self.npix), np.int32(self.capacity), np.int64(hist.strides[0] // 4), np.int64(n0),
                np.int32(W), np.int32(k0), np.int32(nb), np.float32(self.threshold), np.int32(write)))
         count = xp.zeros((nw, ns, max(nb, 1)), xp.int32)
@@ -647,18 +630,7 @@ _STATS_SRC = r"""
 // newest w values against the window: snr = (box / w - mean) sqrt(w) / sigma (written only when
 // write_snr: a chunk is run again, densely, only if it has a crossing), and a count per trial image of
 // the pixels over the threshold.
-// STORED: v holds a float16 tree's rows as stored (fdmt.StoredRows): value = w * a + kb[p], each step
-// rounded once in float32 as the tree's own float32 output is -- the same values, half the bytes read.
-#ifdef STORED
-#include <cuda_fp16.h>
-typedef __half VIN;
-__device__ __forceinline__ float value_of(VIN w, float a, float kb) { return __fadd_rn(__fmul_rn(__half2float(w), a), kb); }
-#else
-typedef float VIN;
-__device__ __forceinline__ float value_of(VIN w, float a, float kb) { return w; }
-#endif
-extern "C" __global__ void bf_search_stats(const VIN* __restrict__ v, const float a, const float* __restrict__ kbv,
-        const float* __restrict__ ref,
+extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const float* __restrict__ ref,
         float* __restrict__ hist, double* __restrict__ S1, double* __restrict__ S2, float* __restrict__ snr,
         int* __restrict__ count, const int* __restrict__ widths, const int nw, const int B, const int npix,
         const int cap, const long long hstride, const long long n0, const int W, const int k0, const int nb,
@@ -672,11 +644,6 @@ extern "C" __global__ void bf_search_stats(const VIN* __restrict__ v, const floa
     double s1 = S1[sp], s2 = S2[sp];
     const double invW = 1.0 / W, invW1 = 1.0 / (W - 1);
     const float r = ref[sp];
-#ifdef STORED
-    const float kb = kbv[p];
-#else
-    const float kb = 0.f;
-#endif
     // last[j]: value n - j (offset), j < wmax; before value n0 is shifted in, last[j] = value n0 - 1 - j
     float last[WMAX];
 #pragma unroll
@@ -700,7 +667,7 @@ extern "C" __global__ void bf_search_stats(const VIN* __restrict__ v, const floa
             const int i = i0 + u;
             int iu = il + u;
             if (iu >= cap) iu -= cap;
-            xv[u] = i < B ? value_of(v[((long long)s * B + i) * npix + p], a, kb) : 0.f;
+            xv[u] = i < B ? v[((long long)s * B + i) * npix + p] : 0.f;
             lv[u] = (i < B && n0 + i - WMAX - W >= 0) ? h[(long long)iu * npix] : 0.f;
         }
 #pragma unroll
@@ -750,12 +717,11 @@ extern "C" __global__ void bf_search_stats(const VIN* __restrict__ v, const floa
 _STATS_KERNELS: dict = {}
 
 
-def _stats_kernel(wmax, stored=False):
+def _stats_kernel(wmax):
     import cupy as cp
-    key = (int(wmax), bool(stored), cp.cuda.Device().id)
+    key = (int(wmax), cp.cuda.Device().id)
     if key not in _STATS_KERNELS:
-        opts = (f"-DWMAX={int(wmax)}",) + (("-DSTORED",) if stored else ())
-        _STATS_KERNELS[key] = cp.RawKernel(_STATS_SRC, "bf_search_stats", options=opts)
+        _STATS_KERNELS[key] = cp.RawKernel(_STATS_SRC, "bf_search_stats", options=(f"-DWMAX={int(wmax)}",))
     return _STATS_KERNELS[key]
 
 
