@@ -208,7 +208,8 @@ def test_many_series_are_searched_in_chunks_with_the_same_result(monkeypatch):
 @pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
 @pytest.mark.parametrize("dedisperse,widths,one_series_per_chunk", [("shifts", (1, 2, 4, 8), False),
                                                                     ("shifts", (1, 2, 4, 8), True),
-                                                                    ("tree", (1, 3, 16), False)])
+                                                                    ("tree", (1, 3, 16), False),
+                                                                    ("tree-fp16", (1, 2, 4, 8), False)])
 def test_the_gpu_statistics_kernel_equals_the_array_code(monkeypatch, dedisperse, widths, one_series_per_chunk):
     """On the GPU the statistics run in one kernel: the same crossings (S/N to float32), the same
     window statistics and history as the array code, over pushes that straddle the window's filling,
@@ -227,7 +228,8 @@ def test_the_gpu_statistics_kernel_equals_the_array_code(monkeypatch, dedisperse
     for fused in (True, False):
         monkeypatch.setattr(TransientSearch, "FUSED_STATS", fused)
         s = TransientSearch(f, 16 * DT, 300, 60, dms=[0.0, 0.5, 1.0] if dedisperse == "shifts" else [1.0],
-                            widths=widths, threshold=5, dedisperse=dedisperse, max_batch=64, xp=cp)
+                            widths=widths, threshold=5, dedisperse=dedisperse.split("-")[0], max_batch=64, xp=cp,
+                            tree_precision="fp16" if dedisperse.endswith("fp16") else "fp32")
         c = Crossings.concat([s.push(cp.asarray(x[a:a + b])) for a, b in ((0, 37), (37, 100), (137, 400), (537, 163))])
         order = np.lexsort((c.pixel, c.width_index, c.series, c.end_image))
         mean, sig = s.statistics()
