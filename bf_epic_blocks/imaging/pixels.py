@@ -171,7 +171,7 @@ def take_pixels(values, index):
         return out
     sa, sb = (int(v) // 4 for v in values.strides[:2])
     rows = A * B
-    # (a block per row: 512 rows a thread walking every 512th was slower, 0.68 -> 0.88 ms, H100)
+    # (a block per row: fewer blocks, each walking every 512th row, was slower: 0.68 -> 0.88 ms a whole-band gulp, H100)
     _take_kernel(xp)(((npix + 255) // 256, min(rows, 65535)), (256,),
                      (values, xp.asarray(index, dtype=xp.int32), out, np.int32(A), np.int32(B), np.int32(npix),
                       np.int64(sa), np.int64(sb)))
