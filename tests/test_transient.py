@@ -878,8 +878,8 @@ print("crossings", len(found), "compiled at the burst", len(os.listdir(cache)) -
 def test_gpu_after_the_warm_up_the_first_burst_compiles_little(tmp_path):
     """With an empty kernel cache (a fresh machine), the first burst compiled the crossing path's
     kernels in the middle of the stream (~3 s at the whole band; 33 kernels here); after warm_up() at
-    most a quarter of them (H100: 6 fancy-indexing kernels CuPy specialises beyond what the twin
-    reproduces; their names are in the message)."""
+    most a quarter of them (H100: one, a reduction CuPy shapes by the number of trials, which the
+    small twin does not have; the names are in the message)."""
     import os
     import subprocess
     import sys

@@ -529,12 +529,14 @@ class TransientSearch:
                                max_batch=B, max_pixels=self.max_pixels, sky_fraction=self.sky_fraction,
                                dedisperse=self.dedisperse, tree_precision=self._tree.precision if self._tree else "fp32")
         rng = np.random.default_rng(0)
-        n = -(-(window + twin.wmax + twin.shift) // B) * B + 2 * B
+        n = -(-(window + twin.wmax + twin.shift) // B) * B + 3 * B
         x = rng.normal(10.0, 1.0, (n, nchan, npix)).astype(np.float32)
-        t_b = n - B // 2
-        for c in range(nchan):                                  # a dispersed burst at pixel 0
+        # a dispersed burst at pixel 0 and, a push later, a sky-wide flash: a push's crossings go through
+        # one of two paths (a few pixels: nonzero; a sky-wide row or too many: the brightest-pixel caps)
+        t_b = n - 2 * B + B // 2
+        for c in range(nchan):
             x[t_b - int(twin.delays[-1, c]) if self.average else t_b, c, 0] += 40.0
-        x[n - B // 4] += 60.0                                   # a sky-wide flash
+        x[n - B // 4] += 60.0
         found = Crossings.concat([twin.push(xp.asarray(x[a:a + B])) for a in range(0, n, B)])
         twin.statistics()
         if len(found):
