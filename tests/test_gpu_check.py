@@ -158,8 +158,24 @@ def test_bench_wholeband_runs_the_cli_and_finds_the_burst(tmp_path):
     b1, faint = r["bursts"]
     assert b1["found"] and abs(b1["dm_off_trials"]) <= 1 and b1["offset_cells"] <= 1.5 and b1["snr"] > 10
     assert not faint["found"] and faint.get("snr") is None
+    assert r["kernels_compiled"] is None or r["kernels_compiled"] >= 0
     assert r["rss_mib"]["peak"] > 100
     assert json.loads((tmp_path / "bw.json").read_text())["run"]["bursts"][0]["found"]
+
+
+def test_bench_wholeband_counts_the_kernel_cache(tmp_path, monkeypatch):
+    """What the run compiled is what CuPy's kernel cache gained: the files under CUPY_CACHE_DIR (none
+    when it does not exist yet), None when CuPy keeps its cache in memory."""
+    import bench_wholeband as bw
+    monkeypatch.setenv("CUPY_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("CUPY_CACHE_IN_MEMORY", raising=False)
+    assert bw.kernel_cache_files() == 0
+    (tmp_path / "cache" / "sub").mkdir(parents=True)
+    for name in ("a.cubin", "b.cubin", "sub/c.cubin"):
+        (tmp_path / "cache" / name).write_bytes(b"x")
+    assert bw.kernel_cache_files() == 3
+    monkeypatch.setenv("CUPY_CACHE_IN_MEMORY", "1")
+    assert bw.kernel_cache_files() is None
 
 
 def test_bench_scrunch_costs_and_snr_make_sense():

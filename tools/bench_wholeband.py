@@ -12,6 +12,9 @@ outside, as an operator runs it (``--set`` overrides pass through; the default i
   with several GPUs the fullest one's) and
   the run's resident set (``/proc``): first, peak, and the growth from the first quarter of the
   flowing time to the last (flat means ~0).
+* the CuPy kernels compiled during the run (files added to CuPy's kernel cache; 0 when every kernel
+  was cached): on an empty cache the first images wait for compilation, so releases are compared on
+  equal caches (a run first on a fresh machine pays it, the next finds its kernels cached).
 * each injected burst (``source.transients``): the brightest candidate within ``--match-s`` of its
   arrival, its DM off the burst's in trials (the tree's one-image sweep step), its place off the
   burst's in grid cells (the truth's own RA/Dec against the candidate's), and whether that is within
@@ -44,6 +47,18 @@ from cases import bf_epic_command, write_json  # noqa: E402
 
 #: seconds between a burst's arrival and a candidate that may be it
 MATCH_S = 0.05
+
+
+def kernel_cache_files():
+    """Files in CuPy's on-disk kernel cache (``CUPY_CACHE_DIR``, default ``~/.cupy/kernel_cache``), 0 where
+    it does not exist yet; None where CuPy keeps its cache in memory (``CUPY_CACHE_IN_MEMORY=1``)."""
+    if os.environ.get("CUPY_CACHE_IN_MEMORY", "0") not in ("", "0"):
+        return None
+    d = Path(os.environ.get("CUPY_CACHE_DIR") or Path.home() / ".cupy" / "kernel_cache")
+    try:
+        return sum(1 for f in d.rglob("*") if f.is_file())
+    except OSError:
+        return 0
 
 
 def gpu_used_mib():
@@ -128,6 +143,7 @@ def run(args):
         cmd += ["--set", s]
     samples_gpu, samples_rss = [], []
     stop = threading.Event()
+    cache0 = kernel_cache_files()
     t0 = time.perf_counter()
     with tempfile.TemporaryFile("w+") as err:
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=child_env())
@@ -148,6 +164,8 @@ def run(args):
         if rc:
             err.seek(0)
             raise SystemExit(f"bf-epic run failed ({rc}): {err.read()[-3000:]}")
+    cache1 = kernel_cache_files()
+    compiled = None if cache0 is None or cache1 is None else cache1 - cache0
     info = json.loads(summary.read_text())
     blocks = info.get("blocks", {})
     # the searches (one per GPU of a pixel split), else the imagers: from the first's first images to
@@ -176,6 +194,7 @@ def run(args):
            "first_images_at_s": None if flow is None else flow[0],
            "gpu_mib": dict(zip(("first", "peak", "growth"), gpu)),
            "rss_mib": dict(zip(("first", "peak", "growth"), rss)),
+           "kernels_compiled": compiled,
            "images": info.get("images"), "search": info.get("search"), "bursts": bursts,
            "other_candidates": (len(table) - len(found)) if table is not None else 0,
            "blocks": blocks}
@@ -217,6 +236,9 @@ def show(out):
                   f"({b['offset_cells']:.2f} cells), S/N {b['snr']:.1f}: {'within' if b['found'] else 'OUTSIDE'} "
                   "+-1 trial and 1.5 cells")
     print(f"other candidates: {r['other_candidates']}")
+    if r.get("kernels_compiled"):
+        print(f"CuPy kernels compiled during the run: {r['kernels_compiled']} (the kernel cache was not warm: "
+              "the first images, and anything first used later, waited for them)")
 
 
 def main(argv=None):
