@@ -112,6 +112,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.fit_every_row = False
         self.rows, self.written = [], []
         self.candidates = None
+        self._warmed = False            # the candidate path's GPU kernels compiled (TransientSearch.warm_up)
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
                              "images_lost": 0, "trials_per_width": [0] * len(self.widths), "sequences": 0,
                              "sky_wide": 0, "sidelobes_folded": 0, "crossings_dropped": 0}
@@ -141,7 +142,7 @@ class TransientSearchBlock(bfp.SinkBlock):
                                           self.tree_precision)
         self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), threshold=self.threshold,
                                       xp=self.xp, max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, **kw)
-        if not getattr(self, "_warmed", False):
+        if not self._warmed:
             # the crossing path's kernels compiled now, not at the first burst (TransientSearch.warm_up)
             dt = self.search.warm_up()
             self._warmed = True
