@@ -128,11 +128,11 @@ def test_integer_modes_need_a_gpu():
 # ----------------------------------------------------------------------------------------- GPU
 @GPU
 @pytest.mark.gpu
-@pytest.mark.parametrize("portable", [False, True, "cp.async", "bulk"])
+@pytest.mark.parametrize("portable", [False, True, "cp.async", "bulk", "pipelined"])
 @pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
 def test_gpu_kernel_equals_its_int64_emulation(precision, portable):
     """The device's kernel (on Hopper the warpgroup one, its operands in bulk-copied tiles or staged by
-    cp.async) and the portable mma.sync one, each against the int64 emulation: the integer sums are
+    cp.async, its epilogue after each row tile or overlapped with the next) and the portable mma.sync one, each against the int64 emulation: the integer sums are
     exact, so only float32's squares and sums differ."""
     import cupy as cp
     xyz, freq, lm, Q = scene(nant=70, T=256, nchan=3, npix_grid=24, seed=3)
@@ -146,10 +146,11 @@ def test_gpu_kernel_equals_its_int64_emulation(precision, portable):
     assert np.array_equal(Bv.get(), fused.layout_voltages(Q, None, [0, 1], int(Aq.shape[-1]), xmax))
     npix = len(lm)
     cc = cp.cuda.Device().compute_capability
-    if portable in ("cp.async", "bulk") and cc != "90":
+    if portable in ("cp.async", "bulk", "pipelined") and cc != "90":
         pytest.skip("the warpgroup kernels need compute capability 9.0")
-    config = {True: {}, False: None, "cp.async": dict(fused.WG_CONFIG, BULK=0),
-              "bulk": dict(fused.WG_CONFIG, BULK=1)}[portable]
+    config = {True: {}, False: None, "cp.async": dict(fused.WG_CONFIG, BULK=0, EPI=0, ST=3),
+              "bulk": dict(fused.WG_CONFIG, BULK=1, EPI=0, ST=3),
+              "pipelined": dict(fused.WG_CONFIG, BULK=1, EPI=1, ST=4)}[portable]
     got = fused.fused_power(Aq, osc, Bv, 256, 2, flag, npix, config).get()   # (16, C, P, K)
     got = got.transpose(1, 2, 0, 3)
     ref = fused.reference_power(Aq.get(), osc.get(), Bv.get(), 256, base=b)[..., :npix]

@@ -47,6 +47,9 @@ shared memory, so that the pieces after the first reread only A:
   layout kernels' ``tiled`` output), so a ninth warp brings each stage in with one bulk copy
   (``cp.async.bulk``) counted on an mbarrier, and the MMA warps free stages by mbarriers of their own
   (``_SRC_WGB``); ``BULK=0`` keeps the form that stages by cp.async and __syncthreads (``_SRC_WG``).
+  By default (``EPI=1``, ``_SRC_WGP``) each warpgroup holds two sets of accumulators and squares and
+  sums one row tile while the MMAs of the next run (the int32 -> float32 conversions of an epilogue
+  cost ~30% of the kernel when the tensor cores waited for them).
   Its accumulator fragment has the mma.sync layout per 8 columns, so the epilogue is the same.
 * elsewhere: four warps of 64 x 64, ``mma.sync m16n8k32`` with ``ldmatrix`` fragment loads
   (double-buffered), four 64-byte K stages. On an H100 it runs at 0.6x the Hopper kernel's speed.
@@ -298,7 +301,7 @@ def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None):
     npix = int(M // 2 if npix is None else npix)
     out = cp.empty((T // 16, C, P, npix), cp.float32)
     k, smem = _fused_kernel(NP, KD, cfg)
-    nt = 288 if cfg.get("BULK") else 256 if cfg.get("WG") else 32 * cfg["WMW"] * (BN // cfg["WN"])
+    nt = (384 if cfg.get("EPI") else 288) if cfg.get("BULK") else 256 if cfg.get("WG") else 32 * cfg["WMW"] * (BN // cfg["WN"])
     bn = cfg.get("WGN", BN)
     if ncol % bn:
         raise ValueError(f"fused imaging needs P*T a multiple of {bn}, got T={T}, P={P}")
@@ -376,9 +379,16 @@ class FusedOperator:
 #: bit-equal. Keeping a wgmma group in flight (WAIT=1), more stages or 256-column tiles: no gain.
 #: BULK=1 (the default on Hopper): stages by bulk copies from one producer warp, mbarriers instead
 #: of __syncthreads (``_SRC_WGB``): 0.461-0.470 -> 0.423-0.430 ms, bit-equal, 96 registers instead of
-#: 110 (H100, 2026-11-25 23:39 UTC; a wgmma group left in flight there: 0.427-0.428, not kept).
+#: 110 (H100, 2026-11-25 23:39 UTC; a wgmma group left in flight there: 0.427-0.428, not kept --
+#: ptxas serialised those MMAs, C7518, so it could not gain).
+#: EPI=1 (the default on Hopper, ``_SRC_WGP``): the epilogue of each row tile overlapped with the next
+#: tile's MMAs, four stages, one block of 384 threads per SM; the output's unit address computed once
+#: a block (put_unit divided by T/16 for every unit). Case P regime B on one H100, 2026-11-26 02:40 UTC,
+#: one call (``docs/bench/fused_epilogue/``): i8x2 0.428 (previous release) -> 0.363-0.375 (bulk, the
+#: division hoisted) -> 0.347-0.353 ms (EPI), i8x3 0.585 -> 0.499-0.502 -> 0.468-0.479 ms, bit-equal;
+#: the same kernels without their epilogue, 0.303-0.306 and 0.433-0.440 ms, bound what is left.
 CONFIG = dict(WMW=2, WN=64, BK=64, ST=4, BFULL=1, FP=1, MINB=1)
-WG_CONFIG = dict(WG=1, BK=128, ST=3, WGN=128, MT=4, BULK=1)
+WG_CONFIG = dict(WG=1, BK=128, ST=4, WGN=128, MT=4, BULK=1, EPI=1)
 _SMEM_MAX = 227 * 1024
 
 
@@ -415,10 +425,10 @@ __device__ __forceinline__ void cp_wait() { asm volatile("cp.async.wait_group %0
 
 // One pixel's sum of |F|^2 over 16 columns: two 8-column accumulator fragments (real rows in
 // [0], [1], imaginary rows in [2], [3]) of the 4 lanes of a quad, summed in float32 and across the
-// quad; lane u % 4 writes it to out[g, c, p, pix] (unit = p TU + g), NaN if the range flag is up.
-__device__ __forceinline__ void put_unit(float* __restrict__ out, const int* f0, const int* f1, const int lane,
-                                         const int u, const int unit, const int c, const int pix, const float sc,
-                                         const bool bad, const int C, const int P, const int TU, const int npix)
+// quad; lane u % 4 writes it to ob[u us + pix] (unit_out), NaN if the range flag is up.
+__device__ __forceinline__ void put_unit(float* __restrict__ ob, const long long us, const int* f0, const int* f1,
+                                         const int lane, const int u, const int pix, const float sc, const bool bad,
+                                         const int npix)
 {
     float s = 0.f;
 #pragma unroll
@@ -429,13 +439,19 @@ __device__ __forceinline__ void put_unit(float* __restrict__ out, const int* f0,
     }
     s += __shfl_xor_sync(0xffffffffu, s, 1);
     s += __shfl_xor_sync(0xffffffffu, s, 2);
-    if ((lane & 3) == (u & 3) && pix < npix) {
-        const int p = unit / TU, g = unit - p * TU;
-        out[(((long long)g * C + c) * P + p) * npix + pix] = bad ? __int_as_float(0x7fc00000) : s * sc;
-    }
+    if ((lane & 3) == (u & 3) && pix < npix)
+        ob[u * us + pix] = bad ? __int_as_float(0x7fc00000) : s * sc;
+}
+
+// where 16-column unit `unit0` (= p TU + g) of channel c goes: &out[g, c, p, 0]; unit unit0 + u is
+// u * C P npix further on, while the units stay inside one pol (a block's columns do: T is a whole
+// number of 128-column blocks)
+__device__ __forceinline__ float* unit_out(float* out, const int unit0, const int c, const int C, const int P,
+                                           const int TU, const int npix) {
+    const int p = unit0 / TU, g = unit0 - p * TU;
+    return out + (((long long)g * C + c) * P + p) * npix;
 }
 """
-
 _SRC = _COMMON + r"""
 #define BM (64 * WMW)
 #define BN 128
@@ -556,14 +572,15 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
 
     const bool bad = flag[0] != 0;
     const int Kp = M / 2, C = gridDim.z, P = NCOL / T, TU = T / 16;
+    float* ob = unit_out(out, (n0 + wn * WN) / 16, c, C, P, TU, npix);
+    const long long us = (long long)C * P * npix;
 #pragma unroll
     for (int mi = 0; mi < 4; mi++) {
         const int pix = ((m0 + wm * 64 + mi * 16) >> 4) * 8 + (lane >> 2);
         const float sc = osc[(long long)(c * PA + pa) * Kp + pix];
 #pragma unroll
         for (int u = 0; u < NI / 2; u++)
-            put_unit(out, acc[mi][2 * u], acc[mi][2 * u + 1], lane, u, (n0 + wn * WN) / 16 + u, c, pix, sc, bad,
-                     C, P, TU, npix);
+            put_unit(ob, us, acc[mi][2 * u], acc[mi][2 * u + 1], lane, u, pix, sc, bad, npix);
     }
 }
 
@@ -652,6 +669,8 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
 
     const bool bad = flag[0] != 0;
     const int Kp = M / 2, C = gridDim.z, P = NCOL / T, TU = T / 16;
+    float* ob = unit_out(out, n0 / 16, c, C, P, TU, npix);
+    const long long us = (long long)C * P * npix;
 #pragma unroll
     for (int s = 0; s < DIST; s++) { if (s < NALL) LOAD(s, s); cp_commit(); }
     for (int g = 0; g < NALL; g++) {
@@ -689,7 +708,7 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
             const float sc = osc[(long long)(c * PA + pa) * Kp + pix];
 #pragma unroll
             for (int u = 0; u < WGN / 16; u++)
-                put_unit(out, d + 8 * u, d + 8 * u + 4, lane, u, n0 / 16 + u, c, pix, sc, bad, C, P, TU, npix);
+                put_unit(ob, us, d + 8 * u, d + 8 * u + 4, lane, u, pix, sc, bad, npix);
         }
     }
 }
@@ -698,27 +717,8 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
 #: the warpgroup-MMA helpers both Hopper kernels share (descriptor, swizzle, the MMA itself)
 _WG_HELPERS = _SRC_WG[_SRC_WG.index("// shared-memory matrix descriptor"):_SRC_WG.index("#ifndef MT")]
 
-#: Hopper form with bulk copies: the same MMAs, sums and output as ``_SRC_WG``, but each K stage of A
-#: (a contiguous 16-KB tile, pre-swizzled by :func:`tile_operator`) and the block's whole B (its K blocks,
-#: by the layout kernels) arrive by ``cp.async.bulk`` issued from one thread of a ninth (producer) warp,
-#: completion counted on an mbarrier per stage, and the eight MMA warps free a stage by an mbarrier of
-#: their own: no per-stage address arithmetic in the MMA warps and no __syncthreads in the loop (the
-#: cp.async form spent 209 M warp instructions on 0.84 M wgmma, its tensor pipe 51% busy; ncu, H200).
-_SRC_WGB = _COMMON + r"""
-#define BM 128
-#define BN 128
-#define NT 288                        // 8 MMA warps (two warpgroups) + 1 producer warp
-#define NACC 64
-#define TILE 16384
-#define WGN 128
-""" + _WG_HELPERS + r"""
-#ifndef MT
-#define MT 4
-#endif
-#ifndef WAIT1
-#define WAIT1 0
-#endif
-
+#: mbarriers and bulk copies, for the bulk-copy kernels
+_MBAR = r"""
 __device__ __forceinline__ void mbar_init(unsigned a, unsigned n) {
     asm volatile("mbarrier.init.shared::cta.b64 [%0], %1;\n" :: "r"(a), "r"(n) : "memory");
 }
@@ -738,12 +738,11 @@ __device__ __forceinline__ void bulk_load(unsigned dst, const void* src, unsigne
                  :: "r"(dst), "l"(src), "r"(bytes), "r"(bar) : "memory");
 }
 
-// A tiled (C, PA, M/128, NP, KD/128, TILE); B tiled (C, NCOL/128, KD/128, TILE); osc, flag, out as _SRC_WG
-extern "C" __global__ void __launch_bounds__(NT, 2)
-bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict__ B, const float* __restrict__ osc,
-               const int* __restrict__ flag, float* __restrict__ out, const int M, const int NCOL,
-               const int T, const int PA, const int base, const int npix)
-{
+"""
+
+#: the bulk-copy kernels' first lines: shared memory, mbarriers, and the producer warp, whose one thread
+#: brings in the block's whole B and then every K stage of A (the MMA warps free a stage on ``emptyb``)
+_BULK_PROLOGUE = r"""
     extern __shared__ __align__(1024) unsigned char smem[];
     constexpr int KB = KD / 128, NIT = NP * KB;
     unsigned char* sA = smem;                       // ST stages of one tile
@@ -761,26 +760,70 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
         asm volatile("fence.mbarrier_init.release.cluster;\n" ::: "memory");
     }
     __syncthreads();
-    if (warp == 8) {                                // the producer warp: one thread issues every copy
-        if (lane == 0) {
+    if (warp >= 8) {                                // the producer warp(s): one thread issues every copy
+        PRODUCER_ENTRY;
+        if (warp == 8 && lane == 0) {
             const signed char* Ab = A + ((long long)(c * PA + pa) * MTILES + mt0) * NIT * TILE;
             mbar_expect(bbar, KB * TILE);
             bulk_load(smem_u32(sB), B + ((long long)c * (NCOL / BN) + blockIdx.y) * KB * TILE, KB * TILE, bbar);
-            for (int g = 0; g < NALL; g++) {
+            for (int g = 0; g < (FULL_TILES ? MT * NIT : NALL); g++) {   // FULL_TILES: MT tiles, the last repeated
                 const int s = g % ST;
                 if (g >= ST) mbar_wait(emptyb + 8 * s, ((g / ST) - 1) & 1);   // its last use is done
                 mbar_expect(fullb + 8 * s, TILE);
-                bulk_load(smem_u32(sA + s * TILE), Ab + (long long)g * TILE, TILE, fullb + 8 * s);
+                bulk_load(smem_u32(sA + s * TILE), Ab + (long long)min(g, NALL - 1) * TILE, TILE, fullb + 8 * s);
             }
         }
         return;
     }
-    const int wgi = warp >> 2, wq = warp & 3;
+"""
+
+#: what both bulk-copy kernels (``_SRC_WGB``, ``_SRC_WGP``) share before their own code
+_BULK_HEAD = _COMMON + r"""
+#define BM 128
+#define BN 128
+#ifndef NT
+#define NT 288                        // 8 MMA warps (two warpgroups) + 1 producer warp
+#endif
+#ifndef PRODUCER_ENTRY
+#define PRODUCER_ENTRY
+#endif
+#define NACC 64
+#define TILE 16384
+#define WGN 128
+""" + _WG_HELPERS + r"""
+#ifndef MT
+#define MT 4
+#endif
+#ifndef FULL_TILES
+#define FULL_TILES 0                  // the producer loads MT row tiles even past the last (consumers skip them)
+#endif
+""" + _MBAR
+
+#: Hopper form with bulk copies: the same MMAs, sums and output as ``_SRC_WG``, but each K stage of A
+#: (a contiguous 16-KB tile, pre-swizzled by :func:`tile_operator`) and the block's whole B (its K blocks,
+#: by the layout kernels) arrive by ``cp.async.bulk`` issued from one thread of a ninth (producer) warp,
+#: completion counted on an mbarrier per stage, and the eight MMA warps free a stage by an mbarrier of
+#: their own: no per-stage address arithmetic in the MMA warps and no __syncthreads in the loop (the
+#: cp.async form spent 209 M warp instructions on 0.84 M wgmma, its tensor pipe 51% busy; ncu, H200).
+_SRC_WGB = _BULK_HEAD + r"""
+#ifndef WAIT1
+#define WAIT1 0
+#endif
+
+// A tiled (C, PA, M/128, NP, KD/128, TILE); B tiled (C, NCOL/128, KD/128, TILE); osc, flag, out as _SRC_WG
+extern "C" __global__ void __launch_bounds__(NT, 2)
+bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict__ B, const float* __restrict__ osc,
+               const int* __restrict__ flag, float* __restrict__ out, const int M, const int NCOL,
+               const int T, const int PA, const int base, const int npix)
+{
+""" + _BULK_PROLOGUE + r"""    const int wgi = warp >> 2, wq = warp & 3;
     int d[NACC];
 #pragma unroll
     for (int i = 0; i < NACC; i++) d[i] = 0;
     const bool bad = flag[0] != 0;
     const int Kp = M / 2, C = gridDim.z, P = NCOL / T, TU = T / 16;
+    float* ob = unit_out(out, n0 / 16, c, C, P, TU, npix);
+    const long long us = (long long)C * P * npix;
     mbar_wait(bbar, 0);
     int pend = -1;                                  // the stage whose MMAs may still be running
     for (int g = 0; g < NALL; g++) {
@@ -825,9 +868,133 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
             const float sc = osc[(long long)(c * PA + pa) * Kp + pix];
 #pragma unroll
             for (int u = 0; u < WGN / 16; u++)
-                put_unit(out, d + 8 * u, d + 8 * u + 4, lane, u, n0 / 16 + u, c, pix, sc, bad, C, P, TU, npix);
+                put_unit(ob, us, d + 8 * u, d + 8 * u + 4, lane, u, pix, sc, bad, npix);
         }
     }
+}
+"""
+
+#: Hopper form with bulk copies and the epilogue of each row tile spread over the next tile's K stages
+#: (``EPI=1``). Measured (H100, 2026-11-26, case P regime B): the bulk kernel took 0.428 ms, 0.302 ms
+#: without its epilogue (its int32 -> float32 conversions run at a quarter of the FP32 rate, ~1,000
+#: cycles a tile, and the two blocks on an SM reach their epilogues together, so the tensor cores
+#: idle through them). Here each warpgroup holds two sets of accumulators: the MMAs of tile t go to
+#: one set while the 16-column units of tile t - 1 are squared and summed from the other, a unit or
+#: two after each stage's MMAs are issued; a wgmma group stays in flight across stages. 128
+#: accumulators a thread: one block per SM.
+_SRC_WGP = r"""
+#define FULL_TILES 1
+// a whole producer warpgroup, so that registers can move to the MMA warpgroups (setmaxnreg: registers
+// are allotted per warpgroup, and 2 x 128 accumulators need more than 65536 / 384 = 168 a thread)
+#define NT 384
+#define PRODUCER_ENTRY asm volatile("setmaxnreg.dec.sync.aligned.u32 40;\n" ::: "memory")
+""" + _BULK_HEAD + r"""
+#define NU (WGN / 16)                 // 16-column units of a tile's epilogue
+#if MT > 8
+#error "the pipelined-epilogue kernel takes at most 8 row tiles a block"
+#endif
+
+// lane 0 of the warp arrives (a predicated instruction: no branch for the compiler's wgmma analysis)
+__device__ __forceinline__ void mbar_arrive_lane0(unsigned a, int lane) {
+    asm volatile("{\n.reg .pred q;\nsetp.eq.s32 q, %1, 0;\n@q mbarrier.arrive.shared::cta.b64 _, [%0];\n}\n"
+                 :: "r"(a), "r"(lane) : "memory");
+}
+
+// the epilogue units of tile (mt0 + tp) due at stage `it` of the next tile (all of them when it < 0)
+__device__ __forceinline__ void epi_units(const int* de, const int it, float* __restrict__ ob, const long long us,
+                                          const float* __restrict__ osc, const int lane, const int tp,
+                                          const int mt0, const int wgi, const int wq, const long long orow,
+                                          const bool bad, const int npix, const int nit)
+{
+    const int m0 = (mt0 + tp) * BM;
+    const int pix = ((m0 + wgi * 64 + wq * 16) >> 4) * 8 + (lane >> 2);
+    float sc = 0.f;
+    bool any = false;
+#pragma unroll
+    for (int u = 0; u < NU; u++) any |= it < 0 || u % nit == it;
+    if (any) sc = osc[orow + pix];
+#pragma unroll
+    for (int u = 0; u < NU; u++)
+        if (it < 0 || u % nit == it)
+            put_unit(ob, us, de + 8 * u, de + 8 * u + 4, lane, u, pix, sc, bad, npix);
+}
+
+// A tiled (C, PA, M/128, NP, KD/128, TILE); B tiled (C, NCOL/128, KD/128, TILE); osc, flag, out as _SRC_WG
+extern "C" __global__ void __launch_bounds__(NT, 1)
+bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict__ B, const float* __restrict__ osc,
+               const int* __restrict__ flag, float* __restrict__ out, const int M, const int NCOL,
+               const int T, const int PA, const int base, const int npix)
+{
+""" + _BULK_PROLOGUE + r"""    asm volatile("setmaxnreg.inc.sync.aligned.u32 232;\n" ::: "memory");
+    const int wgi = warp >> 2, wq = warp & 3;
+    int d0[NACC], d1[NACC];
+#pragma unroll
+    for (int i = 0; i < NACC; i++) { d0[i] = 0; d1[i] = 0; }
+    const bool bad = flag[0] != 0;
+    const int Kp = M / 2, C = gridDim.z, P = NCOL / T, TU = T / 16;
+    float* ob = unit_out(out, n0 / 16, c, C, P, TU, npix);
+    const long long us = (long long)C * P * npix;
+    const long long orow = (long long)(c * PA + pa) * Kp;
+    mbar_wait(bbar, 0);
+
+    // pass t (t = 0 .. MT, unrolled: every wgmma group and register set known to the compiler, which
+    // otherwise serialises the MMAs): the MMAs of tile t into dm (t < MT) and the epilogue of tile t - 1
+    // from de (t >= 1). A block past the last row tile repeats that tile's loads (the producer clamps)
+    // and writes nothing for it.
+#define PASS(t_, dm, de) do { \
+        constexpr int tt = (t_); \
+        if (tt < MT) { \
+            _Pragma("unroll") for (int it = 0; it < NIT; it++) { \
+                const int g = tt * NIT + it, s = g % ST; \
+                mbar_wait(fullb + 8 * s, (g / ST) & 1); \
+                if (NP > 1 && it % KB == 0 && it > 0) {   /* a new piece: all so far times the base */ \
+                    asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory"); \
+                    if (g > 0) mbar_arrive_lane0(emptyb + 8 * ((g - 1) % ST), lane); \
+                    _Pragma("unroll") for (int i = 0; i < NACC; i++) dm[i] *= base; \
+                } \
+                const unsigned as = smem_u32(sA + s * TILE) + soff(wgi * 64, 0); \
+                const unsigned bs = smem_u32(sB + (it % KB) * TILE); \
+                asm volatile("wgmma.fence.sync.aligned;\n" ::: "memory"); \
+                _Pragma("unroll") for (int ks = 0; ks < 4; ks++) \
+                    wg_mma(dm, mdesc(as + ks * 32, 16, 1024), mdesc(bs + ks * 32, 16, 1024), (it | ks) != 0); \
+                asm volatile("wgmma.commit_group.sync.aligned;\n" ::: "memory"); \
+                asm volatile("wgmma.wait_group.sync.aligned 1;\n" ::: "memory");   /* all but this stage's */ \
+                if (g > 0 && !(NP > 1 && it % KB == 0 && it > 0)) mbar_arrive_lane0(emptyb + 8 * ((g - 1) % ST), lane); \
+                if (tt >= 1 && tt - 1 < ntile) \
+                    epi_units(de, it, ob, us, osc, lane, tt - 1, mt0, wgi, wq, orow, bad, npix, NIT); \
+            } \
+        } else { \
+            asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory"); \
+            if (tt - 1 < ntile) \
+                epi_units(de, -1, ob, us, osc, lane, tt - 1, mt0, wgi, wq, orow, bad, npix, NIT); \
+        } } while (0)
+
+    PASS(0, d0, d1);
+#if MT >= 1
+    PASS(1, d1, d0);
+#endif
+#if MT >= 2
+    PASS(2, d0, d1);
+#endif
+#if MT >= 3
+    PASS(3, d1, d0);
+#endif
+#if MT >= 4
+    PASS(4, d0, d1);
+#endif
+#if MT >= 5
+    PASS(5, d1, d0);
+#endif
+#if MT >= 6
+    PASS(6, d0, d1);
+#endif
+#if MT >= 7
+    PASS(7, d1, d0);
+#endif
+#if MT >= 8
+    PASS(8, d0, d1);
+#endif
+#undef PASS
 }
 """
 
@@ -966,7 +1133,7 @@ def _fused_kernel(pieces, kd, cfg):
         if cfg.get("BULK"):
             opts = ("-std=c++17", f"-DNP={pieces}", f"-DKD={kd}", f"-DST={cfg['ST']}", f"-DMT={cfg.get('MT', 1)}",
                     f"-DWAIT1={int(cfg.get('WAIT1', 0))}")
-            k = cp.RawKernel(_SRC_WGB, "bf_fused_power", options=opts + ("-arch=sm_90a",))
+            k = cp.RawKernel(_SRC_WGP if cfg.get("EPI") else _SRC_WGB, "bf_fused_power", options=opts + ("-arch=sm_90a",))
         elif cfg.get("WG"):
             k = cp.RawKernel(_SRC_WG, "bf_fused_power", options=opts + ("-arch=sm_90a",))
         else:
