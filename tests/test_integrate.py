@@ -35,6 +35,25 @@ def test_integrations_are_the_means_of_their_images(average, gulp):
     assert it.int_stats == {"images_in": 230, "images_out": 4, "images_dropped_partial": 30}
 
 
+def test_an_integration_of_an_integration_counts_the_imagers_images_and_channels():
+    """The band mean of each image, then the mean of every 25 of those: the images the second's mean,
+    and its header's record counts the imager's images and channels (not the first's one channel)."""
+    rng = np.random.default_rng(5)
+    grid = imaging.lm_grid(16)
+    freq = 74e6 + 25e3 * np.arange(5)
+    x = rng.normal(5.0, 1.0, (100, 5, 1, 16, 16)).astype(np.float32)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, image_header(grid, freq, 16 * DT), gulp_nframe=32)
+        band = ImageIntegratorBlock(src, 1, average_channels=True)
+        it = ImageIntegratorBlock(band, 25, average_channels=True)
+        sink = ArraySinkBlock(it)
+        p.run()
+    want = x.astype(np.float64).mean(axis=1).reshape(4, 25, 1, 16, 16).mean(axis=1)
+    assert np.allclose(sink.result(0)[:, 0], want, rtol=1e-6)
+    assert sink.headers[0]["integrated"] == {"images": 25, "average_channels": True, "nchan_in": 5}
+    assert image_layout(sink.headers[0])["dt_s"] == pytest.approx(25 * 16 * DT)
+
+
 def test_bad_lengths_are_named():
     with pytest.raises(ValueError, match="nimage"):
         ImageIntegratorBlock(None, 0)
@@ -162,3 +181,42 @@ def test_wholeband_images_equal_a_float64_evaluation(tmp_path, device):
     print(device, "max |I - I_exact| / max I_exact per image:", np.array(errs))
     assert max(errs) <= cfg["imager"]["tolerance"]
     assert max(errs) > 0                                                     # (a real comparison: float32 at best)
+
+
+def test_wholeband_band_mean_made_once_for_the_files_and_the_cube(tmp_path):
+    """Where the files and the cube both average the channels (pipelines/lwasv_sim_wholeband.yaml), the
+    band mean of each image is made once, by one block reading the imager, and both outputs read it: the
+    cube's band-averaged images equal the float64 mean over channels of the per-channel images a second
+    run keeps (themselves held to float64 truth in test_wholeband_images_equal_a_float64_evaluation), and
+    each FITS the mean of the cube's images over its span."""
+    from pathlib import Path
+    from astropy.io import fits
+    from bf_epic_blocks.blocks.integrate import ImageIntegratorBlock
+    from bf_epic_blocks.io.cube import read_image_cube
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import build_graph, run
+    yaml = Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_wholeband.yaml"
+    small = ["source.duration_s=0.1", "source.channels.count=16", "imager.grid.size=16", "imager.search=null",
+             "calibration.pattern=none", "output.cube.dtype=float32", "output.png=false"]
+    cfg = load_config(yaml, small + [f"output.dir={tmp_path / 'mean'}", "output.integrate.seconds=0.05"])
+    g = build_graph(cfg)
+    readers = [b for b in g.pipeline.blocks if b.irings and b.irings[0] is g.imager.orings[0]]
+    means = [b for b in readers if isinstance(b, ImageIntegratorBlock)]
+    assert len(means) == 1 and means[0].nimage == 1 and means[0].average_channels
+    assert g.cube not in readers and g.cube.irings[0] is means[0].orings[0]
+    run(cfg, show_progress=False)
+    cfg1 = load_config(yaml, small + [f"output.dir={tmp_path / 'chan'}", "output.integrate=null", "output.fits=false",
+                                      "output.cube.average_channels=false"])
+    run(cfg1, show_progress=False)
+    band = read_image_cube(next((tmp_path / "mean").glob("*_cube_*.h5")))
+    chan = read_image_cube(next((tmp_path / "chan").glob("*_cube_*.h5")))
+    assert band["images"].shape[1] == 1 and chan["images"].shape[1] == 16
+    want = chan["images"].astype(np.float64).mean(axis=1)                       # (n, 1, npix)
+    assert np.allclose(band["images"][:, 0], want, rtol=1e-6, atol=0)
+    n = int(round(0.05 / (16 * DT)))
+    files = sorted((tmp_path / "mean").glob("lwasv_sim_wholeband_*.fits"))
+    assert len(files) == band["images"].shape[0] // n == 2
+    for k, f in enumerate(files):
+        with fits.open(f) as h:
+            got = h[0].data.reshape(-1)[band["pixel_index"]]
+        assert np.allclose(got, band["images"][k * n:(k + 1) * n, 0, 0].astype(np.float64).mean(axis=0), rtol=2e-6)

@@ -82,8 +82,12 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         if "integration_ticks" in imager:
             imager["integration_ticks"] = int(imager["integration_ticks"]) * self.nimage
         ohdr["imager"] = imager
-        ohdr["integrated"] = {"images": self.nimage, "average_channels": self.average_channels,
-                              "nchan_in": int(lay["nchan"])}
+        # an integration of an integration (the band mean of each image, then its mean over a second):
+        # what both did, against the imager's images
+        prev = ihdr.get("integrated") or {}
+        ohdr["integrated"] = {"images": self.nimage * int(prev.get("images", 1)),
+                              "average_channels": self.average_channels or bool(prev.get("average_channels")),
+                              "nchan_in": int(prev.get("nchan_in", lay["nchan"]))}
         log.info("ImageIntegratorBlock %s: the mean of every %d images (%.3f s)%s", ihdr.get("name"), self.nimage,
                  self.nimage * lay["dt_s"], f", {len(f)} channels averaged" if self.average_channels else "")
         return ohdr
