@@ -258,3 +258,57 @@ def test_the_gpu_float16_stream_reads_the_search_s_strided_view_and_names_nan():
     bad[3, 50, 36] = cp.nan
     with pytest.raises(ValueError, match="non-finite"):
         dev.push(cp.moveaxis(bad, 0, 1))
+
+
+def _grid_cells(rng, x, ncell):
+    """x (nchan, B, npix) placed in cells of a (nchan, B, ncell) grid (the rest NaN, as below the horizon):
+    (grid, index) with pixel p in cell index[p]."""
+    index = np.sort(rng.choice(ncell, x.shape[2], replace=False)).astype(np.int32)
+    grid = np.full(x.shape[:2] + (ncell,), np.nan, np.float32)
+    grid[:, :, index] = x
+    return grid, index
+
+
+def test_the_tree_reads_pixels_out_of_cells_as_it_reads_them_gathered():
+    """push(..., index): the images as an imager's grid (NaN in the cells no pixel has), pixel p in cell
+    index[p]: the same sums as the gathered pixels' (the host gathers them first)."""
+    rng = np.random.default_rng(31)
+    plan = FDMTPlan(74e6 + 25e3 * np.arange(24), 12)
+    x = rng.normal(50.0, 5.0, size=(24, 80, 9)).astype(np.float32)
+    grid, index = _grid_cells(rng, x, 16)
+    for precision in ("fp32", "fp16"):
+        a, b = StreamingFDMT(plan, 9, precision=precision), StreamingFDMT(plan, 9, precision=precision)
+        for s0, s1 in ((0, 30), (30, 80)):
+            assert np.array_equal(a.push(x[:, s0:s1]), b.push(grid[:, s0:s1], index=index))
+    with pytest.raises(ValueError, match="index"):
+        b.push(grid[:, :4], index=index[:5])
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not __import__("bf_epic_blocks.imaging._xp", fromlist=["x"]).gpu_available(),
+                    reason="needs CuPy and a CUDA device")
+@pytest.mark.parametrize("chunk", [None, 16])
+def test_the_gpu_float16_stream_reads_pixels_out_of_cells_bit_for_bit(chunk):
+    """On the GPU the float16 tree reads each pixel out of its cell in the scale's maximum and its input
+    pass (no gathered copy): the sums equal the host's of the gathered pixels bit for bit, through a flash
+    that rescales, with an odd pixel count, from the search's strided (nchan, B, ncell) view; the cells no
+    pixel has (NaN) are never read, and a NaN in a pixel's cell is named."""
+    import cupy as cp
+    rng = np.random.default_rng(32)
+    plan = FDMTPlan(74e6 + 25e3 * np.arange(96), 40)
+    x = rng.normal(50.0, 5.0, size=(96, 160, 37)).astype(np.float32)          # (nchan, B, npix)
+    x[:, 90:92, 36] *= 1e4
+    grid, index = _grid_cells(rng, x, 64)
+    host = StreamingFDMT(plan, 37, pixel_chunk=chunk, precision="fp16")
+    dev = StreamingFDMT(plan, 37, xp=cp, pixel_chunk=chunk, precision="fp16")
+    gd = cp.asarray(np.ascontiguousarray(np.moveaxis(grid, 0, 1)))             # (B, nchan, ncell), as a ring's span
+    idx = cp.asarray(index)
+    for a, b in ((0, 64), (64, 160)):
+        h = host.push(x[:, a:b])
+        d = dev.push(cp.moveaxis(gd[a:b], 0, 1), index=idx).get()
+        assert np.array_equal(h, d)
+    assert host.rescales == dev.rescales == 1
+    bad = gd[:5].copy()
+    bad[3, 50, int(index[20])] = cp.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        dev.push(cp.moveaxis(bad, 0, 1), index=idx)

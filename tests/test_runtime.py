@@ -813,6 +813,39 @@ def test_wrap_around_with_odd_sizes_and_overlap(ringlets):
     assert all(shared)                            # ... and the ghost keeps those spans views
 
 
+def test_gulps_that_divide_the_capacity_never_copy_into_the_ghost(monkeypatch):
+    """Writes and reads of one gulp, a capacity of three: no span crosses the end, so no frame is
+    mirrored into the ghost (every write landing in the head was, costing a third of the whole band's
+    image gulps a copy); the contents are exact."""
+    from bf_epic_blocks.runtime import ring as ring_mod
+    mirrored = []
+    orig = ring_mod.Ring._sync_ghost
+
+    def counting(self, seq, lo, hi):
+        mirrored.append(max(0, min(hi, seq.buf_ghost) - lo))
+        return orig(self, seq, lo, hi)
+    monkeypatch.setattr(ring_mod.Ring, "_sync_ghost", counting)
+    x = np.arange(48 * 2, dtype=np.float64).reshape(48, 2)
+    ring = Ring()
+    got = []
+    rd = ring.open_reader(guarantee=True)
+
+    def reader():
+        for seq in rd.sequences():
+            seq.resize(4, buf_nframe=12)
+            for span in seq.read(4):
+                got.append(np.array(span.data))
+        rd.close()
+
+    t = threading.Thread(target=reader, daemon=True)
+    t.start()
+    _write_frames(ring, 'w', x, 4)
+    t.join(10)
+    assert not t.is_alive() and ring.capacity == 12 and ring.ghost == 4
+    np.testing.assert_array_equal(np.concatenate(got), x)
+    assert sum(mirrored) == 0
+
+
 def test_backpressure_holds_a_viewed_span_until_released():
     ring = Ring()
     gulp = 4

@@ -183,6 +183,28 @@ def test_a_float16_tree_finds_the_burst_the_float32_tree_finds_at_its_s_n(xp):
     assert np.abs(m16 - m32).max() < 0.01 * sg32.mean() and np.abs(sg16 / sg32 - 1).max() < 0.01
 
 
+@pytest.mark.parametrize("dedisperse,prec", [("tree", "fp16"), ("tree", "fp32"), ("shifts", "fp32")])
+def test_the_search_reads_pixels_out_of_an_imager_s_cells(xp, dedisperse, prec):
+    """push(images, index): the images as an imager's grid, NaN in the cells no pixel has, pixel p in
+    cell index[p] -- the same crossings, S/N and window statistics as the gathered pixels (the float16
+    tree on a GPU reads the cells itself, the rest gather them)."""
+    npix, pix, e0 = 20, 7, 1300
+    f, dt, x = _dispersed_burst(12, 64, npix, 300e3, 1600, 0.6, pix, e0, 2.5)
+    rng = np.random.default_rng(13)
+    index = np.sort(rng.choice(32, npix, replace=False)).astype(np.int32)
+    grid = np.full(x.shape[:2] + (32,), np.nan, np.float32)
+    grid[:, :, index] = x
+    got = []
+    for imgs, idx in ((x, None), (grid, xp.asarray(index))):
+        s = TransientSearch(f, dt, npix, 200, dms=[1.0] if dedisperse == "tree" else [0.3, 0.6], widths=(1, 2, 4),
+                            threshold=7, dedisperse=dedisperse, max_batch=64, xp=xp, tree_precision=prec)
+        found = Crossings.concat([s.push(xp.asarray(imgs[a:a + 64]), idx) for a in range(0, 1600, 64)])
+        got.append((found, [to_np(a) for a in s.statistics()]))
+    (a, sa), (b, sb) = got
+    assert len(a) == len(b) > 0 and np.array_equal(a.snr, b.snr) and np.array_equal(a.pixel, b.pixel)
+    assert all(np.array_equal(u, v, equal_nan=True) for u, v in zip(sa, sb))
+
+
 def test_many_series_are_searched_in_chunks_with_the_same_result(monkeypatch):
     """The statistics of many trials run a chunk of series at a time (bounded temporaries): the same
     crossings, S/N and state as all at once."""

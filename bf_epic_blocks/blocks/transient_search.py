@@ -201,8 +201,14 @@ class TransientSearchBlock(bfp.SinkBlock):
         data = span_array(ispan)
         n = data.shape[0]
         with _compat.stream_context():
-            x = take_pixels(data[:, :, self._prod].reshape(n, self.lay["nchan"], -1), self._index)
-            if not getattr(self, "guarantee", True):
+            cells = data[:, :, self._prod].reshape(n, self.lay["nchan"], -1)
+            guaranteed = getattr(self, "guarantee", True)
+            if guaranteed and self.search.reads_cells:
+                # the span is held until this returns: the tree reads the pixels' cells where they are
+                x, index = cells, self._index
+            else:
+                x, index = take_pixels(cells, self._index), None
+            if not guaranteed:
                 if self.xp is not np:   # the copy must be done before asking what was overwritten
                     self.xp.cuda.get_current_stream().synchronize()
                 bad = _compat.frames_overwritten(ispan, n)
@@ -214,12 +220,12 @@ class TransientSearchBlock(bfp.SinkBlock):
             # a batch at a time, each finished before the next: an event is looked back at (its window,
             # its boxcar on every pixel) while the search still holds it, whatever the gulp size
             for a in range(0, n, self.search.max_batch):
-                self._push(x[a:a + self.search.max_batch])
+                self._push(x[a:a + self.search.max_batch], index)
 
-    def _push(self, x):
+    def _push(self, x, index=None):
         n = x.shape[0]
         n_before = self.search.nvalues
-        cr = self.search.push(x)
+        cr = self.search.push(x, index)
         nsearched = max(0, self.search.nvalues - max(n_before, self.search.window + self.search.wmax - 1))
         if nsearched:
             for i in range(len(self.widths)):

@@ -246,12 +246,14 @@ class StreamingFDMT:
         self._ref_sum = None        # (npix,) float32: ref summed over the channels (in float64, on the host)
         self.rescales = 0
 
-    def _set_ref_and_scale(self, x):
+    def _set_ref_and_scale(self, x, index=None):
         """float16: the reference (the first push's first image) and the scale (a power of two) under
-        which no sum of this push or of the past can overflow; returns the scale."""
+        which no sum of this push or of the past can overflow; returns the scale. ``index``: as
+        :meth:`push` (GPU only)."""
         xp = self.xp
         if self.ref is None:
-            self.ref = x[:, 0].copy()       # a copy: x may be a view of the caller's (reused) buffer
+            # a copy: x may be a view of the caller's (reused) buffer
+            self.ref = x[:, 0].copy() if index is None else xp.take(x[:, 0], index, axis=-1)
             self._ref_sum = xp.asarray(to_numpy(self.ref).astype(np.float64).sum(axis=0).astype(np.float32))
         if xp is np:
             amax = float(np.max(np.abs(x - self.ref[:, None])))
@@ -259,7 +261,7 @@ class StreamingFDMT:
             # one kernel, each warp's maximum into one word (a whole-array ReductionKernel ran as one
             # block: the float16 tree 8x slower than float32 at the whole band, H100; one per (channel,
             # image) row on the strided view, 0.66 ms a whole-band gulp on an H200)
-            amax = _abs_dev_max_gpu(xp, x, self.ref)
+            amax = _abs_dev_max_gpu(xp, x, self.ref, index)
         if not np.isfinite(amax):
             raise ValueError("images: non-finite values reached the tree (NaN or Inf)")
         bound = amax * self.plan.nchan                 # no sum of nchan values can exceed it
@@ -294,22 +296,36 @@ class StreamingFDMT:
         pc += pc % 2 if self.dtype is np.float16 else 0          # (float16 rows: even)
         return np.dtype(self.dtype).itemsize * (self.ring_size * self.ld + self.nrow * B * pc)
 
-    def push(self, images, factor=1.0):
+    def push(self, images, factor=1.0, index=None):
         """(nchan, B, npix) new images (channels in the plan's order of ``freq``) -> (dmax + 1, B, npix)
         float32: row d, time t is the sum over channels of I_c(t - back(d, c)) (:func:`effective_back`),
-        times ``factor`` (e.g. 1 / nchan for the channels' mean: applied as the rows are copied out)."""
+        times ``factor`` (e.g. 1 / nchan for the channels' mean: applied as the rows are copied out).
+
+        index : None, or (npix,) the cell of each pixel: ``images`` are then (nchan, B, ncell) (an
+            imager's grid, a view whose last axis is contiguous) and pixel p is cell ``index[p]``. The
+            float16 tree on a GPU reads the cells where they are (its scale's maximum and its input
+            pass gather them: no gathered copy of the images, 0.7 ms a whole-band gulp on an H100);
+            elsewhere they are gathered first."""
         xp, plan = self.xp, self.plan
         x = xp.asarray(images, dtype=xp.float32)
-        if x.ndim != 3 or x.shape[0] != plan.nchan or x.shape[2] != self.npix:
+        half = self.dtype is np.float16
+        if index is not None:
+            index = xp.asarray(index, dtype=xp.int32)
+            if index.ndim != 1 or index.shape[0] != self.npix:
+                raise ValueError(f"index: expected the cell of each of {self.npix} pixels, got shape {tuple(index.shape)}")
+            if x.ndim != 3 or x.shape[0] != plan.nchan:
+                raise ValueError(f"images: expected (nchan={plan.nchan}, B, ncell), got {tuple(x.shape)}")
+            if xp is np or not half or x.strides[-1] != 4:
+                x, index = xp.take(x, index, axis=-1), None
+        if x.ndim != 3 or x.shape[0] != plan.nchan or (index is None and x.shape[2] != self.npix):
             raise ValueError(f"images: expected (nchan={plan.nchan}, B, npix={self.npix}), got {tuple(x.shape)}")
         B = int(x.shape[1])
         out = xp.empty((plan.dmax + 1, B, self.npix), xp.float32)
         if B == 0:
             return out
-        half = self.dtype is np.float16
         if not np.array_equal(plan.order, np.arange(plan.nchan)):
             x = x[xp.asarray(plan.order)]
-        scale = self._set_ref_and_scale(x) if half else 1.0
+        scale = self._set_ref_and_scale(x, index) if half else 1.0
         pc = self._chunk(B)
         for p0 in range(0, self.npix, pc):
             p1 = min(self.npix, p0 + pc)
@@ -320,7 +336,7 @@ class StreamingFDMT:
             elif xp is np:
                 W[:plan.nchan, :, :n] = (x[:, :, p0:p1] - self.ref[:, None, p0:p1]) * np.float32(scale)
             else:                                         # (the spare pixel of an odd chunk written 0)
-                _in_half_gpu(xp, x, self.ref, np.float32(scale), W, p0, n)
+                _in_half_gpu(xp, x, self.ref, np.float32(scale), W, p0, n, index)
             if xp is np and W.shape[2] > n:
                 W[:plan.nchan, :, n:] = 0                 # the even row's spare pixel
             if xp is np:
@@ -471,20 +487,22 @@ _EW: dict = {}
 
 
 _ABSDEV_SRC = r"""
-// max |x - ref| over x (nchan, B, npix) (element (c, b, p) at c sc + b sb + p) and ref (nchan, npix); a
-// NaN counts as Inf (fmaxf would drop it). Non-negative floats order as their bits: atomicMax on them.
+// max |x - ref| over x (nchan, B, npix) (element (c, b, p) at c sc + b sb + k, k = p or, with a cell
+// index, idx[p]) and ref (nchan, npix); a NaN counts as Inf (fmaxf would drop it). Non-negative floats
+// order as their bits: atomicMax on them.
 extern "C" __global__ void bf_abs_dev_max(const float* __restrict__ x, const float* __restrict__ ref,
                                           unsigned* __restrict__ out, const int nchan, const int B, const int npix,
-                                          const long long sc, const long long sb)
+                                          const long long sc, const long long sb, const int* __restrict__ idx)
 {
     float m = 0.f;
     const int p = blockIdx.x * blockDim.x + threadIdx.x;
     if (p < npix) {
+        const int k = idx ? idx[p] : p;
         int c = blockIdx.y / B, b = blockIdx.y - c * B;
         const int dc = gridDim.y / B, db = gridDim.y - dc * B;     // the row step as (c, b): no division a row
 #pragma unroll 4
         for (int r = blockIdx.y; r < nchan * B; r += gridDim.y) {
-            const float v = x[c * sc + b * sb + p];
+            const float v = x[c * sc + b * sb + k];
             m = fmaxf(m, v != v ? __int_as_float(0x7f800000) : fabsf(__fsub_rn(v, ref[(long long)c * npix + p])));
             c += dc; b += db;
             if (b >= B) { b -= B; ++c; }
@@ -497,19 +515,21 @@ extern "C" __global__ void bf_abs_dev_max(const float* __restrict__ x, const flo
 """
 
 
-def _abs_dev_max_gpu(cp, x, ref):
+def _abs_dev_max_gpu(cp, x, ref, index=None):
     """max |x - ref| (host float) of x (nchan, B, npix) float32, a view whose last axis is contiguous,
-    and ref (nchan, npix): one kernel and one 4-byte copy to the host."""
+    and ref (nchan, npix): one kernel and one 4-byte copy to the host. index: None, or (npix,) int32,
+    x is then (nchan, B, ncell) and pixel p its cell index[p]."""
     if "absdev" not in _EW:
         _EW["absdev"] = cp.RawKernel(_ABSDEV_SRC, "bf_abs_dev_max")
-    nchan, B, npix = (int(v) for v in x.shape)
+    nchan, B = (int(v) for v in x.shape[:2])
+    npix = int(ref.shape[-1])
     if x.strides[-1] != 4:
         x = cp.ascontiguousarray(x)
     out = cp.zeros(1, cp.uint32)
     sc, sb = (int(v) // 4 for v in x.strides[:2])
     _EW["absdev"](((npix + 255) // 256, min(nchan * B, 512)), (256,),
                   (x, cp.ascontiguousarray(ref, dtype=cp.float32), out, np.int32(nchan), np.int32(B), np.int32(npix),
-                   np.int64(sc), np.int64(sb)))
+                   np.int64(sc), np.int64(sb), np.uint64(0) if index is None else index))
     return float(out.get().view(np.float32)[0])
 
 
@@ -517,25 +537,26 @@ _HALF_SRC = r"""
 #include <cuda_fp16.h>
 // float16 storage of a pixel chunk: W[c, b, p] = (x[c, b, p0 + p] - ref[c, p0 + p]) * s for p < n, 0 in the
 // even row's spare pixel; each step rounded as NumPy's float32 does (no fused multiply-add), the float16
-// to nearest even (NumPy's cast). x: element (c, b, p) at c sc + b sb + p; W: (nchan, B, ld2) pixel pairs.
-// A thread per pixel pair walks rows (c, b) gridDim.y apart.
+// to nearest even (NumPy's cast). x: element (c, b, p) at c sc + b sb + k, k = p or, with a cell index,
+// idx[p]; W: (nchan, B, ld2) pixel pairs. A thread per pixel pair walks rows (c, b) gridDim.y apart.
 extern "C" __global__ void bf_fdmt_in_half(const float* __restrict__ x, const float* __restrict__ ref, const float s,
                                            __half2* __restrict__ W, const int nchan, const int B, const int n,
                                            const int ld2, const long long sc, const long long sb, const int p0,
-                                           const int npix)
+                                           const int npix, const int* __restrict__ idx)
 {
     const int q = blockIdx.x * blockDim.x + threadIdx.x;
     if (q >= ld2) return;
     const int p = 2 * q;
     const bool has0 = p < n, has1 = p + 1 < n;
+    const int k0 = has0 ? (idx ? idx[p0 + p] : p0 + p) : 0, k1 = has1 ? (idx ? idx[p0 + p + 1] : p0 + p + 1) : 0;
     int c = blockIdx.y / B, b = blockIdx.y - c * B;
     const int dc = gridDim.y / B, db = gridDim.y - dc * B;
 #pragma unroll 4
     for (int r = blockIdx.y; r < nchan * B; r += gridDim.y) {
-        const float* xr = x + c * sc + b * sb + p0 + p;
+        const float* xr = x + c * sc + b * sb;
         const float* rr = ref + (long long)c * npix + p0 + p;
-        const float a0 = has0 ? __fmul_rn(__fsub_rn(xr[0], rr[0]), s) : 0.f;
-        const float a1 = has1 ? __fmul_rn(__fsub_rn(xr[1], rr[1]), s) : 0.f;
+        const float a0 = has0 ? __fmul_rn(__fsub_rn(xr[k0], rr[0]), s) : 0.f;
+        const float a1 = has1 ? __fmul_rn(__fsub_rn(xr[k1], rr[1]), s) : 0.f;
         W[(long long)r * ld2 + q] = __floats2half2_rn(a0, a1);
         c += dc; b += db;
         if (b >= B) { b -= B; ++c; }
@@ -574,11 +595,13 @@ def _half_kernel(cp, name):
     return _EW[key][name]
 
 
-def _in_half_gpu(cp, x, ref, scale, W, p0, n):
+def _in_half_gpu(cp, x, ref, scale, W, p0, n, index=None):
     """W[:nchan, :, :] = float16((x[:, :, p0:p0 + n] - ref[:, p0:p0 + n]) * scale), the spare pixel 0.
-    x: (nchan, B, npix) float32 whose last axis is contiguous; ref (nchan, npix); W (nrow, B, ld) float16.
-    (CuPy's elementwise kernel on these strided views ran at ~36% of an H100's memory speed.)"""
-    nchan, B, npix = (int(v) for v in x.shape)
+    x: (nchan, B, npix) float32 whose last axis is contiguous; ref (nchan, npix); W (nrow, B, ld) float16;
+    index: as :func:`_abs_dev_max_gpu`. (CuPy's elementwise kernel on these strided views ran at ~36% of
+    an H100's memory speed.)"""
+    nchan, B = (int(v) for v in x.shape[:2])
+    npix = int(ref.shape[-1])
     if x.strides[-1] != 4:
         x = cp.ascontiguousarray(x)
     ld2 = int(W.shape[2]) // 2
@@ -586,7 +609,8 @@ def _in_half_gpu(cp, x, ref, scale, W, p0, n):
     _half_kernel(cp, "bf_fdmt_in_half")(
         ((ld2 + 127) // 128, min(nchan * B, 512)), (128,),
         (x, cp.ascontiguousarray(ref, dtype=cp.float32), np.float32(scale), W, np.int32(nchan), np.int32(B),
-         np.int32(n), np.int32(ld2), np.int64(sc), np.int64(sb), np.int32(p0), np.int32(npix)))
+         np.int32(n), np.int32(ld2), np.int64(sc), np.int64(sb), np.int32(p0), np.int32(npix),
+         np.uint64(0) if index is None else index))
 
 
 def _out_half_gpu(cp, W, t0, D, ksum, a, b, out, p0, n):

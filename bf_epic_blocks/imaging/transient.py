@@ -227,6 +227,12 @@ class TransientSearch:
             self.reset(0)
 
     @property
+    def reads_cells(self):
+        """Whether :meth:`push` given an ``index`` reads the pixels out of the cells in the passes it
+        makes anyway (the float16 tree on a GPU), so that a caller need not gather them first."""
+        return self._tree is not None and self.xp is not np and self._tree.dtype is np.float16
+
+    @property
     def tree_rows(self):
         """Shifted-add rows per image and pixel of the tree (None for shifted sums)."""
         return self._tree.plan.rows() if self._tree is not None else None
@@ -278,16 +284,17 @@ class TransientSearch:
         return self.first_image + self.shift + n
 
     # ------------------------------------------------------------------ kernels
-    def _dedisperse(self, x):
+    def _dedisperse(self, x, index=None):
         """(B, nchan, npix) new images -> (nser, B', npix) new series values, B' = the values that
-        have every channel (all of them once ``shift`` images have been seen since the reset)."""
+        have every channel (all of them once ``shift`` images have been seen since the reset).
+        index: with the tree, as :meth:`push`."""
         xp = self.xp
         if not self.average:
             return xp.ascontiguousarray(xp.moveaxis(x, 0, 1))
         B = x.shape[0]
         if self._tree is not None:
             # a view: the tree copies each pixel chunk once, and scales its sums to means as it copies out
-            out = self._tree.push(xp.moveaxis(x, 0, 1), factor=1.0 / self.nchan)
+            out = self._tree.push(xp.moveaxis(x, 0, 1), factor=1.0 / self.nchan, index=index)
             first = max(0, self.shift - self.nimages)      # values before the tree has every channel's past
             return out[:, first:] if first < B else out[:, :0]
         ext = xp.concatenate([self._chan, xp.moveaxis(x, 0, 1)], axis=1)   # (nchan, shift + B, npix)
@@ -552,16 +559,26 @@ class TransientSearch:
         return found
 
     # ------------------------------------------------------------------ public
-    def push(self, images):
-        """Search new images ``(nimage, nchan, npix)`` (the next ones in time); returns Crossings."""
+    def push(self, images, index=None):
+        """Search new images ``(nimage, nchan, npix)`` (the next ones in time); returns Crossings.
+
+        index : None, or (npix,) the cell of each pixel in ``images`` (nimage, nchan, ncell), e.g. an
+            imager's grid: the tree reads the cells where they are (:meth:`.fdmt.StreamingFDMT.push`);
+            the other searches gather them first."""
         xp = self.xp
         x = images
-        if x.ndim != 3 or x.shape[1:] != (self.nchan, self.npix):
+        if index is not None:
+            if x.ndim != 3 or x.shape[1] != self.nchan or int(index.shape[0]) != self.npix:
+                raise ValueError(f"images: expected shape (nimage, nchan={self.nchan}, ncell) and the cells of "
+                                 f"{self.npix} pixels, got {x.shape} and {tuple(index.shape)}")
+            if self._tree is None:
+                x, index = xp.take(x, xp.asarray(index), axis=-1), None
+        if x.ndim != 3 or (index is None and x.shape[1:] != (self.nchan, self.npix)):
             raise ValueError(f"images: expected shape (nimage, nchan={self.nchan}, npix={self.npix}), got {x.shape}")
         found = []
         for a in range(0, x.shape[0], self.max_batch):
             chunk = xp.asarray(x[a:a + self.max_batch], dtype=xp.float32)
-            v = self._dedisperse(chunk)
+            v = self._dedisperse(chunk, index)
             self.nimages += chunk.shape[0]
             self.next_image += chunk.shape[0]
             found.append(self._push_values(v))

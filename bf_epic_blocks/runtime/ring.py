@@ -19,10 +19,13 @@ all sequences are numbered on one global clock; the ring holds the last ``capaci
 Zero copy. Spans are views of the ring's storage, as in Bifrost: a write span is the ring
 memory the frames will occupy, and a guaranteed reader's span is the ring memory holding them
 (read-only NumPy views on the host). Storage is one buffer per sequence laid out
-(ringlets..., capacity + ghost, frame...): the ``ghost`` frames after the end mirror the first
+(ringlets..., capacity + ghost, frame...): the ``ghost`` frames after the end can mirror the first
 ``ghost`` frames of the buffer (ghost = the largest write or read gulp), so a span that wraps the
-end is still one contiguous view; the writer's commit keeps the mirror (a copy of the frames
-that cross the end or land in the mirrored head, not of the whole span). Unguaranteed readers
+end is still one contiguous view. A write span that crosses the end is written there and its part
+past the end copied to the head at commit; a read span that crosses it has the head's part copied
+into the ghost when it is handed out -- only then: gulps that divide the capacity never copy (an
+eager mirror of every write landing in the head cost a third of the whole band's 0.8-GB image gulps,
+0.3 ms a gulp on an H100). Unguaranteed readers
 get copies taken under the ring lock (so ``nframe_overwritten`` is always 0); a write
 overwrites frames only after ``reserve`` has moved the ring's tail past them.
 
@@ -223,7 +226,7 @@ class Ring:
 
     def _store(self, seq, first, src):
         """Copy frames (span-shaped ``src``, frame axis after the ringlets) into the slots of
-        local frames [first, first + n) of ``seq``, wrapping and keeping the ghost mirror."""
+        local frames [first, first + n) of ``seq``, wrapping (the ghost is filled when read)."""
         n = src.shape[seq.nr]
         if n == 0:
             return
@@ -231,27 +234,31 @@ class Ring:
         start = first % cap
         part = min(n, cap - start)
         seq.buf[seq.at(start, start + part)] = src[seq.at(0, part)]
-        self._sync_ghost(seq, start, start + part)
         if n > part:
             seq.buf[seq.at(0, n - part)] = src[seq.at(part, n)]
-            self._sync_ghost(seq, 0, n - part)
 
     def _finish_write(self, seq, start, n):
         """After frames were written in place at storage slots [start, start + n): copy the
-        part past the end to the head of the buffer, and mirror the head into the ghost."""
+        part past the end to the head of the buffer."""
         cap = seq.buf_cap
         if start + n > cap:
             seq.buf[seq.at(0, start + n - cap)] = seq.buf[seq.at(cap, start + n)]
-        self._sync_ghost(seq, start, min(start + n, cap))
 
     def _span_view(self, seq, offset, n):
         """Frames [offset, offset + n) of ``seq``: a view of the storage when they fit in one
-        contiguous run (always, for n <= ghost), else a copy. Host views are read-only."""
+        contiguous run (always, for n <= ghost: a span that crosses the end has the head's part
+        mirrored into the ghost first, on the reader's stream), else a copy. Host views are
+        read-only. Called under the ring's lock, after the reader's stream waited for the frames."""
         if n == 0 or seq.buf is None:
             return self.xp.empty(seq.span_shape(n), seq.sdtype)
         cap = seq.buf_cap
         start = offset % cap
         if start + n <= cap + seq.buf_ghost:
+            # the head's frames [0, start + n - cap) are committed and held (a guaranteed reader's
+            # frames are not overwritten before it releases them; an unguaranteed one copies them now),
+            # and no write can be filling their mirror: a writer's span past the end mirrors head
+            # slots that hold no unreleased frame
+            self._sync_ghost(seq, 0, start + n - cap)
             view = seq.buf[seq.at(start, start + n)]
             if not self.on_device:
                 view.flags.writeable = False
@@ -287,7 +294,6 @@ class Ring:
                 idx = self.xp.arange(lo, seq.nframe)
                 ax = (slice(None),) * seq.nr
                 seq.buf[ax + (idx % new,)] = obuf[ax + (idx % ocap,)]
-                self._sync_ghost(seq, 0, new)
         if moved and self.on_device:
             self._publish()
             # the old buffers are freed when the last view goes: finish copying out of them
