@@ -416,7 +416,7 @@ class TransientSearch:
             self._widths_dev = xp.asarray(np.asarray(self.widths, np.int32))
             self._no_snr = xp.empty(1, xp.float32)
         v = xp.ascontiguousarray(v, dtype=xp.float32)
-        k = _stats_kernel(wmax)
+        k = _stats_kernel(self.widths)
         threads = 128
 
         def run(ss, snr, count, write):
@@ -649,6 +649,10 @@ _STATS_SRC = r"""
 // newest w values against the window: snr = (box / w - mean) sqrt(w) / sigma (written only when
 // write_snr: a chunk is run again, densely, only if it has a crossing), and a count per trial image of
 // the pixels over the threshold.
+#ifdef WLIST
+__device__ constexpr int WL[] = {WLIST};                  // the boxcar widths, in the search's order
+#define NWL ((int)(sizeof(WL) / sizeof(WL[0])))
+#endif
 extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const float* __restrict__ ref,
         float* __restrict__ hist, double* __restrict__ S1, double* __restrict__ S2, float* __restrict__ snr,
         int* __restrict__ count, const int* __restrict__ widths, const int nw, const int B, const int npix,
@@ -716,11 +720,25 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
             const float meanf = (float)mean;
             const float isig = rsqrtf((float)(fmax(s2 - s1 * mean, 0.0) * invW1));
             const int b = i - k0;
+#ifdef WLIST
+            // the widths known when the kernel is compiled: each box one of the newest values' running
+            // sums, added in the same order as below (bit for bit the same boxes), WMAX - 1 adds a value
+            // where the loop below made WMAX per width
+            float pre[WMAX];
+            pre[0] = 0.f + last[0];
+#pragma unroll
+            for (int j = 1; j < WMAX; j++) pre[j] = pre[j - 1] + last[j];
+#pragma unroll
+            for (int wi = 0; wi < NWL; wi++) {
+                const int w = WL[wi];
+                const float box = pre[w - 1];
+#else
             for (int wi = 0; wi < nw; wi++) {
                 const int w = widths[wi];
                 float box = 0.f;
 #pragma unroll
                 for (int j = 0; j < WMAX; j++) if (j < w) box += last[j];
+#endif
                 const float zf = (box - (float)w * meanf) * rsqrtf((float)w) * isig;
                 if (write_snr) snr[(((long long)wi * ns + s) * nb + b) * npix + p] = zf;
                 if (zf > thr) atomicAdd(&count[((long long)wi * ns + s) * nb + b], 1);
@@ -736,11 +754,14 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
 _STATS_KERNELS: dict = {}
 
 
-def _stats_kernel(wmax):
+def _stats_kernel(widths):
+    """The statistics kernel for these boxcar widths (compiled with them: see WLIST)."""
     import cupy as cp
-    key = (int(wmax), cp.cuda.Device().id)
+    widths = tuple(int(w) for w in widths)
+    key = (widths, cp.cuda.Device().id)
     if key not in _STATS_KERNELS:
-        _STATS_KERNELS[key] = cp.RawKernel(_STATS_SRC, "bf_search_stats", options=(f"-DWMAX={int(wmax)}",))
+        src = f"#define WMAX {max(widths)}\n#define WLIST {', '.join(map(str, widths))}\n" + _STATS_SRC
+        _STATS_KERNELS[key] = cp.RawKernel(src, "bf_search_stats")
     return _STATS_KERNELS[key]
 
 
