@@ -75,7 +75,7 @@ def test_plan_reports_the_whole_band_search_and_what_it_costs(capsys):
     assert 0 < sd["imaging_and_search_realtime_factor"] < d["realtime_factor"]
     assert "transient search: tree dedispersion, 1331 trials" in text and "imaging and search together" in text
     assert cli.main(["plan", str(PIPES / "lwasv_sim_wholeband.yaml"), "--set", "device=gpu"]) == 0
-    assert "holds 34.9 GiB where it runs" in capsys.readouterr().out      # (two tree passes of 3 GB)
+    assert "holds 36.4 GiB where it runs" in capsys.readouterr().out      # (one pass of the tree on a GPU)
 
 
 def test_simulated_demo_puts_cyg_a_on_its_pixel(tmp_path):

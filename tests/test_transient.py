@@ -265,6 +265,32 @@ def test_the_gpu_statistics_kernel_equals_the_array_code(monkeypatch, dedisperse
     assert np.array_equal(ha, hb) and np.allclose(ma, mb, rtol=1e-12) and np.allclose(sa, sb, rtol=1e-7)
 
 
+@pytest.mark.gpu
+@pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
+def test_the_gpu_float16_tree_hands_the_statistics_its_rows():
+    """On the GPU the float16 tree's rows go to the statistics kernel where the tree left them (no float32
+    copy): the rows it hands over are, made float32, the tree's own float32 output bit for bit (the
+    equality of the statistics themselves: test_the_gpu_statistics_kernel_equals_the_array_code)."""
+    import cupy as cp
+    from bf_epic_blocks.imaging.fdmt import HalfRows
+    rng = np.random.default_rng(9)
+    f = 74e6 + 100e3 * np.arange(24)
+    x = cp.asarray(rng.normal(5, 1, (192, 24, 31)).astype(np.float32))
+    got = []
+    for fused in (True, False):
+        s = TransientSearch(f, 16 * DT, 31, 60, dms=[1.0], widths=(1, 2, 4, 8), threshold=5, dedisperse="tree",
+                            max_batch=64, xp=cp, tree_precision="fp16")
+        s.FUSED_STATS = fused
+        v = []
+        for a in (0, 64, 128):
+            v.append(s._dedisperse(x[a:a + 64]))
+            s.nimages += 64                     # (what push counts: the values before the band's sweep are dropped)
+        assert all(isinstance(u, HalfRows) == fused for u in v)
+        got.append([(u.array() if fused else u).get() for u in v])
+    assert all(np.array_equal(a, b) for a, b in zip(*got))
+    assert 0 < got[0][1].shape[1] < 64 and got[0][2].shape[1] == 64        # from a time inside the push, then all
+
+
 # ------------------------------------------------------------------------------ end to end
 @pytest.fixture(scope="module")
 def array24():

@@ -36,7 +36,7 @@ import numpy as np
 
 from ._xp import get_xp, to_numpy
 
-__all__ = ["FDMTPlan", "fdmt", "effective_back", "StreamingFDMT"]
+__all__ = ["FDMTPlan", "fdmt", "effective_back", "StreamingFDMT", "HalfRows"]
 
 
 class FDMTPlan:
@@ -183,9 +183,11 @@ class StreamingFDMT:
     """
 
     #: working memory of one pass when ``pixel_chunk`` is not given (bytes): the whole band's 3,205 pixels
-    #: in two passes, not five (the tree 0.225 -> 0.210 s per second of data, H100, 2026-11-26; a thread
-    #: per level walking 16 of a block's times instead of all 64 gained nothing there)
-    WORK_BYTES = 3 << 30
+    #: in one pass of a 64-image push (5.2 GB), so that the search reads the tree's rows where they are
+    #: (:class:`HalfRows`); two passes of 3 GB took the tree 0.225 -> 0.210 s per second of data against
+    #: five of 1 GB (H100, 2026-11-26; a thread per level walking 16 of a block's times instead of all 64
+    #: gained nothing there)
+    WORK_BYTES = 6 << 30
     #: float16 storage: a whole-band sum of the largest value is scaled to about this ...
     FP16_HEAD = 2.0 ** 8
     #: ... and the rings are rescaled before a push whose sums could pass this (float16's largest: 65,504)
@@ -298,7 +300,7 @@ class StreamingFDMT:
         pc += pc % 2 if self.dtype is np.float16 else 0          # (float16 rows: even)
         return np.dtype(self.dtype).itemsize * (self.ring_size * self.ld + self.nrow * B * pc)
 
-    def push(self, images, factor=1.0, index=None):
+    def push(self, images, factor=1.0, index=None, rows=False):
         """(nchan, B, npix) new images (channels in the plan's order of ``freq``) -> (dmax + 1, B, npix)
         float32: row d, time t is the sum over channels of I_c(t - back(d, c)) (:func:`effective_back`),
         times ``factor`` (e.g. 1 / nchan for the channels' mean: applied as the rows are copied out).
@@ -307,7 +309,9 @@ class StreamingFDMT:
             imager's grid, a view whose last axis is contiguous) and pixel p is cell ``index[p]``. The
             float16 tree on a GPU reads the cells where they are (its scale's maximum and its input
             pass gather them: no gathered copy of the images, 0.7 ms a whole-band gulp on an H100);
-            elsewhere they are gathered first."""
+            elsewhere they are gathered first.
+        rows : the float16 tree on a GPU whose pixels fit one pass returns a :class:`HalfRows` (the
+            rows where the tree left them) instead of the float32 array; otherwise the array."""
         xp, plan = self.xp, self.plan
         x = xp.asarray(images, dtype=xp.float32)
         half = self.dtype is np.float16
@@ -322,13 +326,14 @@ class StreamingFDMT:
         if x.ndim != 3 or x.shape[0] != plan.nchan or (index is None and x.shape[2] != self.npix):
             raise ValueError(f"images: expected (nchan={plan.nchan}, B, npix={self.npix}), got {tuple(x.shape)}")
         B = int(x.shape[1])
-        out = xp.empty((plan.dmax + 1, B, self.npix), xp.float32)
         if B == 0:
-            return out
+            return xp.empty((plan.dmax + 1, 0, self.npix), xp.float32)
+        out = None
         if not np.array_equal(plan.order, np.arange(plan.nchan)):
             x = x[xp.asarray(plan.order)]
         scale = self._set_ref_and_scale(x, index) if half else 1.0
         pc = self._chunk(B)
+        rows = rows and half and xp is not np and pc >= self.npix
         for p0 in range(0, self.npix, pc):
             p1 = min(self.npix, p0 + pc)
             n = p1 - p0
@@ -345,6 +350,11 @@ class StreamingFDMT:
                 self._levels_host(W, p0, p1, B)
             else:
                 self._levels_gpu(W, p0, p1, B)
+            if rows:                                      # one pass: the rows stay where they are
+                self.ntime += B
+                return HalfRows(W, self.top.start, plan.dmax + 1, self._ref_sum, factor / scale, factor, self.npix)
+            if out is None:
+                out = xp.empty((plan.dmax + 1, B, self.npix), xp.float32)
             # a slice: copied (and scaled) once, not gathered first
             if not half:
                 xp.multiply(W[self.top], np.float32(factor), out=out[:, :, p0:p1])
@@ -613,6 +623,31 @@ def _in_half_gpu(cp, x, ref, scale, W, p0, n, index=None):
         (x, cp.ascontiguousarray(ref, dtype=cp.float32), np.float32(scale), W, np.int32(nchan), np.int32(B),
          np.int32(n), np.int32(ld2), np.int64(sc), np.int64(sb), np.int32(p0), np.int32(npix),
          np.uint64(0) if index is None else index))
+
+
+class HalfRows:
+    """The whole band's rows of a float16 tree push, where the tree left them (GPU): row d, time t,
+    pixel p is ``W[top + d, t, p] * a + ksum[p] * b`` in float32 (rounded as :func:`_out_half_gpu`),
+    for times ``first ..`` of the push. A consumer that reads them so (the search's statistics kernel)
+    saves writing and reading them back as float32 (1.1 GB a whole-band gulp). ``shape`` is the
+    float32 array's, (D, B - first, npix); :meth:`array` makes it."""
+
+    def __init__(self, W, top, D, ksum, a, b, npix, first=0):
+        self.W, self.top, self.D, self.ksum, self.a, self.b = W, int(top), int(D), ksum, float(a), float(b)
+        self.npix, self.first = int(npix), int(first)
+        self.shape = (self.D, int(W.shape[1]) - self.first, self.npix)
+
+    def from_time(self, first):
+        """The same rows from time ``first`` of the push on."""
+        return HalfRows(self.W, self.top, self.D, self.ksum, self.a, self.b, self.npix, self.first + int(first))
+
+    def array(self):
+        """The float32 rows (D, B - first, npix), as :meth:`StreamingFDMT.push` returns them."""
+        cp = get_xp(self.W)
+        B = int(self.W.shape[1])
+        out = cp.empty((self.D, B, self.npix), cp.float32)
+        _out_half_gpu(cp, self.W, self.top, self.D, self.ksum, self.a, self.b, out, 0, self.npix)
+        return out[:, self.first:]
 
 
 def _out_half_gpu(cp, W, t0, D, ksum, a, b, out, p0, n):

@@ -40,6 +40,7 @@ import time
 import numpy as np
 
 from ._xp import to_numpy
+from .fdmt import HalfRows
 
 __all__ = ["DISPERSION_CONSTANT_S", "dispersion_delay_s", "dm_delays", "dm_sidelobe_snr", "TransientSearch", "Crossings",
            "cluster_crossings", "expected_false_rate", "beam_power", "ArrayBeam", "locate_point_source"]
@@ -237,15 +238,20 @@ class TransientSearch:
         """Shifted-add rows per image and pixel of the tree (None for shifted sums)."""
         return self._tree.plan.rows() if self._tree is not None else None
 
-    def memory_bytes(self):
+    def memory_bytes(self, gpu=None):
         """Bytes the search holds where its arrays live (the GPU's memory with CuPy), by part:
         ``history`` (every series' last ``capacity`` values, float32), ``statistics`` (the window
         sums, float64, and offsets), ``channels`` (shifted sums: each channel's last ``shift`` images)
         or ``tree`` (the tree's rings), and ``working``, the most a push of ``max_batch`` images adds
-        while it runs (the tree's pass and its output, one chunk of S/N values)."""
+        while it runs (the tree's pass and its output -- none on a GPU where the statistics read the
+        float16 tree's rows where they are --, one chunk of S/N values). gpu: for a search on a GPU
+        (default: where this one's arrays are)."""
         B, P = self.max_batch, self.npix
+        gpu = self.xp is not np if gpu is None else bool(gpu)
         step = max(1, min(self.nser, self.CHUNK_BYTES // max(1, B * P * 8)))
-        working = 4 * len(self.widths) * step * B * P + 4 * self.nser * B * P
+        rows = (gpu and self._tree is not None and self._tree.dtype is np.float16 and self.FUSED_STATS
+                and self.wmax <= _STATS_MAXW and self._tree._chunk(B) >= P)
+        working = 4 * len(self.widths) * step * B * P + (0 if rows else 4 * self.nser * B * P)
         parts = {"history": 4 * self.nser * self.capacity * P, "statistics": (8 + 8 + 4) * self.nser * P}
         if self._tree is not None:
             parts["tree"] = np.dtype(self._tree.dtype).itemsize * self._tree.ring_size * self._tree.ld
@@ -294,8 +300,11 @@ class TransientSearch:
         B = x.shape[0]
         if self._tree is not None:
             # a view: the tree copies each pixel chunk once, and scales its sums to means as it copies out
-            out = self._tree.push(xp.moveaxis(x, 0, 1), factor=1.0 / self.nchan, index=index)
+            rows = xp is not np and self.FUSED_STATS and self.wmax <= _STATS_MAXW
+            out = self._tree.push(xp.moveaxis(x, 0, 1), factor=1.0 / self.nchan, index=index, rows=rows)
             first = max(0, self.shift - self.nimages)      # values before the tree has every channel's past
+            if isinstance(out, HalfRows):
+                return out.from_time(min(first, B))
             return out[:, first:] if first < B else out[:, :0]
         ext = xp.concatenate([self._chan, xp.moveaxis(x, 0, 1)], axis=1)   # (nchan, shift + B, npix)
         self._chan = xp.ascontiguousarray(ext[:, ext.shape[1] - self.shift:])
@@ -322,11 +331,15 @@ class TransientSearch:
         B = v.shape[1]
         if B == 0:
             return Crossings()
+        kernel = xp is not np and self.FUSED_STATS and self.wmax <= _STATS_MAXW
+        if isinstance(v, HalfRows) and (self._ref is None or not kernel):
+            # the first values (their first image is the reference) or a search without the kernel: as floats
+            v = v.array()
         if self._ref is None:
             self._ref = v[:, 0].astype(xp.float32)
         n0 = self.nvalues
         step = max(1, min(self.nser, self.CHUNK_BYTES // max(1, B * self.npix * 8)))
-        if xp is not np and self.FUSED_STATS and self.wmax <= _STATS_MAXW:
+        if kernel:
             found = [self._push_values_gpu(v, n0, step)]
         else:
             found = [self._push_chunk(v[s0:s0 + step], slice(s0, min(self.nser, s0 + step)), n0)
@@ -415,16 +428,25 @@ class TransientSearch:
         if self._widths_dev is None:
             self._widths_dev = xp.asarray(np.asarray(self.widths, np.int32))
             self._no_snr = xp.empty(1, xp.float32)
-        v = xp.ascontiguousarray(v, dtype=xp.float32)
+        half = isinstance(v, HalfRows)
+        if not half:
+            v = xp.ascontiguousarray(v, dtype=xp.float32)
         k = _stats_kernel(self.widths)
         threads = 128
 
         def run(ss, snr, count, write):
             hist, s1, s2 = self._hist[ss], self._s1[ss], self._s2[ss]         # views: the kernel updates them
+            if half:   # the tree's float16 rows of series ss: (v.top + ss, its times, its row length)
+                hB, hld = int(v.W.shape[1]), int(v.W.shape[2])
+                src = (np.uint64(0), v.W[v.top + ss.start:v.top + ss.stop], v.ksum, np.float32(v.a),
+                       np.float32(v.b), np.int32(hB), np.int32(v.first), np.int32(hld))
+            else:
+                src = (v[ss], np.uint64(0), np.uint64(0), np.float32(0), np.float32(0), np.int32(0), np.int32(0),
+                       np.int32(0))
             k(((self.npix + threads - 1) // threads, ss.stop - ss.start), (threads,),
-              (v[ss], self._ref[ss], hist, s1, s2, snr, count, self._widths_dev, np.int32(nw), np.int32(B),
+              (src[0], self._ref[ss], hist, s1, s2, snr, count, self._widths_dev, np.int32(nw), np.int32(B),
                np.int32(self.npix), np.int32(self.capacity), np.int64(hist.strides[0] // 4), np.int64(n0),
-               np.int32(W), np.int32(k0), np.int32(nb), np.float32(self.threshold), np.int32(write)))
+               np.int32(W), np.int32(k0), np.int32(nb), np.float32(self.threshold), np.int32(write)) + src[1:])
         count = xp.zeros((nw, ns, max(nb, 1)), xp.int32)
         saved = (self._s1.copy(), self._s2.copy()) if nb else None
         run(slice(0, ns), self._no_snr, count, 0)
@@ -657,11 +679,15 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
         float* __restrict__ hist, double* __restrict__ S1, double* __restrict__ S2, float* __restrict__ snr,
         int* __restrict__ count, const int* __restrict__ widths, const int nw, const int B, const int npix,
         const int cap, const long long hstride, const long long n0, const int W, const int k0, const int nb,
-        const float thr, const int write_snr)
+        const float thr, const int write_snr, const __half* __restrict__ vh, const float* __restrict__ ksum,
+        const float ha, const float hb, const int hB, const int hfirst, const int hld)
 {
     const int p = blockIdx.x * blockDim.x + threadIdx.x;
     if (p >= npix) return;
     const int s = blockIdx.y, ns = gridDim.y;
+    // the values: v (ns, B, npix) float32, or (vh) the float16 tree's rows where it left them, value i of
+    // series s = vh[(s hB + hfirst + i) hld + p] ha + ksum[p] hb, rounded as the tree's float32 output is
+    const float hk = vh ? __fmul_rn(ksum[p], hb) : 0.f;
     float* h = hist + s * hstride + p;                       // value n at h[(n % cap) * npix]
     const long long sp = (long long)s * npix + p;
     double s1 = S1[sp], s2 = S2[sp];
@@ -690,7 +716,8 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
             const int i = i0 + u;
             int iu = il + u;
             if (iu >= cap) iu -= cap;
-            xv[u] = i < B ? v[((long long)s * B + i) * npix + p] : 0.f;
+            xv[u] = i >= B ? 0.f : vh ? __fadd_rn(__fmul_rn(__half2float(vh[((long long)s * hB + hfirst + i) * hld + p]), ha), hk)
+                                      : v[((long long)s * B + i) * npix + p];
             lv[u] = (i < B && n0 + i - WMAX - W >= 0) ? h[(long long)iu * npix] : 0.f;
         }
 #pragma unroll
@@ -760,7 +787,8 @@ def _stats_kernel(widths):
     widths = tuple(int(w) for w in widths)
     key = (widths, cp.cuda.Device().id)
     if key not in _STATS_KERNELS:
-        src = f"#define WMAX {max(widths)}\n#define WLIST {', '.join(map(str, widths))}\n" + _STATS_SRC
+        src = (f"#include <cuda_fp16.h>\n#define WMAX {max(widths)}\n#define WLIST {', '.join(map(str, widths))}\n"
+               + _STATS_SRC)
         _STATS_KERNELS[key] = cp.RawKernel(src, "bf_search_stats")
     return _STATS_KERNELS[key]
 

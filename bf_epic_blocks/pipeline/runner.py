@@ -761,7 +761,7 @@ def _plan_search(sc, freq, dt_img, npix, dev, imaging_s_per_s):
     kw, _ = search_settings(freq, dt_img, sc["window_s"], sc["dms"], sc["widths"], sc["average_channels"],
                             dedisperse=sc["dedisperse"], tree_precision=sc["tree_precision"])
     s = TransientSearch(freq, dt_img, npix, allocate=False, **kw)
-    mem = s.memory_bytes()
+    mem = s.memory_bytes(gpu=dev == "gpu")
 
     def size(b):
         return f"{b / 2**30:.1f} GiB" if b >= 2**30 else f"{b / 2**20:.1f} MiB"
