@@ -478,12 +478,15 @@ def test_dm_sidelobe_snr_counts_the_channel_images_two_sweeps_share():
     assert dm_sidelobe_snr(f, dt, (1000, 1.5, 8, 300.0), (ef, 2.0, 8), slack=0) == pytest.approx(300.0 * shared / (256 * 8))
 
 
-@pytest.mark.parametrize("factor", [2.0, 0.0])
-def test_a_bright_dispersed_burst_s_dm_sidelobes_fold_into_it(tmp_path, factor):
+@pytest.mark.parametrize("factor,defer", [(2.0, False), (0.0, False), (2.0, True), (0.0, True)])
+def test_a_bright_dispersed_burst_s_dm_sidelobes_fold_into_it(tmp_path, monkeypatch, factor, defer):
     """The tree search over a wide band sees a bright burst (S/N ~260) in trials of other DMs whose
     sweeps cross its own near the band's foot: S/N ~7.5-8 at DM ~2.0, 0.14 s before it (the whole-band
     run on the H100: S/N 9.4 at DM 2.38, 0.24 s before its S/N-370 burst). They fold into the burst's
-    row (one row, nsidelobes counts them; the old code: three rows); sidelobe_factor 0 keeps them."""
+    row (one row, nsidelobes counts them; the old code: three rows); sidelobe_factor 0 keeps them. The
+    same with each gulp's statistics run at the next (what a GPU does): the crossings of a staged gulp
+    still reach the clusters they belong to (no candidate is closed before they are in)."""
+    monkeypatch.setattr(TransientSearchBlock, "DEFER_STATS", defer)
     rng = np.random.default_rng(2)
     nchan, nimg, width = 256, 3400, 6
     freq = 74e6 + 19.6e6 / nchan * np.arange(nchan)
@@ -942,3 +945,27 @@ def test_gpu_after_the_warm_up_the_first_burst_compiles_little(tmp_path):
     assert out["cold"][0] > 0 and out["warm"][0] > 0
     assert out["cold"][1] > 0, out            # the test can fail: without the warm-up the burst compiles
     assert out["warm"][1] <= out["cold"][1] // 4, out
+
+
+@pytest.mark.parametrize("dedisperse", ["tree", "shifts"])
+def test_a_deferred_push_finds_what_a_push_finds(xp, dedisperse):
+    """push(defer=True) leaves its last batch's statistics for the next push or flush(): over a stream
+    the same crossings as plain pushes, each batch's a push later, and the same statistics at the end."""
+    npix, pix, e0 = 20, 7, 1300
+    f, dt, x = _dispersed_burst(14, 64, npix, 300e3, 1600, 0.6, pix, e0, 2.5)
+    got = []
+    for defer in (False, True):
+        s = TransientSearch(f, dt, npix, 200, dms=[1.0] if dedisperse == "tree" else [0.3, 0.6], widths=(1, 2, 4),
+                            threshold=7, dedisperse=dedisperse, max_batch=64, xp=xp, tree_precision="fp16")
+        found = [s.push(xp.asarray(x[a:a + 96]), defer=defer) for a in range(0, 1600, 96)]
+        assert s.staged_images == (min(64, 1600 - 96 * 16) if defer else 0) or not defer
+        found.append(s.flush())
+        assert s.staged_images == 0
+        c = Crossings.concat(found)
+        order = np.lexsort((c.pixel, c.width_index, c.series, c.end_image))
+        got.append((c.take(order), [to_np(a) for a in s.statistics()]))
+    (a, sa), (b, sb) = got
+    assert len(a) == len(b) > 0
+    for k in Crossings.FIELDS:
+        assert np.array_equal(getattr(a, k), getattr(b, k)), k
+    assert all(np.array_equal(u, v, equal_nan=True) for u, v in zip(sa, sb))

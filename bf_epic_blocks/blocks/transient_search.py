@@ -186,6 +186,7 @@ class TransientSearchBlock(bfp.SinkBlock):
     # ------------------------------------------------------------------ per gulp
     def _lose(self, lost, why):
         """``lost`` images not searched: what was pending is finished and the window starts again."""
+        self._flush()
         self._finish(final=True)
         self._j += lost
         self.search.reset(self._j)
@@ -225,17 +226,33 @@ class TransientSearchBlock(bfp.SinkBlock):
     def _push(self, x, index=None):
         n = x.shape[0]
         n_before = self.search.nvalues
-        cr = self.search.push(x, index)
+        # on a GPU the last batch's statistics wait for the next gulp (TransientSearch.push's defer): this
+        # span is released before their host wait, so the imager's next gulp is queued meanwhile
+        defer = self.xp is not np if self.DEFER_STATS is None else bool(self.DEFER_STATS)
+        cr = self.search.push(x, index, defer=defer)
+        self._j += n
+        self.search_stats["images"] += n
+        self._took(cr, n_before)
+        self._finish(final=False)
+
+    #: each gulp's statistics run at the next gulp (None: on a GPU, where it keeps the GPU busy)
+    DEFER_STATS = None
+
+    def _took(self, cr, n_before):
+        """Count the values searched since ``n_before`` and the crossings ``cr``; hold them pending."""
         nsearched = max(0, self.search.nvalues - max(n_before, self.search.window + self.search.wmax - 1))
         if nsearched:
             for i in range(len(self.widths)):
                 self.search_stats["trials_per_width"][i] += nsearched * self.search.nser * self.search.npix
         self.search_stats["images_searched"] += nsearched
-        self._j += n
-        self.search_stats["images"] += n
         self.search_stats["crossings"] += len(cr)
         self._pending = self._bounded(Crossings.concat([self._pending, cr]))
-        self._finish(final=False)
+
+    def _flush(self):
+        """Search what the last push left staged (its crossings join the pending ones)."""
+        if self.search.staged_images:
+            n_before = self.search.nvalues
+            self._took(self.search.flush(), n_before)
 
     #: pending crossings clustered at most (the brightest; a flood beyond is counted and logged)
     MAX_PENDING = 100_000
@@ -268,6 +285,7 @@ class TransientSearchBlock(bfp.SinkBlock):
             self._lose(lost, "reader overrun")
 
     def on_sequence_end(self, iseq):
+        self._flush()
         self._finish(final=True)
         self._write()
 
@@ -295,8 +313,9 @@ class TransientSearchBlock(bfp.SinkBlock):
         else:
             newest = np.full(labels.max() + 1, -np.inf)
             np.maximum.at(newest, labels, cr.image.astype(float))
-            # a later crossing starts no earlier than this image (widest boxcar, largest delay)
-            horizon = self._j - self.search.wmax - self.search.shift - self.lc_after
+            # a later crossing starts no earlier than this image (widest boxcar, largest delay), counted
+            # from the images searched (a staged batch's crossings are still to come)
+            horizon = self._j - self.search.staged_images - self.search.wmax - self.search.shift - self.lc_after
             done = newest + self._tlink < horizon
             if not done.all() and done.any():
                 # a cluster waits for any brighter one near it in time that is still open: it may be

@@ -279,6 +279,7 @@ class TransientSearch:
         self._s1 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
         self._s2 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
         self._widths_dev = None
+        self._staged, self.staged_images = None, 0   # push(defer=True)'s last batch, values not yet searched
 
     @property
     def ready(self):
@@ -581,12 +582,17 @@ class TransientSearch:
         return found
 
     # ------------------------------------------------------------------ public
-    def push(self, images, index=None):
+    def push(self, images, index=None, defer=False):
         """Search new images ``(nimage, nchan, npix)`` (the next ones in time); returns Crossings.
 
         index : None, or (npix,) the cell of each pixel in ``images`` (nimage, nchan, ncell), e.g. an
             imager's grid: the tree reads the cells where they are (:meth:`.fdmt.StreamingFDMT.push`);
-            the other searches gather them first."""
+            the other searches gather them first.
+        defer : the last batch's images are dedispersed now (``images`` are not read after this
+            returns) but its statistics and crossings wait for the next push or :meth:`flush`, whose
+            crossings they join (``staged_images`` counts its images). A block on a GPU releases its
+            input span before the statistics' host wait: the writer's next kernels are then queued
+            while the search's host code runs, where the GPU idled ~1 ms a whole-band gulp."""
         xp = self.xp
         x = images
         if index is not None:
@@ -597,14 +603,22 @@ class TransientSearch:
                 x, index = xp.take(x, xp.asarray(index), axis=-1), None
         if x.ndim != 3 or (index is None and x.shape[1:] != (self.nchan, self.npix)):
             raise ValueError(f"images: expected shape (nimage, nchan={self.nchan}, npix={self.npix}), got {x.shape}")
-        found = []
+        found = [self.flush()]
         for a in range(0, x.shape[0], self.max_batch):
             chunk = xp.asarray(x[a:a + self.max_batch], dtype=xp.float32)
             v = self._dedisperse(chunk, index)
             self.nimages += chunk.shape[0]
             self.next_image += chunk.shape[0]
-            found.append(self._push_values(v))
+            if defer and a + self.max_batch >= x.shape[0]:
+                self._staged, self.staged_images = v, int(chunk.shape[0])
+            else:
+                found.append(self._push_values(v))
         return Crossings.concat(found)
+
+    def flush(self):
+        """The crossings of the batch a ``push(defer=True)`` left staged (none if nothing is)."""
+        v, self._staged, self.staged_images = self._staged, None, 0
+        return Crossings() if v is None else self._push_values(v)
 
     def statistics(self):
         """Current window mean and sigma per series and pixel, (nser, npix) float64 each, in ``xp``
