@@ -266,6 +266,12 @@ class StreamingFDMT:
             # block: the float16 tree 8x slower than float32 at the whole band, H100; one per (channel,
             # image) row on the strided view, 0.66 ms a whole-band gulp on an H200)
             amax = _abs_dev_max_gpu(xp, x, self.ref, index)
+        return self._scale_for(amax)
+
+    def _scale_for(self, amax):
+        """The scale for a push whose largest |value - ref| is ``amax`` (the past rescaled if a brighter
+        push needs it; a ValueError if it is not finite)."""
+        xp = self.xp
         if not np.isfinite(amax):
             raise ValueError("images: non-finite values reached the tree (NaN or Inf)")
         bound = amax * self.plan.nchan                 # no sum of nchan values can exceed it
@@ -331,8 +337,12 @@ class StreamingFDMT:
         out = None
         if not np.array_equal(plan.order, np.arange(plan.nchan)):
             x = x[xp.asarray(plan.order)]
-        scale = self._set_ref_and_scale(x, index) if half else 1.0
         pc = self._chunk(B)
+        # on the GPU, one pass and a scale already set: the scale's maximum taken in the input pass itself
+        # (one read of the images, not two; 0.57 ms a whole-band gulp on an H100), checked before any
+        # level runs, and the pass made again at a new scale in the rare push that needs one (a flash)
+        one_pass = half and xp is not np and pc >= self.npix and self.scale is not None
+        scale = (self.scale if one_pass else self._set_ref_and_scale(x, index)) if half else 1.0
         rows = rows and half and xp is not np and pc >= self.npix
         for p0 in range(0, self.npix, pc):
             p1 = min(self.npix, p0 + pc)
@@ -342,6 +352,13 @@ class StreamingFDMT:
                 W[:plan.nchan] = x[:, :, p0:p1]
             elif xp is np:
                 W[:plan.nchan, :, :n] = (x[:, :, p0:p1] - self.ref[:, None, p0:p1]) * np.float32(scale)
+            elif one_pass:
+                amax = xp.zeros(1, xp.uint32)
+                _in_half_gpu(xp, x, self.ref, np.float32(scale), W, p0, n, index, amax)
+                new = self._scale_for(float(amax.get().view(np.float32)[0]))
+                if new != scale:                          # (the rings were rescaled to it)
+                    scale = new
+                    _in_half_gpu(xp, x, self.ref, np.float32(scale), W, p0, n, index)
             else:                                         # (the spare pixel of an odd chunk written 0)
                 _in_half_gpu(xp, x, self.ref, np.float32(scale), W, p0, n, index)
             if xp is np and W.shape[2] > n:
@@ -554,12 +571,14 @@ _HALF_SRC = r"""
 extern "C" __global__ void bf_fdmt_in_half(const float* __restrict__ x, const float* __restrict__ ref, const float s,
                                            __half2* __restrict__ W, const int nchan, const int B, const int n,
                                            const int ld2, const long long sc, const long long sb, const int p0,
-                                           const int npix, const int* __restrict__ idx)
+                                           const int npix, const int* __restrict__ idx, unsigned* __restrict__ amax)
 {
+    // amax (optional): max |x - ref| over what this pass reads, as bf_abs_dev_max computes it (a NaN as
+    // Inf), one atomic a warp
     const int q = blockIdx.x * blockDim.x + threadIdx.x;
-    if (q >= ld2) return;
+    float m = 0.f;
     const int p = 2 * q;
-    const bool has0 = p < n, has1 = p + 1 < n;
+    const bool has0 = q < ld2 && p < n, has1 = q < ld2 && p + 1 < n;
     const int k0 = has0 ? (idx ? idx[p0 + p] : p0 + p) : 0, k1 = has1 ? (idx ? idx[p0 + p + 1] : p0 + p + 1) : 0;
     int c = blockIdx.y / B, b = blockIdx.y - c * B;
     const int dc = gridDim.y / B, db = gridDim.y - dc * B;
@@ -567,11 +586,21 @@ extern "C" __global__ void bf_fdmt_in_half(const float* __restrict__ x, const fl
     for (int r = blockIdx.y; r < nchan * B; r += gridDim.y) {
         const float* xr = x + c * sc + b * sb;
         const float* rr = ref + (long long)c * npix + p0 + p;
-        const float a0 = has0 ? __fmul_rn(__fsub_rn(xr[k0], rr[0]), s) : 0.f;
-        const float a1 = has1 ? __fmul_rn(__fsub_rn(xr[k1], rr[1]), s) : 0.f;
-        W[(long long)r * ld2 + q] = __floats2half2_rn(a0, a1);
+        const float d0 = has0 ? __fsub_rn(xr[k0], rr[0]) : 0.f, d1 = has1 ? __fsub_rn(xr[k1], rr[1]) : 0.f;
+        if (amax) {
+            m = fmaxf(m, d0 != d0 ? __int_as_float(0x7f800000) : fabsf(d0));
+            m = fmaxf(m, d1 != d1 ? __int_as_float(0x7f800000) : fabsf(d1));
+        }
+        const float a0 = has0 ? __fmul_rn(d0, s) : 0.f;
+        const float a1 = has1 ? __fmul_rn(d1, s) : 0.f;
+        if (q < ld2) W[(long long)r * ld2 + q] = __floats2half2_rn(a0, a1);
         c += dc; b += db;
         if (b >= B) { b -= B; ++c; }
+    }
+    if (amax) {                                    // every thread of the warp here: one shuffle
+#pragma unroll
+        for (int o = 16; o; o >>= 1) m = fmaxf(m, __shfl_xor_sync(0xffffffffu, m, o));
+        if ((threadIdx.x & 31) == 0) atomicMax(amax, __float_as_uint(m));
     }
 }
 
@@ -607,11 +636,12 @@ def _half_kernel(cp, name):
     return _EW[key][name]
 
 
-def _in_half_gpu(cp, x, ref, scale, W, p0, n, index=None):
+def _in_half_gpu(cp, x, ref, scale, W, p0, n, index=None, amax=None):
     """W[:nchan, :, :] = float16((x[:, :, p0:p0 + n] - ref[:, p0:p0 + n]) * scale), the spare pixel 0.
     x: (nchan, B, npix) float32 whose last axis is contiguous; ref (nchan, npix); W (nrow, B, ld) float16;
-    index: as :func:`_abs_dev_max_gpu`. (CuPy's elementwise kernel on these strided views ran at ~36% of
-    an H100's memory speed.)"""
+    index: as :func:`_abs_dev_max_gpu`; amax: None, or a uint32 device word (zero) that receives the
+    float bits of max |x - ref| over the pixels read, as :func:`_abs_dev_max_gpu` returns it. (CuPy's
+    elementwise kernel on these strided views ran at ~36% of an H100's memory speed.)"""
     nchan, B = (int(v) for v in x.shape[:2])
     npix = int(ref.shape[-1])
     if x.strides[-1] != 4:
@@ -622,7 +652,7 @@ def _in_half_gpu(cp, x, ref, scale, W, p0, n, index=None):
         ((ld2 + 127) // 128, min(nchan * B, 512)), (128,),
         (x, cp.ascontiguousarray(ref, dtype=cp.float32), np.float32(scale), W, np.int32(nchan), np.int32(B),
          np.int32(n), np.int32(ld2), np.int64(sc), np.int64(sb), np.int32(p0), np.int32(npix),
-         np.uint64(0) if index is None else index))
+         np.uint64(0) if index is None else index, np.uint64(0) if amax is None else amax))
 
 
 class HalfRows:
