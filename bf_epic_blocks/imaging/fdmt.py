@@ -231,6 +231,8 @@ class StreamingFDMT:
         t0 = base[top] if plan.nchan > 1 else 0
         self.top = slice(t0, t0 + plan.dmax + 1)          # the whole band's rows: one contiguous run
         self.pixel_chunk = int(pixel_chunk) if pixel_chunk else None
+        # the channels' frequency order, where the input's is not already it (applied to every push)
+        self._order = None if np.array_equal(plan.order, np.arange(plan.nchan)) else xp.asarray(plan.order)
         self._dev = None
         if xp is not np:
             self._dev = {k: [xp.asarray(a.astype(np.int32)) for a in lv] for k, lv in enumerate(self._levels)}
@@ -335,8 +337,8 @@ class StreamingFDMT:
         if B == 0:
             return xp.empty((plan.dmax + 1, 0, self.npix), xp.float32)
         out = None
-        if not np.array_equal(plan.order, np.arange(plan.nchan)):
-            x = x[xp.asarray(plan.order)]
+        if self._order is not None:
+            x = x[self._order]
         pc = self._chunk(B)
         # on the GPU, one pass and a scale already set: the scale's maximum taken in the input pass itself
         # (one read of the images, not two; 0.57 ms a whole-band gulp on an H100), checked before any
