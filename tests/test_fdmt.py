@@ -312,3 +312,43 @@ def test_the_gpu_float16_stream_reads_pixels_out_of_cells_bit_for_bit(chunk):
     bad[3, 50, int(index[20])] = cp.nan
     with pytest.raises(ValueError, match="non-finite"):
         dev.push(cp.moveaxis(bad, 0, 1), index=idx)
+
+
+def test_the_gpu_layout_keeps_the_memory_of_a_block_in_one_pass():
+    """On a GPU the merged rows that keep a ring live only in it (ring length + block slots) and leave the
+    working array: at a push of ``block`` images in one pass (the whole band's search) the same bytes."""
+    f = 74e6 + 25e3 * np.arange(784)
+    s = StreamingFDMT(FDMTPlan(f, 1330), 3205, allocate=False, precision="fp16", block=64)
+    moved = int(s._inplace.sum())
+    assert moved > 1000 and s.nwrow == s.nrow - moved and not s._inplace[:784].any()
+    assert s.dev_ring_size == s.ring_size + 64 * moved
+    assert s._chunk(64, gpu=True) >= 3205 and s.memory_bytes(64, gpu=True) == s.memory_bytes(64, gpu=False)
+    with pytest.raises(ValueError, match="block"):
+        StreamingFDMT(FDMTPlan(f[:4], 3), 2, block=0)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not __import__("bf_epic_blocks.imaging._xp", fromlist=["x"]).gpu_available(),
+                    reason="needs CuPy and a CUDA device")
+@pytest.mark.parametrize("precision,chunk", [("fp32", None), ("fp32", 16), ("fp16", None), ("fp16", 16)])
+def test_the_gpu_rings_hold_the_rows_through_pushes_shorter_and_longer_than_a_block(precision, chunk):
+    """The merged rows written and read in their rings (block 16, read-backs to 60 images: rings longer
+    and shorter than a block), pushes of 1 to 45 images (split into blocks), pixels in one pass or three:
+    the host's sums (float16: bit for bit; float32: to rounding), and the shifted sums of the read offsets."""
+    import cupy as cp
+    rng = np.random.default_rng(41)
+    plan = FDMTPlan(74e6 + 25e3 * np.arange(120), 60)
+    x = rng.normal(50.0, 5.0, size=(120, 200, 37)).astype(np.float32)
+    host = StreamingFDMT(plan, 37, pixel_chunk=chunk, precision=precision)
+    dev = StreamingFDMT(plan, 37, xp=cp, pixel_chunk=chunk, precision=precision, block=16)
+    got, t = [], 0
+    for b in (16, 1, 45, 15, 17, 16, 60, 30):
+        h, d = host.push(x[:, t:t + b]), dev.push(cp.asarray(x[:, t:t + b])).get()
+        if precision == "fp16":
+            assert np.array_equal(h, d)
+        else:
+            assert np.abs(h - d).max() <= 1e-5 * np.abs(h).max()
+        got.append(d)
+        t += b
+    want = gathered_sums(x, effective_back(plan))
+    assert np.abs(np.concatenate(got, axis=1)[:, 60:] - want[:, 60:]).max() / np.abs(want).max() < 3e-3

@@ -156,6 +156,8 @@ class StreamingFDMT:
     per pass (the working memory is ``(nchan + plan.rows()) x B x pixel_chunk`` values; default:
     as many as fit in ``WORK_BYTES`` for the block being pushed);  allocate : False makes the tables
     and sizes only (:meth:`memory_bytes`), no ring.
+    block : the most images a push is made in (default 64; longer pushes are split, on the host too, so
+    that both make a float16 scale's choices at the same points): the GPU's rings hold a block's values.
     precision : 'fp32' (default) or 'fp16': the values the tree stores (its rows and rings) -- each
     add is done in float32 and rounded to float16: half the tree's memory traffic (the tree is bound
     by it) and half its rings. What is stored is each value less its channel and pixel's value in
@@ -177,7 +179,8 @@ class StreamingFDMT:
     State: in each merge the upper half's rows are read up to ``o`` images back, so every row any
     merge reads that way keeps its last ``max o`` values in a ring (float32 ``(sum max o, npix)``:
     for 784 channels of LWA-SV and DM 0-3 at 0.64 ms, 444,050 row-times, 5.7 GB at 3,205 pixels --
-    fixed, whatever the run's length). Rows are numbered leaves first (the channels in frequency
+    fixed, whatever the run's length; on a GPU the merged rows live in their rings, with ``block`` more
+    slots each, see the constructor). Rows are numbered leaves first (the channels in frequency
     order), then each merge's output rows, level by level; a level is one gather-add over all its
     rows (one CUDA kernel on the GPU; the same array code on the CPU).
     """
@@ -193,7 +196,7 @@ class StreamingFDMT:
     #: ... and the rings are rescaled before a push whose sums could pass this (float16's largest: 65,504)
     FP16_LIMIT = 2.0 ** 14
 
-    def __init__(self, plan: FDMTPlan, npix, xp=np, pixel_chunk=None, allocate=True, precision="fp32"):
+    def __init__(self, plan: FDMTPlan, npix, xp=np, pixel_chunk=None, allocate=True, precision="fp32", block=64):
         if precision not in ("fp32", "fp16"):
             raise ValueError(f"precision: the tree stores 'fp32' or 'fp16' values, got {precision!r}")
         self.plan, self.npix, self.xp, self.precision = plan, int(npix), xp, precision
@@ -227,6 +230,23 @@ class StreamingFDMT:
         self.ring_base[self.ring_rows] = np.concatenate([[0], np.cumsum(ring_len[self.ring_rows])[:-1]]) \
             if self.ring_rows.size else np.zeros(0, np.int64)
         self.ring_size = int(ring_len.sum())
+        # On a GPU the merged rows that keep a ring live only in it, with room for a block's values
+        # too (``ring_len + block`` slots, time tau at slot tau mod that): the level that makes such a row
+        # writes it there and the levels that read it read it there, so no pass copies a block's newest
+        # values into the rings afterwards (0.5 GB read and written a whole-band gulp, ~1 ms on an
+        # H100). The working array loses those rows, so at a push of ``block`` images in one pass the
+        # memory is the same. The channels' own rows (the leaves) stay in the working array, their few
+        # ring values copied after the levels. Pushes longer than ``block`` are made ``block`` at a time.
+        self.block = int(block)
+        if self.block < 1:
+            raise ValueError(f"block: expected the most images a push holds (>= 1), got {block!r}")
+        inplace = ring_len > 0
+        inplace[:plan.nchan] = False
+        self._inplace = inplace
+        self.wrow = np.where(inplace, -1, np.cumsum(~inplace) - 1).astype(np.int64)   # row -> working row
+        self.nwrow = int((~inplace).sum())
+        self.ring_cap = np.where(inplace, ring_len + self.block, ring_len)            # GPU ring slots a row
+        self.dev_ring_size = int(self.ring_cap.sum())
         top = (0, plan.nchan - 1)
         t0 = base[top] if plan.nchan > 1 else 0
         self.top = slice(t0, t0 + plan.dmax + 1)          # the whole band's rows: one contiguous run
@@ -236,15 +256,19 @@ class StreamingFDMT:
         self._dev = None
         if xp is not np:
             self._dev = {k: [xp.asarray(a.astype(np.int32)) for a in lv] for k, lv in enumerate(self._levels)}
-            self._dev_ring = (xp.asarray(self.ring_base), xp.asarray(self.ring_len.astype(np.int32)),
-                              xp.asarray(self.ring_rows.astype(np.int32)))
+            cap = self.ring_cap
+            dbase = np.full(nrow, -1, np.int64)
+            dbase[cap > 0] = np.concatenate([[0], np.cumsum(cap[cap > 0])[:-1]])
+            copied = self.ring_rows[~inplace[self.ring_rows]]          # the leaves' rings: copied after the levels
+            self._dev_ring = (xp.asarray(dbase), xp.asarray(cap.astype(np.int32)), xp.asarray(copied.astype(np.int32)),
+                              xp.asarray(self.wrow.astype(np.int32)))
         if allocate:                                    # (False: sizes only, e.g. for a plan)
             self.reset()
 
     def reset(self):
         """Forget the past (its values count as 0, as :func:`fdmt`'s before its first time; float16: as
         the next push's first image)."""
-        self.ring = self.xp.zeros((self.ring_size, self.ld), self.dtype)
+        self.ring = self.xp.zeros((self.ring_size if self.xp is np else self.dev_ring_size, self.ld), self.dtype)
         self.ntime = 0
         self._phase_at = -1
         self.scale = None           # float16: the values' scale (a power of two), set by the first push
@@ -291,22 +315,33 @@ class StreamingFDMT:
         self.scale = new
         return new
 
-    def _chunk(self, B):
+    def _gpu(self, gpu):
+        return self.xp is not np if gpu is None else bool(gpu)
+
+    def _chunk(self, B, gpu=None):
         """Pixels per pass for a block of ``B`` images: ``pixel_chunk``, or as many as ``WORK_BYTES``
         holds, evened out over the passes and rounded up to a warp's 32 (a 321-pixel chunk ran its
-        second 256-thread block a quarter full)."""
+        second 256-thread block a quarter full). gpu: the GPU's layout (default: where the tree is)."""
         if self.pixel_chunk:
             return min(self.npix, self.pixel_chunk)
-        most = max(1, self.WORK_BYTES // (np.dtype(self.dtype).itemsize * self.nrow * B))
+        rows = self.nwrow if self._gpu(gpu) else self.nrow
+        most = max(1, self.WORK_BYTES // (np.dtype(self.dtype).itemsize * rows * min(B, self.block if self._gpu(gpu) else B)))
         npass = -(-self.npix // most)
         per = -(-self.npix // npass)
         return min(self.npix, -(-per // 32) * 32)
 
-    def memory_bytes(self, B):
-        """Device bytes: the ring, and the working array of a block of ``B`` images."""
-        pc = self._chunk(B)
+    def ring_bytes(self, gpu=None):
+        """Device bytes of the rings (on a GPU with the merged rows' ``block`` slots: see the constructor)."""
+        return np.dtype(self.dtype).itemsize * (self.dev_ring_size if self._gpu(gpu) else self.ring_size) * self.ld
+
+    def memory_bytes(self, B, gpu=None):
+        """Device bytes: the rings, and the working array of a push of ``B`` images (on a GPU, pushes of
+        at most ``block``; gpu: that layout, default where the tree is)."""
+        g = self._gpu(gpu)
+        b = min(B, self.block) if g else B
+        pc = self._chunk(B, gpu=g)
         pc += pc % 2 if self.dtype is np.float16 else 0          # (float16 rows: even)
-        return np.dtype(self.dtype).itemsize * (self.ring_size * self.ld + self.nrow * B * pc)
+        return self.ring_bytes(g) + np.dtype(self.dtype).itemsize * (self.nwrow if g else self.nrow) * b * pc
 
     def push(self, images, factor=1.0, index=None, rows=False):
         """(nchan, B, npix) new images (channels in the plan's order of ``freq``) -> (dmax + 1, B, npix)
@@ -336,6 +371,11 @@ class StreamingFDMT:
         B = int(x.shape[1])
         if B == 0:
             return xp.empty((plan.dmax + 1, 0, self.npix), xp.float32)
+        if B > self.block:
+            # the GPU's rings hold a block's values (see the constructor); the host splits its pushes the
+            # same way so that a float16 tree's scale (set a push at a time) is the same on both
+            return xp.concatenate([self.push(x[:, a:a + self.block], factor, index)
+                                   for a in range(0, B, self.block)], axis=1)
         out = None
         if self._order is not None:
             x = x[self._order]
@@ -346,10 +386,11 @@ class StreamingFDMT:
         one_pass = half and xp is not np and pc >= self.npix and self.scale is not None
         scale = (self.scale if one_pass else self._set_ref_and_scale(x, index)) if half else 1.0
         rows = rows and half and xp is not np and pc >= self.npix
+        top = self.top if xp is np else slice(int(self.wrow[self.top.start]), int(self.wrow[self.top.start]) + plan.dmax + 1)
         for p0 in range(0, self.npix, pc):
             p1 = min(self.npix, p0 + pc)
             n = p1 - p0
-            W = xp.empty((self.nrow, B, n + n % 2 if half else n), self.dtype)
+            W = xp.empty((self.nrow if xp is np else self.nwrow, B, n + n % 2 if half else n), self.dtype)
             if not half:
                 W[:plan.nchan] = x[:, :, p0:p1]
             elif xp is np:
@@ -371,18 +412,18 @@ class StreamingFDMT:
                 self._levels_gpu(W, p0, p1, B)
             if rows:                                      # one pass: the rows stay where they are
                 self.ntime += B
-                return HalfRows(W, self.top.start, plan.dmax + 1, self._ref_sum, factor / scale, factor, self.npix)
+                return HalfRows(W, top.start, plan.dmax + 1, self._ref_sum, factor / scale, factor, self.npix)
             if out is None:
                 out = xp.empty((plan.dmax + 1, B, self.npix), xp.float32)
             # a slice: copied (and scaled) once, not gathered first
             if not half:
-                xp.multiply(W[self.top], np.float32(factor), out=out[:, :, p0:p1])
+                xp.multiply(W[top], np.float32(factor), out=out[:, :, p0:p1])
             else:
                 a, b = np.float32(factor / scale), np.float32(factor)
                 if xp is np:
-                    out[:, :, p0:p1] = W[self.top, :, :n].astype(np.float32) * a + self._ref_sum[p0:p1] * b
+                    out[:, :, p0:p1] = W[top, :, :n].astype(np.float32) * a + self._ref_sum[p0:p1] * b
                 else:
-                    _out_half_gpu(xp, W, self.top.start, plan.dmax + 1, self._ref_sum, a, b, out, p0, n)
+                    _out_half_gpu(xp, W, top.start, plan.dmax + 1, self._ref_sum, a, b, out, p0, n)
         self.ntime += B
         return out
 
@@ -410,24 +451,24 @@ class StreamingFDMT:
         bx = min(128, pc)
         grid_x = -(-pc // bx)
         k_level, k_ring = _gpu_kernels(self.precision)
-        rbase, rlen, rrows = self._dev_ring
+        rbase, rcap, rrows, wrow = self._dev_ring
         if self._phase_at != self.ntime:
             # each ring row's slot of time ntime, once per push: the kernels index the rings in 32-bit
             # arithmetic (measured alone this gained nothing -- the kernel was not bound by its index
             # math; the gain, 0.61 -> 0.36 s per second of the whole band, came from a thread per
             # row walking the block's times)
-            self._phase = self.xp.asarray((self.ntime % np.maximum(self.ring_len, 1)).astype(np.int32))
+            self._phase = self.xp.asarray((self.ntime % np.maximum(self.ring_cap, 1)).astype(np.int32))
             self._phase_at = self.ntime
         Y = 65535                                                  # CUDA's largest grid y: rows in slices
         for k in range(len(self._levels)):
             out, inL, inU, o = self._dev[k]
             for j in range(0, int(out.shape[0]), Y):
                 k_level((grid_x, min(Y, int(out.shape[0]) - j)), (bx,),
-                        (W, self.ring, out[j:], inL[j:], inU[j:], o[j:], rbase, rlen, self._phase, np.int32(B),
+                        (W, self.ring, out[j:], inL[j:], inU[j:], o[j:], rbase, rcap, self._phase, wrow, np.int32(B),
                          np.int32(pc), np.int32(ld), np.int32(q0)))
         for j in range(0, int(rrows.shape[0]), Y):
             k_ring((grid_x, min(Y, int(rrows.shape[0]) - j)), (bx,),
-                   (W, self.ring, rrows[j:], rbase, rlen, self._phase, np.int32(B), np.int32(pc), np.int32(ld),
+                   (W, self.ring, rrows[j:], rbase, rcap, self._phase, wrow, np.int32(B), np.int32(pc), np.int32(ld),
                     np.int32(q0)))
 
 
@@ -446,53 +487,69 @@ typedef float VT;
 __device__ __forceinline__ VT vadd(VT a, VT b) { return a + b; }
 #endif
 
-// One level of the streaming FDMT: W[out[j], t, p] = W[inL[j], t, p] + (the upper half's row inU[j]
-// o[j] images back: in this block, or in its ring). grid (pixel blocks, rows); each thread walks the
-// block's B times (a thread per element made ~230,000 short blocks per level). phase[u]: the slot of
-// row u's ring that holds the time just before this block's first (ring time tau0 mod rlen[u]), so
-// the ring index is 32-bit: phase + s, s in [-rlen, -1]. pc, ld, p0 count VT (pixel pairs for HALF).
-extern "C" __global__ void bf_fdmt_level(VT* __restrict__ W, const VT* __restrict__ ring,
+// A row's values at the block's times t (row r at time tau0 + t): in the working array W (row wrow[r] of
+// B x pc, t >= 0 only), or, for a merged row that keeps a ring, in the ring itself (wrow[r] < 0): slot
+// (phase[r] + t) mod cap[r] of its cap[r] = (ring length + block) rows of ld, t in [-ring length, B).
+// A leaf's (channel's) older values (t < 0) are in its ring (cap = its ring length), copied there by
+// bf_fdmt_ring. phase[r]: the slot of time tau0 (tau0 mod cap[r]), so the index is 32-bit.
+struct Row { VT* p; long long stride; int ph, cap; };
+__device__ __forceinline__ Row row_at(VT* W, VT* ring, const int r, const int* __restrict__ wrow,
+                                      const long long* __restrict__ rbase, const int* __restrict__ cap,
+                                      const int* __restrict__ phase, const int B, const int pc, const int ld,
+                                      const int p0, const int p, const bool older)
+{
+    const int w = wrow[r];
+    Row x;
+    if (w >= 0 && !older) { x.p = W + (long long)w * B * pc + p; x.stride = pc; x.ph = 0; x.cap = 0x7fffffff; }
+    else { x.p = ring + rbase[r] * ld + p0 + p; x.stride = ld; x.ph = phase[r]; x.cap = cap[r]; }
+    return x;
+}
+__device__ __forceinline__ long long slot(const Row& x, const int t)      // t in [-cap, cap)
+{
+    int m = x.ph + t;
+    if (m < 0) m += x.cap; else if (m >= x.cap) m -= x.cap;
+    return (long long)m * x.stride;
+}
+
+// One level of the streaming FDMT: row out[j] at t = row inL[j] at t + row inU[j] at t - o[j] (this
+// block's, or older). grid (pixel blocks, rows); each thread walks the block's B times (a thread per
+// element made ~230,000 short blocks per level). pc, ld, p0 count VT (pixel pairs for HALF).
+extern "C" __global__ void bf_fdmt_level(VT* __restrict__ W, VT* __restrict__ ring,
                                          const int* __restrict__ out, const int* __restrict__ inL,
                                          const int* __restrict__ inU, const int* __restrict__ o,
-                                         const long long* __restrict__ rbase, const int* __restrict__ rlen,
-                                         const int* __restrict__ phase,
+                                         const long long* __restrict__ rbase, const int* __restrict__ cap,
+                                         const int* __restrict__ phase, const int* __restrict__ wrow,
                                          const int B, const int pc, const int ld, const int p0)
 {
     const int p = blockIdx.x * blockDim.x + threadIdx.x;
     if (p >= pc) return;
     const int j = blockIdx.y;
-    const int u = inU[j], oj = o[j], ph = phase[u], L = rlen[u];
-    const VT* wl = W + (long long)inL[j] * B * pc + p;
-    const VT* wu = W + (long long)u * B * pc + p;
-    const VT* rg = ring + rbase[u] * ld + p0 + p;
-    VT* wo = W + (long long)out[j] * B * pc + p;
+    const int u = inU[j], oj = o[j];
+    const Row rl = row_at(W, ring, inL[j], wrow, rbase, cap, phase, B, pc, ld, p0, p, false);
+    const Row ru = row_at(W, ring, u, wrow, rbase, cap, phase, B, pc, ld, p0, p, false);
+    const Row rg = row_at(W, ring, u, wrow, rbase, cap, phase, B, pc, ld, p0, p, true);
+    const Row ro = row_at(W, ring, out[j], wrow, rbase, cap, phase, B, pc, ld, p0, p, false);
     #pragma unroll 4
     for (int t = 0; t < B; ++t) {
         const int s = t - oj;
-        VT b;
-        if (s >= 0) {
-            b = wu[(long long)s * pc];
-        } else {
-            int m = ph + s;
-            if (m < 0) m += L;
-            b = rg[(long long)m * ld];
-        }
-        wo[(long long)t * pc] = vadd(wl[(long long)t * pc], b);
+        const VT b = s >= 0 ? ru.p[slot(ru, s)] : rg.p[slot(rg, s)];
+        ro.p[slot(ro, t)] = vadd(rl.p[slot(rl, t)], b);
     }
 }
 
-// Each ring row keeps its newest rlen values: block times t >= B - rlen go to slot (tau0 + t) % rlen.
-// grid (pixel blocks, ring rows).
+// A leaf's ring keeps its newest cap values: block times t >= B - cap go to slot (tau0 + t) % cap.
+// grid (pixel blocks, leaves with a ring).
 extern "C" __global__ void bf_fdmt_ring(const VT* __restrict__ W, VT* __restrict__ ring,
                                         const int* __restrict__ rows, const long long* __restrict__ rbase,
-                                        const int* __restrict__ rlen, const int* __restrict__ phase,
-                                        const int B, const int pc, const int ld, const int p0)
+                                        const int* __restrict__ cap, const int* __restrict__ phase,
+                                        const int* __restrict__ wrow, const int B, const int pc, const int ld,
+                                        const int p0)
 {
     const int p = blockIdx.x * blockDim.x + threadIdx.x;
     if (p >= pc) return;
     const int g = rows[blockIdx.y];
-    const int L = rlen[g];
-    const VT* w = W + (long long)g * B * pc + p;
+    const int L = cap[g];
+    const VT* w = W + (long long)wrow[g] * B * pc + p;
     VT* rg = ring + rbase[g] * ld + p0 + p;
     int m = (phase[g] + max(0, B - L)) % L;
     for (int t = max(0, B - L); t < B; ++t) {

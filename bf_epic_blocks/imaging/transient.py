@@ -208,7 +208,7 @@ class TransientSearch:
             smax = int(np.rint(max(dms) * per_dm))
             plan = FDMTPlan(self.freq_hz, smax)
             self._tree = StreamingFDMT(plan, self.npix, xp=xp, pixel_chunk=pixel_chunk, allocate=allocate,
-                                       precision=tree_precision)
+                                       precision=tree_precision, block=self.max_batch)
             self.dms = [float(x) for x in (np.arange(smax + 1) / per_dm if per_dm > 0 else np.zeros(1))]
             self._back = effective_back(plan)                              # (nsweep, nchan)
             self.delay_max = np.arange(smax + 1)
@@ -250,12 +250,12 @@ class TransientSearch:
         gpu = self.xp is not np if gpu is None else bool(gpu)
         step = max(1, min(self.nser, self.CHUNK_BYTES // max(1, B * P * 8)))
         rows = (gpu and self._tree is not None and self._tree.dtype is np.float16 and self.FUSED_STATS
-                and self.wmax <= _STATS_MAXW and self._tree._chunk(B) >= P)
+                and self.wmax <= _STATS_MAXW and self._tree._chunk(B, gpu) >= P)
         working = 4 * len(self.widths) * step * B * P + (0 if rows else 4 * self.nser * B * P)
         parts = {"history": 4 * self.nser * self.capacity * P, "statistics": (8 + 8 + 4) * self.nser * P}
         if self._tree is not None:
-            parts["tree"] = np.dtype(self._tree.dtype).itemsize * self._tree.ring_size * self._tree.ld
-            working += self._tree.memory_bytes(B) - parts["tree"]
+            parts["tree"] = self._tree.ring_bytes(gpu)
+            working += self._tree.memory_bytes(B, gpu) - parts["tree"]
         else:
             parts["channels"] = 4 * self.nchan * self.shift * P if self.average else 0
             working += 4 * self.nchan * (self.shift + B) * P if self.average else 0     # the joined past
