@@ -274,11 +274,18 @@ def reference_power(Aq, osc, Bv, T, n=16, base=None):
     return out
 
 
-def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None):
+def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None, grid=None):
     """GPU: the fused GEMM and power sums. Aq, osc: :func:`quantise_operator`; Bv: :func:`layout_voltages`
     (C', P T, KD); flag: int32 device scalar (nonzero: NaN images); npix: pixels kept (default Kpad).
     Returns float32 (T // 16, C', P, npix): [g, c, p, k] is the sum over samples 16 g .. 16 g + 15
-    of |F_pk|^2 -- the direct route's block sums of the pols' own powers, as :mod:`.dft` keeps them."""
+    of |F_pk|^2 -- the direct route's block sums of the pols' own powers, as :mod:`.dft` keeps them.
+
+    grid : None, or (out, fac, cell) to image straight onto a grid (the Hopper kernel, ``EPI=1``):
+    out float32 (G, C', ncell), G <= T // 16, receives sum_p fac[c, p, k] * (the sum above) in cell
+    ``cell[k]`` of pixel k (int32 (npix,)); fac float32 (C', P, Kpad) (``osc`` is then not used: fac
+    holds it times what the image's products need). The pols' shares are two launches, the second
+    adding to the first's (two terms: the same bits in any order); cells no pixel has are not written.
+    Returns ``out``."""
     import cupy as cp
     if Aq.ndim == 6:                                 # already in the bulk-copy kernel's tiles
         C, PA, MT_, NP, KB_, _ = (int(s) for s in Aq.shape)
@@ -299,16 +306,35 @@ def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None):
     if ncol != P * T or ncol % BN or KD % cfg["BK"] or M % bm or (PA > 1 and T % BN):
         raise ValueError(f"fused imaging needs P*T a multiple of {BN} (and T too with per-pol gains), got T={T}, P={P}")
     npix = int(M // 2 if npix is None else npix)
-    out = cp.empty((T // 16, C, P, npix), cp.float32)
-    k, smem = _fused_kernel(NP, KD, cfg)
     nt = (384 if cfg.get("EPI") else 288) if cfg.get("BULK") else 256 if cfg.get("WG") else 32 * cfg["WMW"] * (BN // cfg["WN"])
     bn = cfg.get("WGN", BN)
     if ncol % bn:
         raise ValueError(f"fused imaging needs P*T a multiple of {bn}, got T={T}, P={P}")
     mt = int(cfg.get("MT", 1))
-    k((-(-(M // bm) // mt), ncol // bn, C), (nt,), (Aq, Bv, osc, flag, out, np.int32(M), np.int32(ncol),
-                                                     np.int32(T), np.int32(PA), np.int32(_base_of(NP, KD)),
-                                                     np.int32(npix)),
+    rows = -(-(M // bm) // mt)
+    base = np.int32(_base_of(NP, KD))
+    if grid is not None:
+        if not (cfg.get("BULK") and cfg.get("EPI")):
+            raise ValueError("fused imaging onto a grid needs the Hopper kernel (config BULK=1, EPI=1)")
+        out, fac, cell = grid
+        G, ncell = int(out.shape[0]), int(out.shape[-1])
+        if (out.dtype != cp.float32 or not out.flags.c_contiguous or out.size != G * C * ncell or G > T // 16
+                or fac.shape != (C, P, M // 2) or fac.dtype != cp.float32 or cell.shape != (npix,)):
+            raise ValueError("fused_power: grid expects out float32 (G <= T/16, C', ncell) contiguous, fac float32 "
+                             f"({C}, {P}, {M // 2}) and cell ({npix},); got {out.dtype} {tuple(out.shape)}, "
+                             f"{fac.dtype} {tuple(fac.shape)}, {tuple(cell.shape)}")
+        k, smem = _fused_kernel(NP, KD, dict(cfg, GRID=1))
+        per = ncol // bn // P                      # a pol's column blocks (T is a whole number of them)
+        for p in range(P):
+            k((rows, per, C), (nt,), (Aq, Bv, fac, flag, out, np.int32(M), np.int32(ncol), np.int32(T), np.int32(PA),
+                                      base, np.int32(npix), cell, np.int32(ncell), np.int32(G), np.int32(p * per),
+                                      np.int32(p > 0)), shared_mem=smem)
+        return out
+    out = cp.empty((T // 16, C, P, npix), cp.float32)
+    k, smem = _fused_kernel(NP, KD, cfg)
+    extra = (np.uint64(0), np.int32(0), np.int32(0), np.int32(0), np.int32(0)) if cfg.get("EPI") and cfg.get("BULK") else ()
+    k((rows, ncol // bn, C), (nt,), (Aq, Bv, osc, flag, out, np.int32(M), np.int32(ncol), np.int32(T), np.int32(PA),
+                                     base, np.int32(npix)) + extra,
       shared_mem=smem)
     return out
 
@@ -345,6 +371,25 @@ class FusedOperator:
         pads a gulp with zero samples to whole tiles, so n must be a multiple of 16 -- or all T samples
         (one integration's part in this gulp, any length)."""
         return n % 16 == 0 or n == T
+
+    def onto_grid(self):
+        """Whether :meth:`place` can image straight onto a grid here (the Hopper kernel)."""
+        return bool(self.config.get("BULK") and self.config.get("EPI"))
+
+    def place(self, pairs, pols, fac, cell, out, ci4=False):
+        """Images of 16 samples each straight onto a grid: out[g, c, cell[k]] = sum_p fac[c, p, k] *
+        (:meth:`sums` with n = 16)[g, c, p, k] (:func:`fused_power`'s ``grid``); out float32 (G, C', ncell),
+        G = T // 16 of the T samples in ``pairs``; cells no pixel has are left as they are."""
+        xp = get_xp(pairs)
+        T = int(pairs.shape[0])
+        key = tuple(pols)
+        if key not in self._pmaps:
+            self._pmaps[key] = xp.asarray(list(pols), dtype=xp.int32)
+        self.flag.fill(0)
+        Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4,
+                             tiled=self.tiled)
+        return fused_power(self.Aq, self.osc, Bv, padded_ntime(T), len(pols), self.flag, self.npix, self.config,
+                           grid=(out, fac, cell))
 
     def sums(self, pairs, pols, n, ci4=False):
         """(g, C', P', npix) float32 sums of |F_p|^2 over groups of ``n`` samples (:meth:`supports`);
@@ -751,7 +796,7 @@ _BULK_PROLOGUE = r"""
     const unsigned fullb = bar0, emptyb = bar0 + 8 * ST, bbar = bar0 + 16 * ST;
     const int tid = threadIdx.x, lane = tid & 31, warp = tid >> 5;
     const int MTILES = M / BM, mt0 = blockIdx.x * MT, ntile = min(MT, MTILES - mt0);
-    const int n0 = blockIdx.y * BN, c = blockIdx.z;
+    const int n0 = BY * BN, c = blockIdx.z;
     const int pa = PA > 1 ? n0 / T : 0;
     const int NALL = ntile * NIT;
     if (tid == 0) {
@@ -765,7 +810,7 @@ _BULK_PROLOGUE = r"""
         if (warp == 8 && lane == 0) {
             const signed char* Ab = A + ((long long)(c * PA + pa) * MTILES + mt0) * NIT * TILE;
             mbar_expect(bbar, KB * TILE);
-            bulk_load(smem_u32(sB), B + ((long long)c * (NCOL / BN) + blockIdx.y) * KB * TILE, KB * TILE, bbar);
+            bulk_load(smem_u32(sB), B + ((long long)c * (NCOL / BN) + BY) * KB * TILE, KB * TILE, bbar);
             for (int g = 0; g < (FULL_TILES ? MT * NIT : NALL); g++) {   // FULL_TILES: MT tiles, the last repeated
                 const int s = g % ST;
                 if (g >= ST) mbar_wait(emptyb + 8 * s, ((g / ST) - 1) & 1);   // its last use is done
@@ -786,6 +831,9 @@ _BULK_HEAD = _COMMON + r"""
 #endif
 #ifndef PRODUCER_ENTRY
 #define PRODUCER_ENTRY
+#endif
+#ifndef BY
+#define BY blockIdx.y                 // the block's 128-column block
 #endif
 #define NACC 64
 #define TILE 16384
@@ -883,6 +931,12 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
 #: two after each stage's MMAs are issued; a wgmma group stays in flight across stages. 128
 #: accumulators a thread: one block per SM.
 _SRC_WGP = r"""
+#ifndef GRID
+#define GRID 0
+#endif
+#if GRID
+#define BY (blockIdx.y + y0)          // a launch of one pol's column blocks
+#endif
 #define FULL_TILES 1
 // a whole producer warpgroup, so that registers can move to the MMA warpgroups (setmaxnreg: registers
 // are allotted per warpgroup, and 2 x 128 accumulators need more than 65536 / 384 = 168 a thread)
@@ -900,30 +954,71 @@ __device__ __forceinline__ void mbar_arrive_lane0(unsigned a, int lane) {
                  :: "r"(a), "r"(lane) : "memory");
 }
 
+#if GRID
+// GRID: one pol's share of an image placed on the grid: lane u % 4 writes (pol 0: stores; pol 1: adds, after
+// pol 0's launch) ob[u us + cell[pix]], the sum times its factor, for images g0 + u < G
+__device__ __forceinline__ void put_cell(float* __restrict__ ob, const long long us, const int* f0, const int* f1,
+                                         const int lane, const int u, const int pix, const int cell, const float sc,
+                                         const bool bad, const int npix, const int g0, const int G, const int red)
+{
+    float s = 0.f;
+#pragma unroll
+    for (int h = 0; h < 2; h++) {
+        const int* a = h ? f1 : f0;
+        const float r0 = (float)a[0], r1 = (float)a[1], i0 = (float)a[2], i1 = (float)a[3];
+        s += r0 * r0 + r1 * r1 + i0 * i0 + i1 * i1;
+    }
+    s += __shfl_xor_sync(0xffffffffu, s, 1);
+    s += __shfl_xor_sync(0xffffffffu, s, 2);
+    if ((lane & 3) == (u & 3) && pix < npix && g0 + u < G) {
+        const float v = bad ? __int_as_float(0x7fc00000) : s * sc;
+        float* a = ob + u * us + cell;
+        if (red) atomicAdd(a, v); else *a = v;
+    }
+}
+#endif
+
 // the epilogue units of tile (mt0 + tp) due at stage `it` of the next tile (all of them when it < 0)
 __device__ __forceinline__ void epi_units(const int* de, const int it, float* __restrict__ ob, const long long us,
                                           const float* __restrict__ osc, const int lane, const int tp,
                                           const int mt0, const int wgi, const int wq, const long long orow,
-                                          const bool bad, const int npix, const int nit)
+                                          const bool bad, const int npix, const int nit,
+                                          const int* __restrict__ cellv, const int g0, const int G, const int red)
 {
     const int m0 = (mt0 + tp) * BM;
     const int pix = ((m0 + wgi * 64 + wq * 16) >> 4) * 8 + (lane >> 2);
     float sc = 0.f;
+#if GRID
+    int cl = 0;
+#endif
     bool any = false;
 #pragma unroll
     for (int u = 0; u < NU; u++) any |= it < 0 || u % nit == it;
-    if (any) sc = osc[orow + pix];
+    if (any) {
+        sc = osc[orow + pix];
+#if GRID
+        if (pix < npix) cl = cellv[pix];
+#endif
+    }
 #pragma unroll
     for (int u = 0; u < NU; u++)
-        if (it < 0 || u % nit == it)
+        if (it < 0 || u % nit == it) {
+#if GRID
+            put_cell(ob, us, de + 8 * u, de + 8 * u + 4, lane, u, pix, cl, sc, bad, npix, g0, G, red);
+#else
             put_unit(ob, us, de + 8 * u, de + 8 * u + 4, lane, u, pix, sc, bad, npix);
+#endif
+        }
 }
 
-// A tiled (C, PA, M/128, NP, KD/128, TILE); B tiled (C, NCOL/128, KD/128, TILE); osc, flag, out as _SRC_WG
+// A tiled (C, PA, M/128, NP, KD/128, TILE); B tiled (C, NCOL/128, KD/128, TILE); osc, flag, out as _SRC_WG.
+// GRID: out (G, C, ncell) images, osc (C, P, Kp) each pol's factor (scale, pattern, product coefficient),
+// pixel k in cell cell[k]; the launch covers column blocks y0 .. of one pol (red: add to the other's)
 extern "C" __global__ void __launch_bounds__(NT, 1)
 bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict__ B, const float* __restrict__ osc,
                const int* __restrict__ flag, float* __restrict__ out, const int M, const int NCOL,
-               const int T, const int PA, const int base, const int npix)
+               const int T, const int PA, const int base, const int npix,
+               const int* __restrict__ cellv, const int ncell, const int G, const int y0, const int red)
 {
 """ + _BULK_PROLOGUE + r"""    asm volatile("setmaxnreg.inc.sync.aligned.u32 232;\n" ::: "memory");
     const int wgi = warp >> 2, wq = warp & 3;
@@ -932,9 +1027,17 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
     for (int i = 0; i < NACC; i++) { d0[i] = 0; d1[i] = 0; }
     const bool bad = flag[0] != 0;
     const int Kp = M / 2, C = gridDim.z, P = NCOL / T, TU = T / 16;
+#if GRID
+    const int pu = (n0 / 16) / TU, g0 = n0 / 16 - pu * TU;
+    float* ob = out + ((long long)g0 * C + c) * ncell;
+    const long long us = (long long)C * ncell;
+    const long long orow = (long long)(c * P + pu) * Kp;
+#else
+    const int g0 = 0;
     float* ob = unit_out(out, n0 / 16, c, C, P, TU, npix);
     const long long us = (long long)C * P * npix;
     const long long orow = (long long)(c * PA + pa) * Kp;
+#endif
     mbar_wait(bbar, 0);
 
     // pass t (t = 0 .. MT, unrolled: every wgmma group and register set known to the compiler, which
@@ -961,12 +1064,12 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
                 asm volatile("wgmma.wait_group.sync.aligned 1;\n" ::: "memory");   /* all but this stage's */ \
                 if (g > 0 && !(NP > 1 && it % KB == 0 && it > 0)) mbar_arrive_lane0(emptyb + 8 * ((g - 1) % ST), lane); \
                 if (tt >= 1 && tt - 1 < ntile) \
-                    epi_units(de, it, ob, us, osc, lane, tt - 1, mt0, wgi, wq, orow, bad, npix, NIT); \
+                    epi_units(de, it, ob, us, osc, lane, tt - 1, mt0, wgi, wq, orow, bad, npix, NIT, cellv, g0, G, red); \
             } \
         } else { \
             asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory"); \
             if (tt - 1 < ntile) \
-                epi_units(de, -1, ob, us, osc, lane, tt - 1, mt0, wgi, wq, orow, bad, npix, NIT); \
+                epi_units(de, -1, ob, us, osc, lane, tt - 1, mt0, wgi, wq, orow, bad, npix, NIT, cellv, g0, G, red); \
         } } while (0)
 
     PASS(0, d0, d1);
@@ -1132,7 +1235,7 @@ def _fused_kernel(pieces, kd, cfg):
         opts = ("-std=c++17", f"-DNP={pieces}", f"-DKD={kd}") + tuple(f"-D{k}={v}" for k, v in sorted(cfg.items()))
         if cfg.get("BULK"):
             opts = ("-std=c++17", f"-DNP={pieces}", f"-DKD={kd}", f"-DST={cfg['ST']}", f"-DMT={cfg.get('MT', 1)}",
-                    f"-DWAIT1={int(cfg.get('WAIT1', 0))}")
+                    f"-DWAIT1={int(cfg.get('WAIT1', 0))}", f"-DGRID={int(cfg.get('GRID', 0))}")
             k = cp.RawKernel(_SRC_WGP if cfg.get("EPI") else _SRC_WGB, "bf_fused_power", options=opts + ("-arch=sm_90a",))
         elif cfg.get("WG"):
             k = cp.RawKernel(_SRC_WG, "bf_fused_power", options=opts + ("-arch=sm_90a",))

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._xp import get_xp, host_all, host_any
+from ._xp import get_xp, host_all, host_any, to_numpy
 
 
 def n_from_lm(l, m):
@@ -123,7 +123,7 @@ class GridPlacement:
                              f"values of dtype {index.dtype}")
         self.n, self.npix, self.xp = n, int(index.size), xp
         self.index = xp.asarray(index)
-        self._gather = None
+        self._gather = self._cells = self._empty = None
         if xp.__name__ == "cupy":
             gather = np.full(n, -1, np.int32)
             gather[index] = np.arange(index.size, dtype=np.int32)
@@ -134,6 +134,29 @@ class GridPlacement:
         """On the GPU, the int32 (n,) pixel of each cell (-1: none), for kernels that place as they
         write (:func:`.reduce.products_from_blocks`); None on the CPU."""
         return self._gather
+
+    @property
+    def cells(self):
+        """On the GPU, the int32 (npix,) cell of each pixel (kernels that write each pixel's cell); None on
+        the CPU."""
+        if self._gather is None:
+            return None
+        if self._cells is None:
+            self._cells = self.xp.asarray(self.index, dtype=self.xp.int32)
+            empty = np.setdiff1d(np.arange(self.n), to_numpy(self.index)).astype(np.int32)
+            self._empty = self.xp.asarray(empty)
+        return self._cells
+
+    def fill_empty(self, out):
+        """GPU: NaN in the cells no pixel has, of ``out`` (..., n) float32 contiguous (one small kernel;
+        the other cells are left as they are)."""
+        xp = self.xp
+        self.cells                                                        # (makes the empty cells' list)
+        rows = out.size // self.n
+        if self._empty.size and rows:
+            _fill_kernel(xp)(((int(self._empty.size) + 255) // 256, min(rows, 65535)), (256,),
+                             (out, self._empty, np.int32(self._empty.size), np.int64(rows), np.int32(self.n)))
+        return out
 
     def __call__(self, values, out=None):
         """(..., npix) real or complex -> ``out`` (..., n) (a new array of the values' dtype if None;
@@ -274,3 +297,22 @@ def azalt_from_lm(pixels_lm):
     az = np.rad2deg(np.arctan2(lm[:, 0], lm[:, 1])) % 360.0
     alt = np.rad2deg(np.arctan2(n, np.hypot(lm[:, 0], lm[:, 1])))
     return az, alt
+
+
+_FILL = {}
+
+
+def _fill_kernel(cp):
+    key = cp.cuda.Device().id
+    if key not in _FILL:
+        _FILL[key] = cp.RawKernel(r"""
+extern "C" __global__ void bf_fill_empty(float* out, const int* __restrict__ empty, const int ne, const long long rows,
+                                         const int n)
+{
+    const int j = blockIdx.x * blockDim.x + threadIdx.x;
+    if (j >= ne) return;
+    const int e = empty[j];
+    for (long long r = blockIdx.y; r < rows; r += gridDim.y) out[r * n + e] = __int_as_float(0x7fc00000);
+}
+""", "bf_fill_empty")
+    return _FILL[key]
