@@ -220,3 +220,22 @@ def test_wholeband_band_mean_made_once_for_the_files_and_the_cube(tmp_path):
         with fits.open(f) as h:
             got = h[0].data.reshape(-1)[band["pixel_index"]]
         assert np.allclose(got, band["images"][k * n:(k + 1) * n, 0, 0].astype(np.float64).mean(axis=0), rtol=2e-6)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not __import__("bf_epic_blocks.imaging._xp", fromlist=["x"]).gpu_available(),
+                    reason="needs CuPy and a CUDA device")
+def test_the_gpu_band_mean_is_the_float64_mean_of_the_channels():
+    """The band mean's kernel (a thread per output value, the channels summed in float64): NumPy's float64
+    mean to its rounding, NaN wherever a channel is NaN (a cell below the horizon)."""
+    import cupy as cp
+    from bf_epic_blocks.imaging.reduce import channel_mean
+    rng = np.random.default_rng(9)
+    x = rng.normal(100.0, 30.0, (5, 37, 1, 300)).astype(np.float32)
+    x[:, :, :, 7] = np.nan
+    x[2, 11, 0, 40] = np.nan
+    got = channel_mean(cp.asarray(x)).get()
+    want = x.astype(np.float64).mean(axis=1, keepdims=True)
+    assert got.shape == want.shape == (5, 1, 1, 300) and got.dtype == np.float64
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.allclose(got, want, rtol=1e-14, atol=0, equal_nan=True)

@@ -22,6 +22,7 @@ import math
 import numpy as np
 
 from ..imaging._xp import get_xp
+from ..imaging.reduce import channel_mean
 from . import _compat
 from ._compat import bfp, span_array
 from .headers import derived_header, image_layout
@@ -101,14 +102,14 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         pos = 0
         if self.nimage == 1:
             # each image its own output (the band mean of each, a pixel split's parts): all at once
-            part = x.mean(axis=1, keepdims=True, dtype=xp.float64) if self.average_channels else x
+            part = channel_mean(x) if self.average_channels else x
             out[:n] = _to_space(part.astype(out.dtype), out)
             pos = nout = n
         while pos < n:
             take = min(self.nimage - self._n, n - pos)
             part = x[pos:pos + take]
             if self.average_channels:
-                part = part.mean(axis=1, keepdims=True, dtype=xp.float64)
+                part = channel_mean(part)
             s = part.sum(axis=0, dtype=xp.float64)
             self._sum = s if self._sum is None else self._sum + s
             self._n += take

@@ -857,12 +857,12 @@ class ImageAccumulator:
 
     def _grid_images(self, efield, factor, place, out, ci4=False):
         """A fused mode's 16-sample images made straight into ``out`` (g, nchan, 1, cells) by the kernel
-        (:meth:`.fused.FusedOperator.place`): no per-pol sums in memory and no products pass (~1.3 ms a
-        whole-band gulp on an H100); the cells no pixel has NaN; dead channel-pols NaN as elsewhere."""
+        (:meth:`.fused.FusedOperator.place`), each pol's share added to the cleared cells (0; NaN where no
+        pixel is): no per-pol sums in memory and no products pass; dead channel-pols NaN as elsewhere."""
         op = self.op
         o3 = out.reshape(out.shape[0], out.shape[1], out.shape[3])
+        place.clear(o3)
         op.fused.place(efield, self.pols, self._grid_factor(factor), place.cells, o3, ci4=ci4)
-        place.fill_empty(out)
         self._fill_dead(out)
         return out
 

@@ -492,7 +492,7 @@ __device__ __forceinline__ VT vadd(VT a, VT b) { return a + b; }
 // (phase[r] + t) mod cap[r] of its cap[r] = (ring length + block) rows of ld, t in [-ring length, B).
 // A leaf's (channel's) older values (t < 0) are in its ring (cap = its ring length), copied there by
 // bf_fdmt_ring. phase[r]: the slot of time tau0 (tau0 mod cap[r]), so the index is 32-bit.
-struct Row { VT* p; long long stride; int ph, cap; };
+struct Row { VT* p; int stride, ph, cap; };      // (an offset within a row's slots fits 32 bits)
 __device__ __forceinline__ Row row_at(VT* W, VT* ring, const int r, const int* __restrict__ wrow,
                                       const long long* __restrict__ rbase, const int* __restrict__ cap,
                                       const int* __restrict__ phase, const int B, const int pc, const int ld,
@@ -504,11 +504,11 @@ __device__ __forceinline__ Row row_at(VT* W, VT* ring, const int r, const int* _
     else { x.p = ring + rbase[r] * ld + p0 + p; x.stride = ld; x.ph = phase[r]; x.cap = cap[r]; }
     return x;
 }
-__device__ __forceinline__ long long slot(const Row& x, const int t)      // t in [-cap, cap)
+__device__ __forceinline__ int slot(const Row& x, const int t)            // t in [-cap, cap)
 {
     int m = x.ph + t;
     if (m < 0) m += x.cap; else if (m >= x.cap) m -= x.cap;
-    return (long long)m * x.stride;
+    return m * x.stride;
 }
 
 // One level of the streaming FDMT: row out[j] at t = row inL[j] at t + row inU[j] at t - o[j] (this

@@ -123,7 +123,7 @@ class GridPlacement:
                              f"values of dtype {index.dtype}")
         self.n, self.npix, self.xp = n, int(index.size), xp
         self.index = xp.asarray(index)
-        self._gather = self._cells = self._empty = None
+        self._gather = self._cells = self._empty = None          # (_empty: clear()'s row)
         if xp.__name__ == "cupy":
             gather = np.full(n, -1, np.int32)
             gather[index] = np.arange(index.size, dtype=np.int32)
@@ -143,19 +143,23 @@ class GridPlacement:
             return None
         if self._cells is None:
             self._cells = self.xp.asarray(self.index, dtype=self.xp.int32)
-            empty = np.setdiff1d(np.arange(self.n), to_numpy(self.index)).astype(np.int32)
-            self._empty = self.xp.asarray(empty)
         return self._cells
 
-    def fill_empty(self, out):
-        """GPU: NaN in the cells no pixel has, of ``out`` (..., n) float32 contiguous (one small kernel;
-        the other cells are left as they are)."""
+    def clear(self, out):
+        """GPU: every image of ``out`` (..., n) float32 contiguous set to 0 in the pixels' cells and NaN in
+        the others (one pass of 16-byte stores: what kernels that add each pixel's terms start from)."""
         xp = self.xp
-        self.cells                                                        # (makes the empty cells' list)
+        if self._empty is None:
+            row = np.zeros(self.n, np.float32)
+            row[np.setdiff1d(np.arange(self.n), to_numpy(self.index))] = np.nan
+            self._empty = xp.asarray(row)
         rows = out.size // self.n
-        if self._empty.size and rows:
-            _fill_kernel(xp)(((int(self._empty.size) + 255) // 256, min(rows, 65535)), (256,),
-                             (out, self._empty, np.int32(self._empty.size), np.int64(rows), np.int32(self.n)))
+        if not (out.dtype == np.float32 and out.flags.c_contiguous and out.shape[-1] == self.n):
+            raise ValueError(f"clear: out must be float32 (..., {self.n}) contiguous, got {out.dtype} {tuple(out.shape)}")
+        if rows:
+            vec = 4 if self.n % 4 == 0 else 1
+            _clear_kernel(xp, vec)(((self.n // vec + 127) // 128, min(rows, 65535)), (128,),
+                                   (out, self._empty, np.int64(rows), np.int32(self.n // vec)))
         return out
 
     def __call__(self, values, out=None):
@@ -299,20 +303,21 @@ def azalt_from_lm(pixels_lm):
     return az, alt
 
 
-_FILL = {}
+_CLEAR = {}
 
 
-def _fill_kernel(cp):
-    key = cp.cuda.Device().id
-    if key not in _FILL:
-        _FILL[key] = cp.RawKernel(r"""
-extern "C" __global__ void bf_fill_empty(float* out, const int* __restrict__ empty, const int ne, const long long rows,
+def _clear_kernel(cp, vec):
+    key = (cp.cuda.Device().id, vec)
+    if key not in _CLEAR:
+        t = "float4" if vec == 4 else "float"
+        _CLEAR[key] = cp.RawKernel(r"""
+extern "C" __global__ void bf_clear_rows(T* __restrict__ out, const T* __restrict__ row, const long long rows,
                                          const int n)
 {
     const int j = blockIdx.x * blockDim.x + threadIdx.x;
-    if (j >= ne) return;
-    const int e = empty[j];
-    for (long long r = blockIdx.y; r < rows; r += gridDim.y) out[r * n + e] = __int_as_float(0x7fc00000);
+    if (j >= n) return;
+    const T v = row[j];
+    for (long long r = blockIdx.y; r < rows; r += gridDim.y) out[r * n + j] = v;
 }
-""", "bf_fill_empty")
-    return _FILL[key]
+""".replace("T*", t + "*").replace("const T v", "const " + t + " v"), "bf_clear_rows")
+    return _CLEAR[key]

@@ -415,3 +415,40 @@ def group_power(fp, fq=None, n=None):
     if fq is None:
         return (fp.real ** 2 + fp.imag ** 2).sum(axis=-1)
     return (fp * xp.conj(fq[..., :g * n].reshape(shp))).sum(axis=-1)
+
+
+_MEAN_SRC = r"""
+// out[i, j] = (sum_c x[i, c, j]) / C in float64, c in order: x (n, C, inner) float32 contiguous. A thread per
+// (i, j): a warp reads 128 contiguous bytes a channel (CuPy's axis-1 reduction read the whole-band image
+// gulp at ~1.8 TB/s on an H100)
+extern "C" __global__ void bf_channel_mean(const float* __restrict__ x, double* __restrict__ out, const int C,
+                                           const long long inner)
+{
+    const long long j = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    if (j >= inner) return;
+    const float* p = x + (long long)blockIdx.y * C * inner + j;
+    double s = 0.0;
+#pragma unroll 8
+    for (int c = 0; c < C; ++c) s += (double)p[(long long)c * inner];
+    out[(long long)blockIdx.y * inner + j] = s / C;
+}
+"""
+
+
+def channel_mean(x):
+    """The mean over axis 1 (the channels) of x (n, C, ...), kept as an axis of 1, accumulated in float64:
+    (n, 1, ...) float64 (NaN where any channel is NaN). On the GPU, a C-contiguous float32 ``x`` is one
+    kernel (:data:`_MEAN_SRC`); elsewhere ``mean(axis=1, dtype=float64)``."""
+    xp = get_xp(x)
+    if xp is np or x.dtype != np.float32 or not x.flags.c_contiguous or x.ndim < 2 or x.shape[0] > 65535 \
+            or x.shape[1] == 0:
+        return x.mean(axis=1, keepdims=True, dtype=xp.float64)
+    n, C = int(x.shape[0]), int(x.shape[1])
+    inner = int(np.prod(x.shape[2:])) if x.ndim > 2 else 1
+    out = xp.empty((n, 1) + tuple(x.shape[2:]), xp.float64)
+    if n and inner:
+        if "bf_channel_mean" not in _KERNELS:
+            import cupy as cp
+            _KERNELS["bf_channel_mean"] = cp.RawKernel(_MEAN_SRC, "bf_channel_mean")
+        _KERNELS["bf_channel_mean"](((inner + 255) // 256, n), (256,), (x, out, np.int32(C), np.int64(inner)))
+    return out
