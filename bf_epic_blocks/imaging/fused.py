@@ -353,7 +353,7 @@ class FusedOperator:
         self.pieces = PIECES[precision]
         w = op.data_weights if op.chan_index is None else op.data_weights[op.chan_index]
         kd = 2 * _pad(op.nant_in, 64)
-        self.config = kernel_config(kd, cp.cuda.Device().compute_capability, _pad(op.npix, 64) // 64)
+        self.config = kernel_config(kd, cp.cuda.Device().compute_capability)
         self.tiled = bool(self.config.get("BULK"))   # operands in the bulk-copy kernel's tiles
         self.Aq, self.osc, self.base, self.xmax = quantise_operator(
             op.live_G(0), w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled)
@@ -436,16 +436,12 @@ WG_CONFIG = dict(WG=1, BK=128, ST=4, WGN=128, MT=4, BULK=1, EPI=1)
 _SMEM_MAX = 227 * 1024
 
 
-def kernel_config(kd, device_cc, mtiles=None):
-    """The kernel shape for KD = 2 Apad on a device of compute capability ``device_cc`` ('90', '80');
-    ``mtiles``: the operator's 128-row tiles, if known. On Hopper a block takes MT = 4 row tiles, or 3
-    where that wastes fewer: a block past the last tile still runs its MMAs (on a repeat of the last
-    tile), so 3,205 pixels (51 tiles) in blocks of 4 ran 52 tiles' MMAs, in blocks of 3 exactly 51."""
+def kernel_config(kd, device_cc):
+    """The kernel shape for KD = 2 Apad on a device of compute capability ``device_cc`` ('90', '80').
+    (On Hopper MT = 3 row tiles a block, which for 3,205 pixels (51 tiles) runs no repeated tile where 4
+    runs one in 52, measured slower: 0.362 against 0.337 ms, regime B, H100, 2026-11-26.)"""
     if str(device_cc) == "90" and _smem(WG_CONFIG, kd) <= _SMEM_MAX:
-        cfg = dict(WG_CONFIG)
-        if mtiles:
-            cfg["MT"] = min((4, 3), key=lambda mt: (-(-mtiles // mt) * mt - mtiles, -mt))
-        return cfg
+        return dict(WG_CONFIG)
     if _smem(CONFIG, kd) <= _SMEM_MAX:
         return dict(CONFIG)
     return dict(CONFIG, BFULL=0)
@@ -983,28 +979,27 @@ __device__ __forceinline__ void put_cell(float* __restrict__ ob, const long long
 }
 #endif
 
+// row tile (mt0 + tp)'s pixel of this lane, its factor and (GRID) cell: loaded a pass before its epilogue
+// needs them (so that no epilogue unit waits on a load)
+__device__ __forceinline__ int tile_pix(const int mt0, const int tp, const int wgi, const int wq, const int lane) {
+    return (((mt0 + tp) * BM + wgi * 64 + wq * 16) >> 4) * 8 + (lane >> 2);
+}
+__device__ __forceinline__ void tile_load(float& sc, int& cl, const float* __restrict__ osc, const int* __restrict__ cellv,
+                                          const long long orow, const int pix, const int npix) {
+    sc = osc[orow + pix];
+#if GRID
+    cl = pix < npix ? cellv[pix] : 0;
+#endif
+}
+
 // the epilogue units of tile (mt0 + tp) due at stage `it` of the next tile (all of them when it < 0)
 __device__ __forceinline__ void epi_units(const int* de, const int it, float* __restrict__ ob, const long long us,
-                                          const float* __restrict__ osc, const int lane, const int tp,
-                                          const int mt0, const int wgi, const int wq, const long long orow,
-                                          const bool bad, const int npix, const int nit,
-                                          const int* __restrict__ cellv, const int g0, const int G, const int red)
+                                          const float sc, const int cl, const int lane, const int tp,
+                                          const int mt0, const int wgi, const int wq,
+                                          const bool bad, const int npix, const int nit, const int g0, const int G,
+                                          const int red)
 {
-    const int m0 = (mt0 + tp) * BM;
-    const int pix = ((m0 + wgi * 64 + wq * 16) >> 4) * 8 + (lane >> 2);
-    float sc = 0.f;
-#if GRID
-    int cl = 0;
-#endif
-    bool any = false;
-#pragma unroll
-    for (int u = 0; u < NU; u++) any |= it < 0 || u % nit == it;
-    if (any) {
-        sc = osc[orow + pix];
-#if GRID
-        if (pix < npix) cl = cellv[pix];
-#endif
-    }
+    const int pix = tile_pix(mt0, tp, wgi, wq, lane);
 #pragma unroll
     for (int u = 0; u < NU; u++)
         if (it < 0 || u % nit == it) {
@@ -1049,8 +1044,10 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
     // otherwise serialises the MMAs): the MMAs of tile t into dm (t < MT) and the epilogue of tile t - 1
     // from de (t >= 1). A block past the last row tile repeats that tile's loads (the producer clamps)
     // and writes nothing for it.
-#define PASS(t_, dm, de) do { \
+#define PASS(t_, dm, de, scm, clm, sce, cle) do { \
         constexpr int tt = (t_); \
+        if (tt < MT && tt < ntile) \
+            tile_load(scm, clm, osc, cellv, orow, tile_pix(mt0, tt, wgi, wq, lane), npix); \
         if (tt < MT) { \
             _Pragma("unroll") for (int it = 0; it < NIT; it++) { \
                 const int g = tt * NIT + it, s = g % ST; \
@@ -1069,38 +1066,40 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
                 asm volatile("wgmma.wait_group.sync.aligned 1;\n" ::: "memory");   /* all but this stage's */ \
                 if (g > 0 && !(NP > 1 && it % KB == 0 && it > 0)) mbar_arrive_lane0(emptyb + 8 * ((g - 1) % ST), lane); \
                 if (tt >= 1 && tt - 1 < ntile) \
-                    epi_units(de, it, ob, us, osc, lane, tt - 1, mt0, wgi, wq, orow, bad, npix, NIT, cellv, g0, G, red); \
+                    epi_units(de, it, ob, us, sce, cle, lane, tt - 1, mt0, wgi, wq, bad, npix, NIT, g0, G, red); \
             } \
         } else { \
             asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory"); \
             if (tt - 1 < ntile) \
-                epi_units(de, -1, ob, us, osc, lane, tt - 1, mt0, wgi, wq, orow, bad, npix, NIT, cellv, g0, G, red); \
+                epi_units(de, -1, ob, us, sce, cle, lane, tt - 1, mt0, wgi, wq, bad, npix, NIT, g0, G, red); \
         } } while (0)
 
-    PASS(0, d0, d1);
+    float sc0 = 0.f, sc1 = 0.f;
+    int cl0 = 0, cl1 = 0;
+    PASS(0, d0, d1, sc0, cl0, sc1, cl1);
 #if MT >= 1
-    PASS(1, d1, d0);
+    PASS(1, d1, d0, sc1, cl1, sc0, cl0);
 #endif
 #if MT >= 2
-    PASS(2, d0, d1);
+    PASS(2, d0, d1, sc0, cl0, sc1, cl1);
 #endif
 #if MT >= 3
-    PASS(3, d1, d0);
+    PASS(3, d1, d0, sc1, cl1, sc0, cl0);
 #endif
 #if MT >= 4
-    PASS(4, d0, d1);
+    PASS(4, d0, d1, sc0, cl0, sc1, cl1);
 #endif
 #if MT >= 5
-    PASS(5, d1, d0);
+    PASS(5, d1, d0, sc1, cl1, sc0, cl0);
 #endif
 #if MT >= 6
-    PASS(6, d0, d1);
+    PASS(6, d0, d1, sc0, cl0, sc1, cl1);
 #endif
 #if MT >= 7
-    PASS(7, d1, d0);
+    PASS(7, d1, d0, sc1, cl1, sc0, cl0);
 #endif
 #if MT >= 8
-    PASS(8, d0, d1);
+    PASS(8, d0, d1, sc0, cl0, sc1, cl1);
 #endif
 #undef PASS
 }
