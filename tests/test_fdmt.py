@@ -258,6 +258,12 @@ def test_the_gpu_float16_stream_reads_the_search_s_strided_view_and_names_nan():
     bad[3, 50, 36] = cp.nan
     with pytest.raises(ValueError, match="non-finite"):
         dev.push(cp.moveaxis(bad, 0, 1))
+    # the refused push left nothing behind (on the GPU its levels had run before the check): the stream
+    # goes on as the host's, which refused it before any level
+    with pytest.raises(ValueError, match="non-finite"):
+        host.push(np.moveaxis(bad.get(), 0, 1))
+    more = rng.normal(50.0, 5.0, size=(40, 96, 37)).astype(np.float32)
+    assert np.array_equal(host.push(np.moveaxis(more, 0, 1)), dev.push(cp.moveaxis(cp.asarray(more), 0, 1)).get())
 
 
 def _grid_cells(rng, x, ncell):
