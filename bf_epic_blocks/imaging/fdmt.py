@@ -275,7 +275,6 @@ class StreamingFDMT:
         self.ref = None             # float16: (nchan, npix) float32, each channel's first image since the reset
         self._ref_sum = None        # (npix,) float32: ref summed over the channels (in float64, on the host)
         self.rescales = 0
-        self._amax = None           # float16 on the GPU: the input pass's max |value - ref| (a device word)
 
     def _set_ref_and_scale(self, x, index=None):
         """float16: the reference (the first push's first image) and the scale (a power of two) under
@@ -382,11 +381,8 @@ class StreamingFDMT:
             x = x[self._order]
         pc = self._chunk(B)
         # on the GPU, one pass and a scale already set: the scale's maximum taken in the input pass itself
-        # (one read of the images, not two; 0.57 ms a whole-band gulp on an H100), and the levels queued
-        # before it is read, so that the GPU has them to run while the host waits for it (that wait left
-        # it idle ~1.4 ms a whole-band gulp, H100). In the rare push that needs a new scale (a flash) the
-        # rings are rescaled and the input pass and levels made again: the levels write no ring slot a
-        # later push reads before the leaves' ring copy, which waits for the check (see the constructor)
+        # (one read of the images, not two; 0.57 ms a whole-band gulp on an H100), checked before any
+        # level runs, and the pass made again at a new scale in the rare push that needs one (a flash)
         one_pass = half and xp is not np and pc >= self.npix and self.scale is not None
         scale = (self.scale if one_pass else self._set_ref_and_scale(x, index)) if half else 1.0
         rows = rows and half and xp is not np and pc >= self.npix
@@ -400,25 +396,19 @@ class StreamingFDMT:
             elif xp is np:
                 W[:plan.nchan, :, :n] = (x[:, :, p0:p1] - self.ref[:, None, p0:p1]) * np.float32(scale)
             elif one_pass:
-                if self._amax is None:
-                    self._amax = xp.zeros(1, xp.uint32)
-                else:
-                    self._amax.fill(0)
-                _in_half_gpu(xp, x, self.ref, np.float32(scale), W, p0, n, index, self._amax)
-                self._levels_gpu(W, p0, p1, B, ring=False)
-                new = self._scale_for(float(self._amax.get().view(np.float32)[0]))
+                amax = xp.zeros(1, xp.uint32)
+                _in_half_gpu(xp, x, self.ref, np.float32(scale), W, p0, n, index, amax)
+                new = self._scale_for(float(amax.get().view(np.float32)[0]))
                 if new != scale:                          # (the rings were rescaled to it)
                     scale = new
                     _in_half_gpu(xp, x, self.ref, np.float32(scale), W, p0, n, index)
-                    self._levels_gpu(W, p0, p1, B, ring=False)
-                self._ring_gpu(W, p0, B)
             else:                                         # (the spare pixel of an odd chunk written 0)
                 _in_half_gpu(xp, x, self.ref, np.float32(scale), W, p0, n, index)
             if xp is np and W.shape[2] > n:
                 W[:plan.nchan, :, n:] = 0                 # the even row's spare pixel
             if xp is np:
                 self._levels_host(W, p0, p1, B)
-            elif not one_pass:
+            else:
                 self._levels_gpu(W, p0, p1, B)
             if rows:                                      # one pass: the rows stay where they are
                 self.ntime += B
@@ -454,8 +444,7 @@ class StreamingFDMT:
             t0 = max(0, B - L)
             self.ring[self.ring_base[g] + (self.ntime + np.arange(t0, B)) % L, p0:p0 + W.shape[2]] = W[g, t0:]
 
-    def _levels_gpu(self, W, p0, p1, B, ring=True):
-        """The levels of a pass on the GPU, then (``ring``) the leaves' ring copy (:meth:`_ring_gpu`)."""
+    def _levels_gpu(self, W, p0, p1, B):
         # float16: a thread per pair of pixels (one 4-byte __half2 load); rows and rings of even length
         per = 2 if self.dtype is np.float16 else 1
         pc, ld, q0 = W.shape[2] // per, self.ld // per, p0 // per
@@ -477,19 +466,6 @@ class StreamingFDMT:
                 k_level((grid_x, min(Y, int(out.shape[0]) - j)), (bx,),
                         (W, self.ring, out[j:], inL[j:], inU[j:], o[j:], rbase, rcap, self._phase, wrow, np.int32(B),
                          np.int32(pc), np.int32(ld), np.int32(q0)))
-        if ring:
-            self._ring_gpu(W, p0, B)
-
-    def _ring_gpu(self, W, p0, B):
-        """The leaves' (channels') newest values into their rings: after the levels, which read the older
-        ones there (a leaf's ring has no room for a block's values besides)."""
-        per = 2 if self.dtype is np.float16 else 1
-        pc, ld, q0 = W.shape[2] // per, self.ld // per, p0 // per
-        bx = min(128, pc)
-        grid_x = -(-pc // bx)
-        k_ring = _gpu_kernels(self.precision)[1]
-        rbase, rcap, rrows, wrow = self._dev_ring
-        Y = 65535
         for j in range(0, int(rrows.shape[0]), Y):
             k_ring((grid_x, min(Y, int(rrows.shape[0]) - j)), (bx,),
                    (W, self.ring, rrows[j:], rbase, rcap, self._phase, wrow, np.int32(B), np.int32(pc), np.int32(ld),
