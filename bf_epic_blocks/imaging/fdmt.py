@@ -529,23 +529,11 @@ extern "C" __global__ void bf_fdmt_level(VT* __restrict__ W, VT* __restrict__ ri
     const Row ru = row_at(W, ring, u, wrow, rbase, cap, phase, B, pc, ld, p0, p, false);
     const Row rg = row_at(W, ring, u, wrow, rbase, cap, phase, B, pc, ld, p0, p, true);
     const Row ro = row_at(W, ring, out[j], wrow, rbase, cap, phase, B, pc, ld, p0, p, false);
-    // a run of TU times' loads issued before any of their stores: the compiler cannot move a load above
-    // a store to W (it may alias), so a load after each store kept one time's loads in flight a thread
-    // (Nsight Compute: 88% of the warps' cycles stalled on them, DRAM 58% busy)
-    constexpr int TU = 8;
-    for (int t0 = 0; t0 < B; t0 += TU) {
-        VT a[TU], b[TU];
-#pragma unroll
-        for (int u = 0; u < TU; ++u) {
-            const int t = t0 + u, s = t - oj;
-            if (t < B) {
-                a[u] = rl.p[slot(rl, t)];
-                b[u] = s >= 0 ? ru.p[slot(ru, s)] : rg.p[slot(rg, s)];
-            }
-        }
-#pragma unroll
-        for (int u = 0; u < TU; ++u)
-            if (t0 + u < B) ro.p[slot(ro, t0 + u)] = vadd(a[u], b[u]);
+    #pragma unroll 4
+    for (int t = 0; t < B; ++t) {
+        const int s = t - oj;
+        const VT b = s >= 0 ? ru.p[slot(ru, s)] : rg.p[slot(rg, s)];
+        ro.p[slot(ro, t)] = vadd(rl.p[slot(rl, t)], b);
     }
 }
 
@@ -653,35 +641,20 @@ extern "C" __global__ void bf_fdmt_in_half(const float* __restrict__ x, const fl
     const int k0 = has0 ? (idx ? idx[p0 + p] : p0 + p) : 0, k1 = has1 ? (idx ? idx[p0 + p + 1] : p0 + p + 1) : 0;
     int c = blockIdx.y / B, b = blockIdx.y - c * B;
     const int dc = gridDim.y / B, db = gridDim.y - dc * B;
-    // RU rows' loads issued before any of their stores (W may alias x for the compiler: a load after each
-    // store kept one row's loads in flight a thread)
-    constexpr int RU = 4;
-    for (int r0 = blockIdx.y; r0 < nchan * B; r0 += RU * gridDim.y) {
-        float d0[RU], d1[RU];
-#pragma unroll
-        for (int u = 0; u < RU; ++u) {
-            d0[u] = d1[u] = 0.f;
-            if (r0 + u * gridDim.y < nchan * B) {
-                const float* xr = x + c * sc + b * sb;
-                const float* rr = ref + (long long)c * npix + p0 + p;
-                d0[u] = has0 ? __fsub_rn(xr[k0], rr[0]) : 0.f;
-                d1[u] = has1 ? __fsub_rn(xr[k1], rr[1]) : 0.f;
-            }
-            c += dc; b += db;
-            if (b >= B) { b -= B; ++c; }
+#pragma unroll 4
+    for (int r = blockIdx.y; r < nchan * B; r += gridDim.y) {
+        const float* xr = x + c * sc + b * sb;
+        const float* rr = ref + (long long)c * npix + p0 + p;
+        const float d0 = has0 ? __fsub_rn(xr[k0], rr[0]) : 0.f, d1 = has1 ? __fsub_rn(xr[k1], rr[1]) : 0.f;
+        if (amax) {
+            m = fmaxf(m, d0 != d0 ? __int_as_float(0x7f800000) : fabsf(d0));
+            m = fmaxf(m, d1 != d1 ? __int_as_float(0x7f800000) : fabsf(d1));
         }
-#pragma unroll
-        for (int u = 0; u < RU; ++u) {
-            const int r = r0 + u * gridDim.y;
-            if (r >= nchan * B) break;
-            if (amax) {
-                m = fmaxf(m, d0[u] != d0[u] ? __int_as_float(0x7f800000) : fabsf(d0[u]));
-                m = fmaxf(m, d1[u] != d1[u] ? __int_as_float(0x7f800000) : fabsf(d1[u]));
-            }
-            const float a0 = has0 ? __fmul_rn(d0[u], s) : 0.f;
-            const float a1 = has1 ? __fmul_rn(d1[u], s) : 0.f;
-            if (q < ld2) W[(long long)r * ld2 + q] = __floats2half2_rn(a0, a1);
-        }
+        const float a0 = has0 ? __fmul_rn(d0, s) : 0.f;
+        const float a1 = has1 ? __fmul_rn(d1, s) : 0.f;
+        if (q < ld2) W[(long long)r * ld2 + q] = __floats2half2_rn(a0, a1);
+        c += dc; b += db;
+        if (b >= B) { b -= B; ++c; }
     }
     if (amax) {                                    // every thread of the warp here: one shuffle
 #pragma unroll
