@@ -685,10 +685,8 @@ _STATS_SRC = r"""
 // newest w values against the window: snr = (box / w - mean) sqrt(w) / sigma (written only when
 // write_snr: a chunk is run again, densely, only if it has a crossing), and a count per trial image of
 // the pixels over the threshold.
-#ifdef WLIST
 __device__ constexpr int WL[] = {WLIST};                  // the boxcar widths, in the search's order
 #define NWL ((int)(sizeof(WL) / sizeof(WL[0])))
-#endif
 extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const float* __restrict__ ref,
         float* __restrict__ hist, double* __restrict__ S1, double* __restrict__ S2, float* __restrict__ snr,
         int* __restrict__ count, const int* __restrict__ widths, const int nw, const int B, const int npix,
@@ -759,30 +757,34 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
             // inf or NaN, as before.
             const double mean = s1 * invW;
             const float meanf = (float)mean;
-            const float isig = rsqrtf((float)(fmax(s2 - s1 * mean, 0.0) * invW1));
+            const double var = s2 - s1 * mean;
+            const float isig = rsqrtf((float)((var > 0.0 ? var : 0.0) * invW1));   // (fmax's NaN handling: 0, as here)
             const int b = i - k0;
-#ifdef WLIST
-            // the widths known when the kernel is compiled: each box one of the newest values' running
-            // sums, added in the same order as below (bit for bit the same boxes), WMAX - 1 adds a value
-            // where the loop below made WMAX per width
+            // the widths known when the kernel is compiled (WLIST): each box one of the newest values' running
+            // sums, added in the same order as the per-width loops these replaced (bit for bit the same
+            // boxes), WMAX - 1 adds a value where those made WMAX per width
             float pre[WMAX];
             pre[0] = 0.f + last[0];
 #pragma unroll
             for (int j = 1; j < WMAX; j++) pre[j] = pre[j - 1] + last[j];
+            float zf[NWL];
+            bool over = false;
 #pragma unroll
             for (int wi = 0; wi < NWL; wi++) {
                 const int w = WL[wi];
-                const float box = pre[w - 1];
-#else
-            for (int wi = 0; wi < nw; wi++) {
-                const int w = widths[wi];
-                float box = 0.f;
+                zf[wi] = (pre[w - 1] - (float)w * meanf) * rsqrtf((float)w) * isig;
+                over |= zf[wi] > thr;
+            }
+            if (write_snr) {
 #pragma unroll
-                for (int j = 0; j < WMAX; j++) if (j < w) box += last[j];
-#endif
-                const float zf = (box - (float)w * meanf) * rsqrtf((float)w) * isig;
-                if (write_snr) snr[(((long long)wi * ns + s) * nb + b) * npix + p] = zf;
-                if (zf > thr) atomicAdd(&count[((long long)wi * ns + s) * nb + b], 1);
+                for (int wi = 0; wi < NWL; wi++) snr[(((long long)wi * ns + s) * nb + b) * npix + p] = zf[wi];
+            }
+            // one branch a value for all the widths' crossings (rare): a branch per width cost ~12 of
+            // the ~100 instructions a value (the kernel is bound by their issue)
+            if (over) {
+#pragma unroll
+                for (int wi = 0; wi < NWL; wi++)
+                    if (zf[wi] > thr) atomicAdd(&count[((long long)wi * ns + s) * nb + b], 1);
             }
         }
     }
