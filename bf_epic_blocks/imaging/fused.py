@@ -379,25 +379,31 @@ class FusedOperator:
         """Images of 16 samples each straight onto a grid: out[g, c, cell[k]] = sum_p fac[c, p, k] *
         (:meth:`sums` with n = 16)[g, c, p, k] (:func:`fused_power`'s ``grid``); out float32 (G, C', ncell),
         G = T // 16 of the T samples in ``pairs``; cells no pixel has are left as they are."""
+        xp = get_xp(pairs)
         T = int(pairs.shape[0])
-        return fused_power(self.Aq, self.osc, self._layout(pairs, pols, ci4), padded_ntime(T), len(pols), self.flag,
-                           self.npix, self.config, grid=(out, fac, cell))
-
-    def _layout(self, pairs, pols, ci4):
-        """The voltages in the kernel's layout (:func:`layout_voltages`; the range flag cleared first)."""
         key = tuple(pols)
         if key not in self._pmaps:
-            self._pmaps[key] = get_xp(pairs).asarray(list(pols), dtype=get_xp(pairs).int32)
+            self._pmaps[key] = xp.asarray(list(pols), dtype=xp.int32)
         self.flag.fill(0)
-        return layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4,
-                               tiled=self.tiled)
+        Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4,
+                             tiled=self.tiled)
+        return fused_power(self.Aq, self.osc, Bv, padded_ntime(T), len(pols), self.flag, self.npix, self.config,
+                           grid=(out, fac, cell))
 
     def sums(self, pairs, pols, n, ci4=False):
         """(g, C', P', npix) float32 sums of |F_p|^2 over groups of ``n`` samples (:meth:`supports`);
         ``ci4``: ``pairs`` are ci4 bytes (T, C, A, P) uint8, laid out without unpacking."""
+        xp = get_xp(pairs)
         T = int(pairs.shape[0])
-        out = fused_power(self.Aq, self.osc, self._layout(pairs, pols, ci4), padded_ntime(T), len(pols), self.flag,
-                          self.npix, self.config)                               # (Tp/16, C', P, K)
+        P = len(pols)
+        key = tuple(pols)
+        if key not in self._pmaps:
+            self._pmaps[key] = xp.asarray(list(pols), dtype=xp.int32)
+        self.flag.fill(0)
+        Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4,
+                             tiled=self.tiled)
+        out = fused_power(self.Aq, self.osc, Bv, padded_ntime(T), P, self.flag, self.npix,
+                          self.config)                                          # (Tp/16, C', P, K)
         if n == T:                                  # one group: every 16-sample unit, the last one partial
             u = -(-T // 16)
             return out[:u].sum(axis=0, keepdims=True) if u > 1 else out[:1]
@@ -464,8 +470,11 @@ __device__ __forceinline__ void cp_commit() { asm volatile("cp.async.commit_grou
 __device__ __forceinline__ void cp_wait() { asm volatile("cp.async.wait_group %0;\n" :: "n"(ST - 2)); }
 
 // One pixel's sum of |F|^2 over 16 columns: two 8-column accumulator fragments (real rows in
-// [0], [1], imaginary rows in [2], [3]) of the 4 lanes of a quad, summed in float32 and across the quad
-__device__ __forceinline__ float quad_power(const int* f0, const int* f1)
+// [0], [1], imaginary rows in [2], [3]) of the 4 lanes of a quad, summed in float32 and across the
+// quad; lane u % 4 writes it to ob[u us + pix] (unit_out), NaN if the range flag is up.
+__device__ __forceinline__ void put_unit(float* __restrict__ ob, const long long us, const int* f0, const int* f1,
+                                         const int lane, const int u, const int pix, const float sc, const bool bad,
+                                         const int npix)
 {
     float s = 0.f;
 #pragma unroll
@@ -476,15 +485,6 @@ __device__ __forceinline__ float quad_power(const int* f0, const int* f1)
     }
     s += __shfl_xor_sync(0xffffffffu, s, 1);
     s += __shfl_xor_sync(0xffffffffu, s, 2);
-    return s;
-}
-
-// ... which lane u % 4 writes to ob[u us + pix] (unit_out), NaN if the range flag is up
-__device__ __forceinline__ void put_unit(float* __restrict__ ob, const long long us, const int* f0, const int* f1,
-                                         const int lane, const int u, const int pix, const float sc, const bool bad,
-                                         const int npix)
-{
-    const float s = quad_power(f0, f1);
     if ((lane & 3) == (u & 3) && pix < npix)
         ob[u * us + pix] = bad ? __int_as_float(0x7fc00000) : s * sc;
 }
@@ -962,7 +962,15 @@ __device__ __forceinline__ void put_cell(float* __restrict__ ob, const long long
                                          const int lane, const int u, const int pix, const int cell, const float sc,
                                          const bool bad, const int npix, const int g0, const int G, const int red)
 {
-    const float s = quad_power(f0, f1);
+    float s = 0.f;
+#pragma unroll
+    for (int h = 0; h < 2; h++) {
+        const int* a = h ? f1 : f0;
+        const float r0 = (float)a[0], r1 = (float)a[1], i0 = (float)a[2], i1 = (float)a[3];
+        s += r0 * r0 + r1 * r1 + i0 * i0 + i1 * i1;
+    }
+    s += __shfl_xor_sync(0xffffffffu, s, 1);
+    s += __shfl_xor_sync(0xffffffffu, s, 2);
     if ((lane & 3) == (u & 3) && pix < npix && g0 + u < G) {
         const float v = bad ? __int_as_float(0x7fc00000) : s * sc;
         float* a = ob + u * us + cell;
