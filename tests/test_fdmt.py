@@ -358,3 +358,13 @@ def test_the_gpu_rings_hold_the_rows_through_pushes_shorter_and_longer_than_a_bl
         t += b
     want = gathered_sums(x, effective_back(plan))
     assert np.abs(np.concatenate(got, axis=1)[:, 60:] - want[:, 60:]).max() / np.abs(want).max() < 3e-3
+
+
+def test_the_working_array_is_sized_for_a_block_on_the_host_too():
+    """Pushes longer than ``block`` are made a block at a time on the host as on a GPU, so the working
+    array a push adds is a block's, not the push's, in either layout."""
+    f = 74e6 + 25e3 * np.arange(40)
+    s = StreamingFDMT(FDMTPlan(f, 30), 5, allocate=False, pixel_chunk=5, block=16)
+    assert s.memory_bytes(64, gpu=False) == 4 * (s.ring_size * 5 + s.nrow * 16 * 5)
+    assert s.memory_bytes(64, gpu=True) == 4 * (s.dev_ring_size * 5 + s.nwrow * 16 * 5)
+    assert s.memory_bytes(8, gpu=False) == 4 * (s.ring_size * 5 + s.nrow * 8 * 5)

@@ -325,7 +325,7 @@ class StreamingFDMT:
         if self.pixel_chunk:
             return min(self.npix, self.pixel_chunk)
         rows = self.nwrow if self._gpu(gpu) else self.nrow
-        most = max(1, self.WORK_BYTES // (np.dtype(self.dtype).itemsize * rows * min(B, self.block if self._gpu(gpu) else B)))
+        most = max(1, self.WORK_BYTES // (np.dtype(self.dtype).itemsize * rows * min(B, self.block)))
         npass = -(-self.npix // most)
         per = -(-self.npix // npass)
         return min(self.npix, -(-per // 32) * 32)
@@ -335,10 +335,10 @@ class StreamingFDMT:
         return np.dtype(self.dtype).itemsize * (self.dev_ring_size if self._gpu(gpu) else self.ring_size) * self.ld
 
     def memory_bytes(self, B, gpu=None):
-        """Device bytes: the rings, and the working array of a push of ``B`` images (on a GPU, pushes of
-        at most ``block``; gpu: that layout, default where the tree is)."""
+        """Device bytes: the rings, and the working array of a push of ``B`` images (made ``block`` at a
+        time, on the host too); gpu: the GPU's layout (default: where the tree is)."""
         g = self._gpu(gpu)
-        b = min(B, self.block) if g else B
+        b = min(B, self.block)
         pc = self._chunk(B, gpu=g)
         pc += pc % 2 if self.dtype is np.float16 else 0          # (float16 rows: even)
         return self.ring_bytes(g) + np.dtype(self.dtype).itemsize * (self.nwrow if g else self.nrow) * b * pc
