@@ -70,9 +70,9 @@ def test_plan_reports_the_whole_band_search_and_what_it_costs(capsys):
     assert sd["dedisperse"] == "tree" and sd["trials"] == 1331 and sd["tree_rows"] == 12283
     assert sd["history_values"] == 312 + 8 + 64 + (8 + 16 + 1330 + 32)
     assert sd["memory_bytes"]["history"] == 1331 * sd["history_values"] * 3205 * 4
-    # the YAML's float16 tree (even rows) on a GPU: the rings, and the 5,591 merged rows kept in them with a
+    # the YAML's float16 tree (rows of 3,208: 16-byte loads) on a GPU: the rings, and the 5,591 merged rows kept in them with a
     # push's 64 slots each (rows the working array then does not hold: the same total, 36.4 GiB below)
-    assert sd["memory_bytes"]["tree"] == 2 * (444050 + 64 * 5591) * 3206
+    assert sd["memory_bytes"]["tree"] == 2 * (444050 + 64 * 5591) * 3208
     assert sd["tree_precision"] == "fp16" and "12283 tree rows stored as fp16" in text
     assert 0 < sd["imaging_and_search_realtime_factor"] < d["realtime_factor"]
     assert "transient search: tree dedispersion, 1331 trials" in text and "imaging and search together" in text

@@ -195,14 +195,18 @@ class StreamingFDMT:
     FP16_HEAD = 2.0 ** 8
     #: ... and the rings are rescaled before a push whose sums could pass this (float16's largest: 65,504)
     FP16_LIMIT = 2.0 ** 14
+    #: float16 values a GPU thread of the levels moves at once (2, 4 or 8: a 4-, 8- or 16-byte load)
+    HALF_VEC = 8
 
     def __init__(self, plan: FDMTPlan, npix, xp=np, pixel_chunk=None, allocate=True, precision="fp32", block=64):
         if precision not in ("fp32", "fp16"):
             raise ValueError(f"precision: the tree stores 'fp32' or 'fp16' values, got {precision!r}")
         self.plan, self.npix, self.xp, self.precision = plan, int(npix), xp, precision
         self.dtype = np.float16 if precision == "fp16" else np.float32
-        # float16 rows are read two pixels at a time (one 4-byte load per thread): an even row length
-        self.ld = self.npix + (self.npix % 2 if precision == "fp16" else 0)
+        # float16 rows are read HALF_VEC pixels at a time (one 16-byte load per thread): rows (and pixel
+        # chunks) a whole number of those long
+        self.pad = self.HALF_VEC if precision == "fp16" else 1
+        self.ld = -(-self.npix // self.pad) * self.pad
         base, nrow = {}, plan.nchan
         for level in plan.levels:
             for rng, (L, U, rowL, rowU, o) in level:
@@ -322,8 +326,8 @@ class StreamingFDMT:
         """Pixels per pass for a block of ``B`` images: ``pixel_chunk``, or as many as ``WORK_BYTES``
         holds, evened out over the passes and rounded up to a warp's 32 (a 321-pixel chunk ran its
         second 256-thread block a quarter full). gpu: the GPU's layout (default: where the tree is)."""
-        if self.pixel_chunk:
-            return min(self.npix, self.pixel_chunk)
+        if self.pixel_chunk:                        # (float16: a whole number of HALF_VEC pixels)
+            return min(self.npix, -(-self.pixel_chunk // self.pad) * self.pad)
         rows = self.nwrow if self._gpu(gpu) else self.nrow
         most = max(1, self.WORK_BYTES // (np.dtype(self.dtype).itemsize * rows * min(B, self.block)))
         npass = -(-self.npix // most)
@@ -340,7 +344,7 @@ class StreamingFDMT:
         g = self._gpu(gpu)
         b = min(B, self.block)
         pc = self._chunk(B, gpu=g)
-        pc += pc % 2 if self.dtype is np.float16 else 0          # (float16 rows: even)
+        pc = -(-pc // self.pad) * self.pad                        # (float16 rows: HALF_VEC pixels a load)
         return self.ring_bytes(g) + np.dtype(self.dtype).itemsize * (self.nwrow if g else self.nrow) * b * pc
 
     def push(self, images, factor=1.0, index=None, rows=False):
@@ -390,7 +394,7 @@ class StreamingFDMT:
         for p0 in range(0, self.npix, pc):
             p1 = min(self.npix, p0 + pc)
             n = p1 - p0
-            W = xp.empty((self.nrow if xp is np else self.nwrow, B, n + n % 2 if half else n), self.dtype)
+            W = xp.empty((self.nrow if xp is np else self.nwrow, B, -(-n // self.pad) * self.pad), self.dtype)
             if not half:
                 W[:plan.nchan] = x[:, :, p0:p1]
             elif xp is np:
@@ -405,7 +409,7 @@ class StreamingFDMT:
             else:                                         # (the spare pixel of an odd chunk written 0)
                 _in_half_gpu(xp, x, self.ref, np.float32(scale), W, p0, n, index)
             if xp is np and W.shape[2] > n:
-                W[:plan.nchan, :, n:] = 0                 # the even row's spare pixel
+                W[:plan.nchan, :, n:] = 0                 # the row's spare pixels
             if xp is np:
                 self._levels_host(W, p0, p1, B)
             else:
@@ -445,12 +449,12 @@ class StreamingFDMT:
             self.ring[self.ring_base[g] + (self.ntime + np.arange(t0, B)) % L, p0:p0 + W.shape[2]] = W[g, t0:]
 
     def _levels_gpu(self, W, p0, p1, B):
-        # float16: a thread per pair of pixels (one 4-byte __half2 load); rows and rings of even length
-        per = 2 if self.dtype is np.float16 else 1
+        # float16: a thread per HALF_VEC pixels (one load); rows and rings a whole number of them long
+        per = self.pad
         pc, ld, q0 = W.shape[2] // per, self.ld // per, p0 // per
         bx = min(128, pc)
         grid_x = -(-pc // bx)
-        k_level, k_ring = _gpu_kernels(self.precision)
+        k_level, k_ring = _gpu_kernels(self.precision, self.pad)
         rbase, rcap, rrows, wrow = self._dev_ring
         if self._phase_at != self.ntime:
             # each ring row's slot of time ntime, once per push: the kernels index the rings in 32-bit
@@ -473,15 +477,31 @@ class StreamingFDMT:
 
 
 _FDMT_SRC = r"""
-// VT: the stored value -- float, or (HALF) a pair of adjacent pixels' float16 values, added in float32
+// VT: the stored value -- float, or (HALF) HALF adjacent pixels' float16 values, each added in float32
 // and rounded once (as NumPy's float16 add: the CPU's path gives the same bits).
 #ifdef HALF
 #include <cuda_fp16.h>
-typedef __half2 VT;
-__device__ __forceinline__ VT vadd(VT a, VT b) {
+__device__ __forceinline__ __half2 hadd(__half2 a, __half2 b) {
     const float2 x = __half22float2(a), y = __half22float2(b);
     return __floats2half2_rn(x.x + y.x, x.y + y.y);
 }
+__device__ __forceinline__ unsigned wadd(unsigned a, unsigned b) {      // a word: two float16 values
+    __half2 x = *reinterpret_cast<__half2*>(&a), y = *reinterpret_cast<__half2*>(&b);
+    x = hadd(x, y);
+    return *reinterpret_cast<unsigned*>(&x);
+}
+#if HALF == 8                   // HALF float16 values a load: one 16-, 8- or 4-byte word
+typedef uint4 VT;
+__device__ __forceinline__ VT vadd(VT a, VT b) {
+    return make_uint4(wadd(a.x, b.x), wadd(a.y, b.y), wadd(a.z, b.z), wadd(a.w, b.w));
+}
+#elif HALF == 4
+typedef uint2 VT;
+__device__ __forceinline__ VT vadd(VT a, VT b) { return make_uint2(wadd(a.x, b.x), wadd(a.y, b.y)); }
+#else
+typedef unsigned VT;
+__device__ __forceinline__ VT vadd(VT a, VT b) { return wadd(a, b); }
+#endif
 #else
 typedef float VT;
 __device__ __forceinline__ VT vadd(VT a, VT b) { return a + b; }
@@ -513,7 +533,7 @@ __device__ __forceinline__ int slot(const Row& x, const int t)            // t i
 
 // One level of the streaming FDMT: row out[j] at t = row inL[j] at t + row inU[j] at t - o[j] (this
 // block's, or older). grid (pixel blocks, rows); each thread walks the block's B times (a thread per
-// element made ~230,000 short blocks per level). pc, ld, p0 count VT (pixel pairs for HALF).
+// element made ~230,000 short blocks per level). pc, ld, p0 count VT (HALF pixels for HALF).
 extern "C" __global__ void bf_fdmt_level(VT* __restrict__ W, VT* __restrict__ ring,
                                          const int* __restrict__ out, const int* __restrict__ inL,
                                          const int* __restrict__ inU, const int* __restrict__ o,
@@ -562,11 +582,11 @@ extern "C" __global__ void bf_fdmt_ring(const VT* __restrict__ W, VT* __restrict
 _FDMT_KERNELS: dict = {}
 
 
-def _gpu_kernels(precision="fp32"):
+def _gpu_kernels(precision="fp32", vec=2):
     import cupy as cp
-    key = (cp.cuda.Device().id, precision)
+    key = (cp.cuda.Device().id, precision, vec)
     if key not in _FDMT_KERNELS:
-        mod = cp.RawModule(code=_FDMT_SRC, options=("-DHALF",) if precision == "fp16" else ())
+        mod = cp.RawModule(code=_FDMT_SRC, options=(f"-DHALF={int(vec)}",) if precision == "fp16" else ())
         _FDMT_KERNELS[key] = (mod.get_function("bf_fdmt_level"), mod.get_function("bf_fdmt_ring"))
     return _FDMT_KERNELS[key]
 
