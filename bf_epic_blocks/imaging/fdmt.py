@@ -452,6 +452,7 @@ class StreamingFDMT:
         # float16: a thread per HALF_VEC pixels (one load); rows and rings a whole number of them long
         per = self.pad
         pc, ld, q0 = W.shape[2] // per, self.ld // per, p0 // per
+        # (64 or 256 threads a block, or 8 times unrolled: the same speed; 2 unrolled: 10% slower; H100)
         bx = min(128, pc)
         grid_x = -(-pc // bx)
         k_level, k_ring = _gpu_kernels(self.precision, self.pad)

@@ -700,6 +700,14 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
     // the values: v (ns, B, npix) float32, or (vh) the float16 tree's rows where it left them, value i of
     // series s = vh[(s hB + hfirst + i) hld + p] ha + ksum[p] hb, rounded as the tree's float32 output is
     const float hk = vh ? __fmul_rn(ksum[p], hb) : 0.f;
+    // the series' first value, so that a value's address is a 32-bit offset (i times a row's bytes)
+    const char* __restrict__ vrow = vh ? (const char*)(vh + ((long long)s * hB + hfirst) * hld + p)
+                                       : (const char*)(v + (long long)s * B * npix + p);
+    const int vstep = vh ? 2 * hld : 4 * npix;
+    // value n0 + i leaves the window from i = lfirst on, and value n0 + i - WMAX enters it from i = efirst
+    // on (earlier: values before the stream's first, 0): 32-bit tests a value, not 64-bit ones
+    const int lfirst = (int)max(0LL, min((long long)B, (long long)WMAX + W - n0));
+    const int efirst = (int)max(0LL, min((long long)B, (long long)WMAX - n0));
     float* h = hist + s * hstride + p;                       // value n at h[(n % cap) * npix]
     const long long sp = (long long)s * npix + p;
     double s1 = S1[sp], s2 = S2[sp];
@@ -728,18 +736,17 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
             const int i = i0 + u;
             int iu = il + u;
             if (iu >= cap) iu -= cap;
-            xv[u] = i >= B ? 0.f : vh ? __fadd_rn(__fmul_rn(__half2float(vh[((long long)s * hB + hfirst + i) * hld + p]), ha), hk)
-                                      : v[((long long)s * B + i) * npix + p];
-            lv[u] = (i < B && n0 + i - WMAX - W >= 0) ? h[(long long)iu * npix] : 0.f;
+            xv[u] = i >= B ? 0.f : vh ? __fadd_rn(__fmul_rn(__half2float(*(const __half*)(vrow + i * vstep)), ha), hk)
+                                      : *(const float*)(vrow + i * vstep);
+            lv[u] = (i < B && i >= lfirst) ? h[(long long)iu * npix] : 0.f;
         }
 #pragma unroll
         for (int u = 0; u < U; u++) {
             const int i = i0 + u;
             if (i >= B) break;
-            const long long n = n0 + i;
             const float x = xv[u] - r;
             h[(long long)in * npix] = x;
-            const double de = n - WMAX >= 0 ? (double)last[WMAX - 1] : 0.0;
+            const double de = i >= efirst ? (double)last[WMAX - 1] : 0.0;
             const double dl = (double)lv[u];
 #pragma unroll
             for (int j = WMAX - 1; j > 0; j--) last[j] = last[j - 1];
