@@ -686,6 +686,9 @@ _STATS_SRC = r"""
 // write_snr: a chunk is run again, densely, only if it has a crossing), and a count per trial image of
 // the pixels over the threshold.
 __device__ constexpr int WL[] = {WLIST};                  // the boxcar widths, in the search's order
+// 1 / sqrt(w) of each, float32 rounded to nearest (written by the host: rsqrtf of a constant is not folded
+// by the compiler, and made a hardware rsqrt a width a value -- 4 of 5 a value at widths 1, 2, 4, 8)
+__device__ constexpr float RW[] = {RWLIST};
 #define NWL ((int)(sizeof(WL) / sizeof(WL[0])))
 extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const float* __restrict__ ref,
         float* __restrict__ hist, double* __restrict__ S1, double* __restrict__ S2, float* __restrict__ snr,
@@ -779,7 +782,7 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
 #pragma unroll
             for (int wi = 0; wi < NWL; wi++) {
                 const int w = WL[wi];
-                zf[wi] = (pre[w - 1] - (float)w * meanf) * rsqrtf((float)w) * isig;
+                zf[wi] = (pre[w - 1] - (float)w * meanf) * RW[wi] * isig;
                 over |= zf[wi] > thr;
             }
             if (write_snr) {
@@ -810,7 +813,9 @@ def _stats_kernel(widths):
     widths = tuple(int(w) for w in widths)
     key = (widths, cp.cuda.Device().id)
     if key not in _STATS_KERNELS:
+        rw = ", ".join(f"{np.float32(1.0 / np.sqrt(w)):.9e}f" for w in widths)   # (9 digits: the float32 exactly)
         src = (f"#include <cuda_fp16.h>\n#define WMAX {max(widths)}\n#define WLIST {', '.join(map(str, widths))}\n"
+               f"#define RWLIST {rw}\n"
                + _STATS_SRC)
         _STATS_KERNELS[key] = cp.RawKernel(src, "bf_search_stats")
     return _STATS_KERNELS[key]
