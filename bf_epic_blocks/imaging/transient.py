@@ -703,7 +703,7 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
     // the values: v (ns, B, npix) float32, or (vh) the float16 tree's rows where it left them, value i of
     // series s = vh[(s hB + hfirst + i) hld + p] ha + ksum[p] hb, rounded as the tree's float32 output is
     const float hk = vh ? __fmul_rn(ksum[p], hb) : 0.f;
-    // the series' first value, so that a value's address is a 32-bit offset (i times a row's bytes)
+    // the series' first value, so that a value's address is one wide multiply-add (i times a row's bytes)
     const char* __restrict__ vrow = vh ? (const char*)(vh + ((long long)s * hB + hfirst) * hld + p)
                                        : (const char*)(v + (long long)s * B * npix + p);
     const int vstep = vh ? 2 * hld : 4 * npix;
@@ -739,8 +739,8 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
             const int i = i0 + u;
             int iu = il + u;
             if (iu >= cap) iu -= cap;
-            xv[u] = i >= B ? 0.f : vh ? __fadd_rn(__fmul_rn(__half2float(*(const __half*)(vrow + i * vstep)), ha), hk)
-                                      : *(const float*)(vrow + i * vstep);
+            xv[u] = i >= B ? 0.f : vh ? __fadd_rn(__fmul_rn(__half2float(*(const __half*)(vrow + (long long)i * vstep)), ha), hk)
+                                      : *(const float*)(vrow + (long long)i * vstep);
             lv[u] = (i < B && i >= lfirst) ? h[(long long)iu * npix] : 0.f;
         }
 #pragma unroll
