@@ -645,8 +645,8 @@ def _abs_dev_max_gpu(cp, x, ref, index=None):
 _HALF_SRC = r"""
 #include <cuda_fp16.h>
 // float16 storage of a pixel chunk: W[c, b, p] = (x[c, b, p0 + p] - ref[c, p0 + p]) * s for p < n, 0 in the
-// row's spare pixels (rows a whole number of StreamingFDMT.HALF_VEC); each step rounded as NumPy's float32 does (no fused multiply-add), the float16
-// to nearest even (NumPy's cast). x: element (c, b, p) at c sc + b sb + k, k = p or, with a cell index,
+// row's spare pixels (rows a whole number of StreamingFDMT.HALF_VEC); each step rounded as NumPy's
+// float32 does (no fused multiply-add), the float16 to nearest even (NumPy's cast). x: element (c, b, p) at c sc + b sb + k, k = p or, with a cell index,
 // idx[p]; W: (nchan, B, ld2) pixel pairs. A thread per pixel pair walks rows (c, b) gridDim.y apart.
 // (A thread per 8 pixels, one 16-byte store, as the levels: 0.456 -> 0.568 ms a whole-band gulp, H100,
 // 2026-11-26: 56 registers, fewer threads to hide the gathered loads' latency.)

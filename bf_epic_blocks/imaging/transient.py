@@ -435,6 +435,12 @@ class TransientSearch:
         k = _stats_kernel(self.widths)
         threads = 128
 
+        # the kernel steps a series' values by a 32-bit offset: B rows' bytes must fit
+        row_bytes = 2 * int(v.W.shape[2]) if half else 4 * self.npix
+        if B * row_bytes >= 2 ** 31:
+            raise ValueError(f"search: a push of {B} images of {row_bytes} bytes a row is past the statistics "
+                             f"kernel's 2 GiB a series; push fewer images at a time (max_batch)")
+
         def run(ss, snr, count, write):
             hist, s1, s2 = self._hist[ss], self._s1[ss], self._s2[ss]         # views: the kernel updates them
             if half:   # the tree's float16 rows of series ss: (v.top + ss, its times, its row length)
@@ -703,7 +709,8 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
     // the values: v (ns, B, npix) float32, or (vh) the float16 tree's rows where it left them, value i of
     // series s = vh[(s hB + hfirst + i) hld + p] ha + ksum[p] hb, rounded as the tree's float32 output is
     const float hk = vh ? __fmul_rn(ksum[p], hb) : 0.f;
-    // the series' first value, so that a value's address is one wide multiply-add (i times a row's bytes)
+    // the series' first value, so that a value's address is a 32-bit offset (i times a row's bytes: the
+    // host checks that B rows' bytes fit)
     const char* __restrict__ vrow = vh ? (const char*)(vh + ((long long)s * hB + hfirst) * hld + p)
                                        : (const char*)(v + (long long)s * B * npix + p);
     const int vstep = vh ? 2 * hld : 4 * npix;
@@ -739,8 +746,8 @@ extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const fl
             const int i = i0 + u;
             int iu = il + u;
             if (iu >= cap) iu -= cap;
-            xv[u] = i >= B ? 0.f : vh ? __fadd_rn(__fmul_rn(__half2float(*(const __half*)(vrow + (long long)i * vstep)), ha), hk)
-                                      : *(const float*)(vrow + (long long)i * vstep);
+            xv[u] = i >= B ? 0.f : vh ? __fadd_rn(__fmul_rn(__half2float(*(const __half*)(vrow + i * vstep)), ha), hk)
+                                      : *(const float*)(vrow + i * vstep);
             lv[u] = (i < B && i >= lfirst) ? h[(long long)iu * npix] : 0.f;
         }
 #pragma unroll
