@@ -470,11 +470,8 @@ __device__ __forceinline__ void cp_commit() { asm volatile("cp.async.commit_grou
 __device__ __forceinline__ void cp_wait() { asm volatile("cp.async.wait_group %0;\n" :: "n"(ST - 2)); }
 
 // One pixel's sum of |F|^2 over 16 columns: two 8-column accumulator fragments (real rows in
-// [0], [1], imaginary rows in [2], [3]) of the 4 lanes of a quad, summed in float32 and across the
-// quad; lane u % 4 writes it to ob[u us + pix] (unit_out), NaN if the range flag is up.
-__device__ __forceinline__ void put_unit(float* __restrict__ ob, const long long us, const int* f0, const int* f1,
-                                         const int lane, const int u, const int pix, const float sc, const bool bad,
-                                         const int npix)
+// [0], [1], imaginary rows in [2], [3]) of the 4 lanes of a quad, summed in float32 and across the quad
+__device__ __forceinline__ float quad_power(const int* f0, const int* f1)
 {
     float s = 0.f;
 #pragma unroll
@@ -485,6 +482,15 @@ __device__ __forceinline__ void put_unit(float* __restrict__ ob, const long long
     }
     s += __shfl_xor_sync(0xffffffffu, s, 1);
     s += __shfl_xor_sync(0xffffffffu, s, 2);
+    return s;
+}
+
+// ... which lane u % 4 writes to ob[u us + pix] (unit_out), NaN if the range flag is up
+__device__ __forceinline__ void put_unit(float* __restrict__ ob, const long long us, const int* f0, const int* f1,
+                                         const int lane, const int u, const int pix, const float sc, const bool bad,
+                                         const int npix)
+{
+    const float s = quad_power(f0, f1);
     if ((lane & 3) == (u & 3) && pix < npix)
         ob[u * us + pix] = bad ? __int_as_float(0x7fc00000) : s * sc;
 }
@@ -962,15 +968,7 @@ __device__ __forceinline__ void put_cell(float* __restrict__ ob, const long long
                                          const int lane, const int u, const int pix, const int cell, const float sc,
                                          const bool bad, const int npix, const int g0, const int G, const int red)
 {
-    float s = 0.f;
-#pragma unroll
-    for (int h = 0; h < 2; h++) {
-        const int* a = h ? f1 : f0;
-        const float r0 = (float)a[0], r1 = (float)a[1], i0 = (float)a[2], i1 = (float)a[3];
-        s += r0 * r0 + r1 * r1 + i0 * i0 + i1 * i1;
-    }
-    s += __shfl_xor_sync(0xffffffffu, s, 1);
-    s += __shfl_xor_sync(0xffffffffu, s, 2);
+    const float s = quad_power(f0, f1);
     if ((lane & 3) == (u & 3) && pix < npix && g0 + u < G) {
         const float v = bad ? __int_as_float(0x7fc00000) : s * sc;
         float* a = ob + u * us + cell;
