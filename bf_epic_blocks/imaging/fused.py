@@ -379,31 +379,26 @@ class FusedOperator:
         """Images of 16 samples each straight onto a grid: out[g, c, cell[k]] = sum_p fac[c, p, k] *
         (:meth:`sums` with n = 16)[g, c, p, k] (:func:`fused_power`'s ``grid``); out float32 (G, C', ncell),
         G = T // 16 of the T samples in ``pairs``; cells no pixel has are left as they are."""
-        xp = get_xp(pairs)
         T = int(pairs.shape[0])
+        return fused_power(self.Aq, self.osc, self._layout(pairs, pols, ci4), padded_ntime(T), len(pols), self.flag,
+                           self.npix, self.config, grid=(out, fac, cell))
+
+    def _layout(self, pairs, pols, ci4):
+        """The voltages in the kernel's layout (:func:`layout_voltages`), the range flag cleared first."""
         key = tuple(pols)
         if key not in self._pmaps:
+            xp = get_xp(pairs)
             self._pmaps[key] = xp.asarray(list(pols), dtype=xp.int32)
         self.flag.fill(0)
-        Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4,
-                             tiled=self.tiled)
-        return fused_power(self.Aq, self.osc, Bv, padded_ntime(T), len(pols), self.flag, self.npix, self.config,
-                           grid=(out, fac, cell))
+        return layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4,
+                               tiled=self.tiled)
 
     def sums(self, pairs, pols, n, ci4=False):
         """(g, C', P', npix) float32 sums of |F_p|^2 over groups of ``n`` samples (:meth:`supports`);
         ``ci4``: ``pairs`` are ci4 bytes (T, C, A, P) uint8, laid out without unpacking."""
-        xp = get_xp(pairs)
         T = int(pairs.shape[0])
-        P = len(pols)
-        key = tuple(pols)
-        if key not in self._pmaps:
-            self._pmaps[key] = xp.asarray(list(pols), dtype=xp.int32)
-        self.flag.fill(0)
-        Bv = layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4,
-                             tiled=self.tiled)
-        out = fused_power(self.Aq, self.osc, Bv, padded_ntime(T), P, self.flag, self.npix,
-                          self.config)                                          # (Tp/16, C', P, K)
+        out = fused_power(self.Aq, self.osc, self._layout(pairs, pols, ci4), padded_ntime(T), len(pols), self.flag,
+                          self.npix, self.config)                               # (Tp/16, C', P, K)
         if n == T:                                  # one group: every 16-sample unit, the last one partial
             u = -(-T // 16)
             return out[:u].sum(axis=0, keepdims=True) if u > 1 else out[:1]
