@@ -13,7 +13,26 @@
 * Polarisation: pol 0 = X (N-S dipole), pol 1 = Y (E-W dipole), as LSL.
   XX = |F_X|^2, YY = |F_Y|^2, XY = F_X F_Y^*, YX = F_Y F_X^*.
   Stokes (linear feeds): I = XX + YY, Q = XX - YY, U = 2 Re XY, V = -2 Im XY.
+* Time tags: LWA ticks of the station's 196 MHz sampling clock since the Unix epoch (:data:`FS_HZ`).
+* Dispersion: a burst of dispersion measure DM (pc cm^-3) arrives at frequency f later than at the
+  reference frequency f_ref by K_DM DM (f^-2 - f_ref^-2), f in GHz (:func:`dispersion_delay_s`).
 """
+import numpy as np
+
 SPEED_OF_LIGHT_M_S = 299792458.0
 SIGMA = +1
 POL_NAMES = ("X", "Y")
+
+#: The LWA station clock (Hz): time tags count its ticks, a channel's sample step is FS_HZ / bandwidth.
+FS_HZ = 196_000_000
+
+#: Dispersion constant K_DM, seconds * GHz^2 per (pc cm^-3).
+DISPERSION_CONSTANT_S = 4.149e-3
+
+
+def dispersion_delay_s(dm, freq_hz, ref_freq_hz):
+    """Arrival delay (s) at ``freq_hz`` relative to ``ref_freq_hz`` for dispersion measure ``dm``
+    (pc cm^-3); positive below the reference frequency. Broadcasts like NumPy; float64 out."""
+    f = np.asarray(freq_hz, dtype=np.float64) / 1e9
+    fr = np.asarray(ref_freq_hz, dtype=np.float64) / 1e9
+    return DISPERSION_CONSTANT_S * np.asarray(dm, dtype=np.float64) * (f ** -2 - fr ** -2)

@@ -24,7 +24,7 @@ import logging
 
 import numpy as np
 
-from ..io.tbf import FS_HZ
+from ..conventions import FS_HZ
 from ..io.udp import ADP_CHAN_BW_HZ, NDP_CHAN_BW_HZ, _sync_from_clock
 from ._compat import HAVE_BIFROST, bfp
 from .headers import efield_header

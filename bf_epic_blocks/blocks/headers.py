@@ -9,7 +9,7 @@ import copy
 
 import numpy as np
 
-from ..imaging.calibration import FS_HZ
+from ..conventions import FS_HZ
 
 EFIELD_LABELS = ("time", "freq", "station", "pol")
 EFIELD_DTYPES = ("ci4", "ci8", "ci16", "cf32", "cf64")

@@ -23,7 +23,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 import numpy as np
 
-from ..imaging.calibration import FS_HZ
+from ..conventions import FS_HZ
 from ._compat import bfp, span_array, to_numpy
 
 log = logging.getLogger(__name__)

@@ -16,7 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..imaging.calibration import FS_HZ
+from ..conventions import FS_HZ
 from . import _compat
 from ._compat import HostToDevice, assign_storage, bfp, span_array
 from .headers import efield_header

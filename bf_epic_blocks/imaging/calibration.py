@@ -13,9 +13,9 @@ import math
 
 import numpy as np
 
+from ..conventions import FS_HZ
 from ._xp import get_xp
 
-FS_HZ = 196_000_000
 
 
 def cable_weights(delay_s, gain, freq_hz):

@@ -39,25 +39,16 @@ import time
 
 import numpy as np
 
+from ..conventions import DISPERSION_CONSTANT_S, dispersion_delay_s
 from ._xp import to_numpy
 from .fdmt import HalfRows
 
 __all__ = ["DISPERSION_CONSTANT_S", "dispersion_delay_s", "dm_delays", "dm_sidelobe_snr", "TransientSearch", "Crossings",
            "cluster_crossings", "expected_false_rate", "beam_power", "ArrayBeam", "locate_point_source"]
 
-#: Dispersion constant, seconds * GHz^2 per (pc cm^-3).
-DISPERSION_CONSTANT_S = 4.149e-3
 #: ``dedisperse="auto"`` uses the tree (:mod:`.fdmt`) from this many channels up: shifted sums cost
 #: trials x channels adds per pixel-image, the tree ~trials x log2(channels)
 TREE_CHANNELS = 64
-
-
-def dispersion_delay_s(dm, freq_hz, ref_freq_hz):
-    """Arrival delay (s) at ``freq_hz`` relative to ``ref_freq_hz`` for dispersion measure ``dm``
-    (pc cm^-3); positive below the reference frequency. Broadcasts like NumPy."""
-    f = np.asarray(freq_hz, dtype=np.float64) / 1e9
-    fr = np.asarray(ref_freq_hz, dtype=np.float64) / 1e9
-    return DISPERSION_CONSTANT_S * np.asarray(dm, dtype=np.float64) * (f ** -2 - fr ** -2)
 
 
 def dm_delays(dms, freq_hz, dt_s):

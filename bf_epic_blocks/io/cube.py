@@ -98,7 +98,7 @@ class ImageCubeWriter:
                  location=None, dtype="float32", average_channels=False, images_per_chunk=None, flush_every=16,
                  telescope=None, attrs=None):
         import h5py
-        from ..imaging.calibration import FS_HZ
+        from ..conventions import FS_HZ
         if dtype not in ("float32", "float16"):
             raise ValueError(f"dtype must be 'float32' or 'float16', got {dtype!r}")
         self.freq_in = np.atleast_1d(np.asarray(freq_hz, dtype=np.float64))

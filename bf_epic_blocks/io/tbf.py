@@ -51,6 +51,7 @@ from typing import Iterator
 
 import numpy as np
 
+from ..conventions import FS_HZ
 from .formats import CaptureGrid
 
 __all__ = ["TBFData", "TBFInfo", "TBFError", "TBFWarning", "read_tbf", "iter_tbf_gulps", "scan_tbf",
@@ -59,7 +60,6 @@ __all__ = ["TBFData", "TBFInfo", "TBFError", "TBFWarning", "read_tbf", "iter_tbf
 
 SYNC_WORD = 0xDEC0DE5C
 #: Sampling clock of the LWA digitisers; time tags count its ticks since the Unix epoch.
-FS_HZ = 196_000_000
 CHANNELS_PER_FRAME = 12
 HEADER_BYTES = 24
 #: frame id -> (F-engine, station whose TBF uses it, channel width in Hz)

@@ -46,7 +46,8 @@ from typing import Iterator, NamedTuple
 import numpy as np
 
 from .formats import SYNC_WORD, CaptureGrid
-from .tbf import FS_HZ, TBFData, _check_gulp, _iter_gulps, release_rows
+from ..conventions import FS_HZ
+from .tbf import TBFData, _check_gulp, _iter_gulps, release_rows
 
 __all__ = ["TBXData", "TBXInfo", "TBXError", "TBXWarning", "TBXFrame", "TBXHeader", "read_tbx", "iter_tbx_gulps",
            "scan_tbx", "parse_tbx_frame", "parse_tbx_header", "tbx_frame_bytes", "pack_tbx_frame", "write_tbx",

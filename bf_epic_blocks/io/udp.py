@@ -55,7 +55,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .tbf import CHANNELS_PER_FRAME, FRAME_KINDS, FS_HZ, HEADER_BYTES, SYNC_WORD, _open_frames, read_tbf
+from ..conventions import FS_HZ
+from .tbf import CHANNELS_PER_FRAME, FRAME_KINDS, HEADER_BYTES, SYNC_WORD, _open_frames, read_tbf
 
 __all__ = ["PacketFormat", "TBFPackets", "TBXPackets", "StreamLayout", "SequenceInfo", "UDPCapture", "ReplayResult",
            "packet_format", "replay", "parse_host_port", "PACKET_FORMATS"]

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..imaging import cost
 from ..imaging._xp import device_kind
-from ..imaging.calibration import FS_HZ
+from ..conventions import FS_HZ
 from ..imaging.pixels import lm_grid
 
 log = logging.getLogger("bf_epic_blocks")

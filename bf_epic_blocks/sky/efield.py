@@ -28,7 +28,7 @@ or l/m instead of ra/dec; optional ``name``, ``spectral_index``): point sources 
 the burst is on for samples whose start time t satisfies
 ``start_s + delay_c <= t < start_s + delay_c + duration_s``, with
 ``delay_c = 4.149 ms * dm * ((f_c/GHz)^-2 - (f_max/GHz)^-2)`` (f_max = the highest channel: ``start_s``
-is the arrival time at the top of the band; :func:`bf_epic_blocks.imaging.transient.dispersion_delay_s`).
+is the arrival time at the top of the band; :func:`bf_epic_blocks.conventions.dispersion_delay_s`).
 Sample k starts at ``t0_s + k * sample_time_s`` (``sample_time_s`` defaults to 1 / channel spacing).
 
 Randomness: ``numpy.random.SeedSequence(seed)`` spawns one stream for the source signals, one for
@@ -43,7 +43,7 @@ import math
 import numpy as np
 
 from ..conventions import SPEED_OF_LIGHT_M_S
-from ..imaging.transient import dispersion_delay_s
+from ..conventions import dispersion_delay_s
 from .catalogue import source_directions
 
 __all__ = ["simulate_efield", "quantize_ci4"]

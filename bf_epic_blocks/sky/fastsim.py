@@ -46,7 +46,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..conventions import SPEED_OF_LIGHT_M_S
-from ..imaging.transient import dispersion_delay_s
+from ..conventions import dispersion_delay_s
 
 __all__ = ["stream_keys", "sky_weights", "burst_windows", "expected_rms", "make_gulp", "complex_normals"]
 

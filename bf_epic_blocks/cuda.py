@@ -1,0 +1,99 @@
+"""The one loader of the package's CUDA kernels.
+
+Every GPU kernel the package launches is CUDA C++ in a ``.cu`` file beside the Python that launches
+it (``imaging/fused.cu`` beside ``imaging/fused.py``). A module asks for a kernel by its file, its
+``__global__`` name and the compile-time constants it needs::
+
+    from ..cuda import get_kernel
+    k = get_kernel("imaging/reduce.cu", "bf_row_dot")
+    k = get_kernel("imaging/fused.cu", "bf_fused_power", defines={"NP": 2, "KD": 256}, arch="sm_90a")
+
+and gets a ``cupy.RawKernel``-like function of a ``cupy.RawModule`` compiled by NVRTC for the current
+device. One cache holds every compiled module, keyed by (file, defines, options, arch, device), so a
+kernel compiles once per process; CuPy's own disk cache keeps it across processes.
+
+``#include "name.cuh"`` lines that name a file of the package are pasted in before compiling, so the
+source CuPy hashes for its disk cache is the whole program (an ``-I`` path would let an edited header
+reuse a stale binary). System headers (``<cuda_fp16.h>``) are left to NVRTC.
+
+Every ``.cu`` file lists the configurations a shipped path compiles in :data:`COMPILE_CHECKS` (the
+GPU tests compile each one with NVRTC, and a ``.cu`` file missing there fails them).
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+__all__ = ["get_kernel", "get_module", "source", "cu_files", "COMPILE_CHECKS"]
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+
+_INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$', re.MULTILINE)
+
+_MODULES: dict = {}
+
+#: {package-relative .cu path: [(defines, arch), ...]}: the configurations the GPU tests compile.
+#: ``arch`` None compiles for the current device; "sm_90a" only where the device is a Hopper GPU.
+COMPILE_CHECKS: dict = {}
+
+
+def cu_files():
+    """Package-relative paths of every ``.cu`` file shipped with the package, sorted."""
+    return sorted(str(p.relative_to(PACKAGE_DIR)) for p in PACKAGE_DIR.rglob("*.cu"))
+
+
+def source(path: str) -> str:
+    """The CUDA source of package-relative ``path`` with the package's own ``#include "x"`` pasted in
+    (relative to the including file; each file once)."""
+    seen: set = set()
+
+    def expand(p: Path) -> str:
+        p = p.resolve()
+        if p in seen:
+            return ""
+        seen.add(p)
+        if not p.is_file():
+            raise FileNotFoundError(f"CUDA source {p} not found (asked for {path!r})")
+        text = p.read_text()
+        return _INCLUDE.sub(lambda m: expand(p.parent / m.group(1)), text)
+
+    return expand(PACKAGE_DIR / path)
+
+
+def _options(defines, options, arch):
+    opts = ["-std=c++17"]
+    for k, v in sorted((defines or {}).items()):
+        opts.append(f"-D{k}" if v is None else f"-D{k}={v}")
+    if arch:
+        opts.append(f"-arch={arch}")
+    return tuple(opts) + tuple(options or ())
+
+
+def get_module(path: str, *, defines: dict | None = None, options=(), arch: str | None = None,
+               name_expressions=None):
+    """The ``cupy.RawModule`` of package-relative ``path`` compiled with ``-D`` ``defines``, extra NVRTC
+    ``options`` and ``arch`` (e.g. "sm_90a"; None: the current device's), cached per device."""
+    import cupy as cp
+    opts = _options(defines, options, arch)
+    names = tuple(name_expressions) if name_expressions else None
+    key = (path, opts, names, cp.cuda.Device().id)
+    mod = _MODULES.get(key)
+    if mod is None:
+        mod = cp.RawModule(code=source(path), options=opts, name_expressions=names)
+        _MODULES[key] = mod
+    return mod
+
+
+def get_kernel(path: str, name: str, *, defines: dict | None = None, options=(), arch: str | None = None):
+    """The ``__global__`` function ``name`` of package-relative ``path`` (see :func:`get_module`)."""
+    return get_module(path, defines=defines, options=options, arch=arch).get_function(name)
+
+
+def register(path: str, *configs):
+    """Record the configurations of ``path`` that a shipped path compiles: ``(defines, arch)`` pairs
+    (no configuration: the file with no defines, for the current device). Called by the module that
+    launches the file's kernels, at import, so the compile test covers exactly what ships."""
+    COMPILE_CHECKS.setdefault(path, [])
+    for cfg in configs or [({}, None)]:
+        if cfg not in COMPILE_CHECKS[path]:
+            COMPILE_CHECKS[path].append(cfg)
