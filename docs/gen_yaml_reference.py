@@ -62,7 +62,8 @@ def docstring_notes(doc: str) -> dict[str, str]:
 
 def cell(text: str) -> str:
     """Text safe inside a Markdown table cell."""
-    return str(text).replace("|", "\\|").replace("\n", " ")
+    text = str(text).replace("|", "\\|").replace("\n", " ")
+    return text.replace("{", "&#123;").replace("}", "&#125;")  # attr_list would take "{...}" as attributes
 
 
 def type_text(check) -> str:
