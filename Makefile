@@ -4,11 +4,12 @@
 # On a machine with an NVIDIA GPU:
 #   make gpu-check  -- CuPy too, then the GPU tests, every shipped pipeline by bf-epic run on the GPU
 #                      and the CPU with their outputs compared, and the planner's GPU picks (a table)
+#   make docs       -- the documentation site into output/site (mkdocs, warnings are errors)
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup test demo bench gpu-check clean
+.PHONY: setup test demo bench gpu-check docs clean
 # CuPy for the GPU check: gpu (CUDA 12 wheels), gpu-cuda12 or gpu-cuda13 (the machine's own toolkit)
 GPU_EXTRA ?= gpu
 
@@ -26,6 +27,11 @@ test: setup
 
 demo: setup
 	$(BIN)/bf-epic run pipelines/lwasv_sim_allsky.yaml
+
+# The site's tools come from the docs extra; the mkdocs 2 notices printed by its plugins are not the build's.
+docs: setup
+	$(BIN)/python -m pip install -q -e '.[docs]'
+	NO_MKDOCS_2_WARNING=1 DISABLE_MKDOCS_2_WARNING=true $(BIN)/mkdocs build --strict -d output/site
 
 gpu-check: setup
 	$(BIN)/python -m pip install -q -e '.[$(GPU_EXTRA)]'
