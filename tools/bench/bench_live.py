@@ -17,8 +17,8 @@ process, a sender in this one that starts once the run logs that it listens.
 Senders: Bifrost's own C packet writer (``bifrost.packet_writer.UDPTransmit``) when Bifrost imports,
 else `bf_epic_blocks.io.udp.replay` (TBF only, tens of thousands of packets/s at most).
 
-    python tools/bench_live.py table [--json docs/bench/live_table_cpu.json]
-    python tools/bench_live.py rate --format chips --nchan 132 --seconds 10 --device gpu [--json ...]
+    python tools/bench/bench_live.py table [--json docs/bench/live_table_cpu.json]
+    python tools/bench/bench_live.py rate --format chips --nchan 132 --seconds 10 --device gpu [--json ...]
 """
 from __future__ import annotations
 
@@ -36,11 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from bf_epic_blocks.io.tbf import FS_HZ, write_tbf
 
-from bf_epic_blocks.io.tbf import FS_HZ, write_tbf  # noqa: E402
-from tools.cases import bf_epic_command, write_json  # noqa: E402
+from benchlib import REPO, bf_epic_command, machine, write_json
+
 
 LIVE_YAML = REPO / "pipelines" / "lwasv_udp_live.yaml"
 FILE_YAML = REPO / "pipelines" / "lwasv_tbf_allsky.yaml"
@@ -322,9 +321,8 @@ def main(argv=None):
     ap.add_argument("--log-dir", help="rate: keep the bf-epic run's log here")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
-    import platform
     rows = case_table(args) if args.case == "table" else case_rate(args)
-    out = dict(case=args.case, args=vars(args), machine=platform.node(), cpus=os.cpu_count(),
+    out = dict(case=args.case, args=vars(args), machine=machine(args.device),
                date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), rows=rows)
     if args.json:
         write_json(args.json, out)
