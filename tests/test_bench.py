@@ -64,6 +64,7 @@ def test_bench_wholeband_growth_sees_flat_and_growing_memory():
     assert bw.growth([(1.0, None)], 0.0, 2.0) == (None, None, None)
 
 
+@pytest.mark.slow
 def test_bench_wholeband_runs_the_cli_and_finds_the_burst(tmp_path):
     """The benchmark on the whole-band YAML made small (16 channels, 16x16, the CPU): it runs `bf-epic
     run`, times it, samples the run's memory and checks the injected burst against the candidates:
