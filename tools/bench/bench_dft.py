@@ -11,8 +11,8 @@ max |I - I_ref| / max |I_ref| against a float64 evaluation of the definition on 
 (all 64 images in the high-cadence regime). Rows in the same run, for speed-up ratios:
   * ``naive``: plain CuPy written naively (R = Y Y^H and (G R * conj G).sum(-1); batched F = G X and
     |F|^2 summed per group) -- the issue's "naive CuPy" baseline;
-  * ``previous``: the previous release's DFTOperator (imaging before the precision ladder), when
-    ``--previous DIR`` points at a copy of that package named ``bf_epic_prev``;
+  * ``previous``: another release's DFTOperator, when ``--previous DIR`` points at a folder holding
+    a copy of that package named ``bf_epic_prev``;
   * ``floor-f32`` / ``floor-f16`` (GPU, high-cadence regime): cuBLAS' fp16 GEMM alone on the direct
     route's stacked shapes with fp32 / fp16 output -- what the regime would cost if |F|^2 were free.
 The fused integer modes (i8x2, i8x3: 4-bit voltages, direct route) have no covariance or cf32 rows;
