@@ -1,6 +1,7 @@
 # Two commands do all set-up on a fresh machine (Debian/Ubuntu, Python >= 3.10):
 #   make demo   -- install system packages and a virtualenv, run the default pipeline end to end
-#   make test   -- the same set-up, then the test suite (what CI runs)
+#   make test   -- the same set-up, then the whole test suite (what CI runs)
+#   make test-quick -- the suite without the tests marked slow or real_data (a developer's quick run)
 # On a machine with an NVIDIA GPU:
 #   make gpu-check  -- CuPy too, then the GPU tests, every shipped pipeline by bf-epic run on the GPU
 #                      and the CPU with their outputs compared, and the planner's GPU picks (a table)
@@ -9,7 +10,7 @@ PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup test demo bench gpu-check docs clean
+.PHONY: setup test test-quick demo bench gpu-check docs clean
 # CuPy for the GPU check: gpu (CUDA 12 wheels), gpu-cuda12 or gpu-cuda13 (the machine's own toolkit)
 GPU_EXTRA ?= gpu
 
@@ -25,6 +26,9 @@ $(VENV)/.installed: setup.cfg pyproject.toml
 test: setup
 	$(BIN)/python -m pytest -q -ra
 
+test-quick: setup
+	$(BIN)/python -m pytest -q -ra -m "not slow and not real_data"
+
 demo: setup
 	$(BIN)/bf-epic run pipelines/lwasv_sim_allsky.yaml
 
@@ -37,8 +41,9 @@ gpu-check: setup
 	$(BIN)/python -m pip install -q -e '.[$(GPU_EXTRA)]'
 	$(BIN)/python tools/gpu_check.py --json output/gpu_check.json
 
+# one benchmark on the CPU; tools/bench/README.md lists them all
 bench: setup
-	$(BIN)/python tools/bench_dft.py --device cpu --json bench_dft_cpu.json
+	$(BIN)/python tools/bench/bench_dft.py --device cpu --json output/bench_dft_cpu.json
 
 clean:
 	rm -rf $(VENV) output

@@ -1,11 +1,8 @@
-import os
-import sys
-
+"""Shared fixtures. The tests' helper modules (truth.py, lwa_data.py) and the scripts under tools/
+are importable by name through setup.cfg's pytest ``pythonpath``."""
 import pytest
 
-sys.path.insert(0, os.path.dirname(__file__))
-
-from bf_epic_blocks.imaging._xp import cupy_or_none, gpu_available  # noqa: E402
+from bf_epic_blocks.imaging._xp import cupy_or_none, gpu_available
 
 HAVE_GPU = gpu_available()
 

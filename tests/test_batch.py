@@ -26,8 +26,9 @@ from bf_epic_blocks.pipeline import cli  # noqa: E402
 
 from lwa_data import DATA, NA, SV  # noqa: E402
 NA_FRAME = 1560
-pytestmark = pytest.mark.skipif(not (SV.is_file() and NA.is_file()),
-                                reason=f"real LWA TBF files not found in {DATA} (set BF_EPIC_DATA)")
+pytestmark = [pytest.mark.real_data,
+              pytest.mark.skipif(not (SV.is_file() and NA.is_file()),
+                                 reason=f"real LWA TBF files not found in {DATA} (set BF_EPIC_DATA)")]
 
 # One YAML for both stations (station.name: auto); small grid, the files hold one sample each.
 YAML = """

@@ -7,15 +7,10 @@ must equal our runtime's for the same data (run in a subprocess with BF_EPIC_RUN
 to 1e-5. The block tests themselves (tests/test_blocks.py, `-m gpu`) run on Bifrost's 'cuda'
 rings wherever Bifrost is the runtime.
 """
-import sys
-from pathlib import Path
-
 import pytest
 
 from bf_epic_blocks.blocks import _compat
 from bf_epic_blocks.imaging._xp import gpu_available
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 
 pytestmark = [pytest.mark.bifrost, pytest.mark.gpu,
               pytest.mark.skipif(not (_compat.HAVE_BIFROST and gpu_available()),

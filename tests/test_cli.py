@@ -80,6 +80,7 @@ def test_plan_reports_the_whole_band_search_and_what_it_costs(capsys):
     assert "holds 36.4 GiB where it runs" in capsys.readouterr().out      # (one pass of the tree on a GPU)
 
 
+@pytest.mark.slow
 def test_simulated_demo_puts_cyg_a_on_its_pixel(tmp_path):
     """Stokes I's brightest pixel, read back with astropy.wcs, is within one pixel of Cyg A."""
     from astropy.coordinates import SkyCoord
@@ -100,6 +101,7 @@ def test_simulated_demo_puts_cyg_a_on_its_pixel(tmp_path):
     assert sky.separation(cyg).deg < abs(hdr["CDELT1"]) * 1.5
 
 
+@pytest.mark.real_data
 @need_data
 @pytest.mark.parametrize("yaml_name,expect_runs", [("lwasv_tbf_allsky.yaml", 1), ("lwana_tbf_allsky.yaml", 2)])
 def test_real_tbf_files_image(tmp_path, yaml_name, expect_runs):
@@ -112,6 +114,7 @@ def test_real_tbf_files_image(tmp_path, yaml_name, expect_runs):
         assert np.isfinite(data[..., 32, 32]).all() and np.isnan(data[..., 0, 0]).all()
 
 
+@pytest.mark.real_data
 @need_data
 def test_lwana_tbf_shows_cas_a_at_52_mhz(tmp_path):
     """Real data pin the sign: the 52 MHz block of the LWA-NA capture peaks within 10 deg of Cas A."""
@@ -128,6 +131,7 @@ def test_lwana_tbf_shows_cas_a_at_52_mhz(tmp_path):
     assert sep < 10, sep
 
 
+@pytest.mark.real_data
 @need_data
 def test_corrupt_tbf_is_a_clear_error(tmp_path, capsys):
     raw = bytearray((DATA / "lwana-ndp-tbf.dat").read_bytes())
@@ -297,6 +301,7 @@ def _writer_in_a_helper(monkeypatch):
     return made
 
 
+@pytest.mark.slow
 def test_a_helper_process_writes_the_same_files(tmp_path, monkeypatch):
     """The image writer's helper process (bf-epic run on a GPU) writes byte for byte the FITS files the
     writer's own thread writes, all of them by the time the run returns, in the same order."""
@@ -337,6 +342,7 @@ def test_a_failure_in_the_helper_process_fails_the_run_by_name(tmp_path, monkeyp
         runner.run(load_config(y, ["device=cpu", f"output.dir={out}"]), show_progress=False)
 
 
+@pytest.mark.slow
 def test_a_helper_that_cannot_start_is_not_a_lost_image(tmp_path):
     """A script without a ``__main__`` guard cannot spawn the writer's helper process (Python's spawn
     re-runs the script in the child, which refuses): the images are then written in the writer's own
@@ -423,6 +429,7 @@ def test_no_image_is_written_in_the_pipelines_interpreter_while_the_helper_start
     assert where[0] == "end" and where.count("write") == 4, where
 
 
+@pytest.mark.slow
 def test_a_process_without_astropy_waits_for_a_starting_helper_rather_than_import_it(tmp_path, monkeypatch):
     """Where writing here would first import astropy (a recording's run on a GPU), images held at the
     sequence's end wait for a helper that is still starting, and all of them come from it, byte for byte

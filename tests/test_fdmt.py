@@ -124,7 +124,9 @@ def _fp16_bound(x, nchan):
     return (np.log2(max(nchan, 2)) + 2) * 2.0 ** -11
 
 
-@pytest.mark.parametrize("nchan,dmax,blocks,chunk,npix", [(40, 30, [7, 50, 1, 92], 2, 5), (300, 120, [64, 64, 100, 3], 32, 67),
+@pytest.mark.parametrize("nchan,dmax,blocks,chunk,npix", [(40, 30, [7, 50, 1, 92], 2, 5),
+                                                          pytest.param(300, 120, [64, 64, 100, 3], 32, 67,
+                                                                       marks=pytest.mark.slow),
                                                           (13, 9, [60], None, 3)])
 def test_float16_storage_is_within_its_rounding_of_the_float64_sums(nchan, dmax, blocks, chunk, npix):
     """Sky-like images (a positive mean, 10% noise) at a scale float16 could not hold unscaled (1e7): once

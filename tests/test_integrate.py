@@ -63,6 +63,7 @@ def test_bad_lengths_are_named():
         ImageIntegratorBlock(None, seconds=-1)
 
 
+@pytest.mark.slow
 def test_wholeband_pipeline_made_small(tmp_path):
     """pipelines/lwasv_sim_wholeband.yaml with 16 channels on a 16x16 grid (the CPU's share of it): the
     tree search finds the burst at its DM (+-1 sweep), arrival and place; each band-averaged FITS is
@@ -107,6 +108,7 @@ def test_wholeband_pipeline_made_small(tmp_path):
         assert np.allclose(got, want, rtol=2e-6)
 
 
+@pytest.mark.slow
 def test_search_with_a_minimum_elevation(tmp_path):
     """imager.min_elevation_deg leaves the pixels below it NaN on the grid; the image header says which
     pixels were imaged (pixels.index), so the search takes only those (it had taken every pixel above the
@@ -130,6 +132,7 @@ def test_search_with_a_minimum_elevation(tmp_path):
     assert summary["search"]["trials_per_width"][0] % lm_grid(16, min_elevation_deg=20).npix == 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("device", ["cpu", pytest.param("gpu", marks=[
     pytest.mark.gpu, pytest.mark.skipif(not imaging._xp.gpu_available(), reason="needs CuPy and a CUDA device")])])
 def test_wholeband_images_equal_a_float64_evaluation(tmp_path, device):
@@ -183,6 +186,7 @@ def test_wholeband_images_equal_a_float64_evaluation(tmp_path, device):
     assert max(errs) > 0                                                     # (a real comparison: float32 at best)
 
 
+@pytest.mark.slow
 def test_wholeband_band_mean_made_once_for_the_files_and_the_cube(tmp_path):
     """Where the files and the cube both average the channels (pipelines/lwasv_sim_wholeband.yaml), the
     band mean of each image is made once, by one block reading the imager, and both outputs read it: the

@@ -83,6 +83,7 @@ def _gpus():
         return 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("device", ["cpu", "cpu3", pytest.param("gpu", marks=[
     pytest.mark.gpu, pytest.mark.skipif(_gpus() < 2, reason="needs two CUDA GPUs")])])
 def test_pixel_split_through_run_equals_one_graph(tmp_path, device):

@@ -33,6 +33,7 @@ def read_quiet(path):
 
 
 # ------------------------------------------------------------------------------------- real files
+@pytest.mark.real_data
 @needs_sv
 def test_lwasv_shape_freq_time_and_truncation_warning():
     with pytest.warns(TBFWarning, match="5160 trailing bytes"):
@@ -49,6 +50,7 @@ def test_lwasv_shape_freq_time_and_truncation_warning():
     assert d.times[0].isot == "2015-11-13T00:59:22.000"
 
 
+@pytest.mark.real_data
 @needs_na
 def test_lwana_shape_freq_time():
     d = read_tbf(NA)
@@ -64,6 +66,7 @@ def test_lwana_shape_freq_time():
     assert abs(dt) < 1e-3   # the tag is 2.6 us before the second
 
 
+@pytest.mark.real_data
 @needs_sv
 @needs_na
 def test_samples_match_hand_decoding():
@@ -102,6 +105,7 @@ def test_ci4_roundtrip_all_values():
         unpack_ci4(np.array([1, 2], dtype=np.int32))
 
 
+@pytest.mark.real_data
 @pytest.mark.parametrize("name", ["lwasv", "lwana"])
 def test_lsl_antenna_order_matches_tbf_axes(name):
     """antenna k = stand index k // 2, pol k % 2 -- LSL's order and the (nstand, 2) axes of the reader."""
@@ -144,6 +148,7 @@ def _patch(frame: bytes, offset: int, fmt: str, value) -> bytes:
     return frame[:offset] + struct.pack(fmt, value) + frame[offset + n:]
 
 
+@pytest.mark.real_data
 @needs_na
 def test_bad_sync_word_names_byte_offset(tmp_path):
     frames = _frames(NA.read_bytes(), NA_FRAME)
@@ -155,6 +160,7 @@ def test_bad_sync_word_names_byte_offset(tmp_path):
     assert e.value.offset == 3 * NA_FRAME and isinstance(e.value, ValueError)
 
 
+@pytest.mark.real_data
 @needs_na
 @pytest.mark.parametrize("field,fmt,value,what", [
     (14, ">h", 32, "stand count"),
@@ -194,6 +200,7 @@ def _three_times(dropped=(), shuffle=False, seed=0):
     return keep
 
 
+@pytest.mark.real_data
 @needs_na
 def test_dropped_middle_frame_zero_filled_and_counted(tmp_path):
     ref = read_tbf(NA)
@@ -212,6 +219,7 @@ def test_dropped_middle_frame_zero_filled_and_counted(tmp_path):
     np.testing.assert_array_equal(d.data[2], ref.data[0])
 
 
+@pytest.mark.real_data
 @needs_na
 def test_interleaved_out_of_order_and_gulps(tmp_path):
     p1, p2 = tmp_path / "ordered.dat", tmp_path / "shuffled.dat"
@@ -230,6 +238,7 @@ def test_interleaved_out_of_order_and_gulps(tmp_path):
         next(iter_tbf_gulps(p1, 0))
 
 
+@pytest.mark.real_data
 @needs_na
 def test_missing_time_tag_counted_as_gap_and_duplicates(tmp_path):
     frames = _three_times(dropped=tuple(range(7, 14)))   # time 1 absent altogether
@@ -243,6 +252,7 @@ def test_missing_time_tag_counted_as_gap_and_duplicates(tmp_path):
     assert sum(g.stats["time_gaps"] for g in gulps) == 1
 
 
+@pytest.mark.real_data
 @needs_na
 def test_truncated_file_stops_cleanly(tmp_path):
     raw = NA.read_bytes()
@@ -260,6 +270,7 @@ def test_truncated_file_stops_cleanly(tmp_path):
         read_tbf(p)
 
 
+@pytest.mark.real_data
 @needs_sv
 def test_scan_matches_read():
     with pytest.warns(TBFWarning):

@@ -16,6 +16,9 @@ from test_tbf import NA, needs_na
 TBX = Path(__file__).resolve().parent / "data" / "lwana-ndp-tbx.dat"
 FB = LWANA_FRAME_BYTES  # 1564
 
+# nearly every test here reads the real capture in tests/data (or LSL's reading of it)
+pytestmark = pytest.mark.real_data
+
 
 @pytest.fixture(scope="module")
 def lsl_tbx():

@@ -17,6 +17,9 @@ REPO = Path(__file__).resolve().parents[1]
 YAML = REPO / "pipelines" / "lwana_tbx_allsky.yaml"
 TBX = REPO / "tests" / "data" / "lwana-ndp-tbx.dat"
 
+# every test here images, plans or names the real capture in tests/data
+pytestmark = pytest.mark.real_data
+
 
 def _fits(out):
     from astropy.io import fits

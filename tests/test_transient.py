@@ -143,6 +143,7 @@ def _dispersed_burst(seed, nchan, npix, chan_hz, nimg, dm, pix, e0, amp):
     return f, dt, x
 
 
+@pytest.mark.slow
 def test_the_tree_search_finds_a_burst_at_its_dm_across_a_wide_band(xp):
     """96 channels over 19 MHz from 74 MHz (a band the shifted sums would need ~1,300 trials for): the
     tree searches every sweep, and a width-2 burst at DM 0.9 is found at its pixel, its arrival at
@@ -478,6 +479,7 @@ def test_dm_sidelobe_snr_counts_the_channel_images_two_sweeps_share():
     assert dm_sidelobe_snr(f, dt, (1000, 1.5, 8, 300.0), (ef, 2.0, 8), slack=0) == pytest.approx(300.0 * shared / (256 * 8))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("factor,defer", [(2.0, False), (0.0, False), (2.0, True), (0.0, True)])
 def test_a_bright_dispersed_burst_s_dm_sidelobes_fold_into_it(tmp_path, monkeypatch, factor, defer):
     """The tree search over a wide band sees a bright burst (S/N ~260) in trials of other DMs whose
@@ -619,6 +621,7 @@ def test_a_burst_between_pixels_is_one_row_though_its_pixel_sees_a_tenth_of_it(t
     assert t["lightcurve"][0][32] == pytest.approx(t["snr"][0], rel=1e-3)
 
 
+@pytest.mark.slow
 def test_a_bright_burst_in_the_demo_is_at_most_three_rows(tmp_path):
     """The issue's case, as a user runs it: pipelines/lwasv_sim_transient.yaml (LWA-SV, Cyg A, Cas A,
     4-bit voltages, a 32x32 grid) with a 2 kJy, 4-ms burst at DM 0.5, which lands between pixels:

@@ -371,6 +371,7 @@ def run_file(tmp_path, station, capture, gulp, acc, tag="file", kind="tbf", size
 TBX_REAL = REPO / "tests" / "data" / "lwana-ndp-tbx.dat"
 
 
+@pytest.mark.real_data
 @need_data
 @pytest.mark.parametrize("rate", [1.0, 5.0])
 @pytest.mark.parametrize("capture,station,fmt", [(DATA / "lwasv-adp-tbf.dat", "lwasv", "tbf"),
@@ -392,7 +393,7 @@ def test_real_file_replayed_gives_the_images_of_reading_it(tmp_path, capture, st
     assert g.calfold.guarantee and s["samples_overflow"] == 0 and wall < 10
 
 
-@pytest.mark.parametrize("rate", [RATE, 20.0])
+@pytest.mark.parametrize("rate", [pytest.param(RATE, marks=pytest.mark.slow), 20.0])
 def test_start_of_a_paced_stream_is_imaged_whole(tmp_path, rate):
     """Issue 23's case at LWA-NA's size: 2,048 samples x 24 channels, 256-sample gulps, one image per
     256 samples, the shipped live YAML's default reordering window (0.05 s = 1,250 samples, more than
@@ -557,6 +558,7 @@ def test_udp_config_keys_are_checked():
         load_config("source: {kind: udp}\n")
 
 
+@pytest.mark.real_data
 @need_data
 def test_operator_flow_bf_epic_run_then_replay(tmp_path):
     """`bf-epic run <live yaml>` in its own process, `bf-epic replay` into the port it logs; the run ends by
@@ -706,6 +708,7 @@ def test_a_silent_chips_board_is_zero_filled_and_counted(tmp_path):
     assert cap.stats["frames_missing"] == ntime
 
 
+@pytest.mark.slow
 def test_chips_stream_through_bf_epic_run_gives_the_recordings_images(tmp_path):
     """`bf-epic run` of the live YAML with source.format: chips (LWA-SV, 256 stands), fed by
     `replay --format chips`: every image equals the file path's, bit for bit."""

@@ -31,8 +31,6 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 C = 299792458.0
 DT = 40e-6
 

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from cases import bf_epic_command, write_json
+from bench.benchlib import bf_epic_command, write_json
 
 REPO = Path(__file__).resolve().parents[1]
 TOL_FP32 = 1e-5

@@ -10,16 +10,15 @@ samples by a power-and-sum kernel (vector loads, fp32 sums). Rows:
 * the pair done channel by channel (one channel's fp16 field, 26 MB, fits the 50-MB L2);
 * error of the fp32- and fp16-field images against a float64 evaluation (2 channels, all pixels).
 
-usage: python tools/bench_regime_b.py [--json PATH]     (needs CuPy and a CUDA device)
+usage: python tools/bench/bench_regime_b.py [--json PATH]     (needs CuPy and a CUDA device)
 """
 import argparse
-import json
-import os
 import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from benchlib import machine, utc_now, write_json
+
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("--json")
 args = ap.parse_args()
@@ -28,7 +27,7 @@ try:
     cp.cuda.runtime.getDeviceCount()
 except Exception as e:  # noqa: BLE001
     sys.exit(f"bench_regime_b: needs CuPy and a CUDA device ({e})")
-from bf_epic_blocks.imaging import gemm as G  # noqa: E402
+from bf_epic_blocks.imaging import gemm as G  # noqa: E402 - after the check that a GPU is there
 C, K, A, T, P, N = 16, 3205, 256, 1024, 2, 16
 rng = np.random.default_rng(1)
 ang = rng.uniform(-np.pi, np.pi, (C, K, A))
@@ -93,7 +92,6 @@ Fr = np.matmul(D[:2], X[:2])
 I = (np.abs(Fr.reshape(2, K, P, T // N, N)) ** 2).sum(-1).transpose(0, 2, 1, 3)
 e32 = float(np.abs(ref[:2] - I).max() / I.max()); e16 = float(np.abs(got[:2] - I).max() / I.max())
 print(f"error vs float64 (2 channels): fp32 field {e32:.2e}, fp16 field {e16:.2e}")
-res.update(err_fp32_field=e32, err_fp16_field=e16, gpu=cp.cuda.runtime.getDeviceProperties(0)["name"].decode())
+res.update(err_fp32_field=e32, err_fp16_field=e16, date=utc_now(), machine=machine("gpu"))
 if args.json:
-    with open(args.json, "w") as fh:
-        json.dump(res, fh, indent=1)
+    write_json(args.json, res)

@@ -2,22 +2,21 @@
 """Profile one DFT imaging call of case P on the GPU: run under Nsight Compute to see each kernel.
 
     ncu --profile-from-start off --clock-control none --metrics gpu__time_duration.sum --csv \\
-        python tools/profile_dft.py --route covariance --precision fp16 --input ci4
+        python tools/bench/profile_dft.py --route covariance --precision fp16 --input ci4
 
 The script warms up, then brackets ONE ``DFTOperator.image`` call with cudaProfilerStart/Stop, so
 the report lists exactly the kernels of one gulp (GEMMs, reductions, conversions) with their times.
 Without ncu it prints the call's median time (CUDA events).
 """
 import argparse
-import os
-import sys
+import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import lwasv_like_layout, pairs_to_complex, quantise4, sky_efield, timer  # noqa: E402
+from bf_epic_blocks import imaging
 
-from bf_epic_blocks import imaging  # noqa: E402
+from benchlib import timer
+from cases import lwasv_like_layout, pairs_to_complex, quantise4, sky_efield
 
 
 def summarise(path):
@@ -59,7 +58,6 @@ def main(argv=None):
     def call():
         return op.image(X, a.products, method=a.route, accumulate=a.accumulate)
     t, _ = timer("gpu")(call, 10)
-    import time
     cp.cuda.Device().synchronize()
     t0 = time.perf_counter()
     for _ in range(10):

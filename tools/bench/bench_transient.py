@@ -14,29 +14,19 @@ state), including the transfer of the crossings to the host. Rows:
 
 The real-time factor is 0.64 ms divided by the time per image.
 
-    python tools/bench_transient.py --device cpu --json docs/bench/transient_cpu.json
-    python tools/bench_transient.py --device gpu --json docs/bench/transient_gpu.json
+    python tools/bench/bench_transient.py --device cpu --json docs/bench/transient_cpu.json
+    python tools/bench/bench_transient.py --device gpu --json docs/bench/transient_gpu.json
 """
 import argparse
-import datetime
-import os
-import platform
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bf_epic_blocks.imaging.transient import TransientSearch
 
-from bf_epic_blocks.imaging.transient import TransientSearch  # noqa: E402
-from cases import write_json  # noqa: E402
+from benchlib import array_module, machine, synchronize, utc_now, write_json
 
 DT_IMG = 16 / 25e3
-
-
-def _sync(xp):
-    if xp.__name__ == "cupy":
-        xp.cuda.Device().synchronize()
 
 
 def time_search(xp, nchan, npix, window, dms, widths, ngulp, gulp=64, seed=0):
@@ -48,12 +38,12 @@ def time_search(xp, nchan, npix, window, dms, widths, ngulp, gulp=64, seed=0):
     nfill = -(-(window + max(widths) + s.shift) // gulp) + 1
     for i in range(nfill):
         s.push(gulps[i % 4])
-    _sync(xp)
+    synchronize(xp)
     ncross = 0
     t0 = time.perf_counter()
     for i in range(ngulp):
         ncross += len(s.push(gulps[i % 4]))
-    _sync(xp)
+    synchronize(xp)
     el = time.perf_counter() - t0
     return el / (ngulp * gulp), ncross, s
 
@@ -63,7 +53,7 @@ def time_naive(xp, s, nimg, seed=1):
     rng = np.random.default_rng(seed)
     W, wmax = s.window, s.wmax
     hist = xp.asarray(rng.normal(10.0, 1.0, (s.nser, W + wmax, s.npix)).astype(np.float32))
-    _sync(xp)
+    synchronize(xp)
     t0 = time.perf_counter()
     for _ in range(nimg):
         win = hist[:, :W]
@@ -72,7 +62,7 @@ def time_naive(xp, s, nimg, seed=1):
             snr = (hist[:, W + wmax - w:].mean(axis=1) - mu) * np.sqrt(w) / sd
             hit = xp.nonzero(snr > 6.0)
             _ = [h.size for h in hit]
-    _sync(xp)
+    synchronize(xp)
     return (time.perf_counter() - t0) / nimg
 
 
@@ -86,10 +76,7 @@ def main(argv=None):
     ap.add_argument("--ngulp", type=int, default=None, help="timed gulps of 64 images")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
-    if a.device == "gpu":
-        import cupy as xp
-    else:
-        xp = np
+    xp = array_module(a.device)
     ngulp = a.ngulp or (200 if a.device == "gpu" else 20)
     window = int(round(a.window_s / DT_IMG))
     widths = [1, 2, 4, 8]
@@ -105,19 +92,15 @@ def main(argv=None):
     t = time_naive(xp, s_main, nnaive)
     rows.append({"row": "naive", "ndm": len(a.dms), "dms": a.dms, "ms_per_image": t * 1e3,
                  "realtime_factor": DT_IMG / t, "crossings": None})
-    info = {"host": platform.node(), "ncpu": os.cpu_count(), "numpy": np.__version__, "device": a.device}
-    if a.device == "gpu":
-        props = xp.cuda.runtime.getDeviceProperties(0)
-        info["gpu"] = props["name"].decode() if isinstance(props["name"], bytes) else props["name"]
-        info["cupy"] = xp.__version__
+    info = machine(a.device)
     print(f"\nTransient search, case P: {a.npix} pixels, {a.nchan} channels, window {window} images "
-          f"({a.window_s:g} s), widths {widths}, gulps of 64 images, {a.device} ({info.get('gpu', platform.processor())})")
+          f"({a.window_s:g} s), widths {widths}, gulps of 64 images, {a.device} ({info['hardware']})")
     print(f"{'row':<8} {'DMs':>4} {'ms/image':>10} {'x real time':>12} {'crossings':>10}")
     for r in rows:
         print(f"{r['row']:<8} {r['ndm']:>4} {r['ms_per_image']:>10.3f} {r['realtime_factor']:>12.2f} "
               f"{'' if r['crossings'] is None else r['crossings']:>10}")
     if a.json:
-        out = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(), "machine": info,
+        out = {"date": utc_now(), "device": a.device, "machine": info,
                "npix": a.npix, "nchan": a.nchan, "window_images": window, "widths": widths,
                "image_time_s": DT_IMG, "rows": rows}
         write_json(a.json, out)

@@ -14,13 +14,10 @@ a complex64 (ntime, nchan, nstand, 2) grid:
 
 Both results are checked equal before any time is reported. Best of ``--repeat`` runs.
 
-    python tools/bench_tbx_reader.py --ntime 2000 --json docs/bench/bench_tbx_reader_cpu.json
+    python tools/bench/bench_tbx_reader.py --ntime 2000 --json docs/bench/bench_tbx_reader_cpu.json
 """
 import argparse
-import datetime
-import json
 import os
-import platform
 import sys
 import tempfile
 import time
@@ -29,6 +26,8 @@ import numpy as np
 
 from bf_epic_blocks.io.tbx import iter_tbx_gulps, read_tbx, tbx_frame_bytes, write_tbx
 from bf_epic_blocks.station.offline import configure_offline
+
+from benchlib import machine, utc_now, write_json
 
 
 def lsl_read(tbx, path):
@@ -96,11 +95,9 @@ def main(argv=None):
     for name, t in rows:
         print(f"{name:44s} {t:8.3f} {size / 1e6 / t:8.1f} {nframe / t:10.0f} {t_lsl / t:6.1f}x")
     if a.json:
-        out = {"date": datetime.date.today().isoformat(), "machine": platform.processor() or platform.machine(),
-               "cpus": os.cpu_count(), "nframe": nframe, "bytes": size, "ntime": a.ntime, "nchan": nchan,
+        out = {"date": utc_now(), "machine": machine("cpu"), "nframe": nframe, "bytes": size, "ntime": a.ntime, "nchan": nchan,
                "nstand": a.nstand, "repeat": a.repeat, "results": [{"reader": n, "s": t} for n, t in rows]}
-        with open(a.json, "w") as fh:
-            json.dump(out, fh, indent=1)
+        write_json(a.json, out)
     return 0
 
 

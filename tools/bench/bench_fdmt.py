@@ -12,21 +12,17 @@ Error: max |fdmt - shifts| / max |shifts| with the shifted sums taken at the tre
 (:func:`effective_back`), so the two compute the same sums; and how far those offsets are from the
 rounded dispersion curve (images). Rows per channel count; JSON with ``--json``.
 
-    python tools/bench_fdmt.py --device cpu --json docs/bench/bench_fdmt_cpu_2cores.json
+    python tools/bench/bench_fdmt.py --device cpu --json docs/bench/bench_fdmt_cpu_2cores.json
 """
 import argparse
-import datetime
-import os
-import platform
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bf_epic_blocks.imaging.fdmt import FDMTPlan, effective_back, fdmt  # noqa: E402
-from bf_epic_blocks.imaging.transient import dispersion_delay_s  # noqa: E402
-from cases import write_json  # noqa: E402
+from bf_epic_blocks.conventions import dispersion_delay_s
+from bf_epic_blocks.imaging.fdmt import FDMTPlan, effective_back, fdmt
+
+from benchlib import array_module, machine, synchronize, utc_now, write_json
 
 DT = 16 / 25e3
 
@@ -52,19 +48,14 @@ def main(argv=None):
     ap.add_argument("--npix", type=int, default=16)
     ap.add_argument("--json")
     a = ap.parse_args(argv)
-    if a.device == "gpu":
-        import cupy as xp
-    else:
-        xp = np
+    xp = array_module(a.device)
 
     def clock(fn):
         fn()
-        if xp is not np:
-            xp.cuda.Device().synchronize()
+        synchronize(xp)
         t0 = time.perf_counter()
         out = fn()
-        if xp is not np:
-            xp.cuda.Device().synchronize()
+        synchronize(xp)
         return time.perf_counter() - t0, out
 
     rows = []
@@ -90,9 +81,7 @@ def main(argv=None):
         rows.append(r)
         print(f"{nchan:>6} {sweep:>6} {T:>6} {r['rows_fdmt']:>10} {r['rows_shifts']:>11} {tf:>8.3f} {ts:>9.3f} "
               f"{ts / tf:>8.1f} {err:>8.1e} {dev:>9.0f}", flush=True)
-    out = {"benchmark": "bench_fdmt", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
-           "device": a.device, "machine": {"host": platform.node(), "ncpu": os.cpu_count(),
-                                           "numpy": np.__version__},
+    out = {"benchmark": "bench_fdmt", "date": utc_now(), "device": a.device, "machine": machine(a.device),
            "case": {"dm_max": a.dm_max, "dt_s": DT, "chan_width_hz": 25e3, "f0_hz": 74e6}, "rows": rows}
     if a.json:
         write_json(a.json, out)

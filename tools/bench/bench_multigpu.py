@@ -23,22 +23,19 @@ speed-up is over the 1-GPU row of the same feeding (``1 GPU`` for resident input
 for the host-fed rows; ``1 GPU, 16 channels`` shows one GPU's share alone, the bound for 2 GPUs).
 Output images are checked equal (<= 1e-6 of the peak) to 1 GPU.
 
-    python tools/bench_multigpu.py --json bench_multigpu.json [--precision fp16] [--nchan 32]
+    python tools/bench/bench_multigpu.py --json bench_multigpu.json [--precision fp16] [--nchan 32]
 """
 import argparse
-import datetime
-import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import lwasv_like_layout, quantise4, reference_image, sky_efield, timer, write_json  # noqa: E402
+from bf_epic_blocks import imaging
+from bf_epic_blocks.imaging.multigpu import ShardedOperator
+from bf_epic_blocks.runtime.dtypes import pack_ci4, unpack_int8_pairs
 
-from bf_epic_blocks import imaging  # noqa: E402
-from bf_epic_blocks.imaging.multigpu import ShardedOperator  # noqa: E402
-from bf_epic_blocks.runtime.dtypes import pack_ci4, unpack_int8_pairs  # noqa: E402
+from benchlib import gpu_names, machine, timer, utc_now, write_json
+from cases import lwasv_like_layout, quantise4, reference_image, sky_efield
 
 
 def wall(fn, repeat):
@@ -108,10 +105,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     import cupy as cp
     ngpu = cp.cuda.runtime.getDeviceCount()
-    names = []
-    for d in range(ngpu):
-        p = cp.cuda.runtime.getDeviceProperties(d)["name"]
-        names.append(p.decode() if isinstance(p, bytes) else p)
+    names = gpu_names()
     xyz, layout = lwasv_like_layout(256)
     freq = 74e6 + 25e3 * np.arange(a.nchan)
     Q = quantise4(sky_efield(xyz, freq, 1024, npol=2, dtype=np.complex128))     # int8 pairs
@@ -229,8 +223,7 @@ def main(argv=None):
                              "max_rel_diff_vs_truth_sample": diff})
                 print(f"{precision:<9} {label:<22} {t * 1e3:9.3f} {base / t:9.2f} {diff:9.1e}  "
                       f"(pipeline {t_pipe * 1e3:.3f} ms/image)", flush=True)
-    out = {"benchmark": "bench_multigpu", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
-           "gpus": names, "case": {"nchan": a.nchan, "nant": 256, "layout": layout, "npix": grid.npix, "ntime": 1024,
+    out = {"benchmark": "bench_multigpu", "date": utc_now(), "machine": machine("gpu"), "gpus": names, "case": {"nchan": a.nchan, "nant": 256, "layout": layout, "npix": grid.npix, "ntime": 1024,
                                    "method": a.method}, "rows": rows}
     if a.json:
         write_json(a.json, out)

@@ -2,7 +2,7 @@
 """Benchmark: exact DFT vs E-field w-stacking vs covariance + w-gridding vs MOFF.
 
 Case (PHYSICS.md, case P): 256 LWA-SV-like antennas (LSL's lwasv stands when ``lsl`` imports, else
-the look-alike of tools/cases.py), 1024 time samples at 74 MHz, all-sky N x N grids. CPU: one channel, one polarisation.
+the look-alike of tools/bench/cases.py), 1024 time samples at 74 MHz, all-sky N x N grids. CPU: one channel, one polarisation.
 GPU: 16 channels x 2 polarisations (XX, YY). The data are a few incoherent point sources plus noise.
 
 Errors: max |I - I_ref| / max I_ref over a subset of pixels (200 random kept pixels plus the pixel
@@ -12,25 +12,22 @@ antenna heights, so its error is the wide-field error, not a gridding error.
 Timings are steady state: one warm-up call first (it builds and caches the gridding plans, as a
 pipeline would once), then the median of ``--repeat`` calls; GPU timings use cupy.cuda.Event.
 
-    python tools/bench_wstack.py --device cpu --quick
-    python tools/bench_wstack.py --device gpu --sizes 64 128 256 --json gpu.json --plot gpu.png
+    python tools/bench/bench_wstack.py --device cpu --quick
+    python tools/bench/bench_wstack.py --device gpu --sizes 64 128 256 --json gpu.json --plot gpu.png
 """
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from cases import lwasv_like_layout, reference_image, timer  # noqa: E402
+from bf_epic_blocks.imaging.moff import moff_image
+from bf_epic_blocks.imaging.pixels import lm_grid
+from bf_epic_blocks.imaging.wstack import cov_wgrid_image, get_plan, work_dtype, wstack_image
 
-from bf_epic_blocks.imaging.moff import moff_image  # noqa: E402
-from bf_epic_blocks.imaging.pixels import lm_grid  # noqa: E402
-from bf_epic_blocks.imaging.wstack import cov_wgrid_image, get_plan, work_dtype, wstack_image  # noqa: E402
+from benchlib import array_module, machine, timer, utc_now, write_json
+from cases import lwasv_like_layout, reference_image
 
 C = 299792458.0
 FREQ0 = 74e6
@@ -66,12 +63,8 @@ def main(argv=None):
         args.sizes, args.ntime, args.eps, args.repeat = [32, 64], 128, [1e-2, 1e-4], 1
     rng = np.random.default_rng(0)
     xyz, layout = lwasv_like_layout(args.nant)
-    if args.device == "gpu":
-        import cupy as xp
-        nchan, npol = 16, 2
-    else:
-        xp = np
-        nchan, npol = 1, 1
+    xp = array_module(args.device)
+    nchan, npol = (16, 2) if args.device == "gpu" else (1, 1)
     freqs = FREQ0 + 25e3 * np.arange(nchan)
     srcs = np.array([[0.21, 0.33], [-0.45, 0.12], [0.05, -0.62], [0.7, -0.3]])
     efield_h = simulate(xyz, freqs, args.ntime, npol, rng, srcs)
@@ -132,9 +125,9 @@ def main(argv=None):
             print(f"N={N:4d} err<={lvl:.0e}: " + (f"{best['method']} (eps={best['epsilon']}) {best['time_s']:.4f} s"
                                                   if best else "none"))
     if args.json:
-        args.json.write_text(json.dumps({"device": args.device, "layout": layout, "nant": int(xyz.shape[0]),
-                                         "ntime": args.ntime, "nchan": nchan, "npol": npol, "rows": rows,
-                                         "crossover": cross}, indent=1))
+        write_json(args.json, {"date": utc_now(), "device": args.device, "machine": machine(args.device),
+                               "layout": layout, "nant": int(xyz.shape[0]), "ntime": args.ntime, "nchan": nchan,
+                               "npol": npol, "rows": rows, "crossover": cross})
     if args.plot:
         import matplotlib
         matplotlib.use("Agg")

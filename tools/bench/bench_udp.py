@@ -6,14 +6,12 @@ packet and byte rates. "Sustained" = every packet received and the sender within
 receiver run in this one process (separate threads, as ``bf-epic replay`` and a pipeline would on
 one machine: the sender in a second process), so on a small machine they share its cores.
 
-    python tools/bench_udp.py [--seconds 0.2] [--json bench_udp.json]
+    python tools/bench/bench_udp.py [--seconds 0.2] [--json bench_udp.json]
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
 import tempfile
 import threading
 import time
@@ -21,10 +19,10 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from bf_epic_blocks.io.tbf import FRAME_KINDS, FS_HZ, write_tbf
+from bf_epic_blocks.io.udp import UDPCapture, replay
 
-from bf_epic_blocks.io.tbf import FRAME_KINDS, FS_HZ, write_tbf  # noqa: E402
-from bf_epic_blocks.io.udp import UDPCapture, replay  # noqa: E402
+from benchlib import machine, utc_now, write_json
 
 LAYOUTS = {  # name: (frame id, stands, channels)
     "LWA-SV ADP, 256 stands, 60 ch": (1, 256, 60),
@@ -90,10 +88,8 @@ def main(argv=None):
                 time.sleep(0.2)
             ok = [x["rate_asked"] for x in rows if x["layout"] == name and x["sustained"]]
             print(f"max sustained rate: {max(ok) if ok else 0:g} x real time")
-    info = dict(machine=f"{os.cpu_count()}-core CPU", seconds=args.seconds, rows=rows)
-    with open(args.json, "w") as fh:
-        json.dump(info, fh, indent=2)
-    print(f"\nwrote {args.json}")
+    info = dict(date=utc_now(), machine=machine("cpu"), seconds=args.seconds, rows=rows)
+    write_json(args.json, info)
 
 
 if __name__ == "__main__":

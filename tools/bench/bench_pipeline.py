@@ -28,28 +28,27 @@ weights, a 64 x 64 all-sky grid, one image per gulp, Stokes I. Two block graphs 
     seconds of data / seconds of wall time (LWA-SV: 40 us per sample). Also the source alone into a
     null sink, to show it is not the bottleneck.
 
-    python tools/bench_pipeline.py --device cpu --nchan 1 --ngulp 4 --fits-seconds 2 --json out.json
-    python tools/bench_pipeline.py --device gpu --ngulp 200 --json docs/bench/bench_pipeline_gpu_200gulps.json
+    python tools/bench/bench_pipeline.py --device cpu --nchan 1 --ngulp 4 --fits-seconds 2 --json out.json
+    python tools/bench/bench_pipeline.py --device gpu --ngulp 200 --json docs/bench/bench_pipeline_gpu_200gulps.json
 """
 import argparse
 import datetime
-import os
-import sys
 import tempfile
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import lwasv_like_layout, reference_image, write_json  # noqa: E402
-
-from bf_epic_blocks import imaging  # noqa: E402
-from bf_epic_blocks.blocks import (ArraySinkBlock, ArraySourceBlock, CalFoldBlock, DFTImagerBlock, bfp,  # noqa: E402
+from bf_epic_blocks import imaging
+from bf_epic_blocks.blocks import (ArraySinkBlock, ArraySourceBlock, CalFoldBlock, DFTImagerBlock, bfp,
                                    efield_header)
-from bf_epic_blocks.blocks import _compat  # noqa: E402
-from bf_epic_blocks.imaging.calibration import FS_HZ, apply_direction_independent  # noqa: E402
-from bf_epic_blocks.imaging.pixels import GridPlacement  # noqa: E402
-from bf_epic_blocks.runtime.dtypes import int8_pairs_decoder, pack_ci4, unpack_complex  # noqa: E402
+from bf_epic_blocks.blocks import _compat
+from bf_epic_blocks.conventions import FS_HZ
+from bf_epic_blocks.imaging.calibration import apply_direction_independent
+from bf_epic_blocks.imaging.pixels import GridPlacement
+from bf_epic_blocks.runtime.dtypes import int8_pairs_decoder, pack_ci4, unpack_complex
+
+from benchlib import array_module, machine, utc_now, write_json
+from cases import lwasv_like_layout, reference_image
 
 REALTIME_FPS = 25000.0  # LWA-SV: 40 us per sample
 LWASV = {"name": "lwasv-like", "lat_deg": 34.348358, "lon_deg": -106.885783, "elev_m": 1477.0}
@@ -309,9 +308,7 @@ def main(argv=None):
     if 0 < a.fits_seconds < a.image_seconds:
         ap.error(f"--fits-seconds {a.fits_seconds:g} is shorter than one image (--image-seconds {a.image_seconds:g}); "
                  "give at least one image's worth, or 0 to skip station to FITS")
-    xp = np
-    if a.device == "gpu":
-        import cupy as xp
+    xp = array_module(a.device)
     space = "cuda" if a.device == "gpu" else "system"
 
     def sync():
@@ -392,12 +389,9 @@ def main(argv=None):
     if fits_error:
         print("# " + fits_error)
     if a.json:
-        out = {"benchmark": "bench_pipeline", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
-               "device": a.device, "nchan": a.nchan, "gulp": a.gulp, "ngulp": a.ngulp, "grid": a.grid,
+        out = {"benchmark": "bench_pipeline", "date": utc_now(), "device": a.device, "machine": machine(a.device), "nchan": a.nchan, "gulp": a.gulp, "ngulp": a.ngulp, "grid": a.grid,
                "layout": case["layout"], "runtime": _compat.RUNTIME, "method": methods, "graphs": graphs, "rows": rows,
                "stages": stages, "fits": fits_row or fits_error, "realtime_fps": REALTIME_FPS}
-        if a.device == "gpu":
-            out["gpu"] = xp.cuda.runtime.getDeviceProperties(xp.cuda.Device().id)["name"].decode()
         write_json(a.json, out)
 
 

@@ -27,7 +27,7 @@ Rows (each `bf-epic run` is a subprocess, timed from outside, as a user would se
   voltages as complex64 (the floating-point covariance route), and as packed ci4 bytes decoded and
   accumulated as integers, which is what `bf-epic run` does with a capture file on a GPU.
 
-usage: python tools/bench_e2e.py [--device gpu|cpu] [--seconds 10] [--nchan 24] [--precisions fp16,fp32]
+usage: python tools/bench/bench_e2e.py [--device gpu|cpu] [--seconds 10] [--nchan 24] [--precisions fp16,fp32]
                                  [--gulps auto,1024,5000]
                                  [--long-factor 3] [--skip recording,long,tbx,simulated,startup,source,core]
                                  [--json PATH]
@@ -47,9 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-from cases import bf_epic_command, write_json  # noqa: E402
+from benchlib import REPO, array_module, bf_epic_command, child_env, machine, synchronize, write_json
+
 DT = 40e-6
 
 
@@ -105,23 +104,6 @@ def evict(path):
         return False
 
 
-#: where the runs keep Python's bytecode when the environment forbids writing it beside the sources
-_PYCACHE = Path(tempfile.gettempdir()) / "bf_e2e_pycache"
-
-
-def child_env():
-    """The environment of each timed run: this one, with Python's bytecode caches on. A user's
-    installation has them (pip compiles on install, Python writes ``__pycache__`` on first import);
-    an image that sets ``PYTHONDONTWRITEBYTECODE`` and ships no ``.pyc`` makes every run compile
-    NumPy, CuPy, astropy and this package from source again: ~0.9 s more per run on an H100 host
-    (2026-11-25), which is not what a station pays. Such runs keep their caches under a folder of
-    their own (``PYTHONPYCACHEPREFIX``)."""
-    env = dict(os.environ)
-    if env.pop("PYTHONDONTWRITEBYTECODE", None) is not None and "PYTHONPYCACHEPREFIX" not in env:
-        env["PYTHONPYCACHEPREFIX"] = str(_PYCACHE)
-    return env
-
-
 def warm_bytecode(device):
     """Compile what a run imports once, as an installation does, before any run is timed."""
     mods = ["numpy", "yaml", "astropy.coordinates", "astropy.io.fits", "astropy.wcs", "matplotlib.figure",
@@ -174,7 +156,7 @@ def steady_rate(blocks, data_s):
     """The imager's real-time factor once it runs: the data after its first gulp over the time from
     its first gulp's start to its last gulp's end (from the runner's per-block timing), and each
     block's host time per gulp. Not image-file times: a writer that starts late (a slow first FITS
-    file) writes the queued images back to back, which once read as 15-20x for a 6x pipeline."""
+    file) writes the queued images back to back, faster than the pipeline runs."""
     out = {}
     img = next((b for n, b in blocks.items() if n.startswith(("DFTImager", "WStack"))), None)
     if img and img["ngulp"] > 1 and img["last_data_s"] > img["first_data_s"]:
@@ -196,9 +178,7 @@ def core_rate(device, nchan, precision, gulps=20, packed=False, gulp=1024):
     from bf_epic_blocks.runtime.dtypes import int8_pairs_decoder
     from bf_epic_blocks.station import load_station
     st = load_station("lwasv")
-    xp = np
-    if device == "gpu":
-        import cupy as xp
+    xp = array_module(device)
     freq = 25e3 * (1200 + np.arange(nchan))
     lm = imaging.lm_grid(64).lm
     op = DFTOperator(xp.asarray(st.xyz_m), xp.asarray(freq), xp.asarray(lm), npol=2, precision=precision)
@@ -225,12 +205,11 @@ def core_rate(device, nchan, precision, gulps=20, packed=False, gulp=1024):
             acc.reset()
     for i in range(per_image):            # a whole image first: kernels compiled, caches filled
         one(i)
-    sync = (lambda: xp.cuda.Device().synchronize()) if device == "gpu" else (lambda: None)
-    sync()
+    synchronize(xp)
     t0 = time.perf_counter()
     for i in range(1, gulps + 1):
         one(i)
-    sync()
+    synchronize(xp)
     per_gulp = (time.perf_counter() - t0) / gulps
     return {"per_gulp_ms": per_gulp * 1e3, "rt": gulp * DT / per_gulp, "gulp": gulp, "input": "ci4" if packed else "complex64"}
 
@@ -240,9 +219,7 @@ def source_rates(device, nchans=(16, 24, 784), gulp=1024):
     rows = []
     rng = np.random.default_rng(0)
     xyz = rng.normal(0, 40, (256, 3))
-    xp = np
-    if device == "gpu":
-        import cupy as xp
+    xp = array_module(device)
     for nchan in nchans:
         if device != "gpu" and nchan > 100:
             continue                     # the whole band on a CPU: hours, not a benchmark
@@ -255,13 +232,11 @@ def source_rates(device, nchans=(16, 24, 784), gulp=1024):
         keys = fastsim.stream_keys(1)
         fastsim.make_gulp(out, 0, wd, on0, on1, keys, 1000.0, 0.1)
         reps = 20 if device == "gpu" else 2
-        if device == "gpu":
-            xp.cuda.Device().synchronize()
+        synchronize(xp)
         t0 = time.perf_counter()
         for i in range(reps):
             fastsim.make_gulp(out, (i + 1) * gulp, wd, on0, on1, keys, 1000.0, 0.1)
-        if device == "gpu":
-            xp.cuda.Device().synchronize()
+        synchronize(xp)
         per = (time.perf_counter() - t0) / reps
         rows.append({"nchan": nchan, "per_gulp_ms": per * 1e3, "rt": gulp * DT / per})
     return rows
@@ -323,11 +298,8 @@ def main(argv=None):
     skip = set(a.skip.split(",")) - {""}
     work = Path(a.workdir or tempfile.mkdtemp(prefix="bf_e2e_"))
     work.mkdir(parents=True, exist_ok=True)
-    res = {"date": time.strftime("%Y-%m-%d", time.gmtime()), "device": a.device, "args": vars(a)}
-    if a.device == "gpu":
-        import cupy
-        res["gpu"] = cupy.cuda.runtime.getDeviceProperties(0)["name"].decode()
-    res["cpu_cores"] = os.cpu_count()
+    res = {"date": time.strftime("%Y-%m-%d", time.gmtime()), "device": a.device, "args": vars(a),
+           "machine": machine(a.device)}
     env = child_env()
     res["bytecode"] = {"dont_write_bytecode": "PYTHONDONTWRITEBYTECODE" in env,
                        "pycache_prefix": env.get("PYTHONPYCACHEPREFIX")}

@@ -11,33 +11,29 @@ plus one dispersed burst of ``--burst-snr`` per channel-image sigma x sqrt(nchan
 * ``tree`` -- every sweep from DM 0 to ``--dm-max``, the streaming FDMT (``dedisperse='tree'``);
 * ``tree-array`` -- (``--array-stats``) the same with the statistics as array code (CPU's path);
 * ``shifts`` -- (``--shifts-dms N``, off by default) N trial DMs spread over the same range, each a
-  sum of shifted channels, the search as it was before the tree: the baseline, on the same data.
+  sum of shifted channels: the naive baseline, on the same data.
 
 ``--tree-precision fp32 fp16`` runs the tree row once per storage precision, on the same data. Before
 the clock starts, a small search with a burst and a flash runs once per row (``warm_up``), so that
 every kernel the timed run meets -- the statistics kernel, the crossings' reductions -- is compiled
-(on a GPU whose kernel cache is empty they compiled inside the timed run: ~0.4 s per second of data
-in a 5-s run).
+before the clock starts, not inside the timed run.
 
 Per row: seconds of search per second of data (and its inverse, the real-time factor), the tree's
 share (timed with CUDA events around the dedispersion), GPU memory the search holds (CuPy's pool
 after the run; peak of the pool), trials, and the brightest candidate's DM, sweep, image and pixel
 against the burst's. JSON with ``--json``.
 
-    python tools/bench_search.py --device gpu --nchan 784 --npix 3205 --seconds 10 --json out.json
+    python tools/bench/bench_search.py --device gpu --nchan 784 --npix 3205 --seconds 10 --json out.json
 """
 import argparse
-import datetime
-import os
-import platform
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bf_epic_blocks.imaging.transient import Crossings, TransientSearch, dispersion_delay_s  # noqa: E402
-from cases import write_json  # noqa: E402
+from bf_epic_blocks.conventions import dispersion_delay_s
+from bf_epic_blocks.imaging.transient import Crossings, TransientSearch
+
+from benchlib import array_module, machine, synchronize, utc_now, write_json
 
 DT = 16 / 25e3
 
@@ -61,10 +57,7 @@ def main(argv=None):
                     help="what the tree stores: a tree row for each")
     ap.add_argument("--json")
     a = ap.parse_args(argv)
-    if a.device == "gpu":
-        import cupy as xp
-    else:
-        xp = np
+    xp = array_module(a.device)
     f = 74e6 + 25e3 * np.arange(a.nchan)
     window = int(round(a.window_s / DT))
     ngulp = int(np.ceil(a.seconds / (a.gulp * DT)))
@@ -87,10 +80,6 @@ def main(argv=None):
             jj, cc = (np.asarray(v) for v in zip(*hits[g]))
             x[xp.asarray(jj), xp.asarray(cc), pix] += a.burst_snr
         return x
-
-    def sync():
-        if xp is not np:
-            xp.cuda.Device().synchronize()
 
     rows = []
     modes = [("tree" if prec == "fp32" else f"tree-{prec}", dict(dms=[a.dm_max], dedisperse="tree", tree_precision=prec))
@@ -128,12 +117,12 @@ def main(argv=None):
             return out
         s._dedisperse = timed
         found = [s.push(gulp(0))]                     # the first gulp compiles kernels: not timed
-        sync()
+        synchronize(xp)
         tree_t[0] = 0.0
         t0 = time.perf_counter()
         for g in range(1, ngulp):
             found.append(s.push(gulp(g)))
-        sync()
+        synchronize(xp)
         wall = time.perf_counter() - t0
         data_s = (ngulp - 1) * a.gulp * DT
         c = Crossings.concat(found)
@@ -155,17 +144,14 @@ def main(argv=None):
               f"{r.get('best_dm', float('nan')):>8.3f} {r.get('best_image', -1):>6} {r.get('best_pixel', -1):>6} "
               f"{r.get('best_snr', float('nan')):>6.1f}", flush=True)
         # the timing wrapper and the search hold each other: both go, or the next row's pool starts
-        # with this one's arrays (a float16 row after a float32 one showed a 29.9-GB pool peak)
+        # with this one's arrays and its peak counts them
         s.__dict__.pop("_dedisperse", None)
         del s, found, timed, inner
     truth_sweep = int(np.rint(dispersion_delay_s(a.burst_dm, f.min(), f.max()) / DT))
     print(f"# truth: DM {a.burst_dm} (sweep {truth_sweep}), image {e0}, pixel {pix}")
-    out = {"benchmark": "bench_search", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
-           "device": a.device, "machine": {"host": platform.node(), "ncpu": os.cpu_count()},
+    out = {"benchmark": "bench_search", "date": utc_now(), "device": a.device, "machine": machine(a.device),
            "case": {**vars(a), "json": None, "window_images": window, "burst_image": e0, "burst_pixel": pix,
                     "burst_sweep": truth_sweep}, "rows": rows}
-    if a.device == "gpu":
-        out["machine"]["gpu"] = xp.cuda.runtime.getDeviceProperties(0)["name"].decode()
     if a.json:
         write_json(a.json, out)
     return out

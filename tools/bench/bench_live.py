@@ -17,8 +17,8 @@ process, a sender in this one that starts once the run logs that it listens.
 Senders: Bifrost's own C packet writer (``bifrost.packet_writer.UDPTransmit``) when Bifrost imports,
 else `bf_epic_blocks.io.udp.replay` (TBF only, tens of thousands of packets/s at most).
 
-    python tools/bench_live.py table [--json docs/bench/live_table_cpu.json]
-    python tools/bench_live.py rate --format chips --nchan 132 --seconds 10 --device gpu [--json ...]
+    python tools/bench/bench_live.py table [--json docs/bench/live_table_cpu.json]
+    python tools/bench/bench_live.py rate --format chips --nchan 132 --seconds 10 --device gpu [--json ...]
 """
 from __future__ import annotations
 
@@ -36,11 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+from bf_epic_blocks.io.tbf import FS_HZ, write_tbf
 
-from bf_epic_blocks.io.tbf import FS_HZ, write_tbf  # noqa: E402
-from tools.cases import bf_epic_command, write_json  # noqa: E402
+from benchlib import REPO, bf_epic_command, machine, write_json
+
 
 LIVE_YAML = REPO / "pipelines" / "lwasv_udp_live.yaml"
 FILE_YAML = REPO / "pipelines" / "lwasv_tbf_allsky.yaml"
@@ -246,11 +245,11 @@ def case_rate(args):
     batch = args.batch
     assert block % batch == 0, "--batch must divide the 1,000-spectrum data block"
     # Bifrost's writer hands a call's packets to one sendmmsg, which takes at most 1,024 (UIO_MAXIOV)
-    # and Bifrost does not send the rest: found sending 4,000 and receiving 1,024 per call
+    # and Bifrost does not send the rest
     assert batch * pkt_per_spec <= 1024, f"--batch {batch}: {batch * pkt_per_spec} packets per call > 1024"
     # Several senders, each its own writer and socket with a share of the sources (as the F-engine's
     # boards are separate senders): on loopback the sender's system call also delivers the packet,
-    # so one thread alone reached only ~0.8x of 400k packets/s when nothing was dropped.
+    # so one sending thread alone cannot reach the stations' packet rates.
     nsnd = max(1, min(args.senders, pay.shape[1]))
     cuts = np.linspace(0, pay.shape[1], nsnd + 1).astype(int)
     ts = time.perf_counter()
@@ -322,9 +321,8 @@ def main(argv=None):
     ap.add_argument("--log-dir", help="rate: keep the bf-epic run's log here")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
-    import platform
     rows = case_table(args) if args.case == "table" else case_rate(args)
-    out = dict(case=args.case, args=vars(args), machine=platform.node(), cpus=os.cpu_count(),
+    out = dict(case=args.case, args=vars(args), machine=machine(args.device),
                date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), rows=rows)
     if args.json:
         write_json(args.json, out)

@@ -1,13 +1,8 @@
-"""Benchmark scenes shared by the tools/ scripts (not part of the package API).
+"""Benchmark scenes shared by the tools/bench/ scripts (not part of the package API).
 
 Case P (the seed paper's table): 256 antennas laid out like LWA-SV, a 64 x 64 all-sky grid of which
 the ~3,205 pixels above the horizon are imaged, 1,024 samples, 16 channels x 2 pols.
 """
-import shutil
-import sys
-import time
-from pathlib import Path
-
 import numpy as np
 
 C = 299792458.0
@@ -85,48 +80,22 @@ def reference_image(X, xyz, freq_hz, lm, blocks=((0, 0), (1, 1)), accumulate=Non
     return out[0] if accumulate is None else out
 
 
-def timer(device):
-    """run(fn, repeat) -> (median seconds, last result): one warm-up call first; CUDA events on the GPU."""
-    if device == "gpu":
-        import cupy as cp
-
-        def run(fn, repeat):
-            fn()
-            cp.cuda.Device().synchronize()
-            ts = []
-            for _ in range(repeat):
-                a, b = cp.cuda.Event(), cp.cuda.Event()
-                a.record()
-                out = fn()
-                b.record()
-                b.synchronize()
-                ts.append(cp.cuda.get_elapsed_time(a, b) / 1e3)
-            return float(np.median(ts)), out
-    else:
-        def run(fn, repeat):
-            fn()
-            ts = []
-            for _ in range(repeat):
-                t0 = time.perf_counter()
-                out = fn()
-                ts.append(time.perf_counter() - t0)
-            return float(np.median(ts)), out
-    return run
+LWASV_SITE = {"lat_deg": 34.3484, "lon_deg": -106.8858, "elev_m": 1477.0}
 
 
-def write_json(path, out):
-    """Write a benchmark's result dict as indented JSON (making the folder) and say so."""
-    import json
-    import os
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w") as f:
-        json.dump(out, f, indent=1, default=str)
-    print(f"wrote {path}")
-
-
-def bf_epic_command():
-    """The command line of ``bf-epic``: this Python's own console script (a virtualenv's), else the one
-    on PATH, else the module."""
-    beside = Path(sys.executable).with_name("bf-epic")
-    exe = str(beside) if beside.exists() else shutil.which("bf-epic")
-    return [exe] if exe else [sys.executable, "-m", "bf_epic_blocks.pipeline.cli"]
+def image_header(grid, freq, dt_img, time_tag=1717236000 * 196_000_000, products=("I",), name="img"):
+    """An image sequence header as DFTImagerBlock writes it (docs/HEADERS.md), for feeding image
+    blocks without an imager: images (time, freq, pol, m, l) float32 on ``grid`` (an ``lm_grid``),
+    ``freq`` in Hz, one image per ``dt_img`` seconds, ``time_tag`` in ticks of the 196 MHz clock."""
+    from bf_epic_blocks.conventions import FS_HZ
+    N = grid.size
+    ax0 = float(grid.axis[0])
+    return {"name": name, "time_tag": int(time_tag),
+            "_tensor": {"dtype": "f32", "shape": [-1, len(freq), len(products), N, N],
+                        "labels": ["time", "freq", "pol", "m", "l"],
+                        "scales": [[time_tag / FS_HZ, dt_img], [float(freq[0]), float(freq[1] - freq[0])], None,
+                                   [ax0, grid.cell], [ax0, grid.cell]]},
+            "freq_hz": [float(f) for f in freq], "pol_products": list(products),
+            "pixels": {"kind": "grid", "size": N, "cell": grid.cell, "npix_imaged": grid.npix},
+            "imager": {"kind": "dft", "method": "direct", "integration_ticks": int(round(dt_img * FS_HZ))},
+            "station": {"name": "lwasv", **LWASV_SITE}}

@@ -5,19 +5,16 @@ Three equal point sources 40, 50 and 60 deg from the zenith (az 30, 150, 270 deg
 stand positions from LSL (z spread ~ +-1 m, plus the outrigger 10 m up). Prints the wide-field
 error of MOFF relative to the exact image's peak (whole image and at each source) and writes JSON.
 
-    python tools/moff_widefield.py --json moff.json
+    python tools/bench/moff_widefield.py --json moff.json
 """
 import argparse
-import json
-import os
-import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import C, lwasv_like_layout  # noqa: E402
+from bf_epic_blocks import imaging
 
-from bf_epic_blocks import imaging  # noqa: E402
+from benchlib import machine, utc_now, write_json
+from cases import C, lwasv_like_layout
 
 
 def main(argv=None):
@@ -66,8 +63,8 @@ def main(argv=None):
         rows.append(row)
         del n
     if a.json:
-        with open(a.json, "w") as fh:
-            json.dump({"layout": layout, "freq_hz": a.freq, "zenith_angles_deg": za.tolist(), "rows": rows}, fh, indent=2)
+        write_json(a.json, {"date": utc_now(), "machine": machine("cpu"), "layout": layout, "freq_hz": a.freq,
+                            "zenith_angles_deg": za.tolist(), "rows": rows})
 
 
 if __name__ == "__main__":

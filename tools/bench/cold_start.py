@@ -9,12 +9,11 @@ CuPy's kernel cache pointed at an empty folder (``--cold``, the default) or at t
 * totals: kernels compiled, the run's wall, and seconds from this script's start to the first image
   file.
 
-usage: python tools/cold_start.py YAML [--warm] [--set KEY=VALUE ...] [--json PATH]
+usage: python tools/bench/cold_start.py YAML [--warm] [--set KEY=VALUE ...] [--json PATH]
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -22,9 +21,9 @@ import threading
 import time
 from pathlib import Path
 
+from benchlib import machine, utc_now, write_json
+
 T0 = time.perf_counter()
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 
 def cache_listing(folder, t_start_wall):
@@ -83,13 +82,13 @@ def main():
     listing = cache_listing(os.environ["CUPY_CACHE_DIR"], wall0) if not args.warm else []
     for r in listing:
         print(f"file at {r['at']:6.2f} s (+{r['gap_s']:5.2f})  {r['kernel'][:110]}")
-    summary = {"yaml": args.yaml, "cold": not args.warm, "rc": rc, "import_cupy_s": t_cupy,
+    summary = {"date": utc_now(), "machine": machine("gpu"), "yaml": args.yaml, "cold": not args.warm, "rc": rc, "import_cupy_s": t_cupy,
                "run_wall_s": wall, "first_image_s": seen[0] if seen else None,
                "compiles": len(listing), "cache_files": listing}
     print(f"rc {rc}; cupy import {t_cupy:.2f} s; run {wall:.2f} s; first image at {summary['first_image_s']} s "
           f"from script start; {len(listing)} kernels compiled")
     if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=1))
+        write_json(args.json, summary)
     return rc
 
 

@@ -18,13 +18,12 @@ come and go by hundreds of MB a gulp on a CPU). Afterwards the candidate table i
   instantaneous samples are in the JSON too.
 
 Prints a table and writes JSON (``--json``). usage:
-    python tools/soak_transient.py [--device gpu|cpu] [--minutes 10] [--bursts 6] [--flashes 3] [--json PATH]
+    python tools/bench/soak_transient.py [--device gpu|cpu] [--minutes 10] [--bursts 6] [--flashes 3] [--json PATH]
 """
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -34,9 +33,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-from cases import bf_epic_command, write_json  # noqa: E402
+from benchlib import REPO, bf_epic_command, machine, utc_now, write_json
 
 
 def injections(seconds, nburst, nflash, seed=3):
@@ -163,12 +160,7 @@ def main(argv=None):
     res["ok"] = bool(all(b["found"] and b["rows_within_50ms"] <= 3 for b in found)
                      and all(f["named"] and f["rows_within_50ms"] <= 5 for f in named)
                      and res["rss_growth"] is not None and res["rss_growth"] <= 1.1)
-    if a.device == "gpu":
-        try:
-            import cupy
-            res["gpu"] = cupy.cuda.runtime.getDeviceProperties(0)["name"].decode()
-        except Exception:  # noqa: BLE001 - a label only
-            pass
+    res.update(date=utc_now(), machine=machine("gpu" if a.device.startswith("gpu") else "cpu"))
     print(f"{seconds:.0f} s of data in {wall:.1f} s ({seconds / wall:.2f}x real time) on {a.device}; {len(tab)} rows")
     print(f"{'burst':<6} {'t (s)':>8} {'Jy':>6} {'DM':>4} {'rows50':>6} {'found':>6} {'cells':>6} {'S/N':>6}")
     for b in found:

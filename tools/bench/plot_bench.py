@@ -3,7 +3,7 @@
 
 Colour = method, marker = image size. Used for the README's figure:
 
-    python tools/plot_bench.py docs/bench/bench_wstack_cpu.json docs/bench/bench_wstack_gpu.json \\
+    python tools/bench/plot_bench.py docs/bench/bench_wstack_cpu.json docs/bench/bench_wstack_gpu.json \\
         --out docs/images/time_vs_error.png
 """
 import argparse

@@ -3,20 +3,17 @@
 evaluation) as integrations get long, baselines long, pixels close to the horizon, and the dynamic
 range high. Prints a table, writes JSON. CPU by default (``--device gpu`` for CuPy).
 
-    python tools/stress_precision.py --json stress.json
+    python tools/bench/stress_precision.py --json stress.json
 """
 import argparse
-import json
-import os
-import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import C, reference_image  # noqa: E402
+from bf_epic_blocks import imaging
+from bf_epic_blocks.imaging._xp import to_numpy
 
-from bf_epic_blocks import imaging  # noqa: E402
-from bf_epic_blocks.imaging._xp import to_numpy  # noqa: E402
+from benchlib import array_module, machine, utc_now, write_json
+from cases import C, reference_image
 
 
 def source(xyz, freq, l, m, amp, ntime, rng):
@@ -31,9 +28,7 @@ def main(argv=None):
     ap.add_argument("--device", choices=["cpu", "gpu"], default="cpu")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
-    xp = np
-    if a.device == "gpu":
-        import cupy as xp
+    xp = array_module(a.device)
     rng = np.random.default_rng(5)
     rows = []
 
@@ -88,8 +83,7 @@ def main(argv=None):
         report(f"faint source beside a 1e4x one, {p}", "1e-4", abs(got - ref) / abs(ref),
                "autocorr removed; relative to that pixel's exact value")
     if a.json:
-        with open(a.json, "w") as fh:
-            json.dump({"device": a.device, "rows": rows}, fh, indent=2)
+        write_json(a.json, {"date": utc_now(), "device": a.device, "machine": machine(a.device), "rows": rows})
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Benchmark: run time against error for every route x precision x regime x grid of the DFT imager.
 
-Case P (tools/cases.py): 256 antennas, 16 channels x 2 pols (GPU; one channel-pol on the CPU),
+Case P (tools/bench/cases.py): 256 antennas, 16 channels x 2 pols (GPU; one channel-pol on the CPU),
 1,024 samples of sky + noise quantised to 4 bits (int8 (re, im) pairs, as ci4 unpacks), all-sky
 grids of 64 (3,205 pixels), 128 and 256. Regimes: one image per 1,024-sample gulp, and one image
 per 16 samples (64 images per gulp, ``accumulate=16``). Products XX, YY (Stokes I needs both).
@@ -11,8 +11,8 @@ max |I - I_ref| / max |I_ref| against a float64 evaluation of the definition on 
 (all 64 images in the high-cadence regime). Rows in the same run, for speed-up ratios:
   * ``naive``: plain CuPy written naively (R = Y Y^H and (G R * conj G).sum(-1); batched F = G X and
     |F|^2 summed per group) -- the issue's "naive CuPy" baseline;
-  * ``previous``: the previous release's DFTOperator (imaging before the precision ladder), when
-    ``--previous DIR`` points at a copy of that package named ``bf_epic_prev``;
+  * ``previous``: another release's DFTOperator, when ``--previous DIR`` points at a folder holding
+    a copy of that package named ``bf_epic_prev``;
   * ``floor-f32`` / ``floor-f16`` (GPU, high-cadence regime): cuBLAS' fp16 GEMM alone on the direct
     route's stacked shapes with fp32 / fp16 output -- what the regime would cost if |F|^2 were free.
 The fused integer modes (i8x2, i8x3: 4-bit voltages, direct route) have no covariance or cf32 rows;
@@ -22,28 +22,23 @@ their hard scenes are the same scenes quantised to 4 bits.
 60 dB point source) with every mode and rewrites the package's measured.json: per (device, route,
 precision) the bound = 3 x the worst error seen (rounded up) and the rate in CMAC/s on case P.
 
-    python tools/bench_dft.py --device gpu --json bench_dft_gpu.json --table
-    python tools/bench_dft.py --device cpu --json bench_dft_cpu.json
+    python tools/bench/bench_dft.py --device gpu --json bench_dft_gpu.json --table
+    python tools/bench/bench_dft.py --device cpu --json bench_dft_cpu.json
 """
 import argparse
-import datetime
 import gc
 import json
 import math
-import os
-import platform
-import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import (lwasv_like_layout, pairs_to_complex, quantise4, reference_image, sky_efield,  # noqa: E402
-                   timer)
+from bf_epic_blocks import imaging
+from bf_epic_blocks.imaging import cost, plan
+from bf_epic_blocks.imaging.fused import FUSED
+from bf_epic_blocks.imaging.gemm import PRECISIONS, precision_available
 
-from bf_epic_blocks import imaging  # noqa: E402
-from bf_epic_blocks.imaging import cost, plan  # noqa: E402
-from bf_epic_blocks.imaging.fused import FUSED  # noqa: E402
-from bf_epic_blocks.imaging.gemm import PRECISIONS, precision_available  # noqa: E402
+from benchlib import array_module, import_package, machine, timer, utc_now, write_json
+from cases import lwasv_like_layout, pairs_to_complex, quantise4, reference_image, sky_efield
 
 C = 299792458.0
 
@@ -54,17 +49,6 @@ def release(xp):
     gc.collect()
     if xp.__name__ == "cupy":
         xp.get_default_memory_pool().free_all_blocks()
-
-
-def machine(xp):
-    info = {"host": platform.node(), "cpu": platform.processor() or platform.machine(),
-            "ncpu": os.cpu_count(), "python": platform.python_version(), "numpy": np.__version__}
-    if xp.__name__ == "cupy":
-        import cupy as cp
-        props = cp.cuda.runtime.getDeviceProperties(0)
-        info["gpu"] = props["name"].decode() if isinstance(props["name"], bytes) else props["name"]
-        info["cupy"] = cp.__version__
-    return info
 
 
 def naive_covariance(xp, G, X):
@@ -93,7 +77,7 @@ def gemm_floor(xp, nchan, npix, nant, ncol, run, repeat):
     what regime B would cost if the |F|^2 sums were free (the issue's floor row)."""
     from bf_epic_blocks.imaging import gemm as G
     # operands like the real ones (unit-modulus phases, 4-bit integers): all-ones operands run the
-    # tensor cores at a higher clock (measured 0.33 against ~0.38 ms on an H100) and flatter the floor
+    # tensor cores at a higher clock and flatter the floor
     rng = xp.random.default_rng(0)
     a = xp.cos(rng.uniform(0, 6.3, (nchan, 2 * npix, 2 * nant), dtype=xp.float32)).astype(xp.float16)
     b = rng.integers(-8, 8, (nchan, 2 * nant, ncol)).astype(xp.float16)
@@ -138,10 +122,7 @@ def main(argv=None):
     ap.add_argument("--ducc", action="store_true", help="CPU: add ducc0's covariance w-gridding route")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
-    if a.device == "gpu":
-        import cupy as xp
-    else:
-        xp = np
+    xp = array_module(a.device)
     gpu = a.device == "gpu"
     nchan = a.nchan or (16 if gpu else 1)
     npol = a.npol or (2 if gpu else 1)
@@ -150,7 +131,7 @@ def main(argv=None):
     precisions = [p for p in PRECISIONS if precision_available(p, xp)]
     prev = None
     if a.previous:
-        sys.path.insert(0, a.previous)
+        import_package(a.previous, "bf_epic_prev")
         import bf_epic_prev.imaging as prev
     xyz, layout = lwasv_like_layout(256)
     freq = 74e6 + 25e3 * np.arange(nchan)
@@ -161,7 +142,7 @@ def main(argv=None):
     rng = np.random.default_rng(0)
     Qd, Xd, xyzd, fd = xp.asarray(Q), xp.asarray(Xc), xp.asarray(xyz), xp.asarray(freq)
     print(f"# bench_dft: device={a.device} nant={len(xyz)} ({layout}) ntime={a.ntime} nchan={nchan} npol={npol} "
-          f"4-bit sky+noise; {machine(xp).get('gpu', machine(xp)['cpu'])}")
+          f"4-bit sky+noise; {machine(a.device)['hardware']}")
     print(f"{'grid':>4} {'regime':<8} {'route':<10} {'precision':<8} {'input':<5} {'ms/gulp':>9} {'rel err':>9} "
           f"{'vs naive':>8} {'vs prev':>8} calls")
 
@@ -304,14 +285,11 @@ def main(argv=None):
             if es:
                 print(f"#   {route:<10} {precision:<8} {max(es):.1e}")
 
-    out = {"benchmark": "bench_dft", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
-           "machine": machine(xp), "device": a.device,
+    out = {"benchmark": "bench_dft", "date": utc_now(), "machine": machine(a.device), "device": a.device,
            "case": {"nant": len(xyz), "layout": layout, "ntime": a.ntime, "nchan": nchan, "npol": npol,
                     "grids": grids, "data": "sky + noise, 4-bit"}, "rows": rows, "hard_scenes": hard}
     if a.json:
-        with open(a.json, "w") as fh:
-            json.dump(out, fh, indent=2)
-        print(f"# wrote {a.json}")
+        write_json(a.json, out)
     if a.table:
         write_table(out, a.device)
     return out

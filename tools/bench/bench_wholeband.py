@@ -20,7 +20,7 @@ outside, as an operator runs it (``--set`` overrides pass through; the default i
   burst's in grid cells (the truth's own RA/Dec against the candidate's), and whether that is within
   the issue's bounds (+-1 trial, <= 1.5 cells); and how many other candidates the run listed.
 
-usage: python tools/bench_wholeband.py [--device gpu] [--seconds 60] [--set KEY=VALUE ...]
+usage: python tools/bench/bench_wholeband.py [--device gpu] [--seconds 60] [--set KEY=VALUE ...]
                                        [--sample-s 2] [--json PATH]
 """
 from __future__ import annotations
@@ -30,7 +30,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -38,11 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tools"))
-from bench_e2e import child_env  # noqa: E402
-from cases import bf_epic_command, write_json  # noqa: E402
+from benchlib import REPO, bf_epic_command, child_env, machine, write_json
 
 
 #: seconds between a burst's arrival and a candidate that may be it
@@ -199,18 +194,10 @@ def run(args):
            "other_candidates": (len(table) - len(found)) if table is not None else 0,
            "blocks": blocks}
     out = {"benchmark": "bench_wholeband", "date": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime()),
-           "yaml": str(args.yaml), "sets": sets, "machine": machine(args.device), "run": row,
+           "yaml": str(args.yaml), "sets": sets, "machine": machine("gpu" if args.device.startswith("gpu") else "cpu"), "run": row,
            "samples": {"gpu_mib": samples_gpu, "rss_mib": samples_rss}}
     shutil.rmtree(outdir, ignore_errors=True)
     return out
-
-
-def machine(device):
-    info = {"host": os.uname().nodename, "ncpu": os.cpu_count()}
-    if device.startswith("gpu") and shutil.which("nvidia-smi"):
-        r = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True)
-        info["gpu"] = r.stdout.strip().splitlines()[0] if r.stdout.strip() else None
-    return info
 
 
 def fmt(v, spec):
@@ -219,7 +206,8 @@ def fmt(v, spec):
 
 def show(out):
     r = out["run"]
-    print(f"# bench_wholeband: {out['yaml']} {' '.join('--set ' + s for s in out['sets'])} on {out['machine']}")
+    print(f"# bench_wholeband: {out['yaml']} {' '.join('--set ' + s for s in out['sets'])} "
+          f"on {out['machine']['hardware']}")
     print("data s   wall s  whole x  pipeline x  flowing x  first images s  GPU MiB first/peak/growth  "
           "RSS MiB first/peak/growth")
     g, m = r["gpu_mib"], r["rss_mib"]

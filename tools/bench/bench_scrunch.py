@@ -6,15 +6,15 @@ channels of 25 kHz from 74 MHz, one image per 0.64 ms, trials every sweep from D
 Above some DM ``D1`` a channel's own smearing (8.3 us x DM x 25 kHz / f^3: 0.5 ms x DM at 74 MHz)
 already spreads a burst over more than an image, so those trials could run on pairs of images summed
 (1.28 ms): the channels pre-shifted by D1's delays, then a tree over the remaining sweeps at half the
-rate. Cost, in units of one row-image of the full-rate tree (what ``tools/bench_search.py`` times):
+rate. Cost, in units of one row-image of the full-rate tree (what ``tools/bench/bench_search.py`` times):
 
 * full rate, DM 0..D1: the tree's rows for sweeps 0..s1 (``FDMTPlan.rows``), and its s1 + 1 trials'
   statistics;
 * half rate, DM D1..Dmax: the channels summed in pairs and shifted (two adds per channel and
   image pair), a tree over (smax - s1) / 2 sweeps and its trials' statistics, each at half the rate.
 
-The tree and the statistics are weighed by the whole band's measured rates (``measured.json``
-``search``: 6.4e-12 s per tree row-pixel-image and 1.1e-11 s per trial-width-pixel-image on an H100).
+The tree and the statistics are weighed by the whole band's measured GPU rates (``measured.json``
+``search``: seconds per tree row-pixel-image and per trial-width-pixel-image).
 
 S/N: a burst of intrinsic width ``w_int`` at DM d, its channel c smeared to max(w_int, smear(d, c)),
 boxcar-searched (widths 1, 2, 4, 8 images at full rate; 1, 2, 4 at half) at its own trial, against
@@ -23,20 +23,15 @@ off by the part of its delay a whole-sample shift cannot follow (half an image a
 one at half rate, at most), the arrival phase stepped through a half-rate sample; S/N ~ the band-summed
 boxcar / sqrt(nchan * width).
 
-usage: python tools/bench_scrunch.py [--d1 0.75,1,1.25,1.5,2,3] [--widths-ms 0.32,0.64,2.56] [--json PATH]
+usage: python tools/bench/bench_scrunch.py [--d1 0.75,1,1.25,1.5,2,3] [--widths-ms 0.32,0.64,2.56] [--json PATH]
 """
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tools"))
-from cases import write_json  # noqa: E402
+from benchlib import write_json
 
 FREQ = 74e6 + 25e3 * np.arange(784)
 DT = 16 / 25e3
@@ -52,9 +47,9 @@ def smear_s(dm, freq_hz, chan_hz=25e3):
 def cost(d1, freq=FREQ, dt=DT, dm_max=DM_MAX, nw=len(WIDTHS), rates=None):
     """Seconds per second of data per pixel-equivalent, split and whole: dict with the full-rate tree
     alone (``full``), the split (``split``) and their ratio; ``rates`` (tree, statistics) per
-    row-pixel-image and trial-width-pixel-image (default the H100's in measured.json)."""
+    row-pixel-image and trial-width-pixel-image (default the GPU's in measured.json)."""
     from bf_epic_blocks.imaging.fdmt import FDMTPlan
-    from bf_epic_blocks.imaging.transient import dispersion_delay_s
+    from bf_epic_blocks.conventions import dispersion_delay_s
     if rates is None:
         from bf_epic_blocks.imaging.plan import load_table
         t = load_table()["search"]["gpu"]
@@ -123,7 +118,7 @@ def main(argv=None):
     d1s = [float(x) for x in a.d1.split(",")]
     wints = [float(x) / 1e3 for x in a.widths_ms.split(",")]
     rows = []
-    print("# bench_scrunch: 784 channels from 74 MHz, 0.64-ms images, DM 0-3; cost weighed by the H100's "
+    print("# bench_scrunch: 784 channels from 74 MHz, 0.64-ms images, DM 0-3; cost weighed by the GPU's "
           "measured search rates; S/N at half rate / full rate for bursts at DM d1..3 (mean, worst phase)")
     hdr = "   d1  split/full  trials full/half  " + "  ".join(f"S/N {w * 1e3:.2f} ms: mean  worst" for w in wints)
     print(hdr)

@@ -6,7 +6,7 @@ Reads a ``bench_dft.py`` JSON (every route x precision x grid of the exact DFT i
 time per 1,024-sample gulp against max |I - I_ref| / peak, one panel per grid size, the naive CuPy
 baseline as a grey star.
 
-    python tools/plot_pareto.py docs/bench/bench_dft_gpu.json --wstack docs/bench/bench_wstack_gpu.json \\
+    python tools/bench/plot_pareto.py docs/bench/bench_dft_gpu.json --wstack docs/bench/bench_wstack_gpu.json \\
         --out docs/images/pareto_gpu.png
 """
 import argparse

@@ -15,12 +15,10 @@ disk (the file is fsync'ed before the clock stops). Rows:
 * ``block f32`` / ``block f16`` -- the same through ImageCubeWriterBlock on the ring runtime, fed by a
   source block that commits 64-image gulps (what the imager's ring delivers at a 1,024-sample gulp).
 
-    python tools/bench_cube_writer.py --gb 4 --dir /tmp --json docs/bench/cube_writer_cpu.json
+    python tools/bench/bench_cube_writer.py --gb 4 --dir /tmp --json docs/bench/cube_writer_cpu.json
 """
 import argparse
-import datetime
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -28,8 +26,8 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from cases import write_json  # noqa: E402
+from benchlib import machine, utc_now, write_json
+from cases import image_header
 
 IMAGE_RATE = 25e3 / 16          # images per second at LWA-SV, one per 16 samples
 NCHAN, NPIX = 16, 3205
@@ -88,10 +86,8 @@ def row_cube(path, gulp, ngulp, dtype, average, grid, loc):
 
 def row_block(outdir, gulp, ngulp, dtype, grid):
     """Through the ring runtime: a source committing 64-image gulps -> ImageCubeWriterBlock."""
-    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
     from bf_epic_blocks.blocks import ImageCubeWriterBlock, bfp
     from bf_epic_blocks.blocks._compat import span_array
-    from test_transient import image_header
     N = grid.size
     full = np.full((gulp.shape[0], NCHAN, 1, N * N), np.nan, np.float32)
     full[..., np.flatnonzero(grid.mask)] = gulp
@@ -194,8 +190,7 @@ def main(argv=None):
               f"{r.get('images_per_s', float('nan')):>10.0f} {r.get('caseP_MBps', float('nan')):>12.1f} "
               f"{f'[{cr[0]:.0f}-{cr[1]:.0f}]':>13} {r.get('realtime_factor', float('nan')):>12.2f} {frac:>7.2f}")
     if a.json:
-        out = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(), "host": platform.node(),
-               "ncpu": os.cpu_count(), "dir": a.dir, "gb_per_row": a.gb, "caseP_need_MBps": need,
+        out = {"date": utc_now(), "machine": machine("cpu"), "dir": a.dir, "gb_per_row": a.gb, "caseP_need_MBps": need,
                "target_MBps": 1.5 * need, "disk_ceiling_MBps": ceiling, "repeat": a.repeat, "rows": results,
                "runs": runs}
         write_json(a.json, out)

@@ -1,0 +1,121 @@
+"""The benchmark scripts' own helpers (tools/bench/, on the path through setup.cfg's pytest
+``pythonpath``): what they measure must mean what their tables say. Timing itself is never asserted."""
+import os
+
+import numpy as np
+import pytest
+
+pytest.importorskip("astropy")
+pytest.importorskip("h5py")
+
+
+def test_benchlib_names_the_machine_by_its_hardware_and_refuses_unknown_devices():
+    import benchlib
+    m = benchlib.machine("cpu")
+    assert m["ncpu"] == os.cpu_count() and m["hardware"] == f"{m['cpu']}, {os.cpu_count()} cores"
+    assert "gpu" not in m
+    assert benchlib.array_module("cpu") is np
+    with pytest.raises(ValueError, match=r"device 'tpu': expected one of \('cpu', 'gpu'\)"):
+        benchlib.array_module("tpu")
+
+
+def test_benchlib_imports_a_package_from_a_folder_without_touching_sys_path(tmp_path):
+    """bench_dft.py --previous: a release copied aside as a package is imported, its submodules with it."""
+    import sys
+    import benchlib
+    pkg = tmp_path / "bf_epic_prev_probe"
+    (pkg / "imaging").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("from . import imaging\n")
+    (pkg / "imaging" / "__init__.py").write_text("VALUE = 42\n")
+    before = list(sys.path)
+    try:
+        mod = benchlib.import_package(tmp_path, "bf_epic_prev_probe")
+        import bf_epic_prev_probe.imaging as sub
+        assert mod.imaging.VALUE == 42 and sub is mod.imaging and sys.path == before
+    finally:
+        for name in [n for n in sys.modules if n.startswith("bf_epic_prev_probe")]:
+            del sys.modules[name]
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        benchlib.import_package(tmp_path, "nowhere")
+
+
+def test_bench_e2e_steady_rate_is_the_imager_s_own_pace():
+    """tools/bench/bench_e2e.py: the steady real-time factor comes from the imager's first and last gulps,
+    not from image-file times (a writer that starts late writes queued images back to back)."""
+    import bench_e2e
+    blocks = {"TBFSourceBlock_0": {"ngulp": 11, "process_s": 0.011, "first_data_s": 0.2, "last_data_s": 1.2},
+              "DFTImagerBlock_0": {"ngulp": 11, "process_s": 0.022, "first_data_s": 0.5, "last_data_s": 1.5},
+              "ImageWriterBlock_0": {"ngulp": 2, "process_s": 1.0, "first_data_s": 1.4, "last_data_s": 1.51}}
+    r = bench_e2e.steady_rate(blocks, 11.0)
+    assert r["rt_steady"] == pytest.approx(10.0)          # 10 of 11 s of data in 1.0 s
+    assert r["ms_per_gulp_DFTImager"] == pytest.approx(2.0) and r["ms_per_gulp_ImageWriter"] == pytest.approx(500.0)
+    assert "rt_steady" not in bench_e2e.steady_rate({"DFTImagerBlock_0": dict(blocks["DFTImagerBlock_0"], ngulp=1)}, 1.0)
+
+
+def test_bench_wholeband_growth_sees_flat_and_growing_memory():
+    """tools/bench/bench_wholeband.py: memory 'growth' is the last quarter's peak over the first quarter's,
+    within the flowing span only (start-up allocations before it do not count)."""
+    import bench_wholeband as bw
+    flat = [(0.5, 100.0)] + [(t, 5000.0 + (t % 3)) for t in np.arange(2.0, 22.0, 1.0)]
+    assert bw.growth(flat, 2.0, 21.0) == (5000.0 + 2 % 3, 5002.0, 0.0)
+    grows = [(t, 5000.0 + 10 * t) for t in np.arange(2.0, 22.0, 1.0)]
+    first, peak, g = bw.growth(grows, 2.0, 21.0)
+    assert peak == 5210.0 and g == pytest.approx(5210.0 - 5060.0)
+    assert bw.growth([(1.0, None)], 0.0, 2.0) == (None, None, None)
+
+
+@pytest.mark.slow
+def test_bench_wholeband_runs_the_cli_and_finds_the_burst(tmp_path):
+    """The benchmark on the whole-band YAML made small (16 channels, 16x16, the CPU): it runs `bf-epic
+    run`, times it, samples the run's memory and checks the injected burst against the candidates:
+    within one DM trial and 1.5 cells; a burst the YAML does not hold is reported not found."""
+    import json
+    import bench_wholeband as bw
+    small = ["source.duration_s=0.42", "source.channels.count=16", "imager.grid.size=16",
+             "imager.search.window_s=0.06", "imager.search.dms=[1.0]", "imager.search.threshold=7",
+             "output.integrate.seconds=0.1"]
+    bursts = ("source.transients=[{name: B1, ra_deg: 310.0, dec_deg: 20.0, start_s: 0.3, duration_s: 0.0015, "
+              "flux_jy: 2000.0, dm: 0.6}, {name: faint, ra_deg: 200.0, dec_deg: 40.0, start_s: 0.2, "
+              "duration_s: 0.0015, flux_jy: 0.001, dm: 0.3}]")
+    argv = ["--device", "cpu", "--sample-s", "0.2", "--json", str(tmp_path / "bw.json")]
+    for s in small + [bursts]:
+        argv += ["--set", s]
+    out = bw.main(argv)
+    r = out["run"]
+    assert 0 < r["rt_whole"] < r["rt_pipeline"] and r["rt_flowing"] > 0 and r["images"] > 0
+    b1, faint = r["bursts"]
+    assert b1["found"] and abs(b1["dm_off_trials"]) <= 1 and b1["offset_cells"] <= 1.5 and b1["snr"] > 10
+    assert not faint["found"] and faint.get("snr") is None
+    assert r["kernels_compiled"] is None or r["kernels_compiled"] >= 0
+    assert r["rss_mib"]["peak"] > 100
+    assert json.loads((tmp_path / "bw.json").read_text())["run"]["bursts"][0]["found"]
+
+
+def test_bench_wholeband_counts_the_kernel_cache(tmp_path, monkeypatch):
+    """What the run compiled is what CuPy's kernel cache gained: the files under CUPY_CACHE_DIR (none
+    when it does not exist yet), None when CuPy keeps its cache in memory."""
+    import bench_wholeband as bw
+    monkeypatch.setenv("CUPY_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("CUPY_CACHE_IN_MEMORY", raising=False)
+    assert bw.kernel_cache_files() == 0
+    (tmp_path / "cache" / "sub").mkdir(parents=True)
+    for name in ("a.cubin", "b.cubin", "sub/c.cubin"):
+        (tmp_path / "cache" / name).write_bytes(b"x")
+    assert bw.kernel_cache_files() == 3
+    monkeypatch.setenv("CUPY_CACHE_IN_MEMORY", "1")
+    assert bw.kernel_cache_files() is None
+
+
+def test_bench_scrunch_costs_and_snr_make_sense():
+    """tools/bench/bench_scrunch.py (a prediction, not a search mode): with no trial at half rate the split
+    costs what the full search does; lower split DMs cost less; a burst searched at half rate keeps at
+    most its full-rate S/N and a narrow one loses more than a wide one; a pulse filling one full-rate
+    image exactly, alone, keeps 1/sqrt(2) at half rate (twice the noise, the same signal)."""
+    import bench_scrunch as bs
+    assert bs.cost(3.0)["ratio"] == pytest.approx(1.0)
+    r = [bs.cost(d)["ratio"] for d in (0.75, 1.5, 2.25)]
+    assert r[0] < r[1] < r[2] < 1.0
+    narrow, wide = bs.snr_retained(2.0, 0.32e-3), bs.snr_retained(2.0, 2.56e-3)
+    assert 0.5 < narrow[0] < wide[0] <= 1.0 and narrow[1] <= narrow[0]
+    one = bs.best_snr(np.array([1.0]), np.array([2.0]), 2, (1,)) / bs.best_snr(np.array([1.0]), np.array([2.0]), 1, (1,))
+    assert one == pytest.approx(1 / np.sqrt(2))
