@@ -1,9 +1,10 @@
 """DFTImagerBlock: E-field gulps in, one image every ``accumulate`` frames out (exact DFT).
 
-Thin adapter: header work in ``on_sequence`` (operator built once per sequence, in the input's
-space), per-gulp work in ``on_data`` (unpack, accumulate, emit). An integration may span gulps
-and a gulp may hold several integrations; a partial integration at the end of a sequence is
-dropped and counted (``stats['frames_dropped_partial']``), never emitted as a short image.
+Thin adapter: header work in ``on_sequence``, which makes the sequence's engine (:mod:`.engines`:
+the operator and route, in the input's space; made again only when the header asks for another),
+and ``on_data``, one ``image_gulp`` call on it. An integration may span gulps and a gulp may hold
+several integrations; a partial integration at the end of a sequence is dropped and counted
+(``img_stats['frames_dropped_partial']``), never emitted as a short image.
 Float input that did not pass CalFoldBlock (no ``nonfinite`` tally in its header) has its NaN/Inf
 samples zeroed and counted here (:mod:`.nonfinite`), so images stay finite.
 """

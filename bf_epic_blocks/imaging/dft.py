@@ -12,7 +12,9 @@ optional voltage pattern, N_A the unflagged antennas of that channel and polaris
     I_k = (1/T) sum_t |sum_a D[k, a] x_a(t)|^2        (cross products: F_X F_Y^*)
 
 Two exact routes give it: "direct" (F = D X, then |F|^2 averaged over time) and "covariance"
-(R = X X^H / T, then Re diag(D R D^H)); "auto" picks the cheaper by :mod:`.cost`.
+(R = X X^H / T, then Re diag(D R D^H)); "auto" picks the cheaper by :mod:`.cost`. Each route is an
+object of :mod:`.routes` (``add`` a gulp, ``result`` the image); :class:`DFTOperator` holds what they
+share (the operator, the weights, the GEMMs).
 
 Implementation notes (why it looks the way it does):
 
@@ -44,8 +46,8 @@ from .routes import METHODS, ImageAccumulator, make_route  # noqa: F401 (METHODS
 
 log = logging.getLogger(__name__)
 
-# Working-set cap for one chunk of intermediate results (bytes): bounds host memory on 2-core CI
-# machines; on the GPU a whole gulp of case P (F is 840 MB for the direct route) is one chunk.
+# Working-set cap for one chunk of intermediate results (bytes): bounds host memory on small CPU
+# machines; on the GPU a whole gulp of a station-sized problem is one chunk.
 _CHUNK_BYTES = {"numpy": 256 * 2**20, "cupy": 2 * 2**30}
 
 
@@ -262,8 +264,7 @@ class DFTOperator:
         # The bookkeeping below (checks, flags, indices, norms) is on small arrays and runs on the host;
         # its results go to the operator's device at the end. On a GPU each of these steps would be a
         # kernel of its own, and on a machine with an empty kernel cache each kernel costs a ~0.1-0.2 s
-        # compile: with the phase array's eight, 39 kernels and ~8 s of a cold first image (H100,
-        # 2026-11-25: 14.8 -> 6.3 s for a TBF pipeline; tools/cold_start.py lists them).
+        # compile, seconds in all before a cold first image (tools/cold_start.py lists them).
         hxyz, hf, hlm, hn = _checked_geometry(xyz_m, freq_hz, pixels_lm)
         if npol not in (1, 2):
             raise ValueError(f"npol must be 1 or 2, got {npol}")
@@ -355,8 +356,7 @@ class DFTOperator:
     @property
     def stacked(self) -> bool:
         """Whether GEMMs run in the stacked real form (:mod:`.gemm`): the tensor-core modes on the GPU.
-        (fp32 as a stacked real SGEMM was measured slower than cuBLAS' CGEMM on an H100: 1.72 vs 1.48 ms
-        for case P, so fp32 and fp64 stay complex.)"""
+        (fp32 and fp64 stay complex: cuBLAS' CGEMM is faster than fp32 as a stacked real SGEMM.)"""
         return self.precision in STACKED and self.xp.__name__ == "cupy"
 
     def _operator_parts(self, pol, cs):
@@ -491,12 +491,12 @@ class DFTOperator:
 
         On the GPU, voltages of a shape seen before are imaged by replaying a CUDA graph of the first
         such call (:mod:`.graphs`; ``graphs=False`` at construction turns this off): integer voltages on
-        either route, complex voltages on the covariance route with ``accumulate=None`` (there, replays
-        were tested equal to eager calls bitwise, fp32 and fp16x3; on the direct route they were seen
-        not to be). For complex voltages this is a trade: the gulp is first copied into the graph's
-        input (case P: 67 MB, which makes a loop of calls on an idle host 2-4% slower than eager ones,
-        H100), while the host's issue work falls from ~1.3 ms to one launch, which is what a pipeline
-        whose block threads share the host needs. ``graphs=False`` keeps every call eager.
+        either route, complex voltages on the covariance route with ``accumulate=None`` (there replays equal
+        eager calls bitwise, fp32 and fp16x3; on the direct route they do not). For complex voltages
+        this is a trade: the gulp is first copied into the graph's input, which makes a loop of calls
+        on an idle host a little slower than eager ones, while the host's issue work falls to one
+        launch, which is what a pipeline whose block threads share the host needs. ``graphs=False``
+        keeps every call eager.
 
         decode : None, or a function turning ``efield`` (e.g. packed ci4 bytes) into the integer
             (re, im) pairs to image; inside the graph on replays (the packed bytes are what is copied

@@ -550,7 +550,7 @@ def _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern,
     n = len(split)
     dev = "gpu" if split[0] is not None else "cpu"
     # what the files and the cube are made of: the band mean of each image where every one of them
-    # averages the channels (the whole band: 20 MB/s to the host, not 15 GB/s)
+    # averages the channels (a whole band's images are far too many bytes to bring to the host)
     wants = _outputs_average(out)
     average = bool(wants) and all(wants)
     parts = [pixels.part(k, n) for k in range(n)]
