@@ -171,7 +171,7 @@ class DFTImagerBlock(bfp.TransformBlock):
         if self.gpus is not None:
             return ShardedEngine(self._sharded_operator, lm, products=self.products, method=self.method,
                                  remove_autocorr=self.remove_autocorr, **kw)
-        return DFTEngine(self._operator, lm, remove_autocorr=self.remove_autocorr, **kw)
+        return DFTEngine(self._operator, lm, products=self.products, remove_autocorr=self.remove_autocorr, **kw)
 
     def _engine_key(self, lm):
         """What this sequence's engine depends on in its header (and pixels): a new engine is built only
@@ -236,7 +236,8 @@ class DFTImagerBlock(bfp.TransformBlock):
             ohdr["pixels"] = {"kind": kind, "lm": np.asarray(lm).tolist()}
             place = None
         ohdr["_tensor"] = {"dtype": "f32", "shape": shape, "labels": labels, "scales": scales, "units": units}
-        eng.begin(ImageOutput(place, getattr(self.pixels, "size", None), self._count), time_tag=lay["time_tag"],
+        size = self.pixels.size if isinstance(self.pixels, LMGrid) else None
+        eng.begin(ImageOutput(place, size, self._count), time_tag=lay["time_tag"],
                   ticks_per_frame=lay["ticks_per_frame"], tally=self.tally, seq_name=ihdr.get("name"))
         ohdr["pol_products"] = list(eng.products)
         ohdr["imager"] = {"kind": self.imager_kind, "method": eng.method, "precision": self.precision,

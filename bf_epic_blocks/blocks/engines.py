@@ -179,11 +179,12 @@ class DFTEngine(Engine):
     """One device's DFT operator and route. ``build(lm) -> (operator, route)`` makes them for pixels
     ``lm`` (again when tracking pixels move). 4/8-bit voltages stay integers (exact covariances, exact
     fp16 operands), decoded inside the replayed CUDA graph when a gulp is one whole integration; a
-    fused mode lays ci4 bytes out for its kernel as they are."""
+    fused mode lays ci4 bytes out for its kernel as they are. ``products`` as the block was given them
+    (the operator's graph cache and routes are keyed on them resolved)."""
 
-    def __init__(self, build, lm, *, remove_autocorr, **kw):
+    def __init__(self, build, lm, *, products, remove_autocorr, **kw):
         super().__init__(**kw)
-        self.build, self.remove_autocorr = build, remove_autocorr
+        self.build, self.asked_products, self.remove_autocorr = build, products, remove_autocorr
         self._rebuild(lm)
 
     def _rebuild(self, lm):
@@ -224,7 +225,7 @@ class DFTEngine(Engine):
             # one whole integration: the operator's image(), replayed as a CUDA graph; its
             # output is used at once on this stream (placed into the span), so not copied
             sl = slice(pos, pos + A)
-            imgs = self.op.image(idata[sl] if x is None else x[sl], self.acc.products,
+            imgs = self.op.image(idata[sl] if x is None else x[sl], self.asked_products,
                                  remove_autocorr=self.remove_autocorr, method=self.acc.method,
                                  decode=decode if x is None else None, static_out=True)[None]
             self.output.write(out, nout, imgs)
