@@ -3,6 +3,7 @@ header asks for another operator, and one image_gulp call per gulp, against the 
 import types
 
 import numpy as np
+import pytest
 
 from bf_epic_blocks.blocks import ArraySourceBlock, DFTImagerBlock, bfp, efield_header
 from bf_epic_blocks.blocks.engines import DFTEngine
@@ -70,3 +71,36 @@ def test_a_partial_integration_at_the_end_of_a_sequence_is_dropped_and_counted()
     imgs = sequence(img, hdr, X, [(0, 7), (7, 40)])
     assert imgs.shape[0] == 2 and img.img_stats["frames_dropped_partial"] == 10
     assert img.engine.ntime == 0
+
+
+class _HostSharded:
+    """A stand-in for multigpu.ShardedOperator on the CPU: one operator for every channel, the same calls."""
+
+    def __init__(self, op):
+        self.ops, self.npol, self.npix, self.npix_out = [op], op.npol, op.npix, op.npix
+
+    def image(self, x, products, *, accumulate, out, remove_autocorr, method, decode):
+        out[...] = self.ops[0].image(x, products, remove_autocorr=remove_autocorr, method=method,
+                                     accumulate=accumulate)
+
+    def submit(self, x, products, *, out, remove_autocorr, method, decode):
+        out[...] = self.ops[0].image(x, products, remove_autocorr=remove_autocorr, method=method)
+        return types.SimpleNamespace(result=lambda: out)
+
+
+@pytest.mark.parametrize("method", ["direct", "covariance"])
+def test_the_sharded_engine_images_whole_integrations_only(method):
+    from bf_epic_blocks.blocks.engines import ImageOutput, ShardedEngine, ShardedRoute
+    from bf_epic_blocks.imaging.dft import DFTOperator
+    xyz, freq, X, lm = scene()
+    op = DFTOperator(xyz, freq, lm, npol=2, precision="fp64")
+    counted = []
+    eng = ShardedEngine(lambda lm_: ShardedRoute(_HostSharded(op), ("XX", "YY"), method, False, 10, "cf32"), lm,
+                        accumulate=10, dtype="cf32", name="test")
+    eng.begin(ImageOutput(None, None, counted.append))
+    out = np.zeros((4, 2, 2, 3), np.float64)
+    assert eng.image_gulp(X[:20], out) == 2 and eng.image_gulp(X[20:40], out[2:]) == 2 and counted == [2, 2]
+    ref = np.stack([brute_image(X[i:i + 10], xyz, freq, lm, ("XX", "YY")) for i in range(0, 40, 10)])
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
+    with pytest.raises(ValueError, match="whole integrations only"):
+        eng.image_gulp(X[:15], out)

@@ -23,7 +23,7 @@ from ..imaging.dft import DFTOperator
 from ..imaging.pixels import GridPlacement, LMGrid, check_lm
 from . import _compat
 from ._compat import bfp, span_array
-from .engines import DFTEngine, ImageOutput, ShardedEngine
+from .engines import DFTEngine, ImageOutput, ShardedEngine, ShardedRoute
 from .headers import derived_image_header, efield_header, efield_layout, grid_pixels_header
 from .nonfinite import get_tally, is_float_dtype, new_tally
 
@@ -146,7 +146,7 @@ class DFTImagerBlock(bfp.TransformBlock):
         self.img_stats["operator_builds"] += 1
         return op, route
 
-    def _sharded_operator(self, lm):
+    def _sharded_route(self, lm):
         """The channels over the GPUs of ``gpus`` for pixels ``lm`` (:class:`~.engines.ShardedEngine`'s build)."""
         from ..imaging.multigpu import ShardedOperator
         lay = self._lay
@@ -162,15 +162,14 @@ class DFTImagerBlock(bfp.TransformBlock):
         sh = ShardedOperator(lay["xyz_m"], lay["freq_hz"], lm, self.gpus, npol=lay["npol"], weights=w, pattern=B,
                              precision=self.precision, scatter=scatter)
         self.img_stats["operator_builds"] += 1
-        return sh
+        return ShardedRoute(sh, self.products, self.method, self.remove_autocorr, self.accumulate, lay["dtype"])
 
     def _build(self, lm):
         """This sequence's engine (:mod:`.engines`) for pixels ``lm``."""
         kw = dict(accumulate=self.accumulate, dtype=self._lay["dtype"], name=type(self).__name__,
                   pixels_fn=self.pixels if callable(self.pixels) and not isinstance(self.pixels, LMGrid) else None)
         if self.gpus is not None:
-            return ShardedEngine(self._sharded_operator, lm, products=self.products, method=self.method,
-                                 remove_autocorr=self.remove_autocorr, **kw)
+            return ShardedEngine(self._sharded_route, lm, **kw)
         return DFTEngine(self._operator, lm, products=self.products, remove_autocorr=self.remove_autocorr, **kw)
 
     def _engine_key(self, lm):

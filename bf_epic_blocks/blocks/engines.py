@@ -32,7 +32,7 @@ from . import _compat
 from ._compat import unpack_complex
 from .nonfinite import zero_and_count
 
-__all__ = ["DFTEngine", "GriddedEngine", "ImageOutput", "ShardedEngine"]
+__all__ = ["DFTEngine", "Engine", "GriddedEngine", "ImageOutput", "ShardedEngine", "ShardedRoute"]
 
 
 class ImageOutput:
@@ -242,18 +242,17 @@ class DFTEngine(Engine):
 
 
 class ShardedEngine(Engine):
-    """The channels sharded over several GPUs (a :class:`~..imaging.multigpu.ShardedOperator` from
-    ``build(lm)``): whole integrations only, since a gulp holds whole integrations in that mode; the
-    images land in the output span, already on the grid where the operator scatters them."""
+    """The channels sharded over several GPUs: ``build(lm)`` gives the :class:`ShardedRoute` for pixels
+    ``lm``. Whole integrations only, since a gulp holds whole integrations in that mode; the images land
+    in the output span, already on the grid where the operator scatters them."""
 
-    def __init__(self, build, lm, *, products, method, remove_autocorr, **kw):
+    def __init__(self, build, lm, **kw):
         super().__init__(**kw)
         self.build = build
-        self._asked = (products, method, remove_autocorr)
         self._rebuild(lm)
 
     def _rebuild(self, lm):
-        self.acc = _ShardedImages(self.build(lm), *self._asked, self.accumulate, self.dtype)
+        self.acc = self.build(lm)
         self.lm = np.asarray(lm)
 
     @property
@@ -285,9 +284,10 @@ class GriddedEngine(Engine):
         self.nant_used, self.npix = int(nant_used), int(npix)
 
 
-class _ShardedImages:
+class ShardedRoute:
     """The route interface over a :class:`~..imaging.multigpu.ShardedOperator` (several GPUs): whole
-    integrations only (``images_into``), since a gulp holds whole integrations in that mode."""
+    integrations only (``images_into``), since a gulp holds whole integrations in that mode; ``method``
+    "auto" resolved for integrations of ``accumulate`` samples."""
 
     def __init__(self, sharded, products, method, remove_autocorr, accumulate, dtype):
         from ..imaging import cost
