@@ -1,14 +1,16 @@
 """DFTImagerBlock: E-field gulps in, one image every ``accumulate`` frames out (exact DFT).
 
-Thin adapter: header work in ``on_sequence`` (operator built once per sequence, in the input's
-space), per-gulp work in ``on_data`` (unpack, accumulate, emit). An integration may span gulps
-and a gulp may hold several integrations; a partial integration at the end of a sequence is
-dropped and counted (``stats['frames_dropped_partial']``), never emitted as a short image.
+Thin adapter: header work in ``on_sequence``, which makes the sequence's engine (:mod:`.engines`:
+the operator and route, in the input's space; made again only when the header asks for another),
+and ``on_data``, one ``image_gulp`` call on it. An integration may span gulps and a gulp may hold
+several integrations; a partial integration at the end of a sequence is dropped and counted
+(``img_stats['frames_dropped_partial']``), never emitted as a short image.
 Float input that did not pass CalFoldBlock (no ``nonfinite`` tally in its header) has its NaN/Inf
 samples zeroed and counted here (:mod:`.nonfinite`), so images stay finite.
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import time
@@ -20,10 +22,10 @@ from ..imaging import patterns, plan
 from ..imaging.dft import DFTOperator
 from ..imaging.pixels import GridPlacement, LMGrid, check_lm
 from . import _compat
-from ._compat import bfp, span_array, unpack_complex
-from ..runtime.dtypes import ci4_bytes, int8_pairs_decoder
+from ._compat import bfp, span_array
+from .engines import DFTEngine, ImageOutput, ShardedEngine, ShardedRoute
 from .headers import derived_image_header, efield_header, efield_layout, grid_pixels_header
-from .nonfinite import get_tally, is_float_dtype, new_tally, zero_and_count
+from .nonfinite import get_tally, is_float_dtype, new_tally
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +82,7 @@ class DFTImagerBlock(bfp.TransformBlock):
         self.method, self.pattern = method, pattern
         self.precision = "fp32" if precision is None and tolerance is None else precision
         self.img_stats = {"images": 0, "frames_imaged": 0, "frames_dropped_partial": 0, "operator_builds": 0}
+        self.engine = self._key = None   # the sequence's engine (.engines), and what its header was
 
     def define_valid_input_spaces(self):
         return ("cuda_host", "system") if getattr(self, "gpus", None) is not None else "any"
@@ -110,11 +113,10 @@ class DFTImagerBlock(bfp.TransformBlock):
         self.method, self.precision = self.plan.method, self.plan.precision
         log.info("%s: tolerance %.1e: %s", type(self).__name__, self.tolerance, self.plan.describe())
 
-    def _build(self, lm):
-        lay, xp = self._lay, self._xp
-        if self.tolerance is not None:
-            self._pick(lm)
-        pat = self._pattern_name
+    def _weights(self):
+        """(nchan|1, nstand, npol) complex128 weights folded into the operator: the header's flags, the
+        block's ``weights`` and, with ``cable``, the header's cable terms."""
+        lay = self._lay
         w = (~lay["flags"])[None].astype(np.complex128)
         if self.weights is not None:
             w = w * np.asarray(self.weights, dtype=np.complex128)
@@ -127,28 +129,62 @@ class DFTImagerBlock(bfp.TransformBlock):
             npol = lay["npol"]
             w = w * cable_weights(np.asarray(st["cable_delay_s"])[:, :npol], np.asarray(st["cable_gain"])[:, :npol],
                                   lay["freq_hz"])
-        if self.gpus is not None:
-            from ..imaging.multigpu import ShardedOperator
-            B = None if pat is None else patterns.pattern_array(pat, np.asarray(lm), lay["freq_hz"], lay["npol"])
-            # images placed on the whole l, m grid (NaN below the horizon) on the GPUs, and copied from
-            # there straight into the output span
-            scatter = (np.flatnonzero(self.pixels.mask), self.pixels.size ** 2) if isinstance(self.pixels, LMGrid) \
-                else None
-            sh = ShardedOperator(lay["xyz_m"], lay["freq_hz"], lm, self.gpus, npol=lay["npol"], weights=w, pattern=B,
-                                 precision=self.precision, scatter=scatter)
-            self._acc = _ShardedImages(sh, self, lay["dtype"])
-            self._nant_used, self._npix = sh.ops[0].nant, sh.npix
-            self._lm = np.asarray(lm)
-            self.img_stats["operator_builds"] += 1
-            return
+        return w
+
+    def _operator(self, lm):
+        """(operator, route) for pixels ``lm`` on this block's device (:class:`~.engines.DFTEngine`'s build)."""
+        lay, xp = self._lay, self._xp
+        if self.tolerance is not None:
+            self._pick(lm)
+        pat = self._pattern_name
+        w = self._weights()
         B = None if pat is None else patterns.pattern_array(pat, xp.asarray(lm), xp.asarray(lay["freq_hz"]), lay["npol"])
-        self._op = DFTOperator(xp.asarray(lay["xyz_m"]), xp.asarray(lay["freq_hz"]), xp.asarray(lm),
-                               npol=lay["npol"], weights=xp.asarray(w), pattern=B, precision=self.precision)
-        self._acc = self._op.accumulator(self.products, remove_autocorr=self.remove_autocorr,
-                                         method=self.method, ntime_hint=self.accumulate)
-        self._nant_used, self._npix = self._op.nant, self._op.npix
-        self._lm = np.asarray(lm)
+        op = DFTOperator(xp.asarray(lay["xyz_m"]), xp.asarray(lay["freq_hz"]), xp.asarray(lm),
+                         npol=lay["npol"], weights=xp.asarray(w), pattern=B, precision=self.precision)
+        route = op.accumulator(self.products, remove_autocorr=self.remove_autocorr,
+                               method=self.method, ntime_hint=self.accumulate)
         self.img_stats["operator_builds"] += 1
+        return op, route
+
+    def _sharded_route(self, lm):
+        """The channels over the GPUs of ``gpus`` for pixels ``lm`` (:class:`~.engines.ShardedEngine`'s build)."""
+        from ..imaging.multigpu import ShardedOperator
+        lay = self._lay
+        if self.tolerance is not None:
+            self._pick(lm)
+        pat = self._pattern_name
+        w = self._weights()
+        B = None if pat is None else patterns.pattern_array(pat, np.asarray(lm), lay["freq_hz"], lay["npol"])
+        # images placed on the whole l, m grid (NaN below the horizon) on the GPUs, and copied from
+        # there straight into the output span
+        scatter = (np.flatnonzero(self.pixels.mask), self.pixels.size ** 2) if isinstance(self.pixels, LMGrid) \
+            else None
+        sh = ShardedOperator(lay["xyz_m"], lay["freq_hz"], lm, self.gpus, npol=lay["npol"], weights=w, pattern=B,
+                             precision=self.precision, scatter=scatter)
+        self.img_stats["operator_builds"] += 1
+        return ShardedRoute(sh, self.products, self.method, self.remove_autocorr, self.accumulate, lay["dtype"])
+
+    def _build(self, lm):
+        """This sequence's engine (:mod:`.engines`) for pixels ``lm``."""
+        kw = dict(accumulate=self.accumulate, dtype=self._lay["dtype"], name=type(self).__name__,
+                  pixels_fn=self.pixels if callable(self.pixels) and not isinstance(self.pixels, LMGrid) else None)
+        if self.gpus is not None:
+            return ShardedEngine(self._sharded_route, lm, **kw)
+        return DFTEngine(self._operator, lm, products=self.products, remove_autocorr=self.remove_autocorr, **kw)
+
+    def _engine_key(self, lm):
+        """What this sequence's engine depends on in its header (and pixels): a new engine is built only
+        when it differs from the last sequence's."""
+        lay = self._lay
+        h = hashlib.sha256()
+        for a in (lay["xyz_m"], lay["freq_hz"], lay["flags"], lm):
+            h.update(np.ascontiguousarray(a).tobytes())
+        if self.cable:
+            for k in ("cable_delay_s", "cable_gain"):
+                if k in self._station_hdr:
+                    h.update(np.ascontiguousarray(np.asarray(self._station_hdr[k])).tobytes())
+        return (lay["dtype"], lay["nchan"], lay["nstand"], lay["npol"], np.shape(lm), self._pattern_name,
+                self._xp.__name__, h.hexdigest())
 
     def on_sequence(self, iseq):
         ihdr = iseq.header
@@ -167,10 +203,11 @@ class DFTImagerBlock(bfp.TransformBlock):
             lm = check_lm(np.asarray(self.pixels(lay["time_tag"]), dtype=np.float64))
         else:
             lm = self.pixels
-        self._build(lm)
-        self._frame = 0
-        self._int_start = 0
-        nprod = len(self._acc.products)
+        key = self._engine_key(lm)
+        if self.engine is None or key != self._key:
+            self.engine, self._key = self._build(lm), key
+        eng = self.engine
+        nprod = len(eng.products)
         dt, t0 = lay["dt_s"], lay["t0_s"]
         f = lay["freq_hz"]
         fscale = [float(f[0]), float(f[1] - f[0]) if len(f) > 1 else 0.0]
@@ -180,7 +217,6 @@ class DFTImagerBlock(bfp.TransformBlock):
         if is_float_dtype(lay["dtype"]) and get_tally(ihdr) is None:
             self.tally = new_tally(type(self).__name__, lay["nstand"], lay["npol"])
             ohdr["nonfinite"] = self.tally.to_header()
-        self._seq_name = ihdr.get("name")
         if isinstance(self.pixels, LMGrid):
             g = self.pixels
             shape = [-1, lay["nchan"], nprod, g.size, g.size]
@@ -189,7 +225,7 @@ class DFTImagerBlock(bfp.TransformBlock):
             scales = [[t0, dt * self.accumulate], fscale, None, [ax0, g.cell], [ax0, g.cell]]
             units = ["s", "Hz", None, None, None]
             ohdr["pixels"] = grid_pixels_header(g.size, g.cell, g.mask)
-            self._place = GridPlacement(np.flatnonzero(g.mask), g.size * g.size, self._xp)
+            place = GridPlacement(np.flatnonzero(g.mask), g.size * g.size, self._xp)
         else:
             shape = [-1, lay["nchan"], nprod, len(lm)]
             labels = ["time", "freq", "pol", "pixel"]
@@ -197,49 +233,27 @@ class DFTImagerBlock(bfp.TransformBlock):
             units = ["s", "Hz", None, None]
             kind = "track" if callable(self.pixels) else "list"
             ohdr["pixels"] = {"kind": kind, "lm": np.asarray(lm).tolist()}
-            self._place = None
+            place = None
         ohdr["_tensor"] = {"dtype": "f32", "shape": shape, "labels": labels, "scales": scales, "units": units}
-        ohdr["pol_products"] = list(self._acc.products)
-        ohdr["imager"] = {"kind": self.imager_kind, "method": self._acc.method, "precision": self.precision,
-                          "products": list(self._acc.products), "accumulate_frames": self.accumulate,
-                          "remove_autocorr": bool(self.remove_autocorr), "nant_used": int(self._nant_used),
+        size = self.pixels.size if isinstance(self.pixels, LMGrid) else None
+        eng.begin(ImageOutput(place, size, self._count), time_tag=lay["time_tag"],
+                  ticks_per_frame=lay["ticks_per_frame"], tally=self.tally, seq_name=ihdr.get("name"))
+        ohdr["pol_products"] = list(eng.products)
+        ohdr["imager"] = {"kind": self.imager_kind, "method": eng.method, "precision": self.precision,
+                          "products": list(eng.products), "accumulate_frames": self.accumulate,
+                          "remove_autocorr": bool(self.remove_autocorr), "nant_used": int(eng.nant_used),
                           "pattern": self._pattern_name,
                           "integration_ticks": self.accumulate * lay["ticks_per_frame"]}
         if self.plan is not None:
             ohdr["imager"].update(tolerance=self.tolerance, error_bound=self.plan.bound)
         log.info(type(self).__name__ + " %s: %d pixels, %d antennas used, %s route, %s, %d frames per image",
-                 ihdr.get("name"), self._npix, self._nant_used, self._acc.method, self.precision, self.accumulate)
+                 ihdr.get("name"), eng.npix, eng.nant_used, eng.method, self.precision, self.accumulate)
         return ohdr
 
     # --------------------------------------------------------------- per gulp
-    def _write(self, out, j, imgs):
-        """Images (g, nchan, nprod, npix) into output frames j .. j + g (scattered onto the grid)."""
-        g = imgs.shape[0]
-        if self._place is not None:
-            N = self.pixels.size
-            self._place(imgs, out=out[j:j + g].reshape(imgs.shape[:3] + (N * N,)))
-        else:
-            out[j:j + g] = imgs
-        self._count(g)
-
-    def _write_made(self, out, j, g, make):
-        """g images made straight into output frames j .. j + g by ``make(place=, out=)``
-        (:meth:`ImageAccumulator.images`: on the GPU the products are placed on the grid as they are formed)."""
-        dst = out[j:j + g]
-        if self._place is not None:
-            N = self.pixels.size
-            make(place=self._place, out=dst.reshape(dst.shape[:3] + (N * N,)))
-        else:
-            dst[...] = make()
-        self._count(g)
-
     def _count(self, g):
         self.img_stats["images"] += g
         self.img_stats["frames_imaged"] += g * self.accumulate
-
-    def _emit(self, out, j):
-        self._write(out, j, self._acc.result()[None])  # (1, nchan, nprod, npix)
-        self._acc.reset()
 
     # --------------------------------------------------------------- before a live stream
     def warm_up(self, dtype="ci4", nchan=2, nant=8):
@@ -274,152 +288,24 @@ class DFTImagerBlock(bfp.TransformBlock):
             raise ValueError(f"DFTImagerBlock.warm_up: dtype 'ci4' or 'cf32' (what live sources and CalFoldBlock "
                              f"write), got {dtype!r}")
         out = xp.zeros(shape, np.float32)
-        self._image_gulp(idata, out)
+        self.engine.image_gulp(idata, out)
         xp.cuda.get_current_stream().synchronize()
         self.img_stats, self.plan, self.method, self.precision = saved
-        self._acc = self._op = None
+        self.engine = self._key = None
         dt = time.perf_counter() - t0
         log.info("%s: warmed up on the GPU in %.2f s (%s, %s route, %s)", type(self).__name__, dt, dtype,
                  self.method, self.precision)
         return dt
 
     def on_data(self, ispan, ospan):
-        return self._image_gulp(span_array(ispan), span_array(ospan))
-
-    def _image_gulp(self, idata, out):
-        """One gulp: ``idata`` the input span's array (frames first), ``out`` the output span's."""
-        n = idata.shape[0]
-        nout = 0
-        tracking = callable(self.pixels) and not isinstance(self.pixels, LMGrid)
-        graphs = self.gpus is None and getattr(getattr(self, "_op", None), "graphs", None) is not None
-        decode = None
-        with _compat.stream_context():
-            if self.gpus is not None:
-                x = self._acc.host_view(idata)          # packed samples: decoded on each GPU
-            elif self._lay["dtype"] in ("ci4", "ci8") and self.imager_kind == "dft":
-                # 4/8-bit voltages stay integers: exact covariances, exact fp16 operands; decoded
-                # inside the replayed graph when a gulp is one whole integration
-                decode = int8_pairs_decoder(self._lay["dtype"])
-                x = None
-            else:
-                x = unpack_complex(idata, self._lay["dtype"])
-                if self.tally is not None:
-                    x = zero_and_count(x, self.tally, self._frame, type(self).__name__, self._seq_name)
-            pos = 0
-            while pos < n:
-                if self._acc.ntime == 0 and tracking:
-                    tag = self._lay["time_tag"] + (self._frame + pos) * self._lay["ticks_per_frame"]
-                    lm = check_lm(np.asarray(self.pixels(tag), dtype=np.float64))
-                    if lm.shape != self._lm.shape or not np.array_equal(lm, self._lm):
-                        if lm.shape != self._lm.shape:
-                            raise ValueError("DFTImagerBlock: a tracking pixel function must keep the pixel count")
-                        self._build(lm)
-                g = (n - pos) // self.accumulate
-                if self._acc.ntime == 0 and not tracking and g >= (1 if self.gpus or graphs else 2) \
-                        and self.imager_kind == "dft":
-                    if self.gpus is not None:
-                        # several GPUs: images land in the output span, already on the grid
-                        self._acc.images_into(x[pos:pos + g * self.accumulate], self.accumulate, out[nout:nout + g])
-                        self._count(g)
-                        nout += g
-                        pos += g * self.accumulate
-                        continue
-                    if g == 1 and graphs:
-                        # one whole integration: the operator's image(), replayed as a CUDA graph; its
-                        # output is used at once on this stream (placed into the span), so not copied
-                        sl = slice(pos, pos + self.accumulate)
-                        imgs = self._op.image(idata[sl] if x is None else x[sl], self.products,
-                                              remove_autocorr=self.remove_autocorr, method=self._acc.method,
-                                              decode=decode if x is None else None, static_out=True)[None]
-                    else:
-                        # several whole integrations in this gulp: one batched pass (one GEMM for all),
-                        # the products placed on the grid in the same pass; a fused mode lays ci4 bytes
-                        # out for its kernel as they are (no unpacked copy)
-                        ci4 = x is None and self._lay["dtype"] == "ci4" and self._acc.takes_ci4
-                        if x is None and not ci4:
-                            x = decode(idata)
-                        sl = slice(pos, pos + g * self.accumulate)
-                        self._write_made(out, nout, g, lambda **kw: self._acc.images(
-                            ci4_bytes(idata[sl]) if ci4 else x[sl], self.accumulate, ci4=ci4, **kw))
-                        nout += g
-                        pos += g * self.accumulate
-                        continue
-                    self._write(out, nout, imgs)
-                    nout += g
-                    pos += g * self.accumulate
-                    continue
-                if x is None:
-                    x = decode(idata)
-                take = min(self.accumulate - self._acc.ntime, n - pos)
-                self._acc.add(x[pos:pos + take])
-                pos += take
-                if self._acc.ntime == self.accumulate:
-                    self._emit(out, nout)
-                    nout += 1
-        self._frame += n
-        return nout
+        return self.engine.image_gulp(span_array(ispan), span_array(ospan))
 
     def on_sequence_end(self, iseq):
-        if self._acc.ntime:
-            self.img_stats["frames_dropped_partial"] += self._acc.ntime
+        dropped = self.engine.end_sequence()
+        if dropped:
+            self.img_stats["frames_dropped_partial"] += dropped
             log.warning("DFTImagerBlock: %d frames at the end of sequence %s did not fill an integration of %d "
-                        "and were not imaged", self._acc.ntime, iseq.header.get("name"), self.accumulate)
-            self._acc.reset()
-
-
-class _ShardedImages:
-    """The accumulator interface DFTImagerBlock uses, over a :class:`ShardedOperator` (several GPUs):
-    whole integrations only (``images``), since a gulp holds whole integrations in that mode."""
-
-    def __init__(self, sharded, block, dtype):
-        from ..imaging import cost
-        from ..imaging.products import resolve_products
-        self.sharded, self.dtype = sharded, dtype
-        self.products = resolve_products(sharded.npol, block.products)
-        nblk = len(self.products)
-        op = sharded.ops[0]
-        self.method = block.method if block.method != "auto" else cost.choose_method(
-            block.accumulate, op.nant, op.npix, op.npol, nblk)
-        self.remove_autocorr = block.remove_autocorr
-        self.ntime = 0
-
-    def host_view(self, idata):
-        """The span as a plain host array the GPUs can copy in one piece (ci4/ci8 stay packed)."""
-        names = getattr(idata.dtype, "names", None)
-        if self.dtype == "ci4":
-            return np.ascontiguousarray(idata[names[0]] if names else idata).view(np.uint8)
-        if self.dtype == "ci8" and names:
-            return np.stack([idata["re"], idata["im"]], axis=-1)
-        return unpack_complex(idata, self.dtype)
-
-    def images_into(self, x, n, out):
-        """The g = len(x) // n whole integrations in x imaged into ``out`` (g, nchan, nprod, ...): the
-        output span's frames, written by the GPUs' copies (pixels as the sharded operator places them)."""
-        decode = int8_pairs_decoder("ci4") if self.dtype == "ci4" else None
-        kw = dict(remove_autocorr=self.remove_autocorr, method=self.method, decode=decode)
-        g = x.shape[0] // n
-        rdtype = self.sharded.ops[0].rdtype
-        in_place = out.flags.c_contiguous and out.dtype == rdtype
-        flat = out.reshape(out.shape[:3] + (-1,)) if in_place else \
-            np.empty(out.shape[:3] + (self.sharded.npix_out,), rdtype)   # (fp64 images, or a strided span)
-        if self.method == "direct":     # one batched pass for all integrations
-            self.sharded.image(x, self.products, accumulate=n, out=flat, **kw)
-        else:
-            # covariance route: each integration as one whole-gulp call (replayed as a CUDA graph on
-            # each GPU), all of them in flight before the first is waited for
-            pending = [self.sharded.submit(x[i * n:(i + 1) * n], self.products, out=flat[i], **kw)
-                       for i in range(g)]
-            for p in pending:
-                p.result()
-        if not in_place:
-            out[...] = flat.reshape(out.shape)
-
-    def add(self, x):
-        raise ValueError("DFTImagerBlock on several GPUs images whole integrations only: make gulp_nframe a "
-                         "multiple of accumulate (the integration)")
-
-    def reset(self):
-        pass
+                        "and were not imaged", dropped, iseq.header.get("name"), self.accumulate)
 
 
 def dft_imager(iring, pixels, accumulate, *args, **kwargs):

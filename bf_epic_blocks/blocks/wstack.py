@@ -6,7 +6,7 @@ regular l-m grid (NaN below the horizon). Routes (:mod:`bf_epic_blocks.imaging.w
 * ``route="efield"``: E-field w-stacking (grid, FFT per w-plane, Fresnel term, |.|^2 per sample);
 * ``route="covariance"``: R = X X^H then visibility w-gridding (ducc0 on the CPU, CuPy on the GPU);
 * ``route="auto"``: covariance when the integration is at least as long as the array has antennas
-  (measured: it is then the cheaper one by far, tools/bench_wstack.py), else E-field;
+  (it is then the cheaper one by far: tools/bench_wstack.py measures both), else E-field;
 * ``moff=True``: the original EPIC/MOFF single-plane imager that ignores z (wide-field error).
 ``epsilon`` is the accuracy relative to the exact DFT image's peak (error <= 4 epsilon, tested).
 Only antenna patterns of kind None are supported here: use the DFT imager to fold a pattern.
@@ -18,6 +18,7 @@ import numpy as np
 from ..imaging.pixels import LMGrid
 from ..imaging.wstack import gridded_accumulator
 from .dft_imager import DFTImagerBlock
+from .engines import GriddedEngine
 
 
 class WStackBlock(DFTImagerBlock):
@@ -44,6 +45,8 @@ class WStackBlock(DFTImagerBlock):
             self.imager_kind = "moff"
 
     def _build(self, lm):
+        """This sequence's engine: the gridded accumulator of the route, fed complex voltages
+        (:class:`~.engines.GriddedEngine`)."""
         lay, xp = self._lay, self._xp
         if self._pattern_name:
             raise ValueError("WStackBlock cannot fold an antenna pattern; set calibration pattern to none or use "
@@ -54,13 +57,13 @@ class WStackBlock(DFTImagerBlock):
             route = "moff"
         elif route == "auto":
             route = "covariance" if self.accumulate >= lay["nstand"] else "efield"
-        self._acc = gridded_accumulator(lay["xyz_m"], lay["freq_hz"], self.pixels, lay["npol"], route=route,
-                                        epsilon=self.epsilon, products=self.products,
-                                        remove_autocorr=self.remove_autocorr,
-                                        weights=live[None].astype(np.complex128), xp=xp)
-        self._nant_used, self._npix = int(live.any(axis=1).sum()), self.pixels.npix
-        self._lm = np.asarray(lm)
+        acc = gridded_accumulator(lay["xyz_m"], lay["freq_hz"], self.pixels, lay["npol"], route=route,
+                                  epsilon=self.epsilon, products=self.products,
+                                  remove_autocorr=self.remove_autocorr,
+                                  weights=live[None].astype(np.complex128), xp=xp)
         self.img_stats["operator_builds"] += 1
+        return GriddedEngine(acc, lm, nant_used=int(live.any(axis=1).sum()), npix=self.pixels.npix,
+                             accumulate=self.accumulate, dtype=lay["dtype"], name=type(self).__name__)
 
 
 def wstack(iring, grid, accumulate, *args, **kwargs):

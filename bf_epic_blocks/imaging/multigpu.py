@@ -150,8 +150,8 @@ class ShardedOperator:
             host = pinned_empty(shape, self.ops[0].rdtype) if out == "host" else None
         kw = dict(remove_autocorr=remove_autocorr, method=method, accumulate=accumulate)
         # issued from this thread, GPU after GPU: every call is asynchronous, so each GPU starts as soon
-        # as its share is issued (one host thread per GPU was measured slower: the threads contend for
-        # the interpreter lock, 0.28 -> 0.53 ms of host time per gulp for two H200s)
+        # as its share is issued (not one host thread per GPU: those threads would contend for the
+        # interpreter lock, which costs more host time per gulp than issuing from one thread)
         parts = [lane.issue(efield, ready, decode, products, kw, host, len(lead)) for lane in self.lanes]
         return PendingImages(self, parts, host, shape, len(lead))
 

@@ -249,8 +249,7 @@ def warm_live_imager(cfg, station):
 
 #: ``source.gulp_nframe: auto`` for a capture file imaged on a GPU: about this many bytes of 4-bit
 #: samples per gulp. There the block threads' host work per gulp (they share one interpreter lock), not
-#: the GPU, sets the pace: a 24-channel, 10-s LWA-SV recording ran at 12x real time in 1,024-frame
-#: gulps and 18-21x in 5,000-frame ones (`bf-epic run`, one H100, 2026-11-25).
+#: the GPU, sets the pace, and fewer, larger gulps spend less of it per frame.
 AUTO_GULP_BYTES = 64 << 20
 #: ``auto`` everywhere else: live streams (latency), simulated skies and every CPU pipeline (compute
 #: bound, and a CPU gulp is unpacked to 8-byte complex samples)
@@ -283,13 +282,13 @@ def writes_through_helper(cfg):
 
 
 def build_graph(cfg, progress=None, parts=None):
-    """Blocks for ``cfg`` inside a new Pipeline (not yet run).
+    """Blocks for ``cfg`` inside a new Pipeline (not yet run), built stage by stage: source,
+    calibration, imaging, search, outputs.
 
     parts : None (what ``device`` and ``imager.split`` say), or the devices of a pixel split to build
         whatever ``device`` says: GPU indices, or None for a part on the CPU (the tests run a split of
         two CPU parts, which must give what one graph gives)."""
-    from ..blocks import CalFoldBlock, DFTImagerBlock, bfp
-    from ..imaging.calibration import GainTable
+    from ..blocks import bfp
     from .config import resolved_split
 
     if cfg["imager"]["kind"] != "dft" and cfg["calibration"].get("pattern") not in (None, "none"):
@@ -326,8 +325,6 @@ def build_graph(cfg, progress=None, parts=None):
                          f"be a multiple of imager.accumulate_frames ({im['accumulate_frames']}) "
                          "when the channels are sharded over several GPUs")
     outdir = cfg["output"]["dir"]
-    block = None  # a channel block of a TBF file (source.channel_block), or all channels
-    feed = None   # a block between the source and the rest (Bifrost's copy of a capture to the GPU)
     # one GPU: every block's thread uses it (a device chosen here would hold in this thread only)
     scope = bfp.block_scope(gpu=devs) if dev == "gpu" and split is None else contextlib.nullcontext()
     cal = cfg["calibration"]
@@ -336,81 +333,114 @@ def build_graph(cfg, progress=None, parts=None):
     with bfp.Pipeline() as p, scope:
         if split is not None:
             return _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern, progress)
-        if fmt is not None or src_cfg["kind"] != "udp":
-            source, nframe_total, block = _recorded_source(cfg, fmt, info, station, gulp, space, progress)
-        else:
-            from ..blocks.udp_source import UDPSourceBlock
-            nframe_total = None
-            if dev == "gpu" and im["kind"] == "dft":
-                warm_live_imager(cfg, station)
-            from ..blocks.bifrost_capture import BifrostCaptureBlock, bifrost_capture_available
-            from ..io.udp import packet_format
-            ok, why = bifrost_capture_available(src_cfg["format"])
-            if src_cfg["engine"] == "bifrost" and not ok:
-                raise ValueError(f"source.engine: bifrost: {why}; use engine: auto or python")
-            if ok and src_cfg["engine"] != "python":
-                log.info("live capture: Bifrost's C packet capture (%s)", src_cfg["format"])
-                # the C capture writes host memory: pinned for a GPU, whose copy Bifrost's own block makes
-                source = BifrostCaptureBlock(src_cfg["address"], src_cfg["port"], gulp, src_cfg["format"], station,
-                                             sync_time=src_cfg["sync_time"], idle_timeout_s=src_cfg["idle_timeout_s"],
-                                             sequences=src_cfg["sequences"], core=src_cfg["core"],
-                                             rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20),
-                                             space="cuda_host" if space == "cuda" else space)
-                if space == "cuda":
-                    from bifrost.blocks import copy as bifrost_copy
-                    feed = bifrost_copy(source, space="cuda")
-            else:
-                log.info("live capture: the Python receiver (%s)", why if src_cfg["engine"] == "auto" else
-                         "source.engine: python")
-                if src_cfg["core"] is not None:
-                    log.warning("source.core %d is for Bifrost's capture thread; the Python receiver ignores it",
-                                src_cfg["core"])
-                fmt = packet_format(src_cfg["format"], **({"sync_time": src_cfg["sync_time"]}
-                                                          if src_cfg["format"] == "chips" else {}))
-                source = UDPSourceBlock(src_cfg["address"], src_cfg["port"], gulp, fmt=fmt, station=station,
-                                        buffer_s=src_cfg["buffer_s"], idle_timeout_s=src_cfg["idle_timeout_s"],
-                                        start_timeout_s=src_cfg["start_timeout_s"],
-                                        rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20),
-                                        sequences=src_cfg["sequences"], progress=progress, space=space)
-        feed = source if feed is None else feed  # what the blocks after the source read
-        gains = cal.get("gains_table")
-        if gains:
-            gains = GainTable.load(gains)
-        # Live packets never wait for the imager, yet the blocks read them *guaranteed*: the capture
-        # thread keeps receiving whatever the blocks do, and its bounded queue is the one place
-        # where a pipeline that cannot keep up loses data (whole gulps, written as zeros and counted
-        # in udp_stats['samples_overflow']; with Bifrost's capture, the kernel's socket buffer). An
-        # unguaranteed reader here lost the start of every stream (the reordering window arrives at
-        # once, faster than any reader starts) and, inside real Bifrost, met its frame-alignment
-        # assertion on an overrun (see _compat).
-        fold = folds_calibration(cfg, dev)
-        if fold:
-            calfold = feed
-        else:
-            calfold = CalFoldBlock(feed, cable=bool(cal["cable"]), gains=gains, pattern=pattern)
-        common = dict(products=im["products"], remove_autocorr=im["remove_autocorr"])
-        if im["kind"] == "dft":
-            if fold:
-                common.update(cable=bool(cal["cable"]), pattern=pattern or False)
-            if dev == "gpus":
-                common.update(gpus=devs)
-            imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"],
-                                    **_imaging_mode_kw(cfg, pixels, station, dev), **common)
-        else:
-            from ..blocks.wstack import WStackBlock
-            imager = WStackBlock(calfold, pixels, im["accumulate_frames"], epsilon=im["epsilon"],
-                                 moff=(im["kind"] == "moff"), **common)
-        search = _search_block(cfg, imager, outdir) if im.get("search") else None
-        files = imager
-        wants = _outputs_average(cfg["output"])
-        if len(wants) > 1 and all(wants):
-            # the files and the cube both average the channels: the band mean of each image once (one
-            # pass over the images, not one per output; 0.45 ms a whole-band gulp on an H100), brought
-            # to the host, where the integration and the cube's conversion of its 1-channel images are small
-            from ..blocks.integrate import ImageIntegratorBlock
-            files = ImageIntegratorBlock(imager, nimage=1, average_channels=True, space="system")
-        writer, cube = _output_blocks(cfg, files, pixels, block)
+        source, feed, nframe_total, block = _source_stage(cfg, dev, fmt, info, station, gulp, space, progress)
+        calfold = _calibration_stage(cfg, dev, feed, pattern)
+        imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern)
+        search = _search_stage(cfg, imager, outdir)
+        writer, cube = _output_stage(cfg, imager, pixels, block)
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube)
+
+
+def _source_stage(cfg, dev, fmt, info, station, gulp, space, progress):
+    """(source block, the block the rest reads, frames in all or None, channel block or None): a capture
+    file or the simulated sky (:func:`_recorded_source`), or a live UDP stream (Bifrost's C capture, with
+    its copy to the GPU, or the Python receiver)."""
+    src_cfg, im = cfg["source"], cfg["imager"]
+    feed = None   # a block between the source and the rest (Bifrost's copy of a capture to the GPU)
+    if fmt is not None or src_cfg["kind"] != "udp":
+        source, nframe_total, block = _recorded_source(cfg, fmt, info, station, gulp, space, progress)
+        return source, source, nframe_total, block
+    from ..blocks.udp_source import UDPSourceBlock
+    if dev == "gpu" and im["kind"] == "dft":
+        warm_live_imager(cfg, station)
+    from ..blocks.bifrost_capture import BifrostCaptureBlock, bifrost_capture_available
+    from ..io.udp import packet_format
+    ok, why = bifrost_capture_available(src_cfg["format"])
+    if src_cfg["engine"] == "bifrost" and not ok:
+        raise ValueError(f"source.engine: bifrost: {why}; use engine: auto or python")
+    if ok and src_cfg["engine"] != "python":
+        log.info("live capture: Bifrost's C packet capture (%s)", src_cfg["format"])
+        # the C capture writes host memory: pinned for a GPU, whose copy Bifrost's own block makes
+        source = BifrostCaptureBlock(src_cfg["address"], src_cfg["port"], gulp, src_cfg["format"], station,
+                                     sync_time=src_cfg["sync_time"], idle_timeout_s=src_cfg["idle_timeout_s"],
+                                     sequences=src_cfg["sequences"], core=src_cfg["core"],
+                                     rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20),
+                                     space="cuda_host" if space == "cuda" else space)
+        if space == "cuda":
+            from bifrost.blocks import copy as bifrost_copy
+            feed = bifrost_copy(source, space="cuda")
+    else:
+        log.info("live capture: the Python receiver (%s)", why if src_cfg["engine"] == "auto" else
+                 "source.engine: python")
+        if src_cfg["core"] is not None:
+            log.warning("source.core %d is for Bifrost's capture thread; the Python receiver ignores it",
+                        src_cfg["core"])
+        fmt = packet_format(src_cfg["format"], **({"sync_time": src_cfg["sync_time"]}
+                                                  if src_cfg["format"] == "chips" else {}))
+        source = UDPSourceBlock(src_cfg["address"], src_cfg["port"], gulp, fmt=fmt, station=station,
+                                buffer_s=src_cfg["buffer_s"], idle_timeout_s=src_cfg["idle_timeout_s"],
+                                start_timeout_s=src_cfg["start_timeout_s"],
+                                rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20),
+                                sequences=src_cfg["sequences"], progress=progress, space=space)
+    return source, source if feed is None else feed, None, None
+
+
+def _calibration_stage(cfg, dev, feed, pattern):
+    """The block the imager reads: CalFoldBlock on ``feed`` (gains, cable terms, the pattern applied to the
+    voltages), or ``feed`` itself where the imager folds the calibration into its operator
+    (:func:`folds_calibration`)."""
+    from ..blocks import CalFoldBlock
+    from ..imaging.calibration import GainTable
+    cal = cfg["calibration"]
+    gains = cal.get("gains_table")
+    if gains:
+        gains = GainTable.load(gains)
+    # Live packets never wait for the imager, yet the blocks read them *guaranteed*: the capture
+    # thread keeps receiving whatever the blocks do, and its bounded queue is the one place
+    # where a pipeline that cannot keep up loses data (whole gulps, written as zeros and counted
+    # in udp_stats['samples_overflow']; with Bifrost's capture, the kernel's socket buffer). An
+    # unguaranteed reader would lose the start of every stream (the reordering window arrives at
+    # once, faster than any reader starts) and, inside real Bifrost, meet its frame-alignment
+    # assertion on an overrun (see _compat).
+    if folds_calibration(cfg, dev):
+        return feed
+    return CalFoldBlock(feed, cable=bool(cal["cable"]), gains=gains, pattern=pattern)
+
+
+def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern):
+    """The imager block on ``calfold``: DFTImagerBlock (folding the calibration where no CalFoldBlock
+    runs; channels sharded over ``devs`` on several GPUs), or WStackBlock for the gridded kinds."""
+    from ..blocks import DFTImagerBlock
+    im, cal = cfg["imager"], cfg["calibration"]
+    common = dict(products=im["products"], remove_autocorr=im["remove_autocorr"])
+    if im["kind"] == "dft":
+        if folds_calibration(cfg, dev):
+            common.update(cable=bool(cal["cable"]), pattern=pattern or False)
+        if dev == "gpus":
+            common.update(gpus=devs)
+        return DFTImagerBlock(calfold, pixels, im["accumulate_frames"],
+                              **_imaging_mode_kw(cfg, pixels, station, dev), **common)
+    from ..blocks.wstack import WStackBlock
+    return WStackBlock(calfold, pixels, im["accumulate_frames"], epsilon=im["epsilon"],
+                       moff=(im["kind"] == "moff"), **common)
+
+
+def _search_stage(cfg, imager, outdir):
+    """The transient search on the imager's images, if ``imager.search`` asks for one (else None)."""
+    return _search_block(cfg, imager, outdir) if cfg["imager"].get("search") else None
+
+
+def _output_stage(cfg, imager, pixels, block):
+    """(image writer or None, cube writer or None) on the imager's images, as ``output`` asks."""
+    files = imager
+    wants = _outputs_average(cfg["output"])
+    if len(wants) > 1 and all(wants):
+        # the files and the cube both average the channels: the band mean of each image once (one
+        # pass over the images, not one per output), brought to the host, where the integration and
+        # the cube's conversion of its 1-channel images are small
+        from ..blocks.integrate import ImageIntegratorBlock
+        files = ImageIntegratorBlock(imager, nimage=1, average_channels=True, space="system")
+    return _output_blocks(cfg, files, pixels, block)
 
 
 def _imaging_mode_kw(cfg, pixels, station, dev):
@@ -520,7 +550,7 @@ def _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern,
     n = len(split)
     dev = "gpu" if split[0] is not None else "cpu"
     # what the files and the cube are made of: the band mean of each image where every one of them
-    # averages the channels (the whole band: 20 MB/s to the host, not 15 GB/s)
+    # averages the channels (a whole band's images are far too many bytes to bring to the host)
     wants = _outputs_average(out)
     average = bool(wants) and all(wants)
     parts = [pixels.part(k, n) for k in range(n)]

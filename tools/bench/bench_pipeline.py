@@ -281,7 +281,7 @@ def bench_fits(a, xp, space, sync, graph):
         "realtime_factor": nframe / REALTIME_FPS / t_all,
         "steady_s_per_image": per_image, "realtime_factor_steady": a.image_seconds / per_image,
         "source_only_s": t_src, "source_only_realtime_factor": nframe / REALTIME_FPS / t_src,
-        "source_only_GBps": raw.nbytes / t_src / 1e9, "method": img._acc.method, "graph": graph,
+        "source_only_GBps": raw.nbytes / t_src / 1e9, "method": img.engine.method, "graph": graph,
         "peak_lm": lm_peak, "source_lm": lm_src, "cell": grid.cell, "layout": layout,
     }
 

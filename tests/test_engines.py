@@ -1,0 +1,106 @@
+"""An imager block's engine (bf_epic_blocks.blocks.engines): made in on_sequence, made again only when the
+header asks for another operator, and one image_gulp call per gulp, against the float64 definition."""
+import types
+
+import numpy as np
+import pytest
+
+from bf_epic_blocks.blocks import ArraySourceBlock, DFTImagerBlock, bfp, efield_header
+from bf_epic_blocks.blocks.engines import DFTEngine
+from truth import brute_image
+
+DT = 40e-6
+
+
+def scene(seed=2, nst=10, nchan=2, T=40):
+    rng = np.random.default_rng(seed)
+    xyz = rng.normal(0, 25, (nst, 3)) * [1, 1, 0.05]
+    freq = 60e6 + 25e3 * np.arange(nchan)
+    X = (rng.normal(size=(T, nchan, nst, 2)) + 1j * rng.normal(size=(T, nchan, nst, 2))).astype(np.complex64)
+    lm = np.array([[0.0, 0.0], [0.2, 0.1], [-0.5, 0.4]])
+    return xyz, freq, X, lm
+
+
+def sequence(img, hdr, X, gulps):
+    """One sequence through the block's own on_sequence / on_data path: the images it wrote."""
+    ohdr = img.on_sequence(types.SimpleNamespace(header=hdr))
+    frame = list(ohdr["_tensor"]["shape"][1:])
+    out, got = np.zeros([len(X)] + frame, np.float32), 0
+    for a, b in gulps:
+        got += img.engine.image_gulp(X[a:b], out[got:])
+    img.on_sequence_end(types.SimpleNamespace(header=hdr))
+    return out[:got]
+
+
+def test_the_engine_is_made_again_only_when_the_header_asks_for_another_operator():
+    xyz, freq, X, lm = scene()
+    flags = np.zeros((len(xyz), 2), bool)
+    hdr = efield_header("a", 0, freq, DT, {"xyz_m": xyz, "flags": flags}, dtype="cf32")
+    with bfp.Pipeline():
+        src = ArraySourceBlock(X, hdr, gulp_nframe=8)
+        img = DFTImagerBlock(src, lm, 10, products=("XX", "YY"), precision="fp64")
+    ref = np.stack([brute_image(X[i:i + 10], xyz, freq, lm, ("XX", "YY")) for i in range(0, 40, 10)])
+
+    first = sequence(img, hdr, X, [(0, 8), (8, 16), (16, 40)])
+    engine = img.engine
+    assert isinstance(engine, DFTEngine) and img.img_stats["operator_builds"] == 1
+    np.testing.assert_allclose(first, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
+
+    # the next sequence, same array and channels: the same engine, the same images, whatever the gulps
+    again = sequence(img, dict(hdr, name="b", time_tag=12345), X, [(0, 25), (25, 40)])
+    assert img.engine is engine and img.img_stats["operator_builds"] == 1
+    np.testing.assert_allclose(again, first, rtol=1e-6, atol=0)
+
+    # an antenna flagged: another operator
+    flags2 = flags.copy()
+    flags2[3] = True
+    hdr2 = efield_header("c", 0, freq, DT, {"xyz_m": xyz, "flags": flags2}, dtype="cf32")
+    third = sequence(img, hdr2, X[:20], [(0, 20)])
+    assert img.engine is not engine and img.img_stats["operator_builds"] == 2
+    w = np.broadcast_to(~flags2, (len(freq), len(xyz), 2)).astype(float)
+    ref2 = np.stack([brute_image(X[i:i + 10], xyz, freq, lm, ("XX", "YY"), weights=w) for i in (0, 10)])
+    np.testing.assert_allclose(third, ref2, rtol=0, atol=1e-5 * np.abs(ref2).max())
+
+
+def test_a_partial_integration_at_the_end_of_a_sequence_is_dropped_and_counted():
+    xyz, freq, X, lm = scene()
+    hdr = efield_header("a", 0, freq, DT, {"xyz_m": xyz}, dtype="cf32")
+    with bfp.Pipeline():
+        src = ArraySourceBlock(X, hdr, gulp_nframe=8)
+        img = DFTImagerBlock(src, lm, 15, precision="fp64")
+    imgs = sequence(img, hdr, X, [(0, 7), (7, 40)])
+    assert imgs.shape[0] == 2 and img.img_stats["frames_dropped_partial"] == 10
+    assert img.engine.ntime == 0
+
+
+class _HostSharded:
+    """A stand-in for multigpu.ShardedOperator on the CPU: one operator for every channel, the same calls."""
+
+    def __init__(self, op):
+        self.ops, self.npol, self.npix, self.npix_out = [op], op.npol, op.npix, op.npix
+
+    def image(self, x, products, *, accumulate, out, remove_autocorr, method, decode):
+        out[...] = self.ops[0].image(x, products, remove_autocorr=remove_autocorr, method=method,
+                                     accumulate=accumulate)
+
+    def submit(self, x, products, *, out, remove_autocorr, method, decode):
+        out[...] = self.ops[0].image(x, products, remove_autocorr=remove_autocorr, method=method)
+        return types.SimpleNamespace(result=lambda: out)
+
+
+@pytest.mark.parametrize("method", ["direct", "covariance"])
+def test_the_sharded_engine_images_whole_integrations_only(method):
+    from bf_epic_blocks.blocks.engines import ImageOutput, ShardedEngine, ShardedRoute
+    from bf_epic_blocks.imaging.dft import DFTOperator
+    xyz, freq, X, lm = scene()
+    op = DFTOperator(xyz, freq, lm, npol=2, precision="fp64")
+    counted = []
+    eng = ShardedEngine(lambda lm_: ShardedRoute(_HostSharded(op), ("XX", "YY"), method, False, 10, "cf32"), lm,
+                        accumulate=10, dtype="cf32", name="test")
+    eng.begin(ImageOutput(None, None, counted.append))
+    out = np.zeros((4, 2, 2, 3), np.float64)
+    assert eng.image_gulp(X[:20], out) == 2 and eng.image_gulp(X[20:40], out[2:]) == 2 and counted == [2, 2]
+    ref = np.stack([brute_image(X[i:i + 10], xyz, freq, lm, ("XX", "YY")) for i in range(0, 40, 10)])
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
+    with pytest.raises(ValueError, match="whole integrations only"):
+        eng.image_gulp(X[:15], out)
