@@ -12,7 +12,8 @@ optional voltage pattern, N_A the unflagged antennas of that channel and polaris
     I_k = (1/T) sum_t |sum_a D[k, a] x_a(t)|^2        (cross products: F_X F_Y^*)
 
 Two exact routes give it: "direct" (F = D X, then |F|^2 averaged over time) and "covariance"
-(R = X X^H / T, then Re diag(D R D^H)); "auto" picks the cheaper by :mod:`.cost`.
+(R = X X^H / T, then Re diag(D R D^H)); "auto" is the cheaper by :mod:`.cost`'s counts, and the
+accuracy knob ``tolerance`` picks route and precision together (:func:`.plan.resolve` decides both).
 
 Implementation notes (why it looks the way it does):
 

@@ -221,7 +221,7 @@ def _check_overrides(imager, method, precision, device):
     if method is None:
         method = "auto"
     if method not in methods:
-        raise ValueError(f"method (the {imager} imager's route) must be one of {methods}, got {method!r}")
+        raise ValueError(f"method must be one of {methods} (the {imager} imager's route), got {method!r}")
     if precision is not None:
         if imager != "dft":
             raise ValueError(f"the {imager} imager's precision follows its tolerance (epsilon); give tolerance, "

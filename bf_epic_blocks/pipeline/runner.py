@@ -250,8 +250,7 @@ def warm_live_imager(cfg, station):
 
 #: ``source.gulp_nframe: auto`` for a capture file imaged on a GPU: about this many bytes of 4-bit
 #: samples per gulp. There the block threads' host work per gulp (they share one interpreter lock), not
-#: the GPU, sets the pace: a 24-channel, 10-s LWA-SV recording ran at 12x real time in 1,024-frame
-#: gulps and 18-21x in 5,000-frame ones (`bf-epic run`, one H100, 2026-11-25).
+#: the GPU, sets the pace, so fewer, larger gulps run faster.
 AUTO_GULP_BYTES = 64 << 20
 #: ``auto`` everywhere else: live streams (latency), simulated skies and every CPU pipeline (compute
 #: bound, and a CPU gulp is unpacked to 8-byte complex samples)
@@ -381,9 +380,9 @@ def build_graph(cfg, progress=None, parts=None):
         # thread keeps receiving whatever the blocks do, and its bounded queue is the one place
         # where a pipeline that cannot keep up loses data (whole gulps, written as zeros and counted
         # in udp_stats['samples_overflow']; with Bifrost's capture, the kernel's socket buffer). An
-        # unguaranteed reader here lost the start of every stream (the reordering window arrives at
-        # once, faster than any reader starts) and, inside real Bifrost, met its frame-alignment
-        # assertion on an overrun (see _compat).
+        # unguaranteed reader here would lose the start of every stream (the reordering window
+        # arrives at once, faster than any reader starts) and, inside real Bifrost, meet its
+        # frame-alignment assertion on an overrun (see _compat).
         fold = folds_calibration(cfg, dev)
         if fold:
             calfold = feed
@@ -396,17 +395,17 @@ def build_graph(cfg, progress=None, parts=None):
             if dev == "gpus":
                 common.update(gpus=devs)
             imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"],
-                                    plan=_imager_plan(cfg, pixels, station, dev), **common)
+                                    plan=imager_plan_for(cfg, pixels, station, dev), **common)
         else:
             from ..blocks.wstack import WStackBlock
             imager = WStackBlock(calfold, pixels, im["accumulate_frames"], moff=(im["kind"] == "moff"),
-                                 plan=_imager_plan(cfg, pixels, station, dev), **common)
+                                 plan=imager_plan_for(cfg, pixels, station, dev), **common)
         search = _search_block(cfg, imager, outdir) if im.get("search") else None
         files = imager
         wants = _outputs_average(cfg["output"])
         if len(wants) > 1 and all(wants):
             # the files and the cube both average the channels: the band mean of each image once (one
-            # pass over the images, not one per output; 0.45 ms a whole-band gulp on an H100), brought
+            # pass over the images, not one per output), brought
             # to the host, where the integration and the cube's conversion of its 1-channel images are small
             from ..blocks.integrate import ImageIntegratorBlock
             files = ImageIntegratorBlock(imager, nimage=1, average_channels=True, space="system")
@@ -414,7 +413,7 @@ def build_graph(cfg, progress=None, parts=None):
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube)
 
 
-def _imager_plan(cfg, pixels, station, dev):
+def imager_plan_for(cfg, pixels, station, dev):
     """:func:`imaging_plan` for ``pixels`` on ``dev`` ('cpu', 'gpu', 'gpus'), logged."""
     im = cfg["imager"]
     npix = pixels.npix if hasattr(pixels, "npix") else im["track"]["size"] ** 2
@@ -522,7 +521,7 @@ def _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern,
     wants = _outputs_average(out)
     average = bool(wants) and all(wants)
     parts = [pixels.part(k, n) for k in range(n)]
-    plan = _imager_plan(cfg, parts[0], station, dev)       # the parts differ by a pixel at most: one plan
+    plan = imager_plan_for(cfg, parts[0], station, dev)       # the parts differ by a pixel at most: one plan
     first, searches, hosts = None, [], []
     nframe_total = block = None
     for k, (d, part) in enumerate(zip(split, parts)):
