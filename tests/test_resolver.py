@@ -200,3 +200,12 @@ def test_cli_tolerance_reaches_the_block(tmp_path):
     g = runner.build_graph(cfg)
     assert g.imager.plan.tolerance == 1e-3 and g.imager.tolerance == 1e-3
     assert g.imager.plan == yaml_plan(cfg)[0]
+
+
+def test_choose_is_the_resolver_for_a_dft_problem():
+    """plan.choose (sizes as keywords, sample bits) answers what resolve answers for that Problem."""
+    for dev in ("cpu", "gpu"):
+        for bits, kind in ((None, "complex"), (4, "ci4")):
+            a = planner.choose(1e-4, dev, ntime=64, nant=100, npix=500, nchan=3, products="stokes", sample_bits=bits)
+            b = resolve(1e-4, device=dev, problem=Problem(500, 100, 64, 3, 2, "stokes"), input_kind=kind)
+            assert a == b
