@@ -42,9 +42,12 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from . import cost
 from ._xp import device_kind
-from .gemm import PRECISIONS, check_precision, precision_available
+from .fused import FUSED
+from .gemm import check_precision, precision_available
 
 __all__ = ["Plan", "Problem", "resolve", "choose", "candidates", "load_table", "device_kind", "check_tolerance",
            "input_kind_of", "gridded_epsilon", "IMAGERS", "INPUT_KINDS", "DFT_METHODS", "GRIDDED_METHODS", "GRIDDED_DEFAULT_TOLERANCE",
@@ -63,8 +66,6 @@ GRIDDED_ERROR_FACTOR = 4.0
 GRIDDED_DEFAULT_TOLERANCE = 4e-4
 #: the gridders' epsilon range (:func:`.kernels.es_params` takes down to 1e-14; 0.1 keeps the kernel useful)
 _EPSILON_RANGE = (1e-14, 0.1)
-#: the fused integer modes (:mod:`.fused`): a direct-route kernel for the pols' own powers
-_FUSED = ("i8x2", "i8x3")
 
 
 @dataclass(frozen=True)
@@ -242,7 +243,7 @@ def _dft_plan(tol, kind_dev, problem, kind, method, precision, table):
     overrides = tuple(n for n, v in (("method", method != "auto"), ("precision", precision is not None)) if v)
     if tol is None:
         precision = "fp32" if precision is None else precision
-        if precision in _FUSED:
+        if precision in FUSED:     # a direct-route kernel for the pols' own powers
             route = _fused_route(method, problem, precision)
         elif method == "auto":
             route = cost.choose_method(problem.ntime, problem.nant, problem.npix, problem.npol, problem.nblk)
@@ -295,7 +296,8 @@ def _gridded_plan(tol, kind_dev, problem, kind, method, imager):
         route = "covariance" if problem.ntime >= problem.nant else "efield"
     else:
         route = method
-    precision = "fp32" if eps >= 1e-5 else "fp64"       # .fieldgrid.work_dtype
+    from .fieldgrid import work_dtype
+    precision = "fp32" if work_dtype(eps) == np.complex64 else "fp64"
     bound = None if imager == "moff" else GRIDDED_ERROR_FACTOR * eps
     overrides = ("method",) if method != "auto" and imager != "moff" else ()
     return Plan(route, precision, bound, None, kind_dev, asked, eps, overrides, imager, problem, kind)
