@@ -209,3 +209,10 @@ def test_choose_is_the_resolver_for_a_dft_problem():
             a = planner.choose(1e-4, dev, ntime=64, nant=100, npix=500, nchan=3, products="stokes", sample_bits=bits)
             b = resolve(1e-4, device=dev, problem=Problem(500, 100, 64, 3, 2, "stokes"), input_kind=kind)
             assert a == b
+
+
+def test_gridded_precision_is_the_gridders_work_precision():
+    from bf_epic_blocks.imaging.fieldgrid import work_dtype
+    for tol in (0.4, 4e-3, 4.4e-5, 4e-5, 3.9e-5, 4e-8, 4e-14):
+        p = resolve(tol, device="cpu", problem=Problem(10, 4, 8), imager="wstack")
+        assert p.precision == {np.complex64: "fp32", np.complex128: "fp64"}[work_dtype(p.epsilon)], tol
