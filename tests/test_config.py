@@ -71,7 +71,8 @@ def test_realistic_file_validates_and_resolves_paths(yaml_dir, monkeypatch):
     assert cfg["station"]["ssmif"] is None
     assert cfg["imager"]["products"] == ["I", "Q", "U", "V"]  # preset resolved
     assert cfg["imager"]["grid"] == {"size": 128, "cell": None} and cfg["imager"]["track"] is None
-    assert cfg["imager"]["epsilon"] == 1e-4
+    from bf_epic_blocks.imaging.plan import gridded_epsilon
+    assert cfg["imager"]["tolerance"] is None and gridded_epsilon(cfg["imager"]["tolerance"]) == 1e-4
     assert cfg["device"] == "gpu:1"
     assert cfg["output"] == {"dir": "out/tbf", "fits": True, "png": True, "table": False,
                              "prefix": "lwasv_tbf_allsky", "integrate": None, "cube": None}
@@ -103,11 +104,11 @@ def test_name_defaults_to_file_stem(tmp_path):
 
 def test_overrides_parse_yaml_values(yaml_dir):
     cfg = load_config(yaml_dir / "pipe.yaml", ["imager.grid.size=32", "imager.products=[XX, YY]",
-                                                "device=cpu", "output.table=true", "imager.epsilon=1e-3"])
+                                                "device=cpu", "output.table=true", "imager.tolerance=4e-3"])
     assert cfg["imager"]["grid"]["size"] == 32
     assert cfg["imager"]["products"] == ["XX", "YY"]
     assert cfg["device"] == "cpu" and cfg["output"]["table"] is True
-    assert cfg["imager"]["epsilon"] == 1e-3
+    assert cfg["imager"]["tolerance"] == 4e-3
 
 
 def test_override_switches_grid_to_track(yaml_dir):
@@ -176,8 +177,8 @@ def test_missing_config_file():
     ("imager: {accumulate_frames: 0}", "imager.accumulate_frames", "expected an integer >= 1, got 0"),
     ("imager: {grid: {size: 1}}", "imager.grid.size", "expected an integer >= 2, got 1"),
     ("imager: {grid: {cell: -0.1}}", "imager.grid.cell", "expected a number > 0, got -0.1"),
-    ("imager: {epsilon: 0.5}", "imager.epsilon", "expected a number in (0, 0.1], got 0.5"),
-    ("imager: {epsilon: 0}", "imager.epsilon", "expected a number in (0, 0.1], got 0"),
+    ("imager: {kind: wstack, tolerance: 0.5}", "imager.tolerance", "tolerance must lie in [4e-14, 0.4]"),
+    ("imager: {epsilon: 1e-3}", "imager.epsilon", "epsilon is now imager.tolerance"),
     ("source: {kind: simulated, channels: {count: 0}}", "source.channels.count", "expected an integer >= 1, got 0"),
     ("source: {kind: simulated, duration_s: 0}", "source.duration_s", "expected a number > 0, got 0"),
     ("source: {kind: simulated, duration_s: .nan}", "source.duration_s", "expected a number > 0, got nan"),

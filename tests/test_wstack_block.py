@@ -29,27 +29,29 @@ def run(xp, X, hdr, grid, acc, **kw):
 
 
 @pytest.mark.parametrize("route", ["efield", "covariance"])
-@pytest.mark.parametrize("epsilon", [1e-2, 1e-4])
-def test_wstack_block_matches_exact_dft(xp, scene, route, epsilon):
+@pytest.mark.parametrize("tolerance", [4e-2, 4e-4])
+def test_wstack_block_matches_exact_dft(xp, scene, route, tolerance):
     xyz, freq, X = scene
     grid = imaging.lm_grid(32)
     hdr = efield_header("w", 0, freq, 40e-6, {"xyz_m": xyz}, dtype="cf32")
-    sink, blk = run(xp, X, hdr, grid, 24, epsilon=epsilon, route=route, products=("I", "Q"))
+    sink, blk = run(xp, X, hdr, grid, 24, tolerance=tolerance, route=route, products=("I", "Q"))
     out = sink.result(0)  # (2, nchan, nprod, N, N)
     assert out.shape == (2, 2, 2, 32, 32)
     assert np.all(np.isnan(out[..., ~grid.mask]))
     for j in range(2):
         ref = brute_image(X[j * 24:(j + 1) * 24], xyz, freq, grid.lm, ("I", "Q"))
         got = out[j][..., grid.mask]
-        assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= 4 * epsilon
-    assert sink.headers[0]["imager"]["method"] == route
+        assert np.max(np.abs(got - ref)) / np.max(np.abs(ref)) <= tolerance
+    im = sink.headers[0]["imager"]
+    assert im["method"] == route and im["tolerance"] == tolerance and im["epsilon"] == tolerance / 4
+    assert im["overrides"] == ["method"] and im["error_bound"] == pytest.approx(tolerance)
 
 
 def test_moff_mode_equals_dft_without_z(scene):
     xyz, freq, X = scene
     grid = imaging.lm_grid(32)
     hdr = efield_header("m", 0, freq, 40e-6, {"xyz_m": xyz}, dtype="cf32")
-    sink, _ = run(np, X, hdr, grid, 48, epsilon=1e-5, moff=True, products=("I",))
+    sink, _ = run(np, X, hdr, grid, 48, tolerance=4e-5, moff=True, products=("I",))
     flat = xyz * [1, 1, 0]
     ref = brute_image(X, flat, freq, grid.lm, ("I",))
     got = sink.result(0)[0][..., grid.mask]
@@ -66,8 +68,10 @@ def test_wstack_block_rejects_what_it_cannot_do(scene):
         src = ArraySourceBlock(X.astype(np.complex64), hdr, 16)
         with pytest.raises(TypeError, match="LMGrid"):
             WStackBlock(src, [[0.0, 0.0]], 4)
-        with pytest.raises(ValueError, match="epsilon"):
-            WStackBlock(src, imaging.lm_grid(16), 4, epsilon=0.5)
+        with pytest.raises(ValueError, match="tolerance"):
+            WStackBlock(src, imaging.lm_grid(16), 4, tolerance=2.0)
+        with pytest.raises(TypeError, match="tolerance"):
+            WStackBlock(src, imaging.lm_grid(16), 4, epsilon=1e-3)
     with pytest.raises(Exception, match="cannot fold an antenna pattern"):
         with bfp.Pipeline() as p:
             s2 = ArraySourceBlock(X.astype(np.complex64), hdr, 16)

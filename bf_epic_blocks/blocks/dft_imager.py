@@ -18,7 +18,8 @@ import types
 
 import numpy as np
 
-from ..imaging import patterns, plan
+from ..imaging import patterns
+from ..imaging import plan as planner
 from ..imaging.dft import DFTOperator
 from ..imaging.pixels import GridPlacement, LMGrid, check_lm
 from . import _compat
@@ -41,13 +42,18 @@ class DFTImagerBlock(bfp.TransformBlock):
              ``pixels(time_tag) -> (npix, 2)`` re-evaluated at each integration (tracking; the
              operator is rebuilt when the pixels change).
     accumulate : frames (time samples) per image.
-    products, remove_autocorr, method, precision : as :func:`bf_epic_blocks.imaging.dirty_image`
-           (precision None: fp32, or the tolerance's pick).
-    tolerance : None, or an accuracy target instead of a mode (max |I - I_exact| / max I_exact): at each
-           sequence the fastest route x precision whose measured error bound meets it on the device the
-           block images on (the input ring's space, or the GPUs of ``gpus``) is picked for that problem
-           (:func:`bf_epic_blocks.imaging.plan.choose`; a ``method`` other than 'auto' or a ``precision``
-           restricts the choice). The pick is logged, kept in ``self.plan`` and written to the header.
+    products, remove_autocorr : as :func:`bf_epic_blocks.imaging.dirty_image`.
+    tolerance : the accuracy knob, as :func:`bf_epic_blocks.imaging.dirty_image` (max |I - I_exact| /
+           max I_exact; None: precision fp32 on the cheaper route). At each sequence
+           :func:`bf_epic_blocks.imaging.plan.resolve` picks the route and precision for that problem on
+           the device the block images on (the input ring's space, or the GPUs of ``gpus``).
+    method, precision : expert overrides of the route and GEMM precision (see
+           :func:`bf_epic_blocks.imaging.plan.resolve`); with a tolerance they restrict the choice.
+    plan : instead of tolerance / method / precision, a :class:`~bf_epic_blocks.imaging.plan.Plan` the
+           caller resolved for this problem (the pipeline runner does, so that what ``bf-epic plan``
+           prints and every part of a pixel split run the same plan).
+    The plan is logged, kept in ``self.plan`` and written to the header's ``imager`` section (method,
+    precision, tolerance, error_bound, overrides), whoever asked for it.
     gpus : None (image where the input ring lives), or several GPU indices (a list, or 'all'): the
            channels are sharded across those GPUs, one operator each (:mod:`bf_epic_blocks.imaging.multigpu`);
            the input and output rings are then host rings (best 'cuda_host': page-locked, so each GPU's
@@ -66,12 +72,21 @@ class DFTImagerBlock(bfp.TransformBlock):
 
     def __init__(self, iring, pixels, accumulate, products=None, remove_autocorr=False, method="auto",
                  precision=None, pattern=None, *args, gpus=None, weights=None, cable=False, tolerance=None,
-                 **kwargs):
+                 plan=None, **kwargs):
         super().__init__(iring, *args, **kwargs)
         self.gpus, self.weights, self.cable = gpus, weights, cable
-        self.tolerance = None if tolerance is None else plan.check_tolerance(tolerance)
-        self._asked = (method, precision)   # what the tolerance's pick is restricted to
-        self.plan = None
+        self.tolerance = None if tolerance is None else planner.check_tolerance(tolerance)
+        self._asked = (method, precision)   # the expert overrides handed to the resolver
+        if plan is not None:
+            if not isinstance(plan, planner.Plan) or plan.imager != self.imager_kind:
+                raise TypeError(f"{type(self).__name__}: plan must be a Plan for the {self.imager_kind!r} imager "
+                                f"(bf_epic_blocks.imaging.plan.resolve), got {plan!r}")
+            if tolerance is not None or method not in ("auto", None) or precision is not None:
+                raise ValueError(f"{type(self).__name__}: give either plan or tolerance / method / precision, "
+                                 "not both (the plan already holds them)")
+            self.tolerance = plan.tolerance
+        self._given_plan = plan
+        self.plan = plan
         if int(accumulate) != accumulate or accumulate < 1:
             raise ValueError(f"DFTImagerBlock: accumulate must be a positive integer number of frames, got {accumulate!r}")
         self.accumulate = int(accumulate)
@@ -79,8 +94,9 @@ class DFTImagerBlock(bfp.TransformBlock):
             pixels = check_lm(np.asarray(pixels, dtype=np.float64))
         self.pixels = pixels
         self.products, self.remove_autocorr = products, remove_autocorr
-        self.method, self.pattern = method, pattern
-        self.precision = "fp32" if precision is None and tolerance is None else precision
+        self.pattern = pattern
+        self.method = plan.method if plan is not None else method
+        self.precision = plan.precision if plan is not None else precision
         self.img_stats = {"images": 0, "frames_imaged": 0, "frames_dropped_partial": 0, "operator_builds": 0}
         self.engine = self._key = None   # the sequence's engine (.engines), and what its header was
 
@@ -98,24 +114,40 @@ class DFTImagerBlock(bfp.TransformBlock):
             return cupy
         return np
 
-    def _pick(self, lm):
-        """The tolerance's (route, precision) for this sequence's problem on this block's device."""
-        lay = self._lay
+    def _device(self):
+        """'cpu' or 'gpu': where this block images (the input ring's space, or the GPUs of ``gpus``)."""
+        return "gpu" if self.gpus is not None or _compat.space_of(self.irings[0]) == "cuda" else "cpu"
+
+    def plan_for(self, hdr, lm=None, nant=None) -> planner.Plan:
+        """The plan this block images a sequence with E-field header ``hdr`` by: the plan it was given,
+        or :func:`bf_epic_blocks.imaging.plan.resolve` for that problem (``lm``: the (npix, 2) pixels,
+        default this block's; ``nant``: the antennas used, default the header's unflagged stands) on this
+        block's device. Needs no GPU."""
+        if self._given_plan is not None:
+            return self._given_plan
+        lay = efield_layout(hdr, type(self).__name__)
+        if lm is None:
+            lm = self.pixels.lm if isinstance(self.pixels, LMGrid) else \
+                check_lm(np.asarray(self.pixels(lay["time_tag"]), dtype=np.float64)) if callable(self.pixels) \
+                else self.pixels
+        npix = len(lm)
+        if nant is None:
+            nant = int((~lay["flags"]).any(axis=1).sum())
         method, precision = self._asked
-        device = "gpu" if self.gpus is not None else self._xp
-        nant = int((~lay["flags"]).any(axis=1).sum())
-        # integer voltages reach one GPU's operator as they are: the fused integer modes are candidates
-        # (not yet measured on several GPUs, so not offered there)
-        bits = {"ci4": 4, "ci8": 8}.get(lay["dtype"]) if self.gpus is None else None
-        self.plan = plan.choose(self.tolerance, device, ntime=self.accumulate, nant=nant, npix=len(lm),
-                                npol=lay["npol"], nchan=lay["nchan"], products=self.products, method=method,
-                                precision=precision, sample_bits=bits)
+        # integer voltages reach one GPU's operator as they are, which makes the fused integer modes
+        # candidates; on several GPUs each decodes its channels first
+        kind = planner.input_kind_of(lay["dtype"]) if self.gpus is None else "complex"
+        problem = planner.Problem(npix, max(1, nant), self.accumulate, lay["nchan"], lay["npol"], self.products)
+        return planner.resolve(self.tolerance, device=self._device(), problem=problem, input_kind=kind,
+                               precision=precision, method=method, imager=self.imager_kind)
+
+    def _resolve(self, hdr, lm, nant):
+        self.plan = self.plan_for(hdr, lm, nant)
         self.method, self.precision = self.plan.method, self.plan.precision
-        log.info("%s: tolerance %.1e: %s", type(self).__name__, self.tolerance, self.plan.describe())
+        log.info("%s: %s", type(self).__name__, self.plan.describe())
 
     def _weights(self):
-        """(nchan|1, nstand, npol) complex128 weights folded into the operator: the header's flags, the
-        block's ``weights`` and, with ``cable``, the header's cable terms."""
+        """The direction-independent weights folded into the operator, (1|nchan, nstand, npol) complex."""
         lay = self._lay
         w = (~lay["flags"])[None].astype(np.complex128)
         if self.weights is not None:
@@ -134,10 +166,10 @@ class DFTImagerBlock(bfp.TransformBlock):
     def _operator(self, lm):
         """(operator, route) for pixels ``lm`` on this block's device (:class:`~.engines.DFTEngine`'s build)."""
         lay, xp = self._lay, self._xp
-        if self.tolerance is not None:
-            self._pick(lm)
         pat = self._pattern_name
         w = self._weights()
+        # the antennas the operator keeps: those with a non-zero weight somewhere
+        self._resolve(self._hdr, lm, int((w != 0).any(axis=(0, 2)).sum()))
         B = None if pat is None else patterns.pattern_array(pat, xp.asarray(lm), xp.asarray(lay["freq_hz"]), lay["npol"])
         op = DFTOperator(xp.asarray(lay["xyz_m"]), xp.asarray(lay["freq_hz"]), xp.asarray(lm),
                          npol=lay["npol"], weights=xp.asarray(w), pattern=B, precision=self.precision)
@@ -150,10 +182,9 @@ class DFTImagerBlock(bfp.TransformBlock):
         """The channels over the GPUs of ``gpus`` for pixels ``lm`` (:class:`~.engines.ShardedEngine`'s build)."""
         from ..imaging.multigpu import ShardedOperator
         lay = self._lay
-        if self.tolerance is not None:
-            self._pick(lm)
         pat = self._pattern_name
         w = self._weights()
+        self._resolve(self._hdr, lm, int((w != 0).any(axis=(0, 2)).sum()))
         B = None if pat is None else patterns.pattern_array(pat, np.asarray(lm), lay["freq_hz"], lay["npol"])
         # images placed on the whole l, m grid (NaN below the horizon) on the GPUs, and copied from
         # there straight into the output span
@@ -189,7 +220,7 @@ class DFTImagerBlock(bfp.TransformBlock):
     def on_sequence(self, iseq):
         ihdr = iseq.header
         lay = efield_layout(ihdr, "DFTImagerBlock")
-        self._lay, self._xp = lay, self._space_xp()
+        self._lay, self._xp, self._hdr = lay, self._space_xp(), ihdr
         self._station_hdr = ihdr.get("station", {})
         cal = ihdr.get("calibration", {})
         self._pattern_name = cal.get("pattern") if self.pattern is None else (self.pattern or None)
@@ -239,13 +270,11 @@ class DFTImagerBlock(bfp.TransformBlock):
         eng.begin(ImageOutput(place, size, self._count), time_tag=lay["time_tag"],
                   ticks_per_frame=lay["ticks_per_frame"], tally=self.tally, seq_name=ihdr.get("name"))
         ohdr["pol_products"] = list(eng.products)
-        ohdr["imager"] = {"kind": self.imager_kind, "method": eng.method, "precision": self.precision,
+        ohdr["imager"] = {"kind": self.imager_kind, **self.plan.header(), "method": eng.method,
                           "products": list(eng.products), "accumulate_frames": self.accumulate,
                           "remove_autocorr": bool(self.remove_autocorr), "nant_used": int(eng.nant_used),
                           "pattern": self._pattern_name,
                           "integration_ticks": self.accumulate * lay["ticks_per_frame"]}
-        if self.plan is not None:
-            ohdr["imager"].update(tolerance=self.tolerance, error_bound=self.plan.bound)
         log.info(type(self).__name__ + " %s: %d pixels, %d antennas used, %s route, %s, %d frames per image",
                  ihdr.get("name"), eng.npix, eng.nant_used, eng.method, self.precision, self.accumulate)
         return ohdr

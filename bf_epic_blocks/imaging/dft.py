@@ -12,9 +12,10 @@ optional voltage pattern, N_A the unflagged antennas of that channel and polaris
     I_k = (1/T) sum_t |sum_a D[k, a] x_a(t)|^2        (cross products: F_X F_Y^*)
 
 Two exact routes give it: "direct" (F = D X, then |F|^2 averaged over time) and "covariance"
-(R = X X^H / T, then Re diag(D R D^H)); "auto" picks the cheaper by :mod:`.cost`. Each route is an
-object of :mod:`.routes` (``add`` a gulp, ``result`` the image); :class:`DFTOperator` holds what they
-share (the operator, the weights, the GEMMs).
+(R = X X^H / T, then Re diag(D R D^H)); "auto" is the cheaper by :mod:`.cost`'s counts, and the
+accuracy knob ``tolerance`` picks route and precision together (:func:`.plan.resolve` decides both).
+Each route is an object of :mod:`.routes` (``add`` a gulp, ``result`` the image); :class:`DFTOperator`
+holds what they share (the operator, the weights, the GEMMs).
 
 Implementation notes (why it looks the way it does):
 
@@ -243,7 +244,9 @@ class DFTOperator:
     graphs : bool                on the GPU, replay repeated :meth:`image` calls as CUDA graphs
                                  (:mod:`.graphs`; which calls: see :meth:`image`); default True.
     precision : str              GEMM precision, one of :data:`.gemm.PRECISIONS` (fp64, fp32,
-                                 tf32x3, fp16x3, tf32, fp16, bf16; the last five need a GPU). Phases are
+                                 tf32x3, fp16x3, tf32, fp16, bf16, i8x2, i8x3; all but fp64 and fp32
+                                 need a GPU, and i8x2/i8x3 4-bit integer voltages; to choose one by
+                                 accuracy, see :func:`.plan.resolve`). Phases are
                                  always formed in float64; the operator is stored as complex64
                                  (complex128 for fp64) and rounded by the GEMM as the mode says.
 
@@ -264,7 +267,7 @@ class DFTOperator:
         # The bookkeeping below (checks, flags, indices, norms) is on small arrays and runs on the host;
         # its results go to the operator's device at the end. On a GPU each of these steps would be a
         # kernel of its own, and on a machine with an empty kernel cache each kernel costs a ~0.1-0.2 s
-        # compile, seconds in all before a cold first image (tools/cold_start.py lists them).
+        # compile (tools/bench/cold_start.py lists them).
         hxyz, hf, hlm, hn = _checked_geometry(xyz_m, freq_hz, pixels_lm)
         if npol not in (1, 2):
             raise ValueError(f"npol must be 1 or 2, got {npol}")
@@ -466,8 +469,21 @@ class DFTOperator:
     # ------------------------------------------------------------------ imaging
     def accumulator(self, products=None, *, remove_autocorr=False, method="auto", ntime_hint=1024):
         """A fresh route (:mod:`.routes`: ``add``, ``result``, ``images``, ``reset``) for integrations that
-        span several calls; ``method`` "auto" is resolved from ``ntime_hint`` samples an integration."""
+        span several calls.
+
+        ``method`` "auto" is resolved by :func:`.plan.resolve` for this operator's problem with
+        ``ntime_hint`` samples per image (the cheaper route; the direct one for a fused mode)."""
+        if method == "auto":
+            method = self.route(products, ntime_hint)
         return make_route(self, products, remove_autocorr=remove_autocorr, method=method, ntime_hint=ntime_hint)
+
+    def route(self, products=None, ntime=1024) -> str:
+        """The route ('direct' | 'covariance') :func:`.plan.resolve` picks for this operator's precision,
+        the products and ``ntime`` samples per image."""
+        from .plan import Problem, resolve
+        nchan = self.nchan if self.chan_index is None else int(self.chan_index.shape[0])
+        problem = Problem(self.npix, self.nant, max(1, int(ntime)), max(1, nchan), self.npol, products)
+        return resolve(None, device=self.xp, problem=problem, precision=self.precision).method
 
     def _cached_accumulator(self, products, remove_autocorr, method, ntime):
         """Accumulators for :meth:`image`, made once per (products, autocorr, route): building one makes
@@ -554,7 +570,8 @@ class DFTOperator:
 
 
 def dirty_image(efield, xyz_m, freq_hz, pixels_lm, *, remove_autocorr=False, method="auto",
-                precision=None, products=None, weights=None, pattern=None, accumulate=None, tolerance=None):
+                precision=None, products=None, weights=None, pattern=None, accumulate=None, tolerance=None,
+                return_plan=False):
     """E-field DFT image: the time mean of |sum_a D[k, a] x_a(t)|^2 (see module docstring).
 
     Parameters
@@ -565,43 +582,49 @@ def dirty_image(efield, xyz_m, freq_hz, pixels_lm, *, remove_autocorr=False, met
     xyz_m : (nant, 3) East/North/Up metres.   freq_hz : (nchan,) Hz.
     pixels_lm : (npix, 2) direction cosines (l East, m North); l^2 + m^2 > 1 is a ValueError.
     remove_autocorr : subtract the autocorrelation term exactly.
-    method : "direct" (D X then |.|^2), "covariance" (Re diag(D R D^H)), or "auto" (cheaper by
-             :func:`bf_epic_blocks.imaging.cost.choose_method`).
-    precision : one of :data:`bf_epic_blocks.imaging.gemm.PRECISIONS` ("fp64", "fp32", and on a
-             GPU "tf32x3", "fp16x3", "tf32", "fp16", "bf16"; phases are always formed in float64). Default
-             "fp32" (or the tolerance's pick).
-    tolerance : an accuracy target instead of a mode: the largest acceptable error (max |I - I_exact|
-             / max I_exact); the fastest route x precision whose measured bound holds on this device
-             is used (:func:`bf_epic_blocks.imaging.plan.choose`). An explicit ``method`` (other than
-             "auto") or ``precision`` given with it restricts the choice, and is an error if it
-             cannot meet the tolerance.
+    tolerance : the accuracy knob: the largest acceptable error max |I - I_exact| / max I_exact; the
+             fastest route x precision whose measured bound holds on this device is used. None: the
+             given precision (default "fp32") on the cheaper route. Either way
+             :func:`bf_epic_blocks.imaging.plan.resolve` decides.
+    method : expert override of the route: "direct" (D X then |.|^2), "covariance"
+             (Re diag(D R D^H)), or "auto" (the resolver's pick).
+    precision : expert override of the GEMM precision, one of
+             :data:`bf_epic_blocks.imaging.gemm.PRECISIONS` ("fp64", "fp32", and on a GPU "tf32x3",
+             "fp16x3", "tf32", "fp16", "bf16", and for 4-bit integer voltages "i8x2", "i8x3"; phases
+             are always formed in float64). With a tolerance, method and precision restrict the choice
+             and are an error if nothing they allow meets it.
     products : None (npol=1: XX; npol=2: XX, YY), "stokes" (I, Q, U, V), "linear", "full", or
                a list of names from XX, YY, XY, YX, XYi, YXi, I, Q, U, V.
     weights : complex (nant,) or (nchan|1, nant, npol|1); 0 drops the antenna from the operator.
     pattern : complex (nchan|1, npix, nant|1, npol|1) voltage pattern folded into D.
     accumulate : None (one image) or N: one image per N consecutive samples.
+    return_plan : also return the :class:`~bf_epic_blocks.imaging.plan.Plan` the image was made with.
 
     Returns
     -------
     float (nchan, nprod, npix) -- or (ntime // N, nchan, nprod, npix) with ``accumulate=N`` -- in
-    the namespace of ``efield``, float32 (float64 for precision "fp64").
+    the namespace of ``efield``, float32 (float64 for precision "fp64"); with ``return_plan``, the
+    pair (image, plan).
     """
+    from .plan import Problem, resolve
     xp = get_xp(efield)
     efield = xp.asarray(efield)
     if efield.ndim not in (4, 5):
         raise ValueError("efield must be shaped (ntime, nchan, nant, npol); got shape " + str(tuple(efield.shape)))
-    if tolerance is not None:
-        from .plan import choose
-        npix = int(xp.asarray(pixels_lm).shape[0])
-        nt = int(efield.shape[0]) if accumulate is None else int(accumulate)
-        pick = choose(tolerance, xp, ntime=nt, nant=int(efield.shape[2]), npix=npix, npol=int(efield.shape[3]),
-                      products=products, method=method, precision=precision)
-        method, precision = pick.method, pick.precision
-    precision = "fp32" if precision is None else precision
-    op = DFTOperator(xp.asarray(xyz_m), xp.asarray(freq_hz), xp.asarray(pixels_lm), npol=int(efield.shape[3]),
+    nchan, nant, npol = (int(n) for n in efield.shape[1:4])
+    nt = int(efield.shape[0]) if accumulate is None else int(accumulate)
+    used = nant
+    if weights is not None:
+        w = _broadcast_weights(to_numpy(weights), nchan, nant, npol, np)
+        used = max(1, int((w != 0).any(axis=(0, 2)).sum()))    # the antennas the operator keeps
+    problem = Problem(int(xp.asarray(pixels_lm).shape[0]), used, max(1, nt), nchan, npol, products)
+    # integer pairs are int8: 8-bit samples as far as anyone can tell (the fused modes need 4-bit ones)
+    plan = resolve(tolerance, device=xp, problem=problem, input_kind="ci8" if efield.ndim == 5 else "complex",
+                   precision=precision, method=method)
+    op = DFTOperator(xp.asarray(xyz_m), xp.asarray(freq_hz), xp.asarray(pixels_lm), npol=npol,
                      weights=None if weights is None else xp.asarray(weights),
-                     pattern=None if pattern is None else xp.asarray(pattern), precision=precision)
-    out = op.image(efield, products, remove_autocorr=remove_autocorr, method=method, accumulate=accumulate)
+                     pattern=None if pattern is None else xp.asarray(pattern), precision=plan.precision)
+    out = op.image(efield, products, remove_autocorr=remove_autocorr, method=plan.method, accumulate=accumulate)
     if op.nonfinite_counts is not None:
         nbad = int(op.nonfinite_counts.sum())
         if nbad:
@@ -609,5 +632,4 @@ def dirty_image(efield, xyz_m, freq_hz, pixels_lm, *, remove_autocorr=False, met
             worst = np.unravel_index(int(np.argmax(per)), per.shape)
             log.warning("dirty_image: %d non-finite (NaN/Inf) voltage samples were zeroed (treated as flagged); "
                         "most in kept antenna %d pol %d (%d)", nbad, worst[0], worst[1], int(per[worst]))
-    return out
-
+    return (out, plan) if return_plan else out

@@ -61,6 +61,11 @@ sigma = 1.5 measured up to 6 epsilon. The bound is for sky-dominated data: the f
 ~epsilon x sum_a |D x_a|, so for pure-noise data the error relative to the image peak grows like
 epsilon sqrt(N_A).
 
+The imaging blocks and the pipeline do not take ``epsilon``: their knob is ``tolerance``, the
+largest relative image error, and :func:`.plan.resolve` sets epsilon = tolerance / 4 from this
+tested bound (:data:`.plan.GRIDDED_ERROR_FACTOR`). The functions here take the gridder's own
+``epsilon``, as ducc0.wgridder does.
+
 Covariance route (:func:`cov_wgrid_image`)
 ------------------------------------------
 R = X X^H / T per channel and polarisation pair (weights and 1/N_A folded in), so that

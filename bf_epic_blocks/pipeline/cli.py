@@ -158,8 +158,8 @@ def main(argv=None):
         from .runner import run
         # The block threads share one interpreter lock and give it up at every CUDA call and file read;
         # a thread taking it back waits up to the switch interval while another runs Python. 1 ms (not
-        # Python's 5 ms) shortens those waits: 18.4x -> 21.1x real time steady for a 24-channel TBF
-        # recording in 5,000-frame gulps (medians of three, one H100, 2026-11-25; 0.2 ms was no better).
+        # Python's 5 ms) shortens those waits, which raises the steady real-time factor of a GPU pipeline
+        # reading a capture file.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         if sys.flags.dont_write_bytecode:
             log.info("Python writes no bytecode caches here (PYTHONDONTWRITEBYTECODE): where the packages carry "
@@ -231,7 +231,7 @@ def entry():
 
     When ``main`` returns, every block thread has joined and every output file is closed; what is
     left is interpreter teardown (CuPy's memory pools and handles, the CUDA context, module cleanup),
-    0.45 s of a 3.5-s run on an H100 (2026-11-25). Logging and the output streams are flushed, then
+    a noticeable part of a short GPU run. Logging and the output streams are flushed, then
     the process ends without it. In-process callers (tests, notebooks) use :func:`main`."""
     rc = main()
     logging.shutdown()

@@ -83,15 +83,22 @@ Schema (``(default ...)`` marks optional keys; keys without a default are requir
       products: list of XX YY XY YX XYi YXi I Q U V, or a preset stokes | linear | full
                                      (default [I]; returned as the resolved list of names)
       remove_autocorr: bool          (default false)
-      method: auto | direct | covariance (default auto)
-      precision: fp32 | fp64 | tf32x3 | fp16x3 | tf32 | fp16 | bf16  (default fp32; the last five need a GPU:
-                                     tensor-core modes, see bf_epic_blocks.imaging.gemm)
-      tolerance: float in (0, 1)     (default null; an accuracy target instead of a mode: the fastest
-                                     route x precision whose measured error bound is <= tolerance on the
-                                     device; method / precision written beside it restrict the choice;
-                                     --set imager.tolerance=... replaces the file's precision)
+      tolerance: float in (0, 1)     (default null; the accuracy knob: the largest relative error of an
+                                     image against its float64 value, max |I - I_exact| / max I_exact.
+                                     dft: the fastest route x precision whose measured error bound is
+                                     <= tolerance on the device; null: precision (fp32) on the cheaper
+                                     route. wstack / moff: the gridder's epsilon = tolerance / 4, in
+                                     [4e-14, 0.4]; null: 4e-4 (epsilon 1e-4). One resolver decides
+                                     (bf_epic_blocks.imaging.plan.resolve); --set imager.tolerance=...
+                                     replaces the file's precision. The old key epsilon is an error
+                                     naming this one)
+      method: auto | direct | covariance (default auto; expert override of the dft imager's route)
+      precision: fp32 | fp64 | tf32x3 | fp16x3 | tf32 | fp16 | bf16 | i8x2 | i8x3  (default fp32; expert
+                                     override of the dft imager's GEMM precision; all but fp32 and fp64
+                                     need a GPU (tensor-core modes, see bf_epic_blocks.imaging.gemm), and
+                                     i8x2 / i8x3 4-bit voltages on one GPU's direct route; written beside
+                                     a tolerance it restricts the choice)
       min_elevation_deg: float in [0, 90) (default 0; grid pixels below this elevation are not imaged)
-      epsilon: float in (0, 0.1]     (default 1e-4; accuracy target of wstack / moff)
       split: auto | channels | pixels (default auto; how several GPUs share the dft imager's work.
                                      channels: each GPU images some channels, the images meet on the
                                      host. pixels: each GPU reads or simulates the whole source, images
@@ -530,10 +537,12 @@ SCHEMA = Section({
         "precision": Key(Choice(*PRECISION_NAMES), "fp32"),
         "tolerance": Key(Float(0.0, 1.0, lo_open=True, hi_open=True), None),
         "min_elevation_deg": Key(Float(0.0, 90.0, hi_open=True), 0.0),
-        "epsilon": Key(Float(0.0, 0.1, lo_open=True), 1e-4),
         "search": Key(IMAGER_SEARCH, None),
         "split": Key(Choice("auto", "channels", "pixels"), "auto"),
-    }, post=_imager_post, what="an imager mapping"), {}),
+    }, post=_imager_post, what="an imager mapping", renamed={
+        "epsilon": "epsilon is now imager.tolerance, the one accuracy knob (the largest relative image error; "
+                   "for wstack / moff the gridder's epsilon = tolerance / 4): write tolerance: 4 x your epsilon"}),
+        {}),
     "device": Key(Device(), "cpu"),
     "output": Key(Section({
         "dir": Key(Str(r"\S.*", "a directory path"), None),
@@ -731,6 +740,13 @@ def _fill_and_cross_check(cfg: dict, default_name: str, ctx: Context) -> None:
         ctx.error("imager.precision", f"{im['precision']!r} needs tensor cores (device: gpu); on the CPU use "
                                       "fp32 or fp64, or imager.tolerance to let the imager pick")
     _check_fused(cfg, src, im, ctx)
+    if is_valid(im) and is_valid(im["kind"]) and im["kind"] != "dft" and is_valid(im["tolerance"]) \
+            and im["tolerance"] is not None:
+        from ..imaging.plan import gridded_epsilon
+        try:
+            gridded_epsilon(im["tolerance"], im["kind"])
+        except ValueError as e:
+            ctx.error("imager.tolerance", str(e))
     if is_valid(im) and is_valid(src) and is_valid(cfg["calibration"]) and im.get("split") == "pixels":
         why = pixel_split_problems(cfg)
         if why:

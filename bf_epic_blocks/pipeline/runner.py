@@ -173,19 +173,21 @@ def imager_sample_bits(cfg, dev):
     return 4 if src["kind"] != "simulated" or src.get("quantize") else None
 
 
-def imaging_mode(cfg, npix, nstand, nchan, sample_bits=None):
-    """(method, precision, Plan or None): the configured route and precision, or the tolerance's pick
-    (:func:`bf_epic_blocks.imaging.plan.choose`) for this device and problem (``sample_bits``: see
-    :func:`imager_sample_bits`)."""
-    im = cfg["imager"]
-    if im.get("tolerance") is None:
-        return im["method"], im["precision"], None
+def imaging_plan(cfg, npix, nstand, nchan, dev):
+    """The imager's :class:`~bf_epic_blocks.imaging.plan.Plan` for this configuration on ``dev`` ('cpu',
+    'gpu', or 'gpus' for several GPUs sharing the channels): :func:`bf_epic_blocks.imaging.plan.resolve`
+    for ``imager.tolerance`` (and the expert overrides ``imager.method`` / ``imager.precision`` of the
+    dft imager), ``npix`` pixels, ``nstand`` antennas used and ``nchan`` channels, with the input
+    :func:`imager_sample_bits` says reaches the imager. Planning for a GPU needs no CuPy and no GPU."""
     from ..imaging import plan as planner
-    # the device string ('cpu', 'gpu:0', 'gpu:all'): planning for a GPU needs no CuPy and no GPU
-    pick = planner.choose(im["tolerance"], cfg["device"], ntime=int(im["accumulate_frames"]), nant=nstand, npix=npix,
-                          npol=2, nchan=nchan, products=im["products"], method=im["method"],
-                          precision=im["precision"], sample_bits=sample_bits)
-    return pick.method, pick.precision, pick
+    im = cfg["imager"]
+    kind = "ci4" if imager_sample_bits(cfg, dev) == 4 else "complex"
+    problem = planner.Problem(npix, max(1, nstand), int(im["accumulate_frames"]), max(1, nchan), 2, im["products"])
+    device = "cpu" if dev == "cpu" else "gpu"
+    if im["kind"] == "dft":
+        return planner.resolve(im["tolerance"], device=device, problem=problem, input_kind=kind,
+                               precision=im["precision"], method=im["method"])
+    return planner.resolve(im["tolerance"], device=device, problem=problem, input_kind=kind, imager=im["kind"])
 
 
 def _device(cfg):
@@ -233,8 +235,7 @@ def warm_live_imager(cfg, station):
     fold = folds_calibration(cfg, "gpu")
     pixels = _pixels(cfg, station)
     npix = pixels.npix if hasattr(pixels, "npix") else im["track"]["size"] ** 2
-    method, precision, _ = imaging_mode(cfg, npix, int((~station.flags).any(axis=1).sum()), 1,
-                                        imager_sample_bits(cfg, "gpu"))
+    plan = imaging_plan(cfg, npix, int((~station.flags).any(axis=1).sum()), 1, "gpu")
     dtype = "ci4" if fold else "cf32"
     hdr = efield_header("warm-up", 0, [60e6, 60.025e6], 4e-5, {"xyz_m": np.zeros((8, 3))}, dtype=dtype)
     pattern = None if cal.get("pattern") in (None, "none") else cal["pattern"]
@@ -242,14 +243,14 @@ def warm_live_imager(cfg, station):
     with bfp.Pipeline():
         src = ArraySourceBlock(np.zeros((1, 2, 8, 2), np.uint8 if dtype == "ci4" else np.complex64), hdr, 1,
                                space="cuda")
-        img = DFTImagerBlock(src, pixels, im["accumulate_frames"], method=method, precision=precision,
+        img = DFTImagerBlock(src, pixels, im["accumulate_frames"], plan=plan,
                              products=im["products"], remove_autocorr=im["remove_autocorr"], **extra)
     return img.warm_up(dtype)
 
 
 #: ``source.gulp_nframe: auto`` for a capture file imaged on a GPU: about this many bytes of 4-bit
 #: samples per gulp. There the block threads' host work per gulp (they share one interpreter lock), not
-#: the GPU, sets the pace, and fewer, larger gulps spend less of it per frame.
+#: the GPU, sets the pace, so fewer, larger gulps run faster.
 AUTO_GULP_BYTES = 64 << 20
 #: ``auto`` everywhere else: live streams (latency), simulated skies and every CPU pipeline (compute
 #: bound, and a CPU gulp is unpacked to 8-byte complex samples)
@@ -419,10 +420,10 @@ def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern):
         if dev == "gpus":
             common.update(gpus=devs)
         return DFTImagerBlock(calfold, pixels, im["accumulate_frames"],
-                              **_imaging_mode_kw(cfg, pixels, station, dev), **common)
+                              plan=imager_plan_for(cfg, pixels, station, dev), **common)
     from ..blocks.wstack import WStackBlock
-    return WStackBlock(calfold, pixels, im["accumulate_frames"], epsilon=im["epsilon"],
-                       moff=(im["kind"] == "moff"), **common)
+    return WStackBlock(calfold, pixels, im["accumulate_frames"], moff=(im["kind"] == "moff"),
+                       plan=imager_plan_for(cfg, pixels, station, dev), **common)
 
 
 def _search_stage(cfg, imager, outdir):
@@ -443,17 +444,14 @@ def _output_stage(cfg, imager, pixels, block):
     return _output_blocks(cfg, files, pixels, block)
 
 
-def _imaging_mode_kw(cfg, pixels, station, dev):
-    """{method, precision} for the DFT imager on ``dev`` ('cpu', 'gpu', 'gpus'): the configured ones, or
-    the tolerance's pick for ``pixels`` (logged)."""
+def imager_plan_for(cfg, pixels, station, dev):
+    """:func:`imaging_plan` for ``pixels`` on ``dev`` ('cpu', 'gpu', 'gpus'), logged."""
     im = cfg["imager"]
     npix = pixels.npix if hasattr(pixels, "npix") else im["track"]["size"] ** 2
-    method, precision, pick = imaging_mode(cfg, npix, int((~station.flags).any(axis=1).sum()),
-                                           len(channel_freqs(cfg)) if cfg["source"]["kind"] == "simulated" else 1,
-                                           imager_sample_bits(cfg, dev))
-    if pick is not None:
-        log.info("imager.tolerance %.1e: %s", im["tolerance"], pick.describe())
-    return {"method": method, "precision": precision}
+    plan = imaging_plan(cfg, npix, int((~station.flags).any(axis=1).sum()),
+                        len(channel_freqs(cfg)) if cfg["source"]["kind"] == "simulated" else 1, dev)
+    log.info("imager plan: %s", plan.describe())
+    return plan
 
 
 def _recorded_source(cfg, fmt, info, station, gulp, space, progress):
@@ -554,7 +552,7 @@ def _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern,
     wants = _outputs_average(out)
     average = bool(wants) and all(wants)
     parts = [pixels.part(k, n) for k in range(n)]
-    mode = _imaging_mode_kw(cfg, parts[0], station, dev)       # the parts differ by a pixel at most: one pick
+    plan = imager_plan_for(cfg, parts[0], station, dev)       # the parts differ by a pixel at most: one plan
     first, searches, hosts = None, [], []
     nframe_total = block = None
     for k, (d, part) in enumerate(zip(split, parts)):
@@ -564,7 +562,7 @@ def _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern,
                                                            progress if k == 0 else None)
             imager = DFTImagerBlock(source, part, im["accumulate_frames"], products=im["products"],
                                     remove_autocorr=im["remove_autocorr"], cable=bool(cal["cable"]),
-                                    pattern=pattern or False, **mode)
+                                    pattern=pattern or False, plan=plan)
             if im.get("search"):
                 searches.append(_search_block(cfg, imager, None))
             if wants:
@@ -708,14 +706,14 @@ def plan(cfg):
         # a pixel split: each GPU a whole one-GPU imager and search for its part; the figures are per GPU
         npix = -(-npix // nparts)
         pix_txt += f"; split over {nparts} GPUs: {npix} pixels each (the figures below are per GPU)"
-    method, precision, pick = imaging_mode(cfg, npix, nstand_any, nchan,
-                                           imager_sample_bits(cfg, "gpus" if several and not nparts else dev))
+    pick = imaging_plan(cfg, npix, nstand_any, nchan, "gpus" if several and not nparts else dev)
+    method, precision = pick.method, pick.precision
     per_image = cost.route_cmacs(acc, nstand_any, npix, 2, nblk)
     per_gulp = {k: v * nchan * gulp / acc for k, v in per_image.items()}
     bytes_ = {k: v * nchan for k, v in
               cost.route_bytes(gulp, nstand_any, npix, 2, 16 if precision == "fp64" else 8).items()}
     input_bytes = gulp * nchan * station.nstand * 2  # ci4: one byte per complex sample
-    chosen = method if method != "auto" else cost.choose_method(acc, nstand_any, npix, 2, nblk)
+    chosen = method
     if im["kind"] != "dft":
         t_gulp = float("nan")
     else:
@@ -742,19 +740,25 @@ def plan(cfg):
         f"covariance {per_gulp['covariance']:.3e} CMAC",
         f"  bytes per gulp: input {input_bytes / 2**20:.1f} MiB (ci4); working set direct "
         f"{bytes_['direct'] / 2**20:.1f} MiB, covariance {bytes_['covariance'] / 2**20:.1f} MiB",
-        f"  method: {chosen}" + (" (auto: fewer operations)" if method == "auto" else "")
-        + f", precision {precision}",
+        f"  method: {chosen}" + (" (auto: fewer operations)" if im["kind"] == "dft" and im["method"] == "auto"
+                                 and im.get("tolerance") is None else "")
+        + f", precision {precision}" + (f", gridder epsilon {pick.epsilon:.1e}" if pick.epsilon is not None else ""),
     ]
-    if pick is not None:
+    d["plan"] = {"imager": pick.imager, **pick.header()}
+    if im.get("tolerance") is not None and pick.imager == "dft":
         lines.append(f"  tolerance {im['tolerance']:.1e}: picked {pick.method} route, {pick.precision}, measured "
                      f"error bound {pick.bound:.1e} (bf_epic_blocks/imaging/measured.json)")
+    elif im.get("tolerance") is not None:
+        lines.append(f"  tolerance {im['tolerance']:.1e}: gridder epsilon {pick.epsilon:.1e} ({pick.method} route, "
+                     "bf_epic_blocks/imaging/plan.py)")
+    if im.get("tolerance") is not None:
         d["tolerance_pick"] = {"method": pick.method, "precision": pick.precision, "bound": pick.bound}
     if im["kind"] == "dft":
         lines.append(f"  predicted on {dev}: {t_gulp * 1e3:.2f} ms per gulp of {gulp * dt * 1e3:.2f} ms of data "
                      f"-> real-time factor {rt:.2f} for the imaging (rates measured for {chosen} x {precision}, "
                      "bf_epic_blocks/imaging/measured.json)")
     else:
-        lines.append("  (run time of the w-stacking/MOFF imagers: see tools/bench_wstack.py)")
+        lines.append("  (run time of the w-stacking/MOFF imagers: see tools/bench/bench_wstack.py)")
     if im.get("search"):
         d["search"], text = _plan_search(im["search"], freq, acc * dt, npix, dev,
                                          t_gulp / (gulp * dt) if t_gulp == t_gulp else float("nan"))
@@ -783,7 +787,7 @@ def _pixel_parts(cfg):
 def _plan_search(sc, freq, dt_img, npix, dev, imaging_s_per_s):
     """The transient search's part of :func:`plan`: its trials, the memory it holds where it runs
     (:meth:`TransientSearch.memory_bytes`, sized as the block sizes it) and, where rates were measured
-    (``search`` in measured.json, tools/bench_search.py), its seconds per second of data and the
+    (``search`` in measured.json, tools/bench/bench_search.py), its seconds per second of data and the
     real-time factor of imaging and search together. Returns (dict, lines)."""
     from ..blocks.transient_search import search_settings
     from ..imaging import plan as planner
@@ -817,5 +821,5 @@ def _plan_search(sc, freq, dt_img, npix, dev, imaging_s_per_s):
                      f"-> real-time factor {1.0 / both:.2f} (the source and writers not counted; search rates "
                      f"measured in {rate['measured']})")
     else:
-        lines.append(f"  (search time on {dev}: not measured for this dedispersion; tools/bench_search.py)")
+        lines.append(f"  (search time on {dev}: not measured for this dedispersion; tools/bench/bench_search.py)")
     return d, lines

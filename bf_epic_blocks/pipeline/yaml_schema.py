@@ -304,12 +304,15 @@ class Key:
 
 
 class Section:
-    """A mapping with a fixed set of keys. ``post(out, given, path, ctx)`` adds cross-key rules."""
+    """A mapping with a fixed set of keys. ``post(out, given, path, ctx)`` adds cross-key rules;
+    ``renamed`` maps a key that is no longer read to the error that says what replaced it."""
 
-    def __init__(self, keys: Mapping[str, Key], post: Callable | None = None, what: str = "a mapping"):
+    def __init__(self, keys: Mapping[str, Key], post: Callable | None = None, what: str = "a mapping",
+                 renamed: Mapping[str, str] | None = None):
         self.keys = dict(keys)
         self.post = post
         self.what = what
+        self.renamed = dict(renamed or {})
 
     def describe(self) -> str:
         return self.what
@@ -329,6 +332,9 @@ class Section:
             where = join_path(path, str(k))
             if elsewhere and k in elsewhere:
                 ctx.error(where, elsewhere[k])
+                continue
+            if k in self.renamed:
+                ctx.error(where, self.renamed[k])
                 continue
             close = did_you_mean(str(k), keys, cutoff=0.6)
             hint = f"; did you mean {close!r}?" if close else ""
