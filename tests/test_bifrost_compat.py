@@ -13,6 +13,7 @@ import textwrap
 import types
 import warnings
 
+import numpy as np
 import pytest
 
 from bf_epic_blocks.blocks import _compat
@@ -425,3 +426,26 @@ def test_external_stream_with_the_installed_cupy_warns_nothing():
         warnings.simplefilter('error')
         s = _compat.external_stream(cp, 0x7f00)
     assert s.ptr == 0x7f00 and isinstance(s, (cp.cuda.Stream, cp.cuda.ExternalStream))
+
+
+@pytest.mark.bifrost
+@pytest.mark.skipif(not _compat.HAVE_BIFROST, reason="needs real Bifrost (import bifrost) as the runtime")
+def test_real_bifrost_unguaranteed_reader_of_frames_that_straddle_the_ring_end():
+    """Frames of 24 bytes (no power of two is a multiple), read without a guarantee by a slow sink:
+    overruns put the ring's tail inside a frame; our sink keeps running, every frame it delivers
+    equals the source's at its offset, and Bifrost's ReadSpan is untouched."""
+    import bifrost.ring2 as ring2
+    from bf_epic_blocks.blocks.array_io import ArraySinkBlock, ArraySourceBlock
+    original = ring2.ReadSpan
+    n = 20000
+    data = (np.arange(n * 6, dtype=np.float32) + 1).reshape(n, 6)   # no frame is all zeros
+    hdr = {'name': 'x', 'time_tag': 0, '_tensor': {'dtype': 'f32', 'shape': [-1, 6]}}
+    with _compat.bfp.Pipeline() as p:
+        src = ArraySourceBlock(data, hdr, gulp_nframe=16)
+        sink = ArraySinkBlock(src, delay_s=0.002, guarantee=False)
+        p.run()
+    got = sink.result(0)
+    kept = np.all(got != 0, axis=1)
+    assert got.shape[0] <= n and kept.any()
+    np.testing.assert_array_equal(got[kept], data[:got.shape[0]][kept])
+    assert ring2.ReadSpan is original
