@@ -278,9 +278,8 @@ def _run(tmp_path, code):
         f.write_text(textwrap.dedent(text))
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), REPO]))
     env.pop('BF_EPIC_RUNTIME', None)
-    out = subprocess.run([sys.executable, '-W', 'error::DeprecationWarning', '-c',
-                          textwrap.dedent(code)], env=env, capture_output=True, text=True,
-                         timeout=120, cwd=str(tmp_path))
+    out = subprocess.run([sys.executable, '-c', textwrap.dedent(code)], env=env,
+                         capture_output=True, text=True, timeout=120, cwd=str(tmp_path))
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     return out.stdout.split()
 
