@@ -10,10 +10,12 @@ through :func:`span_array`, so the same code runs on both.
 * ``bf`` -- the ``bifrost`` module when in use, else None.
 * ``bfp`` -- exposes Pipeline, block_scope, get_default_pipeline, SourceBlock, TransformBlock,
   SinkBlock, MultiTransformBlock. On real Bifrost it is ``bifrost.pipeline``'s namespace with
-  ``Pipeline`` subclassed so that ``run()`` raises a failed block's error as
-  :class:`bf_epic_blocks.runtime.pipeline.PipelineError` (plain Bifrost only ends that block's
-  thread); ``PipelineError`` is the failure type on both runtimes. With real Bifrost, read spans
-  are also trimmed to whole frames after an overrun (see ``_frame_aligned_read_spans``).
+  subclasses in place of ``Pipeline`` (``run()`` raises a failed block's error as
+  :class:`bf_epic_blocks.runtime.pipeline.PipelineError`; plain Bifrost only ends that block's
+  thread) and of the reading blocks (their read spans are trimmed to whole frames after an
+  overrun); see :mod:`._bifrost_fixes`. ``PipelineError`` is the failure type on both runtimes.
+  Importing this module changes nothing in Bifrost; :func:`enable_bifrost_compat` extends the
+  read-span fix to every Bifrost block of the process, on request.
 
 Span data forms (see :mod:`bf_epic_blocks.runtime.dtypes`): host spaces give NumPy arrays
 (complex integers as Bifrost's structured dtypes), 'cuda' gives CuPy arrays ('ci4' as uint8,
@@ -24,8 +26,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import threading
-import types
 
 import numpy as np
 
@@ -35,6 +35,7 @@ from ..runtime.dtypes import (  # noqa: F401  (re-exported)
 from ..imaging._xp import pinned_empty, to_numpy  # noqa: F401  (re-exported)
 from ..runtime import pipeline as _builtin_pipeline
 from ..runtime import ring as _builtin_ring
+from ._bifrost_fixes import bifrost_namespace, enable_bifrost_compat  # noqa: F401  (re-exported)
 
 try:
     import bifrost as _bifrost  # not on PyPI; present only on Bifrost machines
@@ -49,101 +50,7 @@ HAVE_BIFROST = BIFROST_IMPORTABLE and os.environ.get(RUNTIME_ENV, '').lower() !=
 if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost
     import bifrost.pipeline as _bf_pipeline
     bf = _bifrost
-
-    class Pipeline(_bf_pipeline.Pipeline):
-        """``bifrost.pipeline.Pipeline`` whose ``run()`` raises a block's failure.
-
-        Real Bifrost only ends the failing block's thread: ``run()`` returns normally (failure
-        after start-up) or raises ``PipelineInitError`` naming the block but not the error. Here
-        every block's ``run`` is wrapped: the first exception is kept, the other blocks are told
-        to shut down (they poll their shutdown events), and ``run()`` then raises our runtime's
-        :class:`~bf_epic_blocks.runtime.pipeline.PipelineError` (block name + original message,
-        original as ``__cause__``), as our runtime does."""
-
-        def run(self):
-            self._bf_epic_failure = None
-            lock = threading.Lock()
-
-            def catching(block, run):
-                def wrapped():
-                    try:
-                        run()
-                    except Exception as exc:  # reported by Pipeline.run below, not the thread
-                        with lock:
-                            if self._bf_epic_failure is None:
-                                self._bf_epic_failure = (block, exc)
-                        for b in self.blocks:
-                            b.shutdown()
-                        # blocks still waiting for start-up to finish must see the shutdown
-                        self.all_blocks_finished_initializing_event.set()
-                return wrapped
-
-            for block in self.blocks:
-                block.run = catching(block, block.run)
-            init_error = None
-            try:
-                super().run()
-            except getattr(_bf_pipeline, 'PipelineInitError', ()) as exc:
-                init_error = exc
-            for t in getattr(self, 'threads', ()):  # let the failing thread record its error
-                t.join(self.shutdown_timeout)
-            if self._bf_epic_failure is not None:
-                block, exc = self._bf_epic_failure
-                raise _builtin_pipeline.PipelineError(block, exc) from exc
-            if init_error is not None:
-                raise init_error
-
-    def _frame_aligned_read_spans():
-        """Work around real Bifrost's overrun assertion (``ring2.SpanBase.frame_offset``:
-        ``assert(byte_offset % self.frame_nbyte == 0)``, a case its own TODO foresees).
-
-        Why it fires: a ring's span is rounded up to a power of two (``ring_impl.cpp``,
-        ``round_up_pow2``) and an overrun moves the tail to ``head - span``; an unguaranteed
-        read of overwritten data then starts at the tail, which lies inside a frame whenever the
-        frame size does not divide a power of two (an LWA-SV TBF frame of 24 channels is
-        24*256*2 = 12,288 bytes = 3 * 4,096). Here every read span is trimmed to the whole
-        frames it holds: its start moves to the next frame boundary (data pointer and size with
-        it), so the bytes before it count as skipped, and a partly overwritten frame counts as
-        overwritten. Guaranteed reads (always aligned) are unchanged."""
-        try:
-            import bifrost.ring2 as ring2
-        except ImportError:  # a Bifrost without ring2 has no such spans to mend
-            return
-        if not hasattr(getattr(ring2, 'ReadSpan', None), '_cache_info'):
-            return
-
-        class FrameAlignedReadSpan(ring2.ReadSpan):
-            def _cache_info(self):
-                super()._cache_info()
-                fn = self._sequence.tensor['frame_nbyte']
-                off = int(self._info.offset)
-                self._cut = -off % fn
-                if self._cut:
-                    size = int(self._info.size)
-                    self._info.offset = off + self._cut
-                    if self._info.data:
-                        self._info.data = int(self._info.data) + self._cut
-                    self._info.size = max(size - self._cut, 0) // fn * fn
-
-            @property
-            def nframe_overwritten(self):
-                n = ring2.ctypes.c_ulong()
-                ring2._check(ring2._bf.bfRingSpanGetSizeOverwritten(self.obj, n))
-                nbyte = min(max(int(n.value) - getattr(self, '_cut', 0), 0), self._size_bytes)
-                return -(-nbyte // self.frame_nbyte)
-
-        FrameAlignedReadSpan.__name__ = FrameAlignedReadSpan.__qualname__ = 'ReadSpan'
-        FrameAlignedReadSpan.__module__ = ring2.__name__
-        if not getattr(ring2.ReadSpan, '_bf_epic_aligned', False):
-            FrameAlignedReadSpan._bf_epic_aligned = True
-            ring2.ReadSpan = FrameAlignedReadSpan
-
-    _frame_aligned_read_spans()
-
-    # bifrost.pipeline's names, with Pipeline replaced by the subclass above
-    bfp = types.ModuleType('bf_epic_blocks.blocks._compat.bfp', _bf_pipeline.__doc__)
-    bfp.__dict__.update({k: v for k, v in vars(_bf_pipeline).items() if not k.startswith('__')})
-    bfp.Pipeline = Pipeline
+    bfp = bifrost_namespace(_bf_pipeline)
 else:
     bfp = _builtin_pipeline
     bf = None
@@ -200,6 +107,31 @@ def span_array(span):
     return np.asarray(span.data)
 
 
+class _StreamHandle:
+    """A raw ``cudaStream_t`` address in the CUDA stream protocol (``__cuda_stream__`` gives
+    ``(0, address)``), which is what ``cupy.cuda.Stream.from_external`` takes."""
+
+    __slots__ = ('ptr',)
+
+    def __init__(self, ptr):
+        self.ptr = int(ptr)
+
+    def __cuda_stream__(self):
+        return (0, self.ptr)
+
+
+def external_stream(cp, ptr):
+    """A CuPy stream object for the CUDA stream at address ``ptr``, owned by someone else.
+
+    ``cp.cuda.Stream.from_external`` (CuPy 14 and later, which deprecates ``ExternalStream``) when
+    this CuPy has it, else ``cp.cuda.ExternalStream`` (CuPy 13). Either leaves the stream's
+    life to its owner; its device is taken as unknown (-1), so use it on the current device."""
+    from_external = getattr(cp.cuda.Stream, 'from_external', None)
+    if from_external is not None:
+        return from_external(_StreamHandle(ptr))
+    return cp.cuda.ExternalStream(int(ptr))
+
+
 def stream_context():
     """Context to run CuPy work on Bifrost's CUDA stream (real Bifrost with CUDA); a null
     context otherwise: our runtime has already made the block thread's own CUDA stream current
@@ -207,9 +139,10 @@ def stream_context():
     if HAVE_BIFROST:  # pragma: no cover - needs real Bifrost
         try:
             import cupy as cp
-            return cp.cuda.ExternalStream(bf.device.get_stream())
-        except Exception:
-            pass
+            ptr = bf.device.get_stream()
+        except Exception:  # no CuPy, or a Bifrost built without CUDA: no stream to join
+            return contextlib.nullcontext()
+        return external_stream(cp, ptr)
     return contextlib.nullcontext()
 
 
@@ -364,6 +297,7 @@ def assign_storage(dst, src):
 
 
 __all__ = ['HAVE_BIFROST', 'BIFROST_IMPORTABLE', 'RUNTIME', 'RUNTIME_ENV', 'bf', 'bfp',
+           'enable_bifrost_compat', 'external_stream',
            'frames_lost_before', 'frames_overwritten', 'frames_lost_at_end',
            'span_array', 'space_of', 'stream_context', 'to_numpy', 'assign_storage',
            'is_pinned', 'pinned_empty', 'pin', 'HostToDevice',

@@ -122,8 +122,8 @@ class ImageWriterBlock(bfp.SinkBlock):
     def _hand_over(self, stem, fn, job):
         """Write ``fn(job)`` -> paths: queued for the helper process, in order. While the helper is still
         starting, integrations are held (not written in this thread while the pipeline runs: that holds
-        the interpreter lock the source and imager threads need, ~0.2 s per image with astropy's imports
-        on a GPU host, 2026-11-25) and handed over once it is up, or written at the sequence's end
+        the interpreter lock the source and imager threads need, for a long time per image while
+        astropy's modules are still to be imported) and handed over once it is up, or written at the sequence's end
         (:meth:`flush`); beyond ``MAX_PENDING`` held, the oldest is written here. Without a helper (none
         asked for, or it could not start) everything is written here."""
         if self._pool is None:
@@ -192,7 +192,7 @@ class ImageWriterBlock(bfp.SinkBlock):
             self._write_here(s, fn, job)
 
     #: at a sequence's end, seconds to wait for a helper still starting when writing here would first
-    #: have to import astropy (its start is ~1.5-3 s from the run's launch on a GPU host, and overlaps it)
+    #: have to import astropy (its start takes a few seconds from the run's launch, and overlaps it)
     HELPER_WAIT_S = 5.0
 
     def flush(self):
@@ -200,7 +200,7 @@ class ImageWriterBlock(bfp.SinkBlock):
         that is still starting: where this process has astropy's FITS and WCS already (a simulated
         sky's run), written here, oldest first, until the helper is up (then it takes the rest: the
         sequence's data is done, so this thread no longer competes with the source and imager); where
-        it has not, writing here would first import them (~1 s on a GPU host, more than what is left of
+        it has not, writing here would first import them (about a second, more than what is left of
         the helper's start), so the helper is waited for, at most ``HELPER_WAIT_S``."""
         if self._held and self._ready is not None and self._pool is not None and not self._pending \
                 and not _fits_loaded():
@@ -304,8 +304,8 @@ class ImageWriterBlock(bfp.SinkBlock):
             self.frames += 1
 
 
-#: integrations whose zenith pointings (a FITS image's WCS) are computed in one astropy transform: one
-#: image's transform costs ~15 ms of interpreter time, 64 images' ~20 ms
+#: integrations whose zenith pointings (a FITS image's WCS) are computed in one astropy transform: its
+#: interpreter time hardly grows with the number of images, so one transform serves many
 POINTING_BATCH = 64
 _POINTINGS = {}
 
@@ -408,7 +408,7 @@ def _new_helper(png):
 
 def start_helper(png=False):
     """Start an image writer's helper process now, for the next ``ImageWriterBlock(processes=1)``: its
-    start (a Python with numpy and astropy, ~1.5 s on an H100 host) then overlaps the parent's own."""
+    start (a Python with numpy and astropy, a second or more) then overlaps the parent's own."""
     _STARTED.append(_new_helper(png))
 
 

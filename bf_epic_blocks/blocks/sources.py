@@ -197,8 +197,8 @@ class TBFSourceBlock(bfp.SourceBlock):
 
 
 
-#: threads reading a capture's bytes at once: one thread copies page cache -> pinned memory at
-#: 1-2 GB/s on an H100 host (py-spy, 2026-11-25), and a 24-channel gulp at 20x real time needs 6 GB/s
+#: threads reading a capture's bytes at once: one thread's copy from the page cache into pinned
+#: memory is several times slower than a GPU images a wide gulp, so a gulp's parts are read in parallel
 READ_THREADS = max(2, min(8, os.cpu_count() or 2))
 #: raw gulps whose reads are under way ahead of the one being copied to the GPU (staging buffers:
 #: READ_AHEAD + 1, each a gulp's bytes of pinned memory)

@@ -24,8 +24,8 @@ memory the frames will occupy, and a guaranteed reader's span is the ring memory
 end is still one contiguous view. A write span that crosses the end is written there and its part
 past the end copied to the head at commit; a read span that crosses it has the head's part copied
 into the ghost when it is handed out -- only then: gulps that divide the capacity never copy (an
-eager mirror of every write landing in the head cost a third of the whole band's 0.8-GB image gulps,
-0.3 ms a gulp on an H100). Unguaranteed readers
+eager mirror of every write landing in the head would copy frames that no span ever reads across
+the end, a large share of the traffic for gulps of whole-band images). Unguaranteed readers
 get copies taken under the ring lock (so ``nframe_overwritten`` is always 0); a write
 overwrites frames only after ``reserve`` has moved the ring's tail past them.
 

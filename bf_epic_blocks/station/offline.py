@@ -141,9 +141,8 @@ def iers_table():
     the user's cache folder (``~/.cache/bf_epic_blocks/iers``).
 
     astropy parses the 3.4-MB fixed-width IERS-A text on the first coordinate transform of every
-    process: 1.4 s on this project's CI machine and 1.3 s of every ``bf-epic run`` on a GPU host,
-    holding the GIL while the pipeline's other threads wait (py-spy, H100 host, 2026-11-25). A
-    cached table fills ``IERS_Auto``'s own slot, so every later astropy transform in the process
+    process, which takes over a second of every ``bf-epic run`` and holds the GIL while the
+    pipeline's other threads wait. A cached table fills ``IERS_Auto``'s own slot, so every later astropy transform in the process
     uses it and gives what the parsed file gives, value for value. Needs
     :func:`configure_offline` (no downloads) to have run; returns the table.
     """
@@ -198,8 +197,8 @@ def _forbid_internet(data_module) -> None:
 class _WhenLoaded:
     """A meta-path finder that calls ``then(module)`` right after one of ``modules`` has executed.
 
-    Importing ``astropy.utils.iers`` pulls in astropy.table, units, time... (~1 s on a GPU host
-    without bytecode caches, 2026-11-25), and a recording imaged on a GPU needs no astropy in the process that runs the blocks
+    Importing ``astropy.utils.iers`` pulls in astropy.table, units, time... (about a second
+    without bytecode caches), and a recording imaged on a GPU needs no astropy in the process that runs the blocks
     at all (its FITS are written by a helper process). So :func:`configure_offline` does not import
     astropy to set its options: they are applied by this hook the moment astropy's own modules load,
     before any code can use them (the module is configured before its importer sees it)."""

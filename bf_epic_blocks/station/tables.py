@@ -333,8 +333,8 @@ def load_station(name_or_path, *, extra_flags=None, freq_hz=None) -> StationTabl
     freq_hz : the frequencies the caller will ask cable terms for, or None. Given, the table (with
         the cable delays and gains at those frequencies, as LSL's cable model gives them) is cached
         under the user's cache folder and later calls with the same station, LSL version and
-        frequencies read that file instead of importing LSL (whose import, through SciPy, was ~2 s
-        of every run's start-up). The cached table answers cable terms for those frequencies only.
+        frequencies read that file instead of importing LSL (whose import, through SciPy, takes
+        seconds of every run's start-up). The cached table answers cable terms for those frequencies only.
 
     Requires LSL (``pip install lsl``); :func:`configure_offline` is applied first so that LSL and
     astropy never wait on a network.
