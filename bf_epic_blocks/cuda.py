@@ -37,8 +37,9 @@ _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$', re.MULTILINE)
 _MODULES: dict = {}
 _FUNCTIONS: dict = {}
 
-#: {package-relative .cu path: [(defines, arch), ...]}: the configurations the GPU tests compile.
-#: ``arch`` None compiles for the current device; "sm_90a" only where the device is a Hopper GPU.
+#: {package-relative .cu path: [(defines, arch, options), ...]}: the configurations the GPU tests compile.
+#: ``arch`` None compiles for the current device; "sm_90a" only where the device is a Hopper GPU;
+#: ``options``: further NVRTC options (``--use_fast_math``).
 COMPILE_CHECKS: dict = {}
 
 
@@ -108,10 +109,13 @@ def get_kernel(path: str, name: str, *, defines: dict | None = None, options=(),
 
 
 def register(path: str, *configs):
-    """Record the configurations of ``path`` that a shipped path compiles: ``(defines, arch)`` pairs
-    (no configuration: the file with no defines, for the current device). Called by the module that
-    launches the file's kernels, at import, so the compile test covers exactly what ships."""
+    """Record the configurations of ``path`` that a shipped path compiles: ``(defines, arch)`` or
+    ``(defines, arch, options)`` (no configuration: the file with no defines, for the current device).
+    Called by the module that launches the file's kernels, at import, so the compile test covers exactly
+    what ships. Stored as (defines, arch, options) triples."""
     COMPILE_CHECKS.setdefault(path, [])
     for cfg in configs or [({}, None)]:
+        defines, arch, *rest = cfg
+        cfg = (dict(defines), arch, tuple(rest[0]) if rest else ())
         if cfg not in COMPILE_CHECKS[path]:
             COMPILE_CHECKS[path].append(cfg)
