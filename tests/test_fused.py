@@ -83,7 +83,7 @@ def test_layout_puts_each_sample_where_the_kernel_reads_it():
 
 
 def test_tiles_put_each_byte_where_the_swizzled_kernel_reads_it():
-    """The bulk-copy kernel's tiles against the swizzle written out byte by byte: byte k of row m sits in
+    """The Hopper kernel's tiles against the swizzle written out byte by byte: byte k of row m sits in
     tile (m // 128, k // 128) at (r // 8) 1024 + (r % 8) 128 + 16 (j ^ r % 8) + k % 16, r = m % 128,
     j = (k % 128) // 16 -- and quantise_operator(tiled=True) is the tiled logical operator."""
     rng = np.random.default_rng(16)
