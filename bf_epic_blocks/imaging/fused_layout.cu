@@ -8,6 +8,7 @@
 // imaged pol. Apad, Tp: multiples of 64 and 128.
 // Launch (all three): one thread per (c', t, 8 antennas), total = Cl Tp Apad / 8 threads, blocks of
 // 256, grid ceil(total / 256).
+
 // byte offset of the 16 bytes (16-byte chunk jj of the KD bytes) of column col of channel c in B:
 // (C, NCOL, KD) row-major, or tiled (C, NCOL/128, KD/128, 128 x 128 bytes in the swizzled order of
 // the warpgroup MMA: chunk j of row r at (r / 8) 1024 + (r % 8) 128 + 16 (j ^ r % 8)), for bulk copies
