@@ -93,7 +93,7 @@ def get_module(path: str, *, defines: dict | None = None, options=(), arch: str 
 def get_kernel(path: str, name: str, *, defines: dict | None = None, options=(), arch: str | None = None,
                name_expressions=None):
     """The ``__global__`` function ``name`` of package-relative ``path`` (see :func:`get_module`), cached:
-    the same ``cupy.cuda.Function`` on every call, so attributes set on it (dynamic shared memory) stay.
+    the same ``cupy.RawKernel`` on every call, so attributes set on it (dynamic shared memory) stay.
 
     A template kernel is asked for by its name expression (``"bf_transpose<float>"``); pass every
     expression the caller uses as ``name_expressions`` (the same tuple each time), so that one module
