@@ -6,34 +6,40 @@ it (``imaging/fused.cu`` beside ``imaging/fused.py``). A module asks for a kerne
 
     from ..cuda import get_kernel
     k = get_kernel("imaging/reduce.cu", "bf_row_dot")
-    k = get_kernel("imaging/fused.cu", "bf_fused_power", defines={"NP": 2, "KD": 256}, arch="sm_90a")
+    k = get_kernel("imaging/fused_hopper.cu", "bf_fused_power", defines={"NP": 2, "KD": 512, ...}, arch="sm_90a")
 
-and gets a ``cupy.RawKernel``-like function of a ``cupy.RawModule`` compiled by NVRTC for the current
-device. One cache holds every compiled module, keyed by (file, defines, options, arch, device), so a
-kernel compiles once per process; CuPy's own disk cache keeps it across processes.
+and gets the function of a ``cupy.RawModule`` compiled by NVRTC for the current device. One cache
+holds every compiled module, keyed by (file, defines, options, arch, device), and the functions taken
+from them, so a kernel compiles once per process; CuPy's own disk cache keeps it across processes.
+Template kernels are asked for by name expression (``get_kernel(path, "bf_transpose<float>",
+name_expressions=...)``); a ``.cu`` file instantiates them explicitly, so that compiling the file
+alone (the compile test) compiles them too.
 
 ``#include "name.cuh"`` lines that name a file of the package are pasted in before compiling, so the
 source CuPy hashes for its disk cache is the whole program (an ``-I`` path would let an edited header
 reuse a stale binary). System headers (``<cuda_fp16.h>``) are left to NVRTC.
 
-Every ``.cu`` file lists the configurations a shipped path compiles in :data:`COMPILE_CHECKS` (the
-GPU tests compile each one with NVRTC, and a ``.cu`` file missing there fails them).
+Every ``.cu`` file lists the configurations a shipped path compiles in :data:`COMPILE_CHECKS`, through
+:func:`register` at the import of the module that launches it (the GPU tests compile each one with
+NVRTC, and a ``.cu`` file missing there fails them).
 """
 from __future__ import annotations
 
 import re
 from pathlib import Path
 
-__all__ = ["get_kernel", "get_module", "source", "cu_files", "COMPILE_CHECKS"]
+__all__ = ["get_kernel", "get_module", "register", "source", "cu_files", "COMPILE_CHECKS"]
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 
 _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$', re.MULTILINE)
 
 _MODULES: dict = {}
+_FUNCTIONS: dict = {}
 
-#: {package-relative .cu path: [(defines, arch), ...]}: the configurations the GPU tests compile.
-#: ``arch`` None compiles for the current device; "sm_90a" only where the device is a Hopper GPU.
+#: {package-relative .cu path: [(defines, arch, options), ...]}: the configurations the GPU tests compile.
+#: ``arch`` None compiles for the current device; "sm_90a" only where the device is a Hopper GPU;
+#: ``options``: further NVRTC options (``--use_fast_math``).
 COMPILE_CHECKS: dict = {}
 
 
@@ -84,16 +90,32 @@ def get_module(path: str, *, defines: dict | None = None, options=(), arch: str 
     return mod
 
 
-def get_kernel(path: str, name: str, *, defines: dict | None = None, options=(), arch: str | None = None):
-    """The ``__global__`` function ``name`` of package-relative ``path`` (see :func:`get_module`)."""
-    return get_module(path, defines=defines, options=options, arch=arch).get_function(name)
+def get_kernel(path: str, name: str, *, defines: dict | None = None, options=(), arch: str | None = None,
+               name_expressions=None):
+    """The ``__global__`` function ``name`` of package-relative ``path`` (see :func:`get_module`), cached:
+    the same ``cupy.RawKernel`` on every call, so attributes set on it (dynamic shared memory) stay.
+
+    A template kernel is asked for by its name expression (``"bf_transpose<float>"``); pass every
+    expression the caller uses as ``name_expressions`` (the same tuple each time), so that one module
+    holds them all."""
+    import cupy as cp
+    key = (path, _options(defines, options, arch), tuple(name_expressions or ()), cp.cuda.Device().id, name)
+    fn = _FUNCTIONS.get(key)
+    if fn is None:
+        fn = get_module(path, defines=defines, options=options, arch=arch,
+                        name_expressions=name_expressions).get_function(name)
+        _FUNCTIONS[key] = fn
+    return fn
 
 
 def register(path: str, *configs):
-    """Record the configurations of ``path`` that a shipped path compiles: ``(defines, arch)`` pairs
-    (no configuration: the file with no defines, for the current device). Called by the module that
-    launches the file's kernels, at import, so the compile test covers exactly what ships."""
+    """Record the configurations of ``path`` that a shipped path compiles: ``(defines, arch)`` or
+    ``(defines, arch, options)`` (no configuration: the file with no defines, for the current device).
+    Called by the module that launches the file's kernels, at import, so the compile test covers exactly
+    what ships. Stored as (defines, arch, options) triples."""
     COMPILE_CHECKS.setdefault(path, [])
     for cfg in configs or [({}, None)]:
+        defines, arch, *rest = cfg
+        cfg = (dict(defines), arch, tuple(rest[0]) if rest else ())
         if cfg not in COMPILE_CHECKS[path]:
             COMPILE_CHECKS[path].append(cfg)

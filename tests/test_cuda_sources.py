@@ -23,7 +23,8 @@ def _import_every_module():
 
 def _configs():
     _import_every_module()
-    return [(path, defines, arch) for path, cfgs in sorted(cuda.COMPILE_CHECKS.items()) for defines, arch in cfgs]
+    return [(path, defines, arch, options) for path, cfgs in sorted(cuda.COMPILE_CHECKS.items())
+            for defines, arch, options in cfgs]
 
 
 def test_every_cu_file_is_registered():
@@ -47,15 +48,15 @@ def test_loader_pastes_package_includes(tmp_path, monkeypatch):
 
 
 @pytest.mark.gpu
-@pytest.mark.parametrize("path, defines, arch", _configs())
-def test_cu_file_compiles_with_nvrtc(path, defines, arch):
+@pytest.mark.parametrize("path, defines, arch, options", _configs())
+def test_cu_file_compiles_with_nvrtc(path, defines, arch, options):
     cp = pytest.importorskip("cupy")
     try:
         if cp.cuda.runtime.getDeviceCount() < 1:
             pytest.skip("no CUDA device")
     except Exception:
         pytest.skip("no CUDA device")
-    if arch == "sm_90a" and int(cp.cuda.Device().compute_capability) < 90:
-        pytest.skip("Hopper-only kernel on a device before Hopper")
-    mod = cuda.get_module(path, defines=defines, arch=arch)
+    if arch == "sm_90a" and int(cp.cuda.Device().compute_capability) != 90:
+        pytest.skip("Hopper-only (sm_90a) kernel on a device that is not Hopper")
+    mod = cuda.get_module(path, defines=defines, options=options, arch=arch)
     mod.compile()

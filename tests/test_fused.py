@@ -83,7 +83,7 @@ def test_layout_puts_each_sample_where_the_kernel_reads_it():
 
 
 def test_tiles_put_each_byte_where_the_swizzled_kernel_reads_it():
-    """The bulk-copy kernel's tiles against the swizzle written out byte by byte: byte k of row m sits in
+    """The Hopper kernel's tiles against the swizzle written out byte by byte: byte k of row m sits in
     tile (m // 128, k // 128) at (r // 8) 1024 + (r % 8) 128 + 16 (j ^ r % 8) + k % 16, r = m % 128,
     j = (k % 128) // 16 -- and quantise_operator(tiled=True) is the tiled logical operator."""
     rng = np.random.default_rng(16)
@@ -128,12 +128,12 @@ def test_integer_modes_need_a_gpu():
 # ----------------------------------------------------------------------------------------- GPU
 @GPU
 @pytest.mark.gpu
-@pytest.mark.parametrize("portable", [False, True, "cp.async", "bulk", "pipelined"])
+@pytest.mark.parametrize("kernel", ["device", "portable", "portable-staged", "hopper"])
 @pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
-def test_gpu_kernel_equals_its_int64_emulation(precision, portable):
-    """The device's kernel (on Hopper the warpgroup one, its operands in bulk-copied tiles or staged by
-    cp.async, its epilogue after each row tile or overlapped with the next) and the portable mma.sync one, each against the int64 emulation: the integer sums are
-    exact, so only float32's squares and sums differ."""
+def test_gpu_kernel_equals_its_int64_emulation(precision, kernel):
+    """The device's kernel, the portable mma.sync one (B whole in shared memory, and B staged with A, the
+    form for arrays too large) and (on Hopper) the warpgroup one, each against the int64 emulation: the
+    integer sums are exact, so only float32's squares and sums differ."""
     import cupy as cp
     xyz, freq, lm, Q = scene(nant=70, T=256, nchan=3, npix_grid=24, seed=3)
     rng = np.random.default_rng(4)
@@ -146,11 +146,9 @@ def test_gpu_kernel_equals_its_int64_emulation(precision, portable):
     assert np.array_equal(Bv.get(), fused.layout_voltages(Q, None, [0, 1], int(Aq.shape[-1]), xmax))
     npix = len(lm)
     cc = cp.cuda.Device().compute_capability
-    if portable in ("cp.async", "bulk", "pipelined") and cc != "90":
-        pytest.skip("the warpgroup kernels need compute capability 9.0")
-    config = {True: {}, False: None, "cp.async": dict(fused.WG_CONFIG, BULK=0, EPI=0, ST=3),
-              "bulk": dict(fused.WG_CONFIG, BULK=1, EPI=0, ST=3),
-              "pipelined": dict(fused.WG_CONFIG, BULK=1, EPI=1, ST=4)}[portable]
+    if kernel == "hopper" and cc != "90":
+        pytest.skip("the warpgroup kernel needs compute capability 9.0")
+    config = {"device": None, "portable": {}, "portable-staged": {"BFULL": 0}, "hopper": dict(fused.HOPPER_CONFIG)}[kernel]
     got = fused.fused_power(Aq, osc, Bv, 256, 2, flag, npix, config).get()   # (16, C, P, K)
     got = got.transpose(1, 2, 0, 3)
     ref = fused.reference_power(Aq.get(), osc.get(), Bv.get(), 256, base=b)[..., :npix]
@@ -255,10 +253,13 @@ def test_gpu_an_integration_split_across_gulps_in_any_lengths_equals_truth():
 
 
 def test_kernel_shape_falls_back_where_the_hopper_kernel_or_shared_memory_does_not_fit():
-    assert fused.kernel_config(512, "90").get("WG")               # an H100, 256 antennas: warpgroup kernel
-    assert not fused.kernel_config(512, "80").get("WG")           # an A100: the portable mma.sync kernel
-    big = fused.kernel_config(4096, "90")                          # 2048 antennas: B no longer fits whole
-    assert not big.get("WG") and big["BFULL"] == 0
+    assert fused.kernel_config(512, "90")["kernel"] == "wgmma"       # Hopper, 256 antennas: warpgroup kernel
+    assert fused.kernel_config(512, "80")["kernel"] == "mma.sync"    # compute capability 8.0: the portable kernel
+    assert fused.kernel_config(512, "80")["BFULL"] == 1
+    mid = fused.kernel_config(1408, "90")                            # 704 antennas: B too large for the Hopper kernel
+    assert mid["kernel"] == "mma.sync" and mid["BFULL"] == 1
+    big = fused.kernel_config(4096, "90")                            # 2048 antennas: B no longer fits whole
+    assert big["kernel"] == "mma.sync" and big["BFULL"] == 0
     with pytest.raises(ValueError, match="too many"):
         fused.bases(3, 2 ** 20)
 

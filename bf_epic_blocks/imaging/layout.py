@@ -5,7 +5,8 @@ ci4/ci8 unpacking: time outermost, the layout of a ring gulp. The GEMMs want ant
 matrices per channel. The functions here do the transpose together with everything else that must
 happen on the way -- channel and antenna selection, zeroing flagged antenna-pols, the stacked
 [re; im] split and the conversion to the GEMM's operand type -- so the data are read once and
-written once (a 32 x 32 tile transpose through shared memory on the GPU):
+written once (a 32 x 32 tile transpose through shared memory on the GPU; the CUDA kernels are in
+``layout.cu`` beside this module):
 
 * :func:`gram_rows` -- int8 rows for the exact covariance ``int_gram`` (rows in the input's own
   (antenna, pol, re/im) order, time padded to a multiple of 16 with zeros);
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..cuda import get_kernel, register
 from ._xp import get_xp
 from .reduce import device_ints
 
@@ -25,171 +27,19 @@ __all__ = ["gram_rows", "direct_rhs", "cov_rhs", "TPAD"]
 
 TPAD = 16   # time padding of gram_rows (cuBLAS' integer kernels want multiples of 4; 16 keeps rows aligned)
 
-_COMMON = r"""
-#include <cuda_fp16.h>
-typedef signed char i8;
-__device__ __forceinline__ void put(double v, float* p) { *p = (float)v; }
-__device__ __forceinline__ void put(double v, double* p) { *p = v; }
-__device__ __forceinline__ void put(double v, __half* p) { *p = __float2half_rn((float)v); }
-__device__ __forceinline__ void put(double v, i8* p) { *p = (i8)v; }
-__device__ __forceinline__ float get(const float* p) { return *p; }
-__device__ __forceinline__ double get(const double* p) { return *p; }
-__device__ __forceinline__ float get(const __half* p) { return __half2float(*p); }
-__device__ __forceinline__ float get(const i8* p) { return (float)*p; }
-__device__ __forceinline__ float get(const unsigned short* p) { return __uint_as_float(((unsigned int)*p) << 16); }
-__device__ __forceinline__ void put(double v, unsigned short* p) {   // bfloat16 bits, round to nearest even
-    unsigned int u = __float_as_uint((float)v);
-    *p = (unsigned short)((u + 0x7FFFu + ((u >> 16) & 1u)) >> 16);
-}
-"""
-
-# Tile transpose: input element (t, c, a, p, h) of the int8 pairs, with c = chan[c'], a = ant[a'],
-# p = pols[p']; r' = (a' * P' + p') * 2 + h enumerates one channel's selected values. A block of
-# 32 x 8 threads moves a 32 (t) x 32 (r') tile: coalesced reads along r', coalesced writes along t.
-# Output offset: c' osc + a' osa + p' osp + h osh + t ost.
-_TRANSPOSE = _COMMON + r"""
-extern "C" __global__ void NAME(
-    const i8* __restrict__ x, OUT_T* __restrict__ out,
-    const int T, const int Cin, const int Ain, const int P,
-    const int C, const int A, const int Pp, const int Tout,
-    const int* __restrict__ chan, const int* __restrict__ ant, const int* __restrict__ pols,
-    const unsigned char* __restrict__ live,
-    const long long osc, const long long osa, const long long osp, const long long osh, const long long ost)
-{
-    __shared__ float tile[32][33];
-    const int R = A * Pp * 2;
-    const int c = blockIdx.z;
-    const int r0 = blockIdx.x * 32, t0 = blockIdx.y * 32;
-    const int tx = threadIdx.x, ty = threadIdx.y;
-    const long long tstride = (long long)Cin * Ain * P * 2;      // bytes between samples
-    // load: this thread's column r = r0 + tx is fixed; decode it (and its gathers) once
-    {
-        const int r = r0 + tx;
-        bool ok = r < R;
-        long long base = 0;
-        if (ok) {
-            int h = r & 1, q = r >> 1, pp = q % Pp, a = q / Pp;
-            ok = live[((long long)c * A + a) * Pp + pp] != 0;
-            base = (((long long)chan[c] * Ain + ant[a]) * P + pols[pp]) * 2 + h;
-        }
-        for (int j = ty; j < 32; j += 8) {
-            int t = t0 + j;
-            tile[j][tx] = (ok && t < T) ? (float)x[(long long)t * tstride + base] : 0.f;
-        }
-    }
-    __syncthreads();
-    // store: this thread's time t = t0 + tx is fixed; rows r0 + j
-    const int t = t0 + tx;
-    if (t >= Tout) return;
-    OUT_T* ot = out + c * osc + t * ost;
-    for (int j = ty; j < 32; j += 8) {
-        int r = r0 + j;
-        if (r < R) {
-            int h = r & 1, q = r >> 1, pp = q % Pp, a = q / Pp;
-            put(tile[tx][j], ot + a * osa + pp * osp + h * osh);
-        }
-    }
-}
-"""
-
-# Covariance right-hand side from the integer Gram sums W (c, R, R), rows r = (a * P + p) * 2 + h
-# (all pols of the input): for block b = (p, q) and antennas a, a2
-#   R_pq[a, a2] = W[(a,p,0),(a2,q,0)] + W[(a,p,1),(a2,q,1)] + i (W[(a,p,1),(a2,q,0)] - W[(a,p,0),(a2,q,1)])
-# times w_p[a] conj(w_q[a2]) * scale, written to out at c osc + a osa + (b A + a2) oes (+ o_im: imag).
-_COV_RHS = _COMMON + r"""
-extern "C" __global__ void NAME(
-    const int* __restrict__ W, OUT_T* __restrict__ out, const double* __restrict__ w,
-    const int C, const int A, const int P, const int nblk,
-    const int* __restrict__ bp, const int* __restrict__ bq, const double scale, const int unit,
-    const long long osc, const long long osa, const long long oes, const long long o_im,
-    double* __restrict__ diag, OUT_T* __restrict__ lo)
-{
-    long long idx = (long long)blockIdx.x * blockDim.x + threadIdx.x;
-    long long total = (long long)C * A * nblk * A;
-    if (idx >= total) return;
-    int a2 = (int)(idx % A); long long r = idx / A;
-    int b = (int)(r % nblk); r /= nblk;
-    int a = (int)(r % A); int c = (int)(r / A);
-    int p = bp[b], q = bq[b];
-    long long R = (long long)A * P * 2;
-    const int* Wc = W + (long long)c * R * R;
-    long long ra = ((long long)a * P + p) * 2, rb = ((long long)a2 * P + q) * 2;
-    // int64 sums: exact, then double (exact below 2^53)
-    double re = (double)((long long)Wc[ra * R + rb] + (long long)Wc[(ra + 1) * R + rb + 1]);
-    double im = (double)((long long)Wc[(ra + 1) * R + rb] - (long long)Wc[ra * R + rb + 1]);
-    if (!unit) {   // w_p[a] R conj(w_q[a2]); w is complex128 (c, A, P) as double pairs
-        const double* wa = w + 2 * (((long long)c * A + a) * P + p);
-        const double* wb = w + 2 * (((long long)c * A + a2) * P + q);
-        double xr = wa[0] * re - wa[1] * im, xi = wa[0] * im + wa[1] * re;       // w_a * R
-        re = xr * wb[0] + xi * wb[1];                                            // * conj(w_b)
-        im = xi * wb[0] - xr * wb[1];
-    }
-    if (diag != 0 && a == a2) {   // the same-antenna term leaves the GEMM; the caller adds it exactly
-        double* d = diag + 2 * (((long long)c * nblk + b) * A + a);
-        d[0] = re; d[1] = im;
-        re = 0.0; im = 0.0;
-    }
-    long long off = c * osc + a * osa + ((long long)b * A + a2) * oes;
-    put(re * scale, out + off);
-    put(im * scale, out + off + o_im);
-    if (lo != 0) {                // split storage: lo = v - hi, in the same type (fp16x3)
-        put(re * scale - (double)get(out + off), lo + off);
-        put(im * scale - (double)get(out + off + o_im), lo + off + o_im);
-    }
-}
-"""
-
-# gram_rows when nothing is selected or flagged: a plain batched byte transpose (T, C, R) -> (C, R, Tp),
-# moved as 32-bit words (4 bytes of r read, 4 bytes of t written per thread and access) through a
-# 64 x 64-byte shared tile -- the byte-per-thread kernel above moved too little per transaction
-# (78 us for case P's 16 MB on an H100).
-_GRAM_ROWS4 = r"""
-extern "C" __global__ void bf_gram_rows4(
-    const unsigned int* __restrict__ x, unsigned int* __restrict__ out,
-    const int T, const int C, const int R4, const int Tp4)
-{
-    __shared__ unsigned char tile[64][65];           // [t][r byte]
-    const int c = blockIdx.z;
-    const int w0 = blockIdx.x * 16, t0 = blockIdx.y * 64;
-    for (int i = threadIdx.x; i < 64 * 16; i += blockDim.x) {
-        const int tt = i >> 4, w = i & 15, t = t0 + tt, r4 = w0 + w;
-        unsigned int v = 0;
-        if (t < T && r4 < R4) v = x[((long long)t * C + c) * R4 + r4];
-        tile[tt][4 * w] = v & 0xffu;
-        tile[tt][4 * w + 1] = (v >> 8) & 0xffu;
-        tile[tt][4 * w + 2] = (v >> 16) & 0xffu;
-        tile[tt][4 * w + 3] = v >> 24;
-    }
-    __syncthreads();
-    const long long R = 4LL * R4;
-    for (int i = threadIdx.x; i < 64 * 16; i += blockDim.x) {
-        const int rr = i >> 4, w = i & 15;
-        const long long r = 4LL * w0 + rr;
-        const int t4 = (t0 >> 2) + w;
-        if (r < R && t4 < Tp4) {
-            out[((long long)c * R + r) * Tp4 + t4] = (unsigned int)tile[4 * w][rr]
-                | ((unsigned int)tile[4 * w + 1][rr] << 8) | ((unsigned int)tile[4 * w + 2][rr] << 16)
-                | ((unsigned int)tile[4 * w + 3][rr] << 24);
-        }
-    }
-}
-"""
-
+#: kernel output type name -> the CUDA type of layout.cu's template kernels
 _OUT_TYPES = {"int8": "i8", "float16": "__half", "bfloat16": "unsigned short", "float32": "float",
               "float64": "double"}
-_KERNELS = {}
+_NAMES = tuple(f"bf_{kind}<{t}>" for kind in ("transpose", "cov_rhs") for t in _OUT_TYPES.values())
 _ZERO_W = {}
 
 
 def _kernel(kind, out_type):
-    key = (kind, out_type)
-    if key not in _KERNELS:
-        import cupy as cp
-        name = f"bf_{kind}_{out_type}"
-        src = {"transpose": _TRANSPOSE, "cov_rhs": _COV_RHS}[kind]
-        src = src.replace("NAME", name).replace("OUT_T", _OUT_TYPES[out_type])
-        _KERNELS[key] = cp.RawKernel(src, name)
-    return _KERNELS[key]
+    """``bf_transpose`` or ``bf_cov_rhs`` of layout.cu for output type ``out_type`` (a key of _OUT_TYPES)."""
+    return get_kernel("imaging/layout.cu", f"bf_{kind}<{_OUT_TYPES[out_type]}>", name_expressions=_NAMES)
+
+
+register("imaging/layout.cu")
 
 
 def _storage(precision, xp):
@@ -224,7 +74,7 @@ def _transpose_gpu(pairs, sel, pols, out, out_type, T, Tout, strides):
     R = A * Pp * 2
     grid = ((R + 31) // 32, (Tout + 31) // 32, C)
     _kernel("transpose", out_type)(grid, (32, 8), (
-        cp.ascontiguousarray(pairs), out, np.int32(T), np.int32(Cin), np.int32(Ain), np.int32(P), np.int32(C),
+        cp.ascontiguousarray(pairs), out, np.int32(T), np.int32(Cin), np.int32(Ain), np.int32(P),
         np.int32(A), np.int32(Pp), np.int32(Tout), chan, ant, polsd, live,
         *(np.int64(s) for s in strides)))
     return out
@@ -248,9 +98,8 @@ def gram_rows(pairs, sel):
     R = A * P * 2
     if sel.chan is None and sel.ant is None and sel.live is None and pairs.dtype == xp.int8 \
             and pairs.flags.c_contiguous and R % 4 == 0 and pairs.data.ptr % 4 == 0:
-        if "gram_rows4" not in _KERNELS:
-            _KERNELS["gram_rows4"] = xp.RawKernel(_GRAM_ROWS4, "bf_gram_rows4")
-        _KERNELS["gram_rows4"](((R // 4 + 15) // 16, (Tp + 63) // 64, C), (256,), (
+        get_kernel("imaging/layout.cu", "bf_gram_rows4", name_expressions=_NAMES)(
+            ((R // 4 + 15) // 16, (Tp + 63) // 64, C), (256,), (
             pairs, out, np.int32(T), np.int32(C), np.int32(R // 4), np.int32(Tp // 4)))
         return out
     return _transpose_gpu(pairs, sel, pols, out, "int8", T, Tp,

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..cuda import get_kernel, register
 from ._xp import get_xp, host_all, host_any, to_numpy
 
 
@@ -158,8 +159,9 @@ class GridPlacement:
             raise ValueError(f"clear: out must be float32 (..., {self.n}) contiguous, got {out.dtype} {tuple(out.shape)}")
         if rows:
             vec = 4 if self.n % 4 == 0 else 1
-            _clear_kernel(xp, vec)(((self.n // vec + 127) // 128, min(rows, 65535)), (128,),
-                                   (out, self._empty, np.int64(rows), np.int32(self.n // vec)))
+            _raw(f"bf_clear_rows<{'float4' if vec == 4 else 'float'}>")(
+                ((self.n // vec + 127) // 128, min(rows, 65535)), (128,),
+                (out, self._empty, np.int64(rows), np.int32(self.n // vec)))
         return out
 
     def __call__(self, values, out=None):
@@ -185,8 +187,8 @@ def take_pixels(values, index):
     """(A, B, ncell) float32 -> (A, B, npix) the cells ``index`` (int32 device array on the GPU), a new
     contiguous array: the inverse of :class:`GridPlacement`. ``values`` may be a strided view whose
     last axis is contiguous (a product of a ring span). On the GPU one kernel with 32-bit indexing
-    (CuPy's ``take`` took 0.98 ms for a whole-band gulp on an H200, its generic index arithmetic
-    running well below the memory's speed); elsewhere ``take``."""
+    (CuPy's ``take``, with its generic index arithmetic, runs well below the memory's speed);
+    elsewhere ``take``."""
     from ._xp import get_xp
     xp = get_xp(values)
     if xp is np or values.ndim != 3 or values.dtype != np.float32 or values.strides[-1] != 4:
@@ -198,46 +200,38 @@ def take_pixels(values, index):
         return out
     sa, sb = (int(v) // 4 for v in values.strides[:2])
     rows = A * B
-    # (a block per row: fewer blocks, each walking every 512th row, was slower: 0.68 -> 0.88 ms a whole-band gulp, H100)
-    _take_kernel(xp)(((npix + 255) // 256, min(rows, 65535)), (256,),
-                     (values, xp.asarray(index, dtype=xp.int32), out, np.int32(A), np.int32(B), np.int32(npix),
-                      np.int64(sa), np.int64(sb)))
+    # a block per (pixel run, row): fewer blocks, each walking many rows, are slower
+    _raw("bf_take_pixels")(((npix + 255) // 256, min(rows, 65535)), (256,),
+                           (values, xp.asarray(index, dtype=xp.int32), out, np.int32(A), np.int32(B), np.int32(npix),
+                            np.int64(sa), np.int64(sb)))
     return out
 
 
-_TAKE_SRC = r"""
-extern "C" __global__ void bf_take_pixels(const float* __restrict__ v, const int* __restrict__ index,
-                                          float* __restrict__ out, const int A, const int B, const int npix,
-                                          const long long sa, const long long sb)
-{
-    const int p = blockIdx.x * blockDim.x + threadIdx.x;
-    if (p >= npix) return;
-    const int k = index[p];
-    for (int r = blockIdx.y; r < A * B; r += gridDim.y) {
-        const int a = r / B, b = r - a * B;
-        out[(long long)r * npix + p] = v[a * sa + b * sb + k];
-    }
-}
-"""
-
-
-def _take_kernel(cp):
-    if "take" not in _PLACE:
-        _PLACE["take"] = cp.RawKernel(_TAKE_SRC, "bf_take_pixels")
-    return _PLACE["take"]
-
-
-_PLACE = {}
+_PLACE = None
 
 
 def _place_kernel(cp):
-    if "k" not in _PLACE:
-        # i enumerates the output's cells in C order: row i // n of the values, cell i % n
-        _PLACE["k"] = cp.ElementwiseKernel(
+    """An ElementwiseKernel (CuPy's, not a .cu file: one snippet for every dtype ``values`` come in, on
+    CuPy's indexing of any output shape): i enumerates the output's cells in C order, row i // n of the
+    values, cell i % n."""
+    global _PLACE
+    if _PLACE is None:
+        _PLACE = cp.ElementwiseKernel(
             "raw T v, raw int32 gather, int64 n, int64 npix, T fill", "T out",
             "const int k = gather[i % n]; out = k >= 0 ? v[(i / n) * npix + k] : fill;",
             "bf_epic_place_on_grid")
-    return _PLACE["k"]
+    return _PLACE
+
+
+_NAMES = ("bf_clear_rows<float>", "bf_clear_rows<float4>")
+
+
+def _raw(name):
+    """A kernel of pixels.cu (``bf_take_pixels``, ``bf_clear_rows<float|float4>``)."""
+    return get_kernel("imaging/pixels.cu", name, name_expressions=_NAMES)
+
+
+register("imaging/pixels.cu")
 
 
 def lm_grid(size: int, *, cell: float | None = None, horizon_margin: float = 0.0,
@@ -301,23 +295,3 @@ def azalt_from_lm(pixels_lm):
     az = np.rad2deg(np.arctan2(lm[:, 0], lm[:, 1])) % 360.0
     alt = np.rad2deg(np.arctan2(n, np.hypot(lm[:, 0], lm[:, 1])))
     return az, alt
-
-
-_CLEAR = {}
-
-
-def _clear_kernel(cp, vec):
-    key = (cp.cuda.Device().id, vec)
-    if key not in _CLEAR:
-        t = "float4" if vec == 4 else "float"
-        _CLEAR[key] = cp.RawKernel(r"""
-extern "C" __global__ void bf_clear_rows(T* __restrict__ out, const T* __restrict__ row, const long long rows,
-                                         const int n)
-{
-    const int j = blockIdx.x * blockDim.x + threadIdx.x;
-    if (j >= n) return;
-    const T v = row[j];
-    for (long long r = blockIdx.y; r < rows; r += gridDim.y) out[r * n + j] = v;
-}
-""".replace("T*", t + "*").replace("const T v", "const " + t + " v"), "bf_clear_rows")
-    return _CLEAR[key]

@@ -189,8 +189,9 @@ def int8_pairs_decoder(dtype_str):
     return _PAIR_DECODERS[dtype_str]
 
 
-# ci4 decoding on the GPU as one elementwise kernel each: a single pass over the bytes, where
-# CuPy array expressions make eight passes and four temporaries
+# ci4 decoding on the GPU in one pass each (CuPy's array form takes eight passes and four temporaries).
+# These stay CuPy ElementwiseKernel snippets rather than a .cu file: each is one line per element, and
+# CuPy's elementwise machinery gives them any input shape and strides (ring spans are views) for free.
 _NIBBLE_SRC = {
     "complex": ("uint8 b", "complex64 out",
                 "out = complex<float>((float)(((b >> 4) ^ 8) - 8), (float)(((b & 15) ^ 8) - 8));"),

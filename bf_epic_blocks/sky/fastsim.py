@@ -15,10 +15,10 @@ samples (to the last bit on the CPU; to the GPU's fast functions' rounding there
   (+, -, *, sqrt and integer bit work: Cephes' polynomials for log and sin/cos, relative error
   ~1e-7), so any machine gives its samples bit for bit. The CUDA kernel takes the same counters,
   hash and 24-bit uniforms and the hardware's own log, sqrt and sin/cos with fused multiply-add:
-  its voltages are the twin's to 4e-5 of their rms (worst of 4e8; 1.5e-4 for noise alone), its 4-bit samples the
-  twin's except ~2 in 10^6 that sit on a rounding edge and land one step over (measured on an
-  H100, tested on every GPU run). The twin's IEEE-only polynomials on the GPU, which made the two
-  agree bit for bit, held the 784-channel sky to 15.3x real time against 26.7x.
+  its voltages are the twin's to 4e-5 of their rms (1.5e-4 for noise alone), its 4-bit samples the
+  twin's except ~2 in 10^6 that sit on a rounding edge and land one step over (tested on every GPU
+  run). The twin's IEEE-only polynomials would make the two agree bit for bit, at a large cost in
+  the kernel's speed.
 * The sky signal is X = sum_s e_s,p(T, c) W[c, s, a, p] + noise, with
   W = sqrt(S_s(nu_c) / 4) exp(sigma 2 pi i nu_c (s_hat . r_a) / c0) sqrt(G) exp(-2 pi i nu_c tau)
   (:func:`sky_weights`); a burst is a source whose e is zero outside its dispersed window of samples.
@@ -27,15 +27,13 @@ samples (to the last bit on the CPU; to the GPU's fast functions' rounding there
 * The source directions are recomputed when the sky has turned for ``refresh_s`` (the
   block's choice), not per sample: 1 s of Earth rotation moves a source by 0.004 deg.
 
-On a GPU one CUDA kernel writes the packed bytes (or complex64) straight into the output array:
-nothing but the weights crosses the bus. A CUDA block makes a tile of 32 samples of one channel, so
-an antenna's weights are read once per tile, not once per sample. Up to ``MAX_REG_SRC`` sources
-(every shipped pipeline) the kernel is compiled for the source count: an antenna's weights stay in
-registers and the sample loop steps its counters: the 784-channel, 4-source sky went from 11.3x
-to 15.3x real time and 16 sources from 1.9x to 9.9x on an H100 (same run, same bits;
-docs/bench/sky_kernel_h100.json), then to 26.7x and 14.4x with the hardware functions
-(docs/bench/sky_kernel_fast_h100.json). It is bound by instruction issue (Nsight Compute: 82% of
-issue slots busy, integer work the busiest pipe), most of it the noise's Box-Muller.
+On a GPU one CUDA kernel (``fastsim.cu`` beside this module) writes the packed bytes (or complex64)
+straight into the output array: nothing but the weights crosses the bus. A CUDA block makes a tile
+of 32 samples of one channel, so an antenna's weights are read once per tile, not once per sample.
+Up to ``MAX_REG_SRC`` sources (every shipped pipeline) the kernel is compiled for the source count:
+an antenna's weights stay in registers and the sample loop steps its counters (the same bits as the
+generic kernel, several times faster for many sources). It is bound by instruction issue, most of
+it the noise's Box-Muller.
 """
 from __future__ import annotations
 
@@ -47,6 +45,7 @@ import numpy as np
 
 from ..conventions import SPEED_OF_LIGHT_M_S
 from ..conventions import dispersion_delay_s
+from ..cuda import get_kernel, register
 
 __all__ = ["stream_keys", "sky_weights", "burst_windows", "expected_rms", "make_gulp", "complex_normals"]
 
@@ -175,157 +174,21 @@ def expected_rms(w_steady, noise_power):
 
 
 # ------------------------------------------------------------------ the gulp
-_KERNEL = r"""
-typedef unsigned long long u64;
-__device__ __forceinline__ u64 mix64(u64 z) {
-    z += 0x9E3779B97F4A7C15ULL;
-    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ULL;
-    z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
-    return z ^ (z >> 31);
-}
-// Box-Muller with the GPU's own log, sqrt and sin/cos (compiled with --use_fast_math): the NumPy
-// twin's counters, hash and bits of u1 and u2, so the same normals to ~1e-4 (the hardware functions'
-// rounding, not the IEEE-only polynomials the twin uses); those IEEE-only polynomials here cost the
-// kernel 1.7x (784 channels, 4 sources, H100: 15.3x -> 26.7x real time).
-__device__ __forceinline__ float2 cnormal(u64 ctr, u64 key) {
-    const u64 h = mix64(ctr ^ key);
-    const float u = (float)(unsigned int)((h >> 40) + 1ULL) * (1.0f / 16777216.0f);   // (0, 1], exact
-    const float r = sqrtf(fmaxf(-2.0f * __logf(u), 0.0f));
-    // the angle 2 pi k2 / 2^24 taken as (2 pi k2 / 2^24 - pi) + pi: __sincosf is accurate in [-pi, pi]
-    const float t = (float)(int)((h >> 16) & 0xFFFFFFULL) * (6.283185307179586f / 16777216.0f) - 3.14159265358979f;
-    float sn, cs;
-    __sincosf(t, &sn, &cs);
-    return make_float2(-r * cs, -r * sn);
-}
-// one block per (channel, tile of TILE samples): the sources' signals for the tile once in shared
-// memory, then one thread per antenna writes both pols of every sample (two ci4 bytes, or two
-// complex64); an antenna's weights are read once per tile (from L1 after the first sample), not
-// once per sample
-#define TILE 32
-extern "C" __global__ void sim_gulp(unsigned char* out, int ci4, const float2* W, const long long* on0,
-                                    const long long* on1, long long t0, int n, int nchan, int nsrc, int nant,
-                                    u64 key_sky, u64 key_noise, float noise_amp, float scale) {
-    extern __shared__ float2 e[];                       // (TILE, 2 nsrc)
-    const int c = blockIdx.x % nchan;
-    const long long i0 = (long long)(blockIdx.x / nchan) * TILE;
-    const int nt = (int)min((long long)TILE, (long long)n - i0);
-    for (int i = threadIdx.x; i < nt * 2 * nsrc; i += blockDim.x) {
-        const int k = i / (2 * nsrc), sp = i % (2 * nsrc), s = sp >> 1;
-        const long long T = t0 + i0 + k;
-        const u64 base = (u64)(T * nchan + c);
-        const bool on = T >= on0[s * nchan + c] && T < on1[s * nchan + c];
-        const float2 z = cnormal((base * nsrc + s) * 2 + (sp & 1), key_sky);
-        e[i] = on ? z : make_float2(0.0f, 0.0f);
-    }
-    __syncthreads();
-    for (int a = threadIdx.x; a < nant; a += blockDim.x) {
-        const float2* Wa = W + ((long long)c * nsrc * nant + a) * 2;       // W[c, s, a, p] = Wa[2 nant s + p]
-        for (int k = 0; k < nt; ++k) {
-            const long long T = t0 + i0 + k;
-            const u64 nb = ((u64)(T * nchan + c) * nant + a) * 2;           // the noise counters: nb + p
-            float2 v[2];
-            for (int p = 0; p < 2; ++p) {
-                float vr = 0.0f, vi = 0.0f;
-                for (int s = 0; s < nsrc; ++s) {
-                    const float2 w = Wa[2 * nant * s + p];
-                    const float2 z = e[k * 2 * nsrc + 2 * s + p];
-                    vr = vr + (z.x * w.x - z.y * w.y);
-                    vi = vi + (z.x * w.y + z.y * w.x);
-                }
-                const float2 nz = cnormal(nb + p, key_noise);
-                v[p] = make_float2(vr + noise_amp * nz.x, vi + noise_amp * nz.y);
-            }
-            const long long o = ((i0 + k) * nchan + c) * nant + a;
-            if (ci4) {
-                unsigned short packed = 0;
-                for (int p = 0; p < 2; ++p) {
-                    int qr = max(-8, min(7, __float2int_rn(v[p].x * scale)));
-                    int qi = max(-8, min(7, __float2int_rn(v[p].y * scale)));
-                    packed |= (unsigned short)(((qr & 0xF) << 4) | (qi & 0xF)) << (8 * p);
-                }
-                reinterpret_cast<unsigned short*>(out)[o] = packed;
-            } else {
-                reinterpret_cast<float4*>(out)[o] = make_float4(v[0].x, v[0].y, v[1].x, v[1].y);
-            }
-        }
-    }
-}
-
-// The same samples for a few sources (NSRC <= MAX_REG_SRC, fixed when compiled): an antenna's
-// weights held in registers for the whole tile and the sources' signals read from shared memory as
-// one float4 (both pols) per source, the noise counter and the output index stepped, not
-// recomputed. Every float operation is the generic kernel's, in its order (same bits, tested).
-extern "C" __global__ void sim_gulp_few(unsigned char* __restrict__ out, int ci4, const float2* __restrict__ W,
-                                        const long long* __restrict__ on0, const long long* __restrict__ on1,
-                                        long long t0, int n, int nchan, int nant,
-                                        u64 key_sky, u64 key_noise, float noise_amp, float scale) {
-    const int c = blockIdx.x % nchan;
-    const long long i0 = (long long)(blockIdx.x / nchan) * TILE;
-    const int nt = (int)min((long long)TILE, (long long)n - i0);
-#if NSRC > 0
-    __shared__ float4 e[TILE * NSRC];                   // (TILE, NSRC): pol 0 in .x .y, pol 1 in .z .w
-    for (int i = threadIdx.x; i < nt * NSRC; i += blockDim.x) {
-        const int k = i / NSRC, s = i % NSRC;
-        const long long T = t0 + i0 + k;
-        const u64 base = ((u64)(T * nchan + c) * NSRC + s) * 2;
-        const bool on = T >= on0[s * nchan + c] && T < on1[s * nchan + c];
-        const float2 z0 = cnormal(base, key_sky), z1 = cnormal(base + 1, key_sky);
-        e[i] = on ? make_float4(z0.x, z0.y, z1.x, z1.y) : make_float4(0.0f, 0.0f, 0.0f, 0.0f);
-    }
-    __syncthreads();
-#endif
-    const u64 nstep = (u64)nchan * nant * 2;
-    const long long ostep = (long long)nchan * nant;
-    for (int a = threadIdx.x; a < nant; a += blockDim.x) {
-#if NSRC > 0
-        float4 w[NSRC];                                 // W[c, s, a, 0:2] for each source
-#pragma unroll
-        for (int s = 0; s < NSRC; ++s) w[s] = reinterpret_cast<const float4*>(W)[((long long)c * NSRC + s) * nant + a];
-#endif
-        u64 nb = ((u64)((t0 + i0) * nchan + c) * nant + a) * 2;
-        long long o = (i0 * nchan + c) * nant + a;
-        for (int k = 0; k < nt; ++k, nb += nstep, o += ostep) {
-            float vr0 = 0.0f, vi0 = 0.0f, vr1 = 0.0f, vi1 = 0.0f;
-#if NSRC > 0
-#pragma unroll
-            for (int s = 0; s < NSRC; ++s) {
-                const float4 z = e[k * NSRC + s];
-                vr0 = vr0 + (z.x * w[s].x - z.y * w[s].y);
-                vi0 = vi0 + (z.x * w[s].y + z.y * w[s].x);
-                vr1 = vr1 + (z.z * w[s].z - z.w * w[s].w);
-                vi1 = vi1 + (z.z * w[s].w + z.w * w[s].z);
-            }
-#endif
-            const float2 n0 = cnormal(nb, key_noise), n1 = cnormal(nb + 1, key_noise);
-            const float ar = vr0 + noise_amp * n0.x, ai = vi0 + noise_amp * n0.y;
-            const float br = vr1 + noise_amp * n1.x, bi = vi1 + noise_amp * n1.y;
-            if (ci4) {
-                const int q0 = max(-8, min(7, __float2int_rn(ar * scale))), q1 = max(-8, min(7, __float2int_rn(ai * scale)));
-                const int q2 = max(-8, min(7, __float2int_rn(br * scale))), q3 = max(-8, min(7, __float2int_rn(bi * scale)));
-                reinterpret_cast<unsigned short*>(out)[o] =
-                    (unsigned short)(((q0 & 0xF) << 4) | (q1 & 0xF) | ((q2 & 0xF) << 12) | ((q3 & 0xF) << 8));
-            } else {
-                reinterpret_cast<float4*>(out)[o] = make_float4(ar, ai, br, bi);
-            }
-        }
-    }
-}
-"""
-_GPU = {}
-_TILE = 32          # samples per CUDA block (TILE in the kernel)
+_TILE = 32          # samples per CUDA block (TILE in fastsim.cu)
 MAX_REG_SRC = 16    # up to this many sources, sim_gulp_few (weights in registers: 4 per source)
+_OPTIONS = ("--use_fast_math",)
 
 
 def _gpu_kernel(nsrc):
     """(kernel, few): ``sim_gulp_few`` compiled for ``nsrc`` sources when nsrc <= MAX_REG_SRC, else the
     generic ``sim_gulp``; both with the hardware's fast functions (module docstring)."""
-    import cupy
     few = nsrc <= MAX_REG_SRC
-    key = (cupy.cuda.Device().id, nsrc if few else -1)
-    if key not in _GPU:
-        opts = ("--use_fast_math",) + ((f"-DNSRC={nsrc}",) if few else ())
-        _GPU[key] = cupy.RawKernel(_KERNEL, "sim_gulp_few" if few else "sim_gulp", options=opts)
-    return _GPU[key], few
+    return get_kernel("sky/fastsim.cu", "sim_gulp_few" if few else "sim_gulp",
+                      defines={"NSRC": nsrc} if few else None, options=_OPTIONS), few
+
+
+# every source count a sky may have: the generic kernel, and the few-source one for 0 .. MAX_REG_SRC
+register("sky/fastsim.cu", ({}, None, _OPTIONS), *[({"NSRC": n}, None, _OPTIONS) for n in range(MAX_REG_SRC + 1)])
 
 
 def make_gulp(out, t0, w, on0, on1, keys, noise_power, scale=None):
