@@ -53,8 +53,8 @@ def host_all(a) -> bool:
     """``all(a)`` of a small array (flags, positions, weights), decided on the host.
 
     On a GPU a whole-array reduction goes to CUB, whose kernels NVRTC takes ~2 s each to compile
-    on a machine with an empty kernel cache: six such checks were 10 s of a cold first image
-    (H100, 2026-11-25). Copying a few kB to the host costs microseconds."""
+    on a machine with an empty kernel cache, seconds of a cold first image. Copying a few kB to the
+    host costs microseconds."""
     return bool(np.all(to_numpy(a)))
 
 
@@ -92,8 +92,8 @@ def to_numpy(a):
 
     The stream is synchronised before the copy, not by it: a copy into pageable memory that has to
     wait for queued kernels waits inside the CUDA driver, and there it holds up every other thread's
-    CUDA calls. Measured on an H100 (case P, 200 gulps): a pipeline's sink copying its images that
-    way slowed the imager's thread by 9-14%; synchronising first, by 0.7-1.2%.
+    CUDA calls: a pipeline's sink copying its images that way slows the imager's thread by about
+    a tenth; synchronising first, by about a hundredth.
     """
     if is_device_array(a):
         with a.device:

@@ -39,9 +39,9 @@ def choose_method(ntime: int, nant: int, npix: int, npol: int = 1, nblk: int | N
     return "direct" if c["direct"] < c["covariance"] else "covariance"
 
 
-#: Effective complex multiply-add rates (CMAC/s) of the two routes, measured with
-#: tools/bench_dft.py on case P (fp32) on 2026-11-21: GPU = one NVIDIA H200 (CuPy 14, 16 channels x
-#: 2 pols), CPU = 2 cores of an AMD EPYC (NumPy 2.4 + OpenBLAS, one channel-pol). ``bf-epic plan``
+#: Effective complex multiply-add rates (CMAC/s) of the two routes on case P (fp32), as
+#: tools/bench/bench_dft.py measures them: GPU = one NVIDIA H200 (16 channels x 2 pols), CPU = 2
+#: cores of an AMD EPYC (NumPy + OpenBLAS, one channel-pol). ``bf-epic plan``
 #: divides operation counts by these to predict run time; re-measure for other machines.
 MEASURED_RATES_CMAC_S = {
     ("gpu", "covariance"): 4.8e12,

@@ -32,8 +32,8 @@ The tensor-core modes are real GEMMs on the stacked form of the complex product
 B = Br + i Bi, ``[[Dr, -Di], [Di, Dr]] @ [Br; Bi] = [Re DB; Im DB]``, the same four real products
 as a complex GEMM, on operands stored in the mode's own type (fp16, bf16 or fp32 for tf32), with an
 fp32 result whose first half of rows is the real part and second half the imaginary part.
-(cuBLAS' complex GEMM ignores the fp16/bf16 compute types and runs them as tf32, measured on an
-H100: the stacked form is what gives real fp16/bf16 tensor-core products.)
+(cuBLAS' complex GEMM ignores the fp16/bf16 compute types and runs them as tf32: the stacked form
+is what gives real fp16/bf16 tensor-core products.)
 
 and, for the covariance route only, :func:`int_gram`: R = Z Z^T of integer voltages (4- or
 8-bit) summed in int32 on the GPU's integer tensor cores (in float32 on the CPU, exact while the
@@ -424,7 +424,7 @@ def stacked_matmul(a_parts, b_parts, precision, *, out=None, b_exact=False):
     a_hi b_hi in ``FP16X3_SPLIT`` GEMMs over consecutive blocks of k, each added in the epilogue.
     Why the split: the tensor cores add the products of each k-step into the fp32 accumulator with
     truncation, a bias that grows with the steps one accumulator takes; half the steps per
-    accumulator halves it (case P, H100: 1.4e-6 -> 6.1e-7 with 2 blocks, 2.9e-7 with 4, measured).
+    accumulator halves it, and the error with it.
 
     NumPy (for tests of the layout only; the CPU has no tensor cores): float32 products of the
     operands rounded to the mode, which is what the tensor cores compute up to summation order.

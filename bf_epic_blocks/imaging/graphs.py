@@ -3,7 +3,7 @@
 Why: at case P (256 antennas, 3,205 pixels, 1,024 samples, 16 channels x 2 pols, fp16) the GPU runs
 a gulp's dozen kernels -- transpose, integer covariance, layout, the image GEMM, the fused
 reduction -- in about 0.45 ms, and Python and CuPy take about as long to issue them. With a graph
-the host's part falls to 0.04 ms (measured on an H100): the GPU alone sets the pace, and the host
+the host's part falls to about 0.04 ms: the GPU alone sets the pace, and the host
 is free for the pipeline's other blocks and for the other GPUs one process drives.
 
 How (:class:`GraphCache`), for a call keyed by everything that shapes the work (input shape and

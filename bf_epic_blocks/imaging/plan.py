@@ -12,7 +12,7 @@ The exact DFT imager ('dft')
     measured over the benchmark scenes -- case P sky + noise in 4-bit, a 5 km baseline at 88 MHz
     with pixels at n ~ 1e-4, a 60 dB point source -- times a safety factor) and the effective rate
     (complex multiply-adds per second on case P, with :mod:`.cost`'s operation counts).
-    ``tools/bench_dft.py --table`` measures both again on the machine at hand and rewrites the file.
+    ``tools/bench/bench_dft.py --table`` measures both again on the machine at hand and rewrites the file.
     With a tolerance, the pick is the (route, precision) that runs on the device, whose bound is
     <= tolerance and whose predicted time is the smallest. Without one, the mode is the given
     precision (default fp32) on the cheaper route by :func:`.cost.choose_method`.
@@ -290,7 +290,7 @@ def _gridded_plan(tol, kind_dev, problem, kind, method, imager):
         route = "moff"
     elif method == "auto":
         # covariance when the integration is at least as long as the array has antennas: then the
-        # cheaper by far (tools/bench_wstack.py)
+        # cheaper by far (tools/bench/bench_wstack.py)
         route = "covariance" if problem.ntime >= problem.nant else "efield"
     else:
         route = method
