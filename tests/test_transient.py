@@ -840,7 +840,8 @@ def test_the_search_s_bounds_are_pipeline_settings():
     cfg = load_config(yaml, ["imager.search.max_pixels=4", "imager.search.sky_fraction=0.3",
                              "imager.search.sidelobe_factor=0"])
     g = build_graph(cfg)
-    assert (g.search.max_pixels, g.search.sky_fraction, g.search.sidelobe_factor) == (4, 0.3, 0.0)
+    st = g.search.settings
+    assert (st.max_pixels, st.sky_fraction, st.sidelobe_factor) == (4, 0.3, 0.0)
     assert load_config(yaml, [])["imager"]["search"]["sky_fraction"] == 0.1
     with pytest.raises(ConfigError, match="imager.search.sky_fraction"):
         load_config(yaml, ["imager.search.sky_fraction=1.5"])

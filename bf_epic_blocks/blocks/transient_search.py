@@ -110,10 +110,11 @@ class TransientSearchBlock(bfp.SinkBlock):
                              f"{lay['products']}")
         self.lay, self.hdr = lay, hdr
         self.xp = self._xp()
-        st = self.settings
-        kw, self._tlink = st.search_keywords(lay["freq_hz"], lay["dt_s"])
-        self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), threshold=st.threshold,
-                                      xp=self.xp, max_pixels=st.max_pixels, sky_fraction=st.sky_fraction, **kw)
+        settings = self.settings
+        kw, self._tlink = settings.search_keywords(lay["freq_hz"], lay["dt_s"])
+        self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), threshold=settings.threshold,
+                                      xp=self.xp, max_pixels=settings.max_pixels, sky_fraction=settings.sky_fraction,
+                                      **kw)
         if not self._warmed:
             # the crossing path's kernels compiled now, not at the first burst (TransientSearch.warm_up)
             dt = self.search.warm_up()
@@ -137,14 +138,14 @@ class TransientSearchBlock(bfp.SinkBlock):
         if lay["grid"] is not None:
             N = lay["grid"].size
             self._xy = np.column_stack([lay["pixel_index"] % N, lay["pixel_index"] // N]).astype(np.float64)
-            self._space = 2.0 if st.space_link is None else float(st.space_link)
+            self._space = 2.0 if settings.space_link is None else settings.space_link
             self._cell = float(lay["grid"].cell)
         else:
             from scipy.spatial import cKDTree
             self._xy = lay["lm"]
             d, _ = cKDTree(self._xy).query(self._xy, k=2) if len(self._xy) > 1 else (np.ones((1, 2)), None)
             self._cell = float(np.median(d[:, 1]))
-            self._space = 2.0 * self._cell if st.space_link is None else float(st.space_link)
+            self._space = 2.0 * self._cell if settings.space_link is None else settings.space_link
         self.loc = self.location if self.location is not None else station_location(hdr)
         self._pending = Crossings()
         self._j = 0                                   # sequence index of the next image
