@@ -882,6 +882,39 @@ def test_bad_search_settings_are_named(kw, name):
         TransientSearch([74e6], 0.64e-3, 5, args.pop("window"), **args)
 
 
+@pytest.mark.parametrize("kw, name", [({"threshold": float("nan")}, "threshold"), ({"window_s": 0}, "window_s"),
+                                      ({"dms": [-1.0]}, "dms"), ({"dms": []}, "dms"), ({"widths": [1, 1]}, "widths"),
+                                      ({"widths": [0]}, "widths"), ({"widths": [1.5]}, "widths"),
+                                      ({"average_channels": "yes"}, "average_channels"), ({"product": 1}, "product"),
+                                      ({"dedisperse": "fft"}, "dedisperse"), ({"tree_precision": "fp8"}, "tree_precision"),
+                                      ({"max_pixels": 0}, "max_pixels"), ({"sky_fraction": 0.0}, "sky_fraction"),
+                                      ({"space_link": 0}, "space_link"), ({"time_link": -1}, "time_link"),
+                                      ({"lc_before": 2.5}, "lc_before"), ({"lc_after": -1}, "lc_after"),
+                                      ({"sidelobe_factor": -1}, "sidelobe_factor")])
+def test_bad_block_settings_are_named(kw, name):
+    with pytest.raises(ValueError, match=name):
+        SearchSettings(**kw)
+
+
+def test_block_settings_are_one_object_and_files_the_writer_s():
+    """The settings normalise to plain values (lists in, tuples of floats and ints out) and are frozen;
+    the block refuses the keywords that moved to the settings or to the writer, naming where they went;
+    the writer refuses a table format it cannot write."""
+    import dataclasses
+    st = SearchSettings(threshold=7, dms=[0, 1], widths=np.array([1, 2]))
+    assert st.threshold == 7.0 and st.dms == (0.0, 1.0) and st.widths == (1, 2)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        st.threshold = 5.0
+    with pytest.raises(TypeError, match="threshold"):
+        TransientSearchBlock(None, threshold=6.0)
+    with pytest.raises(TypeError, match="writer"):
+        TransientSearchBlock(None, outdir="x")
+    with pytest.raises(TypeError, match="SearchSettings"):
+        TransientSearchBlock(None, {"threshold": 6.0})
+    with pytest.raises(ValueError, match="table_format"):
+        CandidateWriter("x", table_format="csv")
+
+
 @pytest.mark.parametrize("dedisperse,nchan", [("tree", 784), ("shifts", 24)])
 def test_the_warm_up_twin_takes_every_crossing_path_and_leaves_the_search_alone(dedisperse, nchan):
     """The warm-up's small twin (same widths, threshold, dedispersion, precision) crosses through both

@@ -61,10 +61,10 @@ class TransientSearchBlock(bfp.SinkBlock):
         if {"outdir", "prefix", "table_format", "png"} & set(kwargs):
             raise TypeError("TransientSearchBlock: outdir, prefix, table_format and png belong to the writer: pass "
                             "writer=CandidateWriter(outdir, prefix, table_format, png) (bf_epic_blocks.io.candidates)")
-        super().__init__(iring, *args, **kwargs)
         settings = SearchSettings() if settings is None else settings
         if not isinstance(settings, SearchSettings):
             raise TypeError(f"TransientSearchBlock: settings must be a SearchSettings, got {type(settings).__name__}")
+        super().__init__(iring, *args, **kwargs)
         self.settings, self.writer, self.location = settings, writer, location
         #: fit every point candidate's source at once (a pixel split's part: SearchParts folds the other
         #: parts' sidelobes with it), not only when a fainter one needs it

@@ -37,7 +37,7 @@ from ..cuda import get_kernel, register
 from ..imaging._xp import to_numpy
 from .clustering import Crossings
 from .dispersion import dm_delays
-from .tree import HalfRows
+from .tree import FDMTPlan, HalfRows, StreamingFDMT, effective_back
 
 __all__ = ["TREE_CHANNELS", "TransientSearch"]
 
@@ -121,7 +121,6 @@ class TransientSearch:
         if dedisperse == "tree":
             # every sweep from 0 to the largest DM's, one image apart: row s is read s images back at
             # the highest channel and 0 at the lowest (tree.py), the DM of a sweep from the band's edges
-            from .tree import FDMTPlan, StreamingFDMT, effective_back
             per_dm = float(dispersion_delay_s(1.0, self.freq_hz.min(), self.freq_hz.max())) / self.dt_s
             smax = int(np.rint(max(dms) * per_dm))
             plan = FDMTPlan(self.freq_hz, smax)
@@ -334,10 +333,9 @@ class TransientSearch:
         ring writes repeat the same values), and its crossings are taken from the widths and trial
         images that have any.
 
-        Why: the S/N cube was half the kernel's memory traffic (16 of 32 bytes per trial value) and
-        nearly every chunk of a real search has no crossing; and a host wait per chunk (9 a gulp at the
-        whole band's 1,331 trials) left the kernels waiting on Python: at half the pixels (a pixel
-        split's part) the statistics took longer than at all of them."""
+        Why: the S/N cube would be half the kernel's memory traffic (16 of 32 bytes per trial value)
+        and nearly every chunk of a real search has no crossing; and a host wait per chunk would leave
+        the kernels waiting on Python."""
         xp = self.xp
         ns, B = int(v.shape[0]), int(v.shape[1])
         W, wmax = self.window, self.wmax
@@ -469,7 +467,7 @@ class TransientSearch:
         nchan = min(self.nchan, 16)
         freq = self.freq_hz[np.linspace(0, self.nchan - 1, nchan).round().astype(int)]
         # the same pixels and window: CuPy's argpartition, CUB's argmax and its reductions' block shapes
-        # are specialised on the lengths they reduce (a twin of 64 pixels and 8 images left 4 to compile)
+        # are specialised on the lengths they reduce (a smaller twin would leave some to compile)
         npix, window = self.npix, self.window
         if self.average:
             span = float(dispersion_delay_s(1.0, freq.min(), freq.max())) / self.dt_s
