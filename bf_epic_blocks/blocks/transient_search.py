@@ -56,7 +56,7 @@ class TransientSearchBlock(bfp.SinkBlock):
     def __init__(self, iring, settings=None, *args, writer=None, location=None, **kwargs):
         moved = sorted(set(kwargs) & set(SearchSettings.__dataclass_fields__))
         if moved:
-            raise TypeError(f"TransientSearchBlock: {', '.join(moved)} now belong(s) to the settings object: pass "
+            raise TypeError(f"TransientSearchBlock: {', '.join(moved)} is set in the settings object: pass "
                             f"settings=SearchSettings({moved[0]}=...)")
         if {"outdir", "prefix", "table_format", "png"} & set(kwargs):
             raise TypeError("TransientSearchBlock: outdir, prefix, table_format and png belong to the writer: pass "
