@@ -7,7 +7,7 @@ LWA-SV); a 1-s sliding window (1,562 images), boxcar widths 1, 2, 4, 8, and ``--
 1,024-sample gulp of the imager); the clock covers whole gulps after the window has filled (steady
 state), including the transfer of the crossings to the host. Rows:
 
-* ``search`` -- :class:`bf_epic_blocks.search.TransientSearch.push` (running sums);
+* ``search`` -- :class:`bf_epic_blocks.imaging.transient.TransientSearch.push` (running sums);
 * ``naive`` -- the same S/N recomputed per image from the whole window (mean and std over W values,
   per series and pixel): what the running sums avoid (CPU: a few images only, it is slow);
 * per DM count -- how the cost grows with the trials.
@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from bf_epic_blocks.search import TransientSearch  # noqa: E402
+from bf_epic_blocks.imaging.transient import TransientSearch  # noqa: E402
 from cases import write_json  # noqa: E402
 
 DT_IMG = 16 / 25e3
