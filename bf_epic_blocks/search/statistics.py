@@ -10,7 +10,7 @@ Definitions (all times in images; ``dt`` = seconds per image)
 * Dispersion: a burst of dispersion measure DM (pc cm^-3) reaches frequency f later than the
   reference frequency f_ref (the band's HIGHEST channel) by
   ``delay(f) = 4.149 ms * DM * ((f/GHz)^-2 - (f_ref/GHz)^-2)``, rounded to whole images per channel
-  (:func:`dm_delays`).
+  (:func:`.dispersion.dm_delays`).
 * Incoherent dedispersion, causal: the series of trial d at image j is
   ``D_d(j) = mean_c I_c(j - (delay_max_d - delay_d,c))``, i.e. every channel is aligned on the
   lowest channel's arrival; the event time at f_ref is ``j - delay_max_d``. With
@@ -27,6 +27,7 @@ Definitions (all times in images; ``dt`` = seconds per image)
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 
@@ -603,16 +604,17 @@ _STATS_MAXW = 64
 _SHIPPED_WIDTHS = ((1, 2, 4, 8),)
 
 
+@functools.lru_cache(maxsize=None)
 def _stats_defines(widths):
-    """The statistics kernel's compile-time constants for these boxcar widths (statistics.cu's header)."""
-    widths = tuple(int(w) for w in widths)
+    """The statistics kernel's compile-time constants for the boxcar ``widths`` (a tuple of ints;
+    statistics.cu's header). Made once per widths: the kernel is asked for at every push."""
     rw = ",".join(f"{np.float32(1.0 / np.sqrt(w)):.9e}f" for w in widths)   # (9 digits: the float32 exactly)
     return {"WMAX": max(widths), "WLIST": ",".join(map(str, widths)), "RWLIST": rw}
 
 
 def _stats_kernel(widths):
     """The statistics kernel compiled for these boxcar widths."""
-    return get_kernel("search/statistics.cu", "bf_search_stats", defines=_stats_defines(widths))
+    return get_kernel("search/statistics.cu", "bf_search_stats", defines=_stats_defines(tuple(int(w) for w in widths)))
 
 
 register("search/statistics.cu", *[(_stats_defines(w), None) for w in _SHIPPED_WIDTHS])
