@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bf_epic_blocks.imaging._xp import gpu_available
-from bf_epic_blocks.imaging.transient import dispersion_delay_s
+from bf_epic_blocks.conventions import dispersion_delay_s
 from bf_epic_blocks.io.tbf import unpack_ci4
 from bf_epic_blocks.sky import fastsim
 

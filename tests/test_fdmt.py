@@ -1,10 +1,10 @@
-"""Tree dedispersion (imaging/fdmt.py) against the shifted sums it stands for, and a dispersed pulse
-against the dispersion law (the delay 4.149 ms DM (f^-2 - f_ref^-2), f in GHz, from transient.py)."""
+"""Tree dedispersion (search/tree.py) against the shifted sums it stands for, and a dispersed pulse
+against the dispersion law (the delay 4.149 ms DM (f^-2 - f_ref^-2), f in GHz, from bf_epic_blocks.conventions)."""
 import numpy as np
 import pytest
 
-from bf_epic_blocks.imaging.fdmt import FDMTPlan, StreamingFDMT, effective_back, fdmt
-from bf_epic_blocks.imaging.transient import dispersion_delay_s
+from bf_epic_blocks.search import FDMTPlan, StreamingFDMT, effective_back, fdmt
+from bf_epic_blocks.conventions import dispersion_delay_s
 
 
 def gathered_sums(x, back):

@@ -71,7 +71,7 @@ def test_wholeband_pipeline_made_small(tmp_path):
     from pathlib import Path
     from astropy.coordinates import SkyCoord
     from astropy.io import fits
-    from bf_epic_blocks.imaging.transient import dispersion_delay_s
+    from bf_epic_blocks.conventions import dispersion_delay_s
     from bf_epic_blocks.io.candidates import read_candidates
     from bf_epic_blocks.io.cube import read_image_cube
     from bf_epic_blocks.pipeline.config import load_config

@@ -200,7 +200,7 @@ def test_search_parts_fold_what_another_part_explains(tmp_path):
     burst's DM sidelobe puts there, is folded into it; one the sidelobe cannot explain (too bright, or
     far in time) stays a row; pixels are renumbered over the whole sky."""
     from bf_epic_blocks.blocks.search_parts import SearchParts
-    from bf_epic_blocks.imaging.transient import dm_sidelobe_snr
+    from bf_epic_blocks.search import dm_sidelobe_snr
     grid = imaging.lm_grid(16)
     a, b = grid.part(0, 2), grid.part(1, 2)
     freq = 74e6 + 25e3 * np.arange(64)

@@ -6,12 +6,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bf_epic_blocks import imaging
+from bf_epic_blocks import conventions, imaging
 from bf_epic_blocks.blocks import ArraySourceBlock, DFTImagerBlock, TransientSearchBlock, bfp, efield_header
 from bf_epic_blocks.imaging._xp import gpu_available
 from bf_epic_blocks.imaging.calibration import FS_HZ
-from bf_epic_blocks.imaging.transient import Crossings, TransientSearch, dm_delays, expected_false_rate
-from bf_epic_blocks.io.candidates import read_candidates
+from bf_epic_blocks.search import Crossings, SearchSettings, TransientSearch, dm_delays, expected_false_rate
+from bf_epic_blocks.io.candidates import CandidateWriter, read_candidates
 from bf_epic_blocks.sky import simulate_efield
 from bf_epic_blocks.sky.catalogue import icrs_to_lm
 
@@ -42,7 +42,7 @@ def to_np(a):
 # ------------------------------------------------------------------------------ dispersion
 def test_dispersion_delay_and_simulated_burst_arrival():
     # 4.149 ms * DM * (f^-2 - f_ref^-2), f in GHz: DM 2 between 74.0 and 74.375 MHz
-    d = imaging.transient.dispersion_delay_s(2.0, 74.0e6, 74.375e6)
+    d = conventions.dispersion_delay_s(2.0, 74.0e6, 74.375e6)
     assert d == pytest.approx(4.149e-3 * 2.0 * (0.074 ** -2 - 0.074375 ** -2), rel=1e-12)
     assert 0.015 < d < 0.016                              # ~7.6 ms per unit DM here
     # the simulator: a burst, no noise, no steady sky; power per channel vs time
@@ -134,7 +134,7 @@ def _dispersed_burst(seed, nchan, npix, chan_hz, nimg, dm, pix, e0, amp):
     """Noise images (mean 10, sigma 1) over ``nchan`` channels of ``chan_hz`` from 74 MHz, one per 16
     samples, with a width-2 burst of ``amp`` at DM ``dm`` arriving at the band top at image ``e0``:
     (f, dt, x (nimg, nchan, npix))."""
-    from bf_epic_blocks.imaging.transient import dispersion_delay_s
+    from bf_epic_blocks.conventions import dispersion_delay_s
     rng = np.random.default_rng(seed)
     dt = 16 * DT
     f = 74e6 + chan_hz * np.arange(nchan)
@@ -148,7 +148,7 @@ def test_the_tree_search_finds_a_burst_at_its_dm_across_a_wide_band(xp):
     """96 channels over 19 MHz from 74 MHz (a band the shifted sums would need ~1,300 trials for): the
     tree searches every sweep, and a width-2 burst at DM 0.9 is found at its pixel, its arrival at
     the band top and its sweep (+-1: the tree's channels sit within 1-2 images of the curve)."""
-    from bf_epic_blocks.imaging.transient import dispersion_delay_s
+    from bf_epic_blocks.conventions import dispersion_delay_s
     nchan, npix, dm, pix, e0 = 96, 50, 0.9, 17, 2000
     f, dt, x = _dispersed_burst(1, nchan, npix, 200e3, 3000, dm, pix, e0, 3.0)
     s = TransientSearch(f, dt, npix, 300, dms=[3.0], widths=(1, 2, 4), threshold=7, dedisperse="auto",
@@ -273,7 +273,7 @@ def test_the_gpu_float16_tree_hands_the_statistics_its_rows():
     copy): the rows it hands over are, made float32, the tree's own float32 output bit for bit (the
     equality of the statistics themselves: test_the_gpu_statistics_kernel_equals_the_array_code)."""
     import cupy as cp
-    from bf_epic_blocks.imaging.fdmt import HalfRows
+    from bf_epic_blocks.search import HalfRows
     rng = np.random.default_rng(9)
     f = 74e6 + 100e3 * np.arange(24)
     x = cp.asarray(rng.normal(5, 1, (192, 24, 31)).astype(np.float32))
@@ -340,7 +340,8 @@ def test_burst_found_on_the_sky_through_the_imager(array24, tmp_path, dm_true):
     with bfp.Pipeline() as p:
         src = ArraySourceBlock(X, hdr, gulp_nframe=1024)
         img = DFTImagerBlock(src, grid, acc, products=["I"], pattern=False)
-        srch = TransientSearchBlock(img, threshold=6.0, window_s=0.1, dms=dms, outdir=str(tmp_path))
+        srch = TransientSearchBlock(img, SearchSettings(threshold=6.0, window_s=0.1, dms=dms),
+                                    writer=CandidateWriter(tmp_path))
         p.run()
     tab = srch.candidates
     assert len(tab) >= 1
@@ -426,7 +427,7 @@ def test_noise_only_block_count_all_widths_and_dms():
     x = rng.normal(5.0, 0.5, (nimg, 8, 1, 24, 24)).astype(np.float32)
     with bfp.Pipeline() as p:
         src = ArraySourceBlock(x, image_header(grid, freq, dt_img), gulp_nframe=64)
-        srch = TransientSearchBlock(src, threshold=3.5, window_s=150 * dt_img, dms=[0.0, 1.0, 2.0])
+        srch = TransientSearchBlock(src, SearchSettings(threshold=3.5, window_s=150 * dt_img, dms=[0.0, 1.0, 2.0]))
         p.run()
     st = srch.search_stats
     rate = expected_false_rate(3.5, srch.search.window, srch.widths)
@@ -451,8 +452,8 @@ def test_a_flash_is_one_sky_wide_row_and_a_burst_elsewhere_stays_a_point(tmp_pat
     x[600, :, 0, pix[0], pix[1]] += 20.0                           # the burst: one pixel, S/N ~ 40
     with bfp.Pipeline() as p:
         src = ArraySourceBlock(x, image_header(grid, freq, dt_img), gulp_nframe=64)
-        srch = TransientSearchBlock(src, threshold=8.0, window_s=150 * dt_img, dms=[0.0, 1.0, 2.0],
-                                    outdir=str(tmp_path), png=False)
+        srch = TransientSearchBlock(src, SearchSettings(threshold=8.0, window_s=150 * dt_img, dms=[0.0, 1.0, 2.0]),
+                                    writer=CandidateWriter(tmp_path, png=False))
         p.run()
     t = read_candidates(tmp_path / "transients_candidates.ecsv")
     sky = t[t["kind"] == "sky-wide"]
@@ -465,7 +466,7 @@ def test_a_flash_is_one_sky_wide_row_and_a_burst_elsewhere_stays_a_point(tmp_pat
 def test_dm_sidelobe_snr_counts_the_channel_images_two_sweeps_share():
     """Analytic cases: the burst's own trial gets its S/N back; a trial whose sweep never meets it, 0;
     two sweeps that cross get the channel-images they share (counted by brute force here)."""
-    from bf_epic_blocks.imaging.transient import dm_delays, dm_sidelobe_snr
+    from bf_epic_blocks.search import dm_delays, dm_sidelobe_snr
     f = 74e6 + 25e3 * np.arange(256)
     dt = 16 * DT
     assert dm_sidelobe_snr(f, dt, (1000, 1.5, 8, 300.0), (1000, 1.5, 8), slack=0) == pytest.approx(300.0)
@@ -502,8 +503,9 @@ def test_a_bright_dispersed_burst_s_dm_sidelobes_fold_into_it(tmp_path, monkeypa
         x[1500 + d[c]:1500 + d[c] + width, c, 0, valid[2]] += amp
     with bfp.Pipeline() as pl:
         src = ArraySourceBlock(x.reshape(nimg, nchan, 1, N, N), image_header(grid, freq, 16 * DT), gulp_nframe=64)
-        srch = TransientSearchBlock(src, threshold=7.5, window_s=0.2, dms=[2.2], dedisperse="tree", widths=[1, 2, 4, 8],
-                                    outdir=str(tmp_path), png=False, sidelobe_factor=factor)
+        srch = TransientSearchBlock(src, SearchSettings(threshold=7.5, window_s=0.2, dms=[2.2], dedisperse="tree",
+                                                         widths=[1, 2, 4, 8], sidelobe_factor=factor),
+                                    writer=CandidateWriter(tmp_path, png=False))
         pl.run()
     t = read_candidates(tmp_path / "transients_candidates.ecsv")
     t.sort("snr", reverse=True)
@@ -521,7 +523,7 @@ def test_a_bright_burst_s_sidelobes_fold_into_it_and_a_second_burst_stays(tmp_pa
     header's station: sidelobes of 4-30% over a few per cent of the sky) and a second, unrelated burst at the same
     time: the sidelobes fold into the burst's row (nsidelobes counts them), the burst keeps its
     pixel, the second burst keeps its own row; sidelobe_factor 0 keeps every row (the old output)."""
-    from bf_epic_blocks.imaging.transient import beam_power
+    from bf_epic_blocks.search import beam_power
     rng = np.random.default_rng(11)
     grid = imaging.lm_grid(24)
     lm = grid.lm
@@ -539,8 +541,9 @@ def test_a_bright_burst_s_sidelobes_fold_into_it_and_a_second_burst_stays(tmp_pa
     x[420, :, 0, valid[q]] += 60.0                        # an unrelated burst, far above p's sidelobe there
     with bfp.Pipeline() as pl:
         src = ArraySourceBlock(x.reshape(nimg, 4, 1, N, N), hdr, gulp_nframe=50)
-        srch = TransientSearchBlock(src, threshold=8.0, window_s=150 * 16 * DT, widths=[1], outdir=str(tmp_path),
-                                    png=False, sidelobe_factor=factor)
+        srch = TransientSearchBlock(src, SearchSettings(threshold=8.0, window_s=150 * 16 * DT, widths=[1],
+                                                         sidelobe_factor=factor),
+                                    writer=CandidateWriter(tmp_path, png=False))
         pl.run()
     t = read_candidates(tmp_path / "transients_candidates.ecsv")
     t.sort("snr", reverse=True)
@@ -557,7 +560,7 @@ def test_locate_point_source_finds_a_source_between_pixels(offset):
     """An S/N image drawn from beam_power (float64, every channel) at a known position between pixels,
     plus unit noise and pixels of differing noise: the fitted position is within 0.05 cells of it, and
     the fitted S/N at every pixel is the drawn one within the noise."""
-    from bf_epic_blocks.imaging.transient import ArrayBeam, beam_power, locate_point_source
+    from bf_epic_blocks.search import ArrayBeam, beam_power, locate_point_source
     rng = np.random.default_rng(7)
     xyz = np.column_stack([rng.uniform(-50, 50, (96, 2)), rng.normal(0, 0.5, 96)])
     grid = imaging.lm_grid(32)
@@ -588,7 +591,7 @@ def test_a_burst_between_pixels_is_one_row_though_its_pixel_sees_a_tenth_of_it(t
     sidelobe, 10 or more). With ``tail`` the burst's cluster goes on 20 images after its peak (the
     next pixel, linked by a longer time link) and gulps are short, so its sidelobes' clusters are complete gulps before its own: they
     wait for it (they were rows of their own)."""
-    from bf_epic_blocks.imaging.transient import beam_power
+    from bf_epic_blocks.search import beam_power
     from bf_epic_blocks.station.tables import load_station
     st = load_station("lwasv")
     xyz = np.asarray(st.xyz_m)[st.good.all(axis=1)]
@@ -611,8 +614,9 @@ def test_a_burst_between_pixels_is_one_row_though_its_pixel_sees_a_tenth_of_it(t
         x[440, :, 0, valid[e]] += 10.0
     with bfp.Pipeline() as pl:
         src = ArraySourceBlock(x.reshape(nimg, 4, 1, N, N), hdr, gulp_nframe=10 if tail else 50)
-        srch = TransientSearchBlock(src, threshold=6.0, window_s=150 * 16 * DT, widths=[1], outdir=str(tmp_path),
-                                    png=False, time_link=24 if tail else None)
+        srch = TransientSearchBlock(src, SearchSettings(threshold=6.0, window_s=150 * 16 * DT, widths=[1],
+                                                         time_link=24 if tail else None),
+                                    writer=CandidateWriter(tmp_path, png=False))
         pl.run()
     t = read_candidates(tmp_path / "transients_candidates.ecsv")
     assert len(t) == 1, t["pixel", "snr", "nsidelobes"]
@@ -662,7 +666,7 @@ def test_skipped_gulp_and_new_sequence_reset_the_window(tmp_path):
     N, W = grid.size, 60
     with bfp.Pipeline():
         src = ArraySourceBlock(np.zeros((1, 4, 1, N, N), np.float32), hdr, gulp_nframe=8)
-        blk = TransientSearchBlock(src, threshold=6.0, window_s=W * dt_img, dms=[0.0], outdir=None)
+        blk = TransientSearchBlock(src, SearchSettings(threshold=6.0, window_s=W * dt_img, dms=[0.0]))
 
     def noise(n, level):
         return rng.normal(level, 1.0, (n, 4, 1, N, N)).astype(np.float32)
@@ -709,7 +713,7 @@ def test_cpu_and_gpu_find_the_same_candidates():
     for space in ("system", "cuda"):
         with bfp.Pipeline() as p:
             src = ArraySourceBlock(x, image_header(grid, freq, dt_img), gulp_nframe=64, space=space)
-            srch = TransientSearchBlock(src, threshold=4.5, window_s=100 * dt_img, dms=[0.0, 0.5, 1.0])
+            srch = TransientSearchBlock(src, SearchSettings(threshold=4.5, window_s=100 * dt_img, dms=[0.0, 0.5, 1.0]))
             p.run()
         out.append(srch)
     assert out[1].xp is cupy
@@ -736,7 +740,7 @@ def test_a_flood_of_crossings_is_bounded_counted_and_the_brightest_kept(monkeypa
     flat[420:422, :, 0, pix[200]] += 40.0               # and a brighter burst elsewhere
     with bfp.Pipeline() as p:
         src = ArraySourceBlock(x, image_header(grid, freq, 16 * DT), gulp_nframe=64)
-        srch = TransientSearchBlock(src, threshold=6, window_s=100 * 16 * DT, dms=[0.0, 0.5])
+        srch = TransientSearchBlock(src, SearchSettings(threshold=6, window_s=100 * 16 * DT, dms=[0.0, 0.5]))
         p.run()
     st = srch.search_stats
     assert st["crossings_dropped"] > 0 and st["crossings"] > 200
@@ -807,7 +811,7 @@ def test_beam_power_is_what_the_imager_makes_of_a_point_source():
     pixel p, imaged on the grid and divided by its peak, is the beam at every pixel (float64),
     with and without the self terms."""
     from bf_epic_blocks.imaging.dft import dirty_image
-    from bf_epic_blocks.imaging.transient import beam_power
+    from bf_epic_blocks.search import beam_power
     rng = np.random.default_rng(3)
     xyz = np.column_stack([rng.uniform(-50, 50, (40, 2)), rng.normal(0, 1, 40)])
     freq = np.array([60e6, 70e6])
@@ -839,7 +843,8 @@ def test_the_search_s_bounds_are_pipeline_settings():
     cfg = load_config(yaml, ["imager.search.max_pixels=4", "imager.search.sky_fraction=0.3",
                              "imager.search.sidelobe_factor=0"])
     g = build_graph(cfg)
-    assert (g.search.max_pixels, g.search.sky_fraction, g.search.sidelobe_factor) == (4, 0.3, 0.0)
+    st = g.search.settings
+    assert (st.max_pixels, st.sky_fraction, st.sidelobe_factor) == (4, 0.3, 0.0)
     assert load_config(yaml, [])["imager"]["search"]["sky_fraction"] == 0.1
     with pytest.raises(ConfigError, match="imager.search.sky_fraction"):
         load_config(yaml, ["imager.search.sky_fraction=1.5"])
@@ -863,7 +868,7 @@ def test_an_overrun_search_counts_every_image_searched_or_lost(tmp_path):
     x[:, :, :, ~grid.mask] = np.nan
     with bfp.Pipeline() as p:
         src = ArraySourceBlock(x, hdr, gulp_nframe=4)
-        blk = _SlowSearch(src, threshold=8.0, window_s=40 * 16 * DT, dms=[0.0], outdir=None, guarantee=False)
+        blk = _SlowSearch(src, SearchSettings(threshold=8.0, window_s=40 * 16 * DT, dms=[0.0]), guarantee=False)
         p.run()
     st = blk.search_stats
     assert st["images_lost"] > 0 and st["resets"] >= 1
@@ -878,6 +883,39 @@ def test_bad_search_settings_are_named(kw, name):
     args = {"window": 10, **kw}
     with pytest.raises(ValueError, match=name):
         TransientSearch([74e6], 0.64e-3, 5, args.pop("window"), **args)
+
+
+@pytest.mark.parametrize("kw, name", [({"threshold": float("nan")}, "threshold"), ({"window_s": 0}, "window_s"),
+                                      ({"dms": [-1.0]}, "dms"), ({"dms": []}, "dms"), ({"widths": [1, 1]}, "widths"),
+                                      ({"widths": [0]}, "widths"), ({"widths": [1.5]}, "widths"),
+                                      ({"average_channels": "yes"}, "average_channels"), ({"product": 1}, "product"),
+                                      ({"dedisperse": "fft"}, "dedisperse"), ({"tree_precision": "fp8"}, "tree_precision"),
+                                      ({"max_pixels": 0}, "max_pixels"), ({"sky_fraction": 0.0}, "sky_fraction"),
+                                      ({"space_link": 0}, "space_link"), ({"time_link": -1}, "time_link"),
+                                      ({"lc_before": 2.5}, "lc_before"), ({"lc_after": -1}, "lc_after"),
+                                      ({"sidelobe_factor": -1}, "sidelobe_factor")])
+def test_bad_block_settings_are_named(kw, name):
+    with pytest.raises(ValueError, match=name):
+        SearchSettings(**kw)
+
+
+def test_block_settings_are_one_object_and_files_the_writer_s():
+    """The settings normalise to plain values (lists in, tuples of floats and ints out) and are frozen;
+    the block refuses the keywords that moved to the settings or to the writer, naming where they went;
+    the writer refuses a table format it cannot write."""
+    import dataclasses
+    st = SearchSettings(threshold=7, dms=[0, 1], widths=np.array([1, 2]))
+    assert st.threshold == 7.0 and st.dms == (0.0, 1.0) and st.widths == (1, 2)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        st.threshold = 5.0
+    with pytest.raises(TypeError, match="threshold"):
+        TransientSearchBlock(None, threshold=6.0)
+    with pytest.raises(TypeError, match="writer"):
+        TransientSearchBlock(None, outdir="x")
+    with pytest.raises(TypeError, match="SearchSettings"):
+        TransientSearchBlock(None, {"threshold": 6.0})
+    with pytest.raises(ValueError, match="table_format"):
+        CandidateWriter("x", table_format="csv")
 
 
 @pytest.mark.parametrize("dedisperse,nchan", [("tree", 784), ("shifts", 24)])
@@ -897,7 +935,7 @@ def test_the_warm_up_twin_takes_every_crossing_path_and_leaves_the_search_alone(
 
 _WARM_SCRIPT = r"""
 import os, sys, numpy as np, cupy as cp
-from bf_epic_blocks.imaging.transient import Crossings, TransientSearch
+from bf_epic_blocks.search import Crossings, TransientSearch
 f = 74e6 + 25e3 * np.arange(64)
 s = TransientSearch(f, 6.4e-4, 300, 40, dms=[0.5], threshold=7.0, dedisperse="tree", tree_precision="fp16",
                     max_batch=64, xp=cp)

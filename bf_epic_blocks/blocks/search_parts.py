@@ -17,7 +17,7 @@ rules the block applies within a part (its ``sidelobe_factor``):
   block uses once a row's images are no longer held);
 * DM sidelobe: within the grid link of the brighter's pixel and a sweep of it in time, at another
   DM, its S/N at most ``sidelobe_factor`` times
-  :func:`~bf_epic_blocks.imaging.transient.dm_sidelobe_snr`;
+  :func:`~bf_epic_blocks.search.dm_sidelobe_snr`;
 * a sky-wide event seen by several parts is one row, the brightest (its ``sky_fraction`` that of the
   part with the largest).
 
@@ -32,7 +32,7 @@ import logging
 
 import numpy as np
 
-from ..imaging.transient import dm_sidelobe_snr
+from ..search import dm_sidelobe_snr
 
 log = logging.getLogger(__name__)
 
@@ -44,9 +44,9 @@ class SearchParts:
     """The searches of a pixel split as one (see the module docstring).
 
     blocks : the parts' TransientSearchBlocks (run with ``outdir=None``), in part order.
-    outdir, prefix, table_format, png : where the merged table and PNG go (as the block's; outdir
-    None: none written). After :meth:`finish`: ``candidates`` (astropy Table), ``search_stats``,
-    ``written``.
+    outdir, prefix, table_format, png : where the merged table and PNG go
+    (:class:`~bf_epic_blocks.io.candidates.CandidateWriter`'s; outdir None: none written). After
+    :meth:`finish`: ``candidates`` (astropy Table), ``search_stats``, ``written``.
     """
 
     def __init__(self, blocks, outdir=None, prefix="transients", table_format="ecsv", png=True):
@@ -55,7 +55,8 @@ class SearchParts:
         self.blocks = list(blocks)
         for b in self.blocks:
             b.fit_every_row = True
-        self.outdir, self.prefix, self.table_format, self.png = outdir, prefix, table_format, png
+        from ..io.candidates import CandidateWriter
+        self.writer = None if outdir is None else CandidateWriter(outdir, prefix, table_format, png)
         self.candidates, self.written = None, []
         self.search_stats = self._stats(folded=0, ncand=0)
 
@@ -85,7 +86,6 @@ class SearchParts:
         returns the candidate table."""
         from ..io import candidates as cio
         from ..imaging.pixels import LMGrid
-        from .transient_search import write_candidate_files
         b0 = self.blocks[0]
         seen = [getattr(b, "lay", None) is not None for b in self.blocks]
         if not any(seen):
@@ -113,16 +113,13 @@ class SearchParts:
         self.search_stats = self._stats(folded, len(kept), sum(r["kind"] == "sky-wide" for r in kept))
         if folded:
             log.info("pixel split: %d candidate(s) of one part folded into another part's brighter one", folded)
-        if self.outdir is not None:
+        if self.writer is not None:
             g = lays[0]["grid"]
             mask = np.zeros(g.size * g.size, bool)
             mask[union] = True
-            lay = dict(lays[0], lm=lm, pixel_index=union,
-                       grid=LMGrid(size=g.size, cell=g.cell, lm=lm, mask=mask.reshape(g.size, g.size)))
+            whole = LMGrid(size=g.size, cell=g.cell, lm=lm, mask=mask.reshape(g.size, g.size))
             sky = np.concatenate([np.asarray(b._sky, np.float64) for b in self.blocks])[order]
-            self.written = write_candidate_files(self.outdir, self.prefix, self.table_format, self.png,
-                                                 self.candidates, sky, lay, b0.threshold,
-                                                 b0.lay["products"][b0._prod])
+            self.written = self.writer.write(self.candidates, sky, grid=whole, lm=lm)
         return self.candidates
 
     def _fold(self, rows, lm):

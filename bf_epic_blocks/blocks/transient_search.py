@@ -1,11 +1,12 @@
 """TransientSearchBlock: searches an imager's output for short bursts, candidates on the sky.
 
-A sink on the image ring (docs/HEADERS.md, "Written by DFTImagerBlock"). Per gulp it hands the
-chosen product's images (pixels below the horizon dropped) to
-:class:`bf_epic_blocks.imaging.transient.TransientSearch` (NumPy or CuPy, where the ring lives),
-collects the threshold crossings, clusters them (:func:`cluster_crossings`) once no later crossing
-can join, and at the end of each sequence writes every candidate so far as a table and a PNG
-(:mod:`bf_epic_blocks.io.candidates`).
+A sink on the image ring (docs/HEADERS.md, "Written by DFTImagerBlock"), configured by one
+:class:`~bf_epic_blocks.search.SearchSettings`. Per gulp it hands the chosen product's images (pixels
+below the horizon dropped) to :class:`bf_epic_blocks.search.TransientSearch` (NumPy or CuPy, where the
+ring lives), collects the threshold crossings, clusters them (:func:`cluster_crossings`) once no later
+crossing can join, and at the end of each sequence makes every candidate so far one table
+(``candidates``) and hands it to its writer, if it has one
+(:class:`bf_epic_blocks.io.candidates.CandidateWriter`: the table and a PNG).
 
 Resets: a new sequence, and any images lost to an overrun (``guarantee=False``; ``on_skip``),
 clear the sliding window; the search restarts only once the window is full again, so a gap never
@@ -14,40 +15,17 @@ produces candidates. Pending candidates are finished (with their light curves) b
 from __future__ import annotations
 
 import logging
-import os
 
 import numpy as np
 
-from ..imaging.transient import (TREE_CHANNELS, Crossings, TransientSearch, cluster_crossings, dm_delays,
-                                 dm_sidelobe_snr)
 from ..imaging.pixels import take_pixels
+from ..search import (ArrayBeam, Crossings, SearchSettings, TransientSearch, cluster_crossings, dm_sidelobe_snr,
+                      locate_point_source)
 from . import _compat
 from ._compat import bfp, span_array
 from .headers import image_layout, station_location
 
 log = logging.getLogger(__name__)
-
-
-def search_settings(freq_hz, dt_s, window_s, dms, widths, average_channels=True, time_link=None, lc_after=32,
-                    dedisperse="shifts", tree_precision="fp32"):
-    """The :class:`~bf_epic_blocks.imaging.transient.TransientSearch` keywords the block uses for images
-    at ``freq_hz`` every ``dt_s`` seconds (``window``, ``dms``, ``widths``, ``average_channels``,
-    ``hold``, ``dedisperse`` resolved, ``max_batch`` for the tree), and the time link in images;
-    ``bf-epic plan`` sizes the search with the same."""
-    widths = [int(w) for w in widths]
-    window = max(3, int(round(float(window_s) / dt_s)))
-    tlink = max(widths) if time_link is None else int(time_link)
-    shift = int(dm_delays(dms, freq_hz, dt_s).max()) if average_channels else 0
-    if dedisperse == "auto":
-        dedisperse = "tree" if average_channels and len(np.atleast_1d(freq_hz)) >= TREE_CHANNELS else "shifts"
-    # an event is finished (and looked back at: its window, its boxcar on every pixel) at most this
-    # many values after it, gulps being pushed a batch at a time (on_data)
-    kw = dict(window=window, dms=[float(d) for d in dms], widths=widths, average_channels=bool(average_channels),
-              hold=tlink + 2 * max(widths) + shift + int(lc_after), dedisperse=dedisperse,
-              tree_precision=tree_precision)
-    if dedisperse == "tree":
-        kw["max_batch"] = 64            # the tree's many trials: a history of one gulp's batch, not 256
-    return kw, tlink
 
 
 class TransientSearchBlock(bfp.SinkBlock):
@@ -56,67 +34,61 @@ class TransientSearchBlock(bfp.SinkBlock):
     Parameters
     ----------
     iring : an imager's output ring (grid or pixel list).
-    threshold : S/N threshold (default 6). window_s : sliding statistics window, seconds (default 1).
-    dms : trial DMs, pc cm^-3 (default [0]). widths : boxcar widths in images (default 1, 2, 4, 8).
-    average_channels : dedisperse and average channels (default) or search each channel.
-    product : which product to search (name, e.g. 'I'; default the first).
-    outdir, prefix : where ``<prefix>_candidates.<table_format>`` and ``.png`` go (None: no files).
-    table_format : 'ecsv' or 'fits'. png : write the PNG.
-    space_link : clustering distance in grid pixels (grids) or in l/m (pixel lists; default: twice
-        the median nearest-neighbour distance). time_link : in images (default the widest boxcar).
-    lc_before, lc_after : light-curve images before and after the event start.
+    settings : :class:`~bf_epic_blocks.search.SearchSettings` (default: its defaults): thresholds,
+        trials, clustering, light curves and sidelobe folding. Its ``sidelobe_factor`` folds a point
+        candidate into a brighter one at the same time when the brighter explains its S/N: the point
+        source that best explains the brighter one's S/N on every pixel through the array's beam
+        (:class:`~bf_epic_blocks.search.ArrayBeam` from the header's station, flags and antenna
+        pattern; :func:`~bf_epic_blocks.search.locate_point_source`, within a cell of its pixel: a grid
+        coarser than the beam sees a source between pixels at a fraction of its peak), or, with
+        dedispersion, its DM sidelobe (:func:`~bf_epic_blocks.search.dm_sidelobe_snr`: fainter
+        candidates near its pixel, within a sweep of it in time, whose trial's sweep crosses the
+        burst's in the band).
+    writer : None, or an object whose ``write(table, sky, grid=, lm=)`` writes the candidates (e.g.
+        :class:`~bf_epic_blocks.io.candidates.CandidateWriter`), called at the end of each sequence
+        with every candidate so far and the window mean at the searched pixels.
     location : astropy EarthLocation (default: the header's station).
-    sidelobe_factor : a point candidate whose S/N is at most ``sidelobe_factor`` times what a brighter
-        one at the same time puts at its pixel is that one's sidelobe: folded into it (its row's
-        ``nsidelobes`` counts them), not a row of its own. What the brighter one puts there is the
-        point source that best explains its S/N on every pixel through the array's beam
-        (:class:`~bf_epic_blocks.imaging.transient.ArrayBeam` from the header's station, flags and
-        antenna pattern; :func:`~bf_epic_blocks.imaging.transient.locate_point_source`, within a
-        cell of its pixel: a grid coarser than the beam sees a source between pixels at a fraction
-        of its peak). 2 allows for the fit and for a sidelobe's own best DM and width; 0 keeps
-        every row. With dedispersion the same factor folds a burst's DM sidelobes: fainter candidates
-        near its pixel, within a sweep of it in time, whose trial's sweep crosses the burst's in the
-        band (:func:`~bf_epic_blocks.imaging.transient.dm_sidelobe_snr` gives what the burst puts
-        there).
-    max_pixels, sky_fraction, dedisperse : see :class:`~bf_epic_blocks.imaging.transient.TransientSearch`
-        (with 'tree' the trials are every sweep up to max(dms)'s and each candidate's DM is its sweep's).
-    tree_precision : 'fp32' (default) or 'fp16', what the tree stores (half its memory traffic; see
-        :class:`~bf_epic_blocks.imaging.fdmt.StreamingFDMT`).
 
     ``candidates`` is the astropy Table of all candidates so far; ``search_stats`` counts images
-    searched, trials per width, crossings, resets and images lost; ``written`` lists the files.
+    searched, trials per width, crossings, resets and images lost; ``written`` lists the writer's files.
     """
 
-    def __init__(self, iring, threshold=6.0, window_s=1.0, dms=(0.0,), widths=(1, 2, 4, 8), average_channels=True,
-                 product=None, outdir=None, prefix="transients", table_format="ecsv", png=True, space_link=None,
-                 time_link=None, lc_before=32, lc_after=32, location=None, sidelobe_factor=2.0, max_pixels=32,
-                 sky_fraction=0.1, dedisperse="shifts", *args, tree_precision="fp32", **kwargs):
+    def __init__(self, iring, settings=None, *args, writer=None, location=None, **kwargs):
+        moved = sorted(set(kwargs) & set(SearchSettings.__dataclass_fields__))
+        if moved:
+            raise TypeError(f"TransientSearchBlock: {', '.join(moved)} is set in the settings object: pass "
+                            f"settings=SearchSettings({moved[0]}=...)")
+        if {"outdir", "prefix", "table_format", "png"} & set(kwargs):
+            raise TypeError("TransientSearchBlock: outdir, prefix, table_format and png belong to the writer: pass "
+                            "writer=CandidateWriter(outdir, prefix, table_format, png) (bf_epic_blocks.io.candidates)")
+        settings = SearchSettings() if settings is None else settings
+        if not isinstance(settings, SearchSettings):
+            raise TypeError(f"TransientSearchBlock: settings must be a SearchSettings, got {type(settings).__name__}")
         super().__init__(iring, *args, **kwargs)
-        if table_format not in ("ecsv", "fits"):
-            raise ValueError(f"TransientSearchBlock: table_format must be 'ecsv' or 'fits', got {table_format!r}")
-        if not window_s > 0:
-            raise ValueError(f"TransientSearchBlock: window_s must be > 0 seconds, got {window_s!r}")
-        self.threshold, self.window_s = float(threshold), float(window_s)
-        self.dms, self.widths = [float(d) for d in dms], [int(w) for w in widths]
-        self.average_channels, self.product = bool(average_channels), product
-        self.outdir, self.prefix, self.table_format, self.png = outdir, prefix, table_format, png
-        self.space_link, self.time_link = space_link, time_link
-        self.lc_before, self.lc_after = int(lc_before), int(lc_after)
-        self.location = location
-        if not sidelobe_factor >= 0:
-            raise ValueError(f"TransientSearchBlock: sidelobe_factor must be >= 0, got {sidelobe_factor!r}")
-        self.sidelobe_factor, self.max_pixels, self.sky_fraction = float(sidelobe_factor), max_pixels, sky_fraction
-        self.dedisperse, self.tree_precision = dedisperse, tree_precision
+        self.settings, self.writer, self.location = settings, writer, location
         #: fit every point candidate's source at once (a pixel split's part: SearchParts folds the other
         #: parts' sidelobes with it), not only when a fainter one needs it
         self.fit_every_row = False
-        self.rows, self.written = [], []
+        self.rows = []
         self.candidates = None
         self._warmed = False            # the candidate path's GPU kernels compiled (TransientSearch.warm_up)
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
                              "images_lost": 0, "trials_per_width": [0] * len(self.widths), "sequences": 0,
                              "sky_wide": 0, "sidelobes_folded": 0, "crossings_dropped": 0}
         self._sky = None
+
+    # the settings SearchParts and the candidate code read, as the block uses them
+    threshold = property(lambda self: self.settings.threshold)
+    sidelobe_factor = property(lambda self: self.settings.sidelobe_factor)
+    lc_before = property(lambda self: self.settings.lc_before)
+    lc_after = property(lambda self: self.settings.lc_after)
+    dms = property(lambda self: list(self.settings.dms))
+    widths = property(lambda self: list(self.settings.widths))
+
+    @property
+    def written(self):
+        """The files the writer has written (none without one)."""
+        return list(getattr(self.writer, "written", []))
 
     # ------------------------------------------------------------------ set-up
     def _xp(self):
@@ -128,20 +100,21 @@ class TransientSearchBlock(bfp.SinkBlock):
     def on_sequence(self, iseq):
         hdr = iseq.header
         lay = image_layout(hdr, "TransientSearchBlock")
-        if self.product is None:
+        product = self.settings.product
+        if product is None:
             self._prod = 0
-        elif self.product in lay["products"]:
-            self._prod = lay["products"].index(self.product)
+        elif product in lay["products"]:
+            self._prod = lay["products"].index(product)
         else:
-            raise ValueError(f"TransientSearchBlock: product {self.product!r} not in the images' products "
+            raise ValueError(f"TransientSearchBlock: product {product!r} not in the images' products "
                              f"{lay['products']}")
         self.lay, self.hdr = lay, hdr
         self.xp = self._xp()
-        kw, self._tlink = search_settings(lay["freq_hz"], lay["dt_s"], self.window_s, self.dms, self.widths,
-                                          self.average_channels, self.time_link, self.lc_after, self.dedisperse,
-                                          self.tree_precision)
-        self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), threshold=self.threshold,
-                                      xp=self.xp, max_pixels=self.max_pixels, sky_fraction=self.sky_fraction, **kw)
+        settings = self.settings
+        kw, self._tlink = settings.search_keywords(lay["freq_hz"], lay["dt_s"])
+        self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), threshold=settings.threshold,
+                                      xp=self.xp, max_pixels=settings.max_pixels, sky_fraction=settings.sky_fraction,
+                                      **kw)
         if not self._warmed:
             # the crossing path's kernels compiled now, not at the first burst (TransientSearch.warm_up)
             dt = self.search.warm_up()
@@ -165,14 +138,14 @@ class TransientSearchBlock(bfp.SinkBlock):
         if lay["grid"] is not None:
             N = lay["grid"].size
             self._xy = np.column_stack([lay["pixel_index"] % N, lay["pixel_index"] // N]).astype(np.float64)
-            self._space = 2.0 if self.space_link is None else float(self.space_link)
+            self._space = 2.0 if settings.space_link is None else settings.space_link
             self._cell = float(lay["grid"].cell)
         else:
             from scipy.spatial import cKDTree
             self._xy = lay["lm"]
             d, _ = cKDTree(self._xy).query(self._xy, k=2) if len(self._xy) > 1 else (np.ones((1, 2)), None)
             self._cell = float(np.median(d[:, 1]))
-            self._space = 2.0 * self._cell if self.space_link is None else float(self.space_link)
+            self._space = 2.0 * self._cell if settings.space_link is None else settings.space_link
         self.loc = self.location if self.location is not None else station_location(hdr)
         self._pending = Crossings()
         self._j = 0                                   # sequence index of the next image
@@ -390,7 +363,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         it can be: another trial's sweep that crosses the burst's inside the band collects the channels
         where the two meet (a bright burst's "bow tie" in DM and time; at the whole band's S/N 370, S/N
         8-9 up to 0.25 s before it, measured). Its S/N no more than ``sidelobe_factor`` times what
-        :func:`~bf_epic_blocks.imaging.transient.dm_sidelobe_snr` says the burst puts there: folded
+        :func:`~bf_epic_blocks.search.dm_sidelobe_snr` says the burst puts there: folded
         (that row's ``nsidelobes`` and ``nmembers`` grow). Only where the search dedisperses."""
         s = self.search
         if not (self.sidelobe_factor and s.average and len(s.dms) > 1):
@@ -416,7 +389,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         return False
 
     def _array_beam(self):
-        """The :class:`~bf_epic_blocks.imaging.transient.ArrayBeam` of the searched product on the
+        """The :class:`~bf_epic_blocks.search.ArrayBeam` of the searched product on the
         searched pixels (the header's station, flags and antenna pattern), or None where the product
         is not a power the beam describes (Q, U, V, cross-hands)."""
         if self._beam is None:
@@ -424,11 +397,10 @@ class TransientSearchBlock(bfp.SinkBlock):
         return self._beam or None
 
     def beam_on(self, lm):
-        """The :class:`~bf_epic_blocks.imaging.transient.ArrayBeam` of the searched product on the pixels
+        """The :class:`~bf_epic_blocks.search.ArrayBeam` of the searched product on the pixels
         ``lm`` (npix, 2), or None where the product is not a power the beam describes or the header
         has no antennas."""
         from ..imaging import patterns
-        from ..imaging.transient import ArrayBeam
         prod = self.lay["products"][self._prod]
         npol = len(self._beam_ants)
         w = {"I": [1.0] * npol, "XX": [1.0] + [0.0] * (npol - 1), "YY": [0.0, 1.0][:npol]}.get(prod)
@@ -458,7 +430,6 @@ class TransientSearchBlock(bfp.SinkBlock):
             model = None
             beam = self._array_beam() if r["snr_image"] is not None else None
             if beam is not None:
-                from ..imaging.transient import locate_point_source
                 lm_fit, model, explained = locate_point_source(r["snr_image"], r["sigma_image"], beam,
                                                                self.lay["lm"][r["pixel"]], self._cell)
                 # the fitted source itself (position, amplitude in flux units), for what it puts on
@@ -535,39 +506,21 @@ class TransientSearchBlock(bfp.SinkBlock):
     def meta(self):
         """The candidate table's metadata (the search's settings and its trial counts)."""
         lay = self.lay
-        return {"threshold": self.threshold, "window_s": self.window_s, "window_images": self.search.window,
+        return {"threshold": self.threshold, "window_s": self.settings.window_s, "window_images": self.search.window,
                 "dms": self.dms, "dedisperse": self.search.dedisperse, "widths": self.widths, "dt_s": lay["dt_s"],
                 "f_ref_mhz": float(lay["freq_hz"].max() / 1e6),
-                "average_channels": self.average_channels, "product": lay["products"][self._prod],
+                "average_channels": self.settings.average_channels, "product": lay["products"][self._prod],
                 "lightcurve_first": -self.lc_before, "trials_per_width": list(self.search_stats["trials_per_width"]),
                 "time_reference": "event start at the highest channel frequency (f_ref_mhz)"}
 
     def _write(self):
-        from ..io import candidates as cio
-        self.candidates = cio.candidate_table(self.rows, self.meta(), lc_length=self.lc_before + self.lc_after + 1)
+        """Every candidate so far as one table (``candidates``), handed to the writer."""
+        from ..io.candidates import candidate_table
+        self.candidates = candidate_table(self.rows, self.meta(), lc_length=self.lc_before + self.lc_after + 1)
         mean, _ = self.search.statistics()
         self._sky = _compat.to_numpy(mean[0])
-        if self.outdir is None:
-            return
-        for path in write_candidate_files(self.outdir, self.prefix, self.table_format, self.png, self.candidates,
-                                          self._sky, self.lay, self.threshold, self.lay["products"][self._prod]):
-            if path not in self.written:
-                self.written.append(path)
-
-
-def write_candidate_files(outdir, prefix, table_format, png, table, sky, lay, threshold, product):
-    """``<prefix>_candidates.<table_format>`` (and its PNG: ``sky`` (npix,) on the layout's pixels, with
-    the candidates) in ``outdir``; returns the paths written."""
-    from ..io import candidates as cio
-    os.makedirs(outdir, exist_ok=True)
-    stem = os.path.join(outdir, f"{prefix}_candidates")
-    out = [cio.write_candidates(f"{stem}.{table_format}", table)]
-    if png:
-        sky = sky if np.all(np.isfinite(sky)) else np.zeros(len(lay["lm"]))
-        out.append(cio.candidates_png(f"{stem}.png", table, sky, grid=lay["grid"], lm=lay["lm"], dt_s=lay["dt_s"],
-                                      title=f"{len(table)} candidate(s) above {threshold:g} sigma ({product}); "
-                                            "sky: window mean"))
-    return out
+        if self.writer is not None:
+            self.writer.write(self.candidates, self._sky, grid=self.lay["grid"], lm=self.lay["lm"])
 
 
 def transient_search(iring, *args, **kwargs):

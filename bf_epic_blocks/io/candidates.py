@@ -25,14 +25,20 @@ lightcurve     S/N per image (width 1, the candidate's DM and pixel) from ``lc_f
 
 The table's ``meta`` holds the search parameters (threshold, window, DM trials, widths, image
 time, reference frequency, trials per width).
+
+:class:`CandidateWriter` writes a search's table and PNG (``<prefix>_candidates.ecsv`` or ``.fits``,
+``<prefix>_candidates.png``); the search block hands it every candidate so far at the end of each
+sequence, so the files always hold the whole run's.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["CANDIDATE_COLUMNS", "candidate_table", "write_candidates", "read_candidates", "candidates_png"]
+__all__ = ["CANDIDATE_COLUMNS", "CandidateWriter", "candidate_table", "write_candidates", "read_candidates",
+           "candidates_png"]
 
 CANDIDATE_COLUMNS = ("time_utc", "sequence", "image", "pixel", "grid_x", "grid_y", "l", "m", "ra_deg", "dec_deg",
                      "snr", "dm", "channel", "width", "width_ms", "nmembers", "nsidelobes", "kind", "sky_fraction", "lightcurve")
@@ -61,6 +67,37 @@ def candidate_table(rows, meta=None, lc_length=0):
     if len(t):
         t.sort("time_utc")
     return t
+
+
+class CandidateWriter:
+    """Writes a transient search's candidates: ``<prefix>_candidates.<table_format>`` and, with ``png``,
+    ``<prefix>_candidates.png`` in ``outdir`` (made if missing), each call replacing the last.
+
+    table_format : 'ecsv' or 'fits'. ``written`` lists the paths written so far (each once).
+    """
+
+    def __init__(self, outdir, prefix="transients", table_format="ecsv", png=True):
+        if table_format not in ("ecsv", "fits"):
+            raise ValueError(f"CandidateWriter: table_format must be 'ecsv' or 'fits', got {table_format!r}")
+        self.outdir, self.prefix, self.table_format, self.png = str(outdir), str(prefix), table_format, bool(png)
+        self.written = []
+
+    def write(self, table, sky, *, grid=None, lm=None):
+        """Write ``table`` (:func:`candidate_table`; its meta's ``threshold``, ``product`` and ``dt_s``
+        title and scale the PNG) and the PNG of ``sky`` (npix,), the window mean at the searched pixels
+        (on ``grid``, an LMGrid, or at ``lm`` (npix, 2); all zero if any is not finite). Returns the
+        paths written by this call."""
+        os.makedirs(self.outdir, exist_ok=True)
+        stem = os.path.join(self.outdir, f"{self.prefix}_candidates")
+        out = [write_candidates(f"{stem}.{self.table_format}", table)]
+        if self.png:
+            meta = table.meta
+            sky = sky if np.all(np.isfinite(sky)) else np.zeros(len(sky))
+            out.append(candidates_png(f"{stem}.png", table, sky, grid=grid, lm=lm, dt_s=meta["dt_s"],
+                                      title=f"{len(table)} candidate(s) above {meta['threshold']:g} sigma "
+                                            f"({meta['product']}); sky: window mean"))
+        self.written += [p for p in out if p not in self.written]
+        return out
 
 
 def write_candidates(path, table):

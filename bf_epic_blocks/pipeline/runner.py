@@ -473,17 +473,24 @@ def _recorded_source(cfg, fmt, info, station, gulp, space, progress):
     return source, source.nframe, None
 
 
+def _search_settings(sc):
+    """The :class:`~..search.SearchSettings` of the YAML's ``imager.search`` section ``sc`` (validated)."""
+    from ..search import SearchSettings
+    return SearchSettings(threshold=sc["threshold"], window_s=sc["window_s"], dms=sc["dms"], widths=sc["widths"],
+                          average_channels=sc["average_channels"], product=sc["product"],
+                          dedisperse=sc["dedisperse"], tree_precision=sc["tree_precision"],
+                          max_pixels=sc["max_pixels"], sky_fraction=sc["sky_fraction"],
+                          sidelobe_factor=sc["sidelobe_factor"])
+
+
 def _search_block(cfg, images, outdir):
-    """The TransientSearchBlock ``imager.search`` asks for, on ``images`` (files in ``outdir``; None: none)."""
+    """The TransientSearchBlock ``imager.search`` asks for, on ``images``, its candidates written to
+    ``outdir`` by a :class:`~..io.candidates.CandidateWriter` (None: not written)."""
     from ..blocks.transient_search import TransientSearchBlock
+    from ..io.candidates import CandidateWriter
     sc, out = cfg["imager"]["search"], cfg["output"]
-    return TransientSearchBlock(images, threshold=sc["threshold"], window_s=sc["window_s"], dms=sc["dms"],
-                                widths=sc["widths"], average_channels=sc["average_channels"],
-                                product=sc["product"], outdir=outdir, prefix=out["prefix"],
-                                table_format=sc["table"], png=sc["png"], location=None,
-                                max_pixels=sc["max_pixels"], sky_fraction=sc["sky_fraction"],
-                                dedisperse=sc["dedisperse"], tree_precision=sc["tree_precision"],
-                                sidelobe_factor=sc["sidelobe_factor"])
+    writer = CandidateWriter(outdir, out["prefix"], sc["table"], sc["png"]) if outdir is not None else None
+    return TransientSearchBlock(images, _search_settings(sc), writer=writer, location=None)
 
 
 def _output_blocks(cfg, images, pixels, block):
@@ -789,11 +796,9 @@ def _plan_search(sc, freq, dt_img, npix, dev, imaging_s_per_s):
     (:meth:`TransientSearch.memory_bytes`, sized as the block sizes it) and, where rates were measured
     (``search`` in measured.json, tools/bench/bench_search.py), its seconds per second of data and the
     real-time factor of imaging and search together. Returns (dict, lines)."""
-    from ..blocks.transient_search import search_settings
     from ..imaging import plan as planner
-    from ..imaging.transient import TransientSearch
-    kw, _ = search_settings(freq, dt_img, sc["window_s"], sc["dms"], sc["widths"], sc["average_channels"],
-                            dedisperse=sc["dedisperse"], tree_precision=sc["tree_precision"])
+    from ..search import TransientSearch
+    kw, _ = _search_settings(sc).search_keywords(freq, dt_img)
     s = TransientSearch(freq, dt_img, npix, allocate=False, **kw)
     mem = s.memory_bytes(gpu=dev == "gpu")
 

@@ -5,7 +5,7 @@ whole band's cadence (784 channels of LWA-SV from 74 MHz, 0.64-ms images, DM 0-3
 images, so 1,331 trials one image apart) that is ~1.0e6 adds per pixel-image; the tree needs
 ~``ntrial x log2(nchan)`` (12,283 rows of shifted adds against 1,043,504). :func:`fdmt` transforms a
 whole series (array code, NumPy or CuPy; one gather-add per merge); :class:`StreamingFDMT` does the
-same a block at a time, for :mod:`.transient`'s streaming search (``dedisperse='tree'``).
+same a block at a time, for :mod:`.statistics`' streaming search (``dedisperse='tree'``).
 
 Definitions (images, channels sorted by frequency; f in any unit)
 -------------------------------------------------------------------
@@ -34,7 +34,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._xp import get_xp, to_numpy
+from ..cuda import get_kernel, get_module, register
+from ..imaging._xp import get_xp, to_numpy
 
 __all__ = ["FDMTPlan", "fdmt", "effective_back", "StreamingFDMT", "HalfRows"]
 
@@ -164,8 +165,8 @@ class StreamingFDMT:
     the first image after a reset (``ref``; added back, summed over the channels, in float32 as the
     rows are copied out), so float16's 11 bits carry the fluctuations, not the sky's mean: a sum's
     error after its ~log2(nchan) roundings is ~3e-4 of the fluctuations' size rms, far below their
-    noise. (A first version rounded whole values: ~3e-4 of the value, 0.16 sigma of the whole band's
-    noise at a S/N-369 burst's peak, enough to move the burst's best trial by two sweeps.) The
+    noise (rounding whole values instead would err by ~3e-4 of the value: 0.16 sigma of the whole
+    band's noise at a S/N-369 burst's peak, enough to move the burst's best trial by two sweeps). The
     reference holds until a reset, so a sky that drifts by D since then is rounded at ~3e-4 D: below
     the noise while D is under ~1,000 noise sigmas of a value -- for 0.64-ms images (sigma ~18% of the
     sky) any drift; for 1-s integrations (~0.5%) a pixel's whole brightness. The past
@@ -187,9 +188,7 @@ class StreamingFDMT:
 
     #: working memory of one pass when ``pixel_chunk`` is not given (bytes): the whole band's 3,205 pixels
     #: in one pass of a 64-image push (5.2 GB), so that the search reads the tree's rows where they are
-    #: (:class:`HalfRows`); two passes of 3 GB took the tree 0.225 -> 0.210 s per second of data against
-    #: five of 1 GB (H100, 2026-11-26; a thread per level walking 16 of a block's times instead of all 64
-    #: gained nothing there)
+    #: (:class:`HalfRows`); fewer, larger passes also run the tree a little faster
     WORK_BYTES = 6 << 30
     #: float16 storage: a whole-band sum of the largest value is scaled to about this ...
     FP16_HEAD = 2.0 ** 8
@@ -237,8 +236,7 @@ class StreamingFDMT:
         # On a GPU the merged rows that keep a ring live only in it, with room for a block's values
         # too (``ring_len + block`` slots, time tau at slot tau mod that): the level that makes such a row
         # writes it there and the levels that read it read it there, so no pass copies a block's newest
-        # values into the rings afterwards (0.5 GB read and written a whole-band gulp, ~1 ms on an
-        # H100). The working array loses those rows, so at a push of ``block`` images in one pass the
+        # values into the rings afterwards (0.5 GB read and written a whole-band gulp). The working array loses those rows, so at a push of ``block`` images in one pass the
         # memory is the same. The channels' own rows (the leaves) stay in the working array, their few
         # ring values copied after the levels. Pushes longer than ``block`` are made ``block`` at a time.
         self.block = int(block)
@@ -292,9 +290,8 @@ class StreamingFDMT:
         if xp is np:
             amax = float(np.max(np.abs(x - self.ref[:, None])))
         else:
-            # one kernel, each warp's maximum into one word (a whole-array ReductionKernel ran as one
-            # block: the float16 tree 8x slower than float32 at the whole band, H100; one per (channel,
-            # image) row on the strided view, 0.66 ms a whole-band gulp on an H200)
+            # one kernel, each warp's maximum into one word (a whole-array ReductionKernel runs as one
+            # block, and one per (channel, image) row on the strided view is slow too)
             amax = _abs_dev_max_gpu(xp, x, self.ref, index)
         return self._scale_for(amax)
 
@@ -355,7 +352,7 @@ class StreamingFDMT:
         index : None, or (npix,) the cell of each pixel: ``images`` are then (nchan, B, ncell) (an
             imager's grid, a view whose last axis is contiguous) and pixel p is cell ``index[p]``. The
             float16 tree on a GPU reads the cells where they are (its scale's maximum and its input
-            pass gather them: no gathered copy of the images, 0.7 ms a whole-band gulp on an H100);
+            pass gather them: no gathered copy of the images);
             elsewhere they are gathered first.
         rows : the float16 tree on a GPU whose pixels fit one pass returns a :class:`HalfRows` (the
             rows where the tree left them) instead of the float32 array; otherwise the array."""
@@ -385,7 +382,7 @@ class StreamingFDMT:
             x = x[self._order]
         pc = self._chunk(B)
         # on the GPU, one pass and a scale already set: the scale's maximum taken in the input pass itself
-        # (one read of the images, not two; 0.57 ms a whole-band gulp on an H100), checked before any
+        # (one read of the images, not two), checked before any
         # level runs, and the pass made again at a new scale in the rare push that needs one (a flash)
         one_pass = half and xp is not np and pc >= self.npix and self.scale is not None
         scale = (self.scale if one_pass else self._set_ref_and_scale(x, index)) if half else 1.0
@@ -452,16 +449,14 @@ class StreamingFDMT:
         # float16: a thread per HALF_VEC pixels (one load); rows and rings a whole number of them long
         per = self.pad
         pc, ld, q0 = W.shape[2] // per, self.ld // per, p0 // per
-        # (64 or 256 threads a block, or 8 times unrolled: the same speed; 2 unrolled: 10% slower; H100)
+        # (64, 128 or 256 threads a block run at the same speed)
         bx = min(128, pc)
         grid_x = -(-pc // bx)
         k_level, k_ring = _gpu_kernels(self.precision, self.pad)
         rbase, rcap, rrows, wrow = self._dev_ring
         if self._phase_at != self.ntime:
             # each ring row's slot of time ntime, once per push: the kernels index the rings in 32-bit
-            # arithmetic (measured alone this gained nothing -- the kernel was not bound by its index
-            # math; the gain, 0.61 -> 0.36 s per second of the whole band, came from a thread per
-            # row walking the block's times)
+            # arithmetic
             self._phase = self.xp.asarray((self.ntime % np.maximum(self.ring_cap, 1)).astype(np.int32))
             self._phase_at = self.ntime
         Y = 65535                                                  # CUDA's largest grid y: rows in slices
@@ -477,253 +472,46 @@ class StreamingFDMT:
                     np.int32(q0)))
 
 
-_FDMT_SRC = r"""
-// VT: the stored value -- float, or (HALF) HALF adjacent pixels' float16 values, each added in float32
-// and rounded once (as NumPy's float16 add: the CPU's path gives the same bits).
-#ifdef HALF
-#include <cuda_fp16.h>
-__device__ __forceinline__ __half2 hadd(__half2 a, __half2 b) {
-    const float2 x = __half22float2(a), y = __half22float2(b);
-    return __floats2half2_rn(x.x + y.x, x.y + y.y);
-}
-__device__ __forceinline__ unsigned wadd(unsigned a, unsigned b) {      // a word: two float16 values
-    __half2 x = *reinterpret_cast<__half2*>(&a), y = *reinterpret_cast<__half2*>(&b);
-    x = hadd(x, y);
-    return *reinterpret_cast<unsigned*>(&x);
-}
-#if HALF == 8                   // HALF float16 values a load: one 16-, 8- or 4-byte word
-typedef uint4 VT;
-__device__ __forceinline__ VT vadd(VT a, VT b) {
-    return make_uint4(wadd(a.x, b.x), wadd(a.y, b.y), wadd(a.z, b.z), wadd(a.w, b.w));
-}
-#elif HALF == 4
-typedef uint2 VT;
-__device__ __forceinline__ VT vadd(VT a, VT b) { return make_uint2(wadd(a.x, b.x), wadd(a.y, b.y)); }
-#else
-typedef unsigned VT;
-__device__ __forceinline__ VT vadd(VT a, VT b) { return wadd(a, b); }
-#endif
-#else
-typedef float VT;
-__device__ __forceinline__ VT vadd(VT a, VT b) { return a + b; }
-#endif
-
-// A row's values at the block's times t (row r at time tau0 + t): in the working array W (row wrow[r] of
-// B x pc, t >= 0 only), or, for a merged row that keeps a ring, in the ring itself (wrow[r] < 0): slot
-// (phase[r] + t) mod cap[r] of its cap[r] = (ring length + block) rows of ld, t in [-ring length, B).
-// A leaf's (channel's) older values (t < 0) are in its ring (cap = its ring length), copied there by
-// bf_fdmt_ring. phase[r]: the slot of time tau0 (tau0 mod cap[r]), so the index is 32-bit.
-struct Row { VT* p; int stride, ph, cap; };      // (an offset within a row's slots fits 32 bits)
-__device__ __forceinline__ Row row_at(VT* W, VT* ring, const int r, const int* __restrict__ wrow,
-                                      const long long* __restrict__ rbase, const int* __restrict__ cap,
-                                      const int* __restrict__ phase, const int B, const int pc, const int ld,
-                                      const int p0, const int p, const bool older)
-{
-    const int w = wrow[r];
-    Row x;
-    if (w >= 0 && !older) { x.p = W + (long long)w * B * pc + p; x.stride = pc; x.ph = 0; x.cap = 0x7fffffff; }
-    else { x.p = ring + rbase[r] * ld + p0 + p; x.stride = ld; x.ph = phase[r]; x.cap = cap[r]; }
-    return x;
-}
-__device__ __forceinline__ int slot(const Row& x, const int t)            // t in [-cap, cap)
-{
-    int m = x.ph + t;
-    if (m < 0) m += x.cap; else if (m >= x.cap) m -= x.cap;
-    return m * x.stride;
-}
-
-// One level of the streaming FDMT: row out[j] at t = row inL[j] at t + row inU[j] at t - o[j] (this
-// block's, or older). grid (pixel blocks, rows); each thread walks the block's B times (a thread per
-// element made ~230,000 short blocks per level). pc, ld, p0 count VT (HALF pixels for HALF).
-extern "C" __global__ void bf_fdmt_level(VT* __restrict__ W, VT* __restrict__ ring,
-                                         const int* __restrict__ out, const int* __restrict__ inL,
-                                         const int* __restrict__ inU, const int* __restrict__ o,
-                                         const long long* __restrict__ rbase, const int* __restrict__ cap,
-                                         const int* __restrict__ phase, const int* __restrict__ wrow,
-                                         const int B, const int pc, const int ld, const int p0)
-{
-    const int p = blockIdx.x * blockDim.x + threadIdx.x;
-    if (p >= pc) return;
-    const int j = blockIdx.y;
-    const int u = inU[j], oj = o[j];
-    const Row rl = row_at(W, ring, inL[j], wrow, rbase, cap, phase, B, pc, ld, p0, p, false);
-    const Row ru = row_at(W, ring, u, wrow, rbase, cap, phase, B, pc, ld, p0, p, false);
-    const Row rg = row_at(W, ring, u, wrow, rbase, cap, phase, B, pc, ld, p0, p, true);
-    const Row ro = row_at(W, ring, out[j], wrow, rbase, cap, phase, B, pc, ld, p0, p, false);
-    #pragma unroll 4
-    for (int t = 0; t < B; ++t) {
-        const int s = t - oj;
-        const VT b = s >= 0 ? ru.p[slot(ru, s)] : rg.p[slot(rg, s)];
-        ro.p[slot(ro, t)] = vadd(rl.p[slot(rl, t)], b);
-    }
-}
-
-// A leaf's ring keeps its newest cap values: block times t >= B - cap go to slot (tau0 + t) % cap.
-// grid (pixel blocks, leaves with a ring).
-extern "C" __global__ void bf_fdmt_ring(const VT* __restrict__ W, VT* __restrict__ ring,
-                                        const int* __restrict__ rows, const long long* __restrict__ rbase,
-                                        const int* __restrict__ cap, const int* __restrict__ phase,
-                                        const int* __restrict__ wrow, const int B, const int pc, const int ld,
-                                        const int p0)
-{
-    const int p = blockIdx.x * blockDim.x + threadIdx.x;
-    if (p >= pc) return;
-    const int g = rows[blockIdx.y];
-    const int L = cap[g];
-    const VT* w = W + (long long)wrow[g] * B * pc + p;
-    VT* rg = ring + rbase[g] * ld + p0 + p;
-    int m = (phase[g] + max(0, B - L)) % L;
-    for (int t = max(0, B - L); t < B; ++t) {
-        rg[(long long)m * ld] = w[(long long)t * pc];
-        if (++m == L) m = 0;
-    }
-}
-"""
-
-_FDMT_KERNELS: dict = {}
+#: the tree's kernels as a shipped path compiles them: float32, and float16 HALF_VEC pixels a load
+register("search/tree.cu", ({}, None), ({"HALF": StreamingFDMT.HALF_VEC}, None))
+register("search/abs_dev.cu")
+register("search/tree_half.cu")
 
 
 def _gpu_kernels(precision="fp32", vec=2):
-    import cupy as cp
-    key = (cp.cuda.Device().id, precision, vec)
-    if key not in _FDMT_KERNELS:
-        mod = cp.RawModule(code=_FDMT_SRC, options=(f"-DHALF={int(vec)}",) if precision == "fp16" else ())
-        _FDMT_KERNELS[key] = (mod.get_function("bf_fdmt_level"), mod.get_function("bf_fdmt_ring"))
-    return _FDMT_KERNELS[key]
-
-
-_EW: dict = {}
-
-
-_ABSDEV_SRC = r"""
-// max |x - ref| over x (nchan, B, npix) (element (c, b, p) at c sc + b sb + k, k = p or, with a cell
-// index, idx[p]) and ref (nchan, npix); a NaN counts as Inf (fmaxf would drop it). Non-negative floats
-// order as their bits: atomicMax on them.
-extern "C" __global__ void bf_abs_dev_max(const float* __restrict__ x, const float* __restrict__ ref,
-                                          unsigned* __restrict__ out, const int nchan, const int B, const int npix,
-                                          const long long sc, const long long sb, const int* __restrict__ idx)
-{
-    float m = 0.f;
-    const int p = blockIdx.x * blockDim.x + threadIdx.x;
-    if (p < npix) {
-        const int k = idx ? idx[p] : p;
-        int c = blockIdx.y / B, b = blockIdx.y - c * B;
-        const int dc = gridDim.y / B, db = gridDim.y - dc * B;     // the row step as (c, b): no division a row
-#pragma unroll 4
-        for (int r = blockIdx.y; r < nchan * B; r += gridDim.y) {
-            const float v = x[c * sc + b * sb + k];
-            m = fmaxf(m, v != v ? __int_as_float(0x7f800000) : fabsf(__fsub_rn(v, ref[(long long)c * npix + p])));
-            c += dc; b += db;
-            if (b >= B) { b -= B; ++c; }
-        }
-    }
-#pragma unroll
-    for (int o = 16; o; o >>= 1) m = fmaxf(m, __shfl_xor_sync(0xffffffffu, m, o));
-    if ((threadIdx.x & 31) == 0) atomicMax(out, __float_as_uint(m));
-}
-"""
+    """(bf_fdmt_level, bf_fdmt_ring) of tree.cu for the tree's ``precision`` (float16: ``vec`` pixels a load)."""
+    mod = get_module("search/tree.cu", defines={"HALF": int(vec)} if precision == "fp16" else None)
+    return mod.get_function("bf_fdmt_level"), mod.get_function("bf_fdmt_ring")
 
 
 def _abs_dev_max_gpu(cp, x, ref, index=None):
     """max |x - ref| (host float) of x (nchan, B, npix) float32, a view whose last axis is contiguous,
     and ref (nchan, npix): one kernel and one 4-byte copy to the host. index: None, or (npix,) int32,
     x is then (nchan, B, ncell) and pixel p its cell index[p]."""
-    if "absdev" not in _EW:
-        _EW["absdev"] = cp.RawKernel(_ABSDEV_SRC, "bf_abs_dev_max")
     nchan, B = (int(v) for v in x.shape[:2])
     npix = int(ref.shape[-1])
     if x.strides[-1] != 4:
         x = cp.ascontiguousarray(x)
     out = cp.zeros(1, cp.uint32)
     sc, sb = (int(v) // 4 for v in x.strides[:2])
-    _EW["absdev"](((npix + 255) // 256, min(nchan * B, 512)), (256,),
-                  (x, cp.ascontiguousarray(ref, dtype=cp.float32), out, np.int32(nchan), np.int32(B), np.int32(npix),
-                   np.int64(sc), np.int64(sb), np.uint64(0) if index is None else index))
+    k = get_kernel("search/abs_dev.cu", "bf_abs_dev_max")
+    k(((npix + 255) // 256, min(nchan * B, 512)), (256,),
+      (x, cp.ascontiguousarray(ref, dtype=cp.float32), out, np.int32(nchan), np.int32(B), np.int32(npix),
+       np.int64(sc), np.int64(sb), np.uint64(0) if index is None else index))
     return float(out.get().view(np.float32)[0])
 
 
-_HALF_SRC = r"""
-#include <cuda_fp16.h>
-// float16 storage of a pixel chunk: W[c, b, p] = (x[c, b, p0 + p] - ref[c, p0 + p]) * s for p < n, 0 in the
-// row's spare pixels (rows a whole number of StreamingFDMT.HALF_VEC); each step rounded as NumPy's
-// float32 does (no fused multiply-add), the float16 to nearest even (NumPy's cast). x: element (c, b, p) at c sc + b sb + k, k = p or, with a cell index,
-// idx[p]; W: (nchan, B, ld2) pixel pairs. A thread per pixel pair walks rows (c, b) gridDim.y apart.
-// (A thread per 8 pixels, one 16-byte store, as the levels: 0.456 -> 0.568 ms a whole-band gulp, H100,
-// 2026-11-26: 56 registers, fewer threads to hide the gathered loads' latency.)
-extern "C" __global__ void bf_fdmt_in_half(const float* __restrict__ x, const float* __restrict__ ref, const float s,
-                                           __half2* __restrict__ W, const int nchan, const int B, const int n,
-                                           const int ld2, const long long sc, const long long sb, const int p0,
-                                           const int npix, const int* __restrict__ idx, unsigned* __restrict__ amax)
-{
-    // amax (optional): max |x - ref| over what this pass reads, as bf_abs_dev_max computes it (a NaN as
-    // Inf), one atomic a warp
-    const int q = blockIdx.x * blockDim.x + threadIdx.x;
-    float m = 0.f;
-    const int p = 2 * q;
-    const bool has0 = q < ld2 && p < n, has1 = q < ld2 && p + 1 < n;
-    const int k0 = has0 ? (idx ? idx[p0 + p] : p0 + p) : 0, k1 = has1 ? (idx ? idx[p0 + p + 1] : p0 + p + 1) : 0;
-    int c = blockIdx.y / B, b = blockIdx.y - c * B;
-    const int dc = gridDim.y / B, db = gridDim.y - dc * B;
-#pragma unroll 4
-    for (int r = blockIdx.y; r < nchan * B; r += gridDim.y) {
-        const float* xr = x + c * sc + b * sb;
-        const float* rr = ref + (long long)c * npix + p0 + p;
-        const float d0 = has0 ? __fsub_rn(xr[k0], rr[0]) : 0.f, d1 = has1 ? __fsub_rn(xr[k1], rr[1]) : 0.f;
-        if (amax) {
-            m = fmaxf(m, d0 != d0 ? __int_as_float(0x7f800000) : fabsf(d0));
-            m = fmaxf(m, d1 != d1 ? __int_as_float(0x7f800000) : fabsf(d1));
-        }
-        const float a0 = has0 ? __fmul_rn(d0, s) : 0.f;
-        const float a1 = has1 ? __fmul_rn(d1, s) : 0.f;
-        if (q < ld2) W[(long long)r * ld2 + q] = __floats2half2_rn(a0, a1);
-        c += dc; b += db;
-        if (b >= B) { b -= B; ++c; }
-    }
-    if (amax) {                                    // every thread of the warp here: one shuffle
-#pragma unroll
-        for (int o = 16; o; o >>= 1) m = fmaxf(m, __shfl_xor_sync(0xffffffffu, m, o));
-        if ((threadIdx.x & 31) == 0) atomicMax(amax, __float_as_uint(m));
-    }
-}
-
-// float32 rows out of float16 storage: out[r, p0 + p] = W[t0 B + r, p] a + ksum[p0 + p] bk for rows r of
-// (D, B) and p < n (rounded as NumPy does). out: (D B, npix) float32; W: rows of ld2 pixel pairs.
-extern "C" __global__ void bf_fdmt_out_half(const __half2* __restrict__ W, const float* __restrict__ ksum,
-                                            const float a, const float bk, float* __restrict__ out, const int rows,
-                                            const long long t0B, const int n, const int ld2, const int p0,
-                                            const int npix)
-{
-    const int q = blockIdx.x * blockDim.x + threadIdx.x;
-    if (q >= ld2) return;
-    const int p = 2 * q;
-    const bool has1 = p + 1 < n;
-    if (p >= n) return;
-    const float k0 = __fmul_rn(ksum[p0 + p], bk), k1 = has1 ? __fmul_rn(ksum[p0 + p + 1], bk) : 0.f;
-#pragma unroll 4
-    for (int r = blockIdx.y; r < rows; r += gridDim.y) {
-        const float2 h = __half22float2(W[(t0B + r) * ld2 + q]);
-        float* o = out + (long long)r * npix + p0 + p;
-        o[0] = __fadd_rn(__fmul_rn(h.x, a), k0);
-        if (has1) o[1] = __fadd_rn(__fmul_rn(h.y, a), k1);
-    }
-}
-"""
-
-
 def _half_kernel(cp, name):
-    key = ("half", cp.cuda.Device().id)
-    if key not in _EW:
-        mod = cp.RawModule(code=_HALF_SRC)
-        _EW[key] = {k: mod.get_function(k) for k in ("bf_fdmt_in_half", "bf_fdmt_out_half")}
-    return _EW[key][name]
+    """``name`` of tree_half.cu (bf_fdmt_in_half or bf_fdmt_out_half)."""
+    return get_kernel("search/tree_half.cu", name)
 
 
 def _in_half_gpu(cp, x, ref, scale, W, p0, n, index=None, amax=None):
     """W[:nchan, :, :] = float16((x[:, :, p0:p0 + n] - ref[:, p0:p0 + n]) * scale), the spare pixel 0.
     x: (nchan, B, npix) float32 whose last axis is contiguous; ref (nchan, npix); W (nrow, B, ld) float16;
     index: as :func:`_abs_dev_max_gpu`; amax: None, or a uint32 device word (zero) that receives the
-    float bits of max |x - ref| over the pixels read, as :func:`_abs_dev_max_gpu` returns it. (CuPy's
-    elementwise kernel on these strided views ran at ~36% of an H100's memory speed.)"""
+    float bits of max |x - ref| over the pixels read, as :func:`_abs_dev_max_gpu` returns it. (A kernel
+    of its own: CuPy's elementwise kernels are slow on these strided views.)"""
     nchan, B = (int(v) for v in x.shape[:2])
     npix = int(ref.shape[-1])
     if x.strides[-1] != 4:

@@ -2,7 +2,7 @@
 
 One code path for NumPy and CuPy (the arrays' namespace does the work, where they live), with two
 CUDA kernels where the array code's passes cost too much on the GPU: the tree dedispersion's
-(:mod:`.fdmt`) and the statistics' (:data:`_STATS_SRC`: the ring, the running sums and every
+(:mod:`.tree`) and the statistics' (``statistics.cu``: the ring, the running sums and every
 boxcar's S/N in one pass per series and pixel, checked against the array code on the GPU).
 
 Definitions (all times in images; ``dt`` = seconds per image)
@@ -10,7 +10,7 @@ Definitions (all times in images; ``dt`` = seconds per image)
 * Dispersion: a burst of dispersion measure DM (pc cm^-3) reaches frequency f later than the
   reference frequency f_ref (the band's HIGHEST channel) by
   ``delay(f) = 4.149 ms * DM * ((f/GHz)^-2 - (f_ref/GHz)^-2)``, rounded to whole images per channel
-  (:func:`dm_delays`).
+  (:func:`.dispersion.dm_delays`).
 * Incoherent dedispersion, causal: the series of trial d at image j is
   ``D_d(j) = mean_c I_c(j - (delay_max_d - delay_d,c))``, i.e. every channel is aligned on the
   lowest channel's arrival; the event time at f_ref is ``j - delay_max_d``. With
@@ -24,99 +24,27 @@ Definitions (all times in images; ``dt`` = seconds per image)
   each image is made from its own samples).
 * Search starts once W + wmax dedispersed values exist since the last reset (a new sequence or a
   lost stretch of images): no S/N is ever formed from a partly filled window.
-
-The expected number of noise crossings, for independent Gaussian images, is exactly
-``P(t_{W-1} > threshold / sqrt(1 + w / W))`` per trial (Student's t with W - 1 degrees of freedom:
-the estimated mean and sigma come from W other values); :func:`expected_false_rate` gives it.
-
-Candidates: :func:`cluster_crossings` groups crossings that are close in time, sky position and DM
-(friends of friends) and keeps each group's highest S/N.
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 
 import numpy as np
 
-from ..conventions import DISPERSION_CONSTANT_S, dispersion_delay_s
-from ._xp import to_numpy
-from .fdmt import HalfRows
+from ..conventions import dispersion_delay_s
+from ..cuda import get_kernel, register
+from ..imaging._xp import to_numpy
+from .clustering import Crossings
+from .dispersion import dm_delays
+from .tree import FDMTPlan, HalfRows, StreamingFDMT, effective_back
 
-__all__ = ["DISPERSION_CONSTANT_S", "dispersion_delay_s", "dm_delays", "dm_sidelobe_snr", "TransientSearch", "Crossings",
-           "cluster_crossings", "expected_false_rate", "beam_power", "ArrayBeam", "locate_point_source"]
+__all__ = ["TREE_CHANNELS", "TransientSearch"]
 
-#: ``dedisperse="auto"`` uses the tree (:mod:`.fdmt`) from this many channels up: shifted sums cost
+#: ``dedisperse="auto"`` uses the tree (:mod:`.tree`) from this many channels up: shifted sums cost
 #: trials x channels adds per pixel-image, the tree ~trials x log2(channels)
 TREE_CHANNELS = 64
-
-
-def dm_delays(dms, freq_hz, dt_s):
-    """Per-trial, per-channel delays in whole images, (ndm, nchan) int64, relative to the highest
-    channel: ``round(dispersion_delay_s(dm, f_c, max(f)) / dt_s)``."""
-    f = np.asarray(freq_hz, dtype=np.float64)
-    d = dispersion_delay_s(np.asarray(dms, dtype=np.float64)[:, None], f[None, :], f.max())
-    return np.rint(d / float(dt_s)).astype(np.int64)
-
-
-def dm_sidelobe_snr(freq_hz, dt_s, bright, faint, slack=1):
-    """The S/N a dispersed burst puts into a trial of another DM and time at its pixel: its DM
-    sidelobe (the "bow tie" of a bright burst in DM and time).
-
-    ``bright`` = (image, dm, width, snr): the burst as found (image: its first image at the band's
-    highest channel, the search's event time); ``faint`` = (image, dm, width): the other trial's event.
-    A burst of S/N S found with boxcar w_b puts into the faint trial's boxcar (w_f images from its
-    sweep) the fraction of its channel-images the two sweeps share: with L_c images of overlap in
-    channel c (each sweep's delays as :func:`dm_delays` rounds them, widened by ``slack`` images
-    each side for the tree's rounding), S/N = S * sum_c L_c / (nchan * sqrt(w_b * w_f)).
-    Independent of the noise level; 0 where the sweeps never meet in the band."""
-    f = np.asarray(freq_hz, dtype=np.float64).ravel()
-    (eb, dmb, wb, snr), (ef, dmf, wf) = bright, faint
-    d = dm_delays([float(dmb), float(dmf)], f, dt_s)
-    ab = int(eb) + d[0] - slack
-    af = int(ef) + d[1] - slack
-    over = np.minimum(ab + int(wb) + 2 * slack, af + int(wf) + 2 * slack) - np.maximum(ab, af)
-    return float(snr) * float(np.clip(over, 0, None).sum()) / (f.size * math.sqrt(float(wb) * float(wf)))
-
-
-def expected_false_rate(threshold, window, widths):
-    """Probability that one (pixel, series, image) trial of boxcar width w exceeds ``threshold`` on
-    independent Gaussian noise, for each w in ``widths`` (array). See the module docstring."""
-    from scipy import stats
-    w = np.asarray(widths, dtype=np.float64)
-    return stats.t.sf(float(threshold) / np.sqrt(1.0 + w / window), df=window - 1)
-
-
-class Crossings:
-    """Threshold crossings of one push, host NumPy arrays of equal length.
-
-    image : sequence image index at which the event starts at the reference (highest) frequency;
-    end_image : the image index of the newest image in the boxcar (as pushed, before dedispersion
-        alignment); series : DM-trial index (or channel with average_channels=False);
-    width_index : index into ``widths``; pixel : pixel index; snr : float;
-    frac : the fraction of the image's pixels over the threshold in that trial (series, value, width);
-    skywide : 1 for a sky-wide crossing (``frac`` above the search's ``sky_fraction``: one crossing
-    at the image's peak pixel stands for all of them), else 0.
-    """
-
-    FIELDS = ("image", "end_image", "series", "width_index", "pixel", "snr", "frac", "skywide")
-
-    def __init__(self, **arrays):
-        for k in self.FIELDS:
-            setattr(self, k, np.asarray(arrays.get(k, ()), dtype=np.float64 if k in ("snr", "frac") else np.int64))
-
-    def __len__(self):
-        return int(self.snr.size)
-
-    @classmethod
-    def concat(cls, items):
-        items = [c for c in items if len(c)]
-        if not items:
-            return cls()
-        return cls(**{k: np.concatenate([getattr(c, k) for c in items]) for k in cls.FIELDS})
-
-    def take(self, sel):
-        return Crossings(**{k: getattr(self, k)[sel] for k in self.FIELDS})
 
 
 class TransientSearch:
@@ -132,11 +60,11 @@ class TransientSearch:
     average_channels : True (dedisperse and average the channels) or False (search each channel).
     xp : numpy or cupy; max_batch : images processed per internal step (bounds memory).
     dedisperse : 'shifts' (each DM trial a sum of shifted channels: ``dms`` as given), 'tree' (the
-        streaming FDMT of :mod:`.fdmt`: every sweep from 0 to the largest DM's, one image apart, each
+        streaming FDMT of :mod:`.tree`: every sweep from 0 to the largest DM's, one image apart, each
         channel within 1-2 images of the dispersion curve; ``dms`` becomes the DM of each sweep,
         ``sweep / (delay per unit DM across the band)``), or 'auto' (the tree from
         ``TREE_CHANNELS`` channels). pixel_chunk : pixels per pass of the tree (its working memory).
-    tree_precision : 'fp32' or 'fp16', the values the tree stores (:class:`~.fdmt.StreamingFDMT`:
+    tree_precision : 'fp32' or 'fp16', the values the tree stores (:class:`~.tree.StreamingFDMT`:
         float16 halves its memory traffic and rings, rounding fluctuations about a reference; the S/N and
         every later step stay float32/float64).
     max_pixels : at most this many crossings (the brightest) are kept per trial image (series, value,
@@ -193,8 +121,7 @@ class TransientSearch:
         self._tree = None
         if dedisperse == "tree":
             # every sweep from 0 to the largest DM's, one image apart: row s is read s images back at
-            # the highest channel and 0 at the lowest (fdmt.py), the DM of a sweep from the band's edges
-            from .fdmt import FDMTPlan, StreamingFDMT, effective_back
+            # the highest channel and 0 at the lowest (tree.py), the DM of a sweep from the band's edges
             per_dm = float(dispersion_delay_s(1.0, self.freq_hz.min(), self.freq_hz.max())) / self.dt_s
             smax = int(np.rint(max(dms) * per_dm))
             plan = FDMTPlan(self.freq_hz, smax)
@@ -269,7 +196,7 @@ class TransientSearch:
         self._ref = None                         # per-pixel offset of the sums (nser, npix)
         self._s1 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
         self._s2 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
-        self._widths_dev = None
+        self._no_snr = None              # the statistics kernel's snr argument when it writes none
         self._staged, self.staged_images = None, 0   # push(defer=True)'s last batch, values not yet searched
 
     @property
@@ -407,18 +334,16 @@ class TransientSearch:
         ring writes repeat the same values), and its crossings are taken from the widths and trial
         images that have any.
 
-        Why: the S/N cube was half the kernel's memory traffic (16 of 32 bytes per trial value) and
-        nearly every chunk of a real search has no crossing; and a host wait per chunk (9 a gulp at the
-        whole band's 1,331 trials) left the kernels waiting on Python: at half the pixels (a pixel
-        split's part) the statistics took longer than at all of them."""
+        Why: the S/N cube would be half the kernel's memory traffic (16 of 32 bytes per trial value)
+        and nearly every chunk of a real search has no crossing; and a host wait per chunk would leave
+        the kernels waiting on Python."""
         xp = self.xp
         ns, B = int(v.shape[0]), int(v.shape[1])
         W, wmax = self.window, self.wmax
         k0 = max(0, W + wmax - 1 - n0)                                      # first value whose window is full
         nb = max(0, B - k0)
         nw = len(self.widths)
-        if self._widths_dev is None:
-            self._widths_dev = xp.asarray(np.asarray(self.widths, np.int32))
+        if self._no_snr is None:
             self._no_snr = xp.empty(1, xp.float32)
         half = isinstance(v, HalfRows)
         if not half:
@@ -442,7 +367,7 @@ class TransientSearch:
                 src = (v[ss], np.uint64(0), np.uint64(0), np.float32(0), np.float32(0), np.int32(0), np.int32(0),
                        np.int32(0))
             k(((self.npix + threads - 1) // threads, ss.stop - ss.start), (threads,),
-              (src[0], self._ref[ss], hist, s1, s2, snr, count, self._widths_dev, np.int32(nw), np.int32(B),
+              (src[0], self._ref[ss], hist, s1, s2, snr, count, np.int32(B),
                np.int32(self.npix), np.int32(self.capacity), np.int64(hist.strides[0] // 4), np.int64(n0),
                np.int32(W), np.int32(k0), np.int32(nb), np.float32(self.threshold), np.int32(write)) + src[1:])
         count = xp.zeros((nw, ns, max(nb, 1)), xp.int32)
@@ -528,8 +453,8 @@ class TransientSearch:
         Why: CuPy compiles a kernel at its first use (0.1 s each on an empty kernel cache), and the
         crossing path (the dense S/N rerun, the brightest-pixel caps, the event's window statistics
         and boxcar, its light curve) is first used at the first burst: ~3 s of compiling there
-        stalled a whole-band run (H100, a fresh machine) while the imager's ring filled -- for a
-        live stream, packets lost at the very event. Call before data flows."""
+        stalls a whole-band run on a fresh machine while the imager's ring fills -- for a live
+        stream, packets lost at the very event. Call before data flows."""
         if self.xp is np:
             return 0.0
         t0 = time.perf_counter()
@@ -543,7 +468,7 @@ class TransientSearch:
         nchan = min(self.nchan, 16)
         freq = self.freq_hz[np.linspace(0, self.nchan - 1, nchan).round().astype(int)]
         # the same pixels and window: CuPy's argpartition, CUB's argmax and its reductions' block shapes
-        # are specialised on the lengths they reduce (a twin of 64 pixels and 8 images left 4 to compile)
+        # are specialised on the lengths they reduce (a smaller twin would leave some to compile)
         npix, window = self.npix, self.window
         if self.average:
             span = float(dispersion_delay_s(1.0, freq.min(), freq.max())) / self.dt_s
@@ -583,13 +508,13 @@ class TransientSearch:
         """Search new images ``(nimage, nchan, npix)`` (the next ones in time); returns Crossings.
 
         index : None, or (npix,) the cell of each pixel in ``images`` (nimage, nchan, ncell), e.g. an
-            imager's grid: the tree reads the cells where they are (:meth:`.fdmt.StreamingFDMT.push`);
+            imager's grid: the tree reads the cells where they are (:meth:`.tree.StreamingFDMT.push`);
             the other searches gather them first.
         defer : the last batch's images are dedispersed now (``images`` are not read after this
             returns) but its statistics and crossings wait for the next push or :meth:`flush`, whose
             crossings they join (``staged_images`` counts its images). A block on a GPU releases its
             input span before the statistics' host wait: the writer's next kernels are then queued
-            while the search's host code runs, where the GPU idled ~1 ms a whole-band gulp."""
+            while the search's host code runs, rather than the GPU idling meanwhile."""
         xp = self.xp
         x = images
         if index is not None:
@@ -675,294 +600,21 @@ class TransientSearch:
 #: widest boxcar the statistics kernel holds in registers (wider ones use the array code)
 _STATS_MAXW = 64
 
-_STATS_SRC = r"""
-// One thread per (series s = blockIdx.y, pixel p): the B new values v[s, i, p] in order. Same sums as
-// TransientSearch._push_chunk: the value (minus ref) into the ring; value n - wmax enters and
-// n - wmax - W leaves the window's float64 sums; from value k0 on, per width w the boxcar mean of the
-// newest w values against the window: snr = (box / w - mean) sqrt(w) / sigma (written only when
-// write_snr: a chunk is run again, densely, only if it has a crossing), and a count per trial image of
-// the pixels over the threshold.
-__device__ constexpr int WL[] = {WLIST};                  // the boxcar widths, in the search's order
-// 1 / sqrt(w) of each, float32 rounded to nearest (written by the host: rsqrtf of a constant is not folded
-// by the compiler, and made a hardware rsqrt a width a value -- 4 of 5 a value at widths 1, 2, 4, 8)
-__device__ constexpr float RW[] = {RWLIST};
-#define NWL ((int)(sizeof(WL) / sizeof(WL[0])))
-extern "C" __global__ void bf_search_stats(const float* __restrict__ v, const float* __restrict__ ref,
-        float* __restrict__ hist, double* __restrict__ S1, double* __restrict__ S2, float* __restrict__ snr,
-        int* __restrict__ count, const int* __restrict__ widths, const int nw, const int B, const int npix,
-        const int cap, const long long hstride, const long long n0, const int W, const int k0, const int nb,
-        const float thr, const int write_snr, const __half* __restrict__ vh, const float* __restrict__ ksum,
-        const float ha, const float hb, const int hB, const int hfirst, const int hld)
-{
-    const int p = blockIdx.x * blockDim.x + threadIdx.x;
-    if (p >= npix) return;
-    const int s = blockIdx.y, ns = gridDim.y;
-    // the values: v (ns, B, npix) float32, or (vh) the float16 tree's rows where it left them, value i of
-    // series s = vh[(s hB + hfirst + i) hld + p] ha + ksum[p] hb, rounded as the tree's float32 output is
-    const float hk = vh ? __fmul_rn(ksum[p], hb) : 0.f;
-    // the series' first value, so that a value's address is a 32-bit offset (i times a row's bytes: the
-    // host checks that B rows' bytes fit)
-    const char* __restrict__ vrow = vh ? (const char*)(vh + ((long long)s * hB + hfirst) * hld + p)
-                                       : (const char*)(v + (long long)s * B * npix + p);
-    const int vstep = vh ? 2 * hld : 4 * npix;
-    // value n0 + i leaves the window from i = lfirst on, and value n0 + i - WMAX enters it from i = efirst
-    // on (earlier: values before the stream's first, 0): 32-bit tests a value, not 64-bit ones
-    const int lfirst = (int)max(0LL, min((long long)B, (long long)WMAX + W - n0));
-    const int efirst = (int)max(0LL, min((long long)B, (long long)WMAX - n0));
-    float* h = hist + s * hstride + p;                       // value n at h[(n % cap) * npix]
-    const long long sp = (long long)s * npix + p;
-    double s1 = S1[sp], s2 = S2[sp];
-    const double invW = 1.0 / W, invW1 = 1.0 / (W - 1);
-    const float r = ref[sp];
-    // last[j]: value n - j (offset), j < wmax; before value n0 is shifted in, last[j] = value n0 - 1 - j
-    float last[WMAX];
-#pragma unroll
-    for (int j = 0; j < WMAX; j++) {
-        const long long m = n0 - 1 - j;
-        last[j] = m >= 0 ? h[(m % cap) * npix] : 0.f;
-    }
-    // Ring slots of value n (written) and n - wmax - W (leaving the window), advanced by one per value:
-    // one 64-bit modulo each per thread, not per value. The value entering the window, n - wmax, is
-    // last[WMAX - 1] before value n is shifted in: held, not read back. The capacity (>= W + wmax + B)
-    // keeps the slots this push writes apart from those it reads, so a run of U values' loads is issued
-    // before any of their stores (a load after each store serialised every value on the memory's
-    // latency: 45% of an H100's memory speed).
-    int in = (int)(n0 % cap);
-    int il = (int)(((n0 - WMAX - W) % cap + cap) % cap);
-#define U 4
-    for (int i0 = 0; i0 < B; i0 += U) {
-        float xv[U], lv[U];
-#pragma unroll
-        for (int u = 0; u < U; u++) {
-            const int i = i0 + u;
-            int iu = il + u;
-            if (iu >= cap) iu -= cap;
-            xv[u] = i >= B ? 0.f : vh ? __fadd_rn(__fmul_rn(__half2float(*(const __half*)(vrow + i * vstep)), ha), hk)
-                                      : *(const float*)(vrow + i * vstep);
-            lv[u] = (i < B && i >= lfirst) ? h[(long long)iu * npix] : 0.f;
-        }
-#pragma unroll
-        for (int u = 0; u < U; u++) {
-            const int i = i0 + u;
-            if (i >= B) break;
-            const float x = xv[u] - r;
-            h[(long long)in * npix] = x;
-            const double de = i >= efirst ? (double)last[WMAX - 1] : 0.0;
-            const double dl = (double)lv[u];
-#pragma unroll
-            for (int j = WMAX - 1; j > 0; j--) last[j] = last[j - 1];
-            last[0] = x;
-            if (++in == cap) in = 0;
-            if (++il == cap) il = 0;
-            s1 += de - dl;
-            s2 += de * de - dl * dl;
-            if (i < k0) continue;
-            // The window's sums stay float64 (they run the whole stream); what is formed from them per
-            // value is float32 -- values about the reference, a few sigma wide, an S/N written as float32
-            // anyway. The float64 division, square root and per-width boxes and rsqrt this replaced made
-            // the kernel compute-bound (ncu: SM 72%, DRAM 32%; 0.98 ms per 163 trials of a 64-image gulp).
-            // (box / w - mean) sqrt(w) / sigma = (box - w mean) * rsqrt(w) * (1 / sigma); sigma 0 gives
-            // inf or NaN, as before.
-            const double mean = s1 * invW;
-            const float meanf = (float)mean;
-            const double var = s2 - s1 * mean;
-            const float isig = rsqrtf((float)((var > 0.0 ? var : 0.0) * invW1));   // (fmax's NaN handling: 0, as here)
-            const int b = i - k0;
-            // the widths known when the kernel is compiled (WLIST): each box one of the newest values' running
-            // sums, added in the same order as the per-width loops these replaced (bit for bit the same
-            // boxes), WMAX - 1 adds a value where those made WMAX per width
-            float pre[WMAX];
-            pre[0] = 0.f + last[0];
-#pragma unroll
-            for (int j = 1; j < WMAX; j++) pre[j] = pre[j - 1] + last[j];
-            float zf[NWL];
-            bool over = false;
-#pragma unroll
-            for (int wi = 0; wi < NWL; wi++) {
-                const int w = WL[wi];
-                zf[wi] = (pre[w - 1] - (float)w * meanf) * RW[wi] * isig;
-                over |= zf[wi] > thr;
-            }
-            if (write_snr) {
-#pragma unroll
-                for (int wi = 0; wi < NWL; wi++) snr[(((long long)wi * ns + s) * nb + b) * npix + p] = zf[wi];
-            }
-            // one branch a value for all the widths' crossings (rare): a branch per width cost ~12 of
-            // the ~100 instructions a value (the kernel is bound by their issue)
-            if (over) {
-#pragma unroll
-                for (int wi = 0; wi < NWL; wi++)
-                    if (zf[wi] > thr) atomicAdd(&count[((long long)wi * ns + s) * nb + b], 1);
-            }
-        }
-    }
-#undef U
-    S1[sp] = s1;
-    S2[sp] = s2;
-}
-"""
+#: the boxcar widths the shipped pipelines search (the compile test builds the kernel for them)
+_SHIPPED_WIDTHS = ((1, 2, 4, 8),)
 
-_STATS_KERNELS: dict = {}
+
+@functools.lru_cache(maxsize=None)
+def _stats_defines(widths):
+    """The statistics kernel's compile-time constants for the boxcar ``widths`` (a tuple of ints;
+    statistics.cu's header). Made once per widths: the kernel is asked for at every push."""
+    rw = ",".join(f"{np.float32(1.0 / np.sqrt(w)):.9e}f" for w in widths)   # (9 digits: the float32 exactly)
+    return {"WMAX": max(widths), "WLIST": ",".join(map(str, widths)), "RWLIST": rw}
 
 
 def _stats_kernel(widths):
-    """The statistics kernel for these boxcar widths (compiled with them: see WLIST)."""
-    import cupy as cp
-    widths = tuple(int(w) for w in widths)
-    key = (widths, cp.cuda.Device().id)
-    if key not in _STATS_KERNELS:
-        rw = ", ".join(f"{np.float32(1.0 / np.sqrt(w)):.9e}f" for w in widths)   # (9 digits: the float32 exactly)
-        src = (f"#include <cuda_fp16.h>\n#define WMAX {max(widths)}\n#define WLIST {', '.join(map(str, widths))}\n"
-               f"#define RWLIST {rw}\n"
-               + _STATS_SRC)
-        _STATS_KERNELS[key] = cp.RawKernel(src, "bf_search_stats")
-    return _STATS_KERNELS[key]
+    """The statistics kernel compiled for these boxcar widths."""
+    return get_kernel("search/statistics.cu", "bf_search_stats", defines=_stats_defines(tuple(int(w) for w in widths)))
 
 
-def beam_power(xyz_m, freq_hz, lm_from, lm_to, *, remove_autocorr=False):
-    """The array's power pattern: what a unit point source at ``lm_from`` (2,) puts into the image at
-    the directions ``lm_to`` (n, 2), relative to its own peak, channel mean (host float64, (n,)).
-
-    ``|sum_a exp(2 pi i nu/c r_a . (s_to - s_from))|^2 / N^2`` for the N antennas ``xyz_m`` (N, 3)
-    (East/North/Up metres, unit weights, the full 3-D positions: no w approximation), s = (l, m, n);
-    with ``remove_autocorr`` the image's own definition without the N self terms,
-    ``(|sum|^2 - N) / (N^2 - N)``. 1 at ``lm_from``; a sidelobe of a burst of S/N S at ``lm_from``
-    reaches about ``S * beam_power`` at ``lm_to`` (as far as the pixels' noise levels agree).
-    """
-    from ..conventions import SPEED_OF_LIGHT_M_S
-    xyz = np.asarray(xyz_m, np.float64).reshape(-1, 3)
-    f = np.atleast_1d(np.asarray(freq_hz, np.float64))
-    n_ant = len(xyz)
-    if n_ant == 0:
-        return np.zeros(len(np.atleast_2d(lm_to)))
-    ds = _s_of(lm_to) - _s_of(lm_from)                                 # (n, 3)
-    phase = (2.0 * np.pi / SPEED_OF_LIGHT_M_S) * f[:, None, None] * (ds @ xyz.T)[None]   # (nchan, n, N)
-    p = np.abs(np.exp(1j * phase).sum(axis=2)) ** 2                    # (nchan, n)
-    if remove_autocorr:
-        return ((p - n_ant) / max(n_ant * n_ant - n_ant, 1)).mean(axis=0)
-    return (p / (n_ant * n_ant)).mean(axis=0)
-
-
-def cluster_crossings(image, xy, series, snr, *, time_link, space_link, series_link):
-    """Friends-of-friends groups of crossings; returns (labels (n,), index of each group's peak).
-
-    Two crossings are friends when their ``image`` indices differ by at most ``time_link``, their
-    sky positions ``xy`` (n, 2) (pixel-grid indices, or l/m) by at most ``space_link`` along each
-    axis, and their ``series`` (DM trial) indices by at most ``series_link``. Groups are the
-    connected components; each group's peak is its highest-S/N member. Host NumPy arrays.
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-    n = len(snr)
-    if n == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    pts = np.column_stack([np.asarray(image, np.float64) / max(time_link, 1e-9),
-                           np.asarray(xy, np.float64).reshape(n, 2) / max(space_link, 1e-12),
-                           np.asarray(series, np.float64) / max(series_link, 1e-9)])
-    pairs = cKDTree(pts).query_pairs(1.0 + 1e-9, p=np.inf, output_type="ndarray")
-    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
-        coo_matrix((n, n))
-    ncomp, labels = connected_components(g, directed=False)
-    snr = np.asarray(snr, np.float64)
-    order = np.lexsort((-snr, labels))                 # by label, highest S/N first
-    first = np.r_[True, labels[order][1:] != labels[order][:-1]]
-    return labels, order[first]
-
-
-class ArrayBeam:
-    """The array's power pattern from any sky direction to a fixed set of pixels, as the imager makes
-    it: what a unit point source at ``lm_from`` puts into each pixel's Stokes I image.
-
-    ``sum_p w_p |B_p(q)|^2 |sum_a exp(2 pi i nu/c r_a . (s_q - s_from))|^2 / N_p^2`` (channel mean),
-    for the antennas ``ants[p]`` (N_p, 3) of each polarisation p (East/North/Up metres, full 3-D:
-    no w approximation), weights ``w_p`` summing to 1, and the imager's antenna-independent voltage
-    pattern ``B_p`` at each pixel (``pattern_power`` (npix,) = sum_p w_p |B_p|^2, or None for 1).
-    With ``remove_autocorr`` the N_p self terms are left out, ``(|sum|^2 - N_p) / (N_p^2 - N_p)``.
-
-    The pixels' phase factors are made once (``max_channels`` channels evenly through the band stand
-    for all of them; a narrow band's beam hardly changes across it), so many source positions cost
-    one matrix product: :meth:`at`.
-    """
-
-    def __init__(self, ants, weights, freq_hz, lm_pixels, *, pattern_power=None, remove_autocorr=False,
-                 max_channels=4):
-        from ..conventions import SPEED_OF_LIGHT_M_S
-        f = np.atleast_1d(np.asarray(freq_hz, np.float64))
-        f = f[np.unique(np.rint(np.linspace(0, f.size - 1, min(int(max_channels), f.size))).astype(int))]
-        self.k = 2.0 * np.pi * f / SPEED_OF_LIGHT_M_S                              # (C,) rad / m
-        w = np.asarray(weights, np.float64)
-        self.weights = w / w.sum()
-        self.ants = [np.asarray(a, np.float64).reshape(-1, 3) for a in ants]
-        self.remove_autocorr = bool(remove_autocorr)
-        self.lm = np.asarray(lm_pixels, np.float64).reshape(-1, 2)
-        sq = _s_of(self.lm)                                                        # (npix, 3)
-        # exp(-i k r_a . s_q), (C, npix, N_p) per polarisation, complex64 (a beam to ~1e-6 is plenty)
-        self._e = [np.exp(-1j * self.k[:, None, None] * (sq @ a.T)[None]).astype(np.complex64) for a in self.ants]
-        self.pattern_power = None if pattern_power is None else np.asarray(pattern_power, np.float64)
-
-    def at(self, lm_from):
-        """(npos, npix) float64: the beam from each of the directions ``lm_from`` (npos, 2)."""
-        s = _s_of(lm_from)                                                         # (npos, 3)
-        out = np.zeros((len(s), len(self.lm)))
-        for a, e, w in zip(self.ants, self._e, self.weights):
-            n = len(a)
-            if n == 0:
-                continue
-            v = np.exp(1j * self.k[:, None, None] * (a @ s.T)[None]).astype(np.complex64)   # (C, N_p, npos)
-            p = np.abs(np.matmul(e, v)) ** 2                                       # (C, npix, npos)
-            p = ((p - n) / max(n * n - n, 1)) if self.remove_autocorr else p / (n * n)
-            out += w * p.mean(axis=0).T
-        if self.pattern_power is not None:
-            out *= self.pattern_power[None, :]
-        return out
-
-
-def _s_of(lm):
-    """(n, 3) unit vectors (l, m, n) of directions (n, 2); n = 0 beyond the horizon."""
-    lm = np.atleast_2d(np.asarray(lm, np.float64))
-    return np.column_stack([lm, np.sqrt(np.clip(1.0 - (lm * lm).sum(axis=1), 0.0, None))])
-
-
-def locate_point_source(snr_image, sigma, beam, lm0, radius, *, steps=13, levels=3):
-    """Where on the sky a point source must be to make ``snr_image`` through ``beam``.
-
-    snr_image : (npix,) an event's S/N at each pixel (its boxcar against its window);
-    sigma : (npix,) those pixels' noise (the window's sigma, flux units); beam : :class:`ArrayBeam`
-    on the same pixels; lm0 : (2,) where to look (the event's peak pixel); radius : half-width of the
-    square searched about ``lm0`` (l, m units; a grid's cell: on a grid coarser than the beam a
-    source between pixels shows in its nearest one at a small fraction of its peak).
-
-    The model is ``snr(q) = A beam(t -> q) / sigma(q)``; for each trial position t the amplitude A is
-    the least-squares one and the fit's score is the S/N variance it explains,
-    ``(sum y m)^2 / sum m^2`` with ``m = beam / sigma``. A ``steps`` x ``steps`` grid of positions,
-    refined ``levels - 1`` times about the best one. Returns ``(lm (2,), model (npix,) the fitted
-    S/N at every pixel, explained fraction of sum y^2)``; pixels whose sigma is not > 0 or whose S/N
-    is not finite take no part (their model is 0).
-    """
-    y = np.asarray(snr_image, np.float64)
-    inv = np.zeros_like(y)
-    sg = np.asarray(sigma, np.float64)
-    ok = np.isfinite(y) & np.isfinite(sg) & (sg > 0)
-    inv[ok] = 1.0 / sg[ok]
-    y = np.where(ok, y, 0.0)
-    centre, r = np.asarray(lm0, np.float64).reshape(2), float(radius)
-    best = None
-    for _ in range(max(1, int(levels))):
-        g = np.linspace(-r, r, int(steps))
-        t = centre + np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
-        t = t[(t * t).sum(axis=1) < 1.0]                     # above the horizon
-        if not len(t):
-            break
-        m = beam.at(t) * inv[None, :]                        # (npos, npix)
-        ym, mm = m @ y, (m * m).sum(axis=1)
-        score = np.where(mm > 0, ym * ym / np.where(mm > 0, mm, 1.0), -np.inf)
-        score[ym <= 0] = -np.inf                             # a source adds power
-        i = int(np.argmax(score))
-        if best is None or score[i] >= best[0]:
-            best = (score[i], t[i], ym[i] / mm[i] * m[i] if mm[i] > 0 else np.zeros_like(y))
-        centre, r = best[1], 2.0 * r / (int(steps) - 1)
-    yy = float(np.sum(y * y))
-    if best is None or not np.isfinite(best[0]):
-        return np.asarray(lm0, np.float64).reshape(2), np.zeros_like(y), 0.0
-    return best[1], best[2], float(best[0] / yy) if yy > 0 else 0.0
+register("search/statistics.cu", *[(_stats_defines(w), None) for w in _SHIPPED_WIDTHS])

@@ -1,0 +1,107 @@
+"""What the search's threshold crossings become: candidates.
+
+:class:`Crossings` holds one push's crossings; :func:`cluster_crossings` groups crossings that are close
+in time, sky position and DM (friends of friends) and keeps each group's highest S/N;
+:func:`dm_sidelobe_snr` says what a bright dispersed burst puts into another DM trial (its "bow tie"),
+so that the block can fold such sidelobes into the burst.
+
+The expected number of noise crossings, for independent Gaussian images, is exactly
+``P(t_{W-1} > threshold / sqrt(1 + w / W))`` per trial (Student's t with W - 1 degrees of freedom:
+the estimated mean and sigma come from W other values); :func:`expected_false_rate` gives it.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .dispersion import dm_delays
+
+__all__ = ["Crossings", "cluster_crossings", "dm_sidelobe_snr", "expected_false_rate"]
+
+
+class Crossings:
+    """Threshold crossings of one push, host NumPy arrays of equal length.
+
+    image : sequence image index at which the event starts at the reference (highest) frequency;
+    end_image : the image index of the newest image in the boxcar (as pushed, before dedispersion
+        alignment); series : DM-trial index (or channel with average_channels=False);
+    width_index : index into ``widths``; pixel : pixel index; snr : float;
+    frac : the fraction of the image's pixels over the threshold in that trial (series, value, width);
+    skywide : 1 for a sky-wide crossing (``frac`` above the search's ``sky_fraction``: one crossing
+    at the image's peak pixel stands for all of them), else 0.
+    """
+
+    FIELDS = ("image", "end_image", "series", "width_index", "pixel", "snr", "frac", "skywide")
+
+    def __init__(self, **arrays):
+        for k in self.FIELDS:
+            setattr(self, k, np.asarray(arrays.get(k, ()), dtype=np.float64 if k in ("snr", "frac") else np.int64))
+
+    def __len__(self):
+        return int(self.snr.size)
+
+    @classmethod
+    def concat(cls, items):
+        items = [c for c in items if len(c)]
+        if not items:
+            return cls()
+        return cls(**{k: np.concatenate([getattr(c, k) for c in items]) for k in cls.FIELDS})
+
+    def take(self, sel):
+        return Crossings(**{k: getattr(self, k)[sel] for k in self.FIELDS})
+
+
+def cluster_crossings(image, xy, series, snr, *, time_link, space_link, series_link):
+    """Friends-of-friends groups of crossings; returns (labels (n,), index of each group's peak).
+
+    Two crossings are friends when their ``image`` indices differ by at most ``time_link``, their
+    sky positions ``xy`` (n, 2) (pixel-grid indices, or l/m) by at most ``space_link`` along each
+    axis, and their ``series`` (DM trial) indices by at most ``series_link``. Groups are the
+    connected components; each group's peak is its highest-S/N member. Host NumPy arrays.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+    n = len(snr)
+    if n == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    pts = np.column_stack([np.asarray(image, np.float64) / max(time_link, 1e-9),
+                           np.asarray(xy, np.float64).reshape(n, 2) / max(space_link, 1e-12),
+                           np.asarray(series, np.float64) / max(series_link, 1e-9)])
+    pairs = cKDTree(pts).query_pairs(1.0 + 1e-9, p=np.inf, output_type="ndarray")
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
+        coo_matrix((n, n))
+    ncomp, labels = connected_components(g, directed=False)
+    snr = np.asarray(snr, np.float64)
+    order = np.lexsort((-snr, labels))                 # by label, highest S/N first
+    first = np.r_[True, labels[order][1:] != labels[order][:-1]]
+    return labels, order[first]
+
+
+def dm_sidelobe_snr(freq_hz, dt_s, bright, faint, slack=1):
+    """The S/N a dispersed burst puts into a trial of another DM and time at its pixel: its DM
+    sidelobe (the "bow tie" of a bright burst in DM and time).
+
+    ``bright`` = (image, dm, width, snr): the burst as found (image: its first image at the band's
+    highest channel, the search's event time); ``faint`` = (image, dm, width): the other trial's event.
+    A burst of S/N S found with boxcar w_b puts into the faint trial's boxcar (w_f images from its
+    sweep) the fraction of its channel-images the two sweeps share: with L_c images of overlap in
+    channel c (each sweep's delays as :func:`dm_delays` rounds them, widened by ``slack`` images
+    each side for the tree's rounding), S/N = S * sum_c L_c / (nchan * sqrt(w_b * w_f)).
+    Independent of the noise level; 0 where the sweeps never meet in the band."""
+    f = np.asarray(freq_hz, dtype=np.float64).ravel()
+    (eb, dmb, wb, snr), (ef, dmf, wf) = bright, faint
+    d = dm_delays([float(dmb), float(dmf)], f, dt_s)
+    ab = int(eb) + d[0] - slack
+    af = int(ef) + d[1] - slack
+    over = np.minimum(ab + int(wb) + 2 * slack, af + int(wf) + 2 * slack) - np.maximum(ab, af)
+    return float(snr) * float(np.clip(over, 0, None).sum()) / (f.size * math.sqrt(float(wb) * float(wf)))
+
+
+def expected_false_rate(threshold, window, widths):
+    """Probability that one (pixel, series, image) trial of boxcar width w exceeds ``threshold`` on
+    independent Gaussian noise, for each w in ``widths`` (array). See the module docstring."""
+    from scipy import stats
+    w = np.asarray(widths, dtype=np.float64)
+    return stats.t.sf(float(threshold) / np.sqrt(1.0 + w / window), df=window - 1)
