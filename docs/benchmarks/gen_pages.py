@@ -228,7 +228,7 @@ def fdmt_body():
                  [[r["nchan"], r["sweep"], r["ntime"], r["npix"], r["rows_fdmt"], r["rows_shifts"], f2(r["fdmt_s"], 4),
                    f2(r["shifts_s"], 4), f2(r["speedup"], 1), e(r["rel_err"])] for r in d["rows"]]) + "\n"
 page("bench_fdmt", "Tree dedispersion against shifted sums",
-     "The tree dedispersion (`imaging/fdmt.py`) of image series against plain shifted sums over the same "
+     "The tree dedispersion (`search/tree.py`) of image series against plain shifted sums over the same "
      "sweeps: time and error, for band sizes up to the whole band's 784 channels (DM 0–3, 0.64-ms images).",
      ["python tools/bench/bench_fdmt.py --device cpu --json bench_fdmt_cpu.json"],
      [("bench_fdmt_cpu.json", CPU2)], fdmt_body)

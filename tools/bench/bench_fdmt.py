@@ -1,12 +1,12 @@
 #!/usr/bin/env python
-"""Benchmark: tree dedispersion (imaging/fdmt.py) against shifted sums, time and error, CPU or GPU.
+"""Benchmark: tree dedispersion (search/tree.py) against shifted sums, time and error, CPU or GPU.
 
 For ``--nchan`` channels of 25 kHz from 74 MHz at 0.64-ms images and DMs 0 .. ``--dm-max``, every sweep
 0 .. S images is a trial (S = the sweep at the largest DM). A block of ``--ntime`` images of
 ``--npix`` pixels (noise, plus a dispersed pulse) is dedispersed two ways:
 
 * ``shifts`` -- one shifted add per (trial, channel): what the streaming search does today;
-* ``fdmt`` -- :func:`bf_epic_blocks.imaging.fdmt.fdmt`.
+* ``fdmt`` -- :func:`bf_epic_blocks.search.fdmt`.
 
 Error: max |fdmt - shifts| / max |shifts| with the shifted sums taken at the tree's own read offsets
 (:func:`effective_back`), so the two compute the same sums; and how far those offsets are from the
@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from bf_epic_blocks.conventions import dispersion_delay_s
-from bf_epic_blocks.imaging.fdmt import FDMTPlan, effective_back, fdmt
+from bf_epic_blocks.search import FDMTPlan, effective_back, fdmt
 
 from benchlib import array_module, machine, synchronize, utc_now, write_json
 

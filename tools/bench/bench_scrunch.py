@@ -48,7 +48,7 @@ def cost(d1, freq=FREQ, dt=DT, dm_max=DM_MAX, nw=len(WIDTHS), rates=None):
     """Seconds per second of data per pixel-equivalent, split and whole: dict with the full-rate tree
     alone (``full``), the split (``split``) and their ratio; ``rates`` (tree, statistics) per
     row-pixel-image and trial-width-pixel-image (default the GPU's in measured.json)."""
-    from bf_epic_blocks.imaging.fdmt import FDMTPlan
+    from bf_epic_blocks.search import FDMTPlan
     from bf_epic_blocks.conventions import dispersion_delay_s
     if rates is None:
         from bf_epic_blocks.imaging.plan import load_table

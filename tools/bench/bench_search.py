@@ -3,7 +3,7 @@
 injected burst found (or not).
 
 Images of ``--npix`` pixels in ``--nchan`` channels of 25 kHz from 74 MHz, one per 0.64 ms, are
-pushed a gulp (``--gulp`` images) at a time into :class:`bf_epic_blocks.imaging.transient.TransientSearch`
+pushed a gulp (``--gulp`` images) at a time into :class:`bf_epic_blocks.search.TransientSearch`
 for ``--seconds`` of data: Gaussian noise (a pool of gulps cycled, made before the clock starts)
 plus one dispersed burst of ``--burst-snr`` per channel-image sigma x sqrt(nchan) ... at DM
 ``--burst-dm``, 2 images wide, at a chosen pixel and time. Rows:
@@ -31,7 +31,7 @@ import time
 import numpy as np
 
 from bf_epic_blocks.conventions import dispersion_delay_s
-from bf_epic_blocks.imaging.transient import Crossings, TransientSearch
+from bf_epic_blocks.search import Crossings, TransientSearch
 
 from benchlib import array_module, machine, synchronize, utc_now, write_json
 

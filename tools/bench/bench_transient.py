@@ -7,7 +7,7 @@ LWA-SV); a 1-s sliding window (1,562 images), boxcar widths 1, 2, 4, 8, and ``--
 1,024-sample gulp of the imager); the clock covers whole gulps after the window has filled (steady
 state), including the transfer of the crossings to the host. Rows:
 
-* ``search`` -- :class:`bf_epic_blocks.imaging.transient.TransientSearch.push` (running sums);
+* ``search`` -- :class:`bf_epic_blocks.search.TransientSearch.push` (running sums);
 * ``naive`` -- the same S/N recomputed per image from the whole window (mean and std over W values,
   per series and pixel): what the running sums avoid (CPU: a few images only, it is slow);
 * per DM count -- how the cost grows with the trials.
@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from bf_epic_blocks.imaging.transient import TransientSearch
+from bf_epic_blocks.search import TransientSearch
 
 from benchlib import array_module, machine, synchronize, utc_now, write_json
 

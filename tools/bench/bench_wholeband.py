@@ -96,7 +96,7 @@ def growth(samples, t0, t1):
 def burst_checks(cfg, table):
     """Each injected burst against the run's candidate table (astropy Table or None)."""
     from astropy.coordinates import SkyCoord
-    from bf_epic_blocks.imaging.transient import dispersion_delay_s
+    from bf_epic_blocks.conventions import dispersion_delay_s
     from bf_epic_blocks.pipeline.runner import channel_freqs
     src, im = cfg["source"], cfg["imager"]
     freq = np.asarray(channel_freqs(cfg))
