@@ -6,6 +6,7 @@ import pytest
 
 from bf_epic_blocks.imaging._xp import gpu_available
 from bf_epic_blocks.conventions import dispersion_delay_s
+from bf_epic_blocks.cuda import get_kernel
 from bf_epic_blocks.io.tbf import unpack_ci4
 from bf_epic_blocks.sky import fastsim
 
@@ -170,8 +171,8 @@ def test_the_few_source_kernel_is_the_generic_kernel_bit_for_bit(nsrc):
     w = cupy.asarray(s["w"][:, np.arange(nsrc) % 2], cupy.complex64)
     on0, on1 = (cupy.asarray(a, cupy.int64) for a in fastsim.burst_windows(nsrc, [], s["freq"], 40e-6))
     keys, n, nchan = fastsim.stream_keys(5), 70, 5
-    generic = cupy.RawKernel(fastsim._KERNEL, "sim_gulp", options=("--use_fast_math",))
-    few = cupy.RawKernel(fastsim._KERNEL, "sim_gulp_few", options=("--use_fast_math", f"-DNSRC={nsrc}"))
+    generic = get_kernel("sky/fastsim.cu", "sim_gulp", options=("--use_fast_math",))
+    few = get_kernel("sky/fastsim.cu", "sim_gulp_few", defines={"NSRC": nsrc}, options=("--use_fast_math",))
     for ci4, dtype in ((1, np.uint8), (0, np.complex64)):
         outs = []
         for k in (generic, few):
