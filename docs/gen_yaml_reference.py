@@ -1,16 +1,15 @@
 """Write the pipeline YAML reference page at build time, from the schema the validator uses.
 
 mkdocs-gen-files runs this script inside ``mkdocs build``; the page it writes,
-``reference/pipeline-yaml.md``, exists only in the built site. Every key, its type, allowed values and
-default come from ``bf_epic_blocks.pipeline.config.SCHEMA`` (the objects ``bf-epic validate`` checks
-with), so the page cannot drift from the validator. A key's description is its ``Key.doc``; where
-that is empty, the line that config.py's module docstring gives the key is shown instead, marked so.
+``reference/pipeline-yaml.md``, exists only in the built site. Every key, its type, allowed values,
+default and description come from ``bf_epic_blocks.pipeline.config.SCHEMA`` (the objects
+``bf-epic validate`` checks with): a key's description is its ``Key.doc``, a section's paragraph its
+``Section.doc``. So the page cannot drift from the validator, and a key without a description fails
+tests/test_config.py rather than reaching this page blank.
 """
 from __future__ import annotations
 
-import re
 import sys
-import textwrap
 from pathlib import Path
 
 import mkdocs_gen_files
@@ -25,45 +24,15 @@ from bf_epic_blocks.pipeline import yaml_schema as ys  # noqa: E402
 PAGE = "reference/pipeline-yaml.md"
 
 
-def docstring_notes(doc: str) -> dict[str, str]:
-    """{dotted key: its text} from the indented schema summary in config.py's module docstring.
-
-    The summary is the literal block after the line ending in ``::``; a key line is indented two
-    spaces per level below its parent, and deeper-indented lines continue the previous key's text.
-    """
-    lines = doc.splitlines()
-    start = next((i for i, s in enumerate(lines) if s.rstrip().endswith("::")), None)
-    if start is None:
-        return {}
-    block = []
-    for s in lines[start + 1:]:
-        if s.strip() and not s.startswith(" "):
-            break
-        block.append(s)
-    block = textwrap.dedent("\n".join(block)).splitlines()
-    key_re = re.compile(r"^( *)([A-Za-z_][A-Za-z0-9_]*):(.*)$")
-    notes: dict[str, str] = {}
-    stack: list[str] = []
-    last = None
-    for s in block:
-        if not s.strip() or s.lstrip().startswith("#"):
-            continue
-        m = key_re.match(s)
-        indent = len(s) - len(s.lstrip())
-        if m and indent % 2 == 0 and indent // 2 <= len(stack):
-            depth = indent // 2
-            stack = stack[:depth] + [m.group(2)]
-            last = ".".join(stack)
-            notes[last] = m.group(3).strip()
-        elif last is not None:
-            notes[last] += " " + s.strip()
-    return {k: re.sub(r"\s+", " ", v).strip() for k, v in notes.items()}
-
-
 def cell(text: str) -> str:
     """Text safe inside a Markdown table cell."""
     text = str(text).replace("|", "\\|").replace("\n", " ")
     return text.replace("{", "&#123;").replace("}", "&#125;")  # attr_list would take "{...}" as attributes
+
+
+def prose(text: str) -> str:
+    """Text safe as a Markdown paragraph."""
+    return str(text).replace("{", "&#123;").replace("}", "&#125;")
 
 
 def type_text(check) -> str:
@@ -90,18 +59,12 @@ def default_text(key: ys.Key) -> str:
 
 
 class Writer:
-    def __init__(self, notes: dict[str, str]):
-        self.notes = notes
+    def __init__(self):
         self.out: list[str] = []
-        self.keys = 0
-        self.undocumented: list[str] = []
 
-    def description(self, path: str, key: ys.Key) -> str:
-        if key.doc:
-            return cell(key.doc)
-        self.undocumented.append(path)
-        note = self.notes.get(path)
-        return f"*{cell(note)}*" if note else ""
+    def paragraph(self, sec: ys.Section) -> None:
+        if sec.doc:
+            self.out += [prose(sec.doc), ""]
 
     def table(self, keys, prefix: str) -> list[tuple[str, ys.Section]]:
         """One table row per key; returns the sub-sections to describe after the table."""
@@ -109,9 +72,7 @@ class Writer:
         subs = []
         for name, key in keys.items():
             path = ys.join_path(prefix, name)
-            self.keys += 1
-            self.out.append(f"| `{name}` | {type_text(key.check)} | {default_text(key)} | "
-                            f"{self.description(path, key)} |")
+            self.out.append(f"| `{name}` | {type_text(key.check)} | {default_text(key)} | {cell(key.doc)} |")
             check = key.check
             if isinstance(check, ys.Section):
                 subs.append((path, check))
@@ -124,6 +85,7 @@ class Writer:
 
     def section(self, path: str, sec: ys.Section, level: int) -> None:
         self.out += [f"{'#' * level} `{path}`", ""]
+        self.paragraph(sec)
         if isinstance(sec, config.SourceSection):
             self.source(path, level)
             return
@@ -131,7 +93,7 @@ class Writer:
             self.section(sub_path, sub, level + 1)
 
     def source(self, path: str, level: int) -> None:
-        self.out += ["The keys allowed depend on `source.kind`; these two hold for every kind:", ""]
+        self.out += ["These keys hold for every kind:", ""]
         subs = self.table(config.SOURCE_COMMON, path)
         for kind, keys in config.SOURCE_KINDS.items():
             self.out += [f"{'#' * (level + 1)} `source.kind: {kind}`", ""]
@@ -141,9 +103,9 @@ class Writer:
 
 
 def render() -> str:
-    notes = docstring_notes(config.__doc__ or "")
-    w = Writer(notes)
+    w = Writer()
     w.out += ["## Top level", ""]
+    w.paragraph(config.SCHEMA)
     for sub_path, sub in w.table(config.SCHEMA.keys, ""):
         w.section(sub_path, sub, 2)
     head = [
@@ -157,25 +119,11 @@ def render() -> str:
         "- Any key can be set from the command line: `--set imager.grid.size=128`.",
         "- Paths of input files are resolved against the YAML file's directory.",
         "- Unknown keys are errors and name the closest valid key.",
+        "- Accuracy: `imager.tolerance` is the one knob; `imager.method` and `imager.precision` are expert "
+        "overrides (see [Accuracy](../concepts/accuracy.md)).",
         "",
     ]
-    if w.undocumented:
-        head += [
-            f"!!! note \"Descriptions\"",
-            f"    {len(w.undocumented)} of {w.keys} keys carry no description in the schema yet "
-            "(`Key(..., doc=...)`); for those, the *italic* text is the key's line in the schema "
-            "summary of `bf_epic_blocks/pipeline/config.py`'s docstring.",
-            "",
-        ]
-    tail = []
-    rules = (config.__doc__ or "").split("::", 1)[-1]
-    paras = [p.strip() for p in re.split(r"\n\s*\n", rules)
-             if p.strip() and not p.startswith(" ") and p.strip().split()[0] in ("Numbers:", "Cross-checks:")]
-    if paras:
-        tail += ["## Rules that span keys", ""]
-        for p in paras:
-            tail += [re.sub(r"``([^`]+)``", r"`\1`", re.sub(r"\s*\n\s*", " ", p)), ""]
-    return "\n".join(head + w.out + tail)
+    return "\n".join(head + w.out)
 
 
 with mkdocs_gen_files.open(PAGE, "w") as f:

@@ -9,171 +9,18 @@ have no line). Unknown keys are errors and come with the closest valid key as a 
 The generic checker (leaf checks, sections, did-you-mean, YAML line map) is :mod:`.yaml_schema`;
 this module holds the pipeline's schema, its defaults and the cross-checks.
 
-Schema (``(default ...)`` marks optional keys; keys without a default are required)::
+The schema is :data:`SCHEMA`: every key's check, default and description (``Key(..., doc=...)``).
+Its reference page, docs/reference/pipeline-yaml.md, is generated from this schema alone
+(docs/gen_yaml_reference.py), so a key's meaning is written in one place; tests/test_config.py
+fails for a key without a description.
 
-    name: str                        (default: the YAML file's stem, or 'pipeline' for inline text)
-    station:                         exactly one of name / ssmif (default name: lwasv)
-      name: lwasv | lwana | lwa1 | auto (auto: the station the TBF file's frame id names, ADP -> lwasv,
-                                     NDP -> lwana; TBF sources only; lets one YAML serve both in a batch)
-      ssmif: path to an SSMIF file   (must exist)
-      flags: list of {stand: int >= 1, pol: X | Y | both (default both)}, or bare stand numbers
-                                     (default [])
-    source:
-      kind: simulated | tbf | tbx | file | udp (required; file = TBF or TBX, told by the frame id)
-      # kind: simulated
-      start: ISO UTC time string     (default '2024-01-01T06:00:00'; checked with astropy Time)
-      duration_s: float > 0          (default 2.0)
-      channels:
-        first: int >= 1              (default 2960 -> 74.0 MHz at 25 kHz; frequency = first * width_hz)
-        count: int >= 1              (default 16)
-        width_hz: float > 0          (default 25000.0)
-      sources: list of catalogue names (CygA, CasA, TauA, VirA) or
-               {name: str, ra_deg: float in [0, 360), dec_deg: float in [-90, 90], flux_jy: float >= 0,
-                spectral_index: float (optional), ref_freq_hz: float > 0 (optional)}
-                                     (as bf_epic_blocks.sky.resolve_source takes them)
-                                     (default [CygA, CasA, TauA, VirA])
-      noise_power: float >= 0        (default 1000.0)
-      seed: int                      (default 1)
-      quantize: bool                 (default true)
-      refresh_s: float > 0           (default 1.0; seconds of data between recomputations of the
-                                     sources' directions: the sky turns 0.004 deg a second, and a bright
-                                     source's step at each recomputation is what a sensitive search sees)
-      transients: list of dispersed bursts {ra_deg, dec_deg, start_s: float >= 0 (s after start, at the
-               band's highest channel), duration_s: float > 0, flux_jy: float >= 0, dm: float >= 0
-               (default 0), name: str (optional)}   (default [])
-      # kind: tbf, tbx or file
-      path: path to a TBF / TBX file (required, must exist)
-      channel_block: int >= 0        (tbf only; default null = all channels; image only this block of the
-                                     file's channels: the runs of evenly spaced channels that bf-epic run
-                                     writes to separate FITS files, ``_r<index>``; ``bf-epic batch`` sets it)
-      # kind: udp (live packets; the station is station.name / ssmif and must match the packets)
-      address: IP address to listen on (default 127.0.0.1)
-      port: int >= 0                 (required; 0 = an ephemeral port)
-      format: tbf | tbx | chips | snap2  (default tbf; chips = the ADP F-engine's own stream (LWA-SV),
-                                     snap2 = the NDP F-engine's (Bifrost's formats of those names))
-      engine: auto | bifrost | python  (default auto: Bifrost's C packet capture where Bifrost is the
-                                     runtime and decodes the format (chips, snap2), else the Python receiver)
-      core: int >= 0                 (default null; the CPU core Bifrost's capture thread is bound to)
-      sync_time: int >= 0            (chips only; default null = recovered from the arrival clock: the
-                                     whole UNIX second the F-engine counts spectra from, its utc_start)
-      buffer_s: float > 0            (default 0.05; reordering window, seconds of data)
-      idle_timeout_s: float > 0      (default 2.0; no packet for this long ends the sequence)
-      start_timeout_s: float > 0     (default null = wait for the first packet forever)
-      rcvbuf_mb: float > 0           (default 64; socket receive buffer asked for, MiB)
-      sequences: int >= 0            (default 1; streams to image before stopping, 0 = until stopped)
-      # either kind
-      gulp_nframe: int >= 1 | auto   (default auto; frames (time samples) per ring gulp. auto: 1024,
-                                     but a capture file imaged on a GPU gets ~64 MiB of samples per
-                                     gulp, 5,376 frames for 24 LWA-SV channels: see runner.gulp_frames)
-    calibration:
-      cable: bool                    (default true)
-      gains_table: path to a .npz / .yaml / .yml table (default null = none; must exist)
-      pattern: none | dipole         (default dipole)
-    imager:
-      kind: dft | wstack | moff      (default dft)
-      grid:                          all-sky grid; exactly one of grid / track (default: grid)
-        size: int >= 2               (default 64)
-        cell: float > 0              (default null = 2 / size, the whole sky)
-      track:                         a small patch that follows a source (dft imager only)
-        source: a catalogue name or the name of an entry of source.sources (required)
-        size: int >= 2               (default 16)
-        fov_deg: float in (0, 180]   (default 10.0)
-        update_s: float > 0          (default 10.0; how often the patch centre is recomputed)
-      accumulate_frames: int >= 1    (default 1024; frames (time samples) per image)
-      products: list of XX YY XY YX XYi YXi I Q U V, or a preset stokes | linear | full
-                                     (default [I]; returned as the resolved list of names)
-      remove_autocorr: bool          (default false)
-      tolerance: float in (0, 1)     (default null; the accuracy knob: the largest relative error of an
-                                     image against its float64 value, max |I - I_exact| / max I_exact.
-                                     dft: the fastest route x precision whose measured error bound is
-                                     <= tolerance on the device; null: precision (fp32) on the cheaper
-                                     route. wstack / moff: the gridder's epsilon = tolerance / 4, in
-                                     [4e-14, 0.4]; null: 4e-4 (epsilon 1e-4). One resolver decides
-                                     (bf_epic_blocks.imaging.plan.resolve); --set imager.tolerance=...
-                                     replaces the file's precision. The old key epsilon is an error
-                                     naming this one)
-      method: auto | direct | covariance (default auto; expert override of the dft imager's route)
-      precision: fp32 | fp64 | tf32x3 | fp16x3 | tf32 | fp16 | bf16 | i8x2 | i8x3  (default fp32; expert
-                                     override of the dft imager's GEMM precision; all but fp32 and fp64
-                                     need a GPU (tensor-core modes, see bf_epic_blocks.imaging.gemm), and
-                                     i8x2 / i8x3 4-bit voltages on one GPU's direct route; written beside
-                                     a tolerance it restricts the choice)
-      min_elevation_deg: float in [0, 90) (default 0; grid pixels below this elevation are not imaged)
-      split: auto | channels | pixels (default auto; how several GPUs share the dft imager's work.
-                                     channels: each GPU images some channels, the images meet on the
-                                     host. pixels: each GPU reads or simulates the whole source, images
-                                     every channel for its part of the grid and searches it; only the
-                                     band-averaged images and the candidates meet (a grid, and a file
-                                     or simulated source). auto: pixels where there is a search and
-                                     pixels can be, else channels)
-      search:                        transient search on the images (default null = none)
-        threshold: float > 0         (default 6.0; S/N)
-        window_s: float > 0          (default 1.0; sliding mean/variance window)
-        dms: list of float >= 0      (default [0.0]; trial DMs, pc cm^-3)
-        widths: list of int >= 1     (default [1, 2, 4, 8]; boxcar widths in images)
-        average_channels: bool       (default true; dedisperse and average, else per channel)
-        dedisperse: auto | shifts | tree (default auto: the tree from 64 channels; shifts: each DM of
-                                     `dms` a sum of shifted channels; tree: the streaming FDMT over
-                                     every sweep from 0 to max(dms)'s, one image apart)
-        tree_precision: fp32 | fp16  (default fp32; what the tree stores: fp16 halves its memory traffic
-                                     and rings; it rounds the fluctuations about each channel's first
-                                     image, ~1e-3 of the sums' noise rms)
-        product: str                 (default null = the first product)
-        table: ecsv | fits           (default ecsv; <prefix>_candidates.<table> in output.dir)
-        png: bool                    (default true; sky with the candidates and their light curves)
-        max_pixels: int >= 1         (default 32; crossings kept per trial image, its brightest)
-        sky_fraction: float in (0, 1] (default 0.1; more of the sky over the threshold at once is one
-                                     'sky-wide' event: lightning, RFI, a flash)
-        sidelobe_factor: float >= 0  (default 2.0; fold a candidate a brighter one explains through the
-                                     array's beam; 0 keeps every candidate)
-    device: cpu | gpu | 'gpu:N'      (default cpu; returned as 'cpu' or 'gpu:N', 'gpu' = 'gpu:0');
-            on one GPU with static calibration (no gains_table) and a file or simulated source, the
-            dft imager folds the cable terms into its operator and no CalFoldBlock runs;
-            or several GPUs of the host: 'gpu:all' or a list [0, 1] (returned as 'gpu:all' / 'gpu:0,1'):
-            the dft imager splits the work across them as imager.split says (no CalFoldBlock then:
-            cable terms are folded into the operators; calibration.gains_table needs a single device)
-    output:
-      dir: path                      (default 'output/<name>'; relative to the working directory)
-      fits: bool                     (default true)
-      png: bool                      (default true)
-      table: bool                    (default false)
-      prefix: str                    (default: name)
-      integrate:                     FITS / PNG of longer images than the imager's (default null = each
-                                     image as the imager makes it)
-        seconds: float > 0           (default 1.0; the mean of round(seconds / image length) images)
-        average_channels: bool       (default true; one band-averaged image)
-      cube:                          HDF5 image cubes with a time axis (default null = none)
-        dtype: float32 | float16     (default float32)
-        average_channels: bool       (default false)
-        images_per_file: int >= 1    (default null = one file per sequence)
-
-Numbers: ``1e-3`` is accepted for a float although YAML 1.1 (PyYAML) reads it as a string.
 Paths of input files (``station.ssmif``, ``source.path``, ``calibration.gains_table``) are resolved
 against the YAML file's directory (the working directory for inline text) and returned absolute.
 A key set to ``null`` takes its default; ``imager.grid: null`` removes a grid given in the file, so
 ``--set imager.grid=null --set imager.track.source=CygA`` switches a pipeline to tracking.
-
-Cross-checks: the products must be possible with the station's two polarisations (X, Y); with a
-simulated source, ``accumulate_frames`` must fit in ``duration_s`` (one frame = 1 / width_hz s) or
-no image would ever be produced; a tracked source must be one the pipeline knows.
-
-Why a hand-written checker, not pydantic v2 or jsonschema (prototypes of the imager and source
-sections with pydantic 2.14 and jsonschema 4.26): pydantic gives dotted paths and every problem at
-once, but no "did you mean" for unknown keys ("Extra inputs are not permitted"), tag-inserted paths
-for kind-dependent sections (``source.simulated.durations``), one error per union branch (a bad
-``source.sources[0]`` fails twice), messages without the allowed range ("Input should be a valid
-integer" for ``size: abc``), a lax mode that takes ``'yes'`` for true while strict mode rejects
-YAML 1.1's ``1e-3`` string, a model-wide rule (grid or track) silenced by any field error, and
-``null`` is not "the default". Rewriting its errors into today's messages took 70 non-blank lines
-of formatter and 15 of set-up besides 56 of models; here the same sections are 74 lines of schema on
-a 144-line generic engine. The file, time, device, product and source-list checks, overrides,
-defaults and cross-checks (about 280 lines) would stay as they are: a saving of about 80 of 640
-non-blank lines, for a compiled dependency whose error types and locations the formatter must
-track. jsonschema (34 lines for the same sections) fills no defaults, normalises nothing, puts an
-unknown key's error on its parent, reports ``grid: {size: abc}`` as "{'size': 'abc'} is not valid
-under any of the given schemas", prints the schema for the grid-or-track rule and accepts ``.nan``.
-So the checker stays, split by concern. Lines (total / non-blank): before, config.py 760 / 639;
-after, config.py 522 / 458 + yaml_schema.py 330 / 261 = 852 / 719 (new: YAML line map, this note).
+Rules that span keys (grid or track, products against the station's pols, an image that fits in a
+simulated source, a tracked source the pipeline knows, the expert modes a device can run) are
+checked once every key has been, by the sections' ``post`` rules and :func:`_fill_and_cross_check`.
 """
 from __future__ import annotations
 
@@ -191,7 +38,7 @@ from .yaml_schema import (INVALID, REQUIRED, BadValue, Bool, Choice, Context, Fi
                           Str, TimeStr, did_you_mean, is_valid, join_path, key_lines, run_check)
 
 __all__ = ["ConfigError", "load_config", "apply_overrides", "parse_device", "pixel_split_problems", "resolved_split",
-           "several_gpus", "schema_keys",
+           "several_gpus", "schema_keys", "schema_entries",
            "STATIONS", "CATALOGUE_SOURCES", "DEFAULT_START", "NPOL"]
 
 PRECISION_NAMES = tuple(_PRECISIONS)
@@ -273,12 +120,15 @@ class SourceList:
     """source.sources: catalogue names or {name, ra_deg, dec_deg, flux_jy} mappings."""
 
     entry = Section({
-        "name": Key(Str(r"\S+", "a name without spaces"), REQUIRED),
-        "ra_deg": Key(Float(0.0, 360.0, hi_open=True), REQUIRED),
-        "dec_deg": Key(Float(-90.0, 90.0), REQUIRED),
-        "flux_jy": Key(Float(0.0), REQUIRED),
-        "spectral_index": Key(Float(), None),
-        "ref_freq_hz": Key(Float(0.0, lo_open=True), None),
+        "name": Key(Str(r"\S+", "a name without spaces"), REQUIRED,
+                    doc="The source's name, unique in the list; `imager.track.source` can name it."),
+        "ra_deg": Key(Float(0.0, 360.0, hi_open=True), REQUIRED, doc="Right ascension (ICRS), degrees."),
+        "dec_deg": Key(Float(-90.0, 90.0), REQUIRED, doc="Declination (ICRS), degrees."),
+        "flux_jy": Key(Float(0.0), REQUIRED, doc="Flux density at `ref_freq_hz`, Jy."),
+        "spectral_index": Key(Float(), None,
+                              doc="Spectral index α of S ∝ ν^α; null: 0 (a flat spectrum)."),
+        "ref_freq_hz": Key(Float(0.0, lo_open=True), None,
+                           doc="The frequency `flux_jy` is given at, Hz; null: 74 MHz."),
     }, what="a source mapping")
 
     def describe(self) -> str:
@@ -318,8 +168,9 @@ class SourceList:
 
 class FlagList:
     entry = Section({
-        "stand": Key(Int(1), REQUIRED),
-        "pol": Key(Choice("X", "Y", "both"), "both"),
+        "stand": Key(Int(1), REQUIRED, doc="The stand flagged, numbered from 1 as in the SSMIF."),
+        "pol": Key(Choice("X", "Y", "both"), "both",
+                   doc="The polarisation flagged: X (N-S dipole), Y (E-W) or both."),
     }, what="a flag mapping {stand, pol}")
 
     def describe(self) -> str:
@@ -389,90 +240,146 @@ def _imager_post(out, given, path, ctx):
 
 
 IMAGER_GRID = Section({
-    "size": Key(Int(2), 64, "pixels per side"),
-    "cell": Key(Float(0.0, lo_open=True), None, "step in l and m; null = 2 / size"),
+    "size": Key(Int(2), 64, doc="Pixels per side."),
+    "cell": Key(Float(0.0, lo_open=True), None,
+                doc="Pixel step in the direction cosines l and m; null: 2 / size, the whole sky."),
 }, what="a grid mapping {size, cell}")
 
 IMAGER_TRACK = Section({
-    "source": Key(Str(r"\S+", "a source name"), REQUIRED),
-    "size": Key(Int(2), 16),
-    "fov_deg": Key(Float(0.0, 180.0, lo_open=True), 10.0),
-    "update_s": Key(Float(0.0, lo_open=True), 10.0),
+    "source": Key(Str(r"\S+", "a source name"), REQUIRED,
+                  doc="The source followed: a catalogue name (CygA, CasA, TauA, VirA) or the name of an "
+                      "entry of `source.sources`."),
+    "size": Key(Int(2), 16, doc="Pixels per side of the patch."),
+    "fov_deg": Key(Float(0.0, 180.0, lo_open=True), 10.0, doc="Width of the patch, degrees."),
+    "update_s": Key(Float(0.0, lo_open=True), 10.0, doc="Seconds between recomputations of the patch's centre."),
 }, what="a track mapping {source, size, fov_deg, update_s}")
 
 TRANSIENT = Section({
-    "name": Key(Str(r"\S+", "a name without spaces"), None),
-    "ra_deg": Key(Float(0.0, 360.0, hi_open=True), REQUIRED),
-    "dec_deg": Key(Float(-90.0, 90.0), REQUIRED),
-    "start_s": Key(Float(0.0), REQUIRED),
-    "duration_s": Key(Float(0.0, lo_open=True), REQUIRED),
-    "flux_jy": Key(Float(0.0), REQUIRED),
-    "dm": Key(Float(0.0), 0.0),
+    "name": Key(Str(r"\S+", "a name without spaces"), None, doc="A name for the burst; null: none."),
+    "ra_deg": Key(Float(0.0, 360.0, hi_open=True), REQUIRED, doc="Right ascension (ICRS), degrees."),
+    "dec_deg": Key(Float(-90.0, 90.0), REQUIRED, doc="Declination (ICRS), degrees."),
+    "start_s": Key(Float(0.0), REQUIRED,
+                   doc="When the burst reaches the band's highest channel, seconds after `source.start`."),
+    "duration_s": Key(Float(0.0, lo_open=True), REQUIRED, doc="Length of the burst in each channel, seconds."),
+    "flux_jy": Key(Float(0.0), REQUIRED, doc="Flux density while the burst lasts, Jy."),
+    "dm": Key(Float(0.0), 0.0,
+              doc="Dispersion measure, pc cm^-3: lower channels see the burst later by the cold-plasma "
+                  "delay."),
 }, what="a burst mapping {ra_deg, dec_deg, start_s, duration_s, flux_jy, dm}")
 
 IMAGER_SEARCH = Section({
-    "threshold": Key(Float(0.0, lo_open=True), 6.0),
-    "window_s": Key(Float(0.0, lo_open=True), 1.0),
-    "dms": Key(ListOf(Float(0.0), "DMs >= 0"), [0.0]),
-    "widths": Key(ListOf(Int(1), "integers >= 1"), [1, 2, 4, 8]),
-    "average_channels": Key(Bool(), True),
-    "dedisperse": Key(Choice("auto", "shifts", "tree"), "auto"),
-    "tree_precision": Key(Choice("fp32", "fp16"), "fp32"),
-    "product": Key(Str(r"\S+", "a product name"), None),
-    "table": Key(Choice("ecsv", "fits"), "ecsv"),
-    "png": Key(Bool(), True),
-    "max_pixels": Key(Int(1), 32),
-    "sky_fraction": Key(Float(0.0, 1.0, lo_open=True), 0.1),
-    "sidelobe_factor": Key(Float(0.0), 2.0),
+    "threshold": Key(Float(0.0, lo_open=True), 6.0, doc="Detection threshold, S/N."),
+    "window_s": Key(Float(0.0, lo_open=True), 1.0,
+                    doc="Seconds of images in the sliding window that gives each pixel's mean and variance; "
+                        "with a simulated source, shorter than `source.duration_s`."),
+    "dms": Key(ListOf(Float(0.0), "DMs >= 0"), [0.0], doc="Trial dispersion measures, pc cm^-3."),
+    "widths": Key(ListOf(Int(1), "integers >= 1"), [1, 2, 4, 8], doc="Boxcar widths, in images."),
+    "average_channels": Key(Bool(), True,
+                            doc="Dedisperse and average the channels into one series per DM; false searches "
+                                "each channel on its own."),
+    "dedisperse": Key(Choice("auto", "shifts", "tree"), "auto",
+                      doc="shifts: each DM of `dms` is a sum of shifted channels; tree: the streaming FDMT "
+                          "over every sweep from 0 to the largest DM's, one image apart; auto: the tree from "
+                          "64 channels up, else shifts."),
+    "tree_precision": Key(Choice("fp32", "fp16"), "fp32",
+                          doc="What the tree stores: fp16 halves its memory traffic and rings, and rounds the "
+                              "fluctuations about each channel's first image by about 1e-3 of the sums' "
+                              "noise rms."),
+    "product": Key(Str(r"\S+", "a product name"), None,
+                   doc="The product searched, one of `imager.products`; null: the first."),
+    "table": Key(Choice("ecsv", "fits"), "ecsv",
+                 doc="Format of the candidate table, `<prefix>_candidates.<table>` in `output.dir`."),
+    "png": Key(Bool(), True, doc="Also write a PNG of the sky with the candidates and their light curves."),
+    "max_pixels": Key(Int(1), 32, doc="Threshold crossings kept per trial image, its brightest."),
+    "sky_fraction": Key(Float(0.0, 1.0, lo_open=True), 0.1,
+                        doc="A larger fraction of the sky over the threshold at once is one 'sky-wide' event "
+                            "(lightning, RFI, a flash), not a set of candidates."),
+    "sidelobe_factor": Key(Float(0.0), 2.0,
+                           doc="A candidate whose S/N is at most this many times what a brighter one puts at "
+                               "its pixel (through the array's beam or its DM sidelobe) is folded into it; 0 "
+                               "keeps every candidate."),
 }, what="a search mapping {threshold, window_s, dms, widths, ...}")
 
 OUTPUT_INTEGRATE = Section({
-    "seconds": Key(Float(0.0, lo_open=True), 1.0),
-    "average_channels": Key(Bool(), True),
+    "seconds": Key(Float(0.0, lo_open=True), 1.0,
+                   doc="Length of an integrated image: the mean of round(seconds / image length) images."),
+    "average_channels": Key(Bool(), True, doc="Average the channels into one band-averaged image."),
 }, what="an integrate mapping {seconds, average_channels}")
 
 OUTPUT_CUBE = Section({
-    "dtype": Key(Choice("float32", "float16"), "float32"),
-    "average_channels": Key(Bool(), False),
-    "images_per_file": Key(Int(1), None),
+    "dtype": Key(Choice("float32", "float16"), "float32", doc="The data type the cube stores its pixels in."),
+    "average_channels": Key(Bool(), False, doc="Store one band-averaged image per time, not every channel."),
+    "images_per_file": Key(Int(1), None, doc="Images (times) per HDF5 file; null: one file per sequence."),
 }, what="a cube mapping {dtype, average_channels, images_per_file}")
 
-SOURCE_COMMON = {"kind": Key(Choice("simulated", "tbf", "tbx", "file", "udp"), REQUIRED),
-                 "gulp_nframe": Key(Int(1, auto=True), "auto")}
+SOURCE_COMMON = {
+    "kind": Key(Choice("simulated", "tbf", "tbx", "file", "udp"), REQUIRED,
+                doc="simulated: a sky computed as the pipeline runs; tbf, tbx: a capture file of that format; "
+                    "file: a TBF or TBX file, told apart by its frame id; udp: live packets."),
+    "gulp_nframe": Key(Int(1, auto=True), "auto",
+                       doc="Frames (time samples) per ring gulp. auto: 1024, or for a capture file imaged on "
+                           "a GPU about 64 MiB of samples per gulp (`runner.gulp_frames`)."),
+}
 SOURCE_SIMULATED = {
-    "start": Key(TimeStr(), DEFAULT_START),
-    "duration_s": Key(Float(0.0, lo_open=True), 2.0),
+    "start": Key(TimeStr(), DEFAULT_START, doc="UTC time of the first sample, an ISO string; sets where the "
+                                               "sources are in the sky."),
+    "duration_s": Key(Float(0.0, lo_open=True), 2.0, doc="Seconds of data simulated."),
     "channels": Key(Section({
-        "first": Key(Int(1), 2960),
-        "count": Key(Int(1), 16),
-        "width_hz": Key(Float(0.0, lo_open=True), 25000.0),
-    }, what="a channels mapping {first, count, width_hz}"), {}),
-    "sources": Key(SourceList(), list(CATALOGUE_SOURCES)),
-    "noise_power": Key(Float(0.0), 1000.0),
-    "seed": Key(Int(), 1),
-    "quantize": Key(Bool(), True),
-    "refresh_s": Key(Float(0.0, lo_open=True), 1.0),
-    "transients": Key(ListOf(TRANSIENT, "burst mappings"), []),
+        "first": Key(Int(1), 2960,
+                     doc="Number of the first channel; its centre frequency is first × width_hz "
+                         "(2960 × 25 kHz = 74.0 MHz)."),
+        "count": Key(Int(1), 16, doc="Number of channels."),
+        "width_hz": Key(Float(0.0, lo_open=True), 25000.0,
+                        doc="Channel width, Hz; one frame (time sample) lasts 1 / width_hz seconds."),
+    }, what="a channels mapping {first, count, width_hz}"), {},
+        doc="The simulated band: `count` adjacent channels from channel number `first`."),
+    "sources": Key(SourceList(), list(CATALOGUE_SOURCES),
+                   doc="The sky's point sources: catalogue names or mappings, as "
+                       "`bf_epic_blocks.sky.resolve_source` takes them. Sources below the horizon are left out."),
+    "noise_power": Key(Float(0.0), 1000.0,
+                       doc="Power of the receiver noise added to each antenna, polarisation, channel and "
+                           "sample, in the units of flux_jy."),
+    "seed": Key(Int(), 1, doc="Seed of the random signals and noise: the same seed gives the same voltages."),
+    "quantize": Key(Bool(), True,
+                    doc="Round the voltages to 4-bit complex integers as a station's F-engine does; false "
+                        "keeps them complex floats."),
+    "refresh_s": Key(Float(0.0, lo_open=True), 1.0,
+                     doc="Seconds of data between recomputations of the sources' directions. The sky turns "
+                         "0.004 degrees a second, and a bright source's step at each recomputation is what a "
+                         "sensitive search sees."),
+    "transients": Key(ListOf(TRANSIENT, "burst mappings"), [],
+                      doc="Dispersed bursts added to the sky."),
 }
 SOURCE_TBF = {
-    "path": Key(File("TBF file"), REQUIRED),
-    "channel_block": Key(Int(0), None),
+    "path": Key(File("TBF file"), REQUIRED, doc="The TBF capture file."),
+    "channel_block": Key(Int(0), None,
+                         doc="Image only this block of the file's channels: the runs of evenly spaced channels "
+                             "that `bf-epic run` writes to separate FITS files (`_r<index>`); `bf-epic batch` "
+                             "sets it. null: every channel."),
 }
 SOURCE_UDP = {  # live capture (bf_epic_blocks.io.udp); station from station.name / ssmif
-    "address": Key(Str(r"\S+", "an IP address to listen on"), "127.0.0.1"),
-    "port": Key(Int(0), REQUIRED),
-    "format": Key(Choice("tbf", "tbx", "chips", "snap2"), "tbf"),
-    "sync_time": Key(Int(0), None),
-    "engine": Key(Choice("auto", "bifrost", "python"), "auto"),
-    "core": Key(Int(0), None),
-    "buffer_s": Key(Float(0.0, lo_open=True), 0.05),
-    "idle_timeout_s": Key(Float(0.0, lo_open=True), 2.0),
-    "start_timeout_s": Key(Float(0.0, lo_open=True), None),
-    "rcvbuf_mb": Key(Float(0.0, lo_open=True), 64.0),
-    "sequences": Key(Int(0), 1),
+    "address": Key(Str(r"\S+", "an IP address to listen on"), "127.0.0.1", doc="IP address to listen on."),
+    "port": Key(Int(0), REQUIRED, doc="UDP port to listen on; 0 picks a free (ephemeral) port."),
+    "format": Key(Choice("tbf", "tbx", "chips", "snap2"), "tbf",
+                  doc="Packet format: tbf, tbx, chips (the ADP F-engine's own stream, LWA-SV) or snap2 (the NDP "
+                      "F-engine's), as Bifrost names them."),
+    "sync_time": Key(Int(0), None,
+                     doc="chips only: the whole UNIX second the F-engine counts spectra from (its utc_start); "
+                         "null: recovered from the arrival clock."),
+    "engine": Key(Choice("auto", "bifrost", "python"), "auto",
+                  doc="The receiver: Bifrost's C packet capture or the Python one. auto: Bifrost's where "
+                      "Bifrost is the runtime and decodes the format (chips, snap2), else Python's."),
+    "core": Key(Int(0), None, doc="CPU core Bifrost's capture thread is bound to; null: not bound."),
+    "buffer_s": Key(Float(0.0, lo_open=True), 0.05, doc="Reordering window, seconds of data."),
+    "idle_timeout_s": Key(Float(0.0, lo_open=True), 2.0, doc="Seconds without a packet that end a sequence."),
+    "start_timeout_s": Key(Float(0.0, lo_open=True), None,
+                           doc="Seconds to wait for the first packet; null: wait forever."),
+    "rcvbuf_mb": Key(Float(0.0, lo_open=True), 64.0, doc="Socket receive buffer asked for, MiB."),
+    "sequences": Key(Int(0), 1, doc="Sequences (streams) to image before stopping; 0: until stopped."),
 }
-SOURCE_TBX = {"path": Key(File("TBX file"), REQUIRED)}
-SOURCE_FILE = {"path": Key(File("TBF or TBX capture file"), REQUIRED)}
+SOURCE_TBX = {"path": Key(File("TBX file"), REQUIRED, doc="The TBX capture file.")}
+SOURCE_FILE = {"path": Key(File("TBF or TBX capture file"), REQUIRED,
+                           doc="The capture file, TBF or TBX (told apart by its frame id).")}
 #: source.kind -> the keys it takes besides SOURCE_COMMON
 SOURCE_KINDS = {"simulated": SOURCE_SIMULATED, "tbf": SOURCE_TBF, "tbx": SOURCE_TBX, "file": SOURCE_FILE,
                 "udp": SOURCE_UDP}
@@ -482,7 +389,9 @@ class SourceSection(Section):
     """source: the keys allowed depend on source.kind."""
 
     def __init__(self):
-        super().__init__({**SOURCE_COMMON, **SOURCE_SIMULATED, **SOURCE_TBF, **SOURCE_UDP}, what="a source mapping")
+        super().__init__({**SOURCE_COMMON, **SOURCE_SIMULATED, **SOURCE_TBF, **SOURCE_UDP}, what="a source mapping",
+                         doc="The keys allowed depend on `kind`; a key of another kind is an error that names "
+                             "the kinds it belongs to.")
 
     def check(self, v, path, ctx, **_):
         if v is None:
@@ -514,63 +423,133 @@ class SourceSection(Section):
 
 
 SCHEMA = Section({
-    "name": Key(Str(r"[^/\\\s]+", "a name without spaces or slashes"), None),
+    "name": Key(Str(r"[^/\\\s]+", "a name without spaces or slashes"), None,
+                doc="The pipeline's name, the default of `output.dir` and `output.prefix`; null: the YAML "
+                    "file's stem, or 'pipeline' for inline text."),
     "station": Key(Section({
-        "name": Key(Choice(*STATIONS, "auto"), None),
-        "ssmif": Key(File("SSMIF file"), None),
-        "flags": Key(FlagList(), []),
-    }, post=_station_post, what="a station mapping"), {}),
-    "source": Key(SourceSection(), REQUIRED),
+        "name": Key(Choice(*STATIONS, "auto"), None,
+                    doc="A station LSL knows. auto: the station the TBF file's frame id names (ADP: lwasv, "
+                        "NDP: lwana), for TBF sources only, so that one YAML serves both in a batch."),
+        "ssmif": Key(File("SSMIF file"), None, doc="An SSMIF file that describes the station, instead of `name`."),
+        "flags": Key(FlagList(), [],
+                     doc="Antennas left out, on top of the station's own status flags: mappings "
+                         "`{stand, pol}`, or bare stand numbers (both pols)."),
+    }, post=_station_post, what="a station mapping",
+        doc="Give `name` or `ssmif`, not both; with neither, `name` is lwasv."), {},
+        doc="The station whose antennas are imaged."),
+    "source": Key(SourceSection(), REQUIRED, doc="Where the voltages come from; `kind` decides the other keys."),
     "calibration": Key(Section({
-        "cable": Key(Bool(), True),
-        "gains_table": Key(File("gains table", (".npz", ".yaml", ".yml")), None),
-        "pattern": Key(Choice("none", "dipole", none_is="none"), "dipole"),
-    }, what="a calibration mapping"), {}),
+        "cable": Key(Bool(), True, doc="Remove each antenna's cable delay and gain (LSL's cable model)."),
+        "gains_table": Key(File("gains table", (".npz", ".yaml", ".yml")), None,
+                           doc="Time-variable gain solutions applied to the voltages, each from its exact "
+                               "frame: arrays `valid_from` (time tags) and `gains` (nsol, nchan, nstand, npol). "
+                               "null: none."),
+        "pattern": Key(Choice("none", "dipole", none_is="none"), "dipole",
+                       doc="Antenna voltage pattern folded into the imaging operator: a short dipole's, or none."),
+    }, what="a calibration mapping"), {}, doc="What is done to the voltages before imaging."),
     "imager": Key(Section({
-        "kind": Key(Choice("dft", "wstack", "moff"), "dft"),
-        "grid": Key(IMAGER_GRID, None),
-        "track": Key(IMAGER_TRACK, None),
-        "accumulate_frames": Key(Int(1), 1024),
-        "products": Key(Products(), ["I"]),
-        "remove_autocorr": Key(Bool(), False),
-        "method": Key(Choice("auto", "direct", "covariance"), "auto"),
-        "precision": Key(Choice(*PRECISION_NAMES), "fp32"),
-        "tolerance": Key(Float(0.0, 1.0, lo_open=True, hi_open=True), None),
-        "min_elevation_deg": Key(Float(0.0, 90.0, hi_open=True), 0.0),
-        "search": Key(IMAGER_SEARCH, None),
-        "split": Key(Choice("auto", "channels", "pixels"), "auto"),
+        "kind": Key(Choice("dft", "wstack", "moff"), "dft",
+                    doc="dft: the exact direct Fourier transform; wstack: E-field w-stacking or covariance "
+                        "w-gridding with ducc0; moff: one gridded plane that ignores the w-term (fast, and "
+                        "wrong by tens of per cent of the peak across a wide field)."),
+        "grid": Key(IMAGER_GRID, None,
+                    doc="An all-sky grid of `size × size` pixels in the direction cosines (l, m)."),
+        "track": Key(IMAGER_TRACK, None, doc="A small patch that follows a source (dft imager only)."),
+        "accumulate_frames": Key(Int(1), 1024,
+                                 doc="Frames (time samples) per image: an image lasts accumulate_frames / "
+                                     "width_hz seconds (16 = 0.64 ms at 25 kHz channels). With a simulated "
+                                     "source, at most `source.duration_s` long, or no image would be made."),
+        "products": Key(Products(), ["I"],
+                        doc="The polarisation products imaged: a list of names or a preset (stokes, linear, "
+                            "full), returned as the resolved list; each must be possible with the station's "
+                            "two pols, X and Y."),
+        "remove_autocorr": Key(Bool(), False, doc="Subtract each antenna's own power from the image."),
+        "method": Key(Choice("auto", "direct", "covariance"), "auto",
+                      doc="Expert override of the dft imager's route: direct (F = D X, then |F|² averaged) or "
+                          "covariance (R = X Xᴴ / T, then diag(D R Dᴴ)). auto: the resolver picks. Beside a "
+                          "`tolerance` it restricts the resolver's choice."),
+        "precision": Key(Choice(*PRECISION_NAMES), "fp32",
+                         doc="Expert override of the dft imager's arithmetic. fp32 and fp64 run anywhere; the "
+                             "others are tensor-core modes that need a GPU, and i8x2 / i8x3 4-bit voltages on "
+                             "one GPU's direct route (`bf_epic_blocks.imaging.gemm`). Beside a `tolerance` it "
+                             "restricts the resolver's choice; `--set imager.tolerance=...` replaces the "
+                             "file's precision."),
+        "tolerance": Key(Float(0.0, 1.0, lo_open=True, hi_open=True), None,
+                         doc="The accuracy knob: the largest relative error of an image against its float64 "
+                             "value, max |I − I_float64| / max |I_float64|. dft: the fastest route and precision "
+                             "whose measured error bound is within it on the device; null: `precision` on the "
+                             "cheaper route. wstack, moff: the gridder's epsilon = tolerance / 4, tolerance in "
+                             "[4e-14, 0.4]; null: 4e-4 (epsilon 1e-4)."),
+        "min_elevation_deg": Key(Float(0.0, 90.0, hi_open=True), 0.0,
+                                 doc="Grid pixels below this elevation, degrees, are not imaged (those below "
+                                     "the horizon never are)."),
+        "search": Key(IMAGER_SEARCH, None, doc="A transient search on the images; null: none."),
+        "split": Key(Choice("auto", "channels", "pixels"), "auto",
+                     doc="How several GPUs share the dft imager's work. channels: each GPU images some "
+                         "channels and the images meet on the host; pixels: each GPU reads or simulates the "
+                         "whole source and images and searches its part of the grid (a grid, and a file or "
+                         "simulated source); auto: pixels where there is a search and pixels can be, else "
+                         "channels."),
     }, post=_imager_post, what="an imager mapping", renamed={
         "epsilon": "epsilon is now imager.tolerance, the one accuracy knob (the largest relative image error; "
-                   "for wstack / moff the gridder's epsilon = tolerance / 4): write tolerance: 4 x your epsilon"}),
-        {}),
-    "device": Key(Device(), "cpu"),
+                   "for wstack / moff the gridder's epsilon = tolerance / 4): write tolerance: 4 x your epsilon"},
+        doc="`tolerance` is the one accuracy knob; `method` and `precision` are expert overrides that fix the "
+            "dft imager's route and arithmetic (alone) or restrict the resolver's choice (beside a "
+            "tolerance). One resolver, `bf_epic_blocks.imaging.plan.resolve`, decides; `bf-epic plan` prints "
+            "its pick. Give `grid` or `track`, not both; with neither, the grid's defaults; `grid: null` "
+            "removes a grid given in the file."),
+        {}, doc="How the images are made."),
+    "device": Key(Device(), "cpu",
+                  doc="Where the pipeline computes: cpu, gpu (gpu:0), gpu:N, or several GPUs of the host as "
+                      "gpu:all or a list [0, 1] (returned as 'gpu:all' / 'gpu:0,1'), which share the dft "
+                      "imager's work as `imager.split` says. On GPUs, with no gains table and a file or "
+                      "simulated source, the dft imager folds the cable terms into its operator; "
+                      "`calibration.gains_table` needs a single device."),
     "output": Key(Section({
-        "dir": Key(Str(r"\S.*", "a directory path"), None),
-        "fits": Key(Bool(), True),
-        "png": Key(Bool(), True),
-        "table": Key(Bool(), False),
-        "prefix": Key(Str(r"[^/\\\s]+", "a file-name prefix without spaces or slashes"), None),
-        "integrate": Key(OUTPUT_INTEGRATE, None),
-        "cube": Key(OUTPUT_CUBE, None),
-    }, what="an output mapping"), {}),
-}, what="a pipeline mapping")
+        "dir": Key(Str(r"\S.*", "a directory path"), None,
+                   doc="Directory of the outputs, relative to the working directory; null: output/<name>."),
+        "fits": Key(Bool(), True, doc="Write each grid image as a FITS cube."),
+        "png": Key(Bool(), True, doc="Write a quicklook PNG of each image."),
+        "table": Key(Bool(), False,
+                     doc="Write each image as a FITS table of pixels too (a tracked patch always is)."),
+        "prefix": Key(Str(r"[^/\\\s]+", "a file-name prefix without spaces or slashes"), None,
+                      doc="Start of every output file's name; null: `name`."),
+        "integrate": Key(OUTPUT_INTEGRATE, None,
+                         doc="FITS and PNG of longer images than the imager's (a cube and the search still see "
+                             "every image); null: each image as the imager makes it."),
+        "cube": Key(OUTPUT_CUBE, None, doc="HDF5 image cubes with a time axis; null: none."),
+    }, what="an output mapping"), {}, doc="What is written, and where."),
+}, what="a pipeline mapping",
+    doc="Numbers such as `1e-3` are read as numbers, although YAML 1.1 (PyYAML) reads them as strings.")
+
+
+def schema_entries() -> list[tuple[str, Key]]:
+    """Every ``(dotted path, Key)`` of the schema, as the YAML reference lists them: the keys of every
+    ``source.kind`` (``source.path`` once per kind that takes it) and of list items (``station.flags[].pol``)."""
+    out = []
+
+    def walk(keys, prefix):
+        for k, spec in keys.items():
+            p = join_path(prefix, k)
+            out.append((p, spec))
+            sub = spec.check
+            if isinstance(sub, SourceSection):
+                walk(SOURCE_COMMON, p)
+                for kind_keys in SOURCE_KINDS.values():
+                    walk(kind_keys, p)
+            elif isinstance(sub, Section):
+                walk(sub.keys, p)
+            elif isinstance(getattr(sub, "entry", None), Section):  # SourceList, FlagList
+                walk(sub.entry.keys, p + "[]")
+            elif isinstance(getattr(sub, "item", None), Section):   # ListOf a mapping
+                walk(sub.item.keys, p + "[]")
+    walk(SCHEMA.keys, "")
+    return out
 
 
 def schema_keys() -> list[str]:
-    """Every dotted key path the schema knows (for docs and tests)."""
-    out = []
-
-    def walk(sec, prefix):
-        for k, spec in sec.keys.items():
-            p = join_path(prefix, k)
-            out.append(p)
-            sub = spec.check
-            if isinstance(sub, Section):
-                walk(sub, p)
-            elif isinstance(sub, (SourceList, FlagList)):
-                walk(sub.entry, p)
-    walk(SCHEMA, "")
-    return out
+    """Every dotted key path the schema knows, each once (``station.flags[].pol`` for list items)."""
+    return list(dict.fromkeys(p for p, _ in schema_entries()))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -644,7 +623,7 @@ def load_config(path_or_text, overrides: Iterable[str] = (), *, base_dir=None) -
     base_dir : directory for relative input paths; default the YAML file's directory, or the
         working directory for inline text.
 
-    Returns the validated dict with every key of the schema present (see the module docstring).
+    Returns the validated dict with every key of the schema present (see :data:`SCHEMA`).
     Raises :class:`ConfigError` listing every problem found, each prefixed by its key path and,
     where the key is written in the YAML (not set by an override), its line.
     """

@@ -8,7 +8,16 @@ own problems. Every problem is collected in a :class:`Context` under the key's d
 gave it (:func:`key_lines`), so that one run reports everything at once. Unknown keys are errors
 that name the closest valid key (:func:`did_you_mean`).
 
+Every :class:`Key` and :class:`Section` carries its description in ``doc``; the pipeline YAML
+reference (docs/reference/pipeline-yaml.md) is generated from those alone.
+
 Nothing here knows the pipeline: its schema, defaults and cross-checks are in :mod:`.config`.
+
+Why hand-written rather than pydantic or jsonschema: the operator's messages need the dotted path and
+YAML line of every problem at once, a "did you mean" for unknown keys, the allowed range in each
+message, key sets that depend on another key (``source.kind``), ``null`` meaning "the default", and
+YAML 1.1's ``1e-3`` read as a number. pydantic gives the first but none of the rest without a
+formatter that rewrites its errors; jsonschema fills no defaults and normalises nothing.
 """
 from __future__ import annotations
 
@@ -298,21 +307,26 @@ REQUIRED = object()
 
 @dataclass(frozen=True)
 class Key:
+    """One key of a :class:`Section`: its ``check``, its ``default`` (None: optional and None when
+    absent; :data:`REQUIRED`: no default) and ``doc``, the description the YAML reference shows (units,
+    meaning, what ``null`` or ``auto`` stands for)."""
     check: Any
-    default: Any = None  # None = optional, returned as None when absent
+    default: Any = None
     doc: str = ""
 
 
 class Section:
     """A mapping with a fixed set of keys. ``post(out, given, path, ctx)`` adds cross-key rules;
-    ``renamed`` maps a key that is no longer read to the error that says what replaced it."""
+    ``renamed`` maps a key that is no longer read to the error that says what replaced it; ``doc`` is
+    the paragraph the YAML reference shows under the section's heading (rules that span its keys)."""
 
     def __init__(self, keys: Mapping[str, Key], post: Callable | None = None, what: str = "a mapping",
-                 renamed: Mapping[str, str] | None = None):
+                 renamed: Mapping[str, str] | None = None, doc: str = ""):
         self.keys = dict(keys)
         self.post = post
         self.what = what
         self.renamed = dict(renamed or {})
+        self.doc = doc
 
     def describe(self) -> str:
         return self.what
