@@ -24,15 +24,22 @@ from bf_epic_blocks.pipeline import yaml_schema as ys  # noqa: E402
 PAGE = "reference/pipeline-yaml.md"
 
 
+def _escape_braces(text: str) -> str:
+    """Braces outside code spans as HTML entities: attr_list would take "{...}" as attributes. Inside
+    a code span they stay as they are (an entity there would be shown literally)."""
+    parts = str(text).split("`")
+    return "`".join(part if i % 2 else part.replace("{", "&#123;").replace("}", "&#125;")
+                    for i, part in enumerate(parts))
+
+
 def cell(text: str) -> str:
     """Text safe inside a Markdown table cell."""
-    text = str(text).replace("|", "\\|").replace("\n", " ")
-    return text.replace("{", "&#123;").replace("}", "&#125;")  # attr_list would take "{...}" as attributes
+    return _escape_braces(str(text).replace("|", "\\|").replace("\n", " "))
 
 
 def prose(text: str) -> str:
     """Text safe as a Markdown paragraph."""
-    return str(text).replace("{", "&#123;").replace("}", "&#125;")
+    return _escape_braces(text)
 
 
 def type_text(check) -> str:

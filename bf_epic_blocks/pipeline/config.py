@@ -487,7 +487,7 @@ SCHEMA = Section({
         "split": Key(Choice("auto", "channels", "pixels"), "auto",
                      doc="How several GPUs share the dft imager's work. channels: each GPU images some "
                          "channels and the images meet on the host; pixels: each GPU reads or simulates the "
-                         "whole source and images and searches its part of the grid (a grid, and a file or "
+                         "whole source and images and searches its part of the grid (needs a grid and a file or "
                          "simulated source); auto: pixels where there is a search and pixels can be, else "
                          "channels."),
     }, post=_imager_post, what="an imager mapping", renamed={
@@ -507,7 +507,7 @@ SCHEMA = Section({
                       "`calibration.gains_table` needs a single device."),
     "output": Key(Section({
         "dir": Key(Str(r"\S.*", "a directory path"), None,
-                   doc="Directory of the outputs, relative to the working directory; null: output/<name>."),
+                   doc="Directory of the outputs, relative to the working directory; null: `output/<name>`."),
         "fits": Key(Bool(), True, doc="Write each grid image as a FITS cube."),
         "png": Key(Bool(), True, doc="Write a quicklook PNG of each image."),
         "table": Key(Bool(), False,
