@@ -16,8 +16,9 @@ Nothing here knows the pipeline: its schema, defaults and cross-checks are in :m
 Why hand-written rather than pydantic or jsonschema: the operator's messages need the dotted path and
 YAML line of every problem at once, a "did you mean" for unknown keys, the allowed range in each
 message, key sets that depend on another key (``source.kind``), ``null`` meaning "the default", and
-YAML 1.1's ``1e-3`` read as a number. pydantic gives the first but none of the rest without a
-formatter that rewrites its errors; jsonschema fills no defaults and normalises nothing.
+YAML 1.1's ``1e-3`` read as a number. pydantic gives the paths and every problem at once, but the
+rest would take a formatter that rewrites its errors; jsonschema fills no
+defaults, normalises nothing and puts an unknown key's error on its parent.
 """
 from __future__ import annotations
 
