@@ -36,6 +36,7 @@ _INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*$', re.MULTILINE)
 
 _MODULES: dict = {}
 _FUNCTIONS: dict = {}
+_FAST: dict = {}   # the same functions, keyed by get_kernel's arguments as given
 
 #: {package-relative .cu path: [(defines, arch, options), ...]}: the configurations the GPU tests compile.
 #: ``arch`` None compiles for the current device; "sm_90a" only where the device is a Hopper GPU;
@@ -97,14 +98,24 @@ def get_kernel(path: str, name: str, *, defines: dict | None = None, options=(),
 
     A template kernel is asked for by its name expression (``"bf_transpose<float>"``); pass every
     expression the caller uses as ``name_expressions`` (the same tuple each time), so that one module
-    holds them all."""
+    holds them all.
+
+    Launch paths call this once per launch, so a repeat call is one dictionary lookup keyed by the
+    arguments as given (no option strings are built)."""
     import cupy as cp
-    key = (path, _options(defines, options, arch), tuple(name_expressions or ()), cp.cuda.Device().id, name)
+    dev = cp.cuda.runtime.getDevice()
+    fast = (path, name, tuple(defines.items()) if defines else (), tuple(options) if options else (), arch,
+            tuple(name_expressions) if name_expressions else (), dev)
+    fn = _FAST.get(fast)
+    if fn is not None:
+        return fn
+    key = (path, _options(defines, options, arch), tuple(name_expressions or ()), dev, name)
     fn = _FUNCTIONS.get(key)
     if fn is None:
         fn = get_module(path, defines=defines, options=options, arch=arch,
                         name_expressions=name_expressions).get_function(name)
         _FUNCTIONS[key] = fn
+    _FAST[fast] = fn
     return fn
 
 

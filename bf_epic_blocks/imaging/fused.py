@@ -461,15 +461,24 @@ def _defines(cfg, pieces, kd, grid=False):
     return d
 
 
+_FUSED_KERNELS: dict = {}
+
+
 def _fused_kernel(pieces, kd, cfg, grid=False):
-    """(kernel, dynamic shared memory bytes) of a kernel shape (:func:`kernel_config`)."""
-    hopper = _hopper(cfg)
-    k = get_kernel("imaging/fused_hopper.cu" if hopper else "imaging/fused.cu", "bf_fused_power",
-                   defines=_defines(cfg, pieces, kd, grid), arch="sm_90a" if hopper else None)
-    smem = _smem(cfg, kd)
-    if k.max_dynamic_shared_size_bytes < smem:
-        k.max_dynamic_shared_size_bytes = smem
-    return k, smem
+    """(kernel, dynamic shared memory bytes) of a kernel shape (:func:`kernel_config`), cached per device:
+    every launch asks, so a repeat is one lookup (no defines built, no attribute read from the driver)."""
+    import cupy as cp
+    key = (pieces, kd, tuple(sorted(cfg.items())), bool(grid), cp.cuda.runtime.getDevice())
+    got = _FUSED_KERNELS.get(key)
+    if got is None:
+        hopper = _hopper(cfg)
+        k = get_kernel("imaging/fused_hopper.cu" if hopper else "imaging/fused.cu", "bf_fused_power",
+                       defines=_defines(cfg, pieces, kd, grid), arch="sm_90a" if hopper else None)
+        smem = _smem(cfg, kd)
+        if k.max_dynamic_shared_size_bytes < smem:
+            k.max_dynamic_shared_size_bytes = smem
+        got = _FUSED_KERNELS[key] = (k, smem)
+    return got
 
 
 # The configurations the shipped paths compile: both piece counts; an array of 256 antennas (KD = 512)
