@@ -8,8 +8,9 @@ import pytest
 
 from bf_epic_blocks import conventions, imaging
 from bf_epic_blocks.blocks import ArraySourceBlock, DFTImagerBlock, TransientSearchBlock, bfp, efield_header
+from bf_epic_blocks.blocks import headers
 from bf_epic_blocks.imaging._xp import gpu_available
-from bf_epic_blocks.imaging.calibration import FS_HZ
+from bf_epic_blocks.conventions import FS_HZ
 from bf_epic_blocks.search import Crossings, SearchSettings, TransientSearch, dm_delays, expected_false_rate
 from bf_epic_blocks.io.candidates import CandidateWriter, read_candidates
 from bf_epic_blocks.sky import simulate_efield
@@ -21,18 +22,8 @@ DT = 40e-6                              # one sample at 25 kHz channels
 
 
 def image_header(grid, freq, dt_img, time_tag=TIME_TAG, products=("I",), name="img"):
-    """An image sequence header as DFTImagerBlock writes it (docs/HEADERS.md)."""
-    N = grid.size
-    ax0 = float(grid.axis[0])
-    return {"name": name, "time_tag": int(time_tag),
-            "_tensor": {"dtype": "f32", "shape": [-1, len(freq), len(products), N, N],
-                        "labels": ["time", "freq", "pol", "m", "l"],
-                        "scales": [[time_tag / FS_HZ, dt_img], [float(freq[0]), float(freq[1] - freq[0])], None,
-                                   [ax0, grid.cell], [ax0, grid.cell]]},
-            "freq_hz": [float(f) for f in freq], "pol_products": list(products),
-            "pixels": {"kind": "grid", "size": N, "cell": grid.cell, "npix_imaged": grid.npix},
-            "imager": {"kind": "dft", "method": "direct", "integration_ticks": int(round(dt_img * FS_HZ))},
-            "station": {"name": "lwasv", **LWASV}}
+    """An image sequence header as DFTImagerBlock writes it, at LWA-SV (:func:`headers.image_header`)."""
+    return headers.image_header(name, time_tag, freq, dt_img, grid, {"name": "lwasv", **LWASV}, products)
 
 
 def to_np(a):

@@ -290,14 +290,11 @@ class ShardedRoute:
     "auto" resolved for integrations of ``accumulate`` samples."""
 
     def __init__(self, sharded, products, method, remove_autocorr, accumulate, dtype):
-        from ..imaging import cost
         from ..imaging.products import resolve_products
         self.sharded, self.dtype = sharded, dtype
         self.products = resolve_products(sharded.npol, products)
-        nblk = len(self.products)
-        op = sharded.ops[0]
-        self.method = method if method != "auto" else cost.choose_method(
-            accumulate, op.nant, op.npix, op.npol, nblk)
+        # "auto": the resolver's pick for one GPU's operator (every GPU holds the same problem's channels)
+        self.method = method if method != "auto" else sharded.ops[0].route(products, accumulate)
         self.remove_autocorr = remove_autocorr
         self.ntime = 0
 

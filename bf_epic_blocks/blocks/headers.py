@@ -105,6 +105,28 @@ def efield_header(name, time_tag, freq_hz, dt_s, station, dtype="ci4", npol=2, t
     return hdr
 
 
+def image_header(name, time_tag, freq_hz, dt_s, grid, station, products=("I",)):
+    """An image sequence header as DFTImagerBlock writes it (docs/HEADERS.md), for feeding the image
+    blocks (search, integrator, writers) without an imager.
+
+    Images (time, freq, pol, m, l) float32 on ``grid`` (an :class:`~bf_epic_blocks.imaging.LMGrid`),
+    ``freq_hz`` (nchan,) Hz, one image per ``dt_s`` seconds from ``time_tag`` (ticks of
+    :data:`~bf_epic_blocks.conventions.FS_HZ`); ``station`` a dict with ``name`` and the location keys
+    ``lat_deg``, ``lon_deg``, ``elev_m``; ``products`` the pol axis' names.
+    """
+    freq = [float(f) for f in np.asarray(freq_hz, dtype=np.float64)]
+    size, ax0 = grid.size, float(grid.axis[0])
+    df = freq[1] - freq[0] if len(freq) > 1 else 0.0
+    return {"name": name, "time_tag": int(time_tag),
+            "_tensor": {"dtype": "f32", "shape": [-1, len(freq), len(products), size, size],
+                        "labels": ["time", "freq", "pol", "m", "l"],
+                        "scales": [[time_tag / FS_HZ, dt_s], [freq[0], df], None, [ax0, grid.cell], [ax0, grid.cell]]},
+            "freq_hz": freq, "pol_products": list(products),
+            "pixels": {"kind": "grid", "size": size, "cell": grid.cell, "npix_imaged": grid.npix},
+            "imager": {"kind": "dft", "method": "direct", "integration_ticks": int(round(dt_s * FS_HZ))},
+            "station": _jsonable(station)}
+
+
 _PLAIN = {float, int, str, bool, type(None)}
 
 

@@ -17,14 +17,13 @@ The routes (conventions and the image's definition: :mod:`.dft`):
 * :class:`FusedIntegerRoute`: the direct route in a fused integer precision (:mod:`.fused`): the GEMM
   and |F|^2 in one kernel, and on a Hopper GPU the images written straight onto the grid.
 
-:func:`make_route` picks the route for an operator, products and method ("auto": the cheaper by
-:mod:`.cost`); :func:`ImageAccumulator` is the same factory under its public name.
+:func:`make_route` makes the route for an operator, products and method ("auto": the one
+:func:`.plan.resolve` picks); :func:`ImageAccumulator` is the same factory under its public name.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from . import cost
 from .fused import FUSED
 from .gemm import cmatmul, int_gram
 from .layout import cov_rhs, direct_rhs, gram_rows
@@ -53,8 +52,8 @@ def correlation_blocks(npol, products):
 def make_route(op, products=None, *, remove_autocorr=False, method="auto", ntime_hint=1024):
     """The route that images ``products`` with operator ``op`` by ``method``.
 
-    method : "direct", "covariance", or "auto" (the cheaper for integrations of ``ntime_hint``
-        samples, :func:`.cost.choose_method`). A fused integer precision (:data:`.fused.FUSED`) is
+    method : "direct", "covariance", or "auto" (the route :func:`.plan.resolve` picks for
+        integrations of ``ntime_hint`` samples: the cheaper one). A fused integer precision (:data:`.fused.FUSED`) is
         the direct route's kernel for the pols' own powers: it takes "auto" or "direct" and products
         of XX, YY, I, Q.
     """
@@ -67,9 +66,8 @@ def make_route(op, products=None, *, remove_autocorr=False, method="auto", ntime
                              f"XX, YY, I, Q); asked for method={method!r}, products {names}: "
                              "use 'fp16x3' or 'fp32' for the covariance route or cross-pol products")
         return FusedIntegerRoute(op, products, remove_autocorr=remove_autocorr)
-    if method == "auto":
-        method = cost.choose_method(int(ntime_hint), op.nant, op.npix, op.npol,
-                                    len(correlation_blocks(op.npol, names)))
+    if method == "auto":     # the resolver's pick, as everywhere (DFTOperator.route)
+        method = op.route(products, ntime_hint)
     cls = CovarianceRoute if method == "covariance" else DirectRoute
     return cls(op, products, remove_autocorr=remove_autocorr)
 

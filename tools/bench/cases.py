@@ -84,18 +84,7 @@ LWASV_SITE = {"lat_deg": 34.3484, "lon_deg": -106.8858, "elev_m": 1477.0}
 
 
 def image_header(grid, freq, dt_img, time_tag=1717236000 * 196_000_000, products=("I",), name="img"):
-    """An image sequence header as DFTImagerBlock writes it (docs/HEADERS.md), for feeding image
-    blocks without an imager: images (time, freq, pol, m, l) float32 on ``grid`` (an ``lm_grid``),
-    ``freq`` in Hz, one image per ``dt_img`` seconds, ``time_tag`` in ticks of the 196 MHz clock."""
-    from bf_epic_blocks.conventions import FS_HZ
-    N = grid.size
-    ax0 = float(grid.axis[0])
-    return {"name": name, "time_tag": int(time_tag),
-            "_tensor": {"dtype": "f32", "shape": [-1, len(freq), len(products), N, N],
-                        "labels": ["time", "freq", "pol", "m", "l"],
-                        "scales": [[time_tag / FS_HZ, dt_img], [float(freq[0]), float(freq[1] - freq[0])], None,
-                                   [ax0, grid.cell], [ax0, grid.cell]]},
-            "freq_hz": [float(f) for f in freq], "pol_products": list(products),
-            "pixels": {"kind": "grid", "size": N, "cell": grid.cell, "npix_imaged": grid.npix},
-            "imager": {"kind": "dft", "method": "direct", "integration_ticks": int(round(dt_img * FS_HZ))},
-            "station": {"name": "lwasv", **LWASV_SITE}}
+    """An image sequence header at LWA-SV for feeding image blocks without an imager
+    (:func:`bf_epic_blocks.blocks.headers.image_header`)."""
+    from bf_epic_blocks.blocks.headers import image_header as header
+    return header(name, time_tag, freq, dt_img, grid, {"name": "lwasv", **LWASV_SITE}, products)
