@@ -142,9 +142,11 @@ class DFTImagerBlock(bfp.TransformBlock):
                                precision=precision, method=method, imager=self.imager_kind)
 
     def _resolve(self, hdr, lm, nant):
-        self.plan = self.plan_for(hdr, lm, nant)
-        self.method, self.precision = self.plan.method, self.plan.precision
-        log.info("%s: %s", type(self).__name__, self.plan.describe())
+        plan = self.plan_for(hdr, lm, nant)
+        if plan != self.plan:   # logged once, not at every rebuild of a tracking operator
+            log.info("%s: %s", type(self).__name__, plan.describe())
+        self.plan = plan
+        self.method, self.precision = plan.method, plan.precision
 
     def _weights(self):
         """The direction-independent weights folded into the operator, (1|nchan, nstand, npol) complex."""
