@@ -221,6 +221,19 @@ def test_tracking_pixels_rebuild_operator(scene):
     np.testing.assert_allclose(sink.result(0)[0, :, 0, 0], 1.0, rtol=1e-5)  # first integration on the source
 
 
+def test_tracking_rebuilds_log_the_plan_once(scene, caplog):
+    """Four operator builds of one sequence share one plan: it is logged once, not per rebuild."""
+    s = scene
+    X = point_source_efield(s["xyz"], s["freq"], 0.1, 0.0, 1.0, 40, npol=2)
+    hdr = efield_header("t", 0, s["freq"], DT, {"xyz_m": s["xyz"]}, dtype="cf32")
+    with caplog.at_level("INFO", logger="bf_epic_blocks.blocks.dft_imager"):
+        _, blk = run_pipeline(X.astype(np.complex64), hdr, 16, 10,
+                              lambda tag: [[0.1 + 0.01 * ((tag // TPF) // 10), 0.0]], cable=False, products=("XX",))
+    assert blk.img_stats["operator_builds"] == 4
+    plans = [r for r in caplog.records if r.getMessage().startswith("DFTImagerBlock: dft imager")]
+    assert len(plans) == 1, [r.getMessage() for r in plans]
+
+
 def test_flagged_station_garbage_never_reaches_the_image(scene):
     s = scene
     X = s["ints"][:64].astype(np.complex64)
