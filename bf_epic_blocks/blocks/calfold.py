@@ -35,7 +35,9 @@ class CalFoldBlock(bfp.TransformBlock):
     iring : input ring or block; E-field header as docs/HEADERS.md (labels time, freq, station, pol).
     cable : True (use the header's ``station.cable_delay_s``/``cable_gain``, shaped (nstand, npol,
             nchan)), False (none), or a complex array (nchan|1, nstand, npol|1) of weights.
-    gains : None, a :class:`GainTable`, or the path of an .npz gain table (time-variable A_s).
+    gains : None, a :class:`GainTable`, the path of an .npz gain table (time-variable A_s), or a
+            :class:`~.gain_solver.LiveGainTable` a GainSolverBlock fills as the data flow (each gulp then
+            waits until the solutions that reach it are decided).
     flags : None or bool (nstand, npol) / (nstand,) extra flags (True = bad).
     pattern : None, a registered pattern name ("dipole"), or a callable ``fn(pixels_lm, freq_hz,
               npol)``; it is registered and its name written to the header for the imager.
@@ -98,12 +100,15 @@ class CalFoldBlock(bfp.TransformBlock):
         if self.gains is not None:
             self.gains.check_shape(nchan, nstand, npol)
             flags |= self.gains.flags(nstand, npol)
-            applied["gain_table"] = {"nsol": int(len(self.gains.valid_from)),
+            applied["gain_table"] = "live (solved from the sky as the data flow)" if hasattr(self.gains, "wait_through") \
+                else {"nsol": int(len(self.gains.valid_from)),
                                      "valid_from": [int(v) for v in self.gains.valid_from]}
         xp = self._xp(iseq)
         self._w = xp.asarray(np.where(flags[None], 0, w).astype(np.complex64))
         self._live = xp.asarray(~flags)
         self._lay = lay
+        self._live_table = hasattr(self.gains, "wait_through")
+        self._flags_host, self._scaled = flags.copy(), {}
         self._next_frame = 0
         self.cal_stats["flagged"] = int(flags.sum())
         ohdr = derived_header(ihdr)
@@ -142,16 +147,33 @@ class CalFoldBlock(bfp.TransformBlock):
             if self.gains is None:
                 apply_direction_independent(x, self._w, self._live, out=out[:n])
             else:
-                tag0 = self._lay["time_tag"] + first * self._lay["ticks_per_frame"]
-                for s, e, i in self.gains.segments(tag0, self._lay["ticks_per_frame"], n):
+                tpf = self._lay["ticks_per_frame"]
+                tag0 = self._lay["time_tag"] + first * tpf
+                if self._live_table:
+                    self.gains.wait_through(self._lay["time_tag"], tag0 + (n - 1) * tpf)
+                for s, e, i in self.gains.segments(tag0, tpf, n):
                     if i < 0:
                         self.cal_stats["frames_before_first_solution"] += e - s
-                    g = self.gains.solution(i, like=x)
+                    g = self._solution(i, x)
                     apply_direction_independent(x[s:e], self._w, self._live, g, out=out[s:e])
         self._next_frame = first + n
         self.cal_stats["frames"] += n
         self.cal_stats["nonfinite"] = self.tally.total
         return n
+
+    def _solution(self, i, like):
+        """Solution i's corrections in the namespace of ``like``; for a live table (inputs flagged after the
+        sequence began) scaled by N_A(sequence) / N_A(solution), which keeps the imager's flux scale."""
+        g = self.gains.solution(i, like=like)
+        if not self._live_table or i < 0:
+            return g
+        key = (i, type(like).__module__)
+        if key not in self._scaled:
+            live = ~np.asarray(self._flags_host)
+            scale = self.gains.solution_scale(i, live)                                  # (c, 1, p)
+            xp = type(like).__module__.startswith("cupy") and __import__("cupy") or np
+            self._scaled = {key: g * xp.asarray(scale.astype(np.float32))}
+        return self._scaled[key]
 
     @property
     def nonfinite_counts(self):

@@ -131,8 +131,11 @@ class SourceList:
                            doc="The frequency `flux_jy` is given at, Hz; null: 74 MHz."),
     }, what="a source mapping")
 
+    def __init__(self, names=CATALOGUE_SOURCES):
+        self.names = tuple(names)
+
     def describe(self) -> str:
-        return f"a list of source names ({', '.join(CATALOGUE_SOURCES)}) or {{name, ra_deg, dec_deg, flux_jy}}"
+        return f"a list of source names ({', '.join(self.names)}) or {{name, ra_deg, dec_deg, flux_jy}}"
 
     def check(self, v, path, ctx):
         if not isinstance(v, list):
@@ -142,11 +145,11 @@ class SourceList:
         for i, x in enumerate(v):
             where = f"{path}[{i}]"
             if isinstance(x, str):
-                if x not in CATALOGUE_SOURCES:
-                    close = did_you_mean(x, CATALOGUE_SOURCES)
+                if x not in self.names:
+                    close = did_you_mean(x, self.names)
                     hint = f" (did you mean {close!r}?)" if close else ""
                     ctx.error(where, f"unknown source {x!r}{hint}; catalogue names are "
-                                     f"{', '.join(CATALOGUE_SOURCES)}, or give {{name, ra_deg, dec_deg, flux_jy}}")
+                                     f"{', '.join(self.names)}, or give {{name, ra_deg, dec_deg, flux_jy}}")
                     out.append(INVALID)
                 else:
                     out.append(x)
@@ -193,6 +196,17 @@ def _station_post(out, given, path, ctx):
         ctx.error(path, "give either station.name or station.ssmif, not both")
     elif "name" not in given and "ssmif" not in given:
         out["name"] = "lwasv"
+
+
+def _calibration_post(out, given, path, ctx):
+    if out.get("solve") and out.get("gains_table"):
+        ctx.error(join_path(path, "solve"), "give gains_table (solutions made before) or solve (solutions made as "
+                                            "the data flow), not both")
+    sv = out.get("solve")
+    if is_valid(sv) and sv and is_valid(sv.get("cadence_s")) and is_valid(sv.get("integration_s")) \
+            and sv["integration_s"] > sv["cadence_s"]:
+        ctx.error(join_path(path, "solve", "integration_s"),
+                  f"must be <= cadence_s ({sv['cadence_s']}), got {sv['integration_s']}")
 
 
 def pixel_split_problems(cfg) -> list[str]:
@@ -311,6 +325,45 @@ OUTPUT_CUBE = Section({
     "average_channels": Key(Bool(), False, doc="Store one band-averaged image per time, not every channel."),
     "images_per_file": Key(Int(1), None, doc="Images (times) per HDF5 file; null: one file per sequence."),
 }, what="a cube mapping {dtype, average_channels, images_per_file}")
+
+CALIBRATION_SOLVE = Section({
+    "sources": Key(SourceList(CATALOGUE_SOURCES + ("Sun",)), list(CATALOGUE_SOURCES),
+                   doc="The sky model: catalogue names (CygA, CasA, TauA, VirA, Sun) or source mappings. Those "
+                       "below `min_alt_deg` at a solution's time are left out."),
+    "cadence_s": Key(Float(0.0, lo_open=True), 10.0, doc="Seconds of data from one solution to the next."),
+    "integration_s": Key(Float(0.0, lo_open=True), 1.0,
+                         doc="Seconds of data each solution sums its covariances over (the first of its cadence); "
+                             "it applies from the first frame after them."),
+    "min_baseline_lambda": Key(Float(0.0), 4.0,
+                               doc="Baselines shorter than this many wavelengths are not used: the diffuse Galactic "
+                                   "emission, which a point-source model lacks, dominates them."),
+    "min_alt_deg": Key(Float(0.0, 90.0), 10.0, doc="Model sources lower than this altitude are left out, degrees."),
+    "pattern": Key(Choice("none", "dipole", none_is="none"), None,
+                   doc="The antennas' voltage pattern the model's sources are seen through; null: "
+                       "`calibration.pattern`."),
+    "reference": Key(Int(1, auto=True), "auto",
+                     doc="Stand id of the reference input, whose phase is zero in every channel; auto: the good "
+                         "input with the largest gain."),
+    "smooth_channels": Key(Int(1), 16,
+                           doc="Channels in the running mean across the band once each input's delay is removed; "
+                               "1 keeps every channel's own solution."),
+    "max_delay_s": Key(Float(0.0), 2e-6, doc="The residual delay searched per input spans +- this, seconds."),
+    "deaf_below": Key(Float(0.0, 1.0, hi_open=True), 0.3,
+                      doc="An input whose gain is below this fraction of the inputs' median is flagged deaf."),
+    "noisy_above": Key(Float(1.0, lo_open=True), 3.0,
+                       doc="An input whose power per unit gain is above this multiple of the median is flagged noisy."),
+    "residual_above": Key(Float(1.0, lo_open=True), 4.0,
+                          doc="An input the model fits this many times worse than the median input is flagged."),
+    "max_iter": Key(Int(2), 200, doc="StEFCal's iteration limit."),
+    "tol": Key(Float(0.0, lo_open=True), 1e-6, doc="StEFCal's convergence test: relative change of the gains."),
+    "min_good_fraction": Key(Float(0.0, 1.0, lo_open=True), 0.5,
+                             doc="A solution with fewer good inputs than this fraction of the station's (per pol) "
+                                 "fails, and the last good one stays in force."),
+    "min_samples": Key(Int(1), 1000,
+                       doc="A sequence shorter than one integration is solved from what it has if that is at least "
+                           "this many samples; fewer is an error (offline) or a counted failure (live)."),
+    "png": Key(Bool(), True, doc="Write a PNG of the gains and flags beside the table."),
+}, what="a solve mapping {sources, cadence_s, integration_s, min_baseline_lambda, ...}")
 
 SOURCE_COMMON = {
     "kind": Key(Choice("simulated", "tbf", "tbx", "file", "udp"), REQUIRED,
@@ -446,7 +499,11 @@ SCHEMA = Section({
                                "null: none."),
         "pattern": Key(Choice("none", "dipole", none_is="none"), "dipole",
                        doc="Antenna voltage pattern folded into the imaging operator: a short dipole's, or none."),
-    }, what="a calibration mapping"), {}, doc="What is done to the voltages before imaging."),
+        "solve": Key(CALIBRATION_SOLVE, None,
+                     doc="Solve the antennas' gains and health from the sky as the data flow, beside the imager, "
+                         "and image with each solution from the first frame after its data; the table is "
+                         "written to `output.dir`. null: no solving. `bf-epic calibrate` uses these keys too."),
+    }, post=_calibration_post, what="a calibration mapping"), {}, doc="What is done to the voltages before imaging."),
     "imager": Key(Section({
         "kind": Key(Choice("dft", "wstack", "moff"), "dft",
                     doc="dft: the exact direct Fourier transform; wstack: E-field w-stacking or covariance "

@@ -47,6 +47,7 @@ class Graph:
     outdir: str
     search: object = None
     cube: object = None
+    solver: object = None
 
     @property
     def sinks(self):
@@ -219,7 +220,7 @@ def folds_calibration(cfg, dev):
         return False
     if dev == "gpus":
         return True
-    return dev == "gpu" and not cfg["calibration"].get("gains_table")
+    return dev == "gpu" and not cfg["calibration"].get("gains_table") and not cfg["calibration"].get("solve")
 
 
 def warm_live_imager(cfg, station):
@@ -306,9 +307,10 @@ def build_graph(cfg, progress=None, parts=None):
     if dev == "gpus":
         if cfg["imager"]["kind"] != "dft":
             raise ValueError(f"device {cfg['device']!r}: only the dft imager shards channels over several GPUs")
-        if cfg["calibration"].get("gains_table"):
-            raise ValueError(f"device {cfg['device']!r}: calibration.gains_table (time-variable gains) needs "
-                             "CalFoldBlock, which runs on one device; use a single GPU")
+        for key in ("gains_table", "solve"):
+            if cfg["calibration"].get(key):
+                raise ValueError(f"device {cfg['device']!r}: calibration.{key} (time-variable gains) needs "
+                                 "CalFoldBlock, which runs on one device; use a single GPU")
     src_cfg, im = cfg["source"], cfg["imager"]
     fmt = capture_format(src_cfg)
     # scanned once, here (the source block is handed the result): its warnings are logged here
@@ -335,11 +337,12 @@ def build_graph(cfg, progress=None, parts=None):
         if split is not None:
             return _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern, progress)
         source, feed, nframe_total, block = _source_stage(cfg, dev, fmt, info, station, gulp, space, progress)
-        calfold = _calibration_stage(cfg, dev, feed, pattern)
+        solver, table = _solver_stage(cfg, feed, outdir)
+        calfold = _calibration_stage(cfg, dev, feed, pattern, table)
         imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern)
         search = _search_stage(cfg, imager, outdir)
         writer, cube = _output_stage(cfg, imager, pixels, block)
-    return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube)
+    return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube, solver)
 
 
 def _source_stage(cfg, dev, fmt, info, station, gulp, space, progress):
@@ -386,16 +389,52 @@ def _source_stage(cfg, dev, fmt, info, station, gulp, space, progress):
     return source, source if feed is None else feed, None, None
 
 
-def _calibration_stage(cfg, dev, feed, pattern):
+def solver_settings(sv):
+    """:class:`~..imaging.skycal.SolveSettings` from a ``calibration.solve`` mapping."""
+    from ..imaging.skycal import SolveSettings
+    return SolveSettings(**{k: sv[k] for k in ("min_baseline_lambda", "max_iter", "tol", "deaf_below", "noisy_above",
+                                                "residual_above", "smooth_channels", "max_delay_s",
+                                                "min_good_fraction")})
+
+
+def gain_solver_block(cfg, feed, table=None, table_path=None):
+    """The GainSolverBlock ``calibration.solve`` describes, on ``feed`` (the raw voltages)."""
+    from ..blocks.gain_solver import GainSolverBlock
+    cal = cfg["calibration"]
+    sv = cal.get("solve") or {}
+    pattern = sv.get("pattern") or cal.get("pattern")
+    return GainSolverBlock(feed, sv["sources"], cadence_s=sv["cadence_s"], integration_s=sv["integration_s"],
+                           settings=solver_settings(sv), pattern=None if pattern in (None, "none") else pattern,
+                           cable=bool(cal["cable"]), min_alt_deg=sv["min_alt_deg"], min_samples=sv["min_samples"],
+                           table=table, table_path=table_path, png=sv["png"],
+                           reference_stand=None if sv["reference"] == "auto" else sv["reference"])
+
+
+def _solver_stage(cfg, feed, outdir):
+    """(GainSolverBlock, LiveGainTable) when ``calibration.solve`` asks for live solving, else (None, None):
+    the solver reads the raw voltages beside CalFoldBlock and writes its table to ``outdir``."""
+    if not cfg["calibration"].get("solve"):
+        return None, None
+    from pathlib import Path
+
+    from ..blocks.gain_solver import LiveGainTable
+    table = LiveGainTable()
+    path = None if outdir is None else Path(outdir) / f"{cfg['output']['prefix']}_gains.npz"
+    return gain_solver_block(cfg, feed, table, path), table
+
+
+def _calibration_stage(cfg, dev, feed, pattern, table=None):
     """The block the imager reads: CalFoldBlock on ``feed`` (gains, cable terms, the pattern applied to the
-    voltages), or ``feed`` itself where the imager folds the calibration into its operator
-    (:func:`folds_calibration`)."""
+    voltages; ``table`` a LiveGainTable the solver fills), or ``feed`` itself where the imager folds the
+    calibration into its operator (:func:`folds_calibration`)."""
     from ..blocks import CalFoldBlock
     from ..imaging.calibration import GainTable
     cal = cfg["calibration"]
     gains = cal.get("gains_table")
     if gains:
         gains = GainTable.load(gains)
+    if table is not None:
+        gains = table
     # Live packets never wait for the imager, yet the blocks read them *guaranteed*: the capture
     # thread keeps receiving whatever the blocks do, and its bounded queue is the one place
     # where a pipeline that cannot keep up loses data (whole gulps, written as zeros and counted
@@ -661,6 +700,16 @@ def run(cfg, show_progress=None, parts=None):
                  g.search.search_stats["candidates"])
     if g.cube is not None:
         summary["cube"] = dict(g.cube.cube_stats)
+    if g.solver is not None:
+        summary["solver"] = {**g.solver.solver_stats, "wait_s": g.calfold.gains.stats["wait_s"],
+                             "wait_timeouts": g.calfold.gains.stats["wait_timeouts"]}
+        if g.solver.table_path and g.solver.solutions:
+            summary["files"] += [str(g.solver.table_path)] + ([str(g.solver.table_path)[:-4] + ".png"]
+                                                                if g.solver.png else [])
+        log.info("gain solver: %d solutions, %d failed; %.2f s summing covariances, %.2f s solving; the "
+                 "calibration waited %.2f s for it", g.solver.solver_stats["solutions"],
+                 g.solver.solver_stats["failures"], g.solver.solver_stats["sum_s"],
+                 g.solver.solver_stats["solve_s"], summary["solver"]["wait_s"])
     log.info("%s: frames read %d, imaged %d, skipped %d, dropped (partial integration) %d; %d images, "
              "%d files in %s (%.1f s)", cfg["name"], summary["frames_read"], summary["frames_imaged"],
              summary["frames_skipped"], summary["frames_dropped_partial"], summary["images"],

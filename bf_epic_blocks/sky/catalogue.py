@@ -19,7 +19,7 @@ import numpy as np
 
 from ..imaging.pixels import azalt_from_lm, lm_from_azalt
 
-__all__ = ["KNOWN_SOURCES", "Source", "SourceDirections", "resolve_source", "resolve_sources",
+__all__ = ["KNOWN_SOURCES", "SUN", "Source", "SourceDirections", "resolve_source", "resolve_sources",
            "source_directions", "REF_FREQ_HZ", "zenith_icrs", "north_angle_deg", "zenith_pointings", "lm_to_icrs", "icrs_to_lm",
            "as_time", "as_location"]
 
@@ -42,10 +42,13 @@ class Source:
     alt_deg: float | None = None
     l: float | None = None
     m: float | None = None
+    body: str | None = None
 
     @property
     def frame(self) -> str:
-        """'icrs', 'altaz' or 'lm'."""
+        """'icrs', 'altaz', 'lm' or 'body' (a solar-system body, placed by astropy's built-in ephemeris)."""
+        if self.body is not None:
+            return "body"
         return "icrs" if self.ra_deg is not None else ("altaz" if self.az_deg is not None else "lm")
 
     def flux_at(self, freq_hz) -> np.ndarray:
@@ -62,12 +65,17 @@ KNOWN_SOURCES: dict[str, Source] = {
     "VirA": Source("VirA", 2100.0, -0.86, ra_deg=187.7059308, dec_deg=12.3911233),
 }
 
+#: The Sun, placed at the data's time by astropy's built-in ephemeris. Its flux is the quiet Sun's at
+#: 74 MHz (a ~1e6 K corona over a disk ~0.6 deg across: ~1.6e4 Jy); the active Sun is brighter by up
+#: to orders of magnitude, so a model with the Sun sets a flux scale good to a factor, not a per cent.
+SUN = Source("Sun", 16000.0, 0.0, body="sun")
+
 
 def _key(name: str) -> str:
     return "".join(ch for ch in name.lower() if ch.isalnum())
 
 
-_BY_KEY = {_key(k): v for k, v in KNOWN_SOURCES.items()}
+_BY_KEY = {_key(k): v for k, v in {**KNOWN_SOURCES, "Sun": SUN}.items()}
 _DICT_KEYS = {"name", "flux_jy", "spectral_index", "ref_freq_hz", "ra_deg", "dec_deg", "az_deg",
               "alt_deg", "l", "m"}
 
@@ -82,7 +90,7 @@ def resolve_source(spec) -> Source:
         try:
             return _BY_KEY[_key(spec)]
         except KeyError:
-            raise ValueError(f"unknown source {spec!r}; known: {', '.join(KNOWN_SOURCES)}, or give a dict "
+            raise ValueError(f"unknown source {spec!r}; known: {', '.join(KNOWN_SOURCES)}, Sun, or give a dict "
                              "{name, flux_jy, ra_deg, dec_deg}") from None
     if not isinstance(spec, Mapping):
         raise TypeError(f"a source must be a name, a Source or a dict, got {type(spec).__name__}")
@@ -174,6 +182,19 @@ def source_directions(sources, time=None, location=None) -> SourceDirections:
             aa = c.transform_to(AltAz(obstime=t, location=location))
         alt[icrs] = aa.alt.to_value(u.rad)
         az[icrs] = aa.az.to_value(u.rad)
+    bodies = [i for i, s in enumerate(srcs) if s.frame == "body"]
+    if bodies:
+        if time is None or location is None:
+            raise ValueError(f"sources {[srcs[i].name for i in bodies]} are solar-system bodies: "
+                             "source_directions needs time and location")
+        from astropy import units as u
+        from astropy.coordinates import AltAz, get_body
+        from astropy.time import Time
+        t = time if isinstance(time, Time) else Time(time, scale="utc")
+        with _iers_offline():
+            for i in bodies:
+                aa = get_body(srcs[i].body, t, location).transform_to(AltAz(obstime=t, location=location))
+                alt[i], az[i] = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)
     for i, s in enumerate(srcs):
         if s.frame == "altaz":
             alt[i], az[i] = math.radians(s.alt_deg), math.radians(s.az_deg)

@@ -1,0 +1,366 @@
+"""GainSolverBlock: antenna gains and health solved from the sky as the data flow; LiveGainTable hands
+them to CalFoldBlock.
+
+The solver reads the same raw voltages CalFoldBlock reads (a second guaranteed reader of the source's
+ring), sums the covariance R = sum_t x x^H of each solution's stretch of data where the ring lives
+(exact integer sums for 4-bit samples: :class:`~bf_epic_blocks.imaging.skycal.CovarianceSums`),
+removes the cable terms, builds the model of the sky at the stretch's middle time
+(:func:`bf_epic_blocks.sky.model.sky_model`) and solves (:func:`~bf_epic_blocks.imaging.skycal.solve_gains`).
+
+Schedule (frames from the start of a sequence): solution k uses frames [k C, k C + I) (C = cadence,
+I = integration, both in frames) and applies from frame k C + I, the first frame after its data. So
+every image after a solution's data is made with it, and a run is deterministic: CalFoldBlock, before
+calibrating a gulp that reaches a solution's first frame, waits until the solver has decided that
+solution (:meth:`LiveGainTable.wait_through`). The solver never waits on anything downstream, and the
+data it needs were written before the gulp CalFoldBlock holds, so the wait cannot deadlock; the cost is
+the solve's time, once per cadence.
+
+A solve that fails (no model source above the horizon limit, too few good inputs, no convergence) is
+counted and logged, and the last good solution stays in force; a sequence shorter than one
+integration is solved from what it has if that is at least ``min_samples`` samples.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+
+import numpy as np
+
+from ..conventions import FS_HZ
+from ..imaging.calibration import GainTable, cable_weights
+from ..imaging.skycal import CovarianceSums, SolveSettings, model_covariance, solve_gains
+from . import _compat
+from ._compat import bfp, span_array, unpack_complex
+from .headers import efield_layout
+
+__all__ = ["GainSolverBlock", "LiveGainTable", "gain_solver"]
+
+log = logging.getLogger(__name__)
+
+
+class LiveGainTable:
+    """A :class:`~bf_epic_blocks.imaging.calibration.GainTable` that grows while the pipeline runs.
+
+    The solver :meth:`post`\\ s solutions and says how far its schedule is decided (:meth:`decided`);
+    CalFoldBlock reads it like a GainTable (``segments``, ``solution``) after :meth:`wait_through`.
+    Before the first solution every frame gets unit gains. It has no flags of its own at the start of
+    a sequence: inputs a solution flags are zeroed from that solution on, and CalFoldBlock rescales the
+    rest so that the imager's 1/N_A, fixed per sequence, still gives Jy (:meth:`solution_scale`).
+    ``wait_timeout_s`` bounds a wait (a solver that stopped answering): then the frames go on with
+    the solutions known, and the event is counted in ``stats['wait_timeouts']``.
+    """
+
+    def __init__(self, wait_timeout_s=600.0):
+        self._cond = threading.Condition()
+        self._vf, self._g = [], []
+        self._table = None
+        self._seq = None
+        self._through = -math.inf
+        self._ended = set()
+        self._closed = False
+        self.wait_timeout_s = float(wait_timeout_s)
+        self.stats = {"solutions": 0, "failures": 0, "wait_timeouts": 0, "wait_s": 0.0}
+
+    # -- solver side
+    def begin(self, seq_tag0, through_tag):
+        with self._cond:
+            self._seq, self._through = seq_tag0, through_tag
+            self._cond.notify_all()
+
+    def post(self, valid_from, corrections):
+        """Add a solution: corrections complex (nchan, nstand, npol) from time tag ``valid_from``."""
+        g = np.asarray(corrections, np.complex128)[None]
+        with self._cond:
+            if self._vf and valid_from <= self._vf[-1]:
+                raise ValueError(f"solutions must come in time order: {valid_from} after {self._vf[-1]}")
+            self._vf.append(int(valid_from))
+            self._g.append(g)
+            self._table = GainTable(np.array(self._vf), np.concatenate(self._g))
+            self.stats["solutions"] += 1
+            self._cond.notify_all()
+
+    def decided(self, seq_tag0, through_tag):
+        with self._cond:
+            if self._seq == seq_tag0:
+                self._through = max(self._through, through_tag)
+            self._cond.notify_all()
+
+    def end_sequence(self, seq_tag0):
+        with self._cond:
+            self._ended.add(seq_tag0)
+            self._cond.notify_all()
+
+    def close(self):
+        """No more solutions (the solver stopped): waits return at once."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    # -- CalFoldBlock side
+    def wait_through(self, seq_tag0, tag):
+        """Block until every solution that applies at or before time tag ``tag`` of the sequence that
+        starts at ``seq_tag0`` is decided (or the solver has ended that sequence or stopped)."""
+        t0 = time.perf_counter()
+        with self._cond:
+            ok = self._cond.wait_for(lambda: self._closed or seq_tag0 in self._ended
+                                     or (self._seq == seq_tag0 and self._through >= tag), self.wait_timeout_s)
+        self.stats["wait_s"] += time.perf_counter() - t0
+        if not ok:
+            self.stats["wait_timeouts"] += 1
+            log.warning("LiveGainTable: no word from the solver in %.0f s; calibrating with the solutions known",
+                        self.wait_timeout_s)
+
+    @property
+    def valid_from(self):
+        return np.array(self._vf, np.int64)
+
+    @property
+    def gains(self):
+        return None if self._table is None else self._table.gains
+
+    def check_shape(self, nchan, nant, npol):
+        if self._table is not None:
+            self._table.check_shape(nchan, nant, npol)
+
+    def flags(self, nant, npol):
+        return np.zeros((nant, npol), bool)
+
+    def segments(self, first_tag, ticks_per_frame, nframe):
+        if self._table is None:
+            return [(0, int(nframe), -1)]
+        return self._table.segments(first_tag, ticks_per_frame, nframe)
+
+    def solution(self, i, like=None):
+        if self._table is None or i < 0:
+            return GainTable(np.array([0]), np.ones((1, 1, 1, 1))).solution(-1, like)
+        return self._table.solution(i, like)
+
+    def solution_scale(self, i, live):
+        """float (nchan, 1, npol): N_A of the sequence over N_A of solution i, per channel and pol (>= 1),
+        so that inputs a live solution zeroes do not lower the image's flux scale. live : bool (nstand, npol)."""
+        g = self._table.gains[i]
+        n_seq = live.sum(axis=0).astype(np.float64)                                       # (p,)
+        n_sol = ((g != 0) & live[None]).sum(axis=1).astype(np.float64)                   # (c, p)
+        return np.where(n_sol > 0, n_seq[None] / np.maximum(n_sol, 1), 0.0)[:, None, :]
+
+
+class GainSolverBlock(bfp.SinkBlock):
+    """Solve antenna gains and health from the voltages, on a schedule (module docstring).
+
+    Parameters
+    ----------
+    iring : the raw E-field ring (the source's; header as docs/concepts/headers.md).
+    sources : the model's sources (names like 'CygA', 'Sun', or mappings: :func:`~..sky.resolve_source`).
+    cadence_s, integration_s : a solution every ``cadence_s`` from the first ``integration_s`` of it.
+    settings : :class:`~bf_epic_blocks.imaging.skycal.SolveSettings`.
+    pattern : the antennas' voltage pattern for the model ('dipole' or None).
+    cable : remove the header's cable terms before solving (as CalFoldBlock does before applying).
+    min_alt_deg : model sources lower than this are left out.
+    min_samples : a sequence's last, short stretch is solved only with at least this many samples.
+    table : a :class:`LiveGainTable` the solutions are posted to (CalFoldBlock reads it), or None.
+    table_path : where the solved table (.npz, :mod:`bf_epic_blocks.io.gaintable`) is written after each
+        solution (and its PNG beside it when ``png``), or None.
+    reference_stand : stand id of the reference input, or None (auto).
+    ``solutions`` lists the :class:`~bf_epic_blocks.imaging.skycal.Solution` objects; ``solver_stats``
+    counts solutions, failures (with reasons) and the seconds spent summing and solving.
+    """
+
+    def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
+                 cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
+                 reference_stand=None, **kwargs):
+        super().__init__(iring, **kwargs)
+        if not (integration_s > 0 and cadence_s >= integration_s):
+            raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="
+                             f"{integration_s}, cadence_s={cadence_s}")
+        self.sources, self.cadence_s, self.integration_s = list(sources), float(cadence_s), float(integration_s)
+        self.settings = settings or SolveSettings()
+        self.pattern = None if pattern in (None, "none", False) else pattern
+        self.cable, self.min_alt_deg, self.min_samples = cable, float(min_alt_deg), int(min_samples)
+        self.table, self.table_path, self.png = table, table_path, png
+        self.reference_stand = reference_stand
+        self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []
+        self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
+                             "samples": 0}
+
+    def define_valid_input_spaces(self):
+        return "any"
+
+    def on_sequence(self, iseq):
+        hdr = iseq.header
+        lay = efield_layout(hdr, "GainSolverBlock")
+        self._lay = lay
+        from ..station.tables import StationTable
+        st = hdr["station"]
+        self._location = StationTable.from_header(st).location if "lat_deg" in st else None
+        self._station_name = st.get("name", "")
+        self._stand_ids = np.asarray(st.get("stand_ids", np.arange(1, lay["nstand"] + 1)), np.int64)
+        nchan, nstand, npol = lay["nchan"], lay["nstand"], lay["npol"]
+        if self.cable and "cable_delay_s" in st and "cable_gain" in st:
+            w = cable_weights(np.asarray(st["cable_delay_s"])[:, :npol], np.asarray(st["cable_gain"])[:, :npol],
+                              lay["freq_hz"])
+        else:
+            w = np.ones((nchan, nstand, npol), np.complex128)
+        self._flags = lay["flags"] | np.all(w == 0, axis=0)
+        self._w = w
+        space = _compat.space_of(self.irings[0]) if hasattr(self, "irings") else "system"
+        if space == "cuda":
+            import cupy
+            self._xp = cupy
+        else:
+            self._xp = np
+        self._sums = CovarianceSums(nchan, nstand, npol, self._xp)
+        self._cadence = max(1, int(round(self.cadence_s / lay["dt_s"])))
+        self._integ = max(1, min(self._cadence, int(round(self.integration_s / lay["dt_s"]))))
+        self._tag0, self._tpf = int(lay["time_tag"]), int(lay["ticks_per_frame"])
+        self._k = 0               # the solution being summed
+        self._frame = 0           # frames of the sequence seen
+        self._posted_in_seq = 0
+        if self.table is not None:
+            self.table.begin(self._tag0, self._due(0) - 1)
+        log.info("GainSolverBlock %s: a solution every %.3g s from %.3g s of data (%d frames), model %s%s",
+                 hdr.get("name"), self._cadence * lay["dt_s"], self._integ * lay["dt_s"], self._integ,
+                 ", ".join(str(s) if not isinstance(s, dict) else s.get("name", "?") for s in self.sources),
+                 f", pattern {self.pattern}" if self.pattern else "")
+
+    def _due(self, k):
+        """Time tag of solution k's first frame in force (k C + I)."""
+        return self._tag0 + (k * self._cadence + self._integ) * self._tpf
+
+    def on_data(self, ispan):
+        try:
+            self._accumulate(ispan)
+        except BaseException:
+            if self.table is not None:
+                self.table.close()
+            raise
+
+    def _accumulate(self, ispan):
+        x = span_array(ispan)
+        n = int(x.shape[0])
+        first = getattr(ispan, "frame_offset", self._frame)
+        lay = self._lay
+        pos = 0
+        while pos < n:
+            f = first + pos
+            start = self._k * self._cadence
+            if f < start:                      # between integrations: skip to the next one
+                pos = min(n, pos + start - f)
+                continue
+            end = start + self._integ
+            take = min(n - pos, end - f)
+            t0 = time.perf_counter()
+            part = x[pos:pos + take]
+            if lay["dtype"] == "ci4" and part.dtype == np.uint8:
+                self._sums.add(part, ci4=True)
+            else:
+                self._sums.add(unpack_complex(part, lay["dtype"]))
+            if self._xp is not np:
+                self._xp.cuda.get_current_stream().synchronize()
+            self.solver_stats["sum_s"] += time.perf_counter() - t0
+            pos += take
+            if f + take >= end:
+                self._solve(self._k, self._due(self._k))
+                self._k += 1
+                self._sums.reset()
+                if self.table is not None:
+                    self.table.decided(self._tag0, self._due(self._k) - 1)
+        self._frame = first + n
+
+    def on_sequence_end(self, iseq):
+        try:
+            if self._sums.ntime and not self._posted_in_seq:
+                if self._sums.ntime >= self.min_samples:
+                    log.warning("GainSolverBlock: the sequence ended %d samples into an integration of %d; "
+                                "solving from what there is", self._sums.ntime, self._integ)
+                    self._solve(self._k, self._tag0 + self._frame * self._tpf)
+                else:
+                    self._fail(f"data too short to solve: {self._sums.ntime} samples, need at least "
+                               f"{self.min_samples} (calibration.solve.min_samples)")
+        finally:
+            if self.table is not None:
+                self.table.end_sequence(self._tag0)
+
+    def _model_time(self, k, ntime):
+        from astropy.time import Time
+        mid_frame = k * self._cadence + ntime / 2.0
+        return Time(self._tag0 / FS_HZ + mid_frame * self._lay["dt_s"], format="unix", scale="utc")
+
+    def _fail(self, why):
+        self.solver_stats["failures"] += 1
+        self.solver_stats["failure_reasons"].append(why)
+        if self.table is not None:
+            self.table.stats["failures"] += 1
+        log.warning("GainSolverBlock: solution %d failed: %s%s", self._k, why,
+                    "; the last good solution stays in force" if self.solutions else "; images stay uncalibrated")
+
+    def _solve(self, k, valid_from):
+        from ..sky.model import sky_model
+        lay, xp = self._lay, self._xp
+        t0 = time.perf_counter()
+        ntime = self._sums.ntime
+        self.solver_stats["samples"] += ntime
+        when = self._model_time(k, ntime)
+        if self._location is None:
+            self._fail("the header's station has no location (lat_deg, lon_deg, elev_m)")
+            return
+        model = sky_model(self.sources, when, self._location, lay["freq_hz"], pattern=self.pattern,
+                          npol=lay["npol"], min_alt_deg=self.min_alt_deg)
+        if not model.names:
+            self._fail(f"no model source above {self.min_alt_deg:g} deg at {when.isot[:19]} UTC "
+                       f"({', '.join(model.dropped) or 'no sources given'})")
+            return
+        w = xp.asarray(self._w.transpose(0, 2, 1))                                       # (c, p, a)
+        R = self._sums.mean() * w[..., :, None] * xp.conj(w[..., None, :])
+        M = model_covariance(lay["xyz_m"], lay["freq_hz"], model.lmn, model.flux_pol, xp=xp)
+        settings = self.settings
+        if self.reference_stand is not None:
+            idx = np.flatnonzero(self._stand_ids == int(self.reference_stand))
+            if idx.size:
+                from dataclasses import replace
+                settings = replace(settings, reference=int(idx[0]))
+        try:
+            sol = solve_gains(R, M, lay["xyz_m"], lay["freq_hz"], self._flags, settings)
+        except ValueError as e:
+            self._fail(str(e))
+            return
+        finally:
+            self.solver_stats["solve_s"] += time.perf_counter() - t0
+        self.solutions.append(sol)
+        self.valid_from.append(int(valid_from))
+        self.time_unix.append(float(when.unix))
+        self.models.append(model.to_dict())
+        self._posted_in_seq += 1
+        self.solver_stats["solutions"] += 1
+        if self.table is not None:
+            self.table.post(valid_from, sol.corrections)
+        log.info("gain solution %d (%s UTC, %.2f s of data, model %s): %s; %.2f s", len(self.solutions) - 1,
+                 when.isot[:19], ntime * lay["dt_s"], model.describe(), sol.summary(), time.perf_counter() - t0)
+        if self.table_path:
+            self.write(self.table_path)
+
+    def provenance(self):
+        return {"station": self._station_name, "model": self.models[-1] if self.models else {},
+                "models": self.models, "settings": self.settings.to_dict(), "cadence_s": self.cadence_s,
+                "integration_s": self.integration_s, "cable_removed": bool(self.cable),
+                "min_alt_deg": self.min_alt_deg}
+
+    def write(self, path):
+        """Write the solutions so far to ``path`` (.npz) and, with ``png``, its PNG beside it."""
+        from ..io.gaintable import gain_table_png, read_solved_table, write_gain_table
+        if not self.solutions:
+            return None
+        p = write_gain_table(path, self.valid_from, self.solutions, freq_hz=self._lay["freq_hz"],
+                             stand_ids=self._stand_ids, time_unix=self.time_unix, provenance=self.provenance())
+        if self.png:
+            try:
+                gain_table_png(str(p)[:-4] + ".png", table=read_solved_table(p))
+            except Exception as e:   # a plot must not stop a pipeline
+                log.warning("gain table PNG not written: %s", e)
+        return p
+
+
+def gain_solver(iring, sources, *args, **kwargs):
+    """Factory for :class:`GainSolverBlock`."""
+    return GainSolverBlock(iring, sources, *args, **kwargs)

@@ -1,0 +1,472 @@
+"""Direction-independent gains from the sky (the A_s of docs/concepts/conventions.md), as pure functions.
+
+Data model (PHYSICS.md, "Calibration from the sky"; sigma = +1). After the cable term is removed, input
+a (one stand, one polarisation p) carries an unknown complex gain g_a(nu), and the covariance is
+
+    R_ab = <x_a x_b*> = g_a g_b* M_ab + N_ab,
+    M_ab = sum_s F_sp exp(+2 pi i nu s_hat . (r_a - r_b) / c),     F_sp = (S_s / 2) |B_p(s_hat)|^2
+
+with S_s a model source's flux density (Stokes I, Jy), B_p the antenna's voltage pattern and N_ab what
+the model lacks: receiver noise (on a = b only), diffuse Galactic emission (mostly on short baselines),
+sources not in the model. Arrays here are shaped (..., nant, nant) with any leading batch, in practice
+(nchan, npol): one independent problem per channel and polarisation; cross-polarisation terms are not
+used.
+
+Method: StEFCal (Salvini & Wijnholds 2014, A&A 571, A97), alternating least squares in closed form:
+with the other inputs held, input p's gain minimising sum_q W_pq |R_pq - g_p M_pq g_q*|^2 is
+
+    g_p = sum_q W_pq R_pq conj(M_pq) g_q  /  sum_q W_pq |M_pq|^2 |g_q|^2,
+
+all inputs at once, and every second iterate is averaged with the one before (which makes the
+iteration converge where the plain update oscillates). Why this method: each iteration is two batched
+matrix-vector products over every channel and polarisation at once (O(N^2) per problem, no matrix
+inversion, no per-input loop), the same lines on NumPy and CuPy; it is the inner loop of AARTFAAC's
+real-time WALS (Wijnholds et al.), which adds per-direction terms that a direction-independent gain
+against a fixed model does not need.
+
+Robustness (what the model lacks):
+
+* the autocorrelations (a = b) carry the receiver noise and are never used (W_aa = 0);
+* baselines shorter than ``min_baseline_lambda`` wavelengths get W = 0: they are dominated by the
+  diffuse Galactic emission, which a point-source model lacks;
+* inputs are screened by their health (:func:`input_health`) and the solve repeated without the bad
+  ones: deaf (|g| far below its peers': no sky in it), noisy (power per unit gain far above its peers'),
+  residual (the model does not fit it: a solution that will not converge on that input);
+* per-channel solutions are regularised across the band (:func:`smooth_across_channels`): a delay and
+  a phase per input (the physics of a cable), times a slowly varying complex bandpass (a running mean
+  over ``smooth_channels`` channels once the delay is removed).
+
+Unobservable: one phase per channel and polarisation (fixed here by a reference input, whose gain is
+made real and positive). The amplitude scale is observable and set by the model's fluxes: calibrated
+images are in Jy on the model's flux scale.
+
+Output convention (docs/concepts/conventions.md): gain tables hold CORRECTIONS, 1 / g, multiplied onto
+the cable-corrected voltages; 0 flags an input.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..conventions import SPEED_OF_LIGHT_M_S
+from ._xp import get_xp, to_numpy
+
+__all__ = ["SolveSettings", "Solution", "model_covariance", "baseline_weights", "stefcal", "reference_phase",
+           "smooth_across_channels", "input_health", "solve_gains", "gain_error", "CovarianceSums",
+           "REASONS"]
+
+#: Flag reasons, in the order they are decided (an input keeps the first that applies).
+REASONS = ("station", "no-power", "deaf", "noisy", "residual", "few-baselines")
+
+
+@dataclass(frozen=True)
+class SolveSettings:
+    """What the solver does; every field is a pipeline YAML key under ``calibration.solve``.
+
+    min_baseline_lambda : baselines shorter than this (wavelengths, 3-D length) are not used.
+    max_iter, tol : StEFCal's iteration limit and its convergence test (relative change of the gains).
+    deaf_below : an input whose median |g| is below this fraction of the inputs' median is 'deaf'.
+    noisy_above : an input whose median power / |g|^2 exceeds this multiple of the inputs' median is 'noisy'.
+    residual_above : an input whose relative model residual exceeds this multiple of the median is 'residual'.
+    smooth_channels : width (channels) of the running mean across the band once each input's delay is
+        removed; 1 keeps per-channel solutions; >= nchan fits one delay, phase and amplitude per input.
+    max_delay_s : the delay search spans +- this (seconds); it is also held within the channel spacing's
+        ambiguity (1 / (2 channel spacing)).
+    reference : the reference input's stand index (0-based row of the station table), or -1 for the
+        good input with the largest median |g|.
+    min_good_fraction : fewer good inputs than this fraction (of those the station does not flag) per
+        polarisation is a failed solution.
+    """
+    min_baseline_lambda: float = 4.0
+    max_iter: int = 200
+    tol: float = 1e-6
+    deaf_below: float = 0.3
+    noisy_above: float = 3.0
+    residual_above: float = 4.0
+    smooth_channels: int = 16
+    max_delay_s: float = 2e-6
+    reference: int = -1
+    min_good_fraction: float = 0.5
+
+    def __post_init__(self):
+        checks = {"min_baseline_lambda": self.min_baseline_lambda >= 0, "max_iter": self.max_iter >= 2,
+                  "tol": self.tol > 0, "deaf_below": 0 <= self.deaf_below < 1, "noisy_above": self.noisy_above > 1,
+                  "residual_above": self.residual_above > 1, "smooth_channels": self.smooth_channels >= 1,
+                  "max_delay_s": self.max_delay_s >= 0, "min_good_fraction": 0 < self.min_good_fraction <= 1}
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError("SolveSettings: out of range: " + ", ".join(f"{k}={getattr(self, k)!r}" for k in bad))
+
+    def to_dict(self):
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+@dataclass
+class Solution:
+    """One solve's result, on the host (NumPy).
+
+    gains : complex128 (nchan, nant, npol), the solved g (referenced, smoothed; 0 where flagged).
+    corrections : complex128 (nchan, nant, npol), 1 / g, 0 where flagged: what a gain table holds.
+    flags : bool (nant, npol), True = flagged (any reason, the station's own included).
+    reasons : str (nant, npol), '' for good inputs, else one of :data:`REASONS`.
+    quality : float64 arrays (nant, npol): ``gain_amp`` (median over channels of |g|), ``residual``
+        (relative model residual), ``power`` (median autocorrelation), ``power_per_gain``; and per
+        (nchan, npol): ``converged`` (bool), ``delay_s`` (nant, npol) of the smoothing fit.
+    info : iterations, reference input, baselines used, good inputs, settings.
+    """
+    gains: np.ndarray
+    corrections: np.ndarray
+    flags: np.ndarray
+    reasons: np.ndarray
+    quality: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+    def summary(self) -> str:
+        nant, npol = self.flags.shape
+        counts = {r: int((self.reasons == r).sum()) for r in REASONS if (self.reasons == r).any()}
+        good = ~self.flags
+        amp = self.quality.get("gain_amp")
+        med = float(np.median(amp[good])) if amp is not None and good.any() else float("nan")
+        conv = self.quality.get("converged")
+        return (f"{int(good.sum())}/{nant * npol} inputs good"
+                + (f" (flagged: {', '.join(f'{k} {v}' for k, v in counts.items())})" if counts else "")
+                + f", median |g| {med:.4g}, iterations {self.info.get('iterations')}"
+                + (f", {int(conv.sum())}/{conv.size} channel-pols converged" if conv is not None else ""))
+
+
+def _phases(xyz_m, freq_hz, lmn):
+    """exp(+2 pi i nu s.r / c), complex128 (nchan, nsrc, nant), phases reduced in float64."""
+    path = np.asarray(lmn, np.float64) @ np.asarray(xyz_m, np.float64).T                  # (nsrc, nant) m
+    cyc = np.asarray(freq_hz, np.float64)[:, None, None] / SPEED_OF_LIGHT_M_S * path[None]
+    cyc -= np.rint(cyc)
+    return np.exp(2j * math.pi * cyc)
+
+
+def model_covariance(xyz_m, freq_hz, lmn, flux_pol, xp=np, dtype=None):
+    """The model covariance M, (nchan, npol, nant, nant) complex, in the namespace ``xp``.
+
+    xyz_m : (nant, 3) East, North, Up metres; freq_hz : (nchan,); lmn : (nsrc, 3) direction cosines;
+    flux_pol : (nchan, nsrc, npol) apparent flux per polarisation, F = (S / 2) |B_p|^2 (Jy).
+    dtype : complex128 (default) or complex64. Phases are formed in float64 on the host.
+    """
+    a = _phases(xyz_m, freq_hz, lmn)                                                        # (c, s, a)
+    f = np.asarray(flux_pol, np.float64)
+    nchan, nsrc, npol = f.shape
+    nant = a.shape[2]
+    dtype = dtype or xp.complex128
+    if nsrc == 0:
+        return xp.zeros((nchan, npol, nant, nant), dtype)
+    ad = xp.asarray(a.astype(dtype))
+    out = xp.empty((nchan, npol, nant, nant), dtype)
+    for p in range(npol):
+        fa = ad * xp.asarray(f[:, :, p, None].astype(np.float64)).astype(dtype)           # (c, s, a)
+        out[:, p] = xp.matmul(fa.swapaxes(1, 2), xp.conj(ad))                              # (c, a, a)
+    return out
+
+
+def baseline_weights(xyz_m, freq_hz, min_baseline_lambda, xp=np):
+    """float (nchan, nant, nant): 1 for baselines of at least ``min_baseline_lambda`` wavelengths, else 0
+    (the diagonal always 0). The length is the 3-D one."""
+    xyz = np.asarray(xyz_m, np.float64)
+    d = np.sqrt(((xyz[:, None, :] - xyz[None, :, :]) ** 2).sum(-1))                         # (a, a) m
+    lam = SPEED_OF_LIGHT_M_S / np.asarray(freq_hz, np.float64)
+    w = (d[None] >= min_baseline_lambda * lam[:, None, None]).astype(np.float64)
+    idx = np.arange(xyz.shape[0])
+    w[:, idx, idx] = 0.0
+    return xp.asarray(w)
+
+
+def stefcal(R, M, W, g0=None, *, max_iter=200, tol=1e-6):
+    """StEFCal (module docstring): gains g with R ~ g g^H (.) M where W > 0, batched.
+
+    R, M : complex (..., nant, nant); W : real (..., nant, nant) broadcastable (0 = unused).
+    g0 : complex (..., nant) start (default ones). Returns (g (..., nant), iterations, converged
+    (...) bool). An input with no usable baseline gets g = 0.
+    """
+    xp = get_xp(R)
+    P = W * R * xp.conj(M)
+    Q = W * (M.real ** 2 + M.imag ** 2)
+    batch, nant = R.shape[:-2], R.shape[-1]
+    g = xp.ones(batch + (nant,), R.dtype) if g0 is None else xp.array(g0, dtype=R.dtype)
+    conv = np.zeros(batch, bool)
+    it = 0
+    for it in range(1, max_iter + 1):
+        num = xp.matmul(P, g[..., None])[..., 0]
+        den = xp.matmul(Q, (g.real ** 2 + g.imag ** 2)[..., None])[..., 0]
+        gn = xp.where(den > 0, num / xp.where(den > 0, den, 1), 0)
+        if it % 2 == 0:
+            gn = 0.5 * (gn + g)
+            change = xp.linalg.norm(gn - g, axis=-1) / xp.maximum(xp.linalg.norm(gn, axis=-1), 1e-300)
+            g = gn
+            conv = to_numpy(change <= tol)
+            if conv.all():
+                break
+        else:
+            g = gn
+    return g, it, conv
+
+
+def reference_phase(g, ref):
+    """g with each (channel, pol)'s phase set so that input ``ref[pol]`` is real and positive.
+
+    g : complex (nchan, npol, nant); ref : int (npol,) input index per polarisation."""
+    xp = get_xp(g)
+    gr = xp.stack([g[:, p, int(r)] for p, r in enumerate(ref)], axis=1)                    # (c, p)
+    ph = xp.where(xp.abs(gr) > 0, xp.conj(gr) / xp.maximum(xp.abs(gr), 1e-300), 1)
+    return g * ph[..., None]
+
+
+def smooth_across_channels(g, freq_hz, valid, window, max_delay_s):
+    """Regularise per-channel gains across the band: a delay per input, then a running complex mean.
+
+    g : complex (nchan, npol, nant); valid : bool (nchan, npol, nant) (solutions to trust).
+    For each input the delay tau maximising |sum_c g_c exp(+2 pi i nu_c tau)| over a grid (1/8 of the
+    band's resolution, within +-max_delay_s and the channel spacing's ambiguity, refined by a parabola)
+    is removed, the result averaged over ``window`` channels (valid ones only), and the delay put back:
+    a cable's delay and phase, times a slowly varying bandpass. Returns (smoothed g, delay_s (npol, nant)).
+    Channels with no valid neighbour in the window get 0.
+    """
+    xp = get_xp(g)
+    f = np.asarray(freq_hz, np.float64)
+    nchan = f.size
+    v = valid.astype(g.real.dtype)
+    if nchan < 2 or window <= 1:
+        return xp.where(valid, g, 0), np.zeros(g.shape[1:], np.float64)
+    df = float(np.min(np.abs(np.diff(f))))
+    bw = float(f.max() - f.min()) + df
+    tmax = min(max_delay_s, 0.5 / df)
+    step = 1.0 / (8.0 * bw)
+    ntau = 2 * int(math.ceil(tmax / step)) + 1 if tmax > 0 else 1
+    taus = (np.arange(ntau) - ntau // 2) * step
+    fc = f - f.mean()                                    # centred: the fitted phase is the band-centre one
+    E = xp.asarray(np.exp(2j * math.pi * fc[:, None] * taus[None, :]).astype(np.complex128)).astype(g.dtype)
+    gv = (g * v).transpose(1, 2, 0)                                                         # (p, a, c)
+    power = xp.abs(xp.matmul(gv, E))                                                        # (p, a, ntau)
+    k = to_numpy(xp.argmax(power, axis=-1))
+    pw = to_numpy(power)
+    tau = taus[k]
+    if ntau >= 3:   # parabolic refinement on the grid's neighbours
+        km, kp = np.clip(k - 1, 0, ntau - 1), np.clip(k + 1, 0, ntau - 1)
+        y0 = np.take_along_axis(pw, k[..., None], -1)[..., 0]
+        ym = np.take_along_axis(pw, km[..., None], -1)[..., 0]
+        yp = np.take_along_axis(pw, kp[..., None], -1)[..., 0]
+        den = ym - 2 * y0 + yp
+        inner = (k > 0) & (k < ntau - 1) & (den < 0)
+        tau = tau + np.where(inner, 0.5 * (ym - yp) / np.where(inner, den, 1) * step, 0.0)
+    rot = xp.asarray(np.exp(2j * math.pi * fc[:, None, None] * tau[None]).astype(np.complex128)).astype(g.dtype)
+    r = g * rot * v                                                                         # (c, p, a)
+    w = int(min(window, nchan))
+    # running sums over channels (valid ones only): a box of w channels centred on each
+    cs = xp.concatenate([xp.zeros((1,) + r.shape[1:], r.dtype), xp.cumsum(r, axis=0)])
+    cv = xp.concatenate([xp.zeros((1,) + v.shape[1:], v.dtype), xp.cumsum(v, axis=0)])
+    lo = np.clip(np.arange(nchan) - (w - 1) // 2, 0, None)
+    hi = np.clip(lo + w, None, nchan)
+    lo = np.clip(hi - w, 0, None)
+    lo_d, hi_d = xp.asarray(lo), xp.asarray(hi)
+    num = cs[hi_d] - cs[lo_d]
+    cnt = cv[hi_d] - cv[lo_d]
+    sm = xp.where(cnt > 0, num / xp.where(cnt > 0, cnt, 1), 0)
+    return sm * xp.conj(rot), tau
+
+
+def input_health(R, M, W, g, live):
+    """Per-input figures, (nant, npol) float64 each, from the median over channels.
+
+    R, M : complex (nchan, npol, nant, nant); W : (nchan, nant, nant) or broadcastable; g : (nchan, npol,
+    nant); live : bool (npol, nant) inputs in the solve. Returns a dict: ``gain_amp`` |g|, ``power`` the
+    autocorrelation, ``power_per_gain`` power / |g|^2, ``residual`` sum_q W |R - g g* M|^2 / sum_q W |g g* M|^2
+    over the live inputs q, ``baselines`` the number of live baselines of weight > 0.
+    """
+    xp = get_xp(R)
+    nant = R.shape[-1]
+    idx = xp.arange(nant)
+    lv = xp.asarray(live).astype(R.real.dtype)                                              # (p, a)
+    W4 = W[:, None] if W.ndim == 3 else W
+    Wl = W4 * lv[None, :, :, None] * lv[None, :, None, :]
+    fit = g[..., :, None] * xp.conj(g[..., None, :]) * M
+    res = xp.sum(Wl * xp.abs(R - fit) ** 2, axis=-1)
+    ref = xp.sum(Wl * xp.abs(fit) ** 2, axis=-1)
+    rel = xp.where(ref > 0, res / xp.where(ref > 0, ref, 1), np.inf)
+    power = R[..., idx, idx].real
+    amp = xp.abs(g)
+    ppg = xp.where(amp > 0, power / xp.where(amp > 0, amp, 1) ** 2, np.inf)
+    nbl = xp.sum(Wl > 0, axis=-1)
+    med = lambda a: np.median(to_numpy(a), axis=0).T                                      # (c, p, a) -> (a, p)
+    return {"gain_amp": med(amp), "power": med(power), "power_per_gain": med(ppg), "residual": med(rel),
+            "baselines": med(nbl)}
+
+
+def _choose_reference(amp, good, reference):
+    """Reference input index per pol: ``reference`` if good, else the good input with the largest |g|."""
+    ref = []
+    for p in range(good.shape[1]):
+        if reference >= 0 and good[reference, p]:
+            ref.append(int(reference))
+        else:
+            a = np.where(good[:, p], amp[:, p], -np.inf)
+            ref.append(int(np.argmax(a)))
+    return np.array(ref)
+
+
+def _robust_median(x, good):
+    """Median of x over good inputs, per pol: (npol,)."""
+    return np.array([np.median(x[good[:, p], p]) if good[:, p].any() else np.nan for p in range(x.shape[1])])
+
+
+def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSettings | None = None, *, rounds=4):
+    """Gains, flags and quality from covariances R against the model M (module docstring).
+
+    R, M : complex (nchan, npol, nant, nant), NumPy or CuPy (the solve runs where they live); R is the
+        time-averaged covariance of the cable-corrected voltages. xyz_m : (nant, 3); freq_hz : (nchan,).
+    station_flags : bool (nant, npol), inputs not to use (the station's flags, zero cable weights).
+    Returns a :class:`Solution` (NumPy). Raises ValueError when too few inputs remain good in a
+    polarisation (:attr:`SolveSettings.min_good_fraction`) or no channel-pol converges.
+    """
+    s = settings or SolveSettings()
+    xp = get_xp(R)
+    nchan, npol, nant, _ = R.shape
+    if M.shape != R.shape:
+        raise ValueError(f"solve_gains: R is shaped {R.shape}, the model {M.shape}")
+    sflag = np.zeros((nant, npol), bool) if station_flags is None else np.array(station_flags, bool)
+    reasons = np.full((nant, npol), "", dtype=object)
+    reasons[sflag] = "station"
+    idx = np.arange(nant)
+    powr = np.median(to_numpy(R[..., idx, idx].real), axis=0).T                           # (a, p)
+    nopow = ~sflag & ~(np.isfinite(powr) & (powr > 0))
+    reasons[nopow] = "no-power"
+    W = baseline_weights(xyz_m, freq_hz, s.min_baseline_lambda, xp=xp).astype(R.real.dtype)
+    if not bool(to_numpy(xp.any(W > 0))):
+        raise ValueError(f"solve_gains: no baseline is longer than min_baseline_lambda = {s.min_baseline_lambda} "
+                         f"wavelengths at {float(np.max(freq_hz)) / 1e6:.3f} MHz")
+    mpow = np.median(to_numpy(xp.abs(M[..., idx, idx])), axis=0).T
+    if not np.any(mpow > 0):
+        raise ValueError("solve_gains: the model is empty (no source above the horizon, or zero flux)")
+    g = None
+    iters = 0
+    conv = np.zeros((nchan, npol), bool)
+    for _ in range(rounds):
+        good = reasons == ""
+        live = xp.asarray(good.T)                                                           # (p, a)
+        Wl = W[:, None] * live[None, :, :, None] * live[None, :, None, :]
+        g, it, conv = stefcal(R, M, Wl, g, max_iter=s.max_iter, tol=s.tol)
+        g = g * live[None]
+        iters += it
+        h = input_health(R, M, W, g, good.T)
+        new = np.zeros_like(good)
+        amp_med = _robust_median(h["gain_amp"], good)
+        ppg_med = _robust_median(h["power_per_gain"], good)
+        res_med = _robust_median(h["residual"], good)
+        deaf = good & (h["gain_amp"] < s.deaf_below * amp_med)
+        reasons[deaf] = "deaf"
+        noisy = good & ~deaf & (h["power_per_gain"] > s.noisy_above * ppg_med)
+        reasons[noisy] = "noisy"
+        resid = good & ~deaf & ~noisy & (h["residual"] > s.residual_above * res_med)
+        reasons[resid] = "residual"
+        few = good & ~deaf & ~noisy & ~resid & (h["baselines"] < 3)
+        reasons[few] = "few-baselines"
+        new = deaf | noisy | resid | few
+        if not new.any():
+            break
+    good = reasons == ""
+    base = ~sflag
+    for p in range(npol):
+        if good[:, p].sum() < max(3, s.min_good_fraction * base[:, p].sum()):
+            raise ValueError(f"solve_gains: only {int(good[:, p].sum())} of {int(base[:, p].sum())} inputs of pol {p} "
+                             f"are good (need {s.min_good_fraction:.0%}); flags: "
+                             + ", ".join(f"{r} {int((reasons[:, p] == r).sum())}" for r in REASONS
+                                         if (reasons[:, p] == r).any()))
+    if not conv.any():
+        raise ValueError(f"solve_gains: StEFCal did not converge in any channel ({s.max_iter} iterations, tol {s.tol})")
+    ref = _choose_reference(h["gain_amp"], good, s.reference)
+    g = reference_phase(g, ref)
+    valid = xp.asarray(np.broadcast_to(good.T[None], (nchan, npol, nant)) & conv[:, :, None])
+    gs, tau = smooth_across_channels(g, freq_hz, valid, s.smooth_channels, s.max_delay_s)
+    gs = to_numpy(gs).transpose(0, 2, 1)                                                    # (c, a, p)
+    weak = np.abs(gs) <= 1e-6 * np.nanmax(np.abs(gs))
+    gs = np.where(good[None] & ~weak, gs, 0)
+    corr = np.where(gs != 0, 1.0 / np.where(gs != 0, gs, 1), 0)
+    quality = {k: np.asarray(v, np.float64) for k, v in h.items()}
+    quality.update(converged=conv, delay_s=np.asarray(tau, np.float64).T)
+    flags = reasons != ""
+    info = {"iterations": iters, "reference": ref.tolist(), "good_inputs": int(good.sum()),
+            "baselines_used": int(to_numpy(xp.sum(W > 0))) // 2, "settings": s.to_dict()}
+    return Solution(gs.astype(np.complex128), corr.astype(np.complex128), flags, reasons.astype(str), quality, info)
+
+
+def gain_error(corrections, true_gains, good):
+    """rms over good inputs of |c g / <c g> - 1|: the residual gain error of a solution.
+
+    corrections, true_gains : complex (nchan, nant, npol); good : bool (nant, npol). The unobservable
+    per-(channel, pol) phase and scale are removed by dividing by the complex median (real and imaginary
+    parts separately) of c g over the good inputs. Returns (rms, per-input rms (nant, npol))."""
+    e = np.asarray(corrections) * np.asarray(true_gains)
+    out = np.zeros(e.shape)
+    for p in range(e.shape[2]):
+        sel = good[:, p]
+        ref = np.median(e[:, sel, p].real, axis=1) + 1j * np.median(e[:, sel, p].imag, axis=1)
+        out[:, :, p] = np.abs(e[:, :, p] / ref[:, None] - 1)
+    per = np.sqrt(np.mean(out ** 2, axis=0))
+    return float(np.sqrt(np.mean(per[good] ** 2))), per
+
+
+class CovarianceSums:
+    """Time-summed covariances of raw voltages, (nchan, npol, nant, nant), for the solver.
+
+    ``add(x)`` takes a gulp (ntime, nchan, nant, npol) of complex voltages or of 4-bit ``ci4`` bytes
+    (uint8, high nibble real). Integer voltages are summed exactly in integers (cuBLAS int8 GEMMs on a
+    GPU, :func:`~.gemm.int_gram`; float32 GEMMs of exact sums on the CPU) and flushed to complex128;
+    complex ones through complex64 GEMMs. ``mean()`` is R = sum / ntime; cross-polarisation terms are
+    formed by the integer route and dropped.
+    """
+
+    def __init__(self, nchan, nant, npol, xp=np):
+        self.xp, self.shape = xp, (nchan, npol, nant, nant)
+        self.sum = xp.zeros(self.shape, xp.complex128)
+        self.ntime = 0
+
+    def reset(self):
+        self.sum[...] = 0
+        self.ntime = 0
+
+    def add(self, x, ci4=False):
+        xp = self.xp
+        nt = int(x.shape[0])
+        if nt == 0:
+            return
+        if ci4:
+            self._add_ci4(x)
+        else:
+            xc = xp.ascontiguousarray(x.transpose(1, 3, 2, 0)).astype(xp.complex64)         # (c, p, a, t)
+            self.sum += xp.matmul(xc, xp.conj(xc).swapaxes(-1, -2)).astype(xp.complex128)
+        self.ntime += nt
+
+    def _add_ci4(self, b, chunk=64):
+        from types import SimpleNamespace
+
+        from .gemm import int_gram
+        from .layout import _ci4_pairs, gram_rows
+        xp = self.xp
+        T, C, A, P = b.shape
+        sel = SimpleNamespace(chan=None, ant=None, live=None)
+        for c0 in range(0, C, chunk):     # channel chunks bound the Gram's memory (4 A P^2 A per channel)
+            c1 = min(C, c0 + chunk)
+            pairs = xp.ascontiguousarray(_ci4_pairs(xp.ascontiguousarray(b[:, c0:c1])))       # (t, c, a, p, 2)
+            if xp is np:
+                step = (2**24 - 1) // 128      # float32 sums of 4-bit products stay exact below 2^24
+                G = 0
+                for t0 in range(0, T, step):
+                    G = G + int_gram(gram_rows(pairs[t0:t0 + step], sel))
+            else:
+                G = int_gram(gram_rows(pairs, sel))                                        # int32, exact
+            G = G.reshape(c1 - c0, A, P, 2, A, P, 2)
+            for p in range(P):
+                re = (G[:, :, p, 0, :, p, 0] + G[:, :, p, 1, :, p, 1]).astype(xp.float64)
+                im = (G[:, :, p, 1, :, p, 0] - G[:, :, p, 0, :, p, 1]).astype(xp.float64)
+                self.sum[c0:c1, p] += re + 1j * im
+
+    def mean(self):
+        if self.ntime == 0:
+            raise ValueError("no samples accumulated")
+        return self.sum / self.ntime

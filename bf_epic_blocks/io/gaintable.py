@@ -1,0 +1,118 @@
+"""Solved gain tables on disk: the ``GainTable`` .npz the pipeline reads, with flags, quality and provenance,
+and a PNG a person can read.
+
+The .npz holds, for ``nsol`` solutions of ``nchan`` channels, ``nstand`` stands and ``npol`` pols:
+
+* ``valid_from`` int64 (nsol,) time tags (196 MHz ticks since the Unix epoch) from which each applies;
+  ``gains`` complex128 (nsol, nchan, nstand, npol): CORRECTIONS (1 / g) multiplied onto the
+  cable-corrected voltages, 0 = flagged. These two are all that ``calibration.gains_table`` reads.
+* ``flags`` bool and ``flag_reason`` str (nsol, nstand, npol) (reasons as
+  :data:`bf_epic_blocks.imaging.skycal.REASONS`; '' for good inputs).
+* quality, float64 (nsol, nstand, npol): ``gain_amp`` |g|, ``residual`` (relative model residual),
+  ``power`` (autocorrelation), ``power_per_gain``, ``delay_s`` (the smoothing fit's delay);
+  ``converged`` bool (nsol, nchan, npol).
+* ``freq_hz`` (nchan,), ``stand_ids`` (nstand,), ``time_unix`` (nsol,) the middle of each solution's data,
+  ``provenance`` a JSON string: the station, the model (sources, altitudes, apparent fluxes, pattern),
+  the solver's settings, the integration, the software version.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["write_gain_table", "gain_table_png", "read_solved_table"]
+
+_QUALITY = ("gain_amp", "residual", "power", "power_per_gain", "delay_s")
+
+
+def write_gain_table(path, valid_from, solutions, *, freq_hz, stand_ids, time_unix, provenance):
+    """Write the solutions (a list of :class:`~bf_epic_blocks.imaging.skycal.Solution`) to ``path``
+    (.npz), atomically (a temporary file renamed over the old one, so a reader never sees half a table)."""
+    from .. import __version__
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {
+        "valid_from": np.asarray(valid_from, np.int64),
+        "gains": np.stack([s.corrections for s in solutions]).astype(np.complex128),
+        "flags": np.stack([s.flags for s in solutions]),
+        "flag_reason": np.stack([s.reasons for s in solutions]).astype("U16"),
+        "converged": np.stack([s.quality["converged"] for s in solutions]),
+        "freq_hz": np.asarray(freq_hz, np.float64),
+        "stand_ids": np.asarray(stand_ids, np.int64),
+        "time_unix": np.asarray(time_unix, np.float64),
+        "provenance": np.array(json.dumps({**provenance, "software": f"bf_epic_blocks {__version__}"})),
+    }
+    for k in _QUALITY:
+        arrays[k] = np.stack([s.quality[k] for s in solutions]).astype(np.float64)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+    return path
+
+
+def read_solved_table(path) -> dict:
+    """Every array of a solved table as a dict (``provenance`` parsed from JSON)."""
+    with np.load(path, allow_pickle=False) as z:
+        out = {k: z[k] for k in z.files}
+    if "provenance" in out:
+        out["provenance"] = json.loads(str(out["provenance"]))
+    return out
+
+
+def gain_table_png(path, table_path=None, *, table=None, solution=-1, title=None):
+    """A PNG of one solution: amplitude and phase of every input's correction across the band, per pol,
+    good inputs as thin lines, and a strip per pol marking each flagged input with its reason.
+
+    Give ``table_path`` (an .npz :func:`write_gain_table` wrote) or ``table`` (its dict)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    t = table if table is not None else read_solved_table(table_path)
+    g = np.asarray(t["gains"])[solution]                                   # (c, a, p) corrections
+    flags = np.asarray(t["flags"])[solution]
+    reasons = np.asarray(t["flag_reason"])[solution]
+    f = np.asarray(t["freq_hz"]) / 1e6
+    nchan, nant, npol = g.shape
+    fig = Figure(figsize=(11, 8), dpi=100)
+    FigureCanvasAgg(fig)
+    axs = fig.subplots(3, npol, squeeze=False, gridspec_kw={"height_ratios": [3, 3, 1.2]})
+    names = "XY"
+    colours = {"station": "0.6", "no-power": "k", "deaf": "tab:blue", "noisy": "tab:red", "residual": "tab:orange",
+               "few-baselines": "tab:purple"}
+    x = f if nchan > 1 else np.array([0.0, 1.0]) + f[0]
+    for p in range(npol):
+        good = ~flags[:, p]
+        gg = g[:, good, p]
+        amp = np.abs(gg)
+        med = np.median(amp, axis=1, keepdims=True) if gg.size else 1.0
+        ax = axs[0, p]
+        y = amp / np.where(med > 0, med, 1)
+        ax.plot(x, y if nchan > 1 else np.repeat(y, 2, axis=0), lw=0.5, alpha=0.5)
+        ax.set_ylabel("|correction| / median")
+        ax.set_title(f"pol {names[p] if p < 2 else p}: {int(good.sum())} good, {int((~good).sum())} flagged")
+        ax = axs[1, p]
+        ph = np.degrees(np.angle(gg))
+        ax.plot(x, ph if nchan > 1 else np.repeat(ph, 2, axis=0), lw=0.5, alpha=0.5)
+        ax.set_ylabel("phase (deg)")
+        ax.set_xlabel("frequency (MHz)")
+        ax.set_ylim(-185, 185)
+        ax = axs[2, p]
+        for r, c in colours.items():
+            idx = np.flatnonzero(reasons[:, p] == r)
+            if idx.size:
+                ax.scatter(idx, np.zeros(idx.size), marker="|", s=200, color=c, label=f"{r} ({idx.size})")
+        ax.set_xlim(-1, nant)
+        ax.set_yticks([])
+        ax.set_xlabel("input (stand index)")
+        if (~good).any():
+            ax.legend(loc="upper right", fontsize=7, ncol=3, frameon=False)
+    prov = t.get("provenance") or {}
+    model = prov.get("model", {})
+    fig.suptitle(title or f"gain solution {solution % len(t['valid_from'])} of {len(t['valid_from'])}: "
+                 f"{prov.get('station', '')}, model {', '.join(model.get('sources', []))}")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
