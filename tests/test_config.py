@@ -87,7 +87,7 @@ def test_minimal_simulated_defaults():
     assert src["sources"] == ["CygA", "CasA", "TauA", "VirA"]
     assert (src["noise_power"], src["seed"], src["quantize"]) == (1000.0, 1, True)
     assert cfg["station"] == {"name": "lwasv", "ssmif": None, "flags": []}
-    assert cfg["calibration"] == {"cable": True, "gains_table": None, "pattern": "dipole"}
+    assert cfg["calibration"] == {"cable": True, "gains_table": None, "pattern": "dipole", "solve": None}
     im = cfg["imager"]
     assert im["kind"] == "dft" and im["grid"] == {"size": 64, "cell": None}
     assert (im["accumulate_frames"], im["products"], im["method"], im["precision"]) == (1024, ["I"], "auto", "fp32")

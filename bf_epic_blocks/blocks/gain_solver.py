@@ -163,13 +163,16 @@ class GainSolverBlock(bfp.SinkBlock):
     table_path : where the solved table (.npz, :mod:`bf_epic_blocks.io.gaintable`) is written after each
         solution (and its PNG beside it when ``png``), or None.
     reference_stand : stand id of the reference input, or None (auto).
+    apply_from : 'after' (live: a solution applies from the first frame after its data) or 'start'
+        (offline: from the first frame of its cadence, so a table applied to the same data calibrates
+        them from their start; the table's ``valid_from`` says which).
     ``solutions`` lists the :class:`~bf_epic_blocks.imaging.skycal.Solution` objects; ``solver_stats``
     counts solutions, failures (with reasons) and the seconds spent summing and solving.
     """
 
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
-                 reference_stand=None, **kwargs):
+                 reference_stand=None, apply_from="after", **kwargs):
         super().__init__(iring, **kwargs)
         if not (integration_s > 0 and cadence_s >= integration_s):
             raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="
@@ -180,6 +183,9 @@ class GainSolverBlock(bfp.SinkBlock):
         self.cable, self.min_alt_deg, self.min_samples = cable, float(min_alt_deg), int(min_samples)
         self.table, self.table_path, self.png = table, table_path, png
         self.reference_stand = reference_stand
+        if apply_from not in ("after", "start"):
+            raise ValueError(f"GainSolverBlock: apply_from must be 'after' or 'start', got {apply_from!r}")
+        self.apply_from = apply_from
         self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
                              "samples": 0}
@@ -261,7 +267,8 @@ class GainSolverBlock(bfp.SinkBlock):
             self.solver_stats["sum_s"] += time.perf_counter() - t0
             pos += take
             if f + take >= end:
-                self._solve(self._k, self._due(self._k))
+                self._solve(self._k, self._due(self._k) if self.apply_from == "after"
+                            else self._tag0 + self._k * self._cadence * self._tpf)
                 self._k += 1
                 self._sums.reset()
                 if self.table is not None:
@@ -274,7 +281,8 @@ class GainSolverBlock(bfp.SinkBlock):
                 if self._sums.ntime >= self.min_samples:
                     log.warning("GainSolverBlock: the sequence ended %d samples into an integration of %d; "
                                 "solving from what there is", self._sums.ntime, self._integ)
-                    self._solve(self._k, self._tag0 + self._frame * self._tpf)
+                    self._solve(self._k, self._tag0 + (self._frame if self.apply_from == "after"
+                                                       else self._k * self._cadence) * self._tpf)
                 else:
                     self._fail(f"data too short to solve: {self._sums.ntime} samples, need at least "
                                f"{self.min_samples} (calibration.solve.min_samples)")

@@ -446,7 +446,8 @@ class CovarianceSums:
         from types import SimpleNamespace
 
         from .gemm import int_gram
-        from .layout import _ci4_pairs, gram_rows
+        from .fused import _ci4_pairs
+        from .layout import gram_rows
         xp = self.xp
         T, C, A, P = b.shape
         sel = SimpleNamespace(chan=None, ant=None, live=None)

@@ -3,6 +3,7 @@
     bf-epic validate FILE [--set key=value ...]
     bf-epic plan FILE [--set key=value ...]
     bf-epic run FILE [--set key=value ...] [--no-progress] [-v|-q]
+    bf-epic calibrate FILE [-o TABLE.npz] [--set key=value ...]
     bf-epic batch FILE --inputs TBF [TBF ...] [--scheduler tcp://HOST:PORT] [--workers N] [--set ...]
     bf-epic replay FILE --to 127.0.0.1:PORT [--rate R] [--drop F] [--seed N] [--format auto|tbf|tbx]
 
@@ -35,6 +36,9 @@ def build_parser():
                         ("plan", "print what the pipeline would do: pixels, antennas, operation counts, "
                                  "method, predicted real-time factor"),
                         ("run", "run the pipeline and write FITS/PNG outputs"),
+                        ("calibrate", "solve antenna gains and health from the pipeline's source against a sky "
+                                      "model (calibration.solve keys) and write a gains table that "
+                                      "calibration.gains_table accepts, with a PNG"),
                         ("batch", "run the pipeline on many TBF files (one task per file x channel block) "
                                   "on a Dask distributed cluster; outputs in output.dir/<file stem>/")):
         s = sub.add_parser(name, help=help_, description=help_)
@@ -43,7 +47,10 @@ def build_parser():
                        help="override a key, e.g. --set imager.grid.size=128 (repeatable)")
         s.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
         s.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
-        if name in ("run", "batch"):
+        if name == "calibrate":
+            s.add_argument("-o", "--output", metavar="TABLE.npz",
+                           help="where the table goes (default: output.dir/<prefix>_gains.npz); its PNG beside it")
+        if name in ("run", "batch", "calibrate"):
             s.add_argument("--no-progress", action="store_true", help="no progress bar")
             s.add_argument("--summary-json", metavar="PATH", help="also write the run summary as JSON")
         if name == "batch":
@@ -125,6 +132,11 @@ def main(argv=None):
             if len(overrides) == len(args.overrides):
                 raise
             cfg = load_config(args.file, args.overrides)  # the YAML's own problem, or not a TBF source (below)
+        if args.command == "calibrate":
+            # the solver's keys (defaults where the YAML has none); a gains table it would replace is ignored
+            extra = ["calibration.gains_table=null"] + ([] if cfg["calibration"].get("solve")
+                                                        else ["calibration.solve={}"])
+            cfg = load_config(args.file, extra + overrides)
     except ConfigError as e:
         print(f"bf-epic: invalid pipeline: {e}", file=sys.stderr)
         return 2
@@ -155,6 +167,15 @@ def main(argv=None):
             return 0
         if args.command == "batch":
             return _batch(args, cfg)
+        if args.command == "calibrate":
+            from .runner import calibrate
+            summary = calibrate(cfg, args.output, show_progress=False if args.no_progress else None)
+            if args.summary_json:
+                with open(args.summary_json, "w") as fh:
+                    json.dump(summary, fh, indent=2, default=str)
+            print(f"wrote {summary['table']} ({summary['solutions']} solutions, {summary['failures']} failed; "
+                  f"{summary['flagged']} inputs flagged: {summary['flag_counts']})")
+            return 0
         from .runner import run
         # The block threads share one interpreter lock and give it up at every CUDA call and file read;
         # a thread taking it back waits up to the switch interval while another runs Python. 1 ms (not

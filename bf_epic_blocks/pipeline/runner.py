@@ -397,7 +397,7 @@ def solver_settings(sv):
                                                 "min_good_fraction")})
 
 
-def gain_solver_block(cfg, feed, table=None, table_path=None):
+def gain_solver_block(cfg, feed, table=None, table_path=None, apply_from="after"):
     """The GainSolverBlock ``calibration.solve`` describes, on ``feed`` (the raw voltages)."""
     from ..blocks.gain_solver import GainSolverBlock
     cal = cfg["calibration"]
@@ -407,7 +407,8 @@ def gain_solver_block(cfg, feed, table=None, table_path=None):
                            settings=solver_settings(sv), pattern=None if pattern in (None, "none") else pattern,
                            cable=bool(cal["cable"]), min_alt_deg=sv["min_alt_deg"], min_samples=sv["min_samples"],
                            table=table, table_path=table_path, png=sv["png"],
-                           reference_stand=None if sv["reference"] == "auto" else sv["reference"])
+                           reference_stand=None if sv["reference"] == "auto" else sv["reference"],
+                           apply_from=apply_from)
 
 
 def _solver_stage(cfg, feed, outdir):
@@ -718,6 +719,68 @@ def run(cfg, show_progress=None, parts=None):
         log.warning("%d %s frames were missing and zero-filled", src_stats["frames_missing"],
                     getattr(g.source, "fmt", "TBF").upper())
     return summary
+
+
+def calibrate(cfg, out_path=None, show_progress=None):
+    """``bf-epic calibrate``: the pipeline's source -> GainSolverBlock (``calibration.solve``), no imager.
+
+    Writes the solved table (.npz, :mod:`..io.gaintable`) to ``out_path`` (default
+    ``output.dir/<prefix>_gains.npz``) and its PNG beside it; returns a summary dict. Raises ValueError
+    when no solution could be made (each failure's reason is in the message)."""
+    from pathlib import Path
+
+    from ..blocks import bfp
+    if cfg["source"]["kind"] == "udp":
+        raise ValueError("calibrate: a live udp source has no end; solve live with calibration.solve in "
+                         "`bf-epic run`, or calibrate a capture file of the stream")
+    if not cfg["calibration"].get("solve"):
+        raise ValueError("calibrate: the configuration has no calibration.solve section")
+    dev, devs = _device(cfg)
+    if dev == "gpus":
+        import cupy
+        dev, devs = "gpu", devs[0]
+        cupy.cuda.Device(devs).use()
+    space = "cuda" if dev == "gpu" else "system"
+    fmt = capture_format(cfg["source"])
+    info = _scan(cfg["source"]["path"], fmt=fmt) if fmt is not None else None
+    station = load_station_for(cfg, info)
+    nchan = None
+    if info is not None:
+        cb = channel_block_range(cfg, info)
+        nchan = cb[1] - cb[0] if cb else int(info.nchan)
+    gulp = gulp_frames(cfg, dev, nchan, station.nstand)
+    path = Path(out_path) if out_path else Path(cfg["output"]["dir"]) / f"{cfg['output']['prefix']}_gains.npz"
+    if path.suffix != ".npz":
+        raise ValueError(f"calibrate: the table is an .npz file; got {str(path)!r}")
+    bar = progress = None
+    if show_progress if show_progress is not None else sys.stderr.isatty():
+        from tqdm import tqdm
+        bar = tqdm(total=None, unit="frame", desc=f"{cfg['name']} (calibrate)", unit_scale=True)
+        progress = bar.update
+    t0 = time.perf_counter()
+    scope = bfp.block_scope(gpu=devs) if dev == "gpu" else contextlib.nullcontext()
+    with bfp.Pipeline() as p, scope:
+        source, nframe_total, _ = _recorded_source(cfg, fmt, info, station, gulp, space, progress)
+        solver = gain_solver_block(cfg, source, None, path, apply_from="start")
+    if bar is not None:
+        bar.total = nframe_total
+    try:
+        p.run()
+    finally:
+        if bar is not None:
+            bar.close()
+    st = solver.solver_stats
+    if not solver.solutions:
+        raise ValueError("calibrate: no solution: " + "; ".join(st["failure_reasons"] or ["no data"]))
+    last = solver.solutions[-1]
+    reasons = [str(r) for r in last.reasons.ravel() if r]
+    counts = {r: reasons.count(r) for r in sorted(set(reasons))}
+    log.info("calibrate: %d solutions (%d failed) in %.1f s -> %s", st["solutions"], st["failures"],
+             time.perf_counter() - t0, path)
+    return {"table": str(path), "png": str(path)[:-4] + ".png" if solver.png else None,
+            "solutions": st["solutions"], "failures": st["failures"], "failure_reasons": st["failure_reasons"],
+            "flagged": len(reasons), "flag_counts": counts, "sum_s": st["sum_s"], "solve_s": st["solve_s"],
+            "wall_s": time.perf_counter() - t0, "last": last.summary()}
 
 
 def plan(cfg):
