@@ -72,20 +72,21 @@ def test_model_covariance_is_the_definition():
                     assert abs(M[c, p, a, b] - want) < 1e-9 * abs(flux).max()
 
 
-def test_noiseless_gains_recovered_exactly(xp):
+@pytest.mark.parametrize("dtype,tol", [(np.complex128, 1e-6), (np.complex64, 1e-4)])
+def test_noiseless_gains_recovered_exactly(xp, dtype, tol):
     st = lwasv()
     f = 74e6 + 25e3 * np.arange(3)
     rng = np.random.default_rng(1)
     g, Rt, M = corrupted(st.xyz_m, f, rng, noise=0.0)
-    sol = skycal.solve_gains(xp.asarray(Rt), xp.asarray(M), st.xyz_m, f, st.flags,
-                             skycal.SolveSettings(smooth_channels=1, tol=1e-12, max_iter=500))
+    sol = skycal.solve_gains(xp.asarray(Rt.astype(dtype)), xp.asarray(M.astype(dtype)), st.xyz_m, f, st.flags,
+                             skycal.SolveSettings(smooth_channels=1, tol=tol / 100, max_iter=500))
     good = ~sol.flags
     assert good.sum() == (~st.flags).sum()
     err, per = skycal.gain_error(sol.corrections, g, good)
-    assert err < 1e-6
+    assert err < tol
     # the amplitude scale is observable: |c g| = 1 (calibrated data on the model's flux scale)
     e = sol.corrections * g
-    assert np.allclose(np.abs(e[:, good]), 1, atol=1e-6)
+    assert np.allclose(np.abs(e[:, good]), 1, atol=tol)
 
 
 @pytest.mark.parametrize("T", [50000])

@@ -12,6 +12,7 @@ from .array_io import ArraySinkBlock, ArraySourceBlock, array_sink, array_source
 from .calfold import CalFoldBlock, cal_fold  # noqa: F401
 from .cube_writer import ImageCubeWriterBlock, image_cube_writer  # noqa: F401
 from .dft_imager import DFTImagerBlock, dft_imager  # noqa: F401
+from .gain_solver import GainSolverBlock, LiveGainTable, gain_solver  # noqa: F401
 from .headers import efield_header, efield_layout, image_layout  # noqa: F401
 from .integrate import ImageIntegratorBlock, image_integrator  # noqa: F401
 from .pixel_merge import PixelMergeBlock, pixel_merge  # noqa: F401

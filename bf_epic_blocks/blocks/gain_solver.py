@@ -30,7 +30,7 @@ import numpy as np
 
 from ..conventions import FS_HZ
 from ..imaging.calibration import GainTable, cable_weights
-from ..imaging.skycal import CovarianceSums, SolveSettings, model_covariance, solve_gains
+from ..imaging.skycal import CovarianceSums, SolveSettings, baseline_weights, model_covariance, solve_gains
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
 from .headers import efield_layout
@@ -217,6 +217,7 @@ class GainSolverBlock(bfp.SinkBlock):
         else:
             self._xp = np
         self._sums = CovarianceSums(nchan, nstand, npol, self._xp)
+        self._W = None            # baseline weights, made at the first solve of the sequence
         self._cadence = max(1, int(round(self.cadence_s / lay["dt_s"])))
         self._integ = max(1, min(self._cadence, int(round(self.integration_s / lay["dt_s"]))))
         self._tag0, self._tpf = int(lay["time_tag"]), int(lay["ticks_per_frame"])
@@ -319,17 +320,22 @@ class GainSolverBlock(bfp.SinkBlock):
             self._fail(f"no model source above {self.min_alt_deg:g} deg at {when.isot[:19]} UTC "
                        f"({', '.join(model.dropped) or 'no sources given'})")
             return
-        w = xp.asarray(self._w.transpose(0, 2, 1))                                       # (c, p, a)
-        R = self._sums.mean() * w[..., :, None] * xp.conj(w[..., None, :])
-        M = model_covariance(lay["xyz_m"], lay["freq_hz"], model.lmn, model.flux_pol, xp=xp)
+        # complex64 on a GPU: the solve's arrays (R, M and two products of them, 0.8 GB each in complex128
+        # at 784 channels) share the card with the imager; the gains need ~1e-4, not 1e-15
+        cdt = np.complex128 if xp is np else xp.complex64
+        w = xp.asarray(self._w.transpose(0, 2, 1)).astype(cdt)                            # (c, p, a)
+        R = self._sums.mean().astype(cdt) * w[..., :, None] * xp.conj(w[..., None, :])
+        M = model_covariance(lay["xyz_m"], lay["freq_hz"], model.lmn, model.flux_pol, xp=xp, dtype=cdt)
         settings = self.settings
         if self.reference_stand is not None:
             idx = np.flatnonzero(self._stand_ids == int(self.reference_stand))
             if idx.size:
                 from dataclasses import replace
                 settings = replace(settings, reference=int(idx[0]))
+        if self._W is None:
+            self._W = baseline_weights(lay["xyz_m"], lay["freq_hz"], settings.min_baseline_lambda, xp=xp)
         try:
-            sol = solve_gains(R, M, lay["xyz_m"], lay["freq_hz"], self._flags, settings)
+            sol = solve_gains(R, M, lay["xyz_m"], lay["freq_hz"], self._flags, settings, weights=self._W)
         except ValueError as e:
             self._fail(str(e))
             return

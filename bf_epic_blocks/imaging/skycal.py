@@ -315,12 +315,15 @@ def _robust_median(x, good):
     return np.array([np.median(x[good[:, p], p]) if good[:, p].any() else np.nan for p in range(x.shape[1])])
 
 
-def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSettings | None = None, *, rounds=4):
+def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSettings | None = None, *, rounds=4,
+                weights=None):
     """Gains, flags and quality from covariances R against the model M (module docstring).
 
     R, M : complex (nchan, npol, nant, nant), NumPy or CuPy (the solve runs where they live); R is the
         time-averaged covariance of the cable-corrected voltages. xyz_m : (nant, 3); freq_hz : (nchan,).
     station_flags : bool (nant, npol), inputs not to use (the station's flags, zero cable weights).
+    weights : :func:`baseline_weights` for these positions, channels and ``min_baseline_lambda``, made
+        once by a caller that solves often (None: made here).
     Returns a :class:`Solution` (NumPy). Raises ValueError when too few inputs remain good in a
     polarisation (:attr:`SolveSettings.min_good_fraction`) or no channel-pol converges.
     """
@@ -336,7 +339,8 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     powr = np.median(to_numpy(R[..., idx, idx].real), axis=0).T                           # (a, p)
     nopow = ~sflag & ~(np.isfinite(powr) & (powr > 0))
     reasons[nopow] = "no-power"
-    W = baseline_weights(xyz_m, freq_hz, s.min_baseline_lambda, xp=xp).astype(R.real.dtype)
+    W = baseline_weights(xyz_m, freq_hz, s.min_baseline_lambda, xp=xp) if weights is None else weights
+    W = W.astype(R.real.dtype, copy=False)
     if not bool(to_numpy(xp.any(W > 0))):
         raise ValueError(f"solve_gains: no baseline is longer than min_baseline_lambda = {s.min_baseline_lambda} "
                          f"wavelengths at {float(np.max(freq_hz)) / 1e6:.3f} MHz")
