@@ -205,7 +205,7 @@ def _calibration_post(out, given, path, ctx):
     sv = out.get("solve")
     if is_valid(sv) and sv and is_valid(sv.get("cadence_s")) and is_valid(sv.get("integration_s")) \
             and sv["integration_s"] > sv["cadence_s"]:
-        ctx.error(join_path(path, "solve", "integration_s"),
+        ctx.error(join_path(join_path(path, "solve"), "integration_s"),
                   f"must be <= cadence_s ({sv['cadence_s']}), got {sv['integration_s']}")
 
 

@@ -1,0 +1,280 @@
+"""Calibration from the sky, measured as an operator runs it: `bf-epic calibrate` and `bf-epic run` with
+`calibration.solve`, against truth the simulator chose.
+
+Cases (``--case``, repeatable; default all but ``cost`` on a CPU):
+
+* ``accuracy`` -- simulated LWA-SV (``pipelines/lwasv_sim_calibrate.yaml``): per-input gains with
+  25% amplitude scatter, delays of tens of ns and random phases, deaf and noisy inputs, the Galactic
+  plane the model lacks. ``bf-epic calibrate`` solves from ``--seconds`` (<= 2) of 12 channels. Printed:
+  the residual gain error against the simulator's gains (the unobservable per-channel phase and
+  scale removed), deaf/noisy inputs flagged, good inputs flagged, and the image error (max over
+  pixels and channels of |image - truth| / peak of truth) of the corrupted data imaged with the table
+  and without it. Truth: the same sky with unit gains, not quantised (so in Jy), imaged with the same
+  flags.
+* ``drift`` -- the gains drift by 10% and 20 degrees over ``--drift-s`` (600) seconds; live solving
+  every 10 s from 1 s (`calibration.solve`) against one solution from the first second applied
+  throughout. Printed: the image error of each run, worst and mean over the images after the first
+  solution.
+* ``cost`` -- (GPU) the whole band (784 channels), `pipelines/lwasv_sim_wholeband.yaml` without its
+  search and cube: the solver's seconds (summing covariances + solving) against the imager's, a
+  solution every 10 s from 1 s of data; and the same run without solving (the imager's own route).
+* ``real`` -- the real LWA-NA TBX and TBF captures (one time sample each) calibrated against the Sun
+  and the A-team: the images' peak-to-rms (and peak over the median absolute deviation) before and after.
+
+usage: python tools/bench/bench_calibration.py [--device cpu|gpu] [--case accuracy ...] [--json PATH]
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchlib import REPO, bf_epic_command, child_env, machine, utc_now, write_json
+
+YAML = REPO / "pipelines" / "lwasv_sim_calibrate.yaml"
+
+
+def cli(*args, check=True):
+    """Run ``bf-epic ARGS`` as a user would; returns (seconds, the summary JSON or None)."""
+    with tempfile.NamedTemporaryFile(suffix=".json", delete=False) as fh:
+        summ = fh.name
+    cmd = bf_epic_command() + list(args) + ["--no-progress", "--summary-json", summ, "-q"]
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, env=child_env(), capture_output=True, text=True)
+    dt = time.perf_counter() - t0
+    if check and r.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}):\n{r.stdout[-2000:]}\n{r.stderr[-4000:]}")
+    try:
+        return dt, json.loads(Path(summ).read_text())
+    except (OSError, ValueError):
+        return dt, None
+
+
+def sets(d):
+    out = []
+    for k, v in d.items():
+        out += ["--set", f"{k}={json.dumps(v) if not isinstance(v, str) else v}"]
+    return out
+
+
+def fits_images(folder):
+    """(nimage, nchan, N, N) float64 of a run's FITS images, in time order (NaN below the horizon)."""
+    from astropy.io import fits
+    files = sorted(glob.glob(str(Path(folder) / "*_i[0-9][0-9][0-9][0-9].fits")))
+    if not files:
+        raise RuntimeError(f"no FITS images in {folder}")
+    return np.stack([np.asarray(fits.getdata(f), np.float64).reshape((-1,) + fits.getdata(f).shape[-2:])
+                     for f in files])
+
+
+def image_errors(img, ref):
+    """Per image: max over channels and pixels of |img - ref| / max |ref| (finite pixels)."""
+    out = []
+    for a, b in zip(img, ref):
+        ok = np.isfinite(a) & np.isfinite(b)
+        out.append(float(np.max(np.abs(a[ok] - b[ok])) / np.max(np.abs(b[ok]))))
+    return np.array(out)
+
+
+def flags_override(flags, stand_ids):
+    """station.flags entries for the inputs flagged (bool (nstand, npol))."""
+    return [{"stand": int(stand_ids[a]), "pol": "XY"[p]} for a, p in zip(*np.nonzero(flags))]
+
+
+def truth_of(yaml, overrides):
+    """(GainCorruption, config) of a simulated pipeline."""
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.sky.corrupt import GainCorruption
+    cfg = load_config(str(yaml), overrides)
+    return GainCorruption.from_config(cfg["source"]["corrupt"]), cfg
+
+
+NEUTRAL = {"source.corrupt.amplitude_rms": 0.0, "source.corrupt.delay_ns_rms": 0.0,
+           "source.corrupt.random_phase": False, "source.corrupt.drift.amplitude_frac": 0.0,
+           "source.corrupt.drift.phase_deg": 0.0}
+
+
+def case_accuracy(args, work):
+    from bf_epic_blocks.imaging.skycal import gain_error
+    from bf_epic_blocks.io.gaintable import read_solved_table
+    from bf_epic_blocks.pipeline.runner import channel_freqs
+    from bf_epic_blocks.station.tables import load_station
+    base = {"device": args.device, "source.duration_s": args.seconds,
+            "imager.accumulate_frames": int(round(args.seconds * 25000))}
+    table = work / "acc_table.npz"
+    t_cal, s_cal = cli("calibrate", str(YAML), "-o", str(table), *sets(base),
+                       *sets({"calibration.solve.integration_s": args.seconds,
+                              "calibration.solve.cadence_s": args.seconds}))
+    t = read_solved_table(table)
+    corr, flags, reasons = t["gains"][0], t["flags"][0], t["flag_reason"][0]
+    gc, cfg = truth_of(YAML, sets(base)[1::2])
+    st = load_station(cfg["station"]["name"])
+    f = channel_freqs(cfg)
+    g_true = gc.gains(st.nstand, 2, f, 0.5 * args.seconds)
+    deaf, noisy = gc.deaf_mask(st.nstand, 2), gc.noisy_mask(st.nstand, 2)
+    good_true = ~st.flags & ~deaf & ~noisy
+    err, per = gain_error(corr, g_true, ~flags)
+    row = {"seconds": args.seconds, "nchan": int(f.size), "calibrate_wall_s": t_cal,
+           "gain_error_rms": err, "gain_error_max": float(per[~flags].max()),
+           "deaf": int(deaf.sum()), "deaf_flagged": int((flags & deaf).sum()),
+           "noisy": int(noisy.sum()), "noisy_flagged": int((flags & noisy).sum()),
+           "good_inputs": int(good_true.sum()), "good_flagged": int((flags & good_true).sum()),
+           "reasons": {r: int((reasons == r).sum()) for r in set(reasons.ravel()) if r}}
+    fl = flags_override(flags & ~st.flags, st.stand_ids)
+    out = {}
+    for name, extra in (("calibrated", {"calibration.gains_table": str(table)}),
+                        ("uncalibrated", {"source.quantize": False}),
+                        ("truth", {**NEUTRAL, "source.quantize": False})):
+        d = work / f"acc_{name}"
+        cli("run", str(YAML), *sets({**base, **extra, "output.dir": str(d), "output.png": name != "truth",
+                                     "station.flags": fl}))
+        out[name] = fits_images(d)
+    row["image_error_calibrated"] = float(image_errors(out["calibrated"], out["truth"]).max())
+    row["image_error_uncalibrated"] = float(image_errors(out["uncalibrated"], out["truth"]).max())
+    print(f"accuracy: {args.seconds:g} s of {f.size} channels; gain error {err:.4f} rms (worst input "
+          f"{row['gain_error_max']:.4f}); deaf {row['deaf_flagged']}/{row['deaf']} and noisy "
+          f"{row['noisy_flagged']}/{row['noisy']} flagged, good inputs flagged {row['good_flagged']}/"
+          f"{row['good_inputs']}; image error with the table {row['image_error_calibrated']:.4f} of the peak, "
+          f"without {row['image_error_uncalibrated']:.3f}; calibrate {t_cal:.1f} s")
+    return row
+
+
+def case_drift(args, work):
+    dur = args.drift_s
+    base = {"device": args.device, "source.duration_s": dur, "imager.accumulate_frames": 25000,
+            "source.corrupt.drift.amplitude_frac": 0.10, "source.corrupt.drift.phase_deg": 20.0,
+            "source.corrupt.drift.over_s": dur, "output.png": False}
+    live = work / "drift_live"
+    t_live, s_live = cli("run", str(YAML), *sets({**base, "output.dir": str(live),
+                                                   "calibration.solve.cadence_s": 10.0,
+                                                   "calibration.solve.integration_s": 1.0}))
+    from bf_epic_blocks.io.gaintable import read_solved_table
+    from bf_epic_blocks.station.tables import load_station
+    tl = read_solved_table(next(live.glob("*_gains.npz")))
+    one = work / "drift_one.npz"
+    cli("calibrate", str(YAML), "-o", str(one), *sets({**base, "source.duration_s": 1.0,
+                                                         "imager.accumulate_frames": 25000,
+                                                         "calibration.solve.integration_s": 1.0}))
+    t1 = read_solved_table(one)
+    st = load_station("lwasv")
+    flags = np.any(tl["flags"], axis=0) | t1["flags"][0]
+    fl = flags_override(flags & ~st.flags, st.stand_ids)
+    single, truth = work / "drift_single", work / "drift_truth"
+    cli("run", str(YAML), *sets({**base, "output.dir": str(single), "calibration.gains_table": str(one),
+                                 "station.flags": fl}))
+    cli("run", str(YAML), *sets({**base, **NEUTRAL, "source.quantize": False, "output.dir": str(truth),
+                                 "station.flags": fl}))
+    ref = fits_images(truth)
+    e_live = image_errors(fits_images(live), ref)[1:]        # image 0 holds the frames before solution 0
+    e_one = image_errors(fits_images(single), ref)[1:]
+    row = {"seconds": dur, "solutions": int(len(tl["valid_from"])), "live_wall_s": t_live,
+           "live_error_max": float(e_live.max()), "live_error_mean": float(e_live.mean()),
+           "single_error_max": float(e_one.max()), "single_error_last": float(e_one[-1]),
+           "live_error_series": np.round(e_live, 5).tolist(), "single_error_series": np.round(e_one, 5).tolist(),
+           "solver": (s_live or {}).get("solver")}
+    print(f"drift over {dur:g} s: live ({row['solutions']} solutions) image error max {row['live_error_max']:.4f} "
+          f"(mean {row['live_error_mean']:.4f}); one solution at the start: max {row['single_error_max']:.4f}, "
+          f"at the end {row['single_error_last']:.4f}")
+    return row
+
+
+def case_cost(args, work):
+    yaml = REPO / "pipelines" / "lwasv_sim_wholeband.yaml"
+    base = {"device": "gpu", "source.duration_s": args.cost_s, "imager.search": None, "output.cube": None,
+            "output.fits": False, "output.png": False, "output.integrate": None}
+    rows = {}
+    for name, extra in (("imager alone (folded, integer route)", {}),
+                        ("imager + solver", {"calibration.solve.cadence_s": 10.0,
+                                             "calibration.solve.integration_s": 1.0})):
+        wall, summ = cli("run", str(yaml), *sets({**base, **extra, "output.dir": str(work / "cost")}))
+        blocks = summ["blocks"]
+        img = next(v for k, v in blocks.items() if "Imager" in k)
+        r = {"wall_s": wall, "pipeline_s": summ["wall_s"], "imager_s": img["process_s"],
+             "realtime_factor": args.cost_s / summ["wall_s"]}
+        if "solver" in summ:
+            sv = summ["solver"]
+            r.update(solver_s=sv["sum_s"] + sv["solve_s"], solver_sum_s=sv["sum_s"], solver_solve_s=sv["solve_s"],
+                     solutions=sv["solutions"], calfold_wait_s=sv["wait_s"])
+        rows[name] = r
+    alone = rows["imager alone (folded, integer route)"]["imager_s"]
+    both = rows["imager + solver"]
+    both["solver_over_imager_same_run"] = both["solver_s"] / both["imager_s"]
+    both["solver_over_imager_alone"] = both["solver_s"] / alone
+    for k, r in rows.items():
+        print(f"cost, {args.cost_s:g} s of 784 channels: {k}: pipeline {r['pipeline_s']:.2f} s "
+              f"(x{r['realtime_factor']:.2f} real time), imager {r['imager_s']:.2f} s"
+              + (f", solver {r['solver_s']:.3f} s ({r['solutions']} solutions: sums {r['solver_sum_s']:.3f} s, "
+                 f"solves {r['solver_solve_s']:.3f} s) = {100 * r['solver_over_imager_same_run']:.1f}% of this "
+                 f"imager, {100 * r['solver_over_imager_alone']:.1f}% of the folded imager's"
+                 if "solver_s" in r else ""))
+    return rows
+
+
+def peak_stats(folder):
+    from astropy.io import fits
+    out = []
+    for f in sorted(glob.glob(str(Path(folder) / "*.fits"))):
+        im = np.asarray(fits.getdata(f), np.float64)
+        im = im.reshape((-1,) + im.shape[-2:]).mean(axis=0)
+        v = im[np.isfinite(im)]
+        med = np.median(v)
+        mad = 1.4826 * np.median(np.abs(v - med))
+        out.append({"file": Path(f).name, "peak_over_rms": float(v.max() / v.std()),
+                    "peak_over_mad": float((v.max() - med) / mad)})
+    return out
+
+
+def case_real(args, work):
+    rows = {}
+    model = {"calibration.solve.sources": ["Sun", "CygA", "CasA", "TauA", "VirA"],
+             "calibration.solve.min_samples": 1, "calibration.solve.pattern": "dipole"}
+    for name, yaml, extra in (("LWA-NA TBX (312 ch, 52-60 MHz)", "lwana_tbx_allsky.yaml",
+                               {"calibration.solve.smooth_channels": 312}),
+                              ("LWA-NA TBF (36 ch, 52 MHz)", "lwana_tbf_allsky.yaml",
+                               {"source.channel_block": 1, "calibration.solve.smooth_channels": 36})):
+        y = REPO / "pipelines" / yaml
+        tab = work / f"{yaml}.npz"
+        _, s = cli("calibrate", str(y), "-o", str(tab), *sets({**model, **extra}))
+        before, after = work / f"{yaml}_before", work / f"{yaml}_after"
+        cli("run", str(y), *sets({**extra, "output.dir": str(before)}))
+        cli("run", str(y), *sets({**extra, "output.dir": str(after), "calibration.gains_table": str(tab)}))
+        rows[name] = {"before": peak_stats(before), "after": peak_stats(after), "solve": s.get("last") if s else None}
+        b, a = rows[name]["before"][0], rows[name]["after"][0]
+        print(f"real, {name}: peak/rms {b['peak_over_rms']:.1f} -> {a['peak_over_rms']:.1f}, peak/MAD "
+              f"{b['peak_over_mad']:.1f} -> {a['peak_over_mad']:.1f}; {rows[name]['solve']}")
+    return rows
+
+
+CASES = {"accuracy": case_accuracy, "drift": case_drift, "cost": case_cost, "real": case_real}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
+    ap.add_argument("--case", action="append", choices=sorted(CASES))
+    ap.add_argument("--seconds", type=float, default=2.0, help="accuracy: seconds of data solved from")
+    ap.add_argument("--drift-s", type=float, default=600.0, help="drift: seconds simulated")
+    ap.add_argument("--cost-s", type=float, default=20.0, help="cost: seconds of the whole band")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--keep", default=None, help="keep the runs' outputs in this folder")
+    args = ap.parse_args(argv)
+    cases = args.case or [c for c in ("accuracy", "drift", "real") if c != "drift" or args.device == "gpu"]
+    work = Path(args.keep or tempfile.mkdtemp(prefix="bench_cal_"))
+    work.mkdir(parents=True, exist_ok=True)
+    out = {"benchmark": "bench_calibration", "date": utc_now(), "machine": machine(args.device),
+           "device": args.device, "cases": {}}
+    for c in cases:
+        out["cases"][c] = CASES[c](args, work)
+    write_json(args.json or str(REPO / "docs" / "bench" / f"bench_calibration_{args.device}.json"), out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
