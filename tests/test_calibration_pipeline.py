@@ -137,3 +137,26 @@ def test_solve_keys_are_checked():
         load_config(SIM, ["source.sources=[Sun]"])          # the simulator has no Sun
     cfg = load_config(SIM, ["calibration.solve={sources: [Sun, CygA]}"])
     assert cfg["calibration"]["solve"]["sources"] == ["Sun", "CygA"]
+
+
+def test_solutions_folded_into_the_operator_give_the_voltages_calibrated(runs):
+    """The GPU pipeline folds live solutions into the imager's operator (no CalFoldBlock); the CPU one
+    applies them to the voltages. Both take effect at the same integration: the images agree."""
+    from bf_epic_blocks.blocks import ArraySinkBlock, DFTImagerBlock, LiveGainTable, bfp
+    tmp, cfg, _ = runs
+    station = runner.load_station_for(cfg)
+    pixels = runner._pixels(cfg, station)
+    with bfp.Pipeline() as p:
+        src, _, _ = runner._recorded_source(cfg, None, None, station, 1024, "system", None)
+        table = LiveGainTable()
+        runner.gain_solver_block(cfg, src, table, None)
+        img = DFTImagerBlock(src, pixels, QUARTER, plan=runner.imager_plan_for(cfg, pixels, station, "cpu"),
+                             products=["I"], remove_autocorr=True, cable=False, pattern=False, gains=table)
+        sink = ArraySinkBlock(img)
+    p.run()
+    folded = sink.result()                                             # (nimg, nchan, nprod, N, N)
+    assert img.img_stats["solutions_applied"] == 2
+    live = _images(tmp / "live")
+    assert folded.shape[0] == live.shape[0] == 4
+    for i in range(4):
+        assert _err(folded[i, :, 0], live[i]) < 1e-5, (i, _err(folded[i, :, 0], live[i]))

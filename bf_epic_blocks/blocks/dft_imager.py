@@ -65,6 +65,11 @@ class DFTImagerBlock(bfp.TransformBlock):
            as CalFoldBlock would apply them to the voltages (used when no CalFoldBlock runs before).
     pattern : None (use the header's ``calibration.pattern`` if CalFoldBlock set one), False (none),
               or a pattern name / callable.
+    gains : None, or a :class:`~bf_epic_blocks.imaging.calibration.GainTable` /
+           :class:`~.gain_solver.LiveGainTable` of corrections folded into the operator: an integration
+           is made with the solution in force at its first frame, the operator rebuilt when that changes
+           (for a live table, after waiting until the solver has decided it). Zero corrections drop their
+           inputs from the operator and from N_A.
     Output: float32 frames of one image each; header ``imager`` and ``pixels`` say what they are.
     """
 
@@ -72,9 +77,13 @@ class DFTImagerBlock(bfp.TransformBlock):
 
     def __init__(self, iring, pixels, accumulate, products=None, remove_autocorr=False, method="auto",
                  precision=None, pattern=None, *args, gpus=None, weights=None, cable=False, tolerance=None,
-                 plan=None, **kwargs):
+                 plan=None, gains=None, **kwargs):
         super().__init__(iring, *args, **kwargs)
         self.gpus, self.weights, self.cable = gpus, weights, cable
+        if gains is not None and gpus is not None:
+            raise ValueError("DFTImagerBlock: time-variable gains are folded on one device, not with gpus")
+        self.gains = gains
+        self._gain_index = -1
         self.tolerance = None if tolerance is None else planner.check_tolerance(tolerance)
         self._asked = (method, precision)   # the expert overrides handed to the resolver
         if plan is not None:
@@ -154,6 +163,9 @@ class DFTImagerBlock(bfp.TransformBlock):
         w = (~lay["flags"])[None].astype(np.complex128)
         if self.weights is not None:
             w = w * np.asarray(self.weights, dtype=np.complex128)
+        if self.gains is not None and self._gain_index >= 0:
+            g = np.asarray(self.gains.gains[self._gain_index], dtype=np.complex128)       # (nchan|1, nstand, npol|1)
+            w = w * g
         if self.cable:
             st = self._station_hdr
             if "cable_delay_s" not in st or "cable_gain" not in st:
@@ -237,9 +249,14 @@ class DFTImagerBlock(bfp.TransformBlock):
         else:
             lm = self.pixels
         key = self._engine_key(lm)
-        if self.engine is None or key != self._key:
+        if self.gains is not None:
+            # every sequence starts uncalibrated (solution -1) with an operator of its own
+            self._gain_index, self._gains_tag0, key = -1, int(lay["time_tag"]), None
+            self.gains.check_shape(lay["nchan"], lay["nstand"], lay["npol"])
+        if self.engine is None or key is None or key != self._key:
             self.engine, self._key = self._build(lm), key
         eng = self.engine
+        eng.solution_hook = self._solution_hook if self.gains is not None else None
         nprod = len(eng.products)
         dt, t0 = lay["dt_s"], lay["t0_s"]
         f = lay["freq_hz"]
@@ -282,6 +299,24 @@ class DFTImagerBlock(bfp.TransformBlock):
         return ohdr
 
     # --------------------------------------------------------------- per gulp
+    def _solution_hook(self, eng, pos, count):
+        """The engine's ``solution_hook``: rebuild the operator when the integration starting at frame ``pos``
+        of this gulp needs another solution; return how many of the next ``count`` integrations share it."""
+        lay = self._lay
+        tpf = lay["ticks_per_frame"]
+        tags = eng.time_tag + (eng.frame + pos + self.accumulate * np.arange(count, dtype=np.int64)) * tpf
+        if hasattr(self.gains, "wait_through"):
+            self.gains.wait_through(self._gains_tag0, int(tags[-1]))
+        idx = self.gains.index(tags)
+        if int(idx[0]) != self._gain_index:
+            self._gain_index = int(idx[0])
+            eng._rebuild(eng.lm)
+            self.img_stats["solutions_applied"] = self.img_stats.get("solutions_applied", 0) + 1
+            log.info("%s: gain solution %d folded into the operator from frame %d (%d inputs kept)",
+                     type(self).__name__, self._gain_index, eng.frame + pos, eng.nant_used)
+        same = np.flatnonzero(idx != idx[0])
+        return int(same[0]) if same.size else count
+
     def _count(self, g):
         self.img_stats["images"] += g
         self.img_stats["frames_imaged"] += g * self.accumulate

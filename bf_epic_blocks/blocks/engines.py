@@ -76,6 +76,10 @@ class Engine:
     def __init__(self, *, accumulate, dtype, name, pixels_fn=None):
         self.accumulate, self.dtype, self.name = int(accumulate), dtype, name
         self.pixels_fn = pixels_fn          # tracking: lm(time_tag), re-evaluated at each integration
+        # time-variable gains folded into the operator: solution_hook(engine, pos, count) makes sure the
+        # operator holds the solution in force at the integration starting at frame pos of the gulp, and
+        # returns how many of the next ``count`` integrations share it
+        self.solution_hook = None
         self.acc = None
         self.lm = None
 
@@ -122,6 +126,8 @@ class Engine:
                     if self.acc.ntime == 0 and tracking:
                         self._track(pos)
                     g = (n - pos) // A
+                    if self.acc.ntime == 0 and self.solution_hook is not None:
+                        g = min(g, self.solution_hook(self, pos, max(g, 1)))
                     least = self._batch_min()
                     if self.acc.ntime == 0 and not tracking and least is not None and g >= least:
                         self._whole(pos, g, out, nout)

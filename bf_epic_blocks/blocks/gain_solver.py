@@ -8,10 +8,12 @@ removes the cable terms, builds the model of the sky at the stretch's middle tim
 (:func:`bf_epic_blocks.sky.model.sky_model`) and solves (:func:`~bf_epic_blocks.imaging.skycal.solve_gains`).
 
 Schedule (frames from the start of a sequence): solution k uses frames [k C, k C + I) (C = cadence,
-I = integration, both in frames) and applies from frame k C + I, the first frame after its data. So
-every image after a solution's data is made with it, and a run is deterministic: CalFoldBlock, before
-calibrating a gulp that reaches a solution's first frame, waits until the solver has decided that
-solution (:meth:`LiveGainTable.wait_through`). The solver never waits on anything downstream, and the
+I = integration, both in frames) and applies from frame k C + I, the first frame after its data
+(rounded up to the imager's integration, ``align_frames``). So every image after a solution's data is
+made with it, and a run is deterministic: the block that applies the gains -- CalFoldBlock on the
+voltages, or DFTImagerBlock folding them into its operator on a GPU -- waits, before a gulp that
+reaches a solution's first frame, until the solver has decided that solution
+(:meth:`LiveGainTable.wait_through`). The solver never waits on anything downstream, and the
 data it needs were written before the gulp CalFoldBlock holds, so the wait cannot deadlock; the cost is
 the solve's time, once per cadence.
 
@@ -127,6 +129,12 @@ class LiveGainTable:
     def flags(self, nant, npol):
         return np.zeros((nant, npol), bool)
 
+    def index(self, time_tags):
+        """Solution index for each time tag (int64); -1 before the first solution."""
+        if self._table is None:
+            return np.full(np.shape(time_tags), -1, np.int64)
+        return self._table.index(time_tags)
+
     def segments(self, first_tag, ticks_per_frame, nframe):
         if self._table is None:
             return [(0, int(nframe), -1)]
@@ -163,6 +171,7 @@ class GainSolverBlock(bfp.SinkBlock):
     table_path : where the solved table (.npz, :mod:`bf_epic_blocks.io.gaintable`) is written after each
         solution (and its PNG beside it when ``png``), or None.
     reference_stand : stand id of the reference input, or None (auto).
+    align_frames : a live solution takes effect at a multiple of this many frames (the imager's integration).
     apply_from : 'after' (live: a solution applies from the first frame after its data) or 'start'
         (offline: from the first frame of its cadence, so a table applied to the same data calibrates
         them from their start; the table's ``valid_from`` says which).
@@ -172,7 +181,7 @@ class GainSolverBlock(bfp.SinkBlock):
 
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
-                 reference_stand=None, apply_from="after", **kwargs):
+                 reference_stand=None, apply_from="after", align_frames=1, **kwargs):
         super().__init__(iring, **kwargs)
         if not (integration_s > 0 and cadence_s >= integration_s):
             raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="
@@ -186,6 +195,7 @@ class GainSolverBlock(bfp.SinkBlock):
         if apply_from not in ("after", "start"):
             raise ValueError(f"GainSolverBlock: apply_from must be 'after' or 'start', got {apply_from!r}")
         self.apply_from = apply_from
+        self.align_frames = max(1, int(align_frames))
         self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
                              "samples": 0}
@@ -232,8 +242,11 @@ class GainSolverBlock(bfp.SinkBlock):
                  f", pattern {self.pattern}" if self.pattern else "")
 
     def _due(self, k):
-        """Time tag of solution k's first frame in force (k C + I)."""
-        return self._tag0 + (k * self._cadence + self._integ) * self._tpf
+        """Time tag of solution k's first frame in force: k C + I, rounded up to a multiple of
+        ``align_frames`` (the imager's integration, so that it takes effect at an integration's start
+        whether it is applied to the voltages or folded into the operator)."""
+        a = self.align_frames
+        return self._tag0 + (-(-(k * self._cadence + self._integ) // a) * a) * self._tpf
 
     def on_data(self, ispan):
         try:

@@ -418,21 +418,40 @@ def gain_error(corrections, true_gains, good):
 class CovarianceSums:
     """Time-summed covariances of raw voltages, (nchan, npol, nant, nant), for the solver.
 
-    ``add(x)`` takes a gulp (ntime, nchan, nant, npol) of complex voltages or of 4-bit ``ci4`` bytes
-    (uint8, high nibble real). Integer voltages are summed exactly in integers (cuBLAS int8 GEMMs on a
-    GPU, :func:`~.gemm.int_gram`; float32 GEMMs of exact sums on the CPU) and flushed to complex128;
-    complex ones through complex64 GEMMs. ``mean()`` is R = sum / ntime; cross-polarisation terms are
-    formed by the integer route and dropped.
+    ``add(x)`` takes a gulp (ntime, nchan, nant, npol) of complex voltages, or with ``ci4=True`` of 4-bit
+    bytes (uint8, high nibble real). Integer voltages are summed exactly: per polarisation the Gram
+    matrix of the rows [re; im] of every input (cuBLAS int8 GEMMs summed in int32 on a GPU,
+    :func:`~.gemm.int_gram`; float32 GEMMs of sums kept below 2^24 on the CPU), held as integers across
+    gulps and turned into complex covariances when read (``sum``, ``mean()``) or before an int32 sum could
+    overflow. Complex voltages go through complex GEMMs. Cross-polarisation terms are not formed.
+    ``sum`` is complex128 on the CPU, complex64 on a GPU (the solver's arrays share the card with the
+    imager's).
     """
 
-    def __init__(self, nchan, nant, npol, xp=np):
-        self.xp, self.shape = xp, (nchan, npol, nant, nant)
-        self.sum = xp.zeros(self.shape, xp.complex128)
+    #: samples an int32 Gram entry holds safely: 4-bit products are at most 64 per sample
+    INT32_SAMPLES = (2**31 - 1) // 64
+
+    def __init__(self, nchan, nant, npol, xp=np, chunk=128):
+        self.xp, self.shape, self.chunk = xp, (nchan, npol, nant, nant), int(chunk)
+        self._sum = xp.zeros(self.shape, xp.complex128 if xp is np else xp.complex64)
+        self._gram = {}          # channel chunk start -> (npol, c, 2 nant, 2 nant) integer sums
+        self._gram_n = 0
         self.ntime = 0
 
     def reset(self):
-        self.sum[...] = 0
+        self._sum[...] = 0
+        self._gram, self._gram_n = {}, 0
         self.ntime = 0
+
+    @property
+    def sum(self):
+        self._flush()
+        return self._sum
+
+    def mean(self):
+        if self.ntime == 0:
+            raise ValueError("no samples accumulated")
+        return self.sum / self.ntime
 
     def add(self, x, ci4=False):
         xp = self.xp
@@ -440,38 +459,52 @@ class CovarianceSums:
         if nt == 0:
             return
         if ci4:
+            if self._gram_n + nt > self.INT32_SAMPLES:
+                self._flush()
             self._add_ci4(x)
+            self._gram_n += nt
         else:
             xc = xp.ascontiguousarray(x.transpose(1, 3, 2, 0)).astype(xp.complex64)         # (c, p, a, t)
-            self.sum += xp.matmul(xc, xp.conj(xc).swapaxes(-1, -2)).astype(xp.complex128)
+            self._sum += xp.matmul(xc, xp.conj(xc).swapaxes(-1, -2)).astype(self._sum.dtype)
         self.ntime += nt
 
-    def _add_ci4(self, b, chunk=64):
+    def _add_ci4(self, b):
         from types import SimpleNamespace
 
-        from .gemm import int_gram
         from .fused import _ci4_pairs
+        from .gemm import int_gram
         from .layout import gram_rows
         xp = self.xp
         T, C, A, P = b.shape
         sel = SimpleNamespace(chan=None, ant=None, live=None)
-        for c0 in range(0, C, chunk):     # channel chunks bound the Gram's memory (4 A P^2 A per channel)
-            c1 = min(C, c0 + chunk)
-            pairs = xp.ascontiguousarray(_ci4_pairs(xp.ascontiguousarray(b[:, c0:c1])))       # (t, c, a, p, 2)
+        for c0 in range(0, C, self.chunk):   # channel chunks bound the temporaries
+            c1 = min(C, c0 + self.chunk)
+            pairs = _ci4_pairs(xp.ascontiguousarray(b[:, c0:c1]))                           # (t, c, a, p, 2)
             if xp is np:
+                G = self._gram.setdefault(c0, np.zeros((P, c1 - c0, 2 * A, 2 * A)))
                 step = (2**24 - 1) // 128      # float32 sums of 4-bit products stay exact below 2^24
-                G = 0
                 for t0 in range(0, T, step):
-                    G = G + int_gram(gram_rows(pairs[t0:t0 + step], sel))
-            else:
-                G = int_gram(gram_rows(pairs, sel))                                        # int32, exact
-            G = G.reshape(c1 - c0, A, P, 2, A, P, 2)
+                    rows = gram_rows(pairs[t0:t0 + step], sel)                               # (c, a p ri, t)
+                    rows = rows.reshape(c1 - c0, A, P, 2, -1)
+                    for p in range(P):
+                        G[p] += int_gram(np.ascontiguousarray(rows[:, :, p]).reshape(c1 - c0, 2 * A, -1))
+                continue
+            rows = gram_rows(xp.ascontiguousarray(pairs), sel).reshape(c1 - c0, A, P, 2, -1)
+            first = c0 not in self._gram
+            G = self._gram.setdefault(c0, xp.empty((P, c1 - c0, 2 * A, 2 * A), xp.int32))
             for p in range(P):
-                re = (G[:, :, p, 0, :, p, 0] + G[:, :, p, 1, :, p, 1]).astype(xp.float64)
-                im = (G[:, :, p, 1, :, p, 0] - G[:, :, p, 0, :, p, 1]).astype(xp.float64)
-                self.sum[c0:c1, p] += re + 1j * im
+                int_gram(xp.ascontiguousarray(rows[:, :, p]).reshape(c1 - c0, 2 * A, -1), out=G[p],
+                         accumulate=not first)
 
-    def mean(self):
-        if self.ntime == 0:
-            raise ValueError("no samples accumulated")
-        return self.sum / self.ntime
+    def _flush(self):
+        """Integer Gram sums -> complex covariances: R = (rr + ii) + i (ir - ri), rows (input, re/im)."""
+        xp = self.xp
+        for c0, G in self._gram.items():
+            P, c, A2 = G.shape[0], G.shape[1], G.shape[2]
+            A = A2 // 2
+            g = G.reshape(P, c, A, 2, A, 2)
+            for p in range(P):
+                re = (g[p, :, :, 0, :, 0] + g[p, :, :, 1, :, 1]).astype(self._sum.real.dtype)
+                im = (g[p, :, :, 1, :, 0] - g[p, :, :, 0, :, 1]).astype(self._sum.real.dtype)
+                self._sum[c0:c0 + c, p] += re + 1j * im
+        self._gram, self._gram_n = {}, 0

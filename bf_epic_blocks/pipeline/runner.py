@@ -214,13 +214,14 @@ def _device(cfg):
 
 def folds_calibration(cfg, dev):
     """True when the imager folds the calibration into its operator(s) and no CalFoldBlock runs:
-    the DFT imager on several GPUs, or on one GPU with static calibration (no gains table); see the
-    module docstring. ``dev``: 'cpu', 'gpu' or 'gpus'."""
+    the DFT imager on several GPUs, or on one GPU without a gains table (static calibration, or live
+    solutions from ``calibration.solve``, which the imager folds in as they come); see the module
+    docstring. ``dev``: 'cpu', 'gpu' or 'gpus'."""
     if cfg["imager"]["kind"] != "dft":
         return False
     if dev == "gpus":
         return True
-    return dev == "gpu" and not cfg["calibration"].get("gains_table") and not cfg["calibration"].get("solve")
+    return dev == "gpu" and not cfg["calibration"].get("gains_table")
 
 
 def warm_live_imager(cfg, station):
@@ -339,7 +340,7 @@ def build_graph(cfg, progress=None, parts=None):
         source, feed, nframe_total, block = _source_stage(cfg, dev, fmt, info, station, gulp, space, progress)
         solver, table = _solver_stage(cfg, feed, outdir)
         calfold = _calibration_stage(cfg, dev, feed, pattern, table)
-        imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern)
+        imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table)
         search = _search_stage(cfg, imager, outdir)
         writer, cube = _output_stage(cfg, imager, pixels, block)
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube, solver)
@@ -408,7 +409,7 @@ def gain_solver_block(cfg, feed, table=None, table_path=None, apply_from="after"
                            cable=bool(cal["cable"]), min_alt_deg=sv["min_alt_deg"], min_samples=sv["min_samples"],
                            table=table, table_path=table_path, png=sv["png"],
                            reference_stand=None if sv["reference"] == "auto" else sv["reference"],
-                           apply_from=apply_from)
+                           apply_from=apply_from, align_frames=cfg["imager"]["accumulate_frames"])
 
 
 def _solver_stage(cfg, feed, outdir):
@@ -448,15 +449,18 @@ def _calibration_stage(cfg, dev, feed, pattern, table=None):
     return CalFoldBlock(feed, cable=bool(cal["cable"]), gains=gains, pattern=pattern)
 
 
-def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern):
+def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None):
     """The imager block on ``calfold``: DFTImagerBlock (folding the calibration where no CalFoldBlock
-    runs; channels sharded over ``devs`` on several GPUs), or WStackBlock for the gridded kinds."""
+    runs, with the live solutions of ``table`` if there is one; channels sharded over ``devs`` on several
+    GPUs), or WStackBlock for the gridded kinds."""
     from ..blocks import DFTImagerBlock
     im, cal = cfg["imager"], cfg["calibration"]
     common = dict(products=im["products"], remove_autocorr=im["remove_autocorr"])
     if im["kind"] == "dft":
         if folds_calibration(cfg, dev):
             common.update(cable=bool(cal["cable"]), pattern=pattern or False)
+            if table is not None:          # live solutions, folded into the operator as they come
+                common.update(gains=table)
         if dev == "gpus":
             common.update(gpus=devs)
         return DFTImagerBlock(calfold, pixels, im["accumulate_frames"],
@@ -702,8 +706,9 @@ def run(cfg, show_progress=None, parts=None):
     if g.cube is not None:
         summary["cube"] = dict(g.cube.cube_stats)
     if g.solver is not None:
-        summary["solver"] = {**g.solver.solver_stats, "wait_s": g.calfold.gains.stats["wait_s"],
-                             "wait_timeouts": g.calfold.gains.stats["wait_timeouts"]}
+        table = g.solver.table
+        summary["solver"] = {**g.solver.solver_stats, "wait_s": table.stats["wait_s"],
+                             "wait_timeouts": table.stats["wait_timeouts"]}
         if g.solver.table_path and g.solver.solutions:
             summary["files"] += [str(g.solver.table_path)] + ([str(g.solver.table_path)[:-4] + ".png"]
                                                                 if g.solver.png else [])

@@ -217,6 +217,55 @@ def case_cost(args, work):
     return rows
 
 
+def case_solver(args, work):
+    """The solver's two parts alone on an idle device, at the whole band: summing the covariances of 1 s of
+    4-bit data (25 gulps of 1,024 frames x 784 channels x 256 stands x 2 pols) and one solve."""
+    import math
+
+    from benchlib import array_module, synchronize
+    from bf_epic_blocks.imaging import skycal
+    from bf_epic_blocks.station.tables import load_station
+    xp = array_module(args.device)
+    st = load_station("lwasv")
+    nchan = args.nchan
+    f = 74e6 + 25e3 * np.arange(nchan)
+    rng = np.random.default_rng(0)
+    gulp = xp.asarray(rng.integers(0, 256, (1024, nchan, st.nstand, 2), dtype=np.uint8))
+    sums = skycal.CovarianceSums(nchan, st.nstand, 2, xp)
+    sums.add(gulp[:64], ci4=True)                                         # warm-up (kernel compilation)
+    sums.reset()
+    synchronize(xp)
+    ngulp = int(math.ceil(args.solver_frames / 1024))
+    t0 = time.perf_counter()
+    for _ in range(ngulp):
+        sums.add(gulp, ci4=True)
+    synchronize(xp)
+    t_sum = time.perf_counter() - t0
+    lmn = np.array([[0.10, 0.15, math.sqrt(1 - 0.0325)], [-0.30, 0.50, math.sqrt(1 - 0.34)]])
+    flux = np.full((nchan, 2, 2), 8500.0)
+    cdt = np.complex128 if xp is np else xp.complex64
+    M = skycal.model_covariance(st.xyz_m, f, lmn, flux, xp=xp, dtype=cdt)
+    amp = np.exp(0.25 * rng.standard_normal((st.nstand, 2)))
+    g = amp * np.exp(1j * rng.uniform(0, 2 * np.pi, (st.nstand, 2)))
+    G = xp.asarray(np.broadcast_to(g.T[None], (nchan, 2, st.nstand)).astype(cdt))
+    R = G[..., :, None] * xp.conj(G[..., None, :]) * M
+    idx = xp.arange(st.nstand)
+    R[..., idx, idx] += 1000.0
+    W = skycal.baseline_weights(st.xyz_m, f, 4.0, xp=xp)
+    times = []
+    for rep in range(3):
+        synchronize(xp)
+        t0 = time.perf_counter()
+        sol = skycal.solve_gains(R, M, st.xyz_m, f, st.flags, weights=W)
+        synchronize(xp)
+        times.append(time.perf_counter() - t0)
+    row = {"nchan": nchan, "frames": ngulp * 1024, "sum_s": t_sum, "solve_s": float(np.median(times)),
+           "solve_first_s": times[0], "iterations": sol.info["iterations"], "summary": sol.summary()}
+    print(f"solver, {nchan} channels: covariance sums of {ngulp * 1024} frames {t_sum:.3f} s; one solve "
+          f"{row['solve_s']:.3f} s (first {times[0]:.3f} s, {sol.info['iterations']} iterations)")
+    return row
+
+
 def peak_stats(folder):
     from astropy.io import fits
     out = []
@@ -252,7 +301,8 @@ def case_real(args, work):
     return rows
 
 
-CASES = {"accuracy": case_accuracy, "drift": case_drift, "cost": case_cost, "real": case_real}
+CASES = {"accuracy": case_accuracy, "drift": case_drift, "cost": case_cost, "real": case_real,
+         "solver": case_solver}
 
 
 def main(argv=None):
@@ -262,6 +312,8 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=2.0, help="accuracy: seconds of data solved from")
     ap.add_argument("--drift-s", type=float, default=600.0, help="drift: seconds simulated")
     ap.add_argument("--cost-s", type=float, default=20.0, help="cost: seconds of the whole band")
+    ap.add_argument("--nchan", type=int, default=784, help="solver: channels")
+    ap.add_argument("--solver-frames", type=int, default=25000, help="solver: frames summed (1 s = 25,000)")
     ap.add_argument("--json", default=None)
     ap.add_argument("--keep", default=None, help="keep the runs' outputs in this folder")
     args = ap.parse_args(argv)
