@@ -292,12 +292,28 @@ class SimSkySourceBlock(bfp.SourceBlock):
     transients : dispersed bursts, ``[{ra_deg, dec_deg, start_s, duration_s, flux_jy, dm}]`` with
               ``start_s`` seconds after ``start`` (at the highest channel; see sky.efield).
     refresh_s : seconds of data between recomputations of the source directions (the sky turns
-              0.004 deg in a second).
+              0.004 deg in a second); the true gains' drift is applied piecewise constant over it.
+    pattern : None (isotropic antennas) or a voltage pattern name of :mod:`..imaging.patterns`
+              ("dipole"): B_p(l, m) multiplies every source's and burst's amplitude per pol, and
+              weights the diffuse sky.
+    diffuse : None (off) or a mapping ``{scale, nmode}`` (defaults 1.0, 32): the diffuse Galactic
+              emission as ``nmode`` eigenmode columns (:func:`bf_epic_blocks.sky.diffuse.diffuse_weights`),
+              recomputed every ``diffuse_refresh_s`` seconds of data (60: the sky turns 0.25 deg in
+              a minute, under a quarter of the grid's cell; each computation costs ~1 s of CPU).
+    corrupt : None or a :class:`~bf_epic_blocks.sky.corrupt.GainCorruption` (or its YAML mapping):
+              true gains on the sky columns, deaf and noisy inputs (the deaf and noisy ones picked
+              among the station's unflagged inputs). :meth:`true_gains` and :meth:`truth` give what
+              was applied.
+
+    The weights at each refresh: the steady sources (x pattern), then the diffuse modes, both times
+    the true gains at that time and the cable factor, then one column per noisy input, then the
+    bursts. The 4-bit scale comes from the expected rms of all of them at the start. With none of
+    pattern, diffuse and corrupt the samples are those of a block without them, bit for bit.
     """
 
     def __init__(self, station, freq_hz, start, duration_s, sources, gulp_nframe, noise_power=1000.0, seed=1,
                  quantize=True, cable=True, progress=None, space="system", transients=None, *args, refresh_s=1.0,
-                 **kwargs):
+                 pattern=None, diffuse=None, corrupt=None, diffuse_refresh_s=60.0, **kwargs):
         super().__init__(["simulated-sky"], gulp_nframe, space, *args, **kwargs)
         from astropy.time import Time
 
@@ -315,6 +331,17 @@ class SimSkySourceBlock(bfp.SourceBlock):
         self.transients = list(transients or [])
         self._bursts = [check_transient(i, tr) for i, tr in enumerate(self.transients)]
         self.refresh_frames = max(1, int(round(float(refresh_s) / self.dt_s)))
+        self.pattern = None if pattern in (None, "none") else pattern
+        if self.pattern is not None and isinstance(self.pattern, str):
+            from ..imaging.patterns import get_pattern
+            get_pattern(self.pattern)   # an unknown name fails here, not at the first gulp
+        self.diffuse = _diffuse_settings(diffuse)
+        self.diffuse_refresh_s = float(diffuse_refresh_s)
+        if corrupt is not None and not hasattr(corrupt, "gains"):
+            from ..sky.corrupt import GainCorruption
+            corrupt = GainCorruption.from_config(corrupt, seed=self.seed)
+        self.corrupt = corrupt
+        self._refreshes = []
         self._h2d = HostToDevice()
 
     def create_reader(self, sourcename):
@@ -329,7 +356,12 @@ class SimSkySourceBlock(bfp.SourceBlock):
                             simulation={"sources": [str(s) if not isinstance(s, dict) else s.get("name", "custom")
                                                     for s in self.sources],
                                         "noise_power": self.noise_power, "seed": self.seed, "start": self.start.isot,
-                                        "transients": self.transients, "generator": "counter (sky.fastsim)"})
+                                        "transients": self.transients, "generator": "counter (sky.fastsim)",
+                                        "pattern": self.pattern if isinstance(self.pattern, str) or self.pattern is None
+                                        else getattr(self.pattern, "__name__", "custom"),
+                                        "diffuse": None if self.diffuse is None else
+                                        {**self.diffuse, "refresh_s": self.diffuse_refresh_s},
+                                        "corrupt": None if self.corrupt is None else self.corrupt.to_dict()})
         d = source_directions(self.sources, self.start, st.location)
         log.info("simulated sky at %s UTC: %s above the horizon%s", self.start.isot[:19],
                  ", ".join(f"{n} (alt {np.degrees(a):.1f} deg)" for n, a in zip(d.names, d.alt)) or "no source",
@@ -343,10 +375,81 @@ class SimSkySourceBlock(bfp.SourceBlock):
         self._keys = fastsim.stream_keys(self.seed)
         self._xp = self._gen_namespace()
         self._w_at = None
+        self._refreshes = []
+        self._diffuse_w, self._diffuse_at, self.diffuse_fraction = None, None, None
+        usable = ~np.asarray(st.flags, bool)
+        self._usable = usable
+        self._noisy_w = None
+        if self.corrupt is not None:
+            nd = self.corrupt.deaf_mask(st.nstand, 2, usable=usable)
+            nn = self.corrupt.noisy_mask(st.nstand, 2, usable=usable)
+            log.info("simulated corruptions: gains (amplitude rms %.2f, delay rms %.1f ns%s), %d deaf and %d noisy "
+                     "inputs", self.corrupt.amplitude_rms, self.corrupt.delay_ns_rms,
+                     ", random phases" if self.corrupt.random_phase else "", nd.sum(), nn.sum())
+            if nn.any():
+                # the median input's total power (sky through gains and cables, plus receiver noise)
+                # over the unflagged inputs that are neither deaf nor noisy, at the start
+                self._weights(0)
+                p = self.noise_power + 2.0 * np.sum(np.abs(self._w_steady.astype(np.complex128)) ** 2, axis=1)
+                sel = usable & ~nd & ~nn
+                self.median_power = np.median(p[:, sel], axis=1) if sel.any() else np.full(len(self.freq_hz),
+                                                                                             self.noise_power)
+                self._noisy_w = self.corrupt.noisy_weights(st.nstand, 2, len(self.freq_hz), self.median_power,
+                                                           usable=usable)
+                self._w_at, self._refreshes = None, []
         self._weights(0)
         if self.quantize:
             self.scale = 2.0 / fastsim.expected_rms(self._w_steady, self.noise_power)
         return [hdr]
+
+    def true_gains(self, t_s: float) -> np.ndarray:
+        """The gains g (complex128 (nchan, nstand, npol)) on the sky columns of the samples at ``t_s``
+        seconds after ``start``: those of the refresh in force there (evaluated at its first sample;
+        refreshes fall on gulp starts, every ``refresh_s`` or at the next gulp). Ones without
+        ``corrupt``; 0 for deaf inputs. Cable terms not included."""
+        st = self.station
+        if self.corrupt is None:
+            return np.ones((len(self.freq_hz), st.nstand, 2), np.complex128)
+        pos = self._refresh_start(int(np.floor(float(t_s) / self.dt_s + 1e-9)))
+        return self.corrupt.gains(st.nstand, 2, self.freq_hz, pos * self.dt_s, usable=~np.asarray(st.flags, bool))
+
+    def _refresh_start(self, sample: int) -> int:
+        """The first sample of the weights' refresh that makes ``sample``: gulps start every
+        ``gulp_nframe`` samples and a refresh happens at the first gulp start ``refresh_frames`` or
+        more after the last (as :meth:`_weights` does)."""
+        g, last = int(self.gulp_nframe), 0
+        while True:
+            nxt = -(-(last + self.refresh_frames) // g) * g
+            if nxt > sample:
+                return last
+            last = nxt
+
+    def truth(self) -> dict:
+        """What a test needs to know of the simulated corruptions and sky, after ``on_sequence``:
+
+        * ``deaf``, ``noisy``: bool (nstand, npol) masks (all False without ``corrupt``);
+        * ``flags``: the station's flags (bool (nstand, npol)), the inputs the choice avoided;
+        * ``median_power``: (nchan,) the median input's total power the noisy ones are scaled to
+          (None without noisy inputs); ``noisy_power``: its multiple;
+        * ``noise_power``: the receiver noise power; ``diffuse_fraction``: (nchan, npol) of the
+          diffuse power the modes keep (None without ``diffuse``);
+        * ``diffuse_weights``: complex128 (nchan, nmode, nstand, npol) last computed modes before
+          gains and cables (None without diffuse): the simulated diffuse covariance is
+          ``2 sum_k W W^H``;
+        * ``refreshes``: [(first sample, t_s)] of the weights' refreshes made so far;
+        * ``true_gains``: :meth:`true_gains`.
+        """
+        st = self.station
+        usable = ~np.asarray(st.flags, bool)
+        none = np.zeros((st.nstand, 2), bool)
+        c = self.corrupt
+        return {"deaf": c.deaf_mask(st.nstand, 2, usable=usable) if c else none,
+                "noisy": c.noisy_mask(st.nstand, 2, usable=usable) if c else none.copy(),
+                "flags": np.asarray(st.flags, bool).copy(),
+                "median_power": getattr(self, "median_power", None) if self._noisy_w is not None else None,
+                "noisy_power": c.noisy_power if c else None, "noise_power": self.noise_power,
+                "diffuse_fraction": self.diffuse_fraction, "diffuse_weights": self._diffuse_w,
+                "refreshes": list(self._refreshes), "true_gains": self.true_gains}
 
     def _gen_namespace(self):
         """Where the samples are made: on the GPU for 'cuda' rings and for pinned 'cuda_host' rings
@@ -381,12 +484,40 @@ class SimSkySourceBlock(bfp.SourceBlock):
             l, m, n = l + [b.l[0]], m + [b.m[0]], n + [b.n[0]]
             bursts.append({"start_s": self.transients[i]["start_s"], "duration_s": dur, "dm": dm})
         flux = np.stack(flux, axis=1) if flux else np.zeros((len(f), 0))
-        w = fastsim.sky_weights(self.station.xyz_m, f, np.array(l), np.array(m), np.array(n), flux, self._cable)
-        self._w_steady = w[:, :len(d.sources)]
-        on0, on1 = fastsim.burst_windows(len(d.sources), bursts, f, self.dt_s)
+        cable = self._cable
+        t_s = pos * self.dt_s
+        if self.corrupt is not None:
+            g = self.corrupt.gains(self.station.nstand, 2, f, t_s, usable=self._usable)
+            cable = g if cable is None else cable * g
+        beam = None
+        if self.pattern is not None and len(l):
+            from ..imaging.patterns import pattern_array
+            b = pattern_array(self.pattern, np.stack([np.array(l), np.array(m)], axis=1), f, 2)
+            beam = np.broadcast_to(np.asarray(b)[:, :, 0, :], (len(f), len(l), 2))
+        w = fastsim.sky_weights(self.station.xyz_m, f, np.array(l), np.array(m), np.array(n), flux, cable,
+                                pattern=beam)
+        nsteady = len(d.sources)
+        extra = []
+        if self.diffuse is not None:
+            if self._diffuse_at is None or t_s - self._diffuse_at >= self.diffuse_refresh_s:
+                from ..sky.diffuse import diffuse_weights
+                self._diffuse_w, self.diffuse_fraction = diffuse_weights(
+                    self.station.xyz_m, f, t, loc, pattern=self.pattern, scale=self.diffuse["scale"],
+                    nmode=self.diffuse["nmode"], return_fraction=True)
+                self._diffuse_at = t_s
+            wd = self._diffuse_w if cable is None else self._diffuse_w * cable[:, None]
+            extra.append(wd.astype(np.complex64))
+        if self._noisy_w is not None:
+            extra.append(self._noisy_w.astype(np.complex64))
+        if extra:
+            w = np.concatenate([w[:, :nsteady], *extra, w[:, nsteady:]], axis=1)
+            nsteady += sum(e.shape[1] for e in extra)
+        self._w_steady = w[:, :nsteady]
+        on0, on1 = fastsim.burst_windows(nsteady, bursts, f, self.dt_s)
         xp = self._xp
         self._w, self._on0, self._on1 = xp.asarray(w), xp.asarray(on0), xp.asarray(on1)
         self._w_at = pos
+        self._refreshes.append((pos, t_s))
 
     def on_data(self, reader, ospans):
         from ..sky import fastsim
@@ -408,6 +539,23 @@ class SimSkySourceBlock(bfp.SourceBlock):
         if self.progress:
             self.progress(n)
         return [n]
+
+
+def _diffuse_settings(diffuse):
+    """None (off) or {scale, nmode} from None / False / True / a mapping (defaults 1.0, 32)."""
+    if diffuse is None or diffuse is False:
+        return None
+    d = {} if diffuse is True else dict(diffuse)
+    unknown = set(d) - {"scale", "nmode"}
+    if unknown:
+        raise ValueError(f"diffuse: unknown key(s) {sorted(unknown)}; allowed: scale, nmode")
+    scale = 1.0 if d.get("scale") is None else float(d["scale"])
+    nmode = 32 if d.get("nmode") is None else d["nmode"]
+    if not (np.isfinite(scale) and scale >= 0):
+        raise ValueError(f"diffuse.scale: expected a number >= 0, got {d['scale']!r}")
+    if isinstance(nmode, bool) or int(nmode) != nmode or nmode < 1:
+        raise ValueError(f"diffuse.nmode: expected an integer >= 1, got {nmode!r}")
+    return {"scale": scale, "nmode": int(nmode)}
 
 
 def tbf_source(paths, gulp_nframe, *args, **kwargs):

@@ -364,6 +364,61 @@ CALIBRATION_SOLVE = Section({
                            "this many samples; fewer is an error (offline) or a counted failure (live)."),
     "png": Key(Bool(), True, doc="Write a PNG of the gains and flags beside the table."),
 }, what="a solve mapping {sources, cadence_s, integration_s, min_baseline_lambda, ...}")
+class InputChoice:
+    """source.corrupt.deaf / noisy: a number of inputs the seed picks, or [stand_index, pol] pairs."""
+
+    def describe(self) -> str:
+        return "an integer >= 0 or a list of [stand_index, pol] pairs (stand_index from 0, pol 0 or 1)"
+
+    def __call__(self, v, ctx):
+        if isinstance(v, int) and not isinstance(v, bool):
+            if v < 0:
+                raise BadValue(f"expected {self.describe()}, got {v!r}")
+            return v
+        ok = isinstance(v, list) and all(
+            isinstance(x, list) and len(x) == 2 and all(isinstance(i, int) and not isinstance(i, bool) for i in x)
+            and x[0] >= 0 and x[1] in (0, 1) for x in v)
+        if not ok:
+            raise BadValue(f"expected {self.describe()}, got {v!r}")
+        pairs = [list(x) for x in v]
+        if len({tuple(x) for x in pairs}) != len(pairs):
+            raise BadValue(f"an input is listed twice: {v!r}")
+        return pairs
+
+
+SOURCE_DIFFUSE = Section({
+    "scale": Key(Float(0.0), 1.0, doc="Factor on the model's brightness temperatures (1: the model as it is)."),
+    "nmode": Key(Int(1), 32,
+                 doc="Eigenmodes of the diffuse sky's covariance simulated, each one more column of the "
+                     "simulator (on a CPU a column costs about as much as a point source). 32 keep about a "
+                     "quarter of LWA-SV's diffuse power, its largest scales; the rest, spread thinly over "
+                     "the other modes, is left out."),
+}, what="a diffuse mapping {scale, nmode}")
+
+SOURCE_CORRUPT = Section({
+    "amplitude_rms": Key(Float(0.0), 0.25, doc="Fractional rms scatter of the gains' amplitudes about 1 (log-normal)."),
+    "delay_ns_rms": Key(Float(0.0), 30.0, doc="Rms of each input's delay, ns (a phase slope across the band)."),
+    "random_phase": Key(Bool(), True, doc="Give each input a uniform random phase; false: phase 0 before drift and delay."),
+    "drift": Key(Section({
+        "amplitude_frac": Key(Float(0.0), 0.0,
+                              doc="Fractional change of each input's amplitude after `over_s` seconds (sign "
+                                  "random per input)."),
+        "phase_deg": Key(Float(), 0.0,
+                         doc="Change of each input's phase after `over_s` seconds, degrees (sign random per input)."),
+        "over_s": Key(Float(0.0, lo_open=True), 600.0,
+                      doc="Seconds over which the drift reaches those values; it goes on at that rate."),
+    }, what="a drift mapping {amplitude_frac, phase_deg, over_s}"), {},
+        doc="A linear drift of the gains, applied piecewise constant over `source.refresh_s`."),
+    "deaf": Key(InputChoice(), 0,
+                doc="Inputs that see no sky, only receiver noise: a number the seed picks among the unflagged "
+                    "inputs, or [stand_index, pol] pairs (stand_index counted from 0, pol 0 = X, 1 = Y)."),
+    "noisy": Key(InputChoice(), 0,
+                 doc="Inputs with extra independent noise: a number the seed picks (not deaf, unflagged), or "
+                     "[stand_index, pol] pairs."),
+    "noisy_power": Key(Float(0.0), 10.0,
+                       doc="Extra noise power of a noisy input, in units of the median input's total power."),
+    "seed": Key(Int(), None, doc="Seed of the corruptions; null: `source.seed`."),
+}, what="a corrupt mapping {amplitude_rms, delay_ns_rms, random_phase, drift, deaf, noisy, noisy_power, seed}")
 
 SOURCE_COMMON = {
     "kind": Key(Choice("simulated", "tbf", "tbx", "file", "udp"), REQUIRED,
@@ -402,6 +457,17 @@ SOURCE_SIMULATED = {
                          "sensitive search sees."),
     "transients": Key(ListOf(TRANSIENT, "burst mappings"), [],
                       doc="Dispersed bursts added to the sky."),
+    "pattern": Key(Choice("none", "dipole", none_is="none"), "none",
+                   doc="Voltage pattern of the simulated antennas, applied to every source and to the diffuse "
+                       "sky: a short dipole's, or none (isotropic)."),
+    "diffuse": Key(SOURCE_DIFFUSE, None,
+                   doc="The diffuse Galactic emission (an analytic model, `bf_epic_blocks.sky.diffuse`) as a few "
+                       "eigenmodes of its covariance, recomputed every 60 s of data; `{}` turns it on with the "
+                       "defaults. null: off."),
+    "corrupt": Key(SOURCE_CORRUPT, None,
+                   doc="Chosen corruptions of the voltages (`bf_epic_blocks.sky.corrupt`): complex gains on the "
+                       "sky signal, deaf and noisy inputs, drawn from a seed; `{}` turns them on with the "
+                       "defaults. null: none."),
 }
 SOURCE_TBF = {
     "path": Key(File("TBF file"), REQUIRED, doc="The TBF capture file."),

@@ -508,12 +508,18 @@ def _recorded_source(cfg, fmt, info, station, gulp, space, progress):
         source = cls(src_cfg["path"], gulp, station=station, progress=progress, space=space,
                      channels=block[:2] if block else None, scanned={src_cfg["path"]: info})
         return source, int(info.ntime), block
+    from ..sky.corrupt import GainCorruption
+    corrupt = src_cfg.get("corrupt")
     source = SimSkySourceBlock(station, channel_freqs(cfg), src_cfg["start"], src_cfg["duration_s"], src_cfg["sources"],
                                gulp, noise_power=src_cfg["noise_power"], seed=src_cfg["seed"],
                                quantize=src_cfg["quantize"], progress=progress, space=space,
                                refresh_s=src_cfg["refresh_s"],
                                transients=[{k: v for k, v in t.items() if v is not None}
-                                           for t in src_cfg.get("transients") or []])
+                                           for t in src_cfg.get("transients") or []],
+                               pattern=None if src_cfg.get("pattern", "none") == "none" else src_cfg["pattern"],
+                               diffuse=src_cfg.get("diffuse"),
+                               corrupt=None if corrupt is None else GainCorruption.from_config(corrupt,
+                                                                                               seed=src_cfg["seed"]))
     return source, source.nframe, None
 
 

@@ -137,16 +137,19 @@ def complex_normals(counter, key):
     return r * c, r * s
 
 
-def sky_weights(xyz_m, freq_hz, l, m, n, flux, cable=None, sigma=+1):
+def sky_weights(xyz_m, freq_hz, l, m, n, flux, cable=None, sigma=+1, pattern=None):
     """W (nchan, nsrc, nant, 2) complex64: amplitude x geometric phase x cable term (module docstring).
 
     l, m, n : (nsrc,) direction cosines; flux : (nchan, nsrc) flux density per source; cable : None
-    or complex (nchan, nant, 2) sqrt(G) exp(-2 pi i nu tau).
+    or complex (nchan, nant, 2) sqrt(G) exp(-2 pi i nu tau) (times any true gains); pattern : None or
+    the antennas' voltage pattern B_p in each source's direction, broadcastable to (nchan, nsrc, 2).
     """
     f = np.asarray(freq_hz, np.float64)
     s_dot_r = np.stack([l, m, n], axis=1) @ np.asarray(xyz_m, np.float64).T                  # (nsrc, nant)
     phase = np.exp(sigma * 2j * np.pi * (f[:, None, None] / SPEED_OF_LIGHT_M_S) * s_dot_r[None])   # (c, s, a)
     w = np.sqrt(np.asarray(flux, np.float64) / 4.0)[:, :, None, None] * phase[..., None] * np.ones(2)
+    if pattern is not None:
+        w = w * np.broadcast_to(np.asarray(pattern), (f.size, s_dot_r.shape[0], 2))[:, :, None, :]
     if cable is not None:
         w = w * np.asarray(cable)[:, None, :, :]
     return w.astype(np.complex64)
