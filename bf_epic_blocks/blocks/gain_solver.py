@@ -172,6 +172,8 @@ class GainSolverBlock(bfp.SinkBlock):
         solution (and its PNG beside it when ``png``), or None.
     reference_stand : stand id of the reference input, or None (auto).
     align_frames : a live solution takes effect at a multiple of this many frames (the imager's integration).
+    diffuse : add the analytic Galactic sky to the model with a fitted scale
+        (:func:`~bf_epic_blocks.sky.model.diffuse_model`), recomputed every ``diffuse_refresh_s`` of data.
     apply_from : 'after' (live: a solution applies from the first frame after its data) or 'start'
         (offline: from the first frame of its cadence, so a table applied to the same data calibrates
         them from their start; the table's ``valid_from`` says which).
@@ -181,7 +183,8 @@ class GainSolverBlock(bfp.SinkBlock):
 
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
-                 reference_stand=None, apply_from="after", align_frames=1, **kwargs):
+                 reference_stand=None, apply_from="after", align_frames=1, diffuse=True, diffuse_refresh_s=300.0,
+                 **kwargs):
         super().__init__(iring, **kwargs)
         if not (integration_s > 0 and cadence_s >= integration_s):
             raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="
@@ -196,6 +199,7 @@ class GainSolverBlock(bfp.SinkBlock):
             raise ValueError(f"GainSolverBlock: apply_from must be 'after' or 'start', got {apply_from!r}")
         self.apply_from = apply_from
         self.align_frames = max(1, int(align_frames))
+        self.diffuse, self.diffuse_refresh_s = bool(diffuse), float(diffuse_refresh_s)
         self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
                              "samples": 0}
@@ -228,6 +232,7 @@ class GainSolverBlock(bfp.SinkBlock):
             self._xp = np
         self._sums = CovarianceSums(nchan, nstand, npol, self._xp)
         self._W = None            # baseline weights, made at the first solve of the sequence
+        self._E, self._E_at = None, None   # the diffuse model term and when (unix s) it was made
         self._cadence = max(1, int(round(self.cadence_s / lay["dt_s"])))
         self._integ = max(1, min(self._cadence, int(round(self.integration_s / lay["dt_s"]))))
         self._tag0, self._tpf = int(lay["time_tag"]), int(lay["ticks_per_frame"])
@@ -339,6 +344,14 @@ class GainSolverBlock(bfp.SinkBlock):
         w = xp.asarray(self._w.transpose(0, 2, 1)).astype(cdt)                            # (c, p, a)
         R = self._sums.mean().astype(cdt) * w[..., :, None] * xp.conj(w[..., None, :])
         M = model_covariance(lay["xyz_m"], lay["freq_hz"], model.lmn, model.flux_pol, xp=xp, dtype=cdt)
+        E = None
+        if self.diffuse:
+            if self._E is None or abs(when.unix - self._E_at) >= self.diffuse_refresh_s:
+                from ..sky.model import diffuse_model
+                self._E = diffuse_model(lay["xyz_m"], lay["freq_hz"], when, self._location, pattern=self.pattern,
+                                        xp=xp, dtype=cdt)
+                self._E_at = when.unix
+            E = self._E
         settings = self.settings
         if self.reference_stand is not None:
             idx = np.flatnonzero(self._stand_ids == int(self.reference_stand))
@@ -348,7 +361,7 @@ class GainSolverBlock(bfp.SinkBlock):
         if self._W is None:
             self._W = baseline_weights(lay["xyz_m"], lay["freq_hz"], settings.min_baseline_lambda, xp=xp)
         try:
-            sol = solve_gains(R, M, lay["xyz_m"], lay["freq_hz"], self._flags, settings, weights=self._W)
+            sol = solve_gains(R, M, lay["xyz_m"], lay["freq_hz"], self._flags, settings, weights=self._W, extra=E)
         except ValueError as e:
             self._fail(str(e))
             return
@@ -357,20 +370,25 @@ class GainSolverBlock(bfp.SinkBlock):
         self.solutions.append(sol)
         self.valid_from.append(int(valid_from))
         self.time_unix.append(float(when.unix))
-        self.models.append(model.to_dict())
+        md = model.to_dict()
+        if sol.info.get("extra_scale") is not None:
+            md["diffuse_scale_fitted"] = float(np.mean(sol.info["extra_scale"]))
+        self.models.append(md)
         self._posted_in_seq += 1
         self.solver_stats["solutions"] += 1
         if self.table is not None:
             self.table.post(valid_from, sol.corrections)
-        log.info("gain solution %d (%s UTC, %.2f s of data, model %s): %s; %.2f s", len(self.solutions) - 1,
-                 when.isot[:19], ntime * lay["dt_s"], model.describe(), sol.summary(), time.perf_counter() - t0)
+        log.info("gain solution %d (%s UTC, %.2f s of data, model %s%s): %s; %.2f s", len(self.solutions) - 1,
+                 when.isot[:19], ntime * lay["dt_s"], model.describe(),
+                 f" + the Galactic sky x{md['diffuse_scale_fitted']:.2f}" if "diffuse_scale_fitted" in md else "",
+                 sol.summary(), time.perf_counter() - t0)
         if self.table_path:
             self.write(self.table_path)
 
     def provenance(self):
         return {"station": self._station_name, "model": self.models[-1] if self.models else {},
                 "models": self.models, "settings": self.settings.to_dict(), "cadence_s": self.cadence_s,
-                "integration_s": self.integration_s, "cable_removed": bool(self.cable),
+                "integration_s": self.integration_s, "cable_removed": bool(self.cable), "diffuse_model": self.diffuse,
                 "min_alt_deg": self.min_alt_deg}
 
     def write(self, path):

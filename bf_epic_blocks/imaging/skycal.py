@@ -29,6 +29,12 @@ Robustness (what the model lacks):
 * the autocorrelations (a = b) carry the receiver noise and are never used (W_aa = 0);
 * baselines shorter than ``min_baseline_lambda`` wavelengths get W = 0: they are dominated by the
   diffuse Galactic emission, which a point-source model lacks;
+* the diffuse emission is not confined to short baselines at a compact station: at LWA-SV and 74 MHz
+  the Galactic sky is ~1e6 Jy per antenna against Cyg A's 1.7e4, and its correlation on 10-15
+  wavelength baselines is still half Cyg A's. So the model can carry a second term, the analytic
+  Galactic sky's covariance (:func:`bf_epic_blocks.sky.model.diffuse_model`), whose scale per channel
+  and polarisation is fitted with the gains (``extra``, :func:`fit_scale`): the flux scale stays the
+  catalogue's, and a diffuse model right in shape but not in brightness does no harm;
 * inputs are screened by their health (:func:`input_health`) and the solve repeated without the bad
   ones: deaf (|g| far below its peers': no sky in it), noisy (power per unit gain far above its peers'),
   residual (the model does not fit it: a solution that will not converge on that input);
@@ -53,7 +59,7 @@ import numpy as np
 from ..conventions import SPEED_OF_LIGHT_M_S
 from ._xp import get_xp, to_numpy
 
-__all__ = ["SolveSettings", "Solution", "model_covariance", "baseline_weights", "stefcal", "reference_phase",
+__all__ = ["SolveSettings", "Solution", "model_covariance", "baseline_weights", "stefcal", "fit_scale", "reference_phase",
            "smooth_across_channels", "input_health", "solve_gains", "gain_error", "CovarianceSums",
            "REASONS"]
 
@@ -315,8 +321,19 @@ def _robust_median(x, good):
     return np.array([np.median(x[good[:, p], p]) if good[:, p].any() else np.nan for p in range(x.shape[1])])
 
 
+def fit_scale(R, M, E, g, W):
+    """The scale s >= 0 per (channel, pol) minimising sum W |R - g g* (M + s E)|^2 with g held:
+    s = Re sum W conj(A) (R - g g* M) / sum W |A|^2, A = g g* E. Returns float (nchan, npol)."""
+    xp = get_xp(R)
+    GG = g[..., :, None] * xp.conj(g[..., None, :])
+    A = GG * E
+    num = xp.sum(W * (xp.conj(A) * (R - GG * M)).real, axis=(-1, -2))
+    den = xp.sum(W * (A.real ** 2 + A.imag ** 2), axis=(-1, -2))
+    return xp.clip(xp.where(den > 0, num / xp.where(den > 0, den, 1), 0), 0, None)
+
+
 def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSettings | None = None, *, rounds=4,
-                weights=None):
+                weights=None, extra=None, fits=4):
     """Gains, flags and quality from covariances R against the model M (module docstring).
 
     R, M : complex (nchan, npol, nant, nant), NumPy or CuPy (the solve runs where they live); R is the
@@ -324,6 +341,10 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     station_flags : bool (nant, npol), inputs not to use (the station's flags, zero cable weights).
     weights : :func:`baseline_weights` for these positions, channels and ``min_baseline_lambda``, made
         once by a caller that solves often (None: made here).
+    extra : None, or a model term E (R's shape) whose scale per channel and polarisation is fitted
+        (:func:`fit_scale`, alternating with the gains ``fits`` times per round): the diffuse sky, whose
+        analytic model's brightness is known to tens of per cent (:func:`bf_epic_blocks.sky.model.diffuse_model`).
+        The flux scale stays the point sources' (M's). The fitted scales are ``info['extra_scale']``.
     Returns a :class:`Solution` (NumPy). Raises ValueError when too few inputs remain good in a
     polarisation (:attr:`SolveSettings.min_good_fraction`) or no channel-pol converges.
     """
@@ -344,19 +365,27 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     if not bool(to_numpy(xp.any(W > 0))):
         raise ValueError(f"solve_gains: no baseline is longer than min_baseline_lambda = {s.min_baseline_lambda} "
                          f"wavelengths at {float(np.max(freq_hz)) / 1e6:.3f} MHz")
-    mpow = np.median(to_numpy(xp.abs(M[..., idx, idx])), axis=0).T
+    mpow = np.median(to_numpy(xp.abs(M[..., idx, idx])), axis=0).T      # the point sources alone
     if not np.any(mpow > 0):
         raise ValueError("solve_gains: the model is empty (no source above the horizon, or zero flux)")
     g = None
     iters = 0
     conv = np.zeros((nchan, npol), bool)
+    Mp, scale = M, None
+    if extra is not None:
+        scale = xp.ones((nchan, npol), R.real.dtype)
+        M = Mp + scale[..., None, None] * extra
     for _ in range(rounds):
         good = reasons == ""
         live = xp.asarray(good.T)                                                           # (p, a)
         Wl = W[:, None] * live[None, :, :, None] * live[None, :, None, :]
-        g, it, conv = stefcal(R, M, Wl, g, max_iter=s.max_iter, tol=s.tol)
-        g = g * live[None]
-        iters += it
+        for _ in range(fits if extra is not None else 1):
+            g, it, conv = stefcal(R, M, Wl, g, max_iter=s.max_iter, tol=s.tol)
+            g = g * live[None]
+            iters += it
+            if extra is not None:
+                scale = fit_scale(R, Mp, extra, g, Wl)
+                M = Mp + scale[..., None, None] * extra
         h = input_health(R, M, W, g, good.T)
         new = np.zeros_like(good)
         amp_med = _robust_median(h["gain_amp"], good)
@@ -395,6 +424,7 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     quality.update(converged=conv, delay_s=np.asarray(tau, np.float64).T)
     flags = reasons != ""
     info = {"iterations": iters, "reference": ref.tolist(), "good_inputs": int(good.sum()),
+            "extra_scale": None if scale is None else to_numpy(scale).tolist(),
             "baselines_used": int(to_numpy(xp.sum(W > 0))) // 2, "settings": s.to_dict()}
     return Solution(gs.astype(np.complex128), corr.astype(np.complex128), flags, reasons.astype(str), quality, info)
 

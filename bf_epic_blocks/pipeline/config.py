@@ -337,6 +337,10 @@ CALIBRATION_SOLVE = Section({
     "min_baseline_lambda": Key(Float(0.0), 4.0,
                                doc="Baselines shorter than this many wavelengths are not used: the diffuse Galactic "
                                    "emission, which a point-source model lacks, dominates them."),
+    "diffuse": Key(Bool(), True,
+                   doc="Add the analytic Galactic sky (`bf_epic_blocks.sky.diffuse`) to the model, its scale fitted per "
+                       "channel and polarisation: at a compact station it correlates on every baseline and biases a "
+                       "point-source-only solution by ~10%."),
     "min_alt_deg": Key(Float(0.0, 90.0), 10.0, doc="Model sources lower than this altitude are left out, degrees."),
     "pattern": Key(Choice("none", "dipole", none_is="none"), None,
                    doc="The antennas' voltage pattern the model's sources are seen through; null: "

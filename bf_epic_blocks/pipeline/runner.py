@@ -409,7 +409,8 @@ def gain_solver_block(cfg, feed, table=None, table_path=None, apply_from="after"
                            cable=bool(cal["cable"]), min_alt_deg=sv["min_alt_deg"], min_samples=sv["min_samples"],
                            table=table, table_path=table_path, png=sv["png"],
                            reference_stand=None if sv["reference"] == "auto" else sv["reference"],
-                           apply_from=apply_from, align_frames=cfg["imager"]["accumulate_frames"])
+                           apply_from=apply_from, align_frames=cfg["imager"]["accumulate_frames"],
+                           diffuse=sv["diffuse"])
 
 
 def _solver_stage(cfg, feed, outdir):

@@ -16,7 +16,7 @@ import numpy as np
 
 from .catalogue import source_directions
 
-__all__ = ["SkyModel", "sky_model"]
+__all__ = ["SkyModel", "sky_model", "diffuse_model"]
 
 log = logging.getLogger(__name__)
 
@@ -74,3 +74,38 @@ def sky_model(sources, time, location, freq_hz, *, pattern=None, npol=2, min_alt
         log.debug("sky model: left out (below %.1f deg): %s", min_alt_deg, ", ".join(dropped))
     return SkyModel(lmn, fp, [s.name for s in srcs], alt[keep], dropped,
                     None if pattern in (None, "none") else pattern)
+
+
+def diffuse_model(xyz_m, freq_hz, time, location, *, pattern=None, xp=np, dtype=None, chunk=64):
+    """The analytic Galactic sky's covariance (:mod:`.diffuse`) as a model term, (nchan, npol, nant, nant)
+    complex in the namespace ``xp``: what the solver fits with a free scale per channel and polarisation
+    (:func:`bf_epic_blocks.imaging.skycal.solve_gains`, ``extra``), so that the emission a compact
+    station sees on every baseline does not bias the gains. Pixels and baselines as
+    :func:`.diffuse.diffuse_covariance` (no correlation beyond the array's core); the sums are complex
+    GEMMs over the pixels where ``xp`` computes (a GPU makes a whole band's in well under a second)."""
+    import math
+
+    from ..conventions import SPEED_OF_LIGHT_M_S
+    from .diffuse import _resolve_grid, diffuse_pixels
+    xyz = np.asarray(xyz_m, np.float64)
+    f = np.atleast_1d(np.asarray(freq_hz, np.float64))
+    npix, bmax = _resolve_grid(xyz, f, None, None)
+    lmn, flux, _ = diffuse_pixels(f, time, location, pattern=pattern, npix=npix)
+    dtype = dtype or (np.complex128 if xp is np else xp.complex64)
+    nchan, npol, nant = f.size, flux.shape[1], xyz.shape[0]
+    path = xyz @ lmn.T                                                             # (nant, npix) metres
+    out = xp.empty((nchan, npol, nant, nant), dtype)
+    for c0 in range(0, nchan, chunk):
+        c1 = min(nchan, c0 + chunk)
+        cyc = path[None] * (f[c0:c1, None, None] / SPEED_OF_LIGHT_M_S)
+        cyc -= np.rint(cyc)
+        a = xp.exp(2j * math.pi * xp.asarray(cyc)).astype(dtype)                      # (c, nant, npix)
+        for p in range(npol):
+            amp = xp.asarray(np.sqrt(flux[c0:c1, p] / 2.0)).astype(a.real.dtype)       # (c, npix)
+            m = a * amp[:, None, :]
+            out[c0:c1, p] = xp.matmul(m, xp.conj(m).swapaxes(-1, -2))
+    d = np.sqrt(((xyz[:, None] - xyz[None]) ** 2).sum(-1))
+    far = d > bmax
+    np.fill_diagonal(far, False)
+    out *= xp.asarray(~far).astype(out.real.dtype)
+    return out
