@@ -179,6 +179,7 @@ def expected_rms(w_steady, noise_power):
 # ------------------------------------------------------------------ the gulp
 _TILE = 32          # samples per CUDA block (TILE in fastsim.cu)
 MAX_REG_SRC = 16    # up to this many sources, sim_gulp_few (weights in registers: 4 per source)
+MAX_GPU_COLUMNS = 48 * 1024 // (_TILE * 16)   # sim_gulp's shared memory: a tile's signals, 2 float2 per column
 _OPTIONS = ("--use_fast_math",)
 
 
@@ -215,6 +216,10 @@ def make_gulp(out, t0, w, on0, on1, keys, noise_power, scale=None):
         import cupy
         if not out.flags.c_contiguous:
             raise ValueError("make_gulp: the output array must be C-contiguous")
+        if nsrc > MAX_GPU_COLUMNS:
+            raise ValueError(f"make_gulp: {nsrc} sky columns; the GPU kernel holds at most {MAX_GPU_COLUMNS} "
+                             "(a tile's signals, 16 bytes per column and sample, in 48 KiB of shared memory): "
+                             "fewer diffuse modes or sources")
         k, few = _gpu_kernel(nsrc)
         threads = 256 if nant > 128 else 64
         head = (out, np.int32(ci4), cupy.ascontiguousarray(w, cupy.complex64), cupy.asarray(on0, cupy.int64),
