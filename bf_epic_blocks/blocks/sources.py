@@ -342,6 +342,7 @@ class SimSkySourceBlock(bfp.SourceBlock):
             corrupt = GainCorruption.from_config(corrupt, seed=self.seed)
         self.corrupt = corrupt
         self._refreshes = []
+        self._noisy_w = self._diffuse_w = self.diffuse_fraction = self.median_power = None
         self._h2d = HostToDevice()
 
     def create_reader(self, sourcename):
@@ -446,7 +447,7 @@ class SimSkySourceBlock(bfp.SourceBlock):
         return {"deaf": c.deaf_mask(st.nstand, 2, usable=usable) if c else none,
                 "noisy": c.noisy_mask(st.nstand, 2, usable=usable) if c else none.copy(),
                 "flags": np.asarray(st.flags, bool).copy(),
-                "median_power": getattr(self, "median_power", None) if self._noisy_w is not None else None,
+                "median_power": self.median_power,
                 "noisy_power": c.noisy_power if c else None, "noise_power": self.noise_power,
                 "diffuse_fraction": self.diffuse_fraction, "diffuse_weights": self._diffuse_w,
                 "refreshes": list(self._refreshes), "true_gains": self.true_gains}

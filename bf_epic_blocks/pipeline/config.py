@@ -396,7 +396,8 @@ SOURCE_DIFFUSE = Section({
                  doc="Eigenmodes of the diffuse sky's covariance simulated, each one more column of the "
                      "simulator (on a CPU a column costs about as much as a point source). 32 keep about a "
                      "quarter of LWA-SV's diffuse power, its largest scales; the rest, spread thinly over "
-                     "the other modes, is left out."),
+                     "the other modes, is left out. On a GPU the sources, modes and noisy inputs together may be at most 96 "
+                     "columns."),
 }, what="a diffuse mapping {scale, nmode}")
 
 SOURCE_CORRUPT = Section({

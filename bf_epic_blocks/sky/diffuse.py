@@ -34,7 +34,9 @@ pixels tile the direction cosines (l East, m North) above the horizon with an ``
 cells of side dl = 2 / npix; each pixel's solid angle is the exact integral of dOmega = dl dm / n over
 its cell's part inside the unit circle, and its direction is that part's centroid (weighted by 1/n).
 So the lowest ~7 deg of sky, which the grid's outer ring of cells holds (dOmega diverges as 1/n at the
-horizon), keeps its solid angle, and the sum over a uniform sky gives 2 pi to ~1e-4.
+horizon), keeps its solid angle: the pixels' solid angles sum to 2 pi to rounding, and a uniform sky
+gives the closed form 2 pi sin(kb) / (kb) (per unit brightness, horizontal baseline b) to 4e-4 of the
+zero-spacing value with npix = 112 (1e-4 with 256) on baselines up to 25 m.
 
 Which baselines it resolves: a grid of step dl samples fringes of baselines up to
 ``u_max = npix / 4`` wavelengths with their aliases falling beyond u_max, where a smooth sky's
@@ -50,8 +52,17 @@ Eigenmodes (:func:`diffuse_weights`)
 The simulator (:mod:`.fastsim`) drives each weight column k with its own complex normal of variance
 1 per real part, so columns W with ``sum_k 2 W[c,k,a,p] conj(W[c,k,b,p]) = R[c,p,a,b]`` reproduce the
 covariance. ``W = V sqrt(lambda / 2)`` for the top ``nmode`` eigenpairs of R per channel and pol
-keeps its largest (large-scale) part; the rest, fine structure spread thinly over many modes, is
-left out, and the fraction of the trace kept is returned and logged.
+(the best rank-nmode approximation) keeps its largest part; the rest is left out, and the fraction
+of the trace kept is returned and logged. A station's antennas stand more than half a wavelength
+apart, so they see most of the diffuse sky's power uncorrelated: the covariance is far from low
+rank (at LWA-SV its largest eigenvalue is 4.3 times the mean) and 32 modes keep about a quarter of
+the power (18-27% with the dipole pattern; 16 modes 15%, 128 modes 66%), in the brightest, largest
+structures (the Galactic Centre and the plane). Each input's simulated diffuse power is that
+fraction of the model's, and its correlations on baselines are those of the kept modes.
+
+Cost: for LWA-SV (256 stands, 16 channels, npix = 112: 10,000 pixels) ~1.1 s on two CPU cores
+isotropic, ~1.5 s with the dipole pattern (one complex64 Hermitian rank-k update per channel and
+pol, 25-30 ms each, and a partial eigendecomposition, ~8 ms each).
 """
 from __future__ import annotations
 

@@ -179,6 +179,7 @@ def expected_rms(w_steady, noise_power):
 # ------------------------------------------------------------------ the gulp
 _TILE = 32          # samples per CUDA block (TILE in fastsim.cu)
 MAX_REG_SRC = 16    # up to this many sources, sim_gulp_few (weights in registers: 4 per source)
+MAX_GPU_COLUMNS = 48 * 1024 // (_TILE * 16)   # sim_gulp's shared memory: a tile's signals, 2 float2 per column
 _OPTIONS = ("--use_fast_math",)
 
 
@@ -215,6 +216,10 @@ def make_gulp(out, t0, w, on0, on1, keys, noise_power, scale=None):
         import cupy
         if not out.flags.c_contiguous:
             raise ValueError("make_gulp: the output array must be C-contiguous")
+        if nsrc > MAX_GPU_COLUMNS:
+            raise ValueError(f"make_gulp: {nsrc} sky columns; the GPU kernel holds at most {MAX_GPU_COLUMNS} "
+                             "(a tile's signals, 16 bytes per column and sample, in 48 KiB of shared memory): "
+                             "fewer diffuse modes or sources")
         k, few = _gpu_kernel(nsrc)
         threads = 256 if nant > 128 else 64
         head = (out, np.int32(ci4), cupy.ascontiguousarray(w, cupy.complex64), cupy.asarray(on0, cupy.int64),
@@ -264,10 +269,19 @@ def _numpy_chunk(out, a0, a1, t0, w, on0, on1, keys, noise_amp, scale, ci4):
         er, ei = complex_normals(base[:, :, None, None] * np.uint64(2 * nsrc) + s_p, keys[0])   # (t, c, s, p)
         on = (T[:, None, None] >= on0.T[None]) & (T[:, None, None] < on1.T[None])       # (t, c, s)
         er, ei = er * on[..., None], ei * on[..., None]
+        t1, t2 = np.empty_like(vr), np.empty_like(vr)
         for s in range(nsrc):
+            # vr += zr wr - zi wi, vi += zr wi + zi wr: the same float32 operations in the same order
+            # as the expressions written out, in place (no arrays made per source)
             zr, zi = er[:, :, s, :, None], ei[:, :, s, :, None]
-            vr = vr + (zr * wr[None, :, s] - zi * wi[None, :, s])
-            vi = vi + (zr * wi[None, :, s] + zi * wr[None, :, s])
+            np.multiply(zr, wr[None, :, s], out=t1)
+            np.multiply(zi, wi[None, :, s], out=t2)
+            t1 -= t2
+            vr += t1
+            np.multiply(zr, wi[None, :, s], out=t1)
+            np.multiply(zi, wr[None, :, s], out=t2)
+            t1 += t2
+            vi += t1
     nr, ni = complex_normals(base[:, :, None, None] * np.uint64(2 * nant) + a_p, keys[1])  # (t, c, p, a)
     vr = np.transpose(vr + noise_amp * nr, (0, 1, 3, 2))
     vi = np.transpose(vi + noise_amp * ni, (0, 1, 3, 2))
