@@ -32,7 +32,9 @@ import numpy as np
 
 from ..conventions import FS_HZ
 from ..imaging.calibration import GainTable, cable_weights
-from ..imaging.skycal import CovarianceSums, SolveSettings, baseline_weights, model_covariance, solve_gains
+from ..imaging._xp import to_numpy
+from ..imaging.skycal import (CovarianceSums, SolveSettings, baseline_weights, clip_fraction, model_covariance,
+                              solve_gains)
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
 from .headers import efield_layout
@@ -172,6 +174,8 @@ class GainSolverBlock(bfp.SinkBlock):
         solution (and its PNG beside it when ``png``), or None.
     reference_stand : stand id of the reference input, or None (auto).
     align_frames : a live solution takes effect at a multiple of this many frames (the imager's integration).
+    saturated_above : a 4-bit input whose samples clip more often than this fraction (estimated from its
+        power, Gaussian voltages: :func:`~bf_epic_blocks.imaging.skycal.clip_fraction`) is flagged 'saturated'.
     diffuse : add the analytic Galactic sky to the model with a fitted scale
         (:func:`~bf_epic_blocks.sky.model.diffuse_model`), recomputed every ``diffuse_refresh_s`` of data.
     apply_from : 'after' (live: a solution applies from the first frame after its data) or 'start'
@@ -184,7 +188,7 @@ class GainSolverBlock(bfp.SinkBlock):
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
                  reference_stand=None, apply_from="after", align_frames=1, diffuse=True, diffuse_refresh_s=300.0,
-                 **kwargs):
+                 saturated_above=0.01, **kwargs):
         super().__init__(iring, **kwargs)
         if not (integration_s > 0 and cadence_s >= integration_s):
             raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="
@@ -200,6 +204,7 @@ class GainSolverBlock(bfp.SinkBlock):
         self.apply_from = apply_from
         self.align_frames = max(1, int(align_frames))
         self.diffuse, self.diffuse_refresh_s = bool(diffuse), float(diffuse_refresh_s)
+        self.saturated_above = float(saturated_above)
         self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
                              "samples": 0}
@@ -342,7 +347,15 @@ class GainSolverBlock(bfp.SinkBlock):
         # at 784 channels) share the card with the imager; the gains need ~1e-4, not 1e-15
         cdt = np.complex128 if xp is np else xp.complex64
         w = xp.asarray(self._w.transpose(0, 2, 1)).astype(cdt)                            # (c, p, a)
-        R = self._sums.mean().astype(cdt) * w[..., :, None] * xp.conj(w[..., None, :])
+        raw = self._sums.mean()
+        saturated = None
+        if lay["dtype"] == "ci4":
+            # 4-bit inputs driven so hard that their samples clip lose correlation, and their gains
+            # come out wrong by tens of per cent: flagged from the raw power (4-bit units^2)
+            idx = xp.arange(lay["nstand"])
+            praw = np.median(to_numpy(raw[..., idx, idx].real), axis=0).T                 # (a, p)
+            saturated = clip_fraction(praw) > self.saturated_above
+        R = raw.astype(cdt) * w[..., :, None] * xp.conj(w[..., None, :])
         M = model_covariance(lay["xyz_m"], lay["freq_hz"], model.lmn, model.flux_pol, xp=xp, dtype=cdt)
         E = None
         if self.diffuse:
@@ -361,7 +374,11 @@ class GainSolverBlock(bfp.SinkBlock):
         if self._W is None:
             self._W = baseline_weights(lay["xyz_m"], lay["freq_hz"], settings.min_baseline_lambda, xp=xp)
         try:
-            sol = solve_gains(R, M, lay["xyz_m"], lay["freq_hz"], self._flags, settings, weights=self._W, extra=E)
+            last = self.solutions[-1] if self.solutions else None
+            g0 = None if last is None else last.gains.transpose(0, 2, 1)          # (c, p, a): a warm start
+            s0 = None if last is None or E is None else last.info.get("extra_scale")
+            sol = solve_gains(R, M, lay["xyz_m"], lay["freq_hz"], self._flags, settings, weights=self._W, extra=E,
+                              g0=g0, extra_scale0=s0, saturated=saturated)
         except ValueError as e:
             self._fail(str(e))
             return

@@ -59,12 +59,22 @@ import numpy as np
 from ..conventions import SPEED_OF_LIGHT_M_S
 from ._xp import get_xp, to_numpy
 
-__all__ = ["SolveSettings", "Solution", "model_covariance", "baseline_weights", "stefcal", "fit_scale", "reference_phase",
+__all__ = ["SolveSettings", "Solution", "clip_fraction", "model_covariance", "baseline_weights", "stefcal", "fit_scale", "reference_phase",
            "smooth_across_channels", "input_health", "solve_gains", "gain_error", "CovarianceSums",
            "REASONS"]
 
 #: Flag reasons, in the order they are decided (an input keeps the first that applies).
-REASONS = ("station", "no-power", "deaf", "noisy", "residual", "few-baselines")
+REASONS = ("station", "saturated", "no-power", "deaf", "noisy", "residual", "few-baselines")
+
+
+def clip_fraction(power, lo=-8.5, hi=7.5):
+    """Fraction of a 4-bit input's real and imaginary samples past the converter's range, for complex
+    Gaussian voltages of mean power ``power`` (4-bit units^2, both parts): each part has variance
+    power / 2 and clips beyond [lo, hi] (the levels -8 .. 7). float64, power's shape."""
+    from math import erfc, sqrt
+    sig = np.sqrt(np.maximum(np.asarray(power, np.float64), 1e-300) / 2.0)
+    f = np.vectorize(lambda s: 0.5 * erfc(hi / (s * sqrt(2))) + 0.5 * erfc(-lo / (s * sqrt(2))))
+    return f(sig)
 
 
 @dataclass(frozen=True)
@@ -333,7 +343,7 @@ def fit_scale(R, M, E, g, W):
 
 
 def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSettings | None = None, *, rounds=4,
-                weights=None, extra=None, fits=4):
+                weights=None, extra=None, fits=2, g0=None, extra_scale0=None, saturated=None):
     """Gains, flags and quality from covariances R against the model M (module docstring).
 
     R, M : complex (nchan, npol, nant, nant), NumPy or CuPy (the solve runs where they live); R is the
@@ -345,6 +355,10 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
         (:func:`fit_scale`, alternating with the gains ``fits`` times per round): the diffuse sky, whose
         analytic model's brightness is known to tens of per cent (:func:`bf_epic_blocks.sky.model.diffuse_model`).
         The flux scale stays the point sources' (M's). The fitted scales are ``info['extra_scale']``.
+    saturated : bool (nant, npol), inputs whose samples clip too often to be trusted (flagged
+        'saturated' and left out; :func:`clip_fraction`).
+    g0, extra_scale0 : a start: the gains (nchan, npol, nant) and extra scales (nchan, npol) of the last
+        solution (a live solver's; the gains drift slowly, so StEFCal then needs a few iterations).
     Returns a :class:`Solution` (NumPy). Raises ValueError when too few inputs remain good in a
     polarisation (:attr:`SolveSettings.min_good_fraction`) or no channel-pol converges.
     """
@@ -356,6 +370,10 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     sflag = np.zeros((nant, npol), bool) if station_flags is None else np.array(station_flags, bool)
     reasons = np.full((nant, npol), "", dtype=object)
     reasons[sflag] = "station"
+    if saturated is not None:
+        sat = np.asarray(saturated, bool) & ~sflag
+        reasons[sat] = "saturated"
+        sflag = sflag | sat
     idx = np.arange(nant)
     powr = np.median(to_numpy(R[..., idx, idx].real), axis=0).T                           # (a, p)
     nopow = ~sflag & ~(np.isfinite(powr) & (powr > 0))
@@ -368,12 +386,13 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     mpow = np.median(to_numpy(xp.abs(M[..., idx, idx])), axis=0).T      # the point sources alone
     if not np.any(mpow > 0):
         raise ValueError("solve_gains: the model is empty (no source above the horizon, or zero flux)")
-    g = None
+    g = None if g0 is None else xp.asarray(g0).astype(R.dtype)
     iters = 0
     conv = np.zeros((nchan, npol), bool)
     Mp, scale = M, None
     if extra is not None:
-        scale = xp.ones((nchan, npol), R.real.dtype)
+        scale = xp.ones((nchan, npol), R.real.dtype) if extra_scale0 is None else \
+            xp.asarray(extra_scale0).astype(R.real.dtype)
         M = Mp + scale[..., None, None] * extra
     for _ in range(rounds):
         good = reasons == ""
@@ -445,6 +464,14 @@ def gain_error(corrections, true_gains, good):
     return float(np.sqrt(np.mean(per[good] ** 2))), per
 
 
+def _split_nibbles(b, re, im):
+    """4-bit complex bytes (high nibble real, two's complement) into int8 real and imaginary parts, written
+    into ``re`` and ``im`` (views of b's shape) in one elementwise pass each."""
+    # ((n ^ 8) - 8) in uint8 wraps to the two's complement byte of the signed nibble
+    re[...] = (((b >> 4) ^ 8) - 8).view(re.dtype)
+    im[...] = (((b & 15) ^ 8) - 8).view(im.dtype)
+
+
 class CovarianceSums:
     """Time-summed covariances of raw voltages, (nchan, npol, nant, nant), for the solver.
 
@@ -509,22 +536,24 @@ class CovarianceSums:
         sel = SimpleNamespace(chan=None, ant=None, live=None)
         for c0 in range(0, C, self.chunk):   # channel chunks bound the temporaries
             c1 = min(C, c0 + self.chunk)
-            pairs = _ci4_pairs(xp.ascontiguousarray(b[:, c0:c1]))                           # (t, c, a, p, 2)
-            if xp is np:
-                G = self._gram.setdefault(c0, np.zeros((P, c1 - c0, 2 * A, 2 * A)))
-                step = (2**24 - 1) // 128      # float32 sums of 4-bit products stay exact below 2^24
-                for t0 in range(0, T, step):
-                    rows = gram_rows(pairs[t0:t0 + step], sel)                               # (c, a p ri, t)
-                    rows = rows.reshape(c1 - c0, A, P, 2, -1)
-                    for p in range(P):
-                        G[p] += int_gram(np.ascontiguousarray(rows[:, :, p]).reshape(c1 - c0, 2 * A, -1))
+            if xp is not np:
+                first = c0 not in self._gram
+                G = self._gram.setdefault(c0, xp.empty((P, c1 - c0, 2 * A, 2 * A), xp.int32))
+                Tp = -(-T // 16) * 16             # cuBLAS' integer GEMMs want time in multiples of 4
+                rows = xp.zeros((c1 - c0, A, 2, Tp), xp.int8)
+                for p in range(P):
+                    # (t, c, a) bytes -> rows (c, a, re/im, t): one transposing copy, two nibble passes
+                    bp = xp.ascontiguousarray(b[:, c0:c1, :, p].transpose(1, 2, 0))
+                    _split_nibbles(bp, rows[:, :, 0, :T], rows[:, :, 1, :T])
+                    int_gram(rows.reshape(c1 - c0, 2 * A, Tp), out=G[p], accumulate=not first)
                 continue
-            rows = gram_rows(xp.ascontiguousarray(pairs), sel).reshape(c1 - c0, A, P, 2, -1)
-            first = c0 not in self._gram
-            G = self._gram.setdefault(c0, xp.empty((P, c1 - c0, 2 * A, 2 * A), xp.int32))
-            for p in range(P):
-                int_gram(xp.ascontiguousarray(rows[:, :, p]).reshape(c1 - c0, 2 * A, -1), out=G[p],
-                         accumulate=not first)
+            pairs = _ci4_pairs(np.ascontiguousarray(b[:, c0:c1]))                           # (t, c, a, p, 2)
+            G = self._gram.setdefault(c0, np.zeros((P, c1 - c0, 2 * A, 2 * A)))
+            step = (2**24 - 1) // 128          # float32 sums of 4-bit products stay exact below 2^24
+            for t0 in range(0, T, step):
+                rows = gram_rows(pairs[t0:t0 + step], sel).reshape(c1 - c0, A, P, 2, -1)     # (c, a, p, ri, t)
+                for p in range(P):
+                    G[p] += int_gram(np.ascontiguousarray(rows[:, :, p]).reshape(c1 - c0, 2 * A, -1))
 
     def _flush(self):
         """Integer Gram sums -> complex covariances: R = (rr + ii) + i (ir - ri), rows (input, re/im)."""

@@ -93,13 +93,14 @@ def diffuse_model(xyz_m, freq_hz, time, location, *, pattern=None, xp=np, dtype=
     lmn, flux, _ = diffuse_pixels(f, time, location, pattern=pattern, npix=npix)
     dtype = dtype or (np.complex128 if xp is np else xp.complex64)
     nchan, npol, nant = f.size, flux.shape[1], xyz.shape[0]
-    path = xyz @ lmn.T                                                             # (nant, npix) metres
+    path = xp.asarray(xyz @ lmn.T)                                                 # (nant, npix) metres
     out = xp.empty((nchan, npol, nant, nant), dtype)
     for c0 in range(0, nchan, chunk):
         c1 = min(nchan, c0 + chunk)
-        cyc = path[None] * (f[c0:c1, None, None] / SPEED_OF_LIGHT_M_S)
-        cyc -= np.rint(cyc)
-        a = xp.exp(2j * math.pi * xp.asarray(cyc)).astype(dtype)                      # (c, nant, npix)
+        # cycles in float64 where the sums are made, reduced before the exponential
+        cyc = path[None] * xp.asarray(f[c0:c1, None, None] / SPEED_OF_LIGHT_M_S)
+        cyc -= xp.rint(cyc)
+        a = xp.exp(2j * math.pi * cyc).astype(dtype)                                   # (c, nant, npix)
         for p in range(npol):
             amp = xp.asarray(np.sqrt(flux[c0:c1, p] / 2.0)).astype(a.real.dtype)       # (c, npix)
             m = a * amp[:, None, :]
