@@ -188,7 +188,7 @@ class GainSolverBlock(bfp.SinkBlock):
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
                  reference_stand=None, apply_from="after", align_frames=1, diffuse=True, diffuse_refresh_s=300.0,
-                 saturated_above=0.01, **kwargs):
+                 saturated_above=0.1, **kwargs):
         super().__init__(iring, **kwargs)
         if not (integration_s > 0 and cadence_s >= integration_s):
             raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="

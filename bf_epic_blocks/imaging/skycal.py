@@ -57,7 +57,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..conventions import SPEED_OF_LIGHT_M_S
+from ..cuda import get_kernel, register
 from ._xp import get_xp, to_numpy
+
+register("imaging/skycal.cu")
 
 __all__ = ["SolveSettings", "Solution", "clip_fraction", "model_covariance", "baseline_weights", "stefcal", "fit_scale", "reference_phase",
            "smooth_across_channels", "input_health", "solve_gains", "gain_error", "CovarianceSums",
@@ -464,14 +467,6 @@ def gain_error(corrections, true_gains, good):
     return float(np.sqrt(np.mean(per[good] ** 2))), per
 
 
-def _split_nibbles(b, re, im):
-    """4-bit complex bytes (high nibble real, two's complement) into int8 real and imaginary parts, written
-    into ``re`` and ``im`` (views of b's shape) in one elementwise pass each."""
-    # ((n ^ 8) - 8) in uint8 wraps to the two's complement byte of the signed nibble
-    re[...] = (((b >> 4) ^ 8) - 8).view(re.dtype)
-    im[...] = (((b & 15) ^ 8) - 8).view(im.dtype)
-
-
 class CovarianceSums:
     """Time-summed covariances of raw voltages, (nchan, npol, nant, nant), for the solver.
 
@@ -540,11 +535,14 @@ class CovarianceSums:
                 first = c0 not in self._gram
                 G = self._gram.setdefault(c0, xp.empty((P, c1 - c0, 2 * A, 2 * A), xp.int32))
                 Tp = -(-T // 16) * 16             # cuBLAS' integer GEMMs want time in multiples of 4
-                rows = xp.zeros((c1 - c0, A, 2, Tp), xp.int8)
+                rows = xp.empty((c1 - c0, A, 2, Tp), xp.int8)
+                bc = xp.ascontiguousarray(b)
                 for p in range(P):
-                    # (t, c, a) bytes -> rows (c, a, re/im, t): one transposing copy, two nibble passes
-                    bp = xp.ascontiguousarray(b[:, c0:c1, :, p].transpose(1, 2, 0))
-                    _split_nibbles(bp, rows[:, :, 0, :T], rows[:, :, 1, :T])
+                    # (t, c, a) bytes -> rows (c, a, re/im, t) in one pass (skycal.cu)
+                    get_kernel("imaging/skycal.cu", "skycal_rows")(
+                        ((A + 31) // 32, (Tp + 31) // 32, c1 - c0), (32, 8),
+                        (bc, rows, np.int32(T), np.int32(C), np.int32(A), np.int32(P), np.int32(c0), np.int32(p),
+                         np.int32(Tp)))
                     int_gram(rows.reshape(c1 - c0, 2 * A, Tp), out=G[p], accumulate=not first)
                 continue
             pairs = _ci4_pairs(np.ascontiguousarray(b[:, c0:c1]))                           # (t, c, a, p, 2)
