@@ -93,7 +93,7 @@ def truth_of(yaml, overrides):
     from bf_epic_blocks.pipeline.config import load_config
     from bf_epic_blocks.sky.corrupt import GainCorruption
     cfg = load_config(str(yaml), overrides)
-    return GainCorruption.from_config(cfg["source"]["corrupt"]), cfg
+    return GainCorruption.from_config(cfg["source"]["corrupt"], seed=cfg["source"]["seed"]), cfg
 
 
 NEUTRAL = {"source.corrupt.amplitude_rms": 0.0, "source.corrupt.delay_ns_rms": 0.0,
@@ -119,8 +119,9 @@ def case_accuracy(args, work):
     gc, cfg = truth_of(YAML, sets(base)[1::2])
     st = load_station(cfg["station"]["name"])
     f = channel_freqs(cfg)
-    g_true = gc.gains(st.nstand, 2, f, 0.5 * args.seconds)
-    deaf, noisy = gc.deaf_mask(st.nstand, 2), gc.noisy_mask(st.nstand, 2)
+    u = ~st.flags
+    g_true = gc.gains(st.nstand, 2, f, 0.5 * args.seconds, usable=u)
+    deaf, noisy = gc.deaf_mask(st.nstand, 2, usable=u), gc.noisy_mask(st.nstand, 2, usable=u)
     good_true = ~st.flags & ~deaf & ~noisy
     err, per = gain_error(corr, g_true, ~flags)
     row = {"seconds": args.seconds, "nchan": int(f.size), "calibrate_wall_s": t_cal,
