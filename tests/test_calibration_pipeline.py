@@ -22,6 +22,7 @@ QUARTER = 6250       # frames in 0.25 s
 
 def _cfg(tmp, name, *extra):
     return load_config(SIM, ["source.duration_s=1.0", "source.channels.count=4", f"imager.accumulate_frames={QUARTER}",
+                             "source.diffuse=null",
                              "calibration.pattern=none", "device=cpu", f"output.dir={tmp / name}", "output.png=false",
                              *extra])
 
@@ -49,7 +50,8 @@ def _cable_truth(cfg):
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("cal")
-    solve = "calibration.solve={cadence_s: 0.5, integration_s: 0.25, pattern: none, smooth_channels: 4}"
+    solve = ("calibration.solve={cadence_s: 0.5, integration_s: 0.25, apply_delay_s: 0, pattern: none, "
+             "smooth_channels: 4, diffuse: false}")
     live = _cfg(tmp, "live", "calibration.cable=false", solve)
     s_live = runner.run(live, show_progress=False)
     truth = _cfg(tmp, "truth", "source.quantize=false")
@@ -65,7 +67,7 @@ def test_live_solutions_follow_their_schedule_and_undo_the_cables(runs):
     t = read_solved_table(tmp / "live" / "lwasv_sim_allsky_gains.npz")
     tag0 = int(round(__import__("astropy.time", fromlist=["Time"]).Time(cfg["source"]["start"]).unix * FS_HZ))
     tpf = int(round(FS_HZ / 25000))
-    # solution k sums frames [k 0.5 s, k 0.5 s + 0.25 s) and applies from the frame after them
+    # solution k sums frames [k 0.5 s, k 0.5 s + 0.25 s) and applies from the frame after them (no delay asked)
     assert t["valid_from"].tolist() == [tag0 + QUARTER * tpf, tag0 + 3 * QUARTER * tpf]
     g, st = _cable_truth(cfg)
     for k in range(2):
@@ -91,9 +93,9 @@ def test_offline_calibrate_writes_a_table_the_pipeline_takes(tmp_path):
     from bf_epic_blocks.pipeline import cli
     out = tmp_path / "t.npz"
     code = cli.main([ "calibrate", SIM, "-o", str(out), "--no-progress", "-q",
-                      "--set", "source.duration_s=0.3", "--set", "source.channels.count=4",
+                      "--set", "source.duration_s=0.3", "--set", "source.channels.count=4", "--set", "source.diffuse=null",
                       "--set", "imager.accumulate_frames=7500", "--set", "calibration.cable=false",
-                      "--set", "calibration.solve={integration_s: 0.25, pattern: none}"])
+                      "--set", "calibration.solve={integration_s: 0.25, pattern: none, diffuse: false}"])
     assert code == 0
     t = read_solved_table(out)
     cfg = load_config(SIM, ["source.channels.count=4"])

@@ -174,6 +174,8 @@ class GainSolverBlock(bfp.SinkBlock):
         solution (and its PNG beside it when ``png``), or None.
     reference_stand : stand id of the reference input, or None (auto).
     align_frames : a live solution takes effect at a multiple of this many frames (the imager's integration).
+    apply_delay_s : a live solution applies this long after the end of its data (rounded up to
+        ``align_frames``): the time the solve takes, so that the imager does not wait for it.
     saturated_above : a 4-bit input whose samples clip more often than this fraction (estimated from its
         power, Gaussian voltages: :func:`~bf_epic_blocks.imaging.skycal.clip_fraction`) is flagged 'saturated'.
     diffuse : add the analytic Galactic sky to the model with a fitted scale
@@ -188,7 +190,7 @@ class GainSolverBlock(bfp.SinkBlock):
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
                  reference_stand=None, apply_from="after", align_frames=1, diffuse=True, diffuse_refresh_s=300.0,
-                 saturated_above=0.1, **kwargs):
+                 saturated_above=0.1, apply_delay_s=0.0, **kwargs):
         super().__init__(iring, **kwargs)
         if not (integration_s > 0 and cadence_s >= integration_s):
             raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="
@@ -205,9 +207,13 @@ class GainSolverBlock(bfp.SinkBlock):
         self.align_frames = max(1, int(align_frames))
         self.diffuse, self.diffuse_refresh_s = bool(diffuse), float(diffuse_refresh_s)
         self.saturated_above = float(saturated_above)
+        if not apply_delay_s >= 0:
+            raise ValueError(f"GainSolverBlock: apply_delay_s must be >= 0, got {apply_delay_s!r}")
+        self.apply_delay_s = float(apply_delay_s)
         self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
-                             "samples": 0}
+                             "samples": 0, "sum_s_each": [], "solve_s_each": []}
+        self._sum_this = 0.0
 
     def define_valid_input_spaces(self):
         return "any"
@@ -240,6 +246,7 @@ class GainSolverBlock(bfp.SinkBlock):
         self._E, self._E_at = None, None   # the diffuse model term and when (unix s) it was made
         self._cadence = max(1, int(round(self.cadence_s / lay["dt_s"])))
         self._integ = max(1, min(self._cadence, int(round(self.integration_s / lay["dt_s"]))))
+        self._delay = int(round(self.apply_delay_s / lay["dt_s"]))
         self._tag0, self._tpf = int(lay["time_tag"]), int(lay["ticks_per_frame"])
         self._k = 0               # the solution being summed
         self._frame = 0           # frames of the sequence seen
@@ -252,11 +259,11 @@ class GainSolverBlock(bfp.SinkBlock):
                  f", pattern {self.pattern}" if self.pattern else "")
 
     def _due(self, k):
-        """Time tag of solution k's first frame in force: k C + I, rounded up to a multiple of
-        ``align_frames`` (the imager's integration, so that it takes effect at an integration's start
-        whether it is applied to the voltages or folded into the operator)."""
+        """Time tag of solution k's first frame in force: k C + I + the apply delay, rounded up to a
+        multiple of ``align_frames`` (the imager's integration, so that it takes effect at an integration's
+        start whether it is applied to the voltages or folded into the operator)."""
         a = self.align_frames
-        return self._tag0 + (-(-(k * self._cadence + self._integ) // a) * a) * self._tpf
+        return self._tag0 + (-(-(k * self._cadence + self._integ + self._delay) // a) * a) * self._tpf
 
     def on_data(self, ispan):
         try:
@@ -288,7 +295,9 @@ class GainSolverBlock(bfp.SinkBlock):
                 self._sums.add(unpack_complex(part, lay["dtype"]))
             if self._xp is not np:
                 self._xp.cuda.get_current_stream().synchronize()
-            self.solver_stats["sum_s"] += time.perf_counter() - t0
+            dt = time.perf_counter() - t0
+            self.solver_stats["sum_s"] += dt
+            self._sum_this += dt
             pos += take
             if f + take >= end:
                 self._solve(self._k, self._due(self._k) if self.apply_from == "after"
@@ -384,6 +393,9 @@ class GainSolverBlock(bfp.SinkBlock):
             return
         finally:
             self.solver_stats["solve_s"] += time.perf_counter() - t0
+            self.solver_stats["solve_s_each"].append(round(time.perf_counter() - t0, 4))
+            self.solver_stats["sum_s_each"].append(round(self._sum_this, 4))
+            self._sum_this = 0.0
         self.solutions.append(sol)
         self.valid_from.append(int(valid_from))
         self.time_unix.append(float(when.unix))

@@ -410,7 +410,8 @@ def gain_solver_block(cfg, feed, table=None, table_path=None, apply_from="after"
                            table=table, table_path=table_path, png=sv["png"],
                            reference_stand=None if sv["reference"] == "auto" else sv["reference"],
                            apply_from=apply_from, align_frames=cfg["imager"]["accumulate_frames"],
-                           diffuse=sv["diffuse"], saturated_above=sv["saturated_above"])
+                           diffuse=sv["diffuse"], saturated_above=sv["saturated_above"],
+                           apply_delay_s=sv["apply_delay_s"] if apply_from == "after" else 0.0)
 
 
 def _solver_stage(cfg, feed, outdir):
