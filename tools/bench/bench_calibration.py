@@ -205,13 +205,21 @@ def case_cost(args, work):
              "realtime_factor": args.cost_s / summ["wall_s"]}
         if "solver" in summ:
             sv = summ["solver"]
+            steady = [a + b for a, b in zip(sv["sum_s_each"][1:], sv["solve_s_each"][1:])]   # the first compiles
             r.update(solver_s=sv["sum_s"] + sv["solve_s"], solver_sum_s=sv["sum_s"], solver_solve_s=sv["solve_s"],
-                     solutions=sv["solutions"], calfold_wait_s=sv["wait_s"])
+                     solutions=sv["solutions"], wait_s=sv["wait_s"], sum_s_each=sv["sum_s_each"],
+                     solve_s_each=sv["solve_s_each"],
+                     steady_solver_s_per_solution=float(np.median(steady)) if steady else None)
         rows[name] = r
     alone = rows["imager alone (folded, integer route)"]["imager_s"]
     both = rows["imager + solver"]
     both["solver_over_imager_same_run"] = both["solver_s"] / both["imager_s"]
     both["solver_over_imager_alone"] = both["solver_s"] / alone
+    # the steady cost: a solution's solver seconds against the imager's seconds for one cadence (10 s) of
+    # data, from the run without solving (its pipeline wall: the imager sets the pace)
+    imager_per_cadence = rows["imager alone (folded, integer route)"]["pipeline_s"] * 10.0 / args.cost_s
+    if both.get("steady_solver_s_per_solution"):
+        both["steady_fraction_of_imager"] = both["steady_solver_s_per_solution"] / imager_per_cadence
     for k, r in rows.items():
         print(f"cost, {args.cost_s:g} s of 784 channels: {k}: pipeline {r['pipeline_s']:.2f} s "
               f"(x{r['realtime_factor']:.2f} real time), imager {r['imager_s']:.2f} s"
@@ -219,6 +227,10 @@ def case_cost(args, work):
                  f"solves {r['solver_solve_s']:.3f} s) = {100 * r['solver_over_imager_same_run']:.1f}% of this "
                  f"imager, {100 * r['solver_over_imager_alone']:.1f}% of the folded imager's"
                  if "solver_s" in r else ""))
+    if both.get("steady_fraction_of_imager") is not None:
+        print(f"cost, steady: {both['steady_solver_s_per_solution']:.3f} s per solution (sums + solve, median after the "
+              f"first) = {100 * both['steady_fraction_of_imager']:.1f}% of the pipeline's {imager_per_cadence:.2f} s per "
+              f"10 s of data without solving; the wall with solving is {both['pipeline_s'] / rows['imager alone (folded, integer route)']['pipeline_s']:.3f}x")
     return rows
 
 
