@@ -171,6 +171,10 @@ def _call_gemm(args):
     if stream.ptr not in (0, 1, 2) and stream.is_capturing():
         _capturing_gemm(handle, stream.ptr, args)
     else:
+        # the handle is the thread's, and keeps the stream it was last given: a thread whose first cuBLAS
+        # call is this one would otherwise run it on the legacy default stream, which waits for every
+        # other stream's work and makes theirs wait for it (the gain solver's sums beside the imager)
+        cublas.setStream(handle, stream.ptr)
         cublas.gemmStridedBatchedEx(handle, *args)
 
 

@@ -177,9 +177,14 @@ def case_drift(args, work):
     cli("run", str(YAML), *sets({**base, **NEUTRAL, "source.quantize": False, "output.dir": str(truth),
                                  "station.flags": fl, "calibration.solve": None}))
     ref = fits_images(truth)
-    e_live = image_errors(fits_images(live), ref)[1:]        # image 0 holds the frames before solution 0
-    e_one = image_errors(fits_images(single), ref)[1:]
-    row = {"seconds": dur, "solutions": int(len(tl["valid_from"])), "live_wall_s": t_live,
+    # the images before the first live solution applies are uncalibrated: left out of both series
+    from bf_epic_blocks.conventions import FS_HZ
+    from bf_epic_blocks.sky.catalogue import as_time
+    tag0 = int(round(as_time(str(truth_of(YAML, [])[1]["source"]["start"])).unix * FS_HZ))
+    first = int(np.ceil((int(tl["valid_from"][0]) - tag0) / (FS_HZ / 25000) / 25000))
+    e_live = image_errors(fits_images(live), ref)[first:]
+    e_one = image_errors(fits_images(single), ref)[first:]
+    row = {"seconds": dur, "solutions": int(len(tl["valid_from"])), "live_wall_s": t_live, "images_left_out": first,
            "live_error_max": float(e_live.max()), "live_error_mean": float(e_live.mean()),
            "single_error_max": float(e_one.max()), "single_error_last": float(e_one[-1]),
            "live_error_series": np.round(e_live, 5).tolist(), "single_error_series": np.round(e_one, 5).tolist(),
