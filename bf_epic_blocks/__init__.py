@@ -14,7 +14,7 @@ The three user-facing blocks are importable from the top level
 (``from bf_epic_blocks import DFTImagerBlock, WStackBlock, CalFoldBlock``); they load on first use,
 so ``from bf_epic_blocks import imaging`` does not pull in the block runtime.
 """
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 _BLOCKS = ("DFTImagerBlock", "WStackBlock", "CalFoldBlock")
 

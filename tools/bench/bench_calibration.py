@@ -314,8 +314,9 @@ def case_real(args, work):
         tab = work / f"{yaml}.npz"
         _, s = cli("calibrate", str(y), "-o", str(tab), *sets({**model, **extra}))
         before, after = work / f"{yaml}_before", work / f"{yaml}_after"
-        cli("run", str(y), *sets({**extra, "output.dir": str(before)}))
-        cli("run", str(y), *sets({**extra, "output.dir": str(after), "calibration.gains_table": str(tab)}))
+        run_extra = {k: v for k, v in extra.items() if not k.startswith("calibration.solve")}
+        cli("run", str(y), *sets({**run_extra, "output.dir": str(before)}))
+        cli("run", str(y), *sets({**run_extra, "output.dir": str(after), "calibration.gains_table": str(tab)}))
         rows[name] = {"before": peak_stats(before), "after": peak_stats(after), "solve": s.get("last") if s else None}
         b, a = rows[name]["before"][0], rows[name]["after"][0]
         print(f"real, {name}: peak/rms {b['peak_over_rms']:.1f} -> {a['peak_over_rms']:.1f}, peak/MAD "
