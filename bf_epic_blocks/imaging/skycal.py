@@ -1,6 +1,6 @@
-"""Direction-independent gains from the sky (the A_s of docs/concepts/conventions.md), as pure functions.
+"""Direction-independent gains from the sky (the A_s of docs/CONVENTIONS.md), as pure functions.
 
-Data model (PHYSICS.md, "Calibration from the sky"; sigma = +1). After the cable term is removed, input
+Data model (docs/CONVENTIONS.md; sigma = +1). After the cable term is removed, input
 a (one stand, one polarisation p) carries an unknown complex gain g_a(nu), and the covariance is
 
     R_ab = <x_a x_b*> = g_a g_b* M_ab + N_ab,
@@ -46,7 +46,7 @@ Unobservable: one phase per channel and polarisation (fixed here by a reference 
 made real and positive). The amplitude scale is observable and set by the model's fluxes: calibrated
 images are in Jy on the model's flux scale.
 
-Output convention (docs/concepts/conventions.md): gain tables hold CORRECTIONS, 1 / g, multiplied onto
+Output convention (docs/CONVENTIONS.md): gain tables hold CORRECTIONS, 1 / g, multiplied onto
 the cable-corrected voltages; 0 flags an input.
 """
 from __future__ import annotations
@@ -555,7 +555,6 @@ class CovarianceSums:
 
     def _flush(self):
         """Integer Gram sums -> complex covariances: R = (rr + ii) + i (ir - ri), rows (input, re/im)."""
-        xp = self.xp
         for c0, G in self._gram.items():
             P, c, A2 = G.shape[0], G.shape[1], G.shape[2]
             A = A2 // 2

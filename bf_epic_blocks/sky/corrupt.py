@@ -1,6 +1,6 @@
 """Chosen corruptions of a simulated station's voltages: the truth a gain solver is tested against.
 
-Data model (PHYSICS.md's, with a direction-independent gain g per input a = (stand, pol))::
+Data model (docs/CONVENTIONS.md's, with a direction-independent gain g per input a = (stand, pol))::
 
     X_a(t) = cable_a(nu) * g_a(nu, t) * sky_a(t) + noise_a(t) [+ extra_a(t) for a noisy input]
 

@@ -24,7 +24,7 @@ any value as right to tens of per cent.
 
 Covariance (:func:`diffuse_covariance`)
 ---------------------------------------
-Per polarisation p, channel frequency nu, antennas a and b (PHYSICS.md, sigma = +1)::
+Per polarisation p, channel frequency nu, antennas a and b (docs/CONVENTIONS.md, sigma = +1)::
 
     R[c, p, a, b] = sum_pix (S_pix / 2) |B_p(pix)|^2 exp(+2 pi i nu s_pix . (r_a - r_b) / c0)
 
