@@ -284,6 +284,20 @@ def writes_through_helper(cfg):
             and im.get("track") is None)
 
 
+def _input(cfg, dev):
+    """(capture format or None, scan info or None, station table, frames per gulp) of ``cfg``'s source on
+    ``dev``. A capture file is scanned once, here (the source block is handed the result), so its
+    warnings are logged here."""
+    fmt = capture_format(cfg["source"])
+    info = _scan(cfg["source"]["path"], fmt=fmt) if fmt is not None else None
+    station = load_station_for(cfg, info)
+    nchan = None
+    if info is not None:
+        cb = channel_block_range(cfg, info)
+        nchan = cb[1] - cb[0] if cb else int(info.nchan)
+    return fmt, info, station, gulp_frames(cfg, dev, nchan, station.nstand)
+
+
 def build_graph(cfg, progress=None, parts=None):
     """Blocks for ``cfg`` inside a new Pipeline (not yet run), built stage by stage: source,
     calibration, imaging, search, outputs.
@@ -313,15 +327,7 @@ def build_graph(cfg, progress=None, parts=None):
                 raise ValueError(f"device {cfg['device']!r}: calibration.{key} (time-variable gains) needs "
                                  "CalFoldBlock, which runs on one device; use a single GPU")
     src_cfg, im = cfg["source"], cfg["imager"]
-    fmt = capture_format(src_cfg)
-    # scanned once, here (the source block is handed the result): its warnings are logged here
-    info = _scan(src_cfg["path"], fmt=fmt) if fmt is not None else None
-    station = load_station_for(cfg, info)
-    nchan = None
-    if info is not None:
-        cb = channel_block_range(cfg, info)
-        nchan = cb[1] - cb[0] if cb else int(info.nchan)
-    gulp = gulp_frames(cfg, dev, nchan, station.nstand)
+    fmt, info, station, gulp = _input(cfg, dev)
     if src_cfg["gulp_nframe"] == "auto":
         log.info("gulp: %d frames (source.gulp_nframe: auto)", gulp)
     if dev == "gpus" and gulp % int(im["accumulate_frames"]):
@@ -754,14 +760,7 @@ def calibrate(cfg, out_path=None, show_progress=None):
         dev, devs = "gpu", devs[0]
         cupy.cuda.Device(devs).use()
     space = "cuda" if dev == "gpu" else "system"
-    fmt = capture_format(cfg["source"])
-    info = _scan(cfg["source"]["path"], fmt=fmt) if fmt is not None else None
-    station = load_station_for(cfg, info)
-    nchan = None
-    if info is not None:
-        cb = channel_block_range(cfg, info)
-        nchan = cb[1] - cb[0] if cb else int(info.nchan)
-    gulp = gulp_frames(cfg, dev, nchan, station.nstand)
+    fmt, info, station, gulp = _input(cfg, dev)
     path = Path(out_path) if out_path else Path(cfg["output"]["dir"]) / f"{cfg['output']['prefix']}_gains.npz"
     if path.suffix != ".npz":
         raise ValueError(f"calibrate: the table is an .npz file; got {str(path)!r}")

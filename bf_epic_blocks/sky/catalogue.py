@@ -159,41 +159,34 @@ def source_directions(sources, time=None, location=None) -> SourceDirections:
 
     ICRS sources go through astropy ``AltAz`` (no refraction); l = cos(alt) sin(az) (East),
     m = cos(alt) cos(az) (North). Sources with alt <= 0 are dropped, listed in ``.dropped`` and logged.
-    ``time``/``location`` are needed only for ICRS sources.
+    ``time``/``location`` are needed only for ICRS sources and solar-system bodies (the Sun).
     """
     srcs = resolve_sources(sources)
     nsrc = len(srcs)
     alt = np.zeros(nsrc)
     az = np.zeros(nsrc)
     icrs = [i for i, s in enumerate(srcs) if s.frame == "icrs"]
-    if icrs:
+    bodies = [i for i, s in enumerate(srcs) if s.frame == "body"]
+    if icrs or bodies:
         if time is None or location is None:
-            raise ValueError(f"sources {[srcs[i].name for i in icrs]} have ICRS positions: "
-                             "source_directions needs time (astropy Time or ISO string) and location (EarthLocation)")
+            raise ValueError(f"sources {[srcs[i].name for i in icrs + bodies]} have ICRS positions or are "
+                             "solar-system bodies: source_directions needs time (astropy Time or ISO string) and "
+                             "location (EarthLocation)")
         from astropy import units as u
-        from astropy.coordinates import AltAz, SkyCoord
+        from astropy.coordinates import AltAz, SkyCoord, get_body
         from astropy.time import Time
         t = time if isinstance(time, Time) else Time(time, scale="utc")
         if not t.isscalar:
             raise ValueError("source_directions: time must be a single instant (the sky is frozen)")
-        c = SkyCoord(ra=[srcs[i].ra_deg for i in icrs] * u.deg, dec=[srcs[i].dec_deg for i in icrs] * u.deg,
-                     frame="icrs")
+        frame = AltAz(obstime=t, location=location)
         with _iers_offline():
-            aa = c.transform_to(AltAz(obstime=t, location=location))
-        alt[icrs] = aa.alt.to_value(u.rad)
-        az[icrs] = aa.az.to_value(u.rad)
-    bodies = [i for i, s in enumerate(srcs) if s.frame == "body"]
-    if bodies:
-        if time is None or location is None:
-            raise ValueError(f"sources {[srcs[i].name for i in bodies]} are solar-system bodies: "
-                             "source_directions needs time and location")
-        from astropy import units as u
-        from astropy.coordinates import AltAz, get_body
-        from astropy.time import Time
-        t = time if isinstance(time, Time) else Time(time, scale="utc")
-        with _iers_offline():
-            for i in bodies:
-                aa = get_body(srcs[i].body, t, location).transform_to(AltAz(obstime=t, location=location))
+            if icrs:
+                c = SkyCoord(ra=[srcs[i].ra_deg for i in icrs] * u.deg, dec=[srcs[i].dec_deg for i in icrs] * u.deg,
+                             frame="icrs")
+                aa = c.transform_to(frame)
+                alt[icrs], az[icrs] = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)
+            for i in bodies:   # astropy's built-in ephemeris: nothing downloaded
+                aa = get_body(srcs[i].body, t, location).transform_to(frame)
                 alt[i], az[i] = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)
     for i, s in enumerate(srcs):
         if s.frame == "altaz":

@@ -82,11 +82,14 @@ def diffuse_model(xyz_m, freq_hz, time, location, *, pattern=None, xp=np, dtype=
     (:func:`bf_epic_blocks.imaging.skycal.solve_gains`, ``extra``), so that the emission a compact
     station sees on every baseline does not bias the gains. Pixels and baselines as
     :func:`.diffuse.diffuse_covariance` (no correlation beyond the array's core); the sums are complex
-    GEMMs over the pixels where ``xp`` computes (a GPU makes a whole band's in well under a second)."""
+    GEMMs over the pixels where ``xp`` computes: :func:`.diffuse.diffuse_covariance` on the CPU, the same
+    sums as CuPy GEMMs on a GPU (which makes a whole band's in well under a second)."""
     import math
 
     from ..conventions import SPEED_OF_LIGHT_M_S
-    from .diffuse import _resolve_grid, diffuse_pixels
+    from .diffuse import _resolve_grid, diffuse_covariance, diffuse_pixels
+    if xp is np:
+        return diffuse_covariance(xyz_m, freq_hz, time, location, pattern=pattern).astype(dtype or np.complex128)
     xyz = np.asarray(xyz_m, np.float64)
     f = np.atleast_1d(np.asarray(freq_hz, np.float64))
     npix, bmax = _resolve_grid(xyz, f, None, None)
