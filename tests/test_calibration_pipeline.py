@@ -162,3 +162,37 @@ def test_solutions_folded_into_the_operator_give_the_voltages_calibrated(runs):
     assert folded.shape[0] == live.shape[0] == 4
     for i in range(4):
         assert _err(folded[i, :, 0], live[i]) < 1e-5, (i, _err(folded[i, :, 0], live[i]))
+
+
+def test_a_live_table_holds_a_bounded_history_with_absolute_indices():
+    """A pipeline solves for weeks: the live table keeps its last KEEP solutions, and the indices the
+    consumers hold (CalFoldBlock, the imager's folded operator) stay those of the whole run."""
+    from bf_epic_blocks.blocks import LiveGainTable
+    t = LiveGainTable()
+    assert t.index([5]).tolist() == [-1] and t.segments(0, 1, 3) == [(0, 3, -1)]
+    n = LiveGainTable.KEEP + 5
+    for k in range(n):
+        t.post(100 * (k + 1), np.full((1, 2, 1), k + 1.0))
+    assert len(t.valid_from) == LiveGainTable.KEEP
+    last = n - 1
+    assert t.index([100 * n, 100 * n + 50]).tolist() == [last, last]
+    assert t.corrections(last)[0, 0, 0] == n and t.corrections(5)[0, 0, 0] == 6
+    assert t.segments(100 * (n - 1), 10, 20) == [(0, 10, last - 1), (10, 20, last)]
+    sol = t.solution(last)
+    assert np.all(sol == n)
+
+
+def test_live_tables_are_written_in_parts(tmp_path):
+    """calibration.solve.solutions_per_file: a run of weeks keeps one part in memory and on each write."""
+    cfg = _cfg(tmp_path, "parts", "calibration.cable=false", "source.duration_s=0.6", "source.channels.count=2",
+               "calibration.solve={cadence_s: 0.1, integration_s: 0.04, apply_delay_s: 0, pattern: none, "
+               "diffuse: false, solutions_per_file: 2, png: false, min_samples: 500}",
+               "imager.accumulate_frames=1000")
+    s = runner.run(cfg, show_progress=False)
+    assert s["solver"]["solutions"] == 6
+    names = sorted(p.name for p in (tmp_path / "parts").glob("*_gains*.npz"))
+    assert names == ["lwasv_sim_allsky_gains.npz", "lwasv_sim_allsky_gains_p001.npz", "lwasv_sim_allsky_gains_p002.npz"]
+    tabs = [read_solved_table(tmp_path / "parts" / n) for n in names]
+    vf = np.concatenate([t["valid_from"] for t in tabs])
+    assert len(vf) == 6 and np.all(np.diff(vf) > 0)          # nothing lost, in time order
+    assert all(str(tmp_path / "parts" / n) in s["files"] for n in names)

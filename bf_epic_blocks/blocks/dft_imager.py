@@ -164,7 +164,7 @@ class DFTImagerBlock(bfp.TransformBlock):
         if self.weights is not None:
             w = w * np.asarray(self.weights, dtype=np.complex128)
         if self.gains is not None and self._gain_index >= 0:
-            g = np.asarray(self.gains.gains[self._gain_index], dtype=np.complex128)       # (nchan|1, nstand, npol|1)
+            g = np.asarray(self.gains.corrections(self._gain_index), dtype=np.complex128)   # (nchan|1, nstand, npol|1)
             w = w * g
         if self.cable:
             st = self._station_hdr

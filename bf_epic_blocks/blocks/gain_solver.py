@@ -56,9 +56,13 @@ class LiveGainTable:
     the solutions known, and the event is counted in ``stats['wait_timeouts']``.
     """
 
+    #: solutions held; older ones can no longer apply to data still to come
+    KEEP = 8
+
     def __init__(self, wait_timeout_s=600.0):
         self._cond = threading.Condition()
         self._vf, self._g = [], []
+        self._offset = 0          # solutions dropped from the front
         self._table = None
         self._seq = None
         self._through = -math.inf
@@ -81,6 +85,11 @@ class LiveGainTable:
                 raise ValueError(f"solutions must come in time order: {valid_from} after {self._vf[-1]}")
             self._vf.append(int(valid_from))
             self._g.append(g)
+            # a pipeline runs for weeks: only the last KEEP solutions are held (the consumers go forward in
+            # time and lag the solver by a ring's depth, a few gulps); indices stay absolute (offset)
+            drop = max(0, len(self._vf) - self.KEEP)
+            if drop:
+                self._vf, self._g, self._offset = self._vf[drop:], self._g[drop:], self._offset + drop
             self._table = GainTable(np.array(self._vf), np.concatenate(self._g))
             self.stats["solutions"] += 1
             self._cond.notify_all()
@@ -118,11 +127,12 @@ class LiveGainTable:
 
     @property
     def valid_from(self):
+        """Time tags of the solutions held (the last :attr:`KEEP`)."""
         return np.array(self._vf, np.int64)
 
-    @property
-    def gains(self):
-        return None if self._table is None else self._table.gains
+    def corrections(self, i):
+        """Solution i's corrections, complex128 (1|nchan, nstand, npol|1)."""
+        return self._table.gains[i - self._offset]
 
     def check_shape(self, nchan, nant, npol):
         if self._table is not None:
@@ -135,22 +145,28 @@ class LiveGainTable:
         """Solution index for each time tag (int64); -1 before the first solution."""
         if self._table is None:
             return np.full(np.shape(time_tags), -1, np.int64)
-        return self._table.index(time_tags)
+        return self._absolute(self._table.index(time_tags))
+
+    def _absolute(self, i):
+        """Absolute solution indices from the held table's; before the oldest held: -1 while none was
+        dropped, else the oldest held (a consumer that far behind is told so by nothing better)."""
+        i = np.asarray(i)
+        return np.where(i >= 0, i + self._offset, -1 if self._offset == 0 else self._offset)
 
     def segments(self, first_tag, ticks_per_frame, nframe):
         if self._table is None:
             return [(0, int(nframe), -1)]
-        return self._table.segments(first_tag, ticks_per_frame, nframe)
+        return [(a, b, int(self._absolute(i))) for a, b, i in self._table.segments(first_tag, ticks_per_frame, nframe)]
 
     def solution(self, i, like=None):
         if self._table is None or i < 0:
             return GainTable(np.array([0]), np.ones((1, 1, 1, 1))).solution(-1, like)
-        return self._table.solution(i, like)
+        return self._table.solution(i - self._offset, like)
 
     def solution_scale(self, i, live):
         """float (nchan, 1, npol): N_A of the sequence over N_A of solution i, per channel and pol (>= 1),
         so that inputs a live solution zeroes do not lower the image's flux scale. live : bool (nstand, npol)."""
-        g = self._table.gains[i]
+        g = self.corrections(i)
         n_seq = live.sum(axis=0).astype(np.float64)                                       # (p,)
         n_sol = ((g != 0) & live[None]).sum(axis=1).astype(np.float64)                   # (c, p)
         return np.where(n_sol > 0, n_seq[None] / np.maximum(n_sol, 1), 0.0)[:, None, :]
@@ -174,6 +190,9 @@ class GainSolverBlock(bfp.SinkBlock):
         solution (and its PNG beside it when ``png``), or None.
     reference_stand : stand id of the reference input, or None (auto).
     align_frames : a live solution takes effect at a multiple of this many frames (the imager's integration).
+    solutions_per_file : None (one table file), or solutions per file part: a pipeline that solves for weeks
+        writes ``table_path``, then ``<stem>_p001.npz``, ..., and holds only the current part in memory
+        (each solution rewrites its part's file: at the whole band a solution is 3 MB of corrections).
     apply_delay_s : a live solution applies this long after the end of its data (rounded up to
         ``align_frames``): the time the solve takes, so that the imager does not wait for it.
     saturated_above : a 4-bit input whose samples clip more often than this fraction (estimated from its
@@ -183,14 +202,15 @@ class GainSolverBlock(bfp.SinkBlock):
     apply_from : 'after' (live: a solution applies from the first frame after its data) or 'start'
         (offline: from the first frame of its cadence, so a table applied to the same data calibrates
         them from their start; the table's ``valid_from`` says which).
-    ``solutions`` lists the :class:`~bf_epic_blocks.imaging.skycal.Solution` objects; ``solver_stats``
+    ``solutions`` lists the current file part's :class:`~bf_epic_blocks.imaging.skycal.Solution` objects
+    (``last_solution`` the newest); ``solver_stats``
     counts solutions, failures (with reasons) and the seconds spent summing and solving.
     """
 
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
                  reference_stand=None, apply_from="after", align_frames=1, diffuse=True, diffuse_refresh_s=300.0,
-                 saturated_above=0.1, apply_delay_s=0.0, **kwargs):
+                 saturated_above=0.1, apply_delay_s=0.0, solutions_per_file=None, **kwargs):
         super().__init__(iring, **kwargs)
         if not (integration_s > 0 and cadence_s >= integration_s):
             raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="
@@ -210,7 +230,9 @@ class GainSolverBlock(bfp.SinkBlock):
         if not apply_delay_s >= 0:
             raise ValueError(f"GainSolverBlock: apply_delay_s must be >= 0, got {apply_delay_s!r}")
         self.apply_delay_s = float(apply_delay_s)
-        self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []
+        self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []   # this file part's
+        self.last_solution, self._part = None, 0
+        self.solutions_per_file = None if not solutions_per_file else int(solutions_per_file)
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
                              "samples": 0, "sum_s_each": [], "solve_s_each": []}
         self._sum_this = 0.0
@@ -334,7 +356,8 @@ class GainSolverBlock(bfp.SinkBlock):
         if self.table is not None:
             self.table.stats["failures"] += 1
         log.warning("GainSolverBlock: solution %d failed: %s%s", self._k, why,
-                    "; the last good solution stays in force" if self.solutions else "; images stay uncalibrated")
+                    "; the last good solution stays in force" if self.last_solution is not None
+                    else "; images stay uncalibrated")
 
     def _solve(self, k, valid_from):
         from ..sky.model import sky_model
@@ -383,7 +406,7 @@ class GainSolverBlock(bfp.SinkBlock):
         if self._W is None:
             self._W = baseline_weights(lay["xyz_m"], lay["freq_hz"], settings.min_baseline_lambda, xp=xp)
         try:
-            last = self.solutions[-1] if self.solutions else None
+            last = self.last_solution
             g0 = None if last is None else last.gains.transpose(0, 2, 1)          # (c, p, a): a warm start
             s0 = None if last is None or E is None else last.info.get("extra_scale")
             sol = solve_gains(R, M, lay["xyz_m"], lay["freq_hz"], self._flags, settings, weights=self._W, extra=E,
@@ -396,7 +419,12 @@ class GainSolverBlock(bfp.SinkBlock):
             self.solver_stats["solve_s_each"].append(round(time.perf_counter() - t0, 4))
             self.solver_stats["sum_s_each"].append(round(self._sum_this, 4))
             self._sum_this = 0.0
+        if self.solutions_per_file and len(self.solutions) == self.solutions_per_file:
+            # the part is full: the next solutions go to a new file, and memory holds one part
+            self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []
+            self._part += 1
         self.solutions.append(sol)
+        self.last_solution = sol
         self.valid_from.append(int(valid_from))
         self.time_unix.append(float(when.unix))
         md = model.to_dict()
@@ -407,12 +435,30 @@ class GainSolverBlock(bfp.SinkBlock):
         self.solver_stats["solutions"] += 1
         if self.table is not None:
             self.table.post(valid_from, sol.corrections)
-        log.info("gain solution %d (%s UTC, %.2f s of data, model %s%s): %s; %.2f s", len(self.solutions) - 1,
+        log.info("gain solution %d (%s UTC, %.2f s of data, model %s%s): %s; %.2f s",
+                 self.solver_stats["solutions"] - 1,
                  when.isot[:19], ntime * lay["dt_s"], model.describe(),
                  f" + the Galactic sky x{md['diffuse_scale_fitted']:.2f}" if "diffuse_scale_fitted" in md else "",
                  sol.summary(), time.perf_counter() - t0)
         if self.table_path:
-            self.write(self.table_path)
+            self.write(self.part_path(self._part))
+
+    def part_path(self, part):
+        """The table file of part ``part``: ``table_path`` itself for part 0, then ``<stem>_p001.npz``, ..."""
+        from pathlib import Path
+        p = Path(self.table_path)
+        return p if part == 0 else p.with_name(f"{p.stem}_p{part:03d}{p.suffix}")
+
+    @property
+    def written(self):
+        """The table files written (and their PNGs)."""
+        if not self.table_path or self.last_solution is None:
+            return []
+        out = []
+        for k in range(self._part + 1):
+            p = str(self.part_path(k))
+            out += [p] + ([p[:-4] + ".png"] if self.png else [])
+        return out
 
     def provenance(self):
         return {"station": self._station_name, "model": self.models[-1] if self.models else {},

@@ -98,6 +98,10 @@ class GainTable:
         stops = np.concatenate([cuts, [nframe]])
         return [(int(s), int(e), int(idx[s])) for s, e in zip(starts, stops)]
 
+    def corrections(self, i):
+        """Solution i's corrections as stored, complex128 (nchan|1, nant, npol|1)."""
+        return self.gains[i]
+
     def solution(self, i, like=None):
         """Gains of solution i (ones for i < 0) as a complex64 array in the namespace of ``like``."""
         xp = get_xp(like) if like is not None else np

@@ -374,6 +374,10 @@ CALIBRATION_SOLVE = Section({
                        doc="A sequence shorter than one integration is solved from what it has if that is at least "
                            "this many samples; fewer is an error (offline) or a counted failure (live)."),
     "png": Key(Bool(), True, doc="Write a PNG of the gains and flags beside the table."),
+    "solutions_per_file": Key(Int(1), 60,
+                              doc="Live solutions per table file: then `<prefix>_gains_p001.npz`, and so on, so a "
+                                  "run of weeks keeps one file's solutions in memory. `bf-epic calibrate` writes one "
+                                  "table."),
 }, what="a solve mapping {sources, cadence_s, integration_s, min_baseline_lambda, ...}")
 class InputChoice:
     """source.corrupt.deaf / noisy: a number of inputs the seed picks, or [stand_index, pol] pairs."""

@@ -417,7 +417,8 @@ def gain_solver_block(cfg, feed, table=None, table_path=None, apply_from="after"
                            reference_stand=None if sv["reference"] == "auto" else sv["reference"],
                            apply_from=apply_from, align_frames=cfg["imager"]["accumulate_frames"],
                            diffuse=sv["diffuse"], saturated_above=sv["saturated_above"],
-                           apply_delay_s=sv["apply_delay_s"] if apply_from == "after" else 0.0)
+                           apply_delay_s=sv["apply_delay_s"] if apply_from == "after" else 0.0,
+                           solutions_per_file=sv["solutions_per_file"] if apply_from == "after" else None)
 
 
 def _solver_stage(cfg, feed, outdir):
@@ -723,9 +724,7 @@ def run(cfg, show_progress=None, parts=None):
         table = g.solver.table
         summary["solver"] = {**g.solver.solver_stats, "wait_s": table.stats["wait_s"],
                              "wait_timeouts": table.stats["wait_timeouts"]}
-        if g.solver.table_path and g.solver.solutions:
-            summary["files"] += [str(g.solver.table_path)] + ([str(g.solver.table_path)[:-4] + ".png"]
-                                                                if g.solver.png else [])
+        summary["files"] += g.solver.written
         log.info("gain solver: %d solutions, %d failed; %.2f s summing covariances, %.2f s solving; the "
                  "calibration waited %.2f s for it", g.solver.solver_stats["solutions"],
                  g.solver.solver_stats["failures"], g.solver.solver_stats["sum_s"],
@@ -782,9 +781,9 @@ def calibrate(cfg, out_path=None, show_progress=None):
         if bar is not None:
             bar.close()
     st = solver.solver_stats
-    if not solver.solutions:
+    if solver.last_solution is None:
         raise ValueError("calibrate: no solution: " + "; ".join(st["failure_reasons"] or ["no data"]))
-    last = solver.solutions[-1]
+    last = solver.last_solution
     reasons = [str(r) for r in last.reasons.ravel() if r]
     counts = {r: reasons.count(r) for r in sorted(set(reasons))}
     log.info("calibrate: %d solutions (%d failed) in %.1f s -> %s", st["solutions"], st["failures"],
