@@ -14,8 +14,10 @@ made with it, and a run is deterministic: the block that applies the gains -- Ca
 voltages, or DFTImagerBlock folding them into its operator on a GPU -- waits, before a gulp that
 reaches a solution's first frame, until the solver has decided that solution
 (:meth:`LiveGainTable.wait_through`). The solver never waits on anything downstream, and the
-data it needs were written before the gulp CalFoldBlock holds, so the wait cannot deadlock; the cost is
-the solve's time, once per cadence.
+data it needs were written before the gulp CalFoldBlock holds, so the wait cannot deadlock. The block's
+thread only sums: each integration's mean covariance goes to a worker thread (on a GPU, with a CUDA
+stream of its own that waits for the sums' event), which solves and posts it while the block reads on,
+so the source's ring never waits for a solve; ``apply_delay_s`` gives the worker its time.
 
 A solve that fails (no model source above the horizon limit, too few good inputs, no convergence) is
 counted and logged, and the last good solution stays in force; a sequence shorter than one
@@ -236,6 +238,9 @@ class GainSolverBlock(bfp.SinkBlock):
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
                              "samples": 0, "sum_s_each": [], "solve_s_each": []}
         self._sum_this = 0.0
+        from concurrent.futures import ThreadPoolExecutor
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gain-solver")
+        self._jobs, self._worker_error, self._worker_stream, self._ev_start = [], None, None, None
 
     def define_valid_input_spaces(self):
         return "any"
@@ -264,6 +269,7 @@ class GainSolverBlock(bfp.SinkBlock):
         else:
             self._xp = np
         self._sums = CovarianceSums(nchan, nstand, npol, self._xp)
+        self._device_id = self._xp.cuda.Device().id if self._xp is not np else None
         self._W = None            # baseline weights, made at the first solve of the sequence
         self._E, self._E_at = None, None   # the diffuse model term and when (unix s) it was made
         self._cadence = max(1, int(round(self.cadence_s / lay["dt_s"])))
@@ -275,6 +281,7 @@ class GainSolverBlock(bfp.SinkBlock):
         self._posted_in_seq = 0
         if self.table is not None:
             self.table.begin(self._tag0, self._due(0) - 1)
+        self._jobs.append(self._pool.submit(self._warm_job))
         log.info("GainSolverBlock %s: a solution every %.3g s from %.3g s of data (%d frames), model %s%s",
                  hdr.get("name"), self._cadence * lay["dt_s"], self._integ * lay["dt_s"], self._integ,
                  ", ".join(str(s) if not isinstance(s, dict) else s.get("name", "?") for s in self.sources),
@@ -296,6 +303,9 @@ class GainSolverBlock(bfp.SinkBlock):
             raise
 
     def _accumulate(self, ispan):
+        if self._worker_error is not None:
+            self._wait_jobs()
+        self._jobs = [j for j in self._jobs if not j.done()]
         x = span_array(ispan)
         n = int(x.shape[0])
         first = getattr(ispan, "frame_offset", self._frame)
@@ -310,28 +320,119 @@ class GainSolverBlock(bfp.SinkBlock):
             end = start + self._integ
             take = min(n - pos, end - f)
             t0 = time.perf_counter()
+            if self._sums.ntime == 0 and self._xp is not np:
+                self._ev_start = self._xp.cuda.Event()
+                self._ev_start.record()
             part = x[pos:pos + take]
             if lay["dtype"] == "ci4" and part.dtype == np.uint8:
                 self._sums.add(part, ci4=True)
             else:
                 self._sums.add(unpack_complex(part, lay["dtype"]))
-            if self._xp is not np:
-                self._xp.cuda.get_current_stream().synchronize()
-            dt = time.perf_counter() - t0
-            self.solver_stats["sum_s"] += dt
-            self._sum_this += dt
+            if self._xp is np:
+                self._sum_this += time.perf_counter() - t0
             pos += take
             if f + take >= end:
-                self._solve(self._k, self._due(self._k) if self.apply_from == "after"
-                            else self._tag0 + self._k * self._cadence * self._tpf)
+                self._hand_over(self._k, self._due(self._k) if self.apply_from == "after"
+                                else self._tag0 + self._k * self._cadence * self._tpf)
                 self._k += 1
                 self._sums.reset()
-                if self.table is not None:
-                    self.table.decided(self._tag0, self._due(self._k) - 1)
         self._frame = first + n
+
+    def _hand_over(self, k, valid_from):
+        """Integration k is summed: its mean covariance goes to the worker thread, which solves and posts it
+        while this block reads on (the source's ring never waits for a solve)."""
+        raw, ntime = self._sums.mean(), self._sums.ntime
+        start = end = None
+        if self._xp is not np:            # the worker's stream waits for the sums on this block's stream
+            start, end = self._ev_start, self._xp.cuda.Event()
+            end.record()
+        sum_s, self._sum_this = self._sum_this, 0.0
+        nxt = self._due(k + 1) - 1
+        self._jobs.append(self._pool.submit(self._solve_job, k, valid_from, raw, ntime, start, end, sum_s,
+                                            self._tag0, nxt))
+
+    def _worker_stream_in_use(self):
+        """On a GPU, the worker's own non-blocking stream made current (on the block's device); else nothing."""
+        from contextlib import nullcontext
+        if self._xp is np:
+            return nullcontext()
+        cp = self._xp
+        cp.cuda.Device(self._device_id).use()
+        if self._worker_stream is None:
+            self._worker_stream = cp.cuda.Stream(non_blocking=True)
+        return self._worker_stream
+
+    def _warm_job(self):
+        """The worker, while the first integration sums: the sky model's first transform (astropy loads its
+        tables), the baseline weights, the diffuse term for solution 0's time and the solver's kernels (a
+        solve of one channel against its own model), so that solution 0 costs what every later one does
+        instead of holding the imager at its first apply time. A failure here is only logged: solution 0
+        meets the same problem and reports it."""
+        from ..sky.model import diffuse_model, sky_model
+        t0 = time.perf_counter()
+        lay, xp = self._lay, self._xp
+        try:
+            with self._worker_stream_in_use():
+                when = self._model_time(0, self._integ)
+                if self._location is None:
+                    return
+                model = sky_model(self.sources, when, self._location, lay["freq_hz"], pattern=self.pattern,
+                                  npol=lay["npol"], min_alt_deg=self.min_alt_deg)
+                self._W = baseline_weights(lay["xyz_m"], lay["freq_hz"], self.settings.min_baseline_lambda, xp=xp)
+                cdt = np.complex128 if xp is np else xp.complex64
+                if self.diffuse:
+                    self._E = diffuse_model(lay["xyz_m"], lay["freq_hz"], when, self._location, pattern=self.pattern,
+                                            xp=xp, dtype=cdt)
+                    self._E_at = when.unix
+                if model.names:
+                    M1 = model_covariance(lay["xyz_m"], lay["freq_hz"][:1], model.lmn, model.flux_pol[:1], xp=xp,
+                                          dtype=cdt)
+                    E1 = None if self._E is None else self._E[:1]
+                    R1 = M1 if E1 is None else M1 + 0.5 * E1
+                    solve_gains(R1, M1, lay["xyz_m"], lay["freq_hz"][:1], self._flags, self.settings,
+                                weights=self._W[:1], extra=E1)
+                if xp is not np:
+                    self._worker_stream.synchronize()
+            log.info("GainSolverBlock: the solver is ready (%.2f s: sky model, diffuse term, kernels)",
+                     time.perf_counter() - t0)
+        except Exception as e:  # noqa: BLE001 - a warm-up only; solution 0 reports a real problem
+            log.info("GainSolverBlock: warming the solver up failed (%s); solution 0 will do it", e)
+
+    def _solve_job(self, k, valid_from, raw, ntime, start, end, sum_s, tag0, decided_through):
+        """The worker: solve on a stream of its own (after the sums' event), post, say how far it decided."""
+        try:
+            if end is None:
+                self.solver_stats["sum_s"] += sum_s
+                self._solve(k, valid_from, raw, ntime, sum_s)
+            else:
+                cp = self._xp
+                with self._worker_stream_in_use():
+                    self._worker_stream.wait_event(end)
+                    end.synchronize()
+                    sum_s = cp.cuda.get_elapsed_time(start, end) / 1e3 if start is not None else sum_s
+                    self.solver_stats["sum_s"] += sum_s
+                    self._solve(k, valid_from, raw, ntime, sum_s)
+                    self._worker_stream.synchronize()
+        except BaseException as e:  # noqa: BLE001 - handed to the block's thread
+            self._worker_error = e
+            if self.table is not None:
+                self.table.close()
+        finally:
+            if self.table is not None:
+                self.table.decided(tag0, decided_through)
+
+    def _wait_jobs(self):
+        """Wait for the worker's pending solves; re-raise a failure of its own in this thread."""
+        for job in self._jobs:
+            job.result()
+        self._jobs = []
+        if self._worker_error is not None:
+            err, self._worker_error = self._worker_error, None
+            raise RuntimeError(f"GainSolverBlock: the solver's worker failed: {err}") from err
 
     def on_sequence_end(self, iseq):
         try:
+            self._wait_jobs()
             if self._sums.ntime and not self._posted_in_seq:
                 if self._sums.ntime >= self.min_samples:
                     log.warning("GainSolverBlock: the sequence ended %d samples into an integration of %d; "
@@ -350,36 +451,38 @@ class GainSolverBlock(bfp.SinkBlock):
         mid_frame = k * self._cadence + ntime / 2.0
         return Time(self._tag0 / FS_HZ + mid_frame * self._lay["dt_s"], format="unix", scale="utc")
 
-    def _fail(self, why):
+    def _fail(self, why, k=None):
         self.solver_stats["failures"] += 1
         self.solver_stats["failure_reasons"].append(why)
         if self.table is not None:
             self.table.stats["failures"] += 1
-        log.warning("GainSolverBlock: solution %d failed: %s%s", self._k, why,
+        log.warning("GainSolverBlock: solution %d failed: %s%s", self._k if k is None else k, why,
                     "; the last good solution stays in force" if self.last_solution is not None
                     else "; images stay uncalibrated")
 
-    def _solve(self, k, valid_from):
+    def _solve(self, k, valid_from, raw=None, ntime=None, sum_s=None):
+        """Solve integration k (``raw``: its mean raw covariance, default the sums'; ``ntime`` its samples)
+        and post it from time tag ``valid_from``."""
         from ..sky.model import sky_model
         lay, xp = self._lay, self._xp
         t0 = time.perf_counter()
-        ntime = self._sums.ntime
+        if raw is None:
+            raw, ntime, sum_s = self._sums.mean(), self._sums.ntime, self._sum_this
         self.solver_stats["samples"] += ntime
         when = self._model_time(k, ntime)
         if self._location is None:
-            self._fail("the header's station has no location (lat_deg, lon_deg, elev_m)")
+            self._fail("the header's station has no location (lat_deg, lon_deg, elev_m)", k)
             return
         model = sky_model(self.sources, when, self._location, lay["freq_hz"], pattern=self.pattern,
                           npol=lay["npol"], min_alt_deg=self.min_alt_deg)
         if not model.names:
             self._fail(f"no model source above {self.min_alt_deg:g} deg at {when.isot[:19]} UTC "
-                       f"({', '.join(model.dropped) or 'no sources given'})")
+                       f"({', '.join(model.dropped) or 'no sources given'})", k)
             return
         # complex64 on a GPU: the solve's arrays (R, M and two products of them, 0.8 GB each in complex128
         # at 784 channels) share the card with the imager; the gains need ~1e-4, not 1e-15
         cdt = np.complex128 if xp is np else xp.complex64
         w = xp.asarray(self._w.transpose(0, 2, 1)).astype(cdt)                            # (c, p, a)
-        raw = self._sums.mean()
         saturated = None
         if lay["dtype"] == "ci4":
             # 4-bit inputs driven so hard that their samples clip lose correlation, and their gains
@@ -412,13 +515,12 @@ class GainSolverBlock(bfp.SinkBlock):
             sol = solve_gains(R, M, lay["xyz_m"], lay["freq_hz"], self._flags, settings, weights=self._W, extra=E,
                               g0=g0, extra_scale0=s0, saturated=saturated)
         except ValueError as e:
-            self._fail(str(e))
+            self._fail(str(e), k)
             return
         finally:
             self.solver_stats["solve_s"] += time.perf_counter() - t0
             self.solver_stats["solve_s_each"].append(round(time.perf_counter() - t0, 4))
-            self.solver_stats["sum_s_each"].append(round(self._sum_this, 4))
-            self._sum_this = 0.0
+            self.solver_stats["sum_s_each"].append(round(sum_s or 0.0, 4))
         if self.solutions_per_file and len(self.solutions) == self.solutions_per_file:
             # the part is full: the next solutions go to a new file, and memory holds one part
             self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []
