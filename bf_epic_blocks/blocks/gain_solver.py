@@ -222,6 +222,8 @@ class GainSolverBlock(bfp.SinkBlock):
         self.pattern = None if pattern in (None, "none", False) else pattern
         self.cable, self.min_alt_deg, self.min_samples = cable, float(min_alt_deg), int(min_samples)
         self.table, self.table_path, self.png = table, table_path, png
+        self._png_every = max(1, int(round(60.0 / cadence_s)))   # solutions between PNGs: about a minute of data
+        self._png_of = self._written_of = None
         self.reference_stand = reference_stand
         if apply_from not in ("after", "start"):
             raise ValueError(f"GainSolverBlock: apply_from must be 'after' or 'start', got {apply_from!r}")
@@ -379,11 +381,15 @@ class GainSolverBlock(bfp.SinkBlock):
                 model = sky_model(self.sources, when, self._location, lay["freq_hz"], pattern=self.pattern,
                                   npol=lay["npol"], min_alt_deg=self.min_alt_deg)
                 self._W = baseline_weights(lay["xyz_m"], lay["freq_hz"], self.settings.min_baseline_lambda, xp=xp)
+                t_model = time.perf_counter()
                 cdt = np.complex128 if xp is np else xp.complex64
                 if self.diffuse:
                     self._E = diffuse_model(lay["xyz_m"], lay["freq_hz"], when, self._location, pattern=self.pattern,
                                             xp=xp, dtype=cdt)
                     self._E_at = when.unix
+                    if xp is not np:
+                        self._worker_stream.synchronize()
+                t_diffuse = time.perf_counter()
                 if model.names:
                     M1 = model_covariance(lay["xyz_m"], lay["freq_hz"][:1], model.lmn, model.flux_pol[:1], xp=xp,
                                           dtype=cdt)
@@ -393,8 +399,11 @@ class GainSolverBlock(bfp.SinkBlock):
                                 weights=self._W[:1], extra=E1)
                 if xp is not np:
                     self._worker_stream.synchronize()
-            log.info("GainSolverBlock: the solver is ready (%.2f s: sky model, diffuse term, kernels)",
-                     time.perf_counter() - t0)
+            t1 = time.perf_counter()
+            self.solver_stats["warm_s"] = {"sky_model": round(t_model - t0, 3), "diffuse": round(t_diffuse - t_model, 3),
+                                           "kernels": round(t1 - t_diffuse, 3)}
+            log.info("GainSolverBlock: the solver is ready in %.2f s (sky model and weights %.2f s, diffuse term "
+                     "%.2f s, kernels %.2f s)", t1 - t0, t_model - t0, t_diffuse - t_model, t1 - t_diffuse)
         except Exception as e:  # noqa: BLE001 - a warm-up only; solution 0 reports a real problem
             log.info("GainSolverBlock: warming the solver up failed (%s); solution 0 will do it", e)
 
@@ -403,7 +412,7 @@ class GainSolverBlock(bfp.SinkBlock):
         try:
             if end is None:
                 self.solver_stats["sum_s"] += sum_s
-                self._solve(k, valid_from, raw, ntime, sum_s)
+                self._solve(k, valid_from, raw, ntime, sum_s, (tag0, decided_through))
             else:
                 cp = self._xp
                 with self._worker_stream_in_use():
@@ -411,7 +420,7 @@ class GainSolverBlock(bfp.SinkBlock):
                     end.synchronize()
                     sum_s = cp.cuda.get_elapsed_time(start, end) / 1e3 if start is not None else sum_s
                     self.solver_stats["sum_s"] += sum_s
-                    self._solve(k, valid_from, raw, ntime, sum_s)
+                    self._solve(k, valid_from, raw, ntime, sum_s, (tag0, decided_through))
                     self._worker_stream.synchronize()
         except BaseException as e:  # noqa: BLE001 - handed to the block's thread
             self._worker_error = e
@@ -442,6 +451,8 @@ class GainSolverBlock(bfp.SinkBlock):
                 else:
                     self._fail(f"data too short to solve: {self._sums.ntime} samples, need at least "
                                f"{self.min_samples} (calibration.solve.min_samples)")
+            if self.table_path and self.solutions:
+                self.write(self.part_path(self._part), final=True)   # the last solution's PNG, if not drawn
         finally:
             if self.table is not None:
                 self.table.end_sequence(self._tag0)
@@ -460,9 +471,10 @@ class GainSolverBlock(bfp.SinkBlock):
                     "; the last good solution stays in force" if self.last_solution is not None
                     else "; images stay uncalibrated")
 
-    def _solve(self, k, valid_from, raw=None, ntime=None, sum_s=None):
+    def _solve(self, k, valid_from, raw=None, ntime=None, sum_s=None, decided=None):
         """Solve integration k (``raw``: its mean raw covariance, default the sums'; ``ntime`` its samples)
-        and post it from time tag ``valid_from``."""
+        and post it from time tag ``valid_from``; ``decided`` (sequence tag, through tag) is told to the live
+        table as soon as the solution is posted."""
         from ..sky.model import sky_model
         lay, xp = self._lay, self._xp
         t0 = time.perf_counter()
@@ -512,8 +524,12 @@ class GainSolverBlock(bfp.SinkBlock):
             last = self.last_solution
             g0 = None if last is None else last.gains.transpose(0, 2, 1)          # (c, p, a): a warm start
             s0 = None if last is None or E is None else last.info.get("extra_scale")
+            # the last solution's health flags carry over (one round instead of two), re-derived from
+            # scratch once a minute of data so that an input that recovers comes back
+            fresh = last is None or k % max(1, int(round(60.0 / self.cadence_s))) == 0
+            f0 = None if fresh else last.reasons
             sol = solve_gains(R, M, lay["xyz_m"], lay["freq_hz"], self._flags, settings, weights=self._W, extra=E,
-                              g0=g0, extra_scale0=s0, saturated=saturated)
+                              g0=g0, extra_scale0=s0, saturated=saturated, flags0=f0)
         except ValueError as e:
             self._fail(str(e), k)
             return
@@ -537,6 +553,8 @@ class GainSolverBlock(bfp.SinkBlock):
         self.solver_stats["solutions"] += 1
         if self.table is not None:
             self.table.post(valid_from, sol.corrections)
+            if decided is not None:            # the images wait for this, never for the files below
+                self.table.decided(*decided)
         log.info("gain solution %d (%s UTC, %.2f s of data, model %s%s): %s; %.2f s",
                  self.solver_stats["solutions"] - 1,
                  when.isot[:19], ntime * lay["dt_s"], model.describe(),
@@ -568,16 +586,31 @@ class GainSolverBlock(bfp.SinkBlock):
                 "integration_s": self.integration_s, "cable_removed": bool(self.cable), "diffuse_model": self.diffuse,
                 "min_alt_deg": self.min_alt_deg}
 
-    def write(self, path):
-        """Write the solutions so far to ``path`` (.npz) and, with ``png``, its PNG beside it."""
-        from ..io.gaintable import gain_table_png, read_solved_table, write_gain_table
+    def write(self, path, final=False):
+        """Write the solutions so far to ``path`` (.npz) and, with ``png``, the last solution's PNG beside it
+        (at a part's first solution, then about every minute of data, and when ``final``)."""
+        from ..io.gaintable import gain_table_png, write_gain_table
         if not self.solutions:
             return None
-        p = write_gain_table(path, self.valid_from, self.solutions, freq_hz=self._lay["freq_hz"],
-                             stand_ids=self._stand_ids, time_unix=self.time_unix, provenance=self.provenance())
-        if self.png:
+        n = self.solver_stats["solutions"]
+        p = path
+        if self._written_of != (path, n):
+            p = write_gain_table(path, self.valid_from, self.solutions, freq_hz=self._lay["freq_hz"],
+                                 stand_ids=self._stand_ids, time_unix=self.time_unix, provenance=self.provenance())
+            self._written_of = (path, n)
+        due = len(self.solutions) == 1 or (n - 1) % self._png_every == 0 or final
+        if self.png and due and self._png_of != n:
+            self._png_of = n
+            # the last solution's PNG, drawn from memory, about once a minute of data (matplotlib's
+            # drawing holds the interpreter a second at the whole band)
+            last = self.solutions[-1]
             try:
-                gain_table_png(str(p)[:-4] + ".png", table=read_solved_table(p))
+                gain_table_png(str(p)[:-4] + ".png", table={
+                    "gains": last.corrections[None], "flags": last.flags[None], "flag_reason": last.reasons[None],
+                    "freq_hz": self._lay["freq_hz"], "valid_from": self.valid_from,
+                    "provenance": self.provenance()}, solution=-1,
+                    title=f"gain solution {n - 1} ({len(self.solutions)} in this table): {self._station_name}, "
+                          f"model {', '.join(self.models[-1].get('sources', []))}")
             except Exception as e:   # a plot must not stop a pipeline
                 log.warning("gain table PNG not written: %s", e)
         return p

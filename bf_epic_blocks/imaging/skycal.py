@@ -346,7 +346,7 @@ def fit_scale(R, M, E, g, W):
 
 
 def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSettings | None = None, *, rounds=4,
-                weights=None, extra=None, fits=2, g0=None, extra_scale0=None, saturated=None):
+                weights=None, extra=None, fits=2, g0=None, extra_scale0=None, saturated=None, flags0=None):
     """Gains, flags and quality from covariances R against the model M (module docstring).
 
     R, M : complex (nchan, npol, nant, nant), NumPy or CuPy (the solve runs where they live); R is the
@@ -362,6 +362,10 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
         'saturated' and left out; :func:`clip_fraction`).
     g0, extra_scale0 : a start: the gains (nchan, npol, nant) and extra scales (nchan, npol) of the last
         solution (a live solver's; the gains drift slowly, so StEFCal then needs a few iterations).
+    flags0 : str (nant, npol), the last solution's reasons: inputs it found deaf, noisy, residual or with
+        few baselines start flagged, so that a round that flags nothing new ends the solve (a live solver's
+        steady state: one round instead of two). Such an input comes back only in a solve without
+        ``flags0``; a live solver makes one every minute.
     Returns a :class:`Solution` (NumPy). Raises ValueError when too few inputs remain good in a
     polarisation (:attr:`SolveSettings.min_good_fraction`) or no channel-pol converges.
     """
@@ -381,6 +385,10 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     powr = np.median(to_numpy(R[..., idx, idx].real), axis=0).T                           # (a, p)
     nopow = ~sflag & ~(np.isfinite(powr) & (powr > 0))
     reasons[nopow] = "no-power"
+    if flags0 is not None:
+        f0 = np.asarray(flags0).astype(str)
+        carried = (reasons == "") & np.isin(f0, ("deaf", "noisy", "residual", "few-baselines"))
+        reasons[carried] = f0[carried]
     W = baseline_weights(xyz_m, freq_hz, s.min_baseline_lambda, xp=xp) if weights is None else weights
     W = W.astype(R.real.dtype, copy=False)
     if not bool(to_numpy(xp.any(W > 0))):

@@ -36,7 +36,8 @@ def write_gain_table(path, valid_from, solutions, *, freq_hz, stand_ids, time_un
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {
         "valid_from": np.asarray(valid_from, np.int64),
-        "gains": np.stack([s.corrections for s in solutions]).astype(np.complex128),
+        # complex64: a solution is good to ~1e-3, and a live table is rewritten at every solution
+        "gains": np.stack([s.corrections for s in solutions]).astype(np.complex64),
         "flags": np.stack([s.flags for s in solutions]),
         "flag_reason": np.stack([s.reasons for s in solutions]).astype("U16"),
         "converged": np.stack([s.quality["converged"] for s in solutions]),
@@ -46,9 +47,11 @@ def write_gain_table(path, valid_from, solutions, *, freq_hz, stand_ids, time_un
         "provenance": np.array(json.dumps({**provenance, "software": f"bf_epic_blocks {__version__}"})),
     }
     for k in _QUALITY:
-        arrays[k] = np.stack([s.quality[k] for s in solutions]).astype(np.float64)
+        arrays[k] = np.stack([s.quality[k] for s in solutions]).astype(np.float64 if k == "delay_s" else np.float32)
     tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
+    # uncompressed: gains are noise-like to zlib, and compressing a part of 60 whole-band solutions costs
+    # seconds of a CPU the pipeline needs
+    np.savez(tmp, **arrays)
     os.replace(tmp, path)
     return path
 

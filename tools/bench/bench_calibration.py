@@ -196,54 +196,47 @@ def case_drift(args, work):
 
 
 def case_cost(args, work):
+    """The solver beside the whole-band imager. Each configuration runs for ``--cost-short-s`` and ``--cost-s``
+    seconds of data; the difference of the two pipelines' walls over the difference of data is the steady
+    time per second of data, free of start-up (kernel compiles, the solver's warm-up, the first solution).
+    A run with solving goes first and is thrown away, so that every measured run finds its kernels compiled."""
     yaml = REPO / "pipelines" / "lwasv_sim_wholeband.yaml"
-    base = {"device": "gpu", "source.duration_s": args.cost_s, "imager.search": None, "output.cube": None,
+    base = {"device": "gpu", "imager.search": None, "output.cube": None,
             "output.fits": False, "output.png": False, "output.integrate": None}
+    solve = {"calibration.solve.cadence_s": 10.0, "calibration.solve.integration_s": 1.0}
+    alone_name, both_name = "imager alone (folded, integer route)", "imager + solver"
+    cli("run", str(yaml), *sets({**base, **solve, "source.duration_s": args.cost_short_s,
+                                 "output.dir": str(work / "cost")}))          # compiles every kernel
     rows = {}
-    for name, extra in (("imager alone (folded, integer route)", {}),
-                        ("imager + solver", {"calibration.solve.cadence_s": 10.0,
-                                             "calibration.solve.integration_s": 1.0})):
-        wall, summ = cli("run", str(yaml), *sets({**base, **extra, "output.dir": str(work / "cost")}))
-        blocks = summ["blocks"]
-        img = next(v for k, v in blocks.items() if "Imager" in k)
-        # flowing: from the imager's first gulp to its last (start-up left out, a stall for a solution kept)
-        flowing = img["last_data_s"] - img["first_data_s"]
-        r = {"wall_s": wall, "pipeline_s": summ["wall_s"], "imager_s": img["process_s"],
-             "realtime_factor": args.cost_s / summ["wall_s"], "flowing_s": flowing,
-             "flowing_realtime_factor": args.cost_s / flowing, "first_image_s": img["first_data_s"]}
-        if "solver" in summ:
-            sv = summ["solver"]
-            steady = [a + b for a, b in zip(sv["sum_s_each"][1:], sv["solve_s_each"][1:])]   # the first compiles
-            r.update(solver_s=sv["sum_s"] + sv["solve_s"], solver_sum_s=sv["sum_s"], solver_solve_s=sv["solve_s"],
-                     solutions=sv["solutions"], wait_s=sv["wait_s"], sum_s_each=sv["sum_s_each"],
-                     solve_s_each=sv["solve_s_each"],
-                     steady_solver_s_per_solution=float(np.median(steady)) if steady else None)
+    for name, extra in ((alone_name, {}), (both_name, solve)):
+        r = {}
+        for tag, dur in (("short", args.cost_short_s), ("long", args.cost_s)):
+            wall, summ = cli("run", str(yaml), *sets({**base, **extra, "source.duration_s": dur,
+                                                      "output.dir": str(work / "cost")}))
+            img = next(v for k, v in summ["blocks"].items() if "Imager" in k)
+            r[tag] = {"data_s": dur, "pipeline_s": summ["wall_s"], "imager_s": img["process_s"],
+                      "first_image_s": img["first_data_s"], "realtime_factor": dur / summ["wall_s"]}
+            if "solver" in summ:
+                sv = summ["solver"]
+                r[tag]["solver"] = {k: sv.get(k) for k in ("solutions", "failures", "sum_s", "solve_s", "wait_s",
+                                                           "sum_s_each", "solve_s_each", "warm_s")}
+        r["steady_s_per_data_s"] = (r["long"]["pipeline_s"] - r["short"]["pipeline_s"]) / (args.cost_s - args.cost_short_s)
+        r["steady_realtime_factor"] = 1.0 / r["steady_s_per_data_s"]
         rows[name] = r
-    alone = rows["imager alone (folded, integer route)"]["imager_s"]
-    both = rows["imager + solver"]
-    both["solver_over_imager_same_run"] = both["solver_s"] / both["imager_s"]
-    both["solver_over_imager_alone"] = both["solver_s"] / alone
-    # the steady cost: a solution's solver seconds against the imager's seconds for one cadence (10 s) of
-    # data, from the run without solving (its pipeline wall: the imager sets the pace)
-    imager_per_cadence = rows["imager alone (folded, integer route)"]["pipeline_s"] * 10.0 / args.cost_s
-    both["flowing_slowdown"] = both["flowing_s"] / rows["imager alone (folded, integer route)"]["flowing_s"] - 1.0
-    if both.get("steady_solver_s_per_solution"):
-        both["steady_fraction_of_imager"] = both["steady_solver_s_per_solution"] / imager_per_cadence
-    for k, r in rows.items():
-        print(f"cost, {args.cost_s:g} s of 784 channels: {k}: pipeline {r['pipeline_s']:.2f} s "
-              f"(x{r['realtime_factor']:.2f} real time; flowing {r['flowing_s']:.2f} s, "
-              f"x{r['flowing_realtime_factor']:.3f}; first image at {r['first_image_s']:.1f} s), "
-              f"imager {r['imager_s']:.2f} s"
-              + (f", solver {r['solver_s']:.3f} s ({r['solutions']} solutions: sums {r['solver_sum_s']:.3f} s, "
-                 f"solves {r['solver_solve_s']:.3f} s) = {100 * r['solver_over_imager_same_run']:.1f}% of this "
-                 f"imager, {100 * r['solver_over_imager_alone']:.1f}% of the folded imager's"
-                 if "solver_s" in r else ""))
-    if both.get("steady_fraction_of_imager") is not None:
-        print(f"cost, steady: {both['steady_solver_s_per_solution']:.3f} s per solution (sums + solve, median after the "
-              f"first) = {100 * both['steady_fraction_of_imager']:.1f}% of the pipeline's {imager_per_cadence:.2f} s per "
-              f"10 s of data without solving; the wall with solving is {both['pipeline_s'] / rows['imager alone (folded, integer route)']['pipeline_s']:.3f}x")
-    print(f"cost, flowing: solving live adds {100 * both['flowing_slowdown']:.1f}% to the pipeline's time from its "
-          f"first image to its last")
+    both, alone = rows[both_name], rows[alone_name]
+    both["steady_added_fraction"] = both["steady_s_per_data_s"] / alone["steady_s_per_data_s"] - 1.0
+    sv = both["long"]["solver"]
+    steady = [a + b for a, b in zip(sv["sum_s_each"][1:], sv["solve_s_each"][1:])]
+    both["solver_s_per_solution_median"] = float(np.median(steady)) if steady else None
+    for name, r in rows.items():
+        print(f"cost, 784 channels, {name}: {r['short']['data_s']:g} s of data in {r['short']['pipeline_s']:.2f} s, "
+              f"{r['long']['data_s']:g} s in {r['long']['pipeline_s']:.2f} s: steady {r['steady_s_per_data_s']:.4f} s "
+              f"per s of data (x{r['steady_realtime_factor']:.3f} real time); first image at "
+              f"{r['long']['first_image_s']:.1f} s")
+    print(f"cost, steady: solving live (a solution every 10 s from 1 s of data) adds "
+          f"{100 * both['steady_added_fraction']:.1f}% to the pipeline's time per second of data; the solver's "
+          f"own seconds per solution (sums + solve, GPU shared with the imager): {sv['sum_s_each']} + "
+          f"{sv['solve_s_each']}; warm-up {sv.get('warm_s')}")
     return rows
 
 
@@ -342,7 +335,8 @@ def main(argv=None):
     ap.add_argument("--case", action="append", choices=sorted(CASES))
     ap.add_argument("--seconds", type=float, default=2.0, help="accuracy: seconds of data solved from")
     ap.add_argument("--drift-s", type=float, default=600.0, help="drift: seconds simulated")
-    ap.add_argument("--cost-s", type=float, default=20.0, help="cost: seconds of the whole band")
+    ap.add_argument("--cost-s", type=float, default=60.0, help="cost: seconds of the whole band (the long runs)")
+    ap.add_argument("--cost-short-s", type=float, default=20.0, help="cost: seconds of the whole band (the short runs)")
     ap.add_argument("--nchan", type=int, default=784, help="solver: channels")
     ap.add_argument("--acc-device", choices=("cpu", "gpu"), default="cpu", help="accuracy: the pipeline's device")
     ap.add_argument("--nmode", type=int, default=256, help="accuracy: the simulated diffuse sky's modes")
