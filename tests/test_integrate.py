@@ -32,7 +32,7 @@ def test_integrations_are_the_means_of_their_images(average, gulp):
     lay = image_layout(sink.headers[0])
     assert lay["dt_s"] == pytest.approx(50 * 16 * DT)
     assert np.allclose(lay["freq_hz"], [freq.mean()] if average else freq)
-    assert it.int_stats == {"images_in": 230, "images_out": 4, "images_dropped_partial": 30}
+    assert it.int_stats == {"images_in": 230, "images_out": 4, "images_dropped_partial": 30, "channel_images_flagged": 0}
 
 
 def test_an_integration_of_an_integration_counts_the_imagers_images_and_channels():

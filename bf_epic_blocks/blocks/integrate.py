@@ -50,7 +50,7 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         super().__init__(iring, *args, **kwargs)
         self.nimage = None if nimage is None else int(nimage)
         self.seconds, self.average_channels = seconds, bool(average_channels)
-        self.int_stats = {"images_in": 0, "images_out": 0, "images_dropped_partial": 0}
+        self.int_stats = {"images_in": 0, "images_out": 0, "images_dropped_partial": 0, "channel_images_flagged": 0}
         if space is not None:
             self.orings = [self.create_ring(space=space)]
 
@@ -68,7 +68,8 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         if self.seconds is not None:
             self.nimage = max(1, int(round(self.seconds / lay["dt_s"])))
         self._n = 0
-        self._sum = None
+        self._sum = self._w = None
+        self._flagging = bool(ihdr.get("flagging"))
         ohdr = derived_header(ihdr)
         t = ohdr["_tensor"]
         t["scales"] = list(t.get("scales") or [None] * len(t["shape"]))
@@ -102,32 +103,59 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         pos = 0
         if self.nimage == 1:
             # each image its own output (the band mean of each, a pixel split's parts): all at once
-            part = channel_mean(x) if self.average_channels else x
+            part = self._band_mean(x) if self.average_channels else x
             out[:n] = _to_space(part.astype(out.dtype), out)
             pos = nout = n
         while pos < n:
             take = min(self.nimage - self._n, n - pos)
             part = x[pos:pos + take]
+            w = None
+            if self._flagging:
+                # images (or channel images) wholly flagged are left out of the time mean
+                live = ((part > 0) | (part < 0)).reshape(take, part.shape[1], -1).any(axis=2)   # (take, C)
+                w = live.any(axis=1, keepdims=True) if self.average_channels else live
+                w = w.sum(axis=0).astype(xp.float64)
+                self._w = w if self._w is None else self._w + w
             if self.average_channels:
-                part = channel_mean(part)
+                part = self._band_mean(part)
             s = part.sum(axis=0, dtype=xp.float64)
             self._sum = s if self._sum is None else self._sum + s
             self._n += take
             pos += take
             if self._n == self.nimage:
-                out[nout] = _to_space((self._sum / self.nimage).astype(out.dtype), out)
+                if self._w is None:
+                    mean = self._sum / self.nimage
+                else:
+                    w = self._w.reshape((-1,) + (1,) * (self._sum.ndim - 1))
+                    mean = xp.where(w > 0, self._sum / xp.maximum(w, 1), 0.0)
+                out[nout] = _to_space(mean.astype(out.dtype), out)
                 nout += 1
-                self._sum, self._n = None, 0
+                self._sum, self._n, self._w = None, 0, None
         self.int_stats["images_in"] += n
         self.int_stats["images_out"] += nout
         return nout
+
+    def _band_mean(self, x):
+        """The channel mean of x (n, C, ...); after interference flagging (the header's ``flagging``) the mean
+        of the channels that imaged anything: a channel whose voltages were all flagged images as zeros
+        (NaN below the horizon), which would pull the mean down. An image with every channel flagged is 0."""
+        m = channel_mean(x)
+        if not self._flagging:
+            return m
+        xp = get_xp(x)
+        n, C = x.shape[0], x.shape[1]
+        live = ((x > 0) | (x < 0)).reshape(n, C, -1).any(axis=2)                  # NaN compares False
+        used = live.sum(axis=1)
+        self.int_stats["channel_images_flagged"] += int(n * C - int(used.sum()))
+        scale = xp.where(used > 0, C / xp.maximum(used, 1), 0.0).astype(xp.float64)
+        return m * scale.reshape((n, 1) + (1,) * (m.ndim - 2))
 
     def on_sequence_end(self, iseq):
         if self._n:
             self.int_stats["images_dropped_partial"] += self._n
             log.warning("ImageIntegratorBlock: %d images at the end of sequence %s did not fill an integration of %d "
                         "and were not written", self._n, iseq.header.get("name"), self.nimage)
-            self._sum, self._n = None, 0
+            self._sum, self._n, self._w = None, 0, None
 
 
 def _to_space(a, out):

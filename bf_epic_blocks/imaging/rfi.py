@@ -473,14 +473,15 @@ def sk_flags(S1, S2, m, far, bits=4):
 # ----------------------------------------------------------------------------------------- broadband impulses
 
 def broadband_flags(power, threshold_sigma=6.0, *, per_input=False):
-    """Short blocks holding a broadband impulse: total power far above the blocks' robust level.
+    """Short blocks holding a broadband impulse: power raised across the band at once.
 
     power : (nblock, nchan, ninput...) power per short block (e.g. S1 of :func:`power_sums` with m = 16),
-        channel and input. The power is summed over channels and inputs (per_input=False) or over
-        channels only (per_input=True: one stand's own spikes flag that input only); a block is flagged
-        where that sum exceeds median + threshold_sigma * 1.4826 * MAD, the median and the median absolute
-        deviation taken over the nblock blocks given (a robust running reference: it holds while fewer than
-        half the blocks are hit; 1.4826 MAD is the standard deviation of Gaussian scatter).
+        channel and input. Each channel's power (summed over the inputs, or per input with
+        ``per_input``) is divided by its median over the nblock blocks, and a block's statistic is the
+        median of that ratio over the channels: a carrier switching on in a few channels leaves it alone,
+        a spark across the band raises it. A block is flagged where the statistic exceeds its median over
+        the blocks + threshold_sigma * 1.4826 * MAD (1.4826 MAD is the standard deviation of Gaussian
+        scatter; the reference holds while fewer than half the blocks are hit).
     Returns bool (nblock,) or (nblock, ninput...) with per_input, on power's device. Needs nblock >= 3.
     """
     xp = get_xp(power)
@@ -490,13 +491,16 @@ def broadband_flags(power, threshold_sigma=6.0, *, per_input=False):
     if not threshold_sigma > 0:
         raise ValueError(f"threshold_sigma must be > 0, got {threshold_sigma!r}")
     power = xp.asarray(power, dtype=xp.float64)
-    if per_input:
-        total = power.sum(axis=1)
-    else:
-        total = power.reshape(power.shape[0], -1).sum(axis=1)
-    med = xp.median(total, axis=0)
-    mad = xp.median(xp.abs(total - med), axis=0)
-    return total > med + threshold_sigma * 1.4826 * mad
+    if not per_input:
+        power = power.reshape(power.shape[0], power.shape[1], -1).sum(axis=2)          # (nblock, nchan)
+    ref = xp.median(power, axis=0)
+    live = ref > 0                                                   # channels (and inputs) with any power
+    ratio = xp.where(live, power / xp.where(live, ref, 1.0), xp.nan)
+    stat = xp.nanmedian(ratio, axis=1) if bool(live.any()) else xp.zeros((power.shape[0],) + power.shape[2:])
+    stat = xp.where(xp.isnan(stat), 1.0, stat)
+    med = xp.median(stat, axis=0)
+    mad = xp.median(xp.abs(stat - med), axis=0)
+    return stat > med + threshold_sigma * 1.4826 * mad
 
 
 # ----------------------------------------------------------------------------------------- frequency lists

@@ -191,6 +191,53 @@ class FlagList:
         return out
 
 
+class FreqRanges:
+    """Frequency ranges in MHz: a list of [lo, hi] pairs or single frequencies (+- 100 kHz, Orville's rule)."""
+
+    def describe(self) -> str:
+        return "a list of [lo_mhz, hi_mhz] pairs or frequencies in MHz"
+
+    def check(self, v, path, ctx):
+        if not isinstance(v, list):
+            ctx.error(path, f"expected {self.describe()}, got {v!r}")
+            return INVALID
+        out = []
+        for i, x in enumerate(v):
+            pair = x if isinstance(x, list) else [x]
+            ok = len(pair) in (1, 2) and all(isinstance(y, (int, float)) and not isinstance(y, bool)
+                                            and y == y and 0 < y < 1e4 for y in pair)
+            if ok and len(pair) == 2 and not pair[0] < pair[1]:
+                ok = False
+            if not ok:
+                ctx.error(f"{path}[{i}]", f"expected a frequency in MHz or a pair [lo, hi] with lo < hi, got {x!r}")
+                out.append(INVALID)
+                continue
+            out.append([float(y) for y in pair])
+        return out
+
+
+FLAGGING = Section({
+    "enabled": Key(Choice("auto", "on", "off"), "auto",
+                   doc="Detect interference and leave it out of the images: auto is on for capture files and "
+                       "live streams, off for the simulated sky unless it adds interference (`source.rfi`)."),
+    "far": Key(Float(0.0, 1.0, lo_open=True, hi_open=True), 1e-3,
+               doc="False-alarm rate: the fraction of blocks of pure noise the spectral-kurtosis test flags."),
+    "block_frames": Key(Int(64), 1024,
+                        doc="Samples per spectral-kurtosis block (1024 = 41 ms of 25 kHz channels); a gulp "
+                            "is tested in blocks of this many frames, a shorter last block as it is."),
+    "impulse_sigma": Key(Float(0.0, lo_open=True), 6.0,
+                         doc="A short block (one image's frames) whose power summed over the band exceeds the "
+                             "gulp's median by this many robust sigmas is an impulse, flagged across the band "
+                             "(every stand, or the one stand that shows it)."),
+    "bad_freq_mhz": Key(FreqRanges(), [],
+                        doc="Frequencies always dropped: [lo, hi] ranges in MHz, or single frequencies "
+                            "(+- 100 kHz, as Orville's list)."),
+    "bad_freq_file": Key(File("bad-frequency list"), None,
+                         doc="An Orville `bad_freq.txt`: one frequency in MHz per line (+- 100 kHz), "
+                             "'#' comments; 'lo hi' ranges are also read."),
+}, what="a flagging mapping {enabled, far, block_frames, impulse_sigma, bad_freq_mhz, bad_freq_file}")
+
+
 def _station_post(out, given, path, ctx):
     if "name" in given and "ssmif" in given:
         ctx.error(path, "give either station.name or station.ssmif, not both")
@@ -588,6 +635,8 @@ SCHEMA = Section({
                          "and image with each solution from the first frame after its data; the table is "
                          "written to `output.dir`. null: no solving. `bf-epic calibrate` uses these keys too."),
     }, post=_calibration_post, what="a calibration mapping"), {}, doc="What is done to the voltages before imaging."),
+    "flagging": Key(FLAGGING, {}, doc="Interference: what the sky did not send, detected in the voltages and "
+                                      "left out of the images, the search and the gain solutions."),
     "imager": Key(Section({
         "kind": Key(Choice("dft", "wstack", "moff"), "dft",
                     doc="dft: the exact direct Fourier transform; wstack: E-field w-stacking or covariance "

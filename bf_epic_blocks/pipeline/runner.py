@@ -344,6 +344,7 @@ def build_graph(cfg, progress=None, parts=None):
         if split is not None:
             return _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern, progress)
         source, feed, nframe_total, block = _source_stage(cfg, dev, fmt, info, station, gulp, space, progress)
+        feed = _flagging_stage(cfg, feed)
         solver, table = _solver_stage(cfg, feed, outdir)
         calfold = _calibration_stage(cfg, dev, feed, pattern, table)
         imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table)
@@ -394,6 +395,53 @@ def _source_stage(cfg, dev, fmt, info, station, gulp, space, progress):
                                 rcvbuf_bytes=int(src_cfg["rcvbuf_mb"] * 2**20),
                                 sequences=src_cfg["sequences"], progress=progress, space=space)
     return source, source if feed is None else feed, None, None
+
+
+def flagging_enabled(cfg) -> bool:
+    """Whether ``flagging`` runs: ``on``/``off`` as set; ``auto`` for capture files and live streams (the
+    real sky's interference), not for the simulated sky, which has none."""
+    fl = cfg.get("flagging") or {}
+    if fl.get("enabled", "auto") != "auto":
+        return fl["enabled"] == "on"
+    return cfg["source"].get("kind") != "simulated"
+
+
+def _flagging_stage(cfg, feed):
+    """RFIFlagBlock on ``feed`` where :func:`flagging_enabled`, else ``feed``: every later reader (the imager,
+    the search, the gain solver) sees the flagged stand-samples as zeros."""
+    if not flagging_enabled(cfg):
+        return feed
+    from pathlib import Path
+
+    from ..blocks.rfi_flag import RFIFlagBlock
+    from ..imaging.rfi import parse_bad_freq_list
+    fl = cfg["flagging"]
+    ranges = [((r[0] - 0.1) * 1e6, (r[0] + 0.1) * 1e6) if len(r) == 1 else (r[0] * 1e6, r[1] * 1e6)
+              for r in fl["bad_freq_mhz"]]
+    if fl.get("bad_freq_file"):
+        ranges += parse_bad_freq_list(Path(fl["bad_freq_file"]))
+    return RFIFlagBlock(feed, far=fl["far"], block_frames=fl["block_frames"],
+                        impulse_frames=cfg["imager"]["accumulate_frames"], impulse_sigma=fl["impulse_sigma"],
+                        bad_freq_ranges=ranges)
+
+
+def _flag_report(cfg, fb, outdir, summary):
+    """The flagger's counts for the run's summary and log, and its table and waterfall in ``outdir``."""
+    from ..io.flagreport import write_flag_report
+    fs = fb.summary()
+    lay = fb._lay
+    if fs["stand_samples_seen"] and fs["fraction_flagged"] >= 1.0:
+        log.warning("interference flagging: every stand-sample was flagged: the run imaged nothing")
+    log.info("interference flagging: %.3f%% of %d stand-samples flagged (%s)", 100 * fs["fraction_flagged"],
+             fs["stand_samples_seen"], ", ".join(f"{r} {100 * v:.3f}%" for r, v in fs["by_reason"].items()))
+    if outdir is not None:
+        wf, row_frames = fb.waterfall()
+        try:
+            summary["files"] += write_flag_report(outdir, cfg["output"]["prefix"], lay["freq_hz"], fs, wf,
+                                                  row_frames * lay["dt_s"], title=f"{cfg['name']}: interference flags")
+        except Exception as e:  # noqa: BLE001 - a report must not fail a run that imaged
+            log.warning("interference flag report not written: %s", e)
+    return {k: v for k, v in fs.items() if k != "channel_fraction"}
 
 
 def solver_settings(sv):
@@ -720,6 +768,9 @@ def run(cfg, show_progress=None, parts=None):
                  g.search.search_stats["candidates"])
     if g.cube is not None:
         summary["cube"] = dict(g.cube.cube_stats)
+    flaggers = [b for b in g.pipeline.blocks if type(b).__name__ == "RFIFlagBlock"]
+    if flaggers and getattr(flaggers[0], "_lay", None) is not None:
+        summary["flagging"] = _flag_report(cfg, flaggers[0], g.outdir, summary)
     if g.solver is not None:
         table = g.solver.table
         summary["solver"] = {**g.solver.solver_stats, "wait_s": table.stats["wait_s"],
