@@ -117,7 +117,8 @@ def test_batch_all_good_exits_zero(cluster, pipeline, tmp_path, capsys):
                    "--set", f"output.dir={tmp_path / 'o'}", *QUIET])
     assert rc == 0, capsys.readouterr()
     assert "1 of 1 tasks succeeded" in capsys.readouterr().out
-    assert sorted(p.name for p in (tmp_path / "o" / SV.stem).iterdir()) == ["batch_s00_i0000.fits",
+    assert sorted(p.name for p in (tmp_path / "o" / SV.stem).iterdir()) == ["batch_flags.ecsv", "batch_flags.png",
+                                                                             "batch_s00_i0000.fits",
                                                                              "batch_s00_i0000.png"]
 
 

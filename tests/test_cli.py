@@ -233,7 +233,9 @@ def _recording_yaml(tmp_path, tbf, extra=""):
     y.write_text(f"name: rec\nstation: {{name: lwasv}}\nsource: {{kind: tbf, path: {tbf}{extra}}}\n"
                  f"calibration: {{cable: true, pattern: none}}\n"
                  f"imager: {{kind: dft, grid: {{size: 16}}, accumulate_frames: 300, products: [I]}}\n"
-                 f"output: {{dir: {tmp_path / 'out'}, fits: true, png: false}}\n")
+                 f"output: {{dir: {tmp_path / 'out'}, fits: true, png: false}}\n"
+                 # random bytes, not a sky: the interference flagger would rightly flag them all
+                 f"flagging: {{enabled: 'off'}}\n")
     return y
 
 

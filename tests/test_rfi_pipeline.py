@@ -12,7 +12,7 @@ import pytest
 from bf_epic_blocks import imaging
 from bf_epic_blocks.blocks import ArraySinkBlock, ArraySourceBlock, DFTImagerBlock, ImageIntegratorBlock, bfp, \
     efield_header
-from bf_epic_blocks.blocks.rfi_flag import RFIFlagBlock
+from bf_epic_blocks.blocks.rfi_flag import FlagWeights, RFIFlagBlock
 from bf_epic_blocks.runtime.dtypes import ci4_bytes, pack_ci4
 
 C = 299792458.0
@@ -68,13 +68,14 @@ def sky():
     return dict(clean=ci4(clean), dirty=ci4(clean + rfi), noise=ci4(noise_only), truth=truth, hdr=hdr)
 
 
-def _flag(X, hdr):
+def _flag(X, hdr, space="system"):
     with bfp.Pipeline() as p:
-        src = ArraySourceBlock(X, hdr, gulp_nframe=GULP)
+        src = ArraySourceBlock(X, hdr, gulp_nframe=GULP, space=space)
         fb = RFIFlagBlock(src, far=1e-3, block_frames=M, impulse_frames=ACC)
         sink = ArraySinkBlock(fb)
         p.run()
-    out = ci4_bytes(np.asarray(sink.result(0)))
+    out = sink.result(0)
+    out = ci4_bytes(out.get() if hasattr(out, "get") else np.asarray(out))
     flagged = (out == 0).all(axis=3) & (np.asarray(X) != 0).any(axis=3)       # zeroed by the flagger
     return flagged, fb
 
@@ -86,8 +87,8 @@ def _clean_blocks_flagged(flagged, truth):
     return f[~c].mean()
 
 
-def test_the_flagger_finds_the_interference_the_test_chose(sky):
-    flagged, fb = _flag(sky["dirty"], sky["hdr"])
+def test_the_flagger_finds_the_interference_the_test_chose(sky, xp):
+    flagged, fb = _flag(sky["dirty"], sky["hdr"], "system" if xp is np else "cuda")
     truth = sky["truth"]
     found = flagged[truth].mean()
     assert found >= 0.95, found
@@ -113,8 +114,9 @@ def _image(X, hdr, flag):
     lm = np.concatenate([imaging.lm_grid(24).lm, [[0.2, 0.1], [0.9, -0.35]]])   # the source, the transmitter
     with bfp.Pipeline() as p:
         src = ArraySourceBlock(X, hdr, gulp_nframe=GULP)
-        feed = RFIFlagBlock(src, far=1e-3, block_frames=M, impulse_frames=ACC) if flag else src
-        img = DFTImagerBlock(feed, lm, ACC)
+        w = FlagWeights(ACC) if flag else None
+        feed = RFIFlagBlock(src, far=1e-3, block_frames=M, impulse_frames=ACC, weights=w) if flag else src
+        img = DFTImagerBlock(feed, lm, ACC, flag_weights=w)
         it = ImageIntegratorBlock(img, T // ACC, average_channels=True)
         sink = ArraySinkBlock(it)
         p.run()
@@ -131,3 +133,114 @@ def test_the_flagged_image_is_the_clean_image(sky):
     bad = np.nanmax(np.abs(dirty - clean)) / peak
     assert err <= 0.01, err
     assert bad > 0.3, bad
+
+
+def test_images_of_part_of_the_array_are_rescaled_to_the_whole(sky):
+    """A stand flagged for its own carrier leaves its channel's images (63/64)^2 of the whole array's for a
+    point source; with the flagger's weights the imager returns them to the whole's units."""
+    lm = np.array([[0.2, 0.1]])
+
+    def per_channel(X, flag, weights):
+        with bfp.Pipeline() as p:
+            src = ArraySourceBlock(X, sky["hdr"], gulp_nframe=GULP)
+            w = FlagWeights(ACC) if weights else None
+            feed = RFIFlagBlock(src, far=1e-3, block_frames=M, impulse_frames=ACC, weights=w) if flag else src
+            img = DFTImagerBlock(feed, lm, ACC, flag_weights=w)
+            it = ImageIntegratorBlock(img, T // ACC, average_channels=False)
+            sink = ArraySinkBlock(it)
+            p.run()
+        return np.asarray(sink.result(0))[0, :, :, 0].sum(axis=1), w     # (nchan,) XX + YY at the source
+
+    clean, _ = per_channel(sky["clean"], False, False)
+    plain, _ = per_channel(sky["dirty"], True, False)
+    fixed, w = per_channel(sky["dirty"], True, True)
+    assert plain[1] / clean[1] == pytest.approx((63 / 64) ** 2, abs=0.01)
+    assert fixed[1] / clean[1] == pytest.approx(1.0, abs=0.005)
+    assert w.stats["images_rescaled"] >= T // ACC
+    ok = np.isin(np.arange(NCHAN), [0, 1, 2, 4, 5, 6, 8, 9, 10, 11])
+    assert np.allclose(fixed[ok] / clean[ok], 1.0, atol=0.01)
+
+
+def test_the_search_ignores_sparks_and_a_carrier_and_still_finds_the_burst(tmp_path):
+    """A dispersed burst on the sky with two 1-ms sparks and a carrier added: searched without flagging,
+    the sparks are candidates; with flagging (the flagged channel images treated as missing), none is,
+    and the burst is found at its pixel, time and DM."""
+    from bf_epic_blocks.blocks import TransientSearchBlock
+    from bf_epic_blocks.conventions import FS_HZ
+    from bf_epic_blocks.io.candidates import CandidateWriter
+    from bf_epic_blocks.search import SearchSettings
+    from bf_epic_blocks.sky import simulate_efield
+
+    rng = np.random.default_rng(5)
+    xyz = np.c_[rng.uniform(-30, 30, (24, 2)), rng.normal(0, 0.3, 24)]
+    acc, nchan = 16, 8
+    freq = 74e6 + 25e3 * np.arange(nchan)
+    grid = imaging.lm_grid(16)
+    gx, gy = 10, 5
+    dt_img = acc * DT
+    burst = {"l": (gx - 8) * grid.cell, "m": (gy - 8) * grid.cell, "start_s": 0.30 + 0.3 * dt_img,
+             "duration_s": 4 * dt_img, "flux_jy": 0.1, "dm": 0.9}
+    T = int(0.45 / DT) // acc * acc
+    X = simulate_efield(xyz, freq, T, sources=[], noise_power=1.0, seed=3, transients=[burst]).astype(np.complex64)
+    sparks = (3003, 5511)                                       # 1 ms each, 30x the noise, from one direction
+    for t0 in sparks:
+        X[t0:t0 + 25] += (_gauss(rng, (25, nchan, 1, 2), 30.0) * _phase(xyz, freq, -0.4, 0.3)[None, :, :, None])
+    t = np.arange(T)[:, None, None]
+    X[:, 2] += (np.sqrt(2.0) * np.exp(2j * np.pi * 0.017 * t) * _phase(xyz, freq[2:3], 0.85, -0.4)[0][None, :, None])
+    st = {"name": "lwasv", "xyz_m": xyz, "lat_deg": 34.3484, "lon_deg": -106.8858, "elev_m": 1477.0}
+    hdr = efield_header("burst", int(1717236000 * FS_HZ), freq, DT, st, dtype="cf32")
+    dms = [0.0, 0.5, 1.0, 1.5, 2.0]
+
+    def search(flag):
+        with bfp.Pipeline() as p:
+            src = ArraySourceBlock(X, hdr, gulp_nframe=1024)
+            w = FlagWeights(acc, track_empty=True) if flag else None
+            feed = RFIFlagBlock(src, far=1e-3, block_frames=1024, impulse_frames=acc, weights=w) if flag else src
+            img = DFTImagerBlock(feed, grid, acc, products=["I"], pattern=False, flag_weights=w)
+            srch = TransientSearchBlock(img, SearchSettings(threshold=6.0, window_s=0.1, dms=dms),
+                                        writer=CandidateWriter(tmp_path / str(flag)), flag_weights=w)
+            p.run()
+        return srch.candidates, w
+
+    def near_sparks(tab):
+        return [int(r["image"]) for r in tab if any(abs(int(r["image"]) - t0 / acc) <= 16 for t0 in sparks)]
+
+    plain, _ = search(False)
+    assert near_sparks(plain), "the sparks should fool a search without flagging"
+    tab, w = search(True)
+    assert not near_sparks(tab), near_sparks(tab)
+    assert w.stats["channel_images_filled"] > 0
+    best = tab[int(np.argmax(tab["snr"]))]
+    assert abs(best["grid_x"] - gx) <= 1 and abs(best["grid_y"] - gy) <= 1
+    assert abs(best["image"] - burst["start_s"] / dt_img) <= 1.0
+    assert best["dm"] == 1.0
+
+
+def test_bad_flagging_input_is_a_clear_error(tmp_path):
+    from bf_epic_blocks.pipeline.config import ConfigError, load_config
+    from bf_epic_blocks.pipeline.runner import build_graph, run
+    base = ("name: f\nstation: {name: lwasv}\n"
+            "source: {kind: simulated, start: '2024-06-01T10:00:00', duration_s: 0.03, gulp_nframe: 256,\n"
+            "         channels: {first: 2960, count: 4, width_hz: 25000.0}, sources: [CygA], quantize: true}\n"
+            "imager: {kind: dft, grid: {size: 8}, accumulate_frames: 256}\n"
+            f"output: {{dir: {tmp_path / 'o'}, fits: false, png: false}}\n")
+    for far in ("0", "1.5", "-1e-3"):
+        with pytest.raises(ConfigError, match="flagging.far"):
+            load_config(base + f"flagging: {{far: {far}}}\n")
+    assert load_config(base + "flagging: {enabled: off}\n")["flagging"]["enabled"] == "off"   # YAML's bare off
+    with pytest.raises(ConfigError, match=r"flagging.bad_freq_mhz\[0\]"):
+        load_config(base + "flagging: {bad_freq_mhz: [[75, 74]]}\n")
+    empty = tmp_path / "empty.txt"
+    empty.write_text("# nothing here\n\n")
+    with pytest.raises(ValueError, match="no ranges"):
+        build_graph(load_config(base + f"flagging: {{bad_freq_file: {empty}}}\n"))
+    bad = tmp_path / "bad.txt"
+    bad.write_text("60.1\nsixty\n")
+    with pytest.raises(ValueError, match="line 2"):
+        build_graph(load_config(base + f"flagging: {{bad_freq_file: {bad}}}\n"))
+    with pytest.raises(Exception, match="covers every channel"):
+        run(load_config(base + "flagging: {enabled: on, bad_freq_mhz: [[10, 100]]}\n"), show_progress=False)
+    # a simulated sky with flagging on: the run's summary and files say what was flagged
+    summ = run(load_config(base + "flagging: {enabled: on, bad_freq_mhz: [[74.02, 74.03]]}\n"), show_progress=False)
+    assert summ["flagging"]["static_channels"] == 1 and summ["flagging"]["by_reason"]["static"] == 0.25
+    assert any(f.endswith("f_flags.ecsv") for f in summ["files"]) and any(f.endswith("f_flags.png") for f in summ["files"])

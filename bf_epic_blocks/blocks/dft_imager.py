@@ -70,6 +70,9 @@ class DFTImagerBlock(bfp.TransformBlock):
            is made with the solution in force at its first frame, the operator rebuilt when that changes
            (for a live table, after waiting until the solver has decided it). Zero corrections drop their
            inputs from the operator and from N_A.
+    flag_weights : a :class:`~.rfi_flag.FlagWeights` from the RFIFlagBlock before: each image that kept
+           only part of the array (stands flagged for interference) is divided by the fraction of a point
+           source's power it holds, so that it stays in the whole array's units.
     Output: float32 frames of one image each; header ``imager`` and ``pixels`` say what they are.
     """
 
@@ -77,8 +80,9 @@ class DFTImagerBlock(bfp.TransformBlock):
 
     def __init__(self, iring, pixels, accumulate, products=None, remove_autocorr=False, method="auto",
                  precision=None, pattern=None, *args, gpus=None, weights=None, cable=False, tolerance=None,
-                 plan=None, gains=None, **kwargs):
+                 plan=None, gains=None, flag_weights=None, **kwargs):
         super().__init__(iring, *args, **kwargs)
+        self.flag_weights, self._nimg, self._flag_seq = flag_weights, 0, None
         self.gpus, self.weights, self.cable = gpus, weights, cable
         if gains is not None and gpus is not None:
             raise ValueError("DFTImagerBlock: time-variable gains are folded on one device, not with gpus")
@@ -235,6 +239,7 @@ class DFTImagerBlock(bfp.TransformBlock):
         ihdr = iseq.header
         lay = efield_layout(ihdr, "DFTImagerBlock")
         self._lay, self._xp, self._hdr = lay, self._space_xp(), ihdr
+        self._nimg, self._flag_seq = 0, int(lay["time_tag"])
         self._station_hdr = ihdr.get("station", {})
         cal = ihdr.get("calibration", {})
         self._pattern_name = cal.get("pattern") if self.pattern is None else (self.pattern or None)
@@ -364,7 +369,17 @@ class DFTImagerBlock(bfp.TransformBlock):
         return dt
 
     def on_data(self, ispan, ospan):
-        return self.engine.image_gulp(span_array(ispan), span_array(ospan))
+        out = span_array(ospan)
+        nout = self.engine.image_gulp(span_array(ispan), out)
+        if self.flag_weights is not None and nout:
+            q = self.flag_weights.take(self._flag_seq, self._nimg, nout)
+            if q is not None:          # images that kept part of the array: back to the whole array's units
+                with _compat.stream_context():
+                    xp = self._xp
+                    inv = xp.where(q > 0, 1.0 / xp.where(q > 0, q, 1.0), 0.0).astype(out.dtype)
+                    out[:nout] *= inv.reshape(inv.shape + (1,) * (out.ndim - 2))
+            self._nimg += nout
+        return nout
 
     def on_sequence_end(self, iseq):
         dropped = self.engine.end_sequence()

@@ -29,6 +29,7 @@ import logging
 import numpy as np
 
 from ..imaging import rfi
+from ..imaging._xp import get_xp
 from . import _compat
 from ..runtime.dtypes import ci4_bytes
 from ._compat import bfp, span_array, unpack_complex
@@ -55,6 +56,7 @@ class RFIFlagBlock(bfp.TransformBlock):
     impulse_frames : samples per short block of the impulse detector (the imager's ``accumulate``).
     impulse_sigma : threshold of the impulse detector in robust standard deviations.
     bad_freq_ranges : [(lo_hz, hi_hz), ...] always flagged.
+    weights : a :class:`FlagWeights` the block fills for the imager that reads it (None: none).
     spread : where more than this fraction of the live stands is flagged in a (frame, channel), every
         stand is (reason ``spread``): the interference is the array's, and an image of part of the array
         would be (n / N_A)^2 of the whole's.
@@ -63,7 +65,7 @@ class RFIFlagBlock(bfp.TransformBlock):
     """
 
     def __init__(self, iring, far=1e-3, block_frames=1024, impulse_frames=16, impulse_sigma=6.0,
-                 bad_freq_ranges=(), spread=0.1, *args, **kwargs):
+                 bad_freq_ranges=(), spread=0.1, weights=None, *args, **kwargs):
         super().__init__(iring, *args, **kwargs)
         if not 0.0 < float(far) < 1.0:
             raise ValueError(f"RFIFlagBlock: far (false-alarm rate) must be in (0, 1), got {far!r}")
@@ -74,7 +76,11 @@ class RFIFlagBlock(bfp.TransformBlock):
                              f"{impulse_sigma!r}")
         if not 0.0 <= float(spread) < 1.0:
             raise ValueError(f"RFIFlagBlock: spread must be in [0, 1), got {spread!r}")
+        if int(block_frames) % int(impulse_frames):
+            raise ValueError(f"RFIFlagBlock: block_frames ({block_frames}) must be a multiple of impulse_frames "
+                             f"({impulse_frames})")
         self.far, self.block_frames, self.spread = float(far), int(block_frames), float(spread)
+        self.weights = weights
         self.impulse_frames, self.impulse_sigma = int(impulse_frames), float(impulse_sigma)
         self.bad_freq_ranges = [tuple(map(float, r)) for r in bad_freq_ranges]
         self.flag_stats = {"seen": 0, "flagged": dict.fromkeys(REASONS, 0), "flagged_any": 0, "untested": 0,
@@ -107,6 +113,10 @@ class RFIFlagBlock(bfp.TransformBlock):
         self._static = self._xp.asarray(static)
         self._bits = 4 if lay["dtype"] == "ci4" else None
         self._flagged_stands = lay["flags"].any(axis=1)            # the station's own: never counted here
+        self._live = self._xp.asarray(~self._flagged_stands)
+        self._tag0, self._frame = int(lay["time_tag"]), 0
+        if self.weights is not None:
+            self.weights.begin(self._tag0)
         if self._chan_flagged is None or self._chan_flagged.shape[0] != nchan:
             self._chan_flagged = np.zeros(nchan, np.int64)
             self._chan_seen = 0
@@ -135,86 +145,117 @@ class RFIFlagBlock(bfp.TransformBlock):
         return a
 
     def flags(self, raw):
-        """keep (n, nchan, nstand) bool and per-reason masks for one gulp ``raw`` (n, nchan, nstand, npol...).
+        """The flags of one gulp ``raw`` (n, nchan, nstand, npol...), per short block j (frames [j a, (j + 1) a)
+        with a = ``impulse_frames``; the last one shorter where a does not divide n): (bad, masks, frames)
+        with bad bool (ns, nchan, nstand), masks {reason: bool (ns, nchan, nstand)}, frames (ns,) int.
 
         Impulses are found first, and the short blocks they flag across the band are left out of the
         spectral-kurtosis sums (each block's SK then uses the samples left), so that a 1-ms spark costs its
         own milliseconds and not the 41 ms of every block it falls in."""
         xp = self._xp
         n, nchan, nstand = raw.shape[:3]
-        m, A = self.block_frames, self.impulse_frames
-        masks = {"static": xp.broadcast_to(self._static[None, :, None], (n, nchan, nstand))}
-        # impulses: short blocks of A frames, needing three to form a reference
-        imp = xp.zeros((n, nchan, nstand), bool)
-        imp_st = xp.zeros((n, nchan, nstand), bool)
-        ns = n // A
+        m, a = self.block_frames, self.impulse_frames
+        ci4 = self._lay["dtype"] == "ci4"
+        x = raw if ci4 else unpack_complex(raw, self._lay["dtype"])
+        nfull, ns = n // a, -(-n // a)
+        S1, S2, Sa = rfi.block_power(x, m, a, ci4=ci4)
+        frames = np.full(ns, a, np.int64)
+        if ns > nfull:
+            frames[-1] = n - nfull * a
+        imp = xp.zeros(ns, bool)
+        imp_st = xp.zeros((ns, nstand), bool)
         allf_host = np.zeros(ns, bool)
-        if ns >= 3:
-            S1, _ = self._power_sums(raw[:ns * A], A)
-            S1 = S1.reshape(S1.shape[:3] + (-1,)).sum(axis=3)                  # (ns, nchan, nstand)
-            S1 = xp.where(self._static[None, :, None], 0.0, S1)               # listed channels carry no weight
-            allf = rfi.broadband_flags(S1, self.impulse_sigma)                 # (ns,)
-            per = rfi.broadband_flags(S1, self.impulse_sigma, per_input=True)  # (ns, nstand)
-            imp[:ns * A] = xp.repeat(allf, A)[:, None, None]
-            imp_st[:ns * A] = xp.repeat(per & ~allf[:, None], A, axis=0)[:, None, :]
-            allf_host = _host(allf).astype(bool)
-        masks["impulse"], masks["impulse-stand"] = imp, imp_st
-        # spectral kurtosis: whole blocks of m and a last shorter block of at least 64 samples, without the
-        # impulses' short blocks
-        sk_low = xp.zeros((n, nchan, nstand), bool)
-        sk_high = xp.zeros((n, nchan, nstand), bool)
-        hit = np.zeros(n, bool)
-        hit[:ns * A] = np.repeat(allf_host, A)
-        x = raw
-        if hit.any():
-            k = xp.asarray(~hit).reshape((n,) + (1,) * (raw.ndim - 1))
-            x = xp.where(k, raw, xp.zeros((), raw.dtype))
-        pos = 0
-        while pos < n:
-            mm = min(m, n - pos)
-            if mm < rfi.MIN_M_QUANTISED:
-                self.flag_stats["untested"] += mm * nchan * nstand
-                break
-            nb = (n - pos) // mm
-            S1, S2 = self._power_sums(x[pos:pos + nb * mm], mm)
-            reason = xp.zeros(S1.shape, xp.int8)
-            used = mm - hit[pos:pos + nb * mm].reshape(nb, mm).sum(axis=1)     # samples left per block
-            for u in np.unique(used):
-                if u < rfi.MIN_M_QUANTISED:
-                    continue                                                   # mostly impulse: flagged as such
-                sel = np.flatnonzero(used == u)
-                _, r = rfi.sk_flags(S1[sel], S2[sel], int(u), self.far, bits=self._bits)
-                reason[xp.asarray(sel)] = r
-            reason = reason.reshape(reason.shape[:3] + (-1,))               # (nb, nchan, nstand, npol)
-            sk_low[pos:pos + nb * mm] = xp.repeat((reason == 1).any(axis=3), mm, axis=0)
-            sk_high[pos:pos + nb * mm] = xp.repeat((reason == 2).any(axis=3), mm, axis=0)
-            pos += nb * mm
-        masks["sk-low"], masks["sk-high"] = sk_low, sk_high
+        if nfull >= 3:
+            P = Sa.reshape(Sa.shape[:3] + (-1,)).sum(axis=3)                    # (nfull, nchan, nstand)
+            P = xp.where(self._static[None, :, None], 0.0, P)                 # listed channels carry no weight
+            allf = rfi.broadband_flags(P, self.impulse_sigma)                  # (nfull,)
+            per = rfi.broadband_flags(P, self.impulse_sigma, per_input=True)   # (nfull, nstand)
+            imp[:nfull] = allf
+            imp_st[:nfull] = per & ~allf[:, None]
+            allf_host[:nfull] = _host(allf).astype(bool)
+        # spectral kurtosis per block of m (a last block of at least 64 samples as it is), without impulses
+        nb = n // m
+        blocks = [(k * m, m) for k in range(nb)]
+        if n - nb * m >= rfi.MIN_M_QUANTISED:
+            blocks.append((nb * m, n - nb * m))
+        elif n - nb * m:
+            self.flag_stats["untested"] += (n - nb * m) * nchan * nstand
+        hit = np.repeat(allf_host, frames)                                    # (n,) frames of band-wide impulses
+        low = xp.zeros((len(blocks), nchan, nstand), bool)
+        high = xp.zeros((len(blocks), nchan, nstand), bool)
+        for i, (t0, mm) in enumerate(blocks):
+            used = mm - int(hit[t0:t0 + mm].sum())
+            if used < rfi.MIN_M_QUANTISED:
+                continue                                                      # mostly impulse: flagged as such
+            if used == mm and mm == m and i < nb:
+                s1, s2 = S1[i:i + 1], S2[i:i + 1]
+            else:
+                part = x[t0:t0 + mm]
+                if used < mm:
+                    k = xp.asarray(~hit[t0:t0 + mm]).reshape((mm,) + (1,) * (part.ndim - 1))
+                    part = xp.where(k, part, xp.zeros((), part.dtype))
+                s1, s2 = rfi.power_sums(part, mm, ci4=ci4)
+            _, r = rfi.sk_flags(s1, s2, used, self.far, bits=self._bits)
+            r = r.reshape(r.shape[:3] + (-1,))[0]                              # (nchan, nstand, npol)
+            low[i] = (r == 1).any(axis=2)
+            high[i] = (r == 2).any(axis=2)
+        # each short block's SK block (m is a multiple of a: a short block lies in one)
+        which = np.minimum(np.arange(ns) * a // m, max(len(blocks) - 1, 0))
+        tested = (np.arange(ns) * a) < sum(mm for _, mm in blocks)
+        if len(blocks):
+            w = xp.asarray(which)
+            t = xp.asarray(tested)[:, None, None]
+            sk_low, sk_high = low[w] & t, high[w] & t
+        else:
+            sk_low = sk_high = xp.zeros((ns, nchan, nstand), bool)
+        masks = {"static": xp.broadcast_to(self._static[None, :, None], (ns, nchan, nstand)),
+                 "sk-low": sk_low, "sk-high": sk_high,
+                 "impulse": xp.broadcast_to(imp[:, None, None], (ns, nchan, nstand)),
+                 "impulse-stand": xp.broadcast_to(imp_st[:, None, :], (ns, nchan, nstand))}
         # interference that many stands see (a transmitter, a spark) is the array's: its (frame, channel)
-        # is flagged for every stand, so that an image never sums a part of the array (whose beam would be
-        # (n / N_A)^2 of the whole's); a few stands' own interference stays on those stands
-        per_stand = sk_low | sk_high | imp_st
+        # is flagged for every stand, so that an image sums no small part of the array; a few stands' own
+        # interference stays on those stands (the imager rescales those images, see FlagWeights)
+        per_stand = (sk_low | sk_high | masks["impulse-stand"]) & self._live[None, None, :]
         nlive = max(1, int((~self._flagged_stands).sum()))
-        wide = per_stand.sum(axis=2) > self.spread * nlive                   # (n, nchan)
-        masks["spread"] = xp.broadcast_to(wide[:, :, None], (n, nchan, nstand)) & ~per_stand
-        bad = masks["static"] | per_stand | imp | masks["spread"]
-        return ~bad, masks
+        wide = per_stand.sum(axis=2) > self.spread * nlive                   # (ns, nchan)
+        masks["spread"] = xp.broadcast_to(wide[:, :, None], (ns, nchan, nstand)) & ~per_stand
+        bad = masks["static"] | per_stand | masks["impulse"] | masks["spread"]
+        return bad, masks, frames
 
     def on_data(self, ispan, ospan):
         raw = self._plain(span_array(ispan))
         out = self._plain(span_array(ospan))
         n = int(raw.shape[0])
         xp = self._xp
+        a = self.impulse_frames
+        first = getattr(ispan, "frame_offset", self._frame)
         with _compat.stream_context():
-            keep, masks = self.flags(raw)
-            live = xp.asarray(~self._flagged_stands)[None, None, :]
-            k = keep.reshape(keep.shape + (1,) * (raw.ndim - 3))
-            out[:n] = xp.where(k, raw, xp.zeros((), raw.dtype))
-            # one transfer per gulp: the counts by reason, and per channel
-            counts = xp.stack([(masks[r] & live).sum() for r in REASONS] + [(~keep & live).sum()])
-            per_chan = (~keep & live).sum(axis=(0, 2))
-            counts, per_chan = _host(counts), _host(per_chan)
-        nlive = int((~self._flagged_stands).sum())
+            bad, masks, frames = self.flags(raw)
+            ns = bad.shape[0]
+            tail = (1,) * (raw.ndim - 3)
+            if n % a == 0:
+                shp = (ns, a) + tuple(raw.shape[1:])
+                out[:n].reshape(shp)[...] = xp.where(bad.reshape((ns, 1) + bad.shape[1:] + tail),
+                                                     xp.zeros((), raw.dtype), raw.reshape(shp))
+            else:
+                per_frame = xp.repeat(bad, xp.asarray(frames), axis=0)
+                out[:n] = xp.where(per_frame.reshape(per_frame.shape + tail), xp.zeros((), raw.dtype), raw)
+            live = self._live[None, None, :]
+            fr = xp.asarray(frames)[:, None, None]
+            used = ((~bad) & live).sum(axis=2)                                   # (ns, nchan) stands left
+            counts = xp.stack([((masks[r] & live) * fr).sum() for r in REASONS] + [((bad & live) * fr).sum()])
+            per_chan = ((bad & live) * fr).sum(axis=(0, 2))
+            nl = int((~self._flagged_stands).sum())
+            partial = ((used > 0) & (used < nl)).any()
+            wholly = (used == 0).any()
+            host = _host(xp.concatenate([counts.astype(xp.float64), per_chan.astype(xp.float64),
+                                         partial.reshape(1).astype(xp.float64), wholly.reshape(1).astype(xp.float64)]))
+        counts, per_chan = host[:len(REASONS) + 1], host[len(REASONS) + 1:-2]
+        partial, wholly = bool(host[-2]), bool(host[-1])
+        if self.weights is not None:
+            self.weights.add(self._tag0, first, used, frames, nl, partial, wholly)
+        self._frame = first + n
+        nlive = nl
         st = self.flag_stats
         st["seen"] += n * self._lay["nchan"] * nlive
         for r, c in zip(REASONS, counts[:-1]):
@@ -260,6 +301,91 @@ class RFIFlagBlock(bfp.TransformBlock):
                 "stand_samples_seen": st["seen"], "stand_samples_flagged": st["flagged_any"],
                 "untested": st["untested"], "static_channels": int(self._static_host.sum()),
                 "channel_fraction": (self._chan_flagged / max(1, self._chan_seen)).tolist()}
+
+
+class FlagWeights:
+    """What each image kept of the array after flagging, handed from RFIFlagBlock to the imager.
+
+    For image i (frames [i A, (i + 1) A) of a sequence, A the imager's ``accumulate``) and channel c,
+    q(i, c) = (1 / A) sum over its frames of (n_used / N_live)^2, n_used the live stands left unflagged:
+    the fraction of a point source's power the image holds. The imager divides each image by it (0 where
+    nothing was left: the image is then 0, and the band and time means skip it), so that images of part
+    of the array or part of the time stay in Jy. Only images that hold a partial value (0 < q < 1) are
+    rescaled; the rest (q = 1, or 0 with zero data) are left as they are.
+    """
+
+    def __init__(self, accumulate, track_empty=False):
+        import threading
+        self.A, self.track_empty = int(accumulate), bool(track_empty)
+        self._cond = threading.Condition()
+        self._seq, self._chunks, self._empty, self._open = None, [], [], None
+        self.stats = {"images_rescaled": 0, "channel_images_filled": 0}
+
+    def begin(self, tag0):
+        with self._cond:
+            self._seq, self._chunks, self._empty, self._open = tag0, [], [], None
+
+    def add(self, tag0, first, used, frames, nlive, partial, wholly=False):
+        """The flagger's gulp at frame ``first``: ``used`` (ns, nchan) stands left per short block of
+        ``frames`` (ns,) frames; ``partial``: whether any short block kept part of the array; ``wholly``:
+        whether any (short block, channel) kept nothing."""
+        xp = get_xp(used)
+        u = (used.astype(xp.float64) / max(1, nlive)) ** 2
+        u = xp.repeat(u, xp.asarray(frames), axis=0)                          # (n, nchan) per frame
+        n = int(u.shape[0])
+        cs = xp.concatenate([xp.zeros((1,) + u.shape[1:]), xp.cumsum(u, axis=0)])
+        A = self.A
+        cuts = [0] + [t for t in range(-(-first // A) * A - first, n, A) if t > 0] + [n]
+        cuts = sorted(set(cuts))
+        seg = cs[xp.asarray(cuts[1:])] - cs[xp.asarray(cuts[:-1])]           # (nseg, nchan)
+        with self._cond:
+            if self._seq != tag0:
+                return
+            for j in range(len(cuts) - 1):
+                t0, t1 = cuts[j], cuts[j + 1]
+                img = (first + t0) // A
+                if self._open is None or self._open[0] != img:
+                    self._open = [img, seg[j], t1 - t0, partial, wholly]
+                else:
+                    self._open[1] = self._open[1] + seg[j]
+                    self._open[2] += t1 - t0
+                    self._open[3] = self._open[3] or partial
+                    self._open[4] = self._open[4] or wholly
+                if self._open[2] == A:
+                    q = self._open[1] / A
+                    self._chunks.append((img, q, self._open[3]))
+                    if self.track_empty:
+                        self._empty.append((img, q == 0, self._open[4]))
+                    self._open = None
+            self._cond.notify_all()
+
+    def take(self, tag0, i0, count):
+        """q (count, nchan) for images i0 .. i0 + count - 1 of sequence ``tag0``, or None where none of them
+        needs rescaling; those images' entries are let go."""
+        with self._cond:
+            if self._seq != tag0:
+                return None
+            mine = [c for c in self._chunks if i0 <= c[0] < i0 + count]
+            self._chunks = [c for c in self._chunks if c[0] >= i0 + count]
+        if not any(c[2] for c in mine) or len(mine) != count:
+            return None
+        self.stats["images_rescaled"] += sum(1 for c in mine if c[2])
+        xp = get_xp(mine[0][1])
+        return xp.stack([c[1] for c in mine])
+
+
+    def take_empty(self, tag0, i0, count):
+        """bool (count, nchan): the channel images of images i0 .. i0 + count - 1 that kept nothing (every
+        stand flagged throughout), or None where none of them has such a channel; entries are let go."""
+        with self._cond:
+            if self._seq != tag0:
+                return None
+            mine = [c for c in self._empty if i0 <= c[0] < i0 + count]
+            self._empty = [c for c in self._empty if c[0] >= i0 + count]
+        if not any(c[2] for c in mine) or len(mine) != count:
+            return None
+        xp = get_xp(mine[0][1])
+        return xp.stack([c[1] for c in mine])
 
 
 def _host(a):

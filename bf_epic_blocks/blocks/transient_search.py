@@ -48,12 +48,15 @@ class TransientSearchBlock(bfp.SinkBlock):
         :class:`~bf_epic_blocks.io.candidates.CandidateWriter`), called at the end of each sequence
         with every candidate so far and the window mean at the searched pixels.
     location : astropy EarthLocation (default: the header's station).
+    flag_weights : the :class:`~.rfi_flag.FlagWeights` of the interference flagger before the imager (made
+        with ``track_empty=True``): channel images that kept nothing are treated as missing (filled with
+        their channel's mean), never as a dip or a signal.
 
     ``candidates`` is the astropy Table of all candidates so far; ``search_stats`` counts images
     searched, trials per width, crossings, resets and images lost; ``written`` lists the writer's files.
     """
 
-    def __init__(self, iring, settings=None, *args, writer=None, location=None, **kwargs):
+    def __init__(self, iring, settings=None, *args, writer=None, location=None, flag_weights=None, **kwargs):
         moved = sorted(set(kwargs) & set(SearchSettings.__dataclass_fields__))
         if moved:
             raise TypeError(f"TransientSearchBlock: {', '.join(moved)} is set in the settings object: pass "
@@ -66,6 +69,7 @@ class TransientSearchBlock(bfp.SinkBlock):
             raise TypeError(f"TransientSearchBlock: settings must be a SearchSettings, got {type(settings).__name__}")
         super().__init__(iring, *args, **kwargs)
         self.settings, self.writer, self.location = settings, writer, location
+        self.flag_weights = flag_weights
         #: fit every point candidate's source at once (a pixel split's part: SearchParts folds the other
         #: parts' sidelobes with it), not only when a fainter one needs it
         self.fit_every_row = False
@@ -149,6 +153,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.loc = self.location if self.location is not None else station_location(hdr)
         self._pending = Crossings()
         self._j = 0                                   # sequence index of the next image
+        self._flag_seq, self._fill_mean = int(hdr.get("time_tag", 0)), None
         self.search_stats["sequences"] += 1
         log.info("TransientSearchBlock %s: %d pixels, %d channels, window %d images (%.3f s), DMs %s, widths %s, "
                  "threshold %.1f", hdr.get("name"), len(lay["lm"]), lay["nchan"], window, window * lay["dt_s"],
@@ -176,6 +181,8 @@ class TransientSearchBlock(bfp.SinkBlock):
         n = data.shape[0]
         with _compat.stream_context():
             cells = data[:, :, self._prod].reshape(n, self.lay["nchan"], -1)
+            if self.flag_weights is not None:
+                cells = self._fill_flagged(cells)
             guaranteed = getattr(self, "guarantee", True)
             if guaranteed and self.search.reads_cells:
                 # the span is held until this returns: the tree reads the pixels' cells where they are
@@ -195,6 +202,24 @@ class TransientSearchBlock(bfp.SinkBlock):
             # its boxcar on every pixel) while the search still holds it, whatever the gulp size
             for a in range(0, n, self.search.max_batch):
                 self._push(x[a:a + self.search.max_batch], index)
+
+    def _fill_flagged(self, cells):
+        """Channel images that kept nothing (interference flagged every stand) are missing data, not a
+        dip to zero: each is replaced by its channel's mean over this gulp's unflagged images (or the last
+        gulp's, where this gulp has none), so that it adds neither signal nor variance to the search."""
+        xp = self.xp
+        n = cells.shape[0]
+        empty = self.flag_weights.take_empty(self._flag_seq, self._j, n)
+        if empty is None:
+            return cells
+        ok = (~empty)[:, :, None]
+        cnt = ok.sum(axis=0)                                                   # (nchan, 1)
+        mean = xp.where(ok, cells, 0).sum(axis=0) / xp.maximum(cnt, 1)
+        if self._fill_mean is not None:
+            mean = xp.where(cnt > 0, mean, self._fill_mean)
+        self._fill_mean = mean
+        self.flag_weights.stats["channel_images_filled"] += int(empty.sum())
+        return xp.where(ok, cells, mean[None].astype(cells.dtype))
 
     def _push(self, x, index=None):
         n = x.shape[0]

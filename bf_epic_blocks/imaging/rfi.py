@@ -41,10 +41,13 @@ from pathlib import Path
 import numpy as np
 from scipy import special
 
+from ..cuda import get_kernel, register
 from ._xp import get_xp
 
-__all__ = ["REASONS", "broadband_flags", "channel_mask", "expected_sk", "min_mean_power", "parse_bad_freq_list",
+__all__ = ["REASONS", "block_power", "broadband_flags", "channel_mask", "expected_sk", "min_mean_power", "parse_bad_freq_list",
            "power_sums", "quantised_power_moments", "sk_flags", "sk_thresholds", "spectral_kurtosis"]
+
+register("imaging/rfi.cu")
 
 #: Names of the flag reasons of :func:`sk_flags`, by code.
 REASONS = ("clean", "low-sk", "high-sk", "no-power")
@@ -111,6 +114,48 @@ def power_sums(x, m, *, ci4=False):
         raise TypeError(f"power_sums: x must be complex voltages (or ci4 bytes with ci4=True), got {x.dtype}")
     p = (x.real * x.real + x.imag * x.imag).reshape((nblk, m) + x.shape[1:])
     return p.sum(axis=1, dtype=xp.float64), (p * p).sum(axis=1, dtype=xp.float64)
+
+
+def block_power(x, m, a, *, ci4=False):
+    """(S1, S2, Sa): the power sums of :func:`power_sums` over the whole blocks of ``m`` samples, and the
+    power summed over the whole short blocks of ``a`` samples, in one pass.
+
+    x : as :func:`power_sums` (any ntime: samples past the last whole block are left out of that block's
+    sums). Returns float64 S1, S2 (ntime // m, nchan, ninput...) and float32 Sa (ntime // a, nchan,
+    ninput...). On a GPU, ci4 bytes are read once by one kernel (``rfi.cu``), never widened to a power
+    array; elsewhere :func:`power_sums` twice."""
+    m, a = _check_m(m), int(a)
+    if a < 1:
+        raise ValueError(f"a (samples per short block) must be >= 1, got {a!r}")
+    xp = get_xp(x)
+    T = int(x.shape[0])
+    nb, ns = T // m, T // a
+    if ci4 and xp is not np:
+        names = getattr(x.dtype, "names", None)
+        b = (x[names[0]] if names else x).view(xp.uint8)
+        b = xp.ascontiguousarray(b)
+        K = int(np.prod(b.shape[1:])) if b.ndim > 1 else 1
+        s1 = xp.empty((nb,) + tuple(b.shape[1:]), xp.float64)
+        s2 = xp.empty_like(s1)
+        sh = xp.empty((ns,) + tuple(b.shape[1:]), xp.float32)
+        if K and T and (nb or ns):
+            get_kernel("imaging/rfi.cu", "rfi_block_power")(((K + 255) // 256,), (256,),
+                                                             (b, s1, s2, sh, np.int64(K), np.int32(T), np.int32(m),
+                                                              np.int32(a)))
+        return s1, s2, sh
+    S1, S2 = power_sums(x[:nb * m], m, ci4=ci4) if nb else (xp.zeros((0,) + x.shape[1:]),) * 2
+    sh = _short_sums(x[:ns * a], a, ci4) if ns else xp.zeros((0,) + x.shape[1:], xp.float32)
+    return S1, S2, sh
+
+
+def _short_sums(x, a, ci4):
+    xp = get_xp(x)
+    if ci4:
+        names = getattr(x.dtype, "names", None)
+        p = xp.asarray(_CI4_POWER)[(x[names[0]] if names else x).view(xp.uint8)]
+    else:
+        p = x.real * x.real + x.imag * x.imag
+    return p.reshape((x.shape[0] // a, a) + x.shape[1:]).sum(axis=1, dtype=xp.float64).astype(xp.float32)
 
 
 def spectral_kurtosis(S1, S2, m):

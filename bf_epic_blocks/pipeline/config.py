@@ -216,8 +216,30 @@ class FreqRanges:
         return out
 
 
+class OnOffAuto(Choice):
+    """'auto', 'on' or 'off'; YAML's bare on / off / true / false (booleans to a YAML 1.1 reader) too."""
+
+    def __init__(self):
+        super().__init__("auto", "on", "off")
+
+    def __call__(self, v, ctx):
+        if isinstance(v, bool):
+            return "on" if v else "off"
+        return super().__call__(v, ctx)
+
+
+def _flagging_post(out, given, path, ctx):
+    f = out.get("bad_freq_file")
+    if isinstance(f, str):
+        from ..imaging.rfi import parse_bad_freq_list
+        try:
+            parse_bad_freq_list(Path(f))
+        except (ValueError, OSError) as e:
+            ctx.error(f"{path}.bad_freq_file", str(e))
+
+
 FLAGGING = Section({
-    "enabled": Key(Choice("auto", "on", "off"), "auto",
+    "enabled": Key(OnOffAuto(), "auto",
                    doc="Detect interference and leave it out of the images: auto is on for capture files and "
                        "live streams, off for the simulated sky unless it adds interference (`source.rfi`)."),
     "far": Key(Float(0.0, 1.0, lo_open=True, hi_open=True), 1e-3,
@@ -225,17 +247,21 @@ FLAGGING = Section({
     "block_frames": Key(Int(64), 1024,
                         doc="Samples per spectral-kurtosis block (1024 = 41 ms of 25 kHz channels); a gulp "
                             "is tested in blocks of this many frames, a shorter last block as it is."),
+    "impulse_frames": Key(Int(1), 16,
+                          doc="Samples per short block of the impulse detector (16 = 0.64 ms); `block_frames` "
+                              "must be a multiple of it."),
     "impulse_sigma": Key(Float(0.0, lo_open=True), 6.0,
-                         doc="A short block (one image's frames) whose power summed over the band exceeds the "
-                             "gulp's median by this many robust sigmas is an impulse, flagged across the band "
-                             "(every stand, or the one stand that shows it)."),
+                         doc="A short block whose power, against each channel's median and taken across the "
+                             "band, exceeds the gulp's by this many robust sigmas is an impulse, flagged across "
+                             "the band (every stand, or the one stand that shows it)."),
     "bad_freq_mhz": Key(FreqRanges(), [],
                         doc="Frequencies always dropped: [lo, hi] ranges in MHz, or single frequencies "
                             "(+- 100 kHz, as Orville's list)."),
     "bad_freq_file": Key(File("bad-frequency list"), None,
                          doc="An Orville `bad_freq.txt`: one frequency in MHz per line (+- 100 kHz), "
                              "'#' comments; 'lo hi' ranges are also read."),
-}, what="a flagging mapping {enabled, far, block_frames, impulse_sigma, bad_freq_mhz, bad_freq_file}")
+}, post=_flagging_post,
+    what="a flagging mapping {enabled, far, block_frames, impulse_frames, impulse_sigma, bad_freq_mhz, bad_freq_file}")
 
 
 def _station_post(out, given, path, ctx):

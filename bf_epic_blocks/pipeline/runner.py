@@ -344,11 +344,11 @@ def build_graph(cfg, progress=None, parts=None):
         if split is not None:
             return _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern, progress)
         source, feed, nframe_total, block = _source_stage(cfg, dev, fmt, info, station, gulp, space, progress)
-        feed = _flagging_stage(cfg, feed)
+        feed, weights = _flagging_stage(cfg, feed)
         solver, table = _solver_stage(cfg, feed, outdir)
         calfold = _calibration_stage(cfg, dev, feed, pattern, table)
-        imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table)
-        search = _search_stage(cfg, imager, outdir)
+        imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table, weights)
+        search = _search_stage(cfg, imager, outdir, weights if getattr(imager, "flag_weights", None) else None)
         writer, cube = _output_stage(cfg, imager, pixels, block)
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube, solver)
 
@@ -407,22 +407,24 @@ def flagging_enabled(cfg) -> bool:
 
 
 def _flagging_stage(cfg, feed):
-    """RFIFlagBlock on ``feed`` where :func:`flagging_enabled`, else ``feed``: every later reader (the imager,
-    the search, the gain solver) sees the flagged stand-samples as zeros."""
+    """(RFIFlagBlock on ``feed``, its FlagWeights for the imager) where :func:`flagging_enabled`, else
+    (``feed``, None): every later reader (the imager, the search, the gain solver) sees the flagged
+    stand-samples as zeros."""
     if not flagging_enabled(cfg):
-        return feed
+        return feed, None
     from pathlib import Path
 
-    from ..blocks.rfi_flag import RFIFlagBlock
+    from ..blocks.rfi_flag import FlagWeights, RFIFlagBlock
     from ..imaging.rfi import parse_bad_freq_list
     fl = cfg["flagging"]
     ranges = [((r[0] - 0.1) * 1e6, (r[0] + 0.1) * 1e6) if len(r) == 1 else (r[0] * 1e6, r[1] * 1e6)
               for r in fl["bad_freq_mhz"]]
     if fl.get("bad_freq_file"):
         ranges += parse_bad_freq_list(Path(fl["bad_freq_file"]))
-    return RFIFlagBlock(feed, far=fl["far"], block_frames=fl["block_frames"],
-                        impulse_frames=cfg["imager"]["accumulate_frames"], impulse_sigma=fl["impulse_sigma"],
-                        bad_freq_ranges=ranges)
+    weights = FlagWeights(cfg["imager"]["accumulate_frames"], track_empty=bool(cfg["imager"].get("search"))) \
+        if cfg["imager"]["kind"] == "dft" else None
+    return RFIFlagBlock(feed, far=fl["far"], block_frames=fl["block_frames"], impulse_frames=fl["impulse_frames"],
+                        impulse_sigma=fl["impulse_sigma"], bad_freq_ranges=ranges, weights=weights), weights
 
 
 def _flag_report(cfg, fb, outdir, summary):
@@ -506,7 +508,7 @@ def _calibration_stage(cfg, dev, feed, pattern, table=None):
     return CalFoldBlock(feed, cable=bool(cal["cable"]), gains=gains, pattern=pattern)
 
 
-def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None):
+def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None, flag_weights=None):
     """The imager block on ``calfold``: DFTImagerBlock (folding the calibration where no CalFoldBlock
     runs, with the live solutions of ``table`` if there is one; channels sharded over ``devs`` on several
     GPUs), or WStackBlock for the gridded kinds."""
@@ -520,6 +522,8 @@ def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None
                 common.update(gains=table)
         if dev == "gpus":
             common.update(gpus=devs)
+        elif flag_weights is not None:
+            common.update(flag_weights=flag_weights)
         return DFTImagerBlock(calfold, pixels, im["accumulate_frames"],
                               plan=imager_plan_for(cfg, pixels, station, dev), **common)
     from ..blocks.wstack import WStackBlock
@@ -527,9 +531,9 @@ def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None
                        plan=imager_plan_for(cfg, pixels, station, dev), **common)
 
 
-def _search_stage(cfg, imager, outdir):
+def _search_stage(cfg, imager, outdir, flag_weights=None):
     """The transient search on the imager's images, if ``imager.search`` asks for one (else None)."""
-    return _search_block(cfg, imager, outdir) if cfg["imager"].get("search") else None
+    return _search_block(cfg, imager, outdir, flag_weights) if cfg["imager"].get("search") else None
 
 
 def _output_stage(cfg, imager, pixels, block):
@@ -590,14 +594,14 @@ def _search_settings(sc):
                           sidelobe_factor=sc["sidelobe_factor"])
 
 
-def _search_block(cfg, images, outdir):
+def _search_block(cfg, images, outdir, flag_weights=None):
     """The TransientSearchBlock ``imager.search`` asks for, on ``images``, its candidates written to
     ``outdir`` by a :class:`~..io.candidates.CandidateWriter` (None: not written)."""
     from ..blocks.transient_search import TransientSearchBlock
     from ..io.candidates import CandidateWriter
     sc, out = cfg["imager"]["search"], cfg["output"]
     writer = CandidateWriter(outdir, out["prefix"], sc["table"], sc["png"]) if outdir is not None else None
-    return TransientSearchBlock(images, _search_settings(sc), writer=writer, location=None)
+    return TransientSearchBlock(images, _search_settings(sc), writer=writer, location=None, flag_weights=flag_weights)
 
 
 def _output_blocks(cfg, images, pixels, block):
@@ -726,8 +730,9 @@ def run(cfg, show_progress=None, parts=None):
     if bar is not None:
         bar.total = g.nframe_total
         bar.refresh()
-    log.info("running %s: %s source -> %s%s imager -> %s", cfg["name"], cfg["source"]["kind"],
-             "" if g.calfold is g.source else "calfold -> ", cfg["imager"]["kind"], g.outdir)
+    log.info("running %s: %s source -> %s%s%s imager -> %s", cfg["name"], cfg["source"]["kind"],
+             "interference flagging -> " if flagging_enabled(cfg) else "",
+             "" if type(g.calfold).__name__ != "CalFoldBlock" else "calfold -> ", cfg["imager"]["kind"], g.outdir)
     try:
         from .watchdog import StallWatchdog
         with StallWatchdog(g.pipeline.blocks, STALL_WARN_S):

@@ -1,0 +1,87 @@
+"""The interference flagger's cost at the whole band, beside the imager's.
+
+One LWA-SV tuning's gulp (1,024 frames x 784 channels x 256 stands x 2 pols, 4-bit noise) is flagged
+(RFIFlagBlock's detection and zeroing, outside a pipeline) ``--repeat`` times on the device; the median
+time per gulp is set against the imager's time for the same 1,024 frames, from the whole-band pipeline
+run in the same call (``bf-epic run pipelines/lwasv_sim_wholeband.yaml`` with flagging off and on; the
+runs' steady time per second of data from two run lengths, as bench_calibration's cost case does).
+
+usage: python tools/bench/bench_rfi.py [--device gpu|cpu] [--nchan 784] [--repeat 20] [--json PATH]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchlib import machine, utc_now, write_json  # noqa: E402
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--device", choices=("cpu", "gpu"), default="gpu")
+    ap.add_argument("--nchan", type=int, default=784)
+    ap.add_argument("--repeat", type=int, default=20)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    rows = {"flagger": time_flagger(args)}
+    r = rows["flagger"]
+    print(f"flagger, {args.nchan} channels x 256 stands x 2 pols, 1,024 frames ({args.device}): "
+          f"{1e3 * r['median_s']:.3f} ms a gulp (min {1e3 * r['min_s']:.3f}), "
+          f"{r['median_s'] / 0.04096:.4f} s per s of data")
+    if args.json:
+        write_json(args.json, {"benchmark": "bench_rfi", "date": utc_now(), "machine": machine(args.device),
+                               "device": args.device, "cases": rows})
+        print(f"wrote {args.json}")
+
+
+def time_flagger(args):
+    """Median and least seconds of one gulp's detection and zeroing (RFIFlagBlock.flags + the where),
+    driving the block's methods on a gulp held in memory."""
+    from bf_epic_blocks.blocks.rfi_flag import RFIFlagBlock
+    from bf_epic_blocks.runtime.dtypes import pack_ci4
+    xp = np
+    if args.device == "gpu":
+        import cupy as xp
+    rng = np.random.default_rng(1)
+    n, nchan, nst = 1024, args.nchan, 256
+    shape = (n, nchan, nst, 2)
+    raw = xp.asarray(pack_ci4(rng.normal(0, 2.5, shape).astype(np.float32)
+                              + 1j * rng.normal(0, 2.5, shape).astype(np.float32)))
+    out = xp.empty_like(raw)
+    fb = _standalone_flagger(RFIFlagBlock, xp, nchan, nst)
+    times = []
+    for _ in range(args.repeat + 2):
+        t0 = time.perf_counter()
+        bad, masks, frames = fb.flags(raw)
+        ns = bad.shape[0]
+        out.reshape((ns, 16) + shape[1:])[...] = xp.where(bad.reshape((ns, 1) + bad.shape[1:] + (1,)),
+                                                          xp.zeros((), raw.dtype), raw.reshape((ns, 16) + shape[1:]))
+        if xp is not np:
+            xp.cuda.get_current_stream().synchronize()
+        times.append(time.perf_counter() - t0)
+    t = np.array(times[2:])
+    frac = float(bad.mean()) if hasattr(bad, "mean") else 0.0
+    return {"median_s": float(np.median(t)), "min_s": float(t.min()), "frames": n, "nchan": nchan,
+            "flagged_fraction_noise": float(frac if xp is np else bad.mean().get())}
+
+
+def _standalone_flagger(cls, xp, nchan, nst):
+    """An RFIFlagBlock's detection state without a pipeline (its on_sequence's fields, for noise data)."""
+    fb = object.__new__(cls)
+    fb.far, fb.block_frames, fb.impulse_frames, fb.impulse_sigma, fb.spread = 1e-3, 1024, 16, 6.0, 0.1
+    fb.flag_stats = {"untested": 0}
+    fb._xp = xp
+    fb._lay = {"dtype": "ci4", "nchan": nchan}
+    fb._static = xp.zeros(nchan, bool)
+    fb._bits = 4
+    fb._flagged_stands = np.zeros(nst, bool)
+    fb._live = xp.ones(nst, bool)
+    return fb
+
+
+if __name__ == "__main__":
+    main()
