@@ -114,6 +114,7 @@ class RFIFlagBlock(bfp.TransformBlock):
         self._bits = 4 if lay["dtype"] == "ci4" else None
         self._flagged_stands = lay["flags"].any(axis=1)            # the station's own: never counted here
         self._live = self._xp.asarray(~self._flagged_stands)
+        self._nlive = int((~self._flagged_stands).sum())
         self._tag0, self._frame = int(lay["time_tag"]), 0
         if self.weights is not None:
             self.weights.begin(self._tag0)
@@ -238,13 +239,17 @@ class RFIFlagBlock(bfp.TransformBlock):
                 out[:n].reshape(shp)[...] = xp.where(bad.reshape((ns, 1) + bad.shape[1:] + tail),
                                                      xp.zeros((), raw.dtype), raw.reshape(shp))
             else:
-                per_frame = xp.repeat(bad, xp.asarray(frames), axis=0)
+                per_frame = xp.repeat(bad, _repeats(frames), axis=0)
                 out[:n] = xp.where(per_frame.reshape(per_frame.shape + tail), xp.zeros((), raw.dtype), raw)
             live = self._live[None, None, :]
-            fr = xp.asarray(frames)[:, None, None]
+            fr = xp.asarray(frames)
             used = ((~bad) & live).sum(axis=2)                                   # (ns, nchan) stands left
-            counts = xp.stack([((masks[r] & live) * fr).sum() for r in REASONS] + [((bad & live) * fr).sum()])
-            per_chan = ((bad & live) * fr).sum(axis=(0, 2))
+            # counts per short block, then weighted by its frames (no frame-sized arrays)
+            per_block = xp.stack([(masks[r] & live).sum(axis=(1, 2)) for r in REASONS]
+                                 + [(bad & live).sum(axis=(1, 2))])              # (nreason + 1, ns)
+            counts = (per_block * fr[None]).sum(axis=1)
+            per_chan = (self._nlive - used) * fr[:, None]
+            per_chan = per_chan.sum(axis=0)
             nl = int((~self._flagged_stands).sum())
             partial = ((used > 0) & (used < nl)).any()
             wholly = (used == 0).any()
@@ -331,7 +336,7 @@ class FlagWeights:
         whether any (short block, channel) kept nothing."""
         xp = get_xp(used)
         u = (used.astype(xp.float64) / max(1, nlive)) ** 2
-        u = xp.repeat(u, xp.asarray(frames), axis=0)                          # (n, nchan) per frame
+        u = xp.repeat(u, _repeats(frames), axis=0)                            # (n, nchan) per frame
         n = int(u.shape[0])
         cs = xp.concatenate([xp.zeros((1,) + u.shape[1:]), xp.cumsum(u, axis=0)])
         A = self.A
@@ -386,6 +391,13 @@ class FlagWeights:
             return None
         xp = get_xp(mine[0][1])
         return xp.stack([c[1] for c in mine])
+
+
+def _repeats(frames):
+    """``repeats`` for ``xp.repeat`` from (ns,) host counts: an int where all are equal (CuPy takes an int
+    or a list, not an array)."""
+    frames = np.asarray(frames)
+    return int(frames[0]) if frames.size and (frames == frames[0]).all() else [int(f) for f in frames]
 
 
 def _host(a):

@@ -6,7 +6,8 @@ time per gulp is set against the imager's time for the same 1,024 frames, from t
 run in the same call (``bf-epic run pipelines/lwasv_sim_wholeband.yaml`` with flagging off and on; the
 runs' steady time per second of data from two run lengths, as bench_calibration's cost case does).
 
-usage: python tools/bench/bench_rfi.py [--device gpu|cpu] [--nchan 784] [--repeat 20] [--json PATH]
+usage: python tools/bench/bench_rfi.py [--device gpu|cpu] [--nchan 784] [--repeat 20] [--pipeline]
+       [--short-s 10] [--long-s 30] [--json PATH]
 """
 from __future__ import annotations
 
@@ -26,16 +27,47 @@ def main():
     ap.add_argument("--nchan", type=int, default=784)
     ap.add_argument("--repeat", type=int, default=20)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--pipeline", action="store_true",
+                    help="also run the whole-band pipeline with flagging off and on (GPU; two run lengths each)")
+    ap.add_argument("--short-s", type=float, default=10.0)
+    ap.add_argument("--long-s", type=float, default=30.0)
     args = ap.parse_args()
     rows = {"flagger": time_flagger(args)}
     r = rows["flagger"]
     print(f"flagger, {args.nchan} channels x 256 stands x 2 pols, 1,024 frames ({args.device}): "
           f"{1e3 * r['median_s']:.3f} ms a gulp (min {1e3 * r['min_s']:.3f}), "
           f"{r['median_s'] / 0.04096:.4f} s per s of data")
+    if args.pipeline:
+        rows["pipeline"] = pipeline_cost(args)
     if args.json:
         write_json(args.json, {"benchmark": "bench_rfi", "date": utc_now(), "machine": machine(args.device),
                                "device": args.device, "cases": rows})
         print(f"wrote {args.json}")
+
+
+def pipeline_cost(args):
+    """`bf-epic run pipelines/lwasv_sim_wholeband.yaml` (no search, no files) with flagging off and on, each
+    for ``--short-s`` and ``--long-s`` seconds of data: the steady time per second of data is the
+    difference of the walls over the difference of data (start-up left out). A first short run with
+    flagging compiles every kernel and is thrown away."""
+    from bench_calibration import cli, sets
+    yaml = Path(__file__).resolve().parents[2] / "pipelines" / "lwasv_sim_wholeband.yaml"
+    base = {"device": "gpu", "imager.search": None, "output.cube": None, "output.fits": False,
+            "output.png": False, "output.integrate": None, "output.dir": "/tmp/bench_rfi_out"}
+    cli("run", str(yaml), *sets({**base, "flagging.enabled": "on", "source.duration_s": args.short_s}))
+    out = {}
+    for name, on in (("flagging off", "off"), ("flagging on", "on")):
+        walls = {}
+        for dur in (args.short_s, args.long_s):
+            _, summ = cli("run", str(yaml), *sets({**base, "flagging.enabled": on, "source.duration_s": dur}))
+            walls[dur] = summ["wall_s"]
+        steady = (walls[args.long_s] - walls[args.short_s]) / (args.long_s - args.short_s)
+        out[name] = {"walls": {str(k): v for k, v in walls.items()}, "steady_s_per_data_s": steady}
+        print(f"pipeline, whole band, {name}: {args.short_s:g} s of data in {walls[args.short_s]:.2f} s, "
+              f"{args.long_s:g} s in {walls[args.long_s]:.2f} s: steady {steady:.4f} s per s of data")
+    out["added_fraction"] = out["flagging on"]["steady_s_per_data_s"] / out["flagging off"]["steady_s_per_data_s"] - 1
+    print(f"pipeline: flagging adds {100 * out['added_fraction']:.1f}% to the whole-band pipeline's steady time")
+    return out
 
 
 def time_flagger(args):
@@ -80,6 +112,7 @@ def _standalone_flagger(cls, xp, nchan, nst):
     fb._bits = 4
     fb._flagged_stands = np.zeros(nst, bool)
     fb._live = xp.ones(nst, bool)
+    fb._nlive = nst
     return fb
 
 
