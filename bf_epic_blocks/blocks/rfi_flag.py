@@ -242,14 +242,10 @@ class RFIFlagBlock(bfp.TransformBlock):
                 per_frame = xp.repeat(bad, _repeats(frames), axis=0)
                 out[:n] = xp.where(per_frame.reshape(per_frame.shape + tail), xp.zeros((), raw.dtype), raw)
             live = self._live[None, None, :]
-            fr = xp.asarray(frames)
+            fr = xp.asarray(frames)[:, None, None]
             used = ((~bad) & live).sum(axis=2)                                   # (ns, nchan) stands left
-            # counts per short block, then weighted by its frames (no frame-sized arrays)
-            per_block = xp.stack([(masks[r] & live).sum(axis=(1, 2)) for r in REASONS]
-                                 + [(bad & live).sum(axis=(1, 2))])              # (nreason + 1, ns)
-            counts = (per_block * fr[None]).sum(axis=1)
-            per_chan = (self._nlive - used) * fr[:, None]
-            per_chan = per_chan.sum(axis=0)
+            counts = xp.stack([((masks[r] & live) * fr).sum() for r in REASONS] + [((bad & live) * fr).sum()])
+            per_chan = ((bad & live) * fr).sum(axis=(0, 2))
             nl = int((~self._flagged_stands).sum())
             partial = ((used > 0) & (used < nl)).any()
             wholly = (used == 0).any()

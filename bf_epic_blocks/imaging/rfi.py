@@ -521,12 +521,10 @@ def broadband_flags(power, threshold_sigma=6.0, *, per_input=False):
     """Short blocks holding a broadband impulse: power raised across the band at once.
 
     power : (nblock, nchan, ninput...) power per short block (e.g. S1 of :func:`power_sums` with m = 16),
-        channel and input. Band-wide (``per_input=False``): each channel's power, summed over the inputs,
-        is divided by its median over the nblock blocks, and a block's statistic is the median of that
-        ratio over the channels: a carrier switching on in a few channels leaves it alone, a spark across
-        the band raises it. Per input: each (channel, input)'s power over its mean across the blocks,
-        capped at 2, averaged over the channels (a carrier switching on in one channel moves it by at most
-        1/nchan; a spark raises every channel). A block is flagged where the statistic exceeds its median over
+        channel and input. Each channel's power (summed over the inputs, or per input with
+        ``per_input``) is divided by its median over the nblock blocks, and a block's statistic is the
+        median of that ratio over the channels: a carrier switching on in a few channels leaves it alone,
+        a spark across the band raises it. A block is flagged where the statistic exceeds its median over
         the blocks + threshold_sigma * 1.4826 * MAD (1.4826 MAD is the standard deviation of Gaussian
         scatter; the reference holds while fewer than half the blocks are hit).
     Returns bool (nblock,) or (nblock, ninput...) with per_input, on power's device. Needs nblock >= 3.
@@ -538,17 +536,8 @@ def broadband_flags(power, threshold_sigma=6.0, *, per_input=False):
     if not threshold_sigma > 0:
         raise ValueError(f"threshold_sigma must be > 0, got {threshold_sigma!r}")
     power = xp.asarray(power, dtype=xp.float64)
-    if per_input:
-        # one stand's own spikes: each (channel, input)'s power over its mean across the blocks, capped at
-        # twice (a carrier that switches on in one channel moves the mean over channels by at most
-        # 1/nchan), averaged over the channels: elementwise and one mean, no sort over channels
-        ref = power.mean(axis=0)
-        ratio = xp.minimum(power / xp.where(ref > 0, ref, 1.0), 2.0)
-        total = xp.where(ref > 0, ratio, 1.0).mean(axis=1)                              # (nblock, ninput...)
-        med = xp.median(total, axis=0)
-        mad = xp.median(xp.abs(total - med), axis=0)
-        return total > med + threshold_sigma * 1.4826 * mad
-    power = power.reshape(power.shape[0], power.shape[1], -1).sum(axis=2)              # (nblock, nchan)
+    if not per_input:
+        power = power.reshape(power.shape[0], power.shape[1], -1).sum(axis=2)          # (nblock, nchan)
     ref = xp.median(power, axis=0)
     live = ref > 0                                                   # channels (and inputs) with any power
     ratio = xp.where(live, power / xp.where(live, ref, 1.0), xp.nan)
