@@ -429,7 +429,7 @@ def expected_sk(mean_power, m, bits=4, *, measured=True):
     measured=True (what :func:`sk_flags` uses): the SK's moments given that the block's own S1 / m is
     mean_power (a block's SK and its power are correlated once clipping starts, and its thresholds follow
     its own measured power); measured=False: the moments for noise whose expected power E[|x|^2] is
-    mean_power. The noise's sigma is found by interpolation in a fine table of E[P](sigma), and the SK's
+    mean_power. The noise's sigma is found by interpolation in a fine table of E[P] against sigma, and the SK's
     moments there by the delta method on the exact moments of the quantised power (docs/design/rfi.md;
     an expansion in 1/m: m >= 64 is required). float64 arrays shaped like mean_power, on its device;
     powers beyond the table (sigma < 0.3 or > 200) take its ends' values.
