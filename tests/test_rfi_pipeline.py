@@ -68,10 +68,10 @@ def sky():
     return dict(clean=ci4(clean), dirty=ci4(clean + rfi), noise=ci4(noise_only), truth=truth, hdr=hdr)
 
 
-def _flag(X, hdr, space="system"):
+def _flag(X, hdr, space="system", **kw):
     with bfp.Pipeline() as p:
         src = ArraySourceBlock(X, hdr, gulp_nframe=GULP, space=space)
-        fb = RFIFlagBlock(src, far=1e-3, block_frames=M, impulse_frames=ACC)
+        fb = RFIFlagBlock(src, far=1e-3, block_frames=M, impulse_frames=ACC, **kw)
         sink = ArraySinkBlock(fb)
         p.run()
     out = sink.result(0)
@@ -105,7 +105,10 @@ def test_the_flagger_finds_the_interference_the_test_chose(sky, xp):
 
 
 def test_pure_4bit_noise_is_left_alone(sky):
-    flagged, fb = _flag(sky["noise"], sky["hdr"])
+    seen = []                                    # the interval reports: every 0.1 s of data (2,500 frames)
+    flagged, fb = _flag(sky["noise"], sky["hdr"], report=lambda b: seen.append(b.summary()["stand_samples_seen"]),
+                        report_every_s=0.1)
+    assert len(seen) == 2 and seen[0] < seen[1] == fb.summary()["stand_samples_seen"]   # at 4,096 and 8,192 frames
     assert _clean_blocks_flagged(flagged, np.zeros_like(sky["truth"])) <= 0.005
     assert fb.summary()["fraction_flagged"] <= 0.005
 
@@ -241,6 +244,7 @@ def test_bad_flagging_input_is_a_clear_error(tmp_path):
     with pytest.raises(Exception, match="covers every channel"):
         run(load_config(base + "flagging: {enabled: on, bad_freq_mhz: [[10, 100]]}\n"), show_progress=False)
     # a simulated sky with flagging on: the run's summary and files say what was flagged
-    summ = run(load_config(base + "flagging: {enabled: on, bad_freq_mhz: [[74.02, 74.03]]}\n"), show_progress=False)
+    summ = run(load_config(base + "flagging: {enabled: on, report_s: 0.01, bad_freq_mhz: [[74.02, 74.03]]}\n"),
+               show_progress=False)
     assert summ["flagging"]["static_channels"] == 1 and summ["flagging"]["by_reason"]["static"] == 0.25
     assert any(f.endswith("f_flags.ecsv") for f in summ["files"]) and any(f.endswith("f_flags.png") for f in summ["files"])

@@ -57,6 +57,8 @@ class RFIFlagBlock(bfp.TransformBlock):
     impulse_sigma : threshold of the impulse detector in robust standard deviations.
     bad_freq_ranges : [(lo_hz, hi_hz), ...] always flagged.
     weights : a :class:`FlagWeights` the block fills for the imager that reads it (None: none).
+    report, report_every_s : a callable ``report(block)`` run every ``report_every_s`` seconds of data (the
+        runner writes the occupancy table and waterfall so far, so a live run's are never older than that).
     spread : where more than this fraction of the live stands is flagged in a (frame, channel), every
         stand is (reason ``spread``): the interference is the array's, and an image of part of the array
         would be (n / N_A)^2 of the whole's.
@@ -65,7 +67,7 @@ class RFIFlagBlock(bfp.TransformBlock):
     """
 
     def __init__(self, iring, far=1e-3, block_frames=1024, impulse_frames=16, impulse_sigma=6.0,
-                 bad_freq_ranges=(), spread=0.1, weights=None, *args, **kwargs):
+                 bad_freq_ranges=(), spread=0.1, weights=None, report=None, report_every_s=60.0, *args, **kwargs):
         super().__init__(iring, *args, **kwargs)
         if not 0.0 < float(far) < 1.0:
             raise ValueError(f"RFIFlagBlock: far (false-alarm rate) must be in (0, 1), got {far!r}")
@@ -81,6 +83,7 @@ class RFIFlagBlock(bfp.TransformBlock):
                              f"({impulse_frames})")
         self.far, self.block_frames, self.spread = float(far), int(block_frames), float(spread)
         self.weights = weights
+        self.report, self.report_every_s, self._frames_since_report = report, float(report_every_s), 0
         self.impulse_frames, self.impulse_sigma = int(impulse_frames), float(impulse_sigma)
         self.bad_freq_ranges = [tuple(map(float, r)) for r in bad_freq_ranges]
         self.flag_stats = {"seen": 0, "flagged": dict.fromkeys(REASONS, 0), "flagged_any": 0, "untested": 0,
@@ -266,6 +269,13 @@ class RFIFlagBlock(bfp.TransformBlock):
         self._chan_flagged += per_chan.astype(np.int64)
         self._chan_seen += n * nlive
         self._add_row(per_chan / max(1, n * nlive), n)
+        self._frames_since_report += n
+        if self.report is not None and self._frames_since_report * self._lay["dt_s"] >= self.report_every_s:
+            self._frames_since_report = 0
+            try:                    # a live run's table and waterfall so far, rewritten in place
+                self.report(self)
+            except Exception as e:  # noqa: BLE001 - a report must not stop the flagging
+                log.warning("RFIFlagBlock: the interval report was not written: %s", e)
         if counts[-1]:
             log.debug("RFIFlagBlock: gulp %d: %.3f%% of the stand-samples flagged (%s)", st["gulps"],
                       100.0 * counts[-1] / max(1, n * self._lay["nchan"] * nlive),

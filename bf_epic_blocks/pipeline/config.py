@@ -254,6 +254,9 @@ FLAGGING = Section({
                          doc="A short block whose power, against each channel's median and taken across the "
                              "band, exceeds the gulp's by this many robust sigmas is an impulse, flagged across "
                              "the band (every stand, or the one stand that shows it)."),
+    "report_s": Key(Float(0.0, lo_open=True), 60.0,
+                    doc="Seconds of data between rewrites of the occupancy table and waterfall "
+                        "(`<prefix>_flags.ecsv`, `.png`) while a run goes on; the last is written at its end."),
     "bad_freq_mhz": Key(FreqRanges(), [],
                         doc="Frequencies always dropped: [lo, hi] ranges in MHz, or single frequencies "
                             "(+- 100 kHz, as Orville's list)."),
@@ -261,7 +264,8 @@ FLAGGING = Section({
                          doc="An Orville `bad_freq.txt`: one frequency in MHz per line (+- 100 kHz), "
                              "'#' comments; 'lo hi' ranges are also read."),
 }, post=_flagging_post,
-    what="a flagging mapping {enabled, far, block_frames, impulse_frames, impulse_sigma, bad_freq_mhz, bad_freq_file}")
+    what="a flagging mapping {enabled, far, block_frames, impulse_frames, impulse_sigma, report_s, bad_freq_mhz, "
+         "bad_freq_file}")
 
 
 def _station_post(out, given, path, ctx):

@@ -423,8 +423,17 @@ def _flagging_stage(cfg, feed):
         ranges += parse_bad_freq_list(Path(fl["bad_freq_file"]))
     weights = FlagWeights(cfg["imager"]["accumulate_frames"], track_empty=bool(cfg["imager"].get("search"))) \
         if cfg["imager"]["kind"] == "dft" else None
+    outdir = cfg["output"]["dir"]
+    report = None
+    if outdir is not None:
+        def report(fb):
+            from ..io.flagreport import write_flag_report
+            wf, row_frames = fb.waterfall()
+            write_flag_report(outdir, cfg["output"]["prefix"], fb._lay["freq_hz"], fb.summary(), wf,
+                              row_frames * fb._lay["dt_s"], title=f"{cfg['name']}: interference flags so far")
     return RFIFlagBlock(feed, far=fl["far"], block_frames=fl["block_frames"], impulse_frames=fl["impulse_frames"],
-                        impulse_sigma=fl["impulse_sigma"], bad_freq_ranges=ranges, weights=weights), weights
+                        impulse_sigma=fl["impulse_sigma"], bad_freq_ranges=ranges, weights=weights, report=report,
+                        report_every_s=fl["report_s"]), weights
 
 
 def _flag_report(cfg, fb, outdir, summary):
