@@ -107,3 +107,18 @@ def test_inputs_found_or_the_pipeline_skipped_with_a_reason(tmp_path):
     ov, sender, why = gpu_check.resolve_input(yml, cfg, data)
     assert why is None and ov == [f"source.path={(data / 'x.dat').resolve()}"]
     assert gpu_check.resolve_input(yml, {"source": {"kind": "simulated"}}, data) == ([], None, None)
+
+
+def test_flag_tables_compare_by_each_channels_fraction(tmp_path):
+    from astropy.table import Table
+    g, c = tmp_path / "gpu", tmp_path / "cpu"
+    g.mkdir()
+    c.mkdir()
+    f = 74.0 + 0.025 * np.arange(4)
+    Table({"freq_mhz": f, "flagged_fraction": [0.0, 0.25, 0.001, 0.0]}).write(c / "x_flags.ecsv", format="ascii.ecsv")
+    Table({"freq_mhz": f, "flagged_fraction": [0.0, 0.25, 0.0012, 0.0]}).write(g / "x_flags.ecsv", format="ascii.ecsv")
+    assert gpu_check.compare_dirs(g, c)["x_flags.ecsv"]["ok"]
+    Table({"freq_mhz": f, "flagged_fraction": [0.0, 0.20, 0.001, 0.0]}).write(g / "x_flags.ecsv", format="ascii.ecsv",
+                                                                             overwrite=True)
+    res = gpu_check.compare_dirs(g, c)["x_flags.ecsv"]
+    assert not res["ok"] and res["max_fraction_diff"] == pytest.approx(0.05)

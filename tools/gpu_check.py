@@ -158,6 +158,18 @@ def compare_candidates(gpu, cpu):
     return res
 
 
+def compare_flags(g, c, tol=1e-3):
+    """Interference flag tables (``<prefix>_flags.ecsv``): the flagged fraction of each channel within
+    ``tol`` (the GPU's and the CPU's thresholds are the same tables; a block at a threshold may fall
+    either side of it by a rounding)."""
+    from astropy.table import Table
+    tg, tc = Table.read(g, format="ascii.ecsv"), Table.read(c, format="ascii.ecsv")
+    if len(tg) != len(tc):
+        return {"ok": False, "problem": f"{len(tg)} channels on the GPU, {len(tc)} on the CPU"}
+    d = float(np.max(np.abs(np.asarray(tg["flagged_fraction"]) - np.asarray(tc["flagged_fraction"])), initial=0.0))
+    return {"ok": d <= tol, "kind": "flag table", "max_fraction_diff": d, "allowed": tol}
+
+
 def compare_dirs(gdir, cdir, tol=TOL_FP32):
     """Per-file comparison of two output folders: {relative path: result dict}; images to ``tol``."""
     files = sorted({p.relative_to(cdir) for p in cdir.rglob("*") if p.is_file()} |
@@ -171,6 +183,9 @@ def compare_dirs(gdir, cdir, tol=TOL_FP32):
         name = rel.name
         if "candidates" in name and name.endswith((".ecsv", ".fits")):
             out[str(rel)] = compare_candidates(g, c)
+            continue
+        if name.endswith("_flags.ecsv"):
+            out[str(rel)] = compare_flags(g, c)
             continue
         if name.endswith(".fits"):
             ga, ca = _fits_arrays(g), _fits_arrays(c)
