@@ -248,3 +248,9 @@ def test_bad_flagging_input_is_a_clear_error(tmp_path):
                show_progress=False)
     assert summ["flagging"]["static_channels"] == 1 and summ["flagging"]["by_reason"]["static"] == 0.25
     assert any(f.endswith("f_flags.ecsv") for f in summ["files"]) and any(f.endswith("f_flags.png") for f in summ["files"])
+    # each FITS image records the fraction of its stand-samples flagged: the listed channel, 1 of 4
+    summ = run(load_config(base.replace("fits: false", "fits: true")
+                           + "flagging: {enabled: on, bad_freq_mhz: [[74.02, 74.03]]}\n"), show_progress=False)
+    from astropy.io import fits
+    images = [f for f in summ["files"] if f.endswith(".fits")]
+    assert images and all(fits.getheader(f)["FLAGFRAC"] == pytest.approx(0.25, abs=0.01) for f in images)

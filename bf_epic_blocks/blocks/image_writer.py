@@ -65,7 +65,9 @@ class ImageWriterBlock(bfp.SinkBlock):
                 pipeline's start); at most ``MAX_PENDING`` integrations wait for it, and each sequence's
                 files are all written when the sequence ends. Call :meth:`close` when the pipeline is done.
     ``written`` lists the files written. Each file records, as NONFINIT, the non-finite voltage samples
-    zeroed upstream in its integration (from the tally the header's ``nonfinite`` names; 0 without one).
+    zeroed upstream in its integration (from the tally the header's ``nonfinite`` names; 0 without one),
+    and after interference flagging, as FLAGFRAC, the fraction of its stand-samples flagged (from the
+    tally the header's ``flagging`` names, by gulp).
     """
 
     #: integrations handed to the helper process and not yet written, at most
@@ -252,7 +254,9 @@ class ImageWriterBlock(bfp.SinkBlock):
             self.grid = lm_grid(pix["size"], cell=pix["cell"])
         self.int_ticks = int(hdr["imager"]["integration_ticks"])
         from .nonfinite import get_tally
+        from .rfi_flag import get_flag_tally
         self.tally = get_tally(hdr)
+        self.flag_tally = get_flag_tally(hdr)
         self.acc = int(hdr["imager"].get("accumulate_frames", 1))
         self.seq_index = getattr(self, "seq_index", -1) + 1
         self.frames_in_seq = 0
@@ -273,6 +277,11 @@ class ImageWriterBlock(bfp.SinkBlock):
             stem = os.path.join(self.outdir, f"{self.prefix}_s{self.seq_index:02d}_i{j:04d}")
             frame = data[k]
             common["nonfinite"] = self.tally.count(j * self.acc, (j + 1) * self.acc) if self.tally else 0
+            if self.flag_tally is not None:
+                fpi = max(1, self.int_ticks // self.flag_tally.ticks_per_frame)    # frames in this image
+                frac = self.flag_tally.fraction(j * fpi, (j + 1) * fpi)
+                if frac is not None:
+                    common["extra_header"] = {"FLAGFRAC": (round(frac, 6), "stand-samples flagged (interference)")}
             if self.grid is not None:
                 runs = _even_runs(self.freq)
                 width = float(self.freq[1] - self.freq[0]) if len(self.freq) > 1 else None

@@ -125,9 +125,11 @@ class RFIFlagBlock(bfp.TransformBlock):
             self._chan_flagged = np.zeros(nchan, np.int64)
             self._chan_seen = 0
         ohdr = derived_header(ihdr)
+        self.tally = new_flag_tally(lay["ticks_per_frame"])
         ohdr["flagging"] = {"far": self.far, "block_frames": self.block_frames,
                             "impulse_frames": self.impulse_frames, "impulse_sigma": self.impulse_sigma,
-                            "static_channels": int(static.sum())}
+                            "static_channels": int(static.sum()), "tally": self.tally.id,
+                            "ticks_per_frame": int(lay["ticks_per_frame"])}
         log.info("RFIFlagBlock %s: spectral kurtosis in blocks of %d frames (false-alarm rate %g, %s noise law), "
                  "impulses in %d-frame blocks at %g sigma, %d channels on the static list",
                  ihdr.get("name"), self.block_frames, self.far, "4-bit" if self._bits else "Gaussian",
@@ -266,6 +268,7 @@ class RFIFlagBlock(bfp.TransformBlock):
             st["flagged"][r] += int(c)
         st["flagged_any"] += int(counts[-1])
         st["gulps"] += 1
+        self.tally.add(first, n, counts[-1], n * self._lay["nchan"] * nlive)
         self._chan_flagged += per_chan.astype(np.int64)
         self._chan_seen += n * nlive
         self._add_row(per_chan / max(1, n * nlive), n)
@@ -312,6 +315,62 @@ class RFIFlagBlock(bfp.TransformBlock):
                 "stand_samples_seen": st["seen"], "stand_samples_flagged": st["flagged_any"],
                 "untested": st["untested"], "static_channels": int(self._static_host.sum()),
                 "channel_fraction": (self._chan_flagged / max(1, self._chan_seen)).tolist()}
+
+
+class FlagTally:
+    """The flagged and the seen stand-samples of each gulp of one sequence (host counts the flagger has
+    anyway), so that the image writer can record each image's fraction (FITS keyword FLAGFRAC). Gulp
+    granularity: an image shorter than a gulp gets its gulp's fraction. The last ``MAX_ENTRIES`` gulps
+    are kept (the writer lags the flagger by a few)."""
+
+    MAX_ENTRIES = 65536
+
+    def __init__(self, tally_id, ticks_per_frame):
+        import collections
+        import threading
+        self.id, self.ticks_per_frame = tally_id, int(ticks_per_frame)
+        self._entries = collections.deque(maxlen=self.MAX_ENTRIES)     # (frame0, nframe, flagged, seen)
+        self._lock = threading.Lock()
+
+    def add(self, frame0, nframe, flagged, seen):
+        with self._lock:
+            self._entries.append((int(frame0), int(nframe), float(flagged), float(seen)))
+
+    def fraction(self, f0, f1):
+        """Fraction of the stand-samples of frames [f0, f1) flagged (gulps weighted by their overlap), or
+        None where no gulp of those frames is known."""
+        flagged = seen = 0.0
+        with self._lock:
+            for a, n, fl, se in self._entries:
+                over = min(a + n, f1) - max(a, f0)
+                if over > 0:
+                    flagged += fl * over / n
+                    seen += se * over / n
+        return flagged / seen if seen > 0 else None
+
+
+_TALLIES: dict = {}
+_TALLY_IDS = __import__("itertools").count(1)
+_TALLY_LOCK = __import__("threading").Lock()
+#: tallies kept alive at once (oldest dropped first): a long run makes one per sequence
+MAX_TALLIES = 64
+
+
+def new_flag_tally(ticks_per_frame):
+    """A :class:`FlagTally` registered under a new id (put in the header's ``flagging.tally``)."""
+    with _TALLY_LOCK:
+        t = FlagTally(f"flags-{next(_TALLY_IDS)}", ticks_per_frame)
+        _TALLIES[t.id] = t
+        while len(_TALLIES) > MAX_TALLIES:
+            _TALLIES.pop(next(iter(_TALLIES)))
+    return t
+
+
+def get_flag_tally(header):
+    """The :class:`FlagTally` a sequence header names (``header['flagging']['tally']``), or None."""
+    info = (header or {}).get("flagging") or {}
+    with _TALLY_LOCK:
+        return _TALLIES.get(info.get("tally"))
 
 
 class FlagWeights:
