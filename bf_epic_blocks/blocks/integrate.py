@@ -109,15 +109,15 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         while pos < n:
             take = min(self.nimage - self._n, n - pos)
             part = x[pos:pos + take]
-            w = None
+            live = None
             if self._flagging:
                 # images (or channel images) wholly flagged are left out of the time mean
-                live = ((part > 0) | (part < 0)).reshape(take, part.shape[1], -1).any(axis=2)   # (take, C)
+                live = self._live(part)                                                        # (take, C)
                 w = live.any(axis=1, keepdims=True) if self.average_channels else live
                 w = w.sum(axis=0).astype(xp.float64)
                 self._w = w if self._w is None else self._w + w
             if self.average_channels:
-                part = self._band_mean(part)
+                part = self._band_mean(part, live)
             s = part.sum(axis=0, dtype=xp.float64)
             self._sum = s if self._sum is None else self._sum + s
             self._n += take
@@ -135,16 +135,22 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         self.int_stats["images_out"] += nout
         return nout
 
-    def _band_mean(self, x):
+    @staticmethod
+    def _live(x):
+        """bool (n, C): the channel images of x (n, C, ...) that imaged anything. A channel whose voltages
+        were all flagged images as zeros (NaN below the horizon; NaN compares False)."""
+        return ((x > 0) | (x < 0)).reshape(x.shape[0], x.shape[1], -1).any(axis=2)
+
+    def _band_mean(self, x, live=None):
         """The channel mean of x (n, C, ...); after interference flagging (the header's ``flagging``) the mean
-        of the channels that imaged anything: a channel whose voltages were all flagged images as zeros
-        (NaN below the horizon), which would pull the mean down. An image with every channel flagged is 0."""
+        of the channels that imaged anything (``live``, :meth:`_live`), since a wholly flagged channel's
+        zeros would pull the mean down. An image with every channel flagged is 0."""
         m = channel_mean(x)
         if not self._flagging:
             return m
         xp = get_xp(x)
         n, C = x.shape[0], x.shape[1]
-        live = ((x > 0) | (x < 0)).reshape(n, C, -1).any(axis=2)                  # NaN compares False
+        live = self._live(x) if live is None else live
         used = live.sum(axis=1)
         self.int_stats["channel_images_flagged"] += int(n * C - int(used.sum()))
         scale = xp.where(used > 0, C / xp.maximum(used, 1), 0.0).astype(xp.float64)

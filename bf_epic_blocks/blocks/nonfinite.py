@@ -22,7 +22,8 @@ from ..imaging.sanitize import zero_nonfinite
 
 log = logging.getLogger(__name__)
 
-__all__ = ["NonfiniteTally", "get_tally", "is_float_dtype", "new_tally", "zero_and_count"]
+__all__ = ["NonfiniteTally", "get_tally", "is_float_dtype", "lookup_tally", "new_tally", "register_tally",
+           "zero_and_count"]
 
 _TALLIES: dict[str, "NonfiniteTally"] = {}
 _LOCK = threading.Lock()
@@ -73,21 +74,32 @@ def is_float_dtype(dtype_str: str) -> bool:
     return str(dtype_str).startswith(("f", "cf"))
 
 
-def new_tally(owner: str, nstand: int, npol: int) -> NonfiniteTally:
+def register_tally(prefix: str, make):
+    """``make(tally_id)``, kept under a new id ``<prefix>-<n>`` that a sequence header carries, so that
+    blocks downstream in the same process find it (:func:`lookup_tally`): any per-sequence count a block
+    hands on (non-finite samples here, interference flags in :mod:`.rfi_flag`)."""
     with _LOCK:
-        tid = f"{owner}-{next(_IDS)}"
-        t = NonfiniteTally(tid, nstand, npol, owner)
+        tid = f"{prefix}-{next(_IDS)}"
+        t = make(tid)
         _TALLIES[tid] = t
         while len(_TALLIES) > MAX_TALLIES:
             _TALLIES.pop(next(iter(_TALLIES)))
         return t
 
 
+def lookup_tally(tally_id):
+    """The tally registered under ``tally_id``, or None (never registered, or dropped as old)."""
+    with _LOCK:
+        return _TALLIES.get(tally_id)
+
+
+def new_tally(owner: str, nstand: int, npol: int) -> NonfiniteTally:
+    return register_tally(owner, lambda tid: NonfiniteTally(tid, nstand, npol, owner))
+
+
 def get_tally(header) -> NonfiniteTally | None:
     """The tally a sequence header names (``header['nonfinite']['tally']``), or None."""
-    info = (header or {}).get("nonfinite") or {}
-    with _LOCK:
-        return _TALLIES.get(info.get("tally"))
+    return lookup_tally(((header or {}).get("nonfinite") or {}).get("tally"))
 
 
 def zero_and_count(x, tally: NonfiniteTally, frame0: int, who: str, seq_name):

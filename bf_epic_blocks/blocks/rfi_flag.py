@@ -30,10 +30,11 @@ import numpy as np
 
 from ..imaging import rfi
 from ..imaging._xp import get_xp
-from . import _compat
 from ..runtime.dtypes import ci4_bytes
+from . import _compat
 from ._compat import bfp, span_array, unpack_complex
 from .headers import derived_header, efield_layout
+from .nonfinite import lookup_tally, register_tally
 
 log = logging.getLogger(__name__)
 
@@ -222,41 +223,45 @@ class RFIFlagBlock(bfp.TransformBlock):
         # is flagged for every stand, so that an image sums no small part of the array; a few stands' own
         # interference stays on those stands (the imager rescales those images, see FlagWeights)
         per_stand = (sk_low | sk_high | masks["impulse-stand"]) & self._live[None, None, :]
-        nlive = max(1, int((~self._flagged_stands).sum()))
-        wide = per_stand.sum(axis=2) > self.spread * nlive                   # (ns, nchan)
+        wide = per_stand.sum(axis=2) > self.spread * max(1, self._nlive)     # (ns, nchan)
         masks["spread"] = xp.broadcast_to(wide[:, :, None], (ns, nchan, nstand)) & ~per_stand
         bad = masks["static"] | per_stand | masks["impulse"] | masks["spread"]
         return bad, masks, frames
+
+    def zero(self, raw, out, bad, frames):
+        """out[:n] = raw with the stand-samples of ``bad`` (:meth:`flags`) zeroed (both pols)."""
+        xp = self._xp
+        n, a, ns = int(raw.shape[0]), self.impulse_frames, bad.shape[0]
+        tail = (1,) * (raw.ndim - 3)
+        if n % a == 0:                      # whole short blocks: the flags broadcast over each block's frames
+            shp = (ns, a) + tuple(raw.shape[1:])
+            out[:n].reshape(shp)[...] = xp.where(bad.reshape((ns, 1) + bad.shape[1:] + tail),
+                                                 xp.zeros((), raw.dtype), raw.reshape(shp))
+        else:
+            per_frame = xp.repeat(bad, _repeats(frames), axis=0)
+            out[:n] = xp.where(per_frame.reshape(per_frame.shape + tail), xp.zeros((), raw.dtype), raw)
 
     def on_data(self, ispan, ospan):
         raw = self._plain(span_array(ispan))
         out = self._plain(span_array(ospan))
         n = int(raw.shape[0])
         xp = self._xp
-        a = self.impulse_frames
         first = getattr(ispan, "frame_offset", self._frame)
         with _compat.stream_context():
             bad, masks, frames = self.flags(raw)
-            ns = bad.shape[0]
-            tail = (1,) * (raw.ndim - 3)
-            if n % a == 0:
-                shp = (ns, a) + tuple(raw.shape[1:])
-                out[:n].reshape(shp)[...] = xp.where(bad.reshape((ns, 1) + bad.shape[1:] + tail),
-                                                     xp.zeros((), raw.dtype), raw.reshape(shp))
-            else:
-                per_frame = xp.repeat(bad, _repeats(frames), axis=0)
-                out[:n] = xp.where(per_frame.reshape(per_frame.shape + tail), xp.zeros((), raw.dtype), raw)
+            self.zero(raw, out, bad, frames)
             live = self._live[None, None, :]
             fr = xp.asarray(frames)[:, None, None]
             used = ((~bad) & live).sum(axis=2)                                   # (ns, nchan) stands left
-            counts = xp.stack([((masks[r] & live) * fr).sum() for r in REASONS] + [((bad & live) * fr).sum()])
-            per_chan = ((bad & live) * fr).sum(axis=(0, 2))
-            nl = int((~self._flagged_stands).sum())
+            counts = xp.stack([((masks[r] & live) * fr).sum() for r in REASONS])
+            per_chan = ((bad & live) * fr).sum(axis=(0, 2))                     # its sum: the union's count
+            nl = self._nlive
             partial = ((used > 0) & (used < nl)).any()
             wholly = (used == 0).any()
             host = _host(xp.concatenate([counts.astype(xp.float64), per_chan.astype(xp.float64),
                                          partial.reshape(1).astype(xp.float64), wholly.reshape(1).astype(xp.float64)]))
-        counts, per_chan = host[:len(REASONS) + 1], host[len(REASONS) + 1:-2]
+        per_chan = host[len(REASONS):-2]
+        counts = np.append(host[:len(REASONS)], per_chan.sum())                  # by reason, then any reason
         partial, wholly = bool(host[-2]), bool(host[-1])
         if self.weights is not None:
             self.weights.add(self._tag0, first, used, frames, nl, partial, wholly)
@@ -306,6 +311,14 @@ class RFIFlagBlock(bfp.TransformBlock):
         rows = list(self._rows) + ([self._pending / self._pending_n] if self._pending is not None else [])
         return (np.array(rows) if rows else np.zeros((0, len(self._static_host)))), self._row_frames or 0
 
+    def write_report(self, outdir, prefix, title=""):
+        """``<prefix>_flags.ecsv`` and ``_flags.png`` in ``outdir`` (:func:`~..io.flagreport.write_flag_report`)
+        from the counts so far; returns their paths."""
+        from ..io.flagreport import write_flag_report
+        wf, row_frames = self.waterfall()
+        return write_flag_report(outdir, prefix, self._lay["freq_hz"], self.summary(), wf,
+                                 row_frames * self._lay["dt_s"], title=title)
+
     def summary(self):
         """The run's flag counts: fractions of the stand-samples seen, by reason and in all, and per channel."""
         st = self.flag_stats
@@ -349,28 +362,14 @@ class FlagTally:
         return flagged / seen if seen > 0 else None
 
 
-_TALLIES: dict = {}
-_TALLY_IDS = __import__("itertools").count(1)
-_TALLY_LOCK = __import__("threading").Lock()
-#: tallies kept alive at once (oldest dropped first): a long run makes one per sequence
-MAX_TALLIES = 64
-
-
 def new_flag_tally(ticks_per_frame):
     """A :class:`FlagTally` registered under a new id (put in the header's ``flagging.tally``)."""
-    with _TALLY_LOCK:
-        t = FlagTally(f"flags-{next(_TALLY_IDS)}", ticks_per_frame)
-        _TALLIES[t.id] = t
-        while len(_TALLIES) > MAX_TALLIES:
-            _TALLIES.pop(next(iter(_TALLIES)))
-    return t
+    return register_tally("flags", lambda tid: FlagTally(tid, ticks_per_frame))
 
 
 def get_flag_tally(header):
     """The :class:`FlagTally` a sequence header names (``header['flagging']['tally']``), or None."""
-    info = (header or {}).get("flagging") or {}
-    with _TALLY_LOCK:
-        return _TALLIES.get(info.get("tally"))
+    return lookup_tally(((header or {}).get("flagging") or {}).get("tally"))
 
 
 class FlagWeights:

@@ -424,13 +424,8 @@ def _flagging_stage(cfg, feed):
     weights = FlagWeights(cfg["imager"]["accumulate_frames"], track_empty=bool(cfg["imager"].get("search"))) \
         if cfg["imager"]["kind"] == "dft" else None
     outdir = cfg["output"]["dir"]
-    report = None
-    if outdir is not None:
-        def report(fb):
-            from ..io.flagreport import write_flag_report
-            wf, row_frames = fb.waterfall()
-            write_flag_report(outdir, cfg["output"]["prefix"], fb._lay["freq_hz"], fb.summary(), wf,
-                              row_frames * fb._lay["dt_s"], title=f"{cfg['name']}: interference flags so far")
+    report = None if outdir is None else \
+        (lambda fb: fb.write_report(outdir, cfg["output"]["prefix"], f"{cfg['name']}: interference flags so far"))
     return RFIFlagBlock(feed, far=fl["far"], block_frames=fl["block_frames"], impulse_frames=fl["impulse_frames"],
                         impulse_sigma=fl["impulse_sigma"], bad_freq_ranges=ranges, weights=weights, report=report,
                         report_every_s=fl["report_s"]), weights
@@ -438,18 +433,14 @@ def _flagging_stage(cfg, feed):
 
 def _flag_report(cfg, fb, outdir, summary):
     """The flagger's counts for the run's summary and log, and its table and waterfall in ``outdir``."""
-    from ..io.flagreport import write_flag_report
     fs = fb.summary()
-    lay = fb._lay
     if fs["stand_samples_seen"] and fs["fraction_flagged"] >= 1.0:
         log.warning("interference flagging: every stand-sample was flagged: the run imaged nothing")
     log.info("interference flagging: %.3f%% of %d stand-samples flagged (%s)", 100 * fs["fraction_flagged"],
              fs["stand_samples_seen"], ", ".join(f"{r} {100 * v:.3f}%" for r, v in fs["by_reason"].items()))
     if outdir is not None:
-        wf, row_frames = fb.waterfall()
         try:
-            summary["files"] += write_flag_report(outdir, cfg["output"]["prefix"], lay["freq_hz"], fs, wf,
-                                                  row_frames * lay["dt_s"], title=f"{cfg['name']}: interference flags")
+            summary["files"] += fb.write_report(outdir, cfg["output"]["prefix"], f"{cfg['name']}: interference flags")
         except Exception as e:  # noqa: BLE001 - a report must not fail a run that imaged
             log.warning("interference flag report not written: %s", e)
     return {k: v for k, v in fs.items() if k != "channel_fraction"}

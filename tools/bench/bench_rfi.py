@@ -89,9 +89,7 @@ def time_flagger(args):
     for _ in range(args.repeat + 2):
         t0 = time.perf_counter()
         bad, masks, frames = fb.flags(raw)
-        ns = bad.shape[0]
-        out.reshape((ns, 16) + shape[1:])[...] = xp.where(bad.reshape((ns, 1) + bad.shape[1:] + (1,)),
-                                                          xp.zeros((), raw.dtype), raw.reshape((ns, 16) + shape[1:]))
+        fb.zero(raw, out, bad, frames)
         if xp is not np:
             xp.cuda.get_current_stream().synchronize()
         times.append(time.perf_counter() - t0)
