@@ -437,12 +437,7 @@ def expected_sk(mean_power, m, bits=4, *, measured=True):
     m = _check_m(m, bits)
     if bits is None:
         mean, var, _, _ = _gaussian_sk_moments(m)
-        std = math.sqrt(var)
-        if mean_power is None:
-            return mean, std
-        xp = get_xp(mean_power)
-        shape = xp.asarray(mean_power).shape
-        return xp.full(shape, mean), xp.full(shape, std)
+        return _like(mean_power, mean, math.sqrt(var))
     if mean_power is None:
         raise ValueError("expected_sk: quantised noise (bits set) needs the block mean power")
     xp = get_xp(mean_power)
@@ -469,12 +464,7 @@ def sk_thresholds(far, m, mean_power=None, bits=4):
     if not 0.0 < far < 1.0:
         raise ValueError(f"far must be in (0, 1), got {far!r}")
     if bits is None:
-        lo, hi = _gaussian_thresholds(m, far)
-        if mean_power is None:
-            return lo, hi
-        xp = get_xp(mean_power)
-        shape = xp.asarray(mean_power).shape
-        return xp.full(shape, lo), xp.full(shape, hi)
+        return _like(mean_power, *_gaussian_thresholds(m, far))
     if mean_power is None:
         raise ValueError("sk_thresholds: quantised noise (bits set) needs the block mean power")
     xp = get_xp(mean_power)
@@ -615,6 +605,16 @@ def channel_mask(freq_hz, ranges, chan_bw_hz):
     lo, hi = xp.asarray(r[:, 0]), xp.asarray(r[:, 1])
     half = 0.5 * float(chan_bw_hz)
     return ((f[:, None] + half > lo) & (f[:, None] - half < hi)).any(axis=1)
+
+
+def _like(shape_of, *values):
+    """``values`` as floats (``shape_of`` None), or as arrays shaped like ``shape_of`` on its device: the
+    Gaussian law's numbers, which do not depend on the block's power."""
+    if shape_of is None:
+        return values
+    xp = get_xp(shape_of)
+    shape = xp.asarray(shape_of).shape
+    return tuple(xp.full(shape, v) for v in values)
 
 
 def _check_m(m, bits=None):
