@@ -267,6 +267,81 @@ def test_device_and_host_agree(xp):
     assert np.array_equal(to_numpy(rfi.broadband_flags(S1)), rfi.broadband_flags(S1h))
 
 
+def test_block_power_is_its_definition(xp):
+    """S1, S2 per block of m (short blocks in ``skip`` left out) and the power per short block of a summed
+    over each pair of inputs, from the decoded 4-bit samples by plain sums (on a GPU: the kernel)."""
+    rng = np.random.default_rng(62)
+    m, a, T = 64, 16, 200                          # 3 whole blocks, 12 whole short blocks, a ragged tail
+    b = rng.integers(0, 256, (T, 3, 6), dtype=np.uint8)
+    v = unpack_complex(b.reshape(T, 3, 6), "ci4").astype(np.complex128)
+    p = v.real ** 2 + v.imag ** 2                  # integers, exact
+    skip = np.zeros(T // a, bool)
+    skip[[1, 6]] = True
+    keep = np.ones(T, bool)
+    keep[:(T // a) * a] = ~np.repeat(skip, a)
+    S1, S2, Sa = rfi.block_power(xp.asarray(b), m, a, ci4=True, group=2, skip=skip)
+    pk = p * keep[:, None, None]
+    want1 = pk[:3 * m].reshape(3, m, 3, 6).sum(1)
+    want2 = (pk ** 2)[:3 * m].reshape(3, m, 3, 6).sum(1)
+    wanta = p[:12 * a].reshape(12, a, 3, 3, 2).sum(axis=(1, 4))
+    assert np.array_equal(to_numpy(S1), want1) and np.array_equal(to_numpy(S2), want2)
+    assert Sa.shape == (12, 3, 3) and np.array_equal(to_numpy(Sa), wanta)
+
+
+@pytest.mark.parametrize("B", [2, 3])
+def test_apply_flags_zeroes_and_counts_by_the_rules(xp, B):
+    """apply_flags against its rules written out as loops over (short block, channel, stand): which stands
+    are zeroed in which frames, and what each reason counts (B = 2: 4-byte rows, copied by words on a GPU;
+    B = 3: rows of odd length, by bytes)."""
+    rng = np.random.default_rng(60)
+    n, nchan, nstand, a = 40, 5, 7, 16                                   # ns = 3, the last of 8 frames
+    x = rng.integers(1, 256, (n, nchan, nstand, B), dtype=np.uint8)     # no zero byte: a zero is a flag
+    sk = rng.integers(0, 4, (2, nchan, nstand)).astype(np.uint8)
+    sk[1, 2] = 1                                                         # every stand low in (block 1, chan 2)
+    which = np.array([0, 1, -1], np.int32)
+    imp = np.array([False, False, True])
+    imp_st = rng.random((3, nstand)) < 0.3
+    static = np.array([False, True, False, False, False])
+    live = np.ones(nstand, bool)
+    live[4] = False
+    spread_max = 3.5
+    out = xp.zeros((n, nchan, nstand, B), xp.uint8)
+    cnt = to_numpy(rfi.apply_flags(xp.asarray(x), out, xp.asarray(sk), which, xp.asarray(imp),
+                                   xp.asarray(imp_st), xp.asarray(static), xp.asarray(live), a, spread_max))
+    want_out = x.copy()
+    want_cnt = np.zeros((3, nchan, 7), np.int64)
+    for j in range(3):
+        for c in range(nchan):
+            code = sk[which[j], c] if which[j] >= 0 else np.zeros(nstand, np.uint8)
+            own = [bool(live[s] and (code[s] & 3 or imp_st[j, s])) for s in range(nstand)]
+            wide = sum(own) > spread_max
+            for s in range(nstand):
+                sp = wide and not own[s]
+                bad = static[c] or own[s] or imp[j] or sp
+                if bad:
+                    want_out[j * a:(j + 1) * a, c, s] = 0
+                if live[s]:
+                    want_cnt[j, c] += [static[c], code[s] & 1, code[s] >> 1 & 1, imp[j], imp_st[j, s], sp, bad]
+    assert want_cnt[1, 2, 5] == 0 and want_cnt[1, 2, 1] == 6             # all own: nothing left to spread to
+    assert want_cnt[:, :, 5].sum() > 0                                   # the spread rule is exercised
+    assert np.array_equal(to_numpy(out), want_out)
+    assert np.array_equal(cnt, want_cnt)
+
+
+def test_per_input_impulses_ignore_a_carrier_switching_on_in_a_few_channels():
+    """One stand's broadband spike is flagged on that stand; a carrier that switches on in 3 of 64 channels
+    of every stand is not an impulse (the SK's to flag)."""
+    rng = np.random.default_rng(61)
+    m, nblk, nchan, ninput = 16, 64, 64, 8
+    x = complex_noise(rng, (m * nblk, nchan, ninput))
+    x[320:480, 10:13] += 3 * complex_noise(rng, (160, 3, ninput))        # 10 blocks, 3 channels, all inputs
+    x[800:816, :, 5] += 2 * complex_noise(rng, (16, nchan))             # block 50, every channel, input 5
+    S1, _ = rfi.power_sums(x, m)
+    flags = rfi.broadband_flags(S1, per_input=True)
+    assert flags[50, 5]
+    assert flags.sum() == 1
+
+
 # ----------------------------------------------------------------------------------- frequency lists
 
 GOOD_LIST = """# channels to flag (MHz)

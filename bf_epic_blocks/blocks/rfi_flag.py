@@ -39,7 +39,7 @@ from .nonfinite import lookup_tally, register_tally
 log = logging.getLogger(__name__)
 
 #: flag reasons counted, in the order of ``flag_stats['flagged']``
-REASONS = ("static", "sk-low", "sk-high", "impulse", "impulse-stand", "spread")
+REASONS = rfi.COUNTED[:-1]
 
 #: waterfall rows kept before adjacent rows are merged (the time resolution halves)
 MAX_ROWS = 2048
@@ -137,49 +137,52 @@ class RFIFlagBlock(bfp.TransformBlock):
                  self.impulse_frames, self.impulse_sigma, int(static.sum()))
         return ohdr
 
-    def _power_sums(self, raw, m):
-        if self._lay["dtype"] == "ci4" and raw.dtype == np.uint8:
-            return rfi.power_sums(raw, m, ci4=True)
-        return rfi.power_sums(unpack_complex(raw, self._lay["dtype"]), m)
-
-    def _plain(self, a):
-        """A span array as plain numbers (n, nchan, nstand, npol[, bytes]): ci4 as its bytes, other packed
-        integer pairs as bytes on a last axis, so that zeroing is one ``where``."""
+    def _bytes(self, a):
+        """A span array's bytes, (n, nchan, nstand, B): B bytes per stand (its pols' samples, any format),
+        so that zeroing a stand is zeroing its bytes."""
         if self._lay["dtype"] == "ci4":
-            return ci4_bytes(a)
-        if getattr(a.dtype, "names", None):
-            return a.view(self._xp.uint8).reshape(tuple(a.shape) + (-1,))
-        return a
+            a = ci4_bytes(a)
+        elif getattr(a.dtype, "names", None) or a.dtype != np.uint8:
+            a = a.view(self._xp.uint8)
+        return a.reshape(tuple(a.shape[:3]) + (-1,))
 
-    def flags(self, raw):
-        """The flags of one gulp ``raw`` (n, nchan, nstand, npol...), per short block j (frames [j a, (j + 1) a)
-        with a = ``impulse_frames``; the last one shorter where a does not divide n): (bad, masks, frames)
-        with bad bool (ns, nchan, nstand), masks {reason: bool (ns, nchan, nstand)}, frames (ns,) int.
+    def process(self, raw, out):
+        """Detect, zero and count one gulp: ``raw`` the span's array (n, nchan, nstand, npol), ``out`` the
+        output span's; out[:n] gets the voltages with the flagged stand-samples zeroed.
+
+        Returns (cnt, frames): cnt int32 (ns, nchan, 7) on the ring's device, the live stands flagged per
+        short block j (frames [j a, (j + 1) a), a = ``impulse_frames``, the last one shorter where a does not
+        divide n) and channel, by reason (:data:`~bf_epic_blocks.imaging.rfi.COUNTED`: REASONS, then any);
+        frames (ns,) host int.
 
         Impulses are found first, and the short blocks they flag across the band are left out of the
         spectral-kurtosis sums (each block's SK then uses the samples left), so that a 1-ms spark costs its
         own milliseconds and not the 41 ms of every block it falls in."""
-        xp = self._xp
-        n, nchan, nstand = raw.shape[:3]
+        xp, lay = self._xp, self._lay
+        n, nchan, nstand = (int(v) for v in raw.shape[:3])
         m, a = self.block_frames, self.impulse_frames
-        ci4 = self._lay["dtype"] == "ci4"
-        x = raw if ci4 else unpack_complex(raw, self._lay["dtype"])
+        ci4 = lay["dtype"] == "ci4"
+        x = ci4_bytes(raw) if ci4 else unpack_complex(raw, lay["dtype"])
+        x = x.reshape(x.shape[:3] + (-1,))                                    # (n, nchan, nstand, npol)
+        npol = int(x.shape[3])
+        group = npol if npol <= 32 and not npol & (npol - 1) else 1
         nfull, ns = n // a, -(-n // a)
-        S1, S2, Sa = rfi.block_power(x, m, a, ci4=ci4)
+        S1, S2, Sa = rfi.block_power(x, m, a, ci4=ci4, group=group)
+        P = Sa.reshape(Sa.shape[:3] + (-1,)).sum(axis=3) if Sa.shape[3] > 1 else Sa.reshape(Sa.shape[:3])
         frames = np.full(ns, a, np.int64)
         if ns > nfull:
             frames[-1] = n - nfull * a
+        imp_h = np.zeros(ns, bool)
         imp = xp.zeros(ns, bool)
         imp_st = xp.zeros((ns, nstand), bool)
-        allf_host = np.zeros(ns, bool)
         if nfull >= 3:
-            P = Sa.reshape(Sa.shape[:3] + (-1,)).sum(axis=3)                    # (nfull, nchan, nstand)
-            P = xp.where(self._static[None, :, None], 0.0, P)                 # listed channels carry no weight
+            if self._static_host.any():
+                P = xp.where(self._static[None, :, None], xp.float32(0.0), P)  # listed channels weigh nothing
             allf = rfi.broadband_flags(P, self.impulse_sigma)                  # (nfull,)
             per = rfi.broadband_flags(P, self.impulse_sigma, per_input=True)   # (nfull, nstand)
             imp[:nfull] = allf
             imp_st[:nfull] = per & ~allf[:, None]
-            allf_host[:nfull] = _host(allf).astype(bool)
+            imp_h[:nfull] = _host(allf).astype(bool)
         # spectral kurtosis per block of m (a last block of at least 64 samples as it is), without impulses
         nb = n // m
         blocks = [(k * m, m) for k in range(nb)]
@@ -187,16 +190,17 @@ class RFIFlagBlock(bfp.TransformBlock):
             blocks.append((nb * m, n - nb * m))
         elif n - nb * m:
             self.flag_stats["untested"] += (n - nb * m) * nchan * nstand
-        hit = np.repeat(allf_host, frames)                                    # (n,) frames of band-wide impulses
-        low = xp.zeros((len(blocks), nchan, nstand), bool)
-        high = xp.zeros((len(blocks), nchan, nstand), bool)
+        hit = np.repeat(imp_h, frames)                                        # (n,) frames of band-wide impulses
+        if nb and hit[:nb * m].any():                                         # the whole blocks' sums without them
+            S1, S2, _ = rfi.block_power(x[:nb * m], m, a, ci4=ci4, group=group, skip=imp_h[:nb * m // a])
+        code = xp.zeros((len(blocks), nchan, nstand), xp.uint8)
         for i, (t0, mm) in enumerate(blocks):
             used = mm - int(hit[t0:t0 + mm].sum())
             if used < rfi.MIN_M_QUANTISED:
                 continue                                                      # mostly impulse: flagged as such
-            if used == mm and mm == m and i < nb:
+            if i < nb:
                 s1, s2 = S1[i:i + 1], S2[i:i + 1]
-            else:
+            else:                                                             # the last, short block
                 part = x[t0:t0 + mm]
                 if used < mm:
                     k = xp.asarray(~hit[t0:t0 + mm]).reshape((mm,) + (1,) * (part.ndim - 1))
@@ -204,64 +208,33 @@ class RFIFlagBlock(bfp.TransformBlock):
                 s1, s2 = rfi.power_sums(part, mm, ci4=ci4)
             _, r = rfi.sk_flags(s1, s2, used, self.far, bits=self._bits)
             r = r.reshape(r.shape[:3] + (-1,))[0]                              # (nchan, nstand, npol)
-            low[i] = (r == 1).any(axis=2)
-            high[i] = (r == 2).any(axis=2)
+            code[i] = (r == 1).any(axis=2) | ((r == 2).any(axis=2) << 1)
         # each short block's SK block (m is a multiple of a: a short block lies in one)
-        which = np.minimum(np.arange(ns) * a // m, max(len(blocks) - 1, 0))
-        tested = (np.arange(ns) * a) < sum(mm for _, mm in blocks)
-        if len(blocks):
-            w = xp.asarray(which)
-            t = xp.asarray(tested)[:, None, None]
-            sk_low, sk_high = low[w] & t, high[w] & t
-        else:
-            sk_low = sk_high = xp.zeros((ns, nchan, nstand), bool)
-        masks = {"static": xp.broadcast_to(self._static[None, :, None], (ns, nchan, nstand)),
-                 "sk-low": sk_low, "sk-high": sk_high,
-                 "impulse": xp.broadcast_to(imp[:, None, None], (ns, nchan, nstand)),
-                 "impulse-stand": xp.broadcast_to(imp_st[:, None, :], (ns, nchan, nstand))}
-        # interference that many stands see (a transmitter, a spark) is the array's: its (frame, channel)
-        # is flagged for every stand, so that an image sums no small part of the array; a few stands' own
-        # interference stays on those stands (the imager rescales those images, see FlagWeights)
-        per_stand = (sk_low | sk_high | masks["impulse-stand"]) & self._live[None, None, :]
-        wide = per_stand.sum(axis=2) > self.spread * max(1, self._nlive)     # (ns, nchan)
-        masks["spread"] = xp.broadcast_to(wide[:, :, None], (ns, nchan, nstand)) & ~per_stand
-        bad = masks["static"] | per_stand | masks["impulse"] | masks["spread"]
-        return bad, masks, frames
-
-    def zero(self, raw, out, bad, frames):
-        """out[:n] = raw with the stand-samples of ``bad`` (:meth:`flags`) zeroed (both pols)."""
-        xp = self._xp
-        n, a, ns = int(raw.shape[0]), self.impulse_frames, bad.shape[0]
-        tail = (1,) * (raw.ndim - 3)
-        if n % a == 0:                      # whole short blocks: the flags broadcast over each block's frames
-            shp = (ns, a) + tuple(raw.shape[1:])
-            out[:n].reshape(shp)[...] = xp.where(bad.reshape((ns, 1) + bad.shape[1:] + tail),
-                                                 xp.zeros((), raw.dtype), raw.reshape(shp))
-        else:
-            per_frame = xp.repeat(bad, _repeats(frames), axis=0)
-            out[:n] = xp.where(per_frame.reshape(per_frame.shape + tail), xp.zeros((), raw.dtype), raw)
+        which = np.minimum(np.arange(ns) * a // m, max(len(blocks) - 1, 0)).astype(np.int32)
+        which[(np.arange(ns) * a) >= sum(mm for _, mm in blocks)] = -1
+        cnt = rfi.apply_flags(self._bytes(raw), self._bytes(out[:n]), code, which, imp, imp_st, self._static,
+                              self._live, a, self.spread * max(1, self._nlive))
+        return cnt, frames
 
     def on_data(self, ispan, ospan):
-        raw = self._plain(span_array(ispan))
-        out = self._plain(span_array(ospan))
+        raw = span_array(ispan)
+        out = span_array(ospan)
         n = int(raw.shape[0])
         xp = self._xp
         first = getattr(ispan, "frame_offset", self._frame)
+        nl = self._nlive
         with _compat.stream_context():
-            bad, masks, frames = self.flags(raw)
-            self.zero(raw, out, bad, frames)
-            live = self._live[None, None, :]
-            fr = xp.asarray(frames)[:, None, None]
-            used = ((~bad) & live).sum(axis=2)                                   # (ns, nchan) stands left
-            counts = xp.stack([((masks[r] & live) * fr).sum() for r in REASONS])
-            per_chan = ((bad & live) * fr).sum(axis=(0, 2))                     # its sum: the union's count
-            nl = self._nlive
+            cnt, frames = self.process(raw, out)
+            fr = int(frames[0]) if (frames == frames[0]).all() else xp.asarray(frames)[:, None]
+            used = nl - cnt[..., -1]                                             # (ns, nchan) stands left
+            by_reason = (cnt.sum(axis=1, dtype=xp.int64) * fr).sum(axis=0)      # (7,): REASONS, then any
+            per_chan = (cnt[..., -1].astype(xp.int64) * fr).sum(axis=0)          # (nchan,)
             partial = ((used > 0) & (used < nl)).any()
             wholly = (used == 0).any()
-            host = _host(xp.concatenate([counts.astype(xp.float64), per_chan.astype(xp.float64),
+            host = _host(xp.concatenate([by_reason.astype(xp.float64), per_chan.astype(xp.float64),
                                          partial.reshape(1).astype(xp.float64), wholly.reshape(1).astype(xp.float64)]))
-        per_chan = host[len(REASONS):-2]
-        counts = np.append(host[:len(REASONS)], per_chan.sum())                  # by reason, then any reason
+        counts = host[:len(REASONS) + 1]                                         # by reason, then any reason
+        per_chan = host[len(REASONS) + 1:-2]
         partial, wholly = bool(host[-2]), bool(host[-1])
         if self.weights is not None:
             self.weights.add(self._tag0, first, used, frames, nl, partial, wholly)

@@ -44,7 +44,7 @@ from scipy import special
 from ..cuda import get_kernel, register
 from ._xp import get_xp
 
-__all__ = ["REASONS", "block_power", "broadband_flags", "channel_mask", "expected_sk", "min_mean_power", "parse_bad_freq_list",
+__all__ = ["COUNTED", "REASONS", "apply_flags", "block_power", "broadband_flags", "channel_mask", "expected_sk", "min_mean_power", "parse_bad_freq_list",
            "power_sums", "quantised_power_moments", "sk_flags", "sk_thresholds", "spectral_kurtosis"]
 
 register("imaging/rfi.cu")
@@ -116,20 +116,32 @@ def power_sums(x, m, *, ci4=False):
     return p.sum(axis=1, dtype=xp.float64), (p * p).sum(axis=1, dtype=xp.float64)
 
 
-def block_power(x, m, a, *, ci4=False):
+def block_power(x, m, a, *, ci4=False, group=1, skip=None):
     """(S1, S2, Sa): the power sums of :func:`power_sums` over the whole blocks of ``m`` samples, and the
-    power summed over the whole short blocks of ``a`` samples, in one pass.
+    power summed over the whole short blocks of ``a`` samples and over each ``group`` adjacent inputs, in
+    one pass.
 
     x : as :func:`power_sums` (any ntime: samples past the last whole block are left out of that block's
-    sums). Returns float64 S1, S2 (ntime // m, nchan, ninput...) and float32 Sa (ntime // a, nchan,
-    ninput...). On a GPU, ci4 bytes are read once by one kernel (``rfi.cu``), never widened to a power
-    array; elsewhere :func:`power_sums` twice."""
-    m, a = _check_m(m), int(a)
+        sums); its last axis is the one ``group`` sums over (a stand's pols: group = npol).
+    group : inputs summed into Sa (a power of 2 up to 32 that divides the last axis).
+    skip : None, or bool (ntime // a,): short blocks left out of S1 and S2 (not out of Sa), e.g. those a
+        broadband impulse hit.
+    Returns float64 S1, S2 (ntime // m, nchan, ninput...) and float32 Sa (ntime // a, nchan, ...,
+    ninput_last // group). On a GPU, ci4 bytes are read once by one kernel (``rfi.cu``), never widened
+    to a power array; elsewhere :func:`power_sums` twice."""
+    m, a, group = _check_m(m), int(a), int(group)
     if a < 1:
         raise ValueError(f"a (samples per short block) must be >= 1, got {a!r}")
+    if group < 1 or group > 32 or group & (group - 1) or (x.ndim > 1 and x.shape[-1] % group):
+        raise ValueError(f"group must be a power of 2 up to 32 dividing the last axis ({x.shape[-1]}), got {group!r}")
     xp = get_xp(x)
     T = int(x.shape[0])
     nb, ns = T // m, T // a
+    tail = tuple(x.shape[1:-1]) + ((x.shape[-1] // group,) if x.ndim > 1 else ())
+    if skip is not None:
+        skip = np.asarray(skip, bool).reshape(-1)
+        if skip.shape[0] != ns:
+            raise ValueError(f"skip must have one entry per whole short block ({ns}), got {skip.shape[0]}")
     if ci4 and xp is not np:
         names = getattr(x.dtype, "names", None)
         b = (x[names[0]] if names else x).view(xp.uint8)
@@ -137,14 +149,30 @@ def block_power(x, m, a, *, ci4=False):
         K = int(np.prod(b.shape[1:])) if b.ndim > 1 else 1
         s1 = xp.empty((nb,) + tuple(b.shape[1:]), xp.float64)
         s2 = xp.empty_like(s1)
-        sh = xp.empty((ns,) + tuple(b.shape[1:]), xp.float32)
+        sh = xp.empty((ns,) + tail, xp.float32)
+        sk = None
+        if skip is not None:
+            sk = xp.asarray(np.concatenate([skip, np.zeros(1, bool)]).astype(np.uint8))  # frames past ns a
         if K and T and (nb or ns):
-            get_kernel("imaging/rfi.cu", "rfi_block_power")(((K + 255) // 256,), (256,),
-                                                             (b, s1, s2, sh, np.int64(K), np.int32(T), np.int32(m),
-                                                              np.int32(a)))
+            get_kernel("imaging/rfi.cu", "rfi_block_power")(
+                ((K + 255) // 256,), (256,), (b, s1, s2, sh, sk if sk is not None else np.uintp(0), np.int64(K),
+                                              np.int32(T), np.int32(m), np.int32(a), np.int32(group)))
         return s1, s2, sh
-    S1, S2 = power_sums(x[:nb * m], m, ci4=ci4) if nb else (xp.zeros((0,) + x.shape[1:]),) * 2
+    if skip is not None and nb:
+        keep = np.ones(T, bool)
+        keep[:ns * a] = ~np.repeat(skip, a)
+        k = xp.asarray(keep[:nb * m]).reshape((nb * m,) + (1,) * (x.ndim - 1))
+        xs = x[:nb * m]
+        zero = xp.zeros((), xs.dtype) if not getattr(xs.dtype, "names", None) else None
+        if zero is None:       # a structured ci4 host array: its bytes are zeroed instead
+            xs = xs.view(xp.uint8) if xs.dtype.itemsize == 1 else xs
+            zero = xp.zeros((), xs.dtype)
+        S1, S2 = power_sums(xp.where(k, xs, zero), m, ci4=ci4)
+    else:
+        S1, S2 = power_sums(x[:nb * m], m, ci4=ci4) if nb else (xp.zeros((0,) + x.shape[1:]),) * 2
     sh = _short_sums(x[:ns * a], a, ci4) if ns else xp.zeros((0,) + x.shape[1:], xp.float32)
+    if group > 1:
+        sh = sh.reshape(sh.shape[:-1] + (-1, group)).sum(axis=-1, dtype=xp.float32)
     return S1, S2, sh
 
 
@@ -418,6 +446,21 @@ def _threshold_table(m, far, bits):
     return ep, lo, hi
 
 
+_DEVICE_TABLES: dict = {}
+
+
+def _tables_on(xp, tables):
+    """A cached table tuple's arrays on xp's current device, copied there once (a streaming flagger asks
+    for them every gulp)."""
+    if xp is np:
+        return tables
+    key = (id(tables), xp.cuda.Device().id)
+    hit = _DEVICE_TABLES.get(key)
+    if hit is None or hit[0] is not tables:      # the entry holds the tuple, so its id is not reused
+        hit = _DEVICE_TABLES[key] = (tables, tuple(xp.asarray(t) for t in tables))
+    return hit[1]
+
+
 def expected_sk(mean_power, m, bits=4, *, measured=True):
     """(mean, std) of the SK of noise blocks of m samples whose mean power per sample is ``mean_power``.
 
@@ -441,7 +484,7 @@ def expected_sk(mean_power, m, bits=4, *, measured=True):
     if mean_power is None:
         raise ValueError("expected_sk: quantised noise (bits set) needs the block mean power")
     xp = get_xp(mean_power)
-    ep, mean, std, rmean, rstd, _, _ = (xp.asarray(t) for t in _quantised_table(m, int(bits)))
+    ep, mean, std, rmean, rstd, _, _ = _tables_on(xp, _quantised_table(m, int(bits)))
     if measured:
         mean, std = rmean, rstd
     mp = xp.asarray(mean_power, dtype=xp.float64)
@@ -468,7 +511,7 @@ def sk_thresholds(far, m, mean_power=None, bits=4):
     if mean_power is None:
         raise ValueError("sk_thresholds: quantised noise (bits set) needs the block mean power")
     xp = get_xp(mean_power)
-    ep, lo, hi = (xp.asarray(t) for t in _threshold_table(m, far, int(bits)))
+    ep, lo, hi = _tables_on(xp, _threshold_table(m, far, int(bits)))
     mp = xp.asarray(mean_power, dtype=xp.float64)
     return xp.interp(mp, ep, lo), xp.interp(mp, ep, hi)
 
@@ -507,16 +550,26 @@ def sk_flags(S1, S2, m, far, bits=4):
 
 # ----------------------------------------------------------------------------------------- broadband impulses
 
+#: per-input impulse statistic: about this many groups of adjacent channels (:func:`broadband_flags`)
+CHANNEL_GROUPS = 64
+
+
 def broadband_flags(power, threshold_sigma=6.0, *, per_input=False):
     """Short blocks holding a broadband impulse: power raised across the band at once.
 
     power : (nblock, nchan, ninput...) power per short block (e.g. S1 of :func:`power_sums` with m = 16),
-        channel and input. Each channel's power (summed over the inputs, or per input with
-        ``per_input``) is divided by its median over the nblock blocks, and a block's statistic is the
-        median of that ratio over the channels: a carrier switching on in a few channels leaves it alone,
-        a spark across the band raises it. A block is flagged where the statistic exceeds its median over
-        the blocks + threshold_sigma * 1.4826 * MAD (1.4826 MAD is the standard deviation of Gaussian
-        scatter; the reference holds while fewer than half the blocks are hit).
+        channel and input.
+    Band-wide (``per_input`` False): each channel's power summed over the inputs is divided by its median
+        over the nblock blocks, and a block's statistic is the median of that ratio over the channels: a
+        carrier switching on in a few channels leaves it alone, a spark across the band raises it.
+    Per input (``per_input`` True): each (channel, input)'s power is divided by its mean over the blocks,
+        the ratio is averaged over groups of g = max(1, nchan // :data:`CHANNEL_GROUPS`) adjacent channels
+        (the first nchan // g groups; a channel with no power counts as 1), and a (block, input)'s statistic
+        is the median over the groups: robust, as the band-wide median is, to a carrier in fewer than half
+        the groups, for a sort over ~64 group means instead of over every channel.
+    A block (or block and input) is flagged where its statistic exceeds its median over the blocks +
+    threshold_sigma * 1.4826 * MAD (1.4826 MAD is the standard deviation of Gaussian scatter; the
+    reference holds while fewer than half the blocks are hit).
     Returns bool (nblock,) or (nblock, ninput...) with per_input, on power's device. Needs nblock >= 3.
     """
     xp = get_xp(power)
@@ -525,17 +578,90 @@ def broadband_flags(power, threshold_sigma=6.0, *, per_input=False):
                          f"{tuple(power.shape)}")
     if not threshold_sigma > 0:
         raise ValueError(f"threshold_sigma must be > 0, got {threshold_sigma!r}")
-    power = xp.asarray(power, dtype=xp.float64)
-    if not per_input:
+    if per_input:
+        power = xp.asarray(power, dtype=xp.float32)
+        nchan = power.shape[1]
+        g = max(1, nchan // CHANNEL_GROUPS)
+        ng = nchan // g
+        power = power[:, :ng * g]
+        ref = power.mean(axis=0, dtype=xp.float32)                      # (nchan, ninput...)
+        live = ref > 0
+        ratio = xp.where(live, power / xp.where(live, ref, xp.float32(1.0)), xp.float32(1.0))
+        means = ratio.reshape((ratio.shape[0], ng, g) + ratio.shape[2:]).mean(axis=2, dtype=xp.float32)
+        stat = xp.median(means, axis=1)                                  # (nblock, ninput...)
+    else:
+        power = xp.asarray(power, dtype=xp.float64)
         power = power.reshape(power.shape[0], power.shape[1], -1).sum(axis=2)          # (nblock, nchan)
-    ref = xp.median(power, axis=0)
-    live = ref > 0                                                   # channels (and inputs) with any power
-    ratio = xp.where(live, power / xp.where(live, ref, 1.0), xp.nan)
-    stat = xp.nanmedian(ratio, axis=1) if bool(live.any()) else xp.zeros((power.shape[0],) + power.shape[2:])
-    stat = xp.where(xp.isnan(stat), 1.0, stat)
+        ref = xp.median(power, axis=0)
+        live = ref > 0                                                   # channels with any power
+        ratio = xp.where(live, power / xp.where(live, ref, 1.0), xp.nan)
+        stat = xp.nanmedian(ratio, axis=1) if bool(live.any()) else xp.zeros((power.shape[0],))
+        stat = xp.where(xp.isnan(stat), 1.0, stat)
     med = xp.median(stat, axis=0)
     mad = xp.median(xp.abs(stat - med), axis=0)
     return stat > med + threshold_sigma * 1.4826 * mad
+
+
+#: what :func:`apply_flags` counts, in the order of its last axis
+COUNTED = ("static", "sk-low", "sk-high", "impulse", "impulse-stand", "spread", "any")
+
+
+def apply_flags(x, out, sk_code, which, impulse, impulse_stand, static, live, a, spread_max):
+    """Combine the detectors' flags per (short block, channel, stand), copy the voltages with the flagged
+    stands' samples zeroed, and count.
+
+    x, out : (n, nchan, nstand, B) uint8, the voltages' bytes (B bytes per stand: its pols' samples, in
+        any sample format: zero bytes are zero voltages); out[:n] is written.
+    sk_code : uint8 (nsk, nchan, nstand): bit 0 a low SK, bit 1 a high SK (in either pol).
+    which : int (ns,) the SK block of each short block, -1 where untested.
+    impulse : bool (ns,) band-wide impulses; impulse_stand : bool (ns, nstand) one stand's own.
+    static : bool (nchan,) listed channels; live : bool (nstand,) stands in use (the rest are counted by no
+        reason here, and zeroed only by the array-wide reasons).
+    a : frames per short block j, frames [j a, min(n, (j + 1) a)); ns = ceil(n / a).
+    spread_max : where more than this many live stands are flagged by their own detectors (SK, own
+        impulse) in a (short block, channel), every stand is ('spread').
+    A stand-sample is flagged when its channel is listed, its stand's own detectors fired, a band-wide
+    impulse hit, or the spread rule applies.
+    Returns int32 (ns, nchan, 7): the live stands flagged, per :data:`COUNTED` reason (each its own mask;
+    'spread' only where the stand's own detectors did not fire; 'any' the union), per (short block,
+    channel): multiply by the short blocks' frames for stand-samples. On a GPU with uint8 data, one kernel
+    (``rfi.cu``: ``rfi_apply_flags``) reads and writes the voltages once; this function's array form is
+    the definition and the CPU's path."""
+    xp = get_xp(x)
+    n, nchan, nstand = (int(v) for v in x.shape[:3])
+    ns = -(-n // int(a))
+    which = np.asarray(which, np.int32)
+    if xp is not np and x.dtype == np.uint8 and x.flags.c_contiguous and out.flags.c_contiguous:
+        cnt = xp.empty((ns, nchan, len(COUNTED)), xp.int32)
+        B = int(np.prod(x.shape[3:])) if x.ndim > 3 else 1
+        if n and nchan and nstand:
+            u8 = xp.uint8
+            get_kernel("imaging/rfi.cu", "rfi_apply_flags")(
+                (nchan, ns), (256,),
+                (x, out, xp.ascontiguousarray(sk_code, dtype=u8), xp.asarray(which), xp.asarray(impulse, u8),
+                 xp.ascontiguousarray(xp.asarray(impulse_stand, u8)), xp.asarray(static, u8), xp.asarray(live, u8),
+                 cnt, np.int32(n), np.int32(nchan), np.int32(nstand), np.int32(B), np.int32(a),
+                 np.float32(spread_max), np.int32((nstand * B) % 4 == 0 and x.data.ptr % 4 == 0
+                                                  and out.data.ptr % 4 == 0)), shared_mem=nstand)
+        return cnt
+    w = xp.asarray(np.maximum(which, 0))
+    tested = xp.asarray(which >= 0)[:, None, None]
+    code = xp.asarray(sk_code)[w] * tested                                    # (ns, nchan, nstand)
+    lo, hi = (code & 1) > 0, (code & 2) > 0
+    imp_st = xp.asarray(impulse_stand, bool)[:, None, :]
+    lv = xp.asarray(live, bool)[None, None, :]
+    own = (lo | hi | imp_st) & lv
+    wide = (own.sum(axis=2) > spread_max)[:, :, None]
+    spread = wide & ~own
+    st = xp.asarray(static, bool)[None, :, None]
+    imp = xp.asarray(impulse, bool)[:, None, None]
+    bad = st | own | imp | spread
+    masks = (st, lo, hi, imp, imp_st, spread, bad)
+    cnt = xp.stack([xp.broadcast_to(mk & lv, bad.shape).sum(axis=2) for mk in masks], axis=-1).astype(xp.int32)
+    tail = (1,) * (x.ndim - 3)
+    per_frame = xp.repeat(bad, a, axis=0)[:n]
+    out[:n] = xp.where(per_frame.reshape(per_frame.shape + tail), xp.zeros((), x.dtype), x)
+    return cnt
 
 
 # ----------------------------------------------------------------------------------------- frequency lists
