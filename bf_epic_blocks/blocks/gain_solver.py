@@ -209,6 +209,9 @@ class GainSolverBlock(bfp.SinkBlock):
     counts solutions, failures (with reasons) and the seconds spent summing and solving.
     """
 
+    #: the sums and the solves wait while the imager's kernels run (its stream is 'high')
+    stream_priority = "low"
+
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
                  reference_stand=None, apply_from="after", align_frames=1, diffuse=True, diffuse_refresh_s=300.0,
@@ -361,7 +364,8 @@ class GainSolverBlock(bfp.SinkBlock):
         cp = self._xp
         cp.cuda.Device(self._device_id).use()
         if self._worker_stream is None:
-            self._worker_stream = cp.cuda.Stream(non_blocking=True)
+            from ..runtime.pipeline import priority_stream
+            self._worker_stream = priority_stream(cp, "low")
         return self._worker_stream
 
     def _warm_job(self):

@@ -96,6 +96,20 @@ def _opt_int(val, what, minimum):
     return int(val)
 
 
+def priority_stream(cupy, priority):
+    """A non-blocking CuPy stream at the device's highest ('high') or lowest ('low') CUDA stream priority:
+    the GPU's scheduler starts a waiting high-priority kernel's thread blocks before a low-priority one's,
+    so that side work (a solver) fills the gaps the data path leaves. A CuPy without stream priorities
+    gives a plain stream."""
+    if priority not in ('high', 'low'):
+        raise ValueError(f"stream priority must be 'high' or 'low', got {priority!r}")
+    try:
+        least, greatest = cupy.cuda.runtime.deviceGetStreamPriorityRange()
+        return cupy.cuda.Stream(non_blocking=True, priority=greatest if priority == 'high' else least)
+    except (TypeError, AttributeError):
+        return cupy.cuda.Stream(non_blocking=True)
+
+
 class BlockScope:
     """Scope keywords shared by pipelines, ``block_scope`` and blocks. A value left None is
     taken from the enclosing scope (the ``block_scope`` the block was built in, then its
@@ -292,6 +306,10 @@ class Block(BlockScope):
     """
     instance_counts = defaultdict(lambda: 0)
 
+    #: the CUDA priority of the block's stream: 'high' (the default: the data path) or 'low' (work that
+    #: may wait while the data path's kernels run, e.g. a side solver; runtime only)
+    stream_priority = 'high'
+
     def __init__(self, irings, name=None, type_=None, **kwargs):
         self.type = type_ or self.__class__.__name__
         self.name = name or '%s_%i' % (self.type, Block.instance_counts[self.type])
@@ -377,7 +395,7 @@ class Block(BlockScope):
             cupy.cuda.Device(self.gpu).use()
         # The thread's own non-blocking stream (CuPy's current stream is per thread): the
         # blocks' kernels and copies queue there and overlap; rings order them with events.
-        self.stream = cupy.cuda.Stream(non_blocking=True)
+        self.stream = priority_stream(cupy, self.stream_priority)
         self.stream.use()
 
     def _thread_main(self):
