@@ -261,3 +261,37 @@ def test_the_diffuse_model_on_a_gpu_is_the_cpus(xp):
     want = diffuse_covariance(st.xyz_m, f, t, st.location, pattern="dipole")
     got = to_numpy(diffuse_model(st.xyz_m, f, t, st.location, pattern="dipole", xp=xp))
     assert np.abs(got - want).max() < 2e-5 * np.abs(want).max()
+
+
+def test_covariance_sums_of_flagged_data_are_means_over_the_kept_samples(xp):
+    """After interference flagging (whole short blocks of a stand zeroed), each baseline's mean is over
+    the samples both its stands kept: the definition, summed here in float64 with the masks."""
+    from bf_epic_blocks.runtime.dtypes import pack_ci4
+    rng = np.random.default_rng(4)
+    T, C, A, P, g = 512, 3, 6, 2, 16
+    v = rng.integers(-7, 8, (T, C, A, P)) + 1j * rng.integers(-7, 8, (T, C, A, P))
+    keep = np.ones((T // g, C, A), bool)
+    keep[4:12, :, 2] = False                 # stand 2 flagged for 128 samples in every channel
+    keep[20:24, 1, :] = False                # channel 1 flagged for every stand for 64 samples
+    keep[rng.random(keep.shape) < 0.05] = False
+    m = np.repeat(keep, g, axis=0)[..., None]                                         # (T, C, A, 1)
+    v = np.where(m, v, 0)
+    want = np.zeros((C, P, A, A), complex)
+    for c in range(C):
+        for p in range(P):
+            x, k = v[:, c, :, p], m[:, c, :, 0].astype(float)
+            want[c, p] = (x.T @ x.conj()) / np.maximum(k.T @ k, 1)
+    s = skycal.CovarianceSums(C, A, P, xp)
+    b = xp.asarray(pack_ci4(v))
+    for t0 in (0, 256):                                                                # two gulps
+        part = b[t0:t0 + 256]
+        nz = (part != 0).any(axis=3).reshape(256 // g, g, C, A).any(axis=1).astype(xp.float32)
+        s.add(part, ci4=True, used=nz, block=g)
+    got = s.mean()
+    got = got.get() if hasattr(got, "get") else got
+    assert np.allclose(got, want, rtol=1e-5, atol=1e-5)
+    plain = skycal.CovarianceSums(C, A, P, xp)
+    plain.add(b, ci4=True)
+    p_ = plain.mean()
+    p_ = p_.get() if hasattr(p_, "get") else p_
+    assert not np.allclose(p_, want, rtol=1e-2)          # without the counts, the flagged baselines are low

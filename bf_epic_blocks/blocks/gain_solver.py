@@ -274,6 +274,9 @@ class GainSolverBlock(bfp.SinkBlock):
         else:
             self._xp = np
         self._sums = CovarianceSums(nchan, nstand, npol, self._xp)
+        # after interference flagging, each baseline's mean covariance is over the samples it kept
+        fl = hdr.get("flagging") or {}
+        self._flag_block = int(fl.get("impulse_frames", 1)) if fl else 0
         self._device_id = self._xp.cuda.Device().id if self._xp is not np else None
         self._W = None            # baseline weights, made at the first solve of the sequence
         self._E, self._E_at = None, None   # the diffuse model term and when (unix s) it was made
@@ -329,10 +332,12 @@ class GainSolverBlock(bfp.SinkBlock):
                 self._ev_start = self._xp.cuda.Event()
                 self._ev_start.record()
             part = x[pos:pos + take]
-            if lay["dtype"] == "ci4" and part.dtype == np.uint8:
-                self._sums.add(part, ci4=True)
+            ci4 = lay["dtype"] == "ci4" and part.dtype == np.uint8
+            used, block = self._used(part) if self._flag_block else (None, 1)
+            if ci4:
+                self._sums.add(part, ci4=True, used=used, block=block)
             else:
-                self._sums.add(unpack_complex(part, lay["dtype"]))
+                self._sums.add(unpack_complex(part, lay["dtype"]), used=used, block=block)
             if self._xp is np:
                 self._sum_this += time.perf_counter() - t0
             pos += take
@@ -342,6 +347,23 @@ class GainSolverBlock(bfp.SinkBlock):
                 self._k += 1
                 self._sums.reset()
         self._frame = first + n
+
+    def _used(self, part):
+        """(used, block): after interference flagging (the header's ``flagging``), float (nj, nchan, nant), 1
+        where a stand's samples of a flagger's short block were kept. The flagger writes a flagged
+        stand-sample as zeros in both pols for whole short blocks, and kept noise is never zero for a whole
+        short block, so a block's zeros tell. Where ``part`` does not hold whole short blocks, per frame."""
+        from ..runtime.dtypes import ci4_bytes
+        xp = self._xp
+        g = self._flag_block if part.shape[0] % self._flag_block == 0 else 1
+        if self._lay["dtype"] == "ci4":
+            nz = ci4_bytes(part) != 0
+        else:
+            v = unpack_complex(part, self._lay["dtype"])
+            nz = (v.real != 0) | (v.imag != 0)
+        nz = nz.reshape(part.shape[:3] + (-1,)).any(axis=3)                        # (t, c, a)
+        nz = nz.reshape((part.shape[0] // g, g) + nz.shape[1:]).any(axis=1)
+        return nz.astype(xp.float32), g
 
     def _hand_over(self, k, valid_from):
         """Integration k is summed: its mean covariance goes to the worker thread, which solves and posts it

@@ -497,11 +497,13 @@ class CovarianceSums:
         self._gram = {}          # channel chunk start -> (npol, c, 2 nant, 2 nant) integer sums
         self._gram_n = 0
         self.ntime = 0
+        self._count = None       # (nchan, nant, nant) samples each baseline kept, where some were flagged
 
     def reset(self):
         self._sum[...] = 0
         self._gram, self._gram_n = {}, 0
         self.ntime = 0
+        self._count = None
 
     @property
     def sum(self):
@@ -509,15 +511,33 @@ class CovarianceSums:
         return self._sum
 
     def mean(self):
+        """The mean covariance: the sums over the samples each baseline kept (all of them, unless
+        :meth:`add` was told of flagged ones), 0 where a baseline kept none."""
         if self.ntime == 0:
             raise ValueError("no samples accumulated")
-        return self.sum / self.ntime
+        if self._count is None:
+            return self.sum / self.ntime
+        xp = self.xp
+        n = self._count[:, None].astype(self._sum.real.dtype)
+        return xp.where(n > 0, self.sum / xp.where(n > 0, n, 1), 0)
 
-    def add(self, x, ci4=False):
+    def add(self, x, ci4=False, used=None, block=1):
+        """Add a gulp. ``used``: None (every sample counts), or float (nt // block, nchan, nant), 1 where an
+        input's samples of a block of ``block`` frames were kept, 0 where they were flagged (and are
+        zeros): each baseline's mean is then over the samples both its inputs kept (counted by a GEMM of
+        these masks per channel)."""
         xp = self.xp
         nt = int(x.shape[0])
         if nt == 0:
             return
+        if used is not None:
+            u = xp.ascontiguousarray(xp.asarray(used, xp.float32).transpose(1, 0, 2))        # (c, nj, a)
+            n = xp.matmul(u.swapaxes(-1, -2), u).astype(xp.float64) * float(block)      # (c, a, a)
+            if self._count is None:
+                self._count = xp.full(n.shape, float(self.ntime))
+            self._count += n
+        elif self._count is not None:
+            self._count += float(nt)
         if ci4:
             if self._gram_n + nt > self.INT32_SAMPLES:
                 self._flush()

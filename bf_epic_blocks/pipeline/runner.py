@@ -406,7 +406,7 @@ def flagging_enabled(cfg) -> bool:
     return cfg["source"].get("kind") != "simulated"
 
 
-def _flagging_stage(cfg, feed):
+def _flagging_stage(cfg, feed, imaged=True):
     """(RFIFlagBlock on ``feed``, its FlagWeights for the imager) where :func:`flagging_enabled`, else
     (``feed``, None): every later reader (the imager, the search, the gain solver) sees the flagged
     stand-samples as zeros."""
@@ -422,7 +422,7 @@ def _flagging_stage(cfg, feed):
     if fl.get("bad_freq_file"):
         ranges += parse_bad_freq_list(Path(fl["bad_freq_file"]))
     weights = FlagWeights(cfg["imager"]["accumulate_frames"], track_empty=bool(cfg["imager"].get("search"))) \
-        if cfg["imager"]["kind"] == "dft" else None
+        if cfg["imager"]["kind"] == "dft" and imaged else None
     outdir = cfg["output"]["dir"]
     report = None if outdir is None else \
         (lambda fb: fb.write_report(outdir, cfg["output"]["prefix"], f"{cfg['name']}: interference flags so far"))
@@ -828,7 +828,8 @@ def calibrate(cfg, out_path=None, show_progress=None):
     scope = bfp.block_scope(gpu=devs) if dev == "gpu" else contextlib.nullcontext()
     with bfp.Pipeline() as p, scope:
         source, nframe_total, _ = _recorded_source(cfg, fmt, info, station, gulp, space, progress)
-        solver = gain_solver_block(cfg, source, None, path, apply_from="start")
+        feed, _ = _flagging_stage(cfg, source, imaged=False)          # solved from the unflagged data only
+        solver = gain_solver_block(cfg, feed, None, path, apply_from="start")
     if bar is not None:
         bar.total = nframe_total
     try:
