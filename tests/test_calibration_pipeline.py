@@ -196,4 +196,3 @@ def test_live_tables_are_written_in_parts(tmp_path):
     vf = np.concatenate([t["valid_from"] for t in tabs])
     assert len(vf) == 6 and np.all(np.diff(vf) > 0)          # nothing lost, in time order
     assert all(str(tmp_path / "parts" / n) in s["files"] for n in names)
-
