@@ -267,6 +267,35 @@ def test_device_and_host_agree(xp):
     assert np.array_equal(to_numpy(rfi.broadband_flags(S1)), rfi.broadband_flags(S1h))
 
 
+@pytest.mark.parametrize("bits", [4, None])
+def test_sk_code_is_sk_flags_per_stand(xp, bits):
+    """sk_code's bits are sk_flags' low and high reasons, any pol of a stand (on a GPU: the kernel and its
+    table of thresholds per integer block power, against the interpolated thresholds)."""
+    rng = np.random.default_rng(63)
+    m = 256
+    v = complex_noise(rng, (4 * m, 5, 6, 2), 2.0)
+    v[:m, 1, 2, 0] = 3.0                                               # a constant: low SK
+    v[m:m + 20, 3, 4, 1] *= 12.0                                       # a burst: high SK
+    v[2 * m:3 * m, 4, 0, :] = 0.0                                      # no power: no flag
+    if bits:
+        S1, S2 = rfi.power_sums(pack_ci4(v), m, ci4=True)
+    else:
+        S1, S2 = rfi.power_sums(v, m)
+    _, r = rfi.sk_flags(S1, S2, m, 1e-2, bits=bits)
+    want = ((r == 1).any(axis=3) | ((r == 2).any(axis=3) << 1)).astype(np.uint8)
+    got = to_numpy(rfi.sk_code(xp.asarray(S1), xp.asarray(S2), m, 1e-2, bits=bits))
+    assert got[0, 1, 2] & 1 and got[1, 3, 4] & 2 and got[2, 4, 0] == 0
+    assert np.array_equal(got, want)
+
+
+def test_median_over_the_middle_axis_is_numpys(xp):
+    rng = np.random.default_rng(64)
+    for L in (1, 2, 7, 64, 65, 130):
+        x = rng.standard_normal((3, L, 9)).astype(np.float32)
+        got = to_numpy(rfi._median_axis1(xp.asarray(x)))
+        assert np.allclose(got, np.median(x, axis=1), rtol=1e-6, atol=1e-7), L
+
+
 def test_block_power_is_its_definition(xp):
     """S1, S2 per block of m (short blocks in ``skip`` left out) and the power per short block of a summed
     over each pair of inputs, from the decoded 4-bit samples by plain sums (on a GPU: the kernel)."""

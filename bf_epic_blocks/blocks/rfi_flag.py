@@ -206,9 +206,7 @@ class RFIFlagBlock(bfp.TransformBlock):
                     k = xp.asarray(~hit[t0:t0 + mm]).reshape((mm,) + (1,) * (part.ndim - 1))
                     part = xp.where(k, part, xp.zeros((), part.dtype))
                 s1, s2 = rfi.power_sums(part, mm, ci4=ci4)
-            _, r = rfi.sk_flags(s1, s2, used, self.far, bits=self._bits)
-            r = r.reshape(r.shape[:3] + (-1,))[0]                              # (nchan, nstand, npol)
-            code[i] = (r == 1).any(axis=2) | ((r == 2).any(axis=2) << 1)
+            code[i] = rfi.sk_code(s1, s2, used, self.far, bits=self._bits)[0]
         # each short block's SK block (m is a multiple of a: a short block lies in one)
         which = np.minimum(np.arange(ns) * a // m, max(len(blocks) - 1, 0)).astype(np.int32)
         which[(np.arange(ns) * a) >= sum(mm for _, mm in blocks)] = -1

@@ -1,54 +1,114 @@
 // Interference detection on the GPU: the power sums of 4-bit voltages, and the flags applied.
 // Launched by imaging/rfi.py (block_power, apply_flags), which gives the shapes in Python terms.
 
-// rfi_block_power: ci4 bytes b (T, K) (K = channels x inputs, contiguous; high nibble real, two's
-// complement) -> s1, s2 (T / m, K) the sums of |x|^2 and |x|^4 over each whole block of m samples
-// (exact: integers below 2^53), and sh (T / a, K / g) the sums of |x|^2 over each whole short block of a
+// rfi_block_power: ci4 bytes b (T, K) (K = channels x inputs, contiguous, K a multiple of 4; high nibble
+// real, two's complement), read as 32-bit words w (4 inputs each) -> s1, s2 (T / m, K) the sums of |x|^2
+// and |x|^4 over each whole block of m samples (exact: integers below 2^53; zeroed by the caller, each
+// time chunk adds its part), and sh (T / a, K / g) the sums of |x|^2 over each whole short block of a
 // samples and each group of g adjacent inputs (a stand's pols; g a power of 2 up to 32). skip (T / a
-// bytes, or null): short blocks whose samples are left out of s1 and s2 (not out of sh). One thread per
-// column k walks down time, so that neighbouring threads read neighbouring bytes and the bytes are read
-// once; the power array the NumPy form makes (4 bytes a sample) never exists. A group's sum is a shuffle
-// within the warp (g divides 32, so a group never straddles warps); every thread of a warp takes part.
-// Launch: grid (ceil(K / 256)), block (256).
-extern "C" __global__ void rfi_block_power(const unsigned char* __restrict__ b, double* __restrict__ s1,
+// bytes, or null): short blocks whose samples are left out of s1 and s2 (not out of sh). Thread (word w,
+// chunk y) walks the frames [y chunk, (y + 1) chunk) (chunk a multiple of a dividing m): a warp reads 128
+// neighbouring bytes a frame, and the power array the NumPy form makes (4 bytes a sample) never exists.
+// A group wider than a word is summed by a shuffle within the warp (every thread of a warp takes part).
+// Launch: grid (ceil(K / 4 / 256), ceil(T / chunk)), block (256).
+extern "C" __global__ void rfi_block_power(const unsigned int* __restrict__ b, double* __restrict__ s1,
                                            double* __restrict__ s2, float* __restrict__ sh,
-                                           const unsigned char* __restrict__ skip, long long K, int T, int m,
-                                           int a, int g) {
-    const long long k = (long long)blockIdx.x * blockDim.x + threadIdx.x;
-    const bool on = k < K;
-    const long long G = K / g;
-    long long acc1 = 0, acc2 = 0;
-    int accs = 0, im_ = 0, is_ = 0;
-    for (int t = 0; t < T; ++t) {
-        int p = 0;
-        if (on) {
-            const unsigned char v = b[(size_t)t * (size_t)K + (size_t)k];
-            const int re = (int)(signed char)v >> 4;                      // arithmetic shift: the nibble's sign
-            const int im = (int)(signed char)(unsigned char)(v << 4) >> 4;
-            p = re * re + im * im;
-        }
-        if (skip == nullptr || !skip[t / a]) {
-            acc1 += p;
-            acc2 += p * p;
-        }
-        accs += p;
-        if (++is_ == a) {
-            int v = accs;
-            for (int off = g / 2; off > 0; off /= 2) v += __shfl_down_sync(0xffffffffu, v, off, g);
-            if (on && k % g == 0) sh[(size_t)(t / a) * (size_t)G + (size_t)(k / g)] = (float)v;
-            accs = 0;
-            is_ = 0;
-        }
-        if (++im_ == m) {
-            if (on) {
-                const size_t o = (size_t)(t / m) * (size_t)K + (size_t)k;
-                s1[o] = (double)acc1;
-                s2[o] = (double)acc2;
+                                           const unsigned char* __restrict__ skip, long long K4, int T, int m,
+                                           int a, int g, int chunk) {
+    const long long w = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    const bool on = w < K4;
+    const long long K = 4 * K4, G = K / g;
+    const int t0 = blockIdx.y * chunk, t1 = min(T, t0 + chunk);
+    const int nbm = (T / m) * m, nsa = (T / a) * a;          // frames in whole blocks, in whole short blocks
+    long long acc1[4] = {0, 0, 0, 0}, acc2[4] = {0, 0, 0, 0};
+    int accs[4] = {0, 0, 0, 0};
+#pragma unroll 4
+    for (int t = t0; t < t1; ++t) {
+        const unsigned int v = on ? b[(size_t)t * (size_t)K4 + (size_t)w] : 0u;
+        const bool sk = t >= nbm || (skip != nullptr && skip[t / a]);
+#pragma unroll
+        for (int q = 0; q < 4; ++q) {
+            const unsigned int y = (v >> (8 * q)) & 0xffu;
+            const int re = (int)(signed char)(unsigned char)y >> 4;          // arithmetic shift: the sign
+            const int im = (int)(signed char)(unsigned char)(y << 4) >> 4;
+            const int p = re * re + im * im;
+            accs[q] += p;
+            if (!sk) {
+                acc1[q] += p;
+                acc2[q] += p * p;
             }
-            acc1 = acc2 = 0;
-            im_ = 0;
+        }
+        if ((t + 1) % a == 0 && t < nsa) {                      // a short block ends
+            const size_t row = (size_t)(t / a) * (size_t)G;
+            if (g <= 4) {
+                for (int q = 0; q < 4; q += g) {
+                    int v2 = 0;
+                    for (int e = 0; e < g; ++e) v2 += accs[q + e];
+                    if (on) sh[row + (size_t)((4 * w + q) / g)] = (float)v2;
+                }
+            } else {
+                int v2 = accs[0] + accs[1] + accs[2] + accs[3];
+                for (int off = g / 8; off > 0; off /= 2) v2 += __shfl_down_sync(0xffffffffu, v2, off, g / 4);
+                if (on && (4 * w) % g == 0) sh[row + (size_t)(4 * w / g)] = (float)v2;
+            }
+            accs[0] = accs[1] = accs[2] = accs[3] = 0;
+        }
+        if ((t + 1) % m == 0 || t + 1 == t1) {                  // a block or the chunk ends: add its part
+            if (on && t < nbm) {
+                const size_t o = (size_t)(t / m) * (size_t)K + (size_t)(4 * w);
+                for (int q = 0; q < 4; ++q) {
+                    if (acc1[q]) atomicAdd(&s1[o + q], (double)acc1[q]);
+                    if (acc2[q]) atomicAdd(&s2[o + q], (double)acc2[q]);
+                }
+            }
+            acc1[0] = acc1[1] = acc1[2] = acc1[3] = 0;
+            acc2[0] = acc2[1] = acc2[2] = acc2[3] = 0;
         }
     }
+}
+
+// rfi_sk_code: per (block i, channel and stand k): bit 0 where any of its np pols' SK is below the low
+// threshold, bit 1 above the high one (imaging/rfi.py's sk_code, which is the definition).
+//   s1, s2 : (nb, K np) power sums of blocks of m samples;  lo, hi : (L,) thresholds, indexed by S1 (an
+//   integer for quantised data, L = 128 m + 1) or one pair (L = 1);  min_s1 : a block with S1 below it (or
+//   S1 = 0) has no power and no SK flag.  Launch: grid (ceil(nb K / 256)), block (256).
+extern "C" __global__ void rfi_sk_code(const double* __restrict__ s1, const double* __restrict__ s2,
+                                       const double* __restrict__ lo, const double* __restrict__ hi,
+                                       unsigned char* __restrict__ code, long long n, int np, double m,
+                                       long long L, double min_s1) {
+    const long long k = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    if (k >= n) return;
+    unsigned char c = 0;
+    for (int p = 0; p < np; ++p) {
+        const double a1 = s1[k * np + p], a2 = s2[k * np + p];
+        if (a1 == 0.0 || a1 < min_s1) continue;
+        const double sk = (m + 1.0) / (m - 1.0) * (m * a2 / (a1 * a1) - 1.0);
+        const long long j = L == 1 ? 0 : min((long long)a1, L - 1);
+        if (sk < lo[j]) c |= 1;
+        else if (sk > hi[j]) c |= 2;
+    }
+    code[k] = c;
+}
+
+// rfi_median_axis1: out (R, C) = the median of x (R, L, C) over its middle axis (the mean of the two
+// middle values where L is even, as NumPy's), L <= 128: each thread sorts one column by insertion.
+// Launch: grid (ceil(R C / 128)), block (128).
+extern "C" __global__ void rfi_median_axis1(const float* __restrict__ x, float* __restrict__ out, int R, int L,
+                                            int C) {
+    const long long k = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    if (k >= (long long)R * C) return;
+    const long long r = k / C, c = k % C;
+    float v[128];
+    for (int i = 0; i < L; ++i) {
+        const float y = x[((size_t)r * L + i) * (size_t)C + (size_t)c];
+        int j = i - 1;
+        while (j >= 0 && v[j] > y) {
+            v[j + 1] = v[j];
+            --j;
+        }
+        v[j + 1] = y;
+    }
+    out[k] = (L % 2) ? v[L / 2] : (v[L / 2 - 1] + v[L / 2]) / 2.0f;
 }
 
 // rfi_apply_flags: one thread block per (short block j, channel c): the detectors' flags combined per
@@ -60,7 +120,7 @@ extern "C" __global__ void rfi_block_power(const unsigned char* __restrict__ b, 
 //   holds what is left of n);  spread_max : more live stands than this flagged on their own flag all.
 //   cnt : (ns, nchan, 7) int32 live stands flagged by static, sk-low, sk-high, impulse, impulse-stand,
 //   spread, and by any (the same rules as imaging/rfi.py's apply_flags, which is their definition);
-//   words : the rows (nstand B bytes) and both arrays start on 4-byte boundaries: copied a word at a time.
+//   words : the rows (nstand B bytes) and both arrays start on 16-byte boundaries: copied 16 bytes at a time.
 // Launch: grid (nchan, ns), block (256), dynamic shared memory nstand bytes.
 extern "C" __global__ void rfi_apply_flags(const unsigned char* __restrict__ x, unsigned char* __restrict__ out,
                                            const unsigned char* __restrict__ sk, const int* __restrict__ which,
@@ -105,18 +165,16 @@ extern "C" __global__ void rfi_apply_flags(const unsigned char* __restrict__ x, 
     if (tid < 7) cnt[((size_t)j * nchan + c) * 7 + tid] = tot[tid];
     const int t0 = j * a, t1 = min(n, t0 + a);
     const long long R = (long long)nstand * B;                   // bytes of one (frame, channel) row
-    if (words) {                                                 // rows start on 4-byte boundaries
-        const int nw = (int)(R / 4);
-        for (int t = t0; t < t1; ++t) {
-            const size_t base = ((size_t)t * nchan + c) * (size_t)(R / 4);
-            const unsigned int* xi = reinterpret_cast<const unsigned int*>(x) + base;
-            unsigned int* xo = reinterpret_cast<unsigned int*>(out) + base;
-            for (int q = tid; q < nw; q += blockDim.x) {
-                unsigned int keep = 0;
-                for (int y = 0; y < 4; ++y)
-                    if (!bad[(4 * q + y) / B]) keep |= 0xffu << (8 * y);
-                xo[q] = xi[q] & keep;
-            }
+    if (words) {                                                 // rows and arrays on 16-byte boundaries
+        const int nq = (int)(R / 16), items = (t1 - t0) * nq;
+        for (int it = tid; it < items; it += blockDim.x) {
+            const int t = t0 + it / nq, q = it % nq;
+            const size_t o = ((size_t)t * nchan + c) * (size_t)nq + q;
+            uint4 v = reinterpret_cast<const uint4*>(x)[o];
+            unsigned int* u = reinterpret_cast<unsigned int*>(&v);
+            for (int y = 0; y < 16; ++y)
+                if (bad[(16 * q + y) / B]) u[y / 4] &= ~(0xffu << (8 * (y % 4)));
+            reinterpret_cast<uint4*>(out)[o] = v;
         }
     } else {
         for (int t = t0; t < t1; ++t) {

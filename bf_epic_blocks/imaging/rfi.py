@@ -144,20 +144,22 @@ def block_power(x, m, a, *, ci4=False, group=1, skip=None):
             raise ValueError(f"skip must have one entry per whole short block ({ns}), got {skip.shape[0]}")
     if ci4 and xp is not np:
         names = getattr(x.dtype, "names", None)
-        b = (x[names[0]] if names else x).view(xp.uint8)
-        b = xp.ascontiguousarray(b)
+        b = xp.ascontiguousarray((x[names[0]] if names else x).view(xp.uint8))
         K = int(np.prod(b.shape[1:])) if b.ndim > 1 else 1
-        s1 = xp.empty((nb,) + tuple(b.shape[1:]), xp.float64)
-        s2 = xp.empty_like(s1)
-        sh = xp.empty((ns,) + tail, xp.float32)
-        sk = None
-        if skip is not None:
-            sk = xp.asarray(np.concatenate([skip, np.zeros(1, bool)]).astype(np.uint8))  # frames past ns a
-        if K and T and (nb or ns):
-            get_kernel("imaging/rfi.cu", "rfi_block_power")(
-                ((K + 255) // 256,), (256,), (b, s1, s2, sh, sk if sk is not None else np.uintp(0), np.int64(K),
-                                              np.int32(T), np.int32(m), np.int32(a), np.int32(group)))
-        return s1, s2, sh
+        if K % 4 == 0 and b.data.ptr % 4 == 0:
+            s1 = xp.zeros((nb,) + tuple(b.shape[1:]), xp.float64)
+            s2 = xp.zeros_like(s1)
+            sh = xp.empty((ns,) + tail, xp.float32)
+            sk = None
+            if skip is not None:
+                sk = xp.asarray(np.concatenate([skip, np.zeros(1, bool)]).astype(np.uint8))  # frames past ns a
+            chunk = a * max(1, -(-T // (4 * a)))          # ~4 time chunks: ~K threads, each a quarter of the frames
+            if K and T and (nb or ns):
+                get_kernel("imaging/rfi.cu", "rfi_block_power")(
+                    ((K // 4 + 255) // 256, -(-T // chunk)), (256,),
+                    (b, s1, s2, sh, sk if sk is not None else np.uint64(0), np.int64(K // 4), np.int32(T),
+                     np.int32(m), np.int32(a), np.int32(group), np.int32(chunk)))
+            return s1, s2, sh
     if skip is not None and nb:
         keep = np.ones(T, bool)
         keep[:ns * a] = ~np.repeat(skip, a)
@@ -548,6 +550,44 @@ def sk_flags(S1, S2, m, far, bits=4):
     return reason != 0, reason
 
 
+def sk_code(S1, S2, m, far, bits=4):
+    """Per (block, channel, stand): bit 0 where the SK of any of the stand's pols is low, bit 1 where high
+    (:func:`sk_flags`' reasons 1 and 2; a block with no power sets neither).
+
+    S1, S2 : (nblock, nchan, nstand, npol) power sums (:func:`power_sums`). Returns uint8 (nblock, nchan,
+    nstand) on S1's device. On a GPU one kernel (``rfi.cu``: ``rfi_sk_code``) does it, with the thresholds
+    of every possible block power tabulated once: a quantised block's S1 is an integer 0 .. 128 m, and its
+    thresholds are :func:`sk_thresholds` at mean power S1 / m, the numbers :func:`sk_flags` interpolates."""
+    m = _check_m(m, bits)
+    xp = get_xp(S1, S2)
+    if xp is np or S1.ndim != 4:
+        _, r = sk_flags(S1, S2, m, far, bits)
+        r = r.reshape(r.shape[:3] + (-1,))
+        return ((r == 1).any(axis=3) | ((r == 2).any(axis=3) << 1)).astype(np.uint8)
+    lo, hi = _tables_on(xp, _sk_code_table(m, float(far), bits))
+    s1 = xp.ascontiguousarray(S1, dtype=xp.float64)
+    s2 = xp.ascontiguousarray(S2, dtype=xp.float64)
+    code = xp.empty(S1.shape[:3], xp.uint8)
+    n = int(code.size)
+    min_s1 = m * min_mean_power(bits) if bits is not None else 0.0
+    if n:
+        get_kernel("imaging/rfi.cu", "rfi_sk_code")(
+            ((n + 255) // 256,), (256,), (s1, s2, lo, hi, code, np.int64(n), np.int32(S1.shape[3]), np.float64(m),
+                                          np.int64(lo.size), np.float64(min_s1)))
+    return code
+
+
+@functools.lru_cache(maxsize=16)
+def _sk_code_table(m, far, bits):
+    """(lo, hi) host float64: one pair (Gaussian noise) or, for quantised noise, per block power S1 = 0 ..
+    2^(2 bits - 1) m (|x|^2 <= 2^(2 bits - 1) a sample), the thresholds at mean power S1 / m."""
+    if bits is None:
+        lo, hi = _gaussian_thresholds(m, far)
+        return np.array([lo]), np.array([hi])
+    s1 = np.arange(2 ** (2 * int(bits) - 1) * m + 1, dtype=np.float64)
+    return tuple(np.ascontiguousarray(v) for v in sk_thresholds(far, m, s1 / m, bits))
+
+
 # ----------------------------------------------------------------------------------------- broadband impulses
 
 #: per-input impulse statistic: about this many groups of adjacent channels (:func:`broadband_flags`)
@@ -560,13 +600,13 @@ def broadband_flags(power, threshold_sigma=6.0, *, per_input=False):
     power : (nblock, nchan, ninput...) power per short block (e.g. S1 of :func:`power_sums` with m = 16),
         channel and input.
     Band-wide (``per_input`` False): each channel's power summed over the inputs is divided by its median
-        over the nblock blocks, and a block's statistic is the median of that ratio over the channels: a
-        carrier switching on in a few channels leaves it alone, a spark across the band raises it.
-    Per input (``per_input`` True): each (channel, input)'s power is divided by its mean over the blocks,
-        the ratio is averaged over groups of g = max(1, nchan // :data:`CHANNEL_GROUPS`) adjacent channels
-        (the first nchan // g groups; a channel with no power counts as 1), and a (block, input)'s statistic
-        is the median over the groups: robust, as the band-wide median is, to a carrier in fewer than half
-        the groups, for a sort over ~64 group means instead of over every channel.
+        over the nblock blocks; per input (``per_input`` True): each (channel, input)'s power by its mean
+        over the blocks. The ratio is averaged over groups of g = max(1, nchan // :data:`CHANNEL_GROUPS`)
+        adjacent channels (the first nchan // g groups; a channel with no power counts as 1), and a block's
+        (or block and input's) statistic is the median over the groups: a carrier switching on in fewer
+        than half the groups leaves it alone (the SK's to flag), a spark across the band raises it. With
+        nchan <= 2 CHANNEL_GROUPS that is the median over the channels; at the whole band it sorts ~64
+        group means instead of every channel.
     A block (or block and input) is flagged where its statistic exceeds its median over the blocks +
     threshold_sigma * 1.4826 * MAD (1.4826 MAD is the standard deviation of Gaussian scatter; the
     reference holds while fewer than half the blocks are hit).
@@ -578,28 +618,48 @@ def broadband_flags(power, threshold_sigma=6.0, *, per_input=False):
                          f"{tuple(power.shape)}")
     if not threshold_sigma > 0:
         raise ValueError(f"threshold_sigma must be > 0, got {threshold_sigma!r}")
+    power = xp.asarray(power, dtype=xp.float32)          # short-block powers are integers below 2^24
+    rest = power.shape[2:] if per_input else ()
     if per_input:
-        power = xp.asarray(power, dtype=xp.float32)
-        nchan = power.shape[1]
-        g = max(1, nchan // CHANNEL_GROUPS)
-        ng = nchan // g
-        power = power[:, :ng * g]
-        ref = power.mean(axis=0, dtype=xp.float32)                      # (nchan, ninput...)
-        live = ref > 0
-        ratio = xp.where(live, power / xp.where(live, ref, xp.float32(1.0)), xp.float32(1.0))
-        means = ratio.reshape((ratio.shape[0], ng, g) + ratio.shape[2:]).mean(axis=2, dtype=xp.float32)
-        stat = xp.median(means, axis=1)                                  # (nblock, ninput...)
+        power = power.reshape(power.shape[0], power.shape[1], -1)
+        ref = power.mean(axis=0, dtype=xp.float32)                      # (nchan, ninput)
     else:
-        power = xp.asarray(power, dtype=xp.float64)
-        power = power.reshape(power.shape[0], power.shape[1], -1).sum(axis=2)          # (nblock, nchan)
-        ref = xp.median(power, axis=0)
-        live = ref > 0                                                   # channels with any power
-        ratio = xp.where(live, power / xp.where(live, ref, 1.0), xp.nan)
-        stat = xp.nanmedian(ratio, axis=1) if bool(live.any()) else xp.zeros((power.shape[0],))
-        stat = xp.where(xp.isnan(stat), 1.0, stat)
-    med = xp.median(stat, axis=0)
-    mad = xp.median(xp.abs(stat - med), axis=0)
-    return stat > med + threshold_sigma * 1.4826 * mad
+        power = power.reshape(power.shape[0], power.shape[1], -1).sum(axis=2, dtype=xp.float32)[:, :, None]
+        ref = _median_axis1(power.reshape(1, power.shape[0], -1)).reshape(power.shape[1:])   # (nchan, 1)
+    live = ref > 0                                                       # channels (and inputs) with power
+    ratio = xp.where(live, power / xp.where(live, ref, xp.float32(1.0)), xp.float32(1.0))
+    stat = _group_median(ratio)                                          # (nblock, ninput | 1)
+    med = _median_axis1(stat[None])                                      # (1, ninput | 1)
+    mad = _median_axis1(xp.abs(stat - med)[None])
+    return (stat > med + xp.float32(threshold_sigma * 1.4826) * mad).reshape((stat.shape[0],) + rest)
+
+
+def _median_axis1(x):
+    """x (R, L, C) float32 -> its median over axis 1, (R, C) float32 (NumPy's rule: the mean of the two middle
+    values for even L). On a GPU with L <= 128 one kernel sorts each column in registers (``rfi.cu``),
+    where CuPy's median sorts the whole array."""
+    xp = get_xp(x)
+    R, L, C = (int(v) for v in x.shape)
+    if xp is np or L > 128 or L == 0:
+        return xp.median(x, axis=1).astype(xp.float32)
+    out = xp.empty((R, C), xp.float32)
+    if R * C:
+        get_kernel("imaging/rfi.cu", "rfi_median_axis1")(
+            ((R * C + 127) // 128,), (128,), (xp.ascontiguousarray(x, dtype=xp.float32), out, np.int32(R),
+                                              np.int32(L), np.int32(C)))
+    return out
+
+
+def _group_median(ratio):
+    """ratio (nblock, nchan, rest) -> the median over groups of g = max(1, nchan // CHANNEL_GROUPS) adjacent
+    channels (the first nchan // g) of the ratio's mean in each group, (nblock, rest) float32."""
+    xp = get_xp(ratio)
+    nb, nchan = int(ratio.shape[0]), int(ratio.shape[1])
+    g = max(1, nchan // CHANNEL_GROUPS)
+    ng = nchan // g
+    r = ratio[:, :ng * g].reshape(nb, ng, g, -1)
+    means = r.mean(axis=2, dtype=xp.float32) if g > 1 else r[:, :, 0]
+    return _median_axis1(means)
 
 
 #: what :func:`apply_flags` counts, in the order of its last axis

@@ -411,11 +411,12 @@ CALIBRATION_SOLVE = Section({
     "integration_s": Key(Float(0.0, lo_open=True), 1.0,
                          doc="Seconds of data each solution sums its covariances over (the first of its cadence); "
                              "it applies from the first frame after them."),
-    "apply_delay_s": Key(Float(0.0), 3.0,
+    "apply_delay_s": Key(Float(0.0), 6.0,
                          doc="A solution applies this long after the end of its data (on the first image "
                              "integration from then): the time its solve takes, so that the imager need not wait. "
-                             "At the whole band on a GPU the imager shares, a solution takes ~1.3 s of wall time, "
-                             "and an imager running at twice real time covers 3 s of data in 1.5 s."),
+                             "At the whole band on a GPU the imager shares, the last sums and the solve take "
+                             "~2.2 s of wall time, and an imager running at twice real time covers 6 s of data "
+                             "in 3 s."),
     "min_baseline_lambda": Key(Float(0.0), 4.0,
                                doc="Baselines shorter than this many wavelengths are not used: the diffuse Galactic "
                                    "emission, which a point-source model lacks, dominates them."),
