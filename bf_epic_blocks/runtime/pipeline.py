@@ -103,10 +103,16 @@ def priority_stream(cupy, priority):
     gives a plain stream."""
     if priority not in ('high', 'low'):
         raise ValueError(f"stream priority must be 'high' or 'low', got {priority!r}")
+    # CUDA clamps a priority to the device's range (lower is higher; 0, the default, is the least)
+    level = -1000 if priority == 'high' else 0
     try:
         least, greatest = cupy.cuda.runtime.deviceGetStreamPriorityRange()
-        return cupy.cuda.Stream(non_blocking=True, priority=greatest if priority == 'high' else least)
-    except (TypeError, AttributeError):
+        level = greatest if priority == 'high' else least
+    except AttributeError:      # a CuPy without the query: the clamp does it
+        pass
+    try:
+        return cupy.cuda.Stream(non_blocking=True, priority=level)
+    except TypeError:           # a CuPy without stream priorities
         return cupy.cuda.Stream(non_blocking=True)
 
 
