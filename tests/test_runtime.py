@@ -1080,3 +1080,17 @@ def test_cuda_source_sends_packed_ci4_from_pinned_memory():
         s.synchronize()
     np.testing.assert_array_equal(dst.get(), want)
     assert h2d.staged_bytes == want.size
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason='needs CuPy and a CUDA device')
+def test_priority_streams_are_ordered():
+    """'high' streams outrank 'low' ones (lower CUDA priority numbers); 'low' is CUDA's default, 0."""
+    cupy = pytest.importorskip("cupy")
+    from bf_epic_blocks.runtime.pipeline import priority_stream
+    hi, lo = priority_stream(cupy, "high"), priority_stream(cupy, "low")
+    if getattr(hi, "priority", None) is None:
+        pytest.skip("this CuPy does not say a stream's priority")
+    assert lo.priority == 0 and hi.priority < lo.priority
+    with pytest.raises(ValueError, match="high' or 'low"):
+        priority_stream(cupy, "urgent")

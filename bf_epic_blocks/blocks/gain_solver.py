@@ -209,8 +209,8 @@ class GainSolverBlock(bfp.SinkBlock):
     counts solutions, failures (with reasons) and the seconds spent summing and solving.
     """
 
-    #: the sums and the solves wait while the imager's kernels run (its stream is 'high')
-    stream_priority = "low"
+    #: the sums and the solves go ahead of the imager's kernels, which wait for their solutions
+    stream_priority = "high"
 
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
@@ -387,7 +387,7 @@ class GainSolverBlock(bfp.SinkBlock):
         cp.cuda.Device(self._device_id).use()
         if self._worker_stream is None:
             from ..runtime.pipeline import priority_stream
-            self._worker_stream = priority_stream(cp, "low")
+            self._worker_stream = priority_stream(cp, "high")
         return self._worker_stream
 
     def _warm_job(self):

@@ -67,6 +67,9 @@ class RFIFlagBlock(bfp.TransformBlock):
     the static channels.
     """
 
+    #: the imager waits for every gulp the flagger writes: its kernels go first
+    stream_priority = "high"
+
     def __init__(self, iring, far=1e-3, block_frames=1024, impulse_frames=16, impulse_sigma=6.0,
                  bad_freq_ranges=(), spread=0.1, weights=None, report=None, report_every_s=60.0, *args, **kwargs):
         super().__init__(iring, *args, **kwargs)

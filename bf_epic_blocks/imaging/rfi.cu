@@ -5,12 +5,13 @@
 // real, two's complement), read as 32-bit words w (4 inputs each) -> s1, s2 (T / m, K) the sums of |x|^2
 // and |x|^4 over each whole block of m samples (exact: integers below 2^53; zeroed by the caller, each
 // time chunk adds its part), and sh (T / a, K / g) the sums of |x|^2 over each whole short block of a
-// samples and each group of g adjacent inputs (a stand's pols; g a power of 2 up to 32). skip (T / a
-// bytes, or null): short blocks whose samples are left out of s1 and s2 (not out of sh). Thread (word w,
-// chunk y) walks the frames [y chunk, (y + 1) chunk) (chunk a multiple of a dividing m): a warp reads 128
-// neighbouring bytes a frame, and the power array the NumPy form makes (4 bytes a sample) never exists.
-// A group wider than a word is summed by a shuffle within the warp (every thread of a warp takes part).
-// Launch: grid (ceil(K / 4 / 256), ceil(T / chunk)), block (256).
+// samples and each group of g adjacent inputs (a stand's pols; g a power of 2 up to 32). m is a multiple
+// of a. skip (T / a bytes, or null): short blocks whose samples are left out of s1 and s2 (not out of sh).
+// Thread (word w, chunk y) walks the frames [y chunk, (y + 1) chunk) (chunk a multiple of a, at most 2^16
+// frames, so that a chunk's sums fit int32: |x|^4 <= 2^14) a short block at a time, with no division
+// inside a short block: a warp reads 128 neighbouring bytes a frame, and the power array the NumPy form
+// makes (4 bytes a sample) never exists. A group wider than a word is summed by a shuffle within the warp
+// (every thread of a warp takes part). Launch: grid (ceil(K / 4 / 256), ceil(T / chunk)), block (256).
 extern "C" __global__ void rfi_block_power(const unsigned int* __restrict__ b, double* __restrict__ s1,
                                            double* __restrict__ s2, float* __restrict__ sh,
                                            const unsigned char* __restrict__ skip, long long K4, int T, int m,
@@ -19,43 +20,46 @@ extern "C" __global__ void rfi_block_power(const unsigned int* __restrict__ b, d
     const bool on = w < K4;
     const long long K = 4 * K4, G = K / g;
     const int t0 = blockIdx.y * chunk, t1 = min(T, t0 + chunk);
-    const int nbm = (T / m) * m, nsa = (T / a) * a;          // frames in whole blocks, in whole short blocks
-    long long acc1[4] = {0, 0, 0, 0}, acc2[4] = {0, 0, 0, 0};
-    int accs[4] = {0, 0, 0, 0};
+    const int nbm = (T / m) * m, ns = T / a;                 // frames in whole blocks; whole short blocks
+    int acc1[4] = {0, 0, 0, 0}, acc2[4] = {0, 0, 0, 0};
+    for (int ta = t0, sb = t0 / a; ta < t1; ta += a, ++sb) {
+        const int tb = min(ta + a, t1);
+        int c1[4] = {0, 0, 0, 0}, c2[4] = {0, 0, 0, 0};
 #pragma unroll 4
-    for (int t = t0; t < t1; ++t) {
-        const unsigned int v = on ? b[(size_t)t * (size_t)K4 + (size_t)w] : 0u;
-        const bool sk = t >= nbm || (skip != nullptr && skip[t / a]);
+        for (int t = ta; t < tb; ++t) {
+            const unsigned int v = on ? b[(size_t)t * (size_t)K4 + (size_t)w] : 0u;
 #pragma unroll
-        for (int q = 0; q < 4; ++q) {
-            const unsigned int y = (v >> (8 * q)) & 0xffu;
-            const int re = (int)(signed char)(unsigned char)y >> 4;          // arithmetic shift: the sign
-            const int im = (int)(signed char)(unsigned char)(y << 4) >> 4;
-            const int p = re * re + im * im;
-            accs[q] += p;
-            if (!sk) {
-                acc1[q] += p;
-                acc2[q] += p * p;
+            for (int q = 0; q < 4; ++q) {
+                const int re = (int)(v << (24 - 8 * q)) >> 28;          // arithmetic shifts: the nibbles' signs
+                const int im = (int)(v << (28 - 8 * q)) >> 28;
+                const int p = re * re + im * im;
+                c1[q] += p;
+                c2[q] += p * p;
             }
         }
-        if ((t + 1) % a == 0 && t < nsa) {                      // a short block ends
-            const size_t row = (size_t)(t / a) * (size_t)G;
+        if (sb < ns) {                                           // a whole short block: its group sums
+            const size_t row = (size_t)sb * (size_t)G;
             if (g <= 4) {
                 for (int q = 0; q < 4; q += g) {
                     int v2 = 0;
-                    for (int e = 0; e < g; ++e) v2 += accs[q + e];
+                    for (int e = 0; e < g; ++e) v2 += c1[q + e];
                     if (on) sh[row + (size_t)((4 * w + q) / g)] = (float)v2;
                 }
             } else {
-                int v2 = accs[0] + accs[1] + accs[2] + accs[3];
+                int v2 = c1[0] + c1[1] + c1[2] + c1[3];
                 for (int off = g / 8; off > 0; off /= 2) v2 += __shfl_down_sync(0xffffffffu, v2, off, g / 4);
                 if (on && (4 * w) % g == 0) sh[row + (size_t)(4 * w / g)] = (float)v2;
             }
-            accs[0] = accs[1] = accs[2] = accs[3] = 0;
         }
-        if ((t + 1) % m == 0 || t + 1 == t1) {                  // a block or the chunk ends: add its part
-            if (on && t < nbm) {
-                const size_t o = (size_t)(t / m) * (size_t)K + (size_t)(4 * w);
+        if (ta < nbm && !(skip != nullptr && sb < ns && skip[sb])) {
+            for (int q = 0; q < 4; ++q) {
+                acc1[q] += c1[q];
+                acc2[q] += c2[q];
+            }
+        }
+        if (ta < nbm && (tb % m == 0 || tb == t1)) {              // a block or the chunk ends: add its part
+            if (on) {
+                const size_t o = (size_t)(ta / m) * (size_t)K + (size_t)(4 * w);
                 for (int q = 0; q < 4; ++q) {
                     if (acc1[q]) atomicAdd(&s1[o + q], (double)acc1[q]);
                     if (acc2[q]) atomicAdd(&s2[o + q], (double)acc2[q]);

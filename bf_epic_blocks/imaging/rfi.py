@@ -146,14 +146,14 @@ def block_power(x, m, a, *, ci4=False, group=1, skip=None):
         names = getattr(x.dtype, "names", None)
         b = xp.ascontiguousarray((x[names[0]] if names else x).view(xp.uint8))
         K = int(np.prod(b.shape[1:])) if b.ndim > 1 else 1
-        if K % 4 == 0 and b.data.ptr % 4 == 0:
+        if K % 4 == 0 and b.data.ptr % 4 == 0 and m % a == 0:
             s1 = xp.zeros((nb,) + tuple(b.shape[1:]), xp.float64)
             s2 = xp.zeros_like(s1)
             sh = xp.empty((ns,) + tail, xp.float32)
             sk = None
             if skip is not None:
                 sk = xp.asarray(np.concatenate([skip, np.zeros(1, bool)]).astype(np.uint8))  # frames past ns a
-            chunk = a * max(1, -(-T // (4 * a)))          # ~4 time chunks: ~K threads, each a quarter of the frames
+            chunk = a * min(max(1, -(-T // (4 * a))), max(1, 2 ** 16 // a))   # ~4 chunks: ~K threads; int32 sums
             if K and T and (nb or ns):
                 get_kernel("imaging/rfi.cu", "rfi_block_power")(
                     ((K // 4 + 255) // 256, -(-T // chunk)), (256,),

@@ -97,10 +97,10 @@ def _opt_int(val, what, minimum):
 
 
 def priority_stream(cupy, priority):
-    """A non-blocking CuPy stream at the device's highest ('high') or lowest ('low') CUDA stream priority:
-    the GPU's scheduler starts a waiting high-priority kernel's thread blocks before a low-priority one's,
-    so that side work (a solver) fills the gaps the data path leaves. A CuPy without stream priorities
-    gives a plain stream."""
+    """A non-blocking CuPy stream at the device's highest ('high') or lowest ('low', CUDA's default) stream
+    priority: the GPU's scheduler starts a waiting high-priority kernel's thread blocks before a
+    low-priority one's, so that short work other blocks wait for does not queue behind long kernels
+    (:attr:`Block.stream_priority`). A CuPy without stream priorities gives a plain stream."""
     if priority not in ('high', 'low'):
         raise ValueError(f"stream priority must be 'high' or 'low', got {priority!r}")
     # CUDA clamps a priority to the device's range (lower is higher; 0, the default, is the least)
@@ -312,9 +312,11 @@ class Block(BlockScope):
     """
     instance_counts = defaultdict(lambda: 0)
 
-    #: the CUDA priority of the block's stream: 'high' (the default: the data path) or 'low' (work that
-    #: may wait while the data path's kernels run, e.g. a side solver; runtime only)
-    stream_priority = 'high'
+    #: the CUDA priority of the block's stream (runtime only): 'low' (CUDA's default) for the blocks that
+    #: keep the GPU busy (the imager), 'high' for short work that others wait on (the interference flagger
+    #: ahead of the imager, the gain solver whose solutions the imager waits for): the GPU then starts
+    #: the short work's kernels first and the long kernels fill the rest
+    stream_priority = 'low'
 
     def __init__(self, irings, name=None, type_=None, **kwargs):
         self.type = type_ or self.__class__.__name__
