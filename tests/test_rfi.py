@@ -315,6 +315,8 @@ def test_block_power_is_its_definition(xp):
     wanta = p[:12 * a].reshape(12, a, 3, 3, 2).sum(axis=(1, 4))
     assert np.array_equal(to_numpy(S1), want1) and np.array_equal(to_numpy(S2), want2)
     assert Sa.shape == (12, 3, 3) and np.array_equal(to_numpy(Sa), wanta)
+    S1, S2, Sa = rfi.block_power(xp.asarray(b[:5]), m, a, ci4=True, group=2)   # shorter than a short block
+    assert S1.shape == (0, 3, 6) and Sa.shape == (0, 3, 3)
 
 
 @pytest.mark.parametrize("B", [2, 3])
@@ -355,6 +357,12 @@ def test_apply_flags_zeroes_and_counts_by_the_rules(xp, B):
     assert want_cnt[:, :, 5].sum() > 0                                   # the spread rule is exercised
     assert np.array_equal(to_numpy(out), want_out)
     assert np.array_equal(cnt, want_cnt)
+    # a gulp too short for any SK block (one frame, as a TBX capture gives): the other flags only
+    one = xp.zeros((1, nchan, nstand, B), xp.uint8)
+    cnt1 = to_numpy(rfi.apply_flags(xp.asarray(x[:1]), one, xp.zeros((0, nchan, nstand), xp.uint8),
+                                    np.array([-1], np.int32), xp.asarray(imp[:1]), xp.asarray(imp_st[:1]),
+                                    xp.asarray(static), xp.asarray(live), a, spread_max))
+    assert np.array_equal(cnt1[0, :, 0], static * live.sum())
 
 
 def test_per_input_impulses_ignore_a_carrier_switching_on_in_a_few_channels():

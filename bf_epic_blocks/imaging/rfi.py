@@ -174,7 +174,7 @@ def block_power(x, m, a, *, ci4=False, group=1, skip=None):
         S1, S2 = power_sums(x[:nb * m], m, ci4=ci4) if nb else (xp.zeros((0,) + x.shape[1:]),) * 2
     sh = _short_sums(x[:ns * a], a, ci4) if ns else xp.zeros((0,) + x.shape[1:], xp.float32)
     if group > 1:
-        sh = sh.reshape(sh.shape[:-1] + (-1, group)).sum(axis=-1, dtype=xp.float32)
+        sh = sh.reshape(sh.shape[:-1] + (sh.shape[-1] // group, group)).sum(axis=-1, dtype=xp.float32)
     return S1, S2, sh
 
 
@@ -706,7 +706,7 @@ def apply_flags(x, out, sk_code, which, impulse, impulse_stand, static, live, a,
         return cnt
     w = xp.asarray(np.maximum(which, 0))
     tested = xp.asarray(which >= 0)[:, None, None]
-    code = xp.asarray(sk_code)[w] * tested                                    # (ns, nchan, nstand)
+    code = xp.asarray(sk_code)[w] * tested if sk_code.shape[0] else xp.zeros((ns, nchan, nstand), xp.uint8)
     lo, hi = (code & 1) > 0, (code & 2) > 0
     imp_st = xp.asarray(impulse_stand, bool)[:, None, :]
     lv = xp.asarray(live, bool)[None, None, :]
