@@ -41,6 +41,7 @@ WATCH_BODIES = ("sun", "moon", "mercury", "venus", "mars", "jupiter", "saturn", 
 WATCH_KINDS = ("catalogue", "icrs", "body")
 
 _ENTRY_KEYS = ("name", "ra_deg", "dec_deg", "body", "start", "stop", "offsets_deg")
+_WINDOW_SLACK_S = 1e-6
 _NAME = re.compile(r"[^/\s]+")   # an HDF5 group name: no slash; no spaces, as the YAML's names
 
 
@@ -51,7 +52,8 @@ class WatchTarget:
     kind : 'catalogue' (ra/dec from :data:`.catalogue.KNOWN_SOURCES`), 'icrs' or 'body'.
     ra_deg, dec_deg : ICRS position, degrees (catalogue and icrs targets; None for a body).
     body : a name of :data:`WATCH_BODIES` (body targets; else None).
-    start, stop : astropy Time (UTC) or None: the window the target is recorded in, ends included.
+    start, stop : astropy Time (UTC) or None: the window the target is recorded in, ends included
+        (to a microsecond).
     offsets_deg : ((east_deg, north_deg), ...) reference directions around the target (module doc).
     """
     name: str
@@ -126,8 +128,8 @@ def _offsets(v, name):
 def _one_target(entry) -> WatchTarget:
     if isinstance(entry, WatchTarget):
         return entry
-    if isinstance(entry, str):
-        entry = {"name": entry}
+    if isinstance(entry, str):   # a bare catalogue name takes the catalogue's spelling ('Cyg A' -> 'CygA')
+        entry = {"name": _catalogue_name(entry) or entry}
     if not isinstance(entry, Mapping):
         raise ValueError(f"a watch target must be a name or a mapping {{name, ...}}, got {entry!r}")
     unknown = sorted(set(entry) - set(_ENTRY_KEYS))
@@ -292,10 +294,12 @@ def target_lm(targets, times, location) -> TargetDirections:
     in_window = np.ones((ntime, ndir), bool)
     for i, tg in enumerate(targets):
         w = np.ones(ntime, bool)
+        # ends included to a microsecond: an image time computed as start + k * dt lands on a round
+        # window end only to the last bit of astropy's two-double time
         if tg.start is not None:
-            w &= (t >= tg.start)
+            w &= (t - tg.start).to_value(u.s) >= -_WINDOW_SLACK_S
         if tg.stop is not None:
-            w &= (t <= tg.stop)
+            w &= (tg.stop - t).to_value(u.s) >= -_WINDOW_SLACK_S
         in_window[:, starts[i]:starts[i + 1]] = w[:, None]
     return TargetDirections(lm=lm, up=up, in_window=in_window, alt_deg=alt, az_deg=az, ra_deg=ra, dec_deg=dec,
                             target_index=index, names=names, targets=targets, time=t)
