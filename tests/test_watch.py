@@ -204,3 +204,31 @@ def test_dynamic_spectrum_png(tmp_path):
     p = dynamic_spectrum_png(tmp_path / "ds.png", t, f, d, title="CygA I")
     data = (tmp_path / "ds.png").read_bytes()
     assert p.endswith("ds.png") and data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+
+
+def _yaml_with(watch_text):
+    from pathlib import Path
+    base = (Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_allsky.yaml").read_text()
+    return base + "\n" + watch_text
+
+
+def test_config_watch_section():
+    from bf_epic_blocks.pipeline.config import load_config
+    assert load_config("pipelines/lwasv_sim_allsky.yaml")["watch"] is None
+    cfg = load_config(_yaml_with("watch:\n  targets: [CygA, {name: S, body: sun, offsets_deg: [[5, 0]]}]\n"))["watch"]
+    assert cfg["targets"][0] == "CygA" and cfg["targets"][1]["body"] == "sun"
+    assert (cfg["products"], cfg["png_every_s"], cfg["ring_s"], cfg["hold_off_s"], cfg["webhook"]) == \
+        (["I"], 60.0, 2.0, 10.0, None)
+    assert [t.name for t in parse_targets(cfg["targets"])] == ["CygA", "S"]
+
+
+def test_config_watch_errors_name_the_entry():
+    from bf_epic_blocks.pipeline.config import ConfigError, load_config
+    text = _yaml_with("watch:\n  targets:\n    - CygA\n    - CygX\n    - {name: W, ra_deg: 1, dec_deg: 2, "
+                      "start: '2024-01-03T00:00:00', stop: '2024-01-02T00:00:00'}\n    - {name: CygA, body: moon}\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(text)
+    probs = e.value.problems
+    assert any(p.startswith("watch.targets[1] (line") and "CasA" in p and "jupiter" in p for p in probs), probs
+    assert any(p.startswith("watch.targets[2] (line") and "before start" in p for p in probs), probs
+    assert any(p.startswith("watch.targets (line") and "repeated: CygA" in p for p in probs), probs
