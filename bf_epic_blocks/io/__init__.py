@@ -6,6 +6,7 @@
 * :mod:`.fits` -- SIN-projected FITS cubes and FITS/NPZ pixel tables (arrays plus time, location,
   frequencies and products; no rings).
 * :mod:`.quicklook` -- PNG quicklooks of all-sky images.
+* :mod:`.watchfile` -- the watchlist's HDF5 file of per-target spectra (SWMR) and its dynamic-spectrum PNG.
 """
 from .formats import FrameFormatError, detect_format
 from .tbf import (TBFData, TBFError, TBFInfo, TBFWarning, iter_tbf_gulps, pack_ci4, read_tbf,

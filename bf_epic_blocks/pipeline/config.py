@@ -216,6 +216,73 @@ class FreqRanges:
         return out
 
 
+class OffsetPairs:
+    """watch.targets[].offsets_deg: [east_deg, north_deg] pairs (checked in full by parse_targets)."""
+
+    def describe(self) -> str:
+        return "a list of [east_deg, north_deg] pairs"
+
+    def __call__(self, v, ctx):
+        if not isinstance(v, list) or not all(isinstance(p, list) and len(p) == 2 for p in v):
+            raise BadValue(f"expected {self.describe()}, got {v!r}")
+        return v
+
+
+class WatchTargets:
+    """watch.targets: catalogue or body names, or {name, ra_deg, dec_deg} / {name, body} mappings,
+    each checked by :func:`bf_epic_blocks.sky.watch.parse_targets`."""
+
+    entry = Section({
+        "name": Key(Str(r"[^/\s]+", "a name without spaces or slashes"), REQUIRED,
+                    doc="The target's name, unique in the list and its group in the watch file; alone, a "
+                        "catalogue name (CygA, CasA, TauA, VirA) or a body's."),
+        "ra_deg": Key(Float(0.0, 360.0, hi_open=True), None, doc="Right ascension (ICRS), degrees; with `dec_deg`."),
+        "dec_deg": Key(Float(-90.0, 90.0), None, doc="Declination (ICRS), degrees; with `ra_deg`."),
+        "body": Key(Str(r"\S+", "a body name"), None,
+                    doc="A solar-system body placed by astropy's built-in ephemeris: sun, moon, mercury, venus, "
+                        "mars, jupiter, saturn, uranus or neptune."),
+        "start": Key(TimeStr(), None, doc="Start of the window the target is recorded in (UTC); null: always."),
+        "stop": Key(TimeStr(), None, doc="End of the window (UTC), not before `start`; null: no end."),
+        "offsets_deg": Key(OffsetPairs(), None,
+                           doc="Reference directions around the target: [east_deg, north_deg] great-circle offsets "
+                               "along RA and Dec, moving with a body."),
+    }, what="a watch target mapping")
+
+    def describe(self) -> str:
+        return "a list of catalogue or body names, or {name, ra_deg, dec_deg} / {name, body} mappings"
+
+    def check(self, v, path, ctx):
+        from ..sky.watch import parse_targets
+        if not isinstance(v, list) or not v:
+            ctx.error(path, f"expected {self.describe()} (at least one), got {v!r}")
+            return INVALID
+        out, good = [], []
+        for i, x in enumerate(v):
+            where = f"{path}[{i}]"
+            if isinstance(x, dict):
+                e = self.entry.check(x, where, ctx)
+                if e is INVALID or not all(is_valid(y) for y in e.values()):
+                    out.append(INVALID)
+                    continue
+                x = {k: y for k, y in e.items() if y is not None}
+            elif not isinstance(x, str):
+                ctx.error(where, f"expected a target name or a mapping {{name, ...}}, got {x!r}")
+                out.append(INVALID)
+                continue
+            try:
+                good.append(parse_targets([x])[0])
+            except ValueError as err:
+                ctx.error(where, str(err))
+                out.append(INVALID)
+                continue
+            out.append(x)
+        names = [t.name for t in good]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            ctx.error(path, f"watch target names must be unique; repeated: {', '.join(dup)}")
+        return out
+
+
 class OnOffAuto(Choice):
     """'auto', 'on' or 'off'; YAML's bare on / off / true / false (booleans to a YAML 1.1 reader) too."""
 
@@ -726,6 +793,24 @@ SCHEMA = Section({
                       "imager's work as `imager.split` says. On GPUs, with no gains table and a file or "
                       "simulated source, the dft imager folds the cable terms into its operator; "
                       "`calibration.gains_table` needs a single device."),
+    "watch": Key(Section({
+        "targets": Key(WatchTargets(), REQUIRED,
+                       doc="The watched directions: catalogue names (CygA, CasA, TauA, VirA), bodies (sun, moon, "
+                           "jupiter, ...), or mappings {name, ra_deg, dec_deg} / {name, body} with an optional "
+                           "window (`start`, `stop`) and `offsets_deg`."),
+        "products": Key(Products(), ["I"], doc="The products recorded per target and channel."),
+        "png_every_s": Key(Float(0.0, lo_open=True), 60.0,
+                           doc="Seconds of data between rewrites of each target's dynamic-spectrum PNG."),
+        "ring_s": Key(Float(0.0, lo_open=True), 2.0,
+                      doc="Seconds of voltages kept in memory for a triggered save (not used yet)."),
+        "hold_off_s": Key(Float(0.0), 10.0,
+                          doc="Seconds after a trigger before another may fire for the same target."),
+        "webhook": Key(Str(r"https?://\S+", "an http(s) URL"), None,
+                       doc="URL a trigger is posted to; null: none."),
+    }, what="a watch mapping {targets, products, png_every_s, ring_s, hold_off_s, webhook}",
+        doc="The pipeline does not run the watchlist yet: this section is checked, and its file format is "
+            "described in the user guide (guide/watch.md)."), None,
+        doc="Spectra of named directions at every image, in an HDF5 file; null: off."),
     "output": Key(Section({
         "dir": Key(Str(r"\S.*", "a directory path"), None,
                    doc="Directory of the outputs, relative to the working directory; null: `output/<name>`."),
@@ -760,7 +845,7 @@ def schema_entries() -> list[tuple[str, Key]]:
                     walk(kind_keys, p)
             elif isinstance(sub, Section):
                 walk(sub.keys, p)
-            elif isinstance(getattr(sub, "entry", None), Section):  # SourceList, FlagList
+            elif isinstance(getattr(sub, "entry", None), Section):  # SourceList, FlagList, WatchTargets
                 walk(sub.entry.keys, p + "[]")
             elif isinstance(getattr(sub, "item", None), Section):   # ListOf a mapping
                 walk(sub.item.keys, p + "[]")

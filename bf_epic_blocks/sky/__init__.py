@@ -9,6 +9,7 @@
   station and the eigenmodes the generator simulates it with.
 * :mod:`.corrupt` -- :class:`~.corrupt.GainCorruption`: chosen gains, deaf and noisy inputs, the
   truth a calibration test solves for.
+* :mod:`.watch` -- watchlist targets (catalogue, ICRS, solar-system bodies) and their (l, m) over many times.
 """
 from .catalogue import (KNOWN_SOURCES, REF_FREQ_HZ, Source, SourceDirections, as_location, as_time,
                         icrs_to_lm, lm_to_icrs, north_angle_deg, resolve_source, resolve_sources,

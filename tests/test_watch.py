@@ -1,0 +1,234 @@
+"""The watchlist: targets placed against independent astropy transforms, parse errors, the HDF5 file
+(round trip, a second reader while it is written, growth), the dynamic-spectrum PNG, the YAML section."""
+import h5py
+import numpy as np
+import pytest
+from astropy import units as u
+from astropy.coordinates import AltAz, EarthLocation, SkyCoord, get_body
+from astropy.time import Time
+
+from bf_epic_blocks.io.watchfile import WatchWriter, dynamic_spectrum_png, read_watch
+from bf_epic_blocks.sky.catalogue import KNOWN_SOURCES, icrs_to_lm
+from bf_epic_blocks.sky.watch import WATCH_BODIES, parse_targets, target_lm
+
+LWASV = EarthLocation.from_geodetic(lon=-106.885783 * u.deg, lat=34.348358 * u.deg, height=1477.8 * u.m)
+T0 = Time("2024-07-01T00:00:00", scale="utc")
+TIMES = T0 + np.arange(0, 24 * 3600, 1800) * u.s   # a day, half-hourly: sources rise and set
+
+
+def _lm_truth(aa):
+    """l = cos(alt) sin(az), m = cos(alt) cos(az) (PHYSICS.md), written out here; NaN below the horizon."""
+    alt, az = aa.alt.rad, aa.az.rad
+    lm = np.stack([np.cos(alt) * np.sin(az), np.cos(alt) * np.cos(az)], axis=-1)
+    lm[alt <= 0] = np.nan
+    return lm
+
+
+def test_catalogue_target_matches_icrs_to_lm():
+    d = target_lm(["CygA"], TIMES, LWASV)
+    src = KNOWN_SOURCES["CygA"]
+    assert d.lm.shape == (TIMES.size, 1, 2) and d.names == ["CygA"]
+    for k, t in enumerate(TIMES):
+        lm, alt = icrs_to_lm(src.ra_deg, src.dec_deg, t, LWASV)
+        assert d.alt_deg[k, 0] == pytest.approx(alt[0], abs=1e-9)
+        if alt[0] > 0:
+            np.testing.assert_allclose(d.lm[k, 0], lm[0], atol=1e-12)
+        else:
+            assert np.all(np.isnan(d.lm[k, 0]))
+    assert np.all(d.ra_deg == src.ra_deg) and np.all(d.dec_deg == src.dec_deg)
+
+
+def test_sun_matches_get_body_per_time():
+    d = target_lm([{"name": "Sun", "body": "sun"}], TIMES, LWASV)
+    truth = np.array([_lm_truth(get_body("sun", t, LWASV).transform_to(AltAz(obstime=t, location=LWASV)))
+                      for t in TIMES])
+    np.testing.assert_allclose(d.lm[:, 0], truth, atol=1e-9)
+    assert d.up[:, 0].any() and not d.up[:, 0].all()
+    # the recorded (ra, dec) moves (~1 deg a day) and places the Sun where it is seen
+    assert 0.5 < abs(d.ra_deg[-1, 0] - d.ra_deg[0, 0]) < 1.5
+    seen = SkyCoord(ra=d.ra_deg[:, 0] * u.deg, dec=d.dec_deg[:, 0] * u.deg).transform_to(
+        AltAz(obstime=TIMES, location=LWASV))
+    np.testing.assert_allclose(_lm_truth(seen), truth, atol=1e-7)
+
+
+def test_moon_is_topocentric():
+    """The Moon's parallax (~1 deg) is in its direction: a geocentric position would be off by it."""
+    d = target_lm(["moon"], TIMES, LWASV)
+    k = int(np.argmax(d.alt_deg[:, 0]))
+    geo = get_body("moon", TIMES[k])   # no location: seen from the Earth's centre
+    geo_aa = SkyCoord(ra=geo.ra, dec=geo.dec).transform_to(AltAz(obstime=TIMES[k], location=LWASV))
+    assert abs(geo_aa.alt.deg - d.alt_deg[k, 0]) > 0.2
+
+
+def test_icrs_target_and_offsets():
+    ra, dec = 150.0, 30.0
+    d = target_lm([{"name": "X", "ra_deg": ra, "dec_deg": dec, "offsets_deg": [[2.0, 0.0], [0.0, -3.0]]}],
+                  TIMES, LWASV)
+    assert d.names == ["X", "X+off1", "X+off2"] and list(d.target_index) == [0, 0, 0]
+    frame = AltAz(obstime=TIMES[:, None], location=LWASV)
+    truth = _lm_truth(SkyCoord(ra=[[ra]] * u.deg, dec=[[dec]] * u.deg).transform_to(frame))
+    np.testing.assert_allclose(d.lm[:, :1], truth, atol=1e-12, equal_nan=True)
+    # the offsets: 2 deg East along the great circle, 3 deg South along the meridian
+    c = SkyCoord(ra=ra * u.deg, dec=dec * u.deg)
+    east = SkyCoord(ra=d.ra_deg[0, 1] * u.deg, dec=d.dec_deg[0, 1] * u.deg)
+    assert c.separation(east).deg == pytest.approx(2.0, abs=1e-9)
+    assert c.position_angle(east).deg == pytest.approx(90.0, abs=0.1)
+    assert d.ra_deg[0, 2] == pytest.approx(ra) and d.dec_deg[0, 2] == pytest.approx(dec - 3.0)
+    up = ~np.isnan(d.lm[:, 1, 0])
+    assert not np.allclose(d.lm[up, 1], d.lm[up, 0], atol=1e-3)
+
+
+def test_horizon_mask_for_a_setting_source():
+    d = target_lm(["VirA"], TIMES, LWASV)
+    src = KNOWN_SOURCES["VirA"]
+    aa = SkyCoord(ra=src.ra_deg * u.deg, dec=src.dec_deg * u.deg).transform_to(AltAz(obstime=TIMES, location=LWASV))
+    want = aa.alt.deg > 0
+    assert want.any() and not want.all()     # it sets within the day
+    np.testing.assert_array_equal(d.up[:, 0], want)
+    assert np.all(np.isnan(d.lm[~want, 0])) and np.all(np.isfinite(d.lm[want, 0]))
+    assert np.all(np.hypot(d.lm[want, 0, 0], d.lm[want, 0, 1]) <= 1)
+
+
+def test_window_masks_times():
+    d = target_lm([{"name": "CasA", "start": "2024-07-01T06:00:00", "stop": "2024-07-01T08:00:00"}], TIMES, LWASV)
+    hours = (TIMES - T0).to_value(u.h)
+    np.testing.assert_array_equal(d.in_window[:, 0], (hours >= 6) & (hours <= 8))
+    np.testing.assert_array_equal(d.active, d.up & d.in_window)
+
+
+def test_parse_kinds():
+    tg = parse_targets(["CygA", "Cyg A", "jupiter"][::2] + [{"name": "P", "ra_deg": 1, "dec_deg": -2},
+                                                           {"name": "S", "body": "Sun"}])
+    assert [(t.name, t.kind) for t in tg] == [("CygA", "catalogue"), ("jupiter", "body"), ("P", "icrs"), ("S", "body")]
+    assert tg[0].ra_deg == KNOWN_SOURCES["CygA"].ra_deg and tg[3].body == "sun"
+    assert parse_targets("Cyg A")[0].kind == "catalogue"
+
+
+def test_parse_unknown_name_lists_known_ones():
+    with pytest.raises(ValueError) as e:
+        parse_targets(["CygX"])
+    for name in list(KNOWN_SOURCES) + list(WATCH_BODIES):
+        assert name in str(e.value)
+    with pytest.raises(ValueError, match="unknown body 'pluto'.*jupiter"):
+        parse_targets([{"name": "p", "body": "pluto"}])
+
+
+def test_parse_duplicate_and_bad_window():
+    with pytest.raises(ValueError, match="repeated: CygA"):
+        parse_targets(["CygA", {"name": "CygA", "ra_deg": 1, "dec_deg": 1}])
+    with pytest.raises(ValueError, match="stop .* before start"):
+        parse_targets([{"name": "CygA", "start": "2024-07-02T00:00:00", "stop": "2024-07-01T00:00:00"}])
+    with pytest.raises(ValueError, match="ra_deg/dec_deg or body"):
+        parse_targets([{"name": "x", "ra_deg": 1, "dec_deg": 1, "body": "sun"}])
+    with pytest.raises(ValueError, match="dec_deg must be in"):
+        parse_targets([{"name": "x", "ra_deg": 1, "dec_deg": 91}])
+    with pytest.raises(ValueError, match="unknown key"):
+        parse_targets([{"name": "x", "ra": 1}])
+
+
+def _file_rows(path, name):
+    with h5py.File(path, "r", libver="latest", swmr=True) as f:
+        return f[name]["data"].shape[0]
+
+
+def test_watchfile_round_trip_and_reading_while_written(tmp_path):
+    path = tmp_path / "watch.h5"
+    freq = np.linspace(40e6, 60e6, 8)
+    entries = ["CygA", {"name": "Sun", "body": "sun", "offsets_deg": [[5, 0]]}]
+    rng = np.random.default_rng(1)
+    n, ndir = 10, 3
+    times = 1.7e9 + np.arange(4 * n) * 0.5
+    data = rng.normal(size=(4 * n, ndir, 8, 2)).astype(np.float32)
+    radec = np.stack([np.full((4 * n, 2), [299.87, 40.73]), np.c_[100 + times * 1e-6, 23 + 0 * times]], axis=1)
+    sizes = []
+    with WatchWriter(path, entries, freq, ["I", "V"], chunk_rows=4) as w:
+        w.append(times[:n], data[:n], radec[:n])
+        sizes.append(path.stat().st_size)
+        # a second reader while the writer is open
+        with h5py.File(path, "r", libver="latest", swmr=True) as r:
+            assert r["CygA"]["data"].shape == (n, 8, 2)
+            np.testing.assert_array_equal(r["CygA"]["data"][:], data[:n, 0])
+            w.append(times[n:2 * n], data[n:2 * n], radec[n:2 * n])
+            r["CygA"]["data"].refresh()
+            assert r["CygA"]["data"].shape == (2 * n, 8, 2)
+            np.testing.assert_array_equal(r["CygA"]["data"][n:], data[n:2 * n, 0])
+        mid = read_watch(path)
+        assert mid["Sun"]["data"].shape[0] == 2 * n
+        for k in (2, 3):
+            w.append(times[k * n:(k + 1) * n], data[k * n:(k + 1) * n], radec[k * n:(k + 1) * n])
+            sizes.append(path.stat().st_size)
+        assert _file_rows(path, "Sun") == 4 * n
+    assert sizes[0] < sizes[1] < sizes[2]
+
+    got = read_watch(path)
+    assert list(got) == ["CygA", "Sun"]
+    c, s = got["CygA"], got["Sun"]
+    np.testing.assert_array_equal(c["data"], data[:, 0])
+    np.testing.assert_array_equal(s["data"], data[:, 1])
+    np.testing.assert_array_equal(s["offset_data"], data[:, 2:3])
+    assert isinstance(c["time"], Time) and c["time"].scale == "utc"
+    np.testing.assert_allclose(c["time"].unix, times, rtol=0, atol=1e-6)
+    assert c["time"][0].isot == Time(times[0], format="unix").isot
+    np.testing.assert_array_equal(c["freq_hz"], freq)
+    assert c["products"] == ["I", "V"] and c["kind"] == "catalogue" and "offset_data" not in c
+    assert c["ra_deg"] == KNOWN_SOURCES["CygA"].ra_deg and c["dec_deg"] == KNOWN_SOURCES["CygA"].dec_deg
+    assert s["kind"] == "body" and s["body"] == "sun"
+    np.testing.assert_array_equal(s["ra_deg"], radec[:, 1, 0])
+    np.testing.assert_array_equal(s["dec_deg"], radec[:, 1, 1])
+    np.testing.assert_array_equal(s["offsets_deg"], [[5.0, 0.0]])
+    assert c["start"] is None and c["stop"] is None
+    with h5py.File(path, "r") as f:
+        assert bool(f["complete"][()])
+
+
+def test_watchfile_checks_shapes(tmp_path):
+    with WatchWriter(tmp_path / "w.h5", ["CygA", "sun"], [50e6], ["I"]) as w:
+        with pytest.raises(ValueError, match="shape"):
+            w.append([0.0], np.zeros((1, 1, 1, 1)), np.zeros((1, 2, 2)))
+        with pytest.raises(ValueError, match="ra_dec"):
+            w.append([0.0], np.zeros((1, 2, 1, 1)))
+
+
+def test_window_is_kept(tmp_path):
+    with WatchWriter(tmp_path / "w.h5", [{"name": "TauA", "start": "2024-07-01T06:00:00"}], [50e6], ["I"]):
+        pass
+    got = read_watch(tmp_path / "w.h5")["TauA"]
+    assert got["start"].isot == "2024-07-01T06:00:00.000" and got["stop"] is None and got["data"].shape == (0, 1, 1)
+
+
+def test_dynamic_spectrum_png(tmp_path):
+    rng = np.random.default_rng(2)
+    t = 1.7e9 + np.arange(300) * 1.0
+    f = np.linspace(30e6, 80e6, 64)
+    d = rng.normal(size=(300, 64)) + np.exp(-0.5 * ((t - t[150]) / 10) ** 2)[:, None] * 5
+    p = dynamic_spectrum_png(tmp_path / "ds.png", t, f, d, title="CygA I")
+    data = (tmp_path / "ds.png").read_bytes()
+    assert p.endswith("ds.png") and data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+
+
+def _yaml_with(watch_text):
+    from pathlib import Path
+    base = (Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_allsky.yaml").read_text()
+    return base + "\n" + watch_text
+
+
+def test_config_watch_section():
+    from bf_epic_blocks.pipeline.config import load_config
+    assert load_config("pipelines/lwasv_sim_allsky.yaml")["watch"] is None
+    cfg = load_config(_yaml_with("watch:\n  targets: [CygA, {name: S, body: sun, offsets_deg: [[5, 0]]}]\n"))["watch"]
+    assert cfg["targets"][0] == "CygA" and cfg["targets"][1]["body"] == "sun"
+    assert (cfg["products"], cfg["png_every_s"], cfg["ring_s"], cfg["hold_off_s"], cfg["webhook"]) == \
+        (["I"], 60.0, 2.0, 10.0, None)
+    assert [t.name for t in parse_targets(cfg["targets"])] == ["CygA", "S"]
+
+
+def test_config_watch_errors_name_the_entry():
+    from bf_epic_blocks.pipeline.config import ConfigError, load_config
+    text = _yaml_with("watch:\n  targets:\n    - CygA\n    - CygX\n    - {name: W, ra_deg: 1, dec_deg: 2, "
+                      "start: '2024-01-03T00:00:00', stop: '2024-01-02T00:00:00'}\n    - {name: CygA, body: moon}\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(text)
+    probs = e.value.problems
+    assert any(p.startswith("watch.targets[1] (line") and "CasA" in p and "jupiter" in p for p in probs), probs
+    assert any(p.startswith("watch.targets[2] (line") and "before start" in p for p in probs), probs
+    assert any(p.startswith("watch.targets (line") and "repeated: CygA" in p for p in probs), probs
