@@ -129,7 +129,8 @@ class Engine:
                     if self.acc.ntime == 0 and self.solution_hook is not None:
                         g = min(g, self.solution_hook(self, pos, max(g, 1)))
                     least = self._batch_min()
-                    if self.acc.ntime == 0 and not tracking and least is not None and g >= least:
+                    if self.acc.ntime == 0 and least is not None and g >= least and \
+                            (not tracking or self._held(pos, g)):
                         self._whole(pos, g, out, nout)
                         nout += g
                         pos += g * A
@@ -176,6 +177,14 @@ class Engine:
             if lm.shape != self.lm.shape:
                 raise ValueError("DFTImagerBlock: a tracking pixel function must keep the pixel count")
             self._rebuild(lm)
+
+    def _held(self, pos, g):
+        """Whether a tracking pixel function gives the current pixels for every one of the g integrations
+        from frame ``pos`` (it holds them for steps of time, e.g. the watchlist's second): its last
+        integration's pixels equal the first's, so the g images are made by one batched call."""
+        tag = self.time_tag + (self.frame + pos + (g - 1) * self.accumulate) * self.ticks_per_frame
+        lm = np.asarray(self.pixels_fn(tag), dtype=np.float64)
+        return lm.shape == self.lm.shape and np.array_equal(lm, self.lm)
 
     def _rebuild(self, lm):
         raise NotImplementedError

@@ -127,6 +127,11 @@ class WatchWriter:
         self.nrows = hi
         self._f.flush()
 
+    @property
+    def groups(self):
+        """Per target, its datasets by name (``data``, ``time_unix``, ...), in target order."""
+        return self._groups
+
     def close(self) -> None:
         """Mark the file complete and close it (again: nothing)."""
         if self._f is None:

@@ -802,14 +802,15 @@ SCHEMA = Section({
         "png_every_s": Key(Float(0.0, lo_open=True), 60.0,
                            doc="Seconds of data between rewrites of each target's dynamic-spectrum PNG."),
         "ring_s": Key(Float(0.0, lo_open=True), 2.0,
-                      doc="Seconds of voltages kept in memory for a triggered save (not used yet)."),
+                      doc="Seconds of images kept for a triggered save (triggered saves are not run yet)."),
         "hold_off_s": Key(Float(0.0), 10.0,
                           doc="Seconds after a trigger before another may fire for the same target."),
         "webhook": Key(Str(r"https?://\S+", "an http(s) URL"), None,
                        doc="URL a trigger is posted to; null: none."),
     }, what="a watch mapping {targets, products, png_every_s, ring_s, hold_off_s, webhook}",
-        doc="The pipeline does not run the watchlist yet: this section is checked, and its file format is "
-            "described in the user guide (guide/watch.md)."), None,
+        doc="A second DFT imager images the targets' directions at every image the imager makes; their "
+            "spectra go to <output.dir>/<prefix>_watch.h5 (guide/watch.md). Triggered saves and alerts "
+            "(ring_s, hold_off_s, webhook) are checked but not run yet."), None,
         doc="Spectra of named directions at every image, in an HDF5 file; null: off."),
     "output": Key(Section({
         "dir": Key(Str(r"\S.*", "a directory path"), None,

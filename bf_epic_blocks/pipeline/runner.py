@@ -23,6 +23,7 @@ import math
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -48,10 +49,11 @@ class Graph:
     search: object = None
     cube: object = None
     solver: object = None
+    watch: object = None
 
     @property
     def sinks(self):
-        return [b for b in (self.writer, self.search, self.cube) if b is not None]
+        return [b for b in (self.writer, self.search, self.cube, self.watch) if b is not None]
 
 
 def capture_format(src_cfg):
@@ -350,7 +352,8 @@ def build_graph(cfg, progress=None, parts=None):
         imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table, weights)
         search = _search_stage(cfg, imager, outdir, weights if getattr(imager, "flag_weights", None) else None)
         writer, cube = _output_stage(cfg, imager, pixels, block)
-    return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube, solver)
+        watch = _watch_stage(cfg, dev, calfold, station, pattern, table)
+    return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube, solver, watch)
 
 
 def _source_stage(cfg, dev, fmt, info, station, gulp, space, progress):
@@ -529,6 +532,35 @@ def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None
     from ..blocks.wstack import WStackBlock
     return WStackBlock(calfold, pixels, im["accumulate_frames"], moff=(im["kind"] == "moff"),
                        plan=imager_plan_for(cfg, pixels, station, dev), **common)
+
+
+def _watch_stage(cfg, dev, calfold, station, pattern, table=None):
+    """The watchlist (``watch:``), or None: a DFTImagerBlock tracking the targets' directions on the
+    voltages the imager reads (the calibration folded in as the imager folds it), and the
+    WatchWriterBlock writing ``<output.dir>/<prefix>_watch.h5`` (:mod:`bf_epic_blocks.blocks.watch`)."""
+    wc = cfg.get("watch")
+    if not wc:
+        return None
+    if dev == "gpus":
+        raise ValueError(f"watch: the watchlist runs on one device; device {cfg['device']!r} shards the channels "
+                         "over several GPUs (use one GPU, or watch: null)")
+    from ..blocks import DFTImagerBlock
+    from ..blocks.watch import WatchPixels, WatchWriterBlock
+    im, cal = cfg["imager"], cfg["calibration"]
+    pixels = WatchPixels(wc["targets"], station.location)
+    common = dict(products=wc["products"], remove_autocorr=im["remove_autocorr"])
+    if folds_calibration(cfg, dev):
+        common.update(cable=bool(cal["cable"]), pattern=pattern or False)
+        if table is not None:
+            common.update(gains=table)
+    ndir = sum(t.ndir for t in pixels.targets)
+    plan = imaging_plan(cfg, ndir, int((~station.flags).any(axis=1).sum()),
+                        len(channel_freqs(cfg)) if cfg["source"]["kind"] == "simulated" else 1, dev)
+    imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], plan=plan, **common)
+    out = cfg["output"]
+    path = Path(out["dir"]) / f"{out['prefix']}_watch.h5"
+    log.info("watch: %d targets (%d directions) at every image -> %s", len(pixels.targets), ndir, path)
+    return WatchWriterBlock(imager, path, pixels, png_every_s=wc["png_every_s"])
 
 
 def _search_stage(cfg, imager, outdir, flag_weights=None):
@@ -785,6 +817,9 @@ def run(cfg, show_progress=None, parts=None):
                  "calibration waited %.2f s for it", g.solver.solver_stats["solutions"],
                  g.solver.solver_stats["failures"], g.solver.solver_stats["sum_s"],
                  g.solver.solver_stats["solve_s"], summary["solver"]["wait_s"])
+    if g.watch is not None:
+        summary["watch"] = {"images": g.watch.rows, "inactive_rows": g.watch.inactive,
+                            "targets": [t.name for t in g.watch.pixels.targets]}
     log.info("%s: frames read %d, imaged %d, skipped %d, dropped (partial integration) %d; %d images, "
              "%d files in %s (%.1f s)", cfg["name"], summary["frames_read"], summary["frames_imaged"],
              summary["frames_skipped"], summary["frames_dropped_partial"], summary["images"],

@@ -1,0 +1,181 @@
+"""The watchlist in a pipeline: the targets' directions as a tracking pixel list, and the block that
+writes their spectra.
+
+A second :class:`~.dft_imager.DFTImagerBlock` images the watch directions (:mod:`bf_epic_blocks.sky.watch`)
+from the same calibrated voltages as the main imager, with the same operator conventions (exact 3-D
+DFT, the calibration folded in, images in Jy): every image the imager makes (``imager.accumulate_frames``),
+every channel, the products ``watch.products`` asks. :class:`WatchPixels` gives that imager the
+directions at each integration; :class:`WatchWriterBlock` writes its images to
+``<output.dir>/<prefix>_watch.h5`` (:class:`~bf_epic_blocks.io.watchfile.WatchWriter`) as they come, and
+each target's dynamic-spectrum PNG every ``png_every_s`` of data.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..conventions import FS_HZ
+from ..sky.watch import parse_targets, target_lm
+from . import _compat
+from ._compat import bfp, span_array
+
+__all__ = ["WatchPixels", "WatchWriterBlock"]
+
+log = logging.getLogger(__name__)
+
+
+class WatchPixels:
+    """The watch directions' (l, m) at a time tag, for a tracking DFTImagerBlock: ``pixels(time_tag) ->
+    (ndir, 2)``.
+
+    Directions are computed for steps of ``step_s`` seconds (at each step's middle) and held within a
+    step, so that the imager rebuilds its small operator once a step, not once an image: the sky turns
+    0.004 deg in a second, a thousandth of the station's beam at 90 MHz. A direction below the horizon or
+    outside its target's window is imaged at the zenith (the operator keeps its size) and marked
+    inactive (:meth:`state`), so that its rows are written as NaN.
+
+    targets : :class:`~bf_epic_blocks.sky.watch.WatchTarget` list (or entries); location : astropy
+    EarthLocation or (lon_deg, lat_deg, height_m).
+    """
+
+    def __init__(self, targets, location, step_s=1.0):
+        self.targets = parse_targets(targets)
+        self.location, self.step_s = location, float(step_s)
+        self._cache = {}
+
+    def _step(self, time_tag):
+        return int(math.floor(time_tag / FS_HZ / self.step_s))
+
+    def state(self, time_tag):
+        """(lm (ndir, 2) with inactive directions at the zenith, active (ndir,) bool, ra_dec (ntarget, 2))
+        for the step holding ``time_tag``."""
+        k = self._step(time_tag)
+        hit = self._cache.get(k)
+        if hit is None:
+            from astropy.time import Time
+            t = Time((k + 0.5) * self.step_s, format="unix", scale="utc")
+            d = target_lm(self.targets, t, self.location)
+            active = d.active[0]
+            lm = np.where(active[:, None], d.lm[0], 0.0)
+            first = np.searchsorted(d.target_index, np.arange(len(self.targets)))
+            ra_dec = np.stack([d.ra_deg[0, first], d.dec_deg[0, first]], axis=-1)
+            hit = (lm, active, ra_dec)
+            if len(self._cache) > 8:
+                self._cache.clear()
+            self._cache[k] = hit
+        return hit
+
+    def __call__(self, time_tag):
+        return self.state(time_tag)[0]
+
+
+class WatchWriterBlock(bfp.SinkBlock):
+    """Write a watch imager's images (header as DFTImagerBlock's with a pixel list: (time, freq, pol,
+    pixel), one pixel per watch direction) to the watch HDF5 file, and the PNGs.
+
+    Parameters
+    ----------
+    iring : the watch imager's output ring.
+    path : the HDF5 file (``<output.dir>/<prefix>_watch.h5``).
+    pixels : the :class:`WatchPixels` the imager tracks with (for each image's active directions and
+        the bodies' positions).
+    png_every_s : seconds of data between rewrites of each target's PNG (``<stem>_<target>.png``, the last
+        ``png_every_s`` of its first product); None: no PNG.
+    ``rows`` counts the images written; ``inactive`` the direction-rows written as NaN.
+    """
+
+    def __init__(self, iring, path, pixels, png_every_s=60.0, **kwargs):
+        super().__init__(iring, **kwargs)
+        self.path, self.pixels = Path(path), pixels
+        self.png_every_s = None if png_every_s is None else float(png_every_s)
+        self._writer = None
+        self.rows = self.inactive = 0
+        self.pngs, self.files, self._nseq = [], [], 0
+
+    def define_valid_input_spaces(self):
+        return "any"
+
+    @property
+    def written(self):
+        """The files written so far: the HDF5 files closed, and the PNGs."""
+        return list(dict.fromkeys(self.files + [str(p) for p in self.pngs]))
+
+    def on_sequence(self, iseq):
+        from ..io.watchfile import WatchWriter
+        hdr = iseq.header
+        tens = hdr["_tensor"]
+        t0, self._dt = float(tens["scales"][0][0]), float(tens["scales"][0][1])
+        f0, df = (float(v) for v in tens["scales"][1])
+        nchan = int(tens["shape"][1])
+        self._freq = f0 + df * np.arange(nchan)
+        self._products = list(hdr.get("pol_products") or hdr["imager"]["products"])
+        self._t0, self._tag0 = t0, int(hdr.get("time_tag", round(t0 * FS_HZ)))
+        self._tag_per_image = self._dt * FS_HZ
+        if self._writer is None:
+            path = self.path if self._nseq == 0 else self.path.with_name(f"{self.path.stem}_s{self._nseq:02d}.h5")
+            self._writer = WatchWriter(path, self.pixels.targets, self._freq, self._products)
+            log.info("WatchWriterBlock: %d targets (%d directions), %s, every %.3g ms image -> %s",
+                     len(self.pixels.targets), self._writer.ndir, "/".join(self._products), 1e3 * self._dt,
+                     self._writer.path)
+        self._since_png = 0.0
+        self._image = 0
+
+    def on_data(self, ispan):
+        x = span_array(ispan)
+        with _compat.stream_context():
+            x = x.get() if hasattr(x, "get") else np.asarray(x)
+        n = int(x.shape[0])
+        if n == 0:
+            return
+        first = getattr(ispan, "frame_offset", self._image)
+        idx = first + np.arange(n)
+        tu = self._t0 + (idx + 0.5) * self._dt                          # image centres, Unix s
+        data = np.moveaxis(np.asarray(x, np.float32), 3, 1).copy()       # (n, ndir, nchan, nprod)
+        ra_dec = np.empty((n, len(self.pixels.targets), 2))
+        for i, k in enumerate(idx):
+            _, active, rd = self.pixels.state(self._tag0 + k * self._tag_per_image)
+            ra_dec[i] = rd
+            if not active.all():
+                data[i, ~active] = np.nan
+                self.inactive += int((~active).sum())
+        self._writer.append(tu, data, ra_dec)
+        self.rows += n
+        self._image = first + n
+        self._since_png += n * self._dt
+        if self.png_every_s is not None and self._since_png >= self.png_every_s:
+            self._since_png = 0.0
+            self.write_pngs()
+
+    def write_pngs(self):
+        """Each target's dynamic spectrum and light curve (its first product) over the last
+        ``png_every_s`` of data, from the file; the paths are kept in ``pngs``."""
+        from ..io.watchfile import dynamic_spectrum_png
+        if self._writer is None or self._writer.nrows == 0:
+            return []
+        keep = max(1, int(round((self.png_every_s or 60.0) / self._dt)))
+        out = []
+        for tg, ds in zip(self._writer.targets, self._writer.groups):
+            lo = max(0, self._writer.nrows - keep)
+            t = ds["time_unix"][lo:]
+            d = ds["data"][lo:, :, 0]
+            p = self._writer.path.with_name(f"{self._writer.path.stem}_{tg.name}.png")
+            try:
+                out.append(dynamic_spectrum_png(p, t, self._freq, d, title=f"{tg.name} ({self._products[0]})"))
+            except Exception as e:  # noqa: BLE001 - a quicklook must not stop the recording
+                log.warning("WatchWriterBlock: the PNG of %s was not written: %s", tg.name, e)
+        self.pngs = out
+        return out
+
+    def on_sequence_end(self, iseq):
+        """The PNGs brought up to date and the file closed (marked complete); a later sequence (a live
+        stream that restarts) writes ``<stem>_s01.h5``, ... beside it."""
+        if self._writer is not None:
+            if self.png_every_s is not None:
+                self.write_pngs()
+            self._writer.close()
+            self.files.append(str(self._writer.path))
+            self._writer = None
+        self._nseq += 1
