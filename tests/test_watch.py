@@ -306,3 +306,59 @@ def test_a_target_between_grid_cells_gets_its_whole_flux(tmp_path):
     print(f"watch {w}, nearest grid cell {nearest}")
     np.testing.assert_allclose(w, 1000.0, rtol=0.05)
     assert np.all(nearest < 0.8 * w)
+
+
+def test_a_candidate_saves_one_snippet_with_the_images_around_it(tmp_path):
+    """The transient demo's burst, searched: its candidates (the burst and its neighbours in DM and
+    width) save one snippet holding the band-averaged images from ring_s before the trigger to
+    save_after_s after it, the burst's images inside; the others are held off and counted. A trigger file
+    dropped in trigger_dir saves its own snippet, named for its reason, and is moved to done/."""
+    import h5py
+
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    trig = tmp_path / "triggers"
+    trig.mkdir()
+    (trig / "gcn.txt").write_text("GRB 240601A\n")
+    cfg = load_config("pipelines/lwasv_sim_transient.yaml", [
+        "source.duration_s=0.45", "output.cube=null", "imager.grid.size=16", "output.png=false",
+        "imager.search.png=false", f"output.dir={tmp_path}",
+        f"watch={{targets: [{{name: FRB1, ra_deg: 310.0, dec_deg: 20.0}}], ring_s: 0.3, save_after_s: 0.05, "
+        f"hold_off_s: 0.2, trigger_dir: {trig}}}"])
+    summary = runner.run(cfg, show_progress=False)
+    st = summary["watch"]["triggers"]
+    assert summary["search"]["candidates"] >= 1 and st["from_files"] == 1, (summary["search"], st)
+    snips = sorted(tmp_path.glob("*_snippet_*.h5"))
+    cands = [p for p in snips if "candidate" in p.name]
+    files = [p for p in snips if "GRB-240601A" in p.name]
+    assert len(cands) == 1 and len(files) == 1, [p.name for p in snips]
+    assert st["saved"] == 2 and st["held"] == st["triggers"] - 2
+    with h5py.File(cands[0]) as f:
+        t, img, when = f["time_unix"][:], f["images"][:], float(f.attrs["trigger_unix"])
+        assert f.attrs["complete"] and img.shape[1:] == (16, 16)
+    t0 = t - t[0]
+    assert t.min() <= when - 0.09 and t.max() >= when + 0.04           # the ring before, the seconds after
+    assert np.all(np.diff(t) > 0) and np.allclose(np.diff(t), 0.00064, atol=1e-6)   # every image, once
+    assert not list(trig.glob("*.txt")) and (trig / "done" / "gcn.txt").exists()
+    assert t0.size == img.shape[0]
+
+
+def test_a_flash_saves_once_and_counts_the_rest(tmp_path):
+    """A 3 MJy, 2-ms flash: the search's candidate (one sky-wide event: its sidelobes, DM and width trials
+    are clustered into it) and the target's light curve both trigger; one snippet is written, the other
+    trigger is held off and counted."""
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    cfg = load_config("pipelines/lwasv_sim_transient.yaml", [
+        "source.duration_s=0.3", "output.cube=null", "imager.grid.size=16", "output.png=false",
+        "imager.search.png=false", f"output.dir={tmp_path}",
+        "source.transients=[{name: Flash, ra_deg: 300.0, dec_deg: 30.0, start_s: 0.22, duration_s: 0.002, "
+        "flux_jy: 3.0e6, dm: 0.0}]",
+        "watch={targets: [{name: F, ra_deg: 300.0, dec_deg: 30.0}], trigger_sigma: 8.0, ring_s: 0.1, "
+        "hold_off_s: 10.0}"])
+    summary = runner.run(cfg, show_progress=False)
+    st = summary["watch"]["triggers"]
+    print(summary["search"]["candidates"], summary["watch"]["light_curve_triggers"], st)
+    assert summary["search"]["candidates"] >= 1 and summary["watch"]["light_curve_triggers"] >= 1
+    assert st["triggers"] >= 2 and st["saved"] == 1 and st["held"] == st["triggers"] - 1
+    assert len(list(tmp_path.glob("*_snippet_*.h5"))) == 1

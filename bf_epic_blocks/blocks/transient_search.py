@@ -75,6 +75,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.fit_every_row = False
         self.rows = []
         self.candidates = None
+        self.on_candidate = None      # a callable(row) told of each candidate as it is made (triggered saves)
         self._warmed = False            # the candidate path's GPU kernels compiled (TransientSearch.warm_up)
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
                              "images_lost": 0, "trials_per_width": [0] * len(self.widths), "sequences": 0,
@@ -503,6 +504,11 @@ class TransientSearchBlock(bfp.SinkBlock):
                           # (not a column: the window sigma at its pixel, for merging a pixel split's parts)
                           "_sigma": float(self._sigma[ser, p]) if self._sigma is not None else float("nan")})
         self.search_stats["candidates"] += 1
+        if self.on_candidate is not None:
+            try:
+                self.on_candidate(self.rows[-1])
+            except Exception as e:  # noqa: BLE001 - a listener must not stop the search
+                log.warning("TransientSearchBlock: the candidate listener failed: %s", e)
         if not cr.skywide[k]:
             # kept for the sidelobe test of fainter candidates at the same time: the event's boxcar S/N
             # on every pixel, against the window it was found with (None once no longer held)

@@ -84,11 +84,18 @@ class WatchWriterBlock(bfp.SinkBlock):
         the bodies' positions).
     png_every_s : seconds of data between rewrites of each target's PNG (``<stem>_<target>.png``, the last
         ``png_every_s`` of its first product); None: no PNG.
-    ``rows`` counts the images written; ``inactive`` the direction-rows written as NaN.
+    bus, trigger_sigma, ring_s : a :class:`~.snippets.TriggerBus` told when a target's band-mean light
+        curve (its first product) rises more than ``trigger_sigma`` robust sigma (1.4826 MAD) above its
+        median over the last ``ring_s`` of data (once that holds 32 images); None: no triggers.
+    ``rows`` counts the images written; ``inactive`` the direction-rows written as NaN; ``triggers`` the
+    triggers posted.
     """
 
-    def __init__(self, iring, path, pixels, png_every_s=60.0, **kwargs):
+    def __init__(self, iring, path, pixels, png_every_s=60.0, bus=None, trigger_sigma=None, ring_s=2.0, **kwargs):
         super().__init__(iring, **kwargs)
+        self.bus, self.trigger_sigma, self.ring_s = bus, trigger_sigma, float(ring_s)
+        self.triggers = 0
+        self._history = None
         self.path, self.pixels = Path(path), pixels
         self.png_every_s = None if png_every_s is None else float(png_every_s)
         self._writer = None
@@ -142,12 +149,40 @@ class WatchWriterBlock(bfp.SinkBlock):
                 data[i, ~active] = np.nan
                 self.inactive += int((~active).sum())
         self._writer.append(tu, data, ra_dec)
+        if self.bus is not None and self.trigger_sigma is not None:
+            self._light_curve_triggers(tu, data)
         self.rows += n
         self._image = first + n
         self._since_png += n * self._dt
         if self.png_every_s is not None and self._since_png >= self.png_every_s:
             self._since_png = 0.0
             self.write_pngs()
+
+    def _light_curve_triggers(self, tu, data):
+        """Post a trigger for each target whose band-mean light curve crosses its threshold in this gulp
+        (the baseline from the images before the gulp)."""
+        import collections
+        first = np.cumsum([0] + [t.ndir for t in self.pixels.targets])[:-1]
+        with np.errstate(invalid="ignore"), __import__("warnings").catch_warnings():
+            __import__("warnings").simplefilter("ignore", RuntimeWarning)
+            lc = np.nanmean(data[..., 0][:, first], axis=2)                     # (n, ntarget)
+        if self._history is None:
+            self._history = collections.deque(maxlen=max(32, int(round(self.ring_s / self._dt))))
+        if len(self._history) >= 32:
+            h = np.asarray(self._history)
+            with np.errstate(invalid="ignore"), __import__("warnings").catch_warnings():
+                __import__("warnings").simplefilter("ignore", RuntimeWarning)
+                med = np.nanmedian(h, axis=0)
+                sd = 1.4826 * np.nanmedian(np.abs(h - med), axis=0)
+                z = (lc - med) / sd
+            for j, tg in enumerate(self.pixels.targets):
+                hit = np.flatnonzero(z[:, j] > self.trigger_sigma)
+                if hit.size:
+                    i = int(hit[0])
+                    self.bus.post(tu[i], f"watch {tg.name} {z[i, j]:.1f} sigma")
+                    self.triggers += 1
+        for row in lc:
+            self._history.append(row)
 
     def write_pngs(self):
         """Each target's dynamic spectrum and light curve (its first product) over the last

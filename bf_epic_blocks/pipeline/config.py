@@ -802,15 +802,24 @@ SCHEMA = Section({
         "png_every_s": Key(Float(0.0, lo_open=True), 60.0,
                            doc="Seconds of data between rewrites of each target's dynamic-spectrum PNG."),
         "ring_s": Key(Float(0.0, lo_open=True), 2.0,
-                      doc="Seconds of images kept for a triggered save (triggered saves are not run yet)."),
+                      doc="Seconds of band-averaged images before a trigger that a triggered save holds."),
+        "save_after_s": Key(Float(0.0), 1.0, doc="Seconds of images after a trigger that its save holds."),
         "hold_off_s": Key(Float(0.0), 10.0,
-                          doc="Seconds after a trigger before another may fire for the same target."),
+                          doc="Seconds after a saved trigger during which further triggers are counted, not saved."),
+        "trigger_sigma": Key(Float(0.0, lo_open=True), None,
+                             doc="A target whose band-mean light curve rises this many robust sigma above its "
+                                 "last ring_s triggers a save; null: light curves do not trigger."),
+        "trigger_dir": Key(Str(r"\S.*", "a directory path"), None,
+                           doc="A folder watched for trigger files: each new file triggers a save (its first "
+                               "line is the reason) and is moved to <trigger_dir>/done; null: none."),
         "webhook": Key(Str(r"https?://\S+", "an http(s) URL"), None,
                        doc="URL a trigger is posted to; null: none."),
-    }, what="a watch mapping {targets, products, png_every_s, ring_s, hold_off_s, webhook}",
+    }, what="a watch mapping {targets, products, png_every_s, ring_s, save_after_s, hold_off_s, trigger_sigma, "
+            "trigger_dir, webhook}",
         doc="A second DFT imager images the targets' directions at every image the imager makes; their "
-            "spectra go to <output.dir>/<prefix>_watch.h5 (guide/watch.md). Triggered saves and alerts "
-            "(ring_s, hold_off_s, webhook) are checked but not run yet."), None,
+            "spectra go to <output.dir>/<prefix>_watch.h5, and search candidates, light curves and trigger "
+            "files save snippets of the band-averaged images (guide/watch.md). Alerts (webhook) are checked "
+            "but not sent yet."), None,
         doc="Spectra of named directions at every image, in an HDF5 file; null: off."),
     "output": Key(Section({
         "dir": Key(Str(r"\S.*", "a directory path"), None,

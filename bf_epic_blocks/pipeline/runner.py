@@ -50,10 +50,11 @@ class Graph:
     cube: object = None
     solver: object = None
     watch: object = None
+    snippets: object = None
 
     @property
     def sinks(self):
-        return [b for b in (self.writer, self.search, self.cube, self.watch) if b is not None]
+        return [b for b in (self.writer, self.search, self.cube, self.watch, self.snippets) if b is not None]
 
 
 def capture_format(src_cfg):
@@ -344,6 +345,9 @@ def build_graph(cfg, progress=None, parts=None):
     pixels = _pixels(cfg, station)
     with bfp.Pipeline() as p, scope:
         if split is not None:
+            if cfg.get("watch"):
+                raise ValueError("watch: the watchlist runs beside one imager; imager.split: pixels splits it "
+                                 "over several GPUs (use imager.split: channels, one GPU, or watch: null)")
             return _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern, progress)
         source, feed, nframe_total, block = _source_stage(cfg, dev, fmt, info, station, gulp, space, progress)
         feed, weights = _flagging_stage(cfg, feed)
@@ -352,8 +356,9 @@ def build_graph(cfg, progress=None, parts=None):
         imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table, weights)
         search = _search_stage(cfg, imager, outdir, weights if getattr(imager, "flag_weights", None) else None)
         writer, cube = _output_stage(cfg, imager, pixels, block)
-        watch = _watch_stage(cfg, dev, calfold, station, pattern, table)
-    return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube, solver, watch)
+        watch, snippets = _watch_stage(cfg, dev, calfold, station, pattern, table, imager, search)
+    return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube, solver, watch,
+                 snippets)
 
 
 def _source_stage(cfg, dev, fmt, info, station, gulp, space, progress):
@@ -534,13 +539,15 @@ def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None
                        plan=imager_plan_for(cfg, pixels, station, dev), **common)
 
 
-def _watch_stage(cfg, dev, calfold, station, pattern, table=None):
-    """The watchlist (``watch:``), or None: a DFTImagerBlock tracking the targets' directions on the
-    voltages the imager reads (the calibration folded in as the imager folds it), and the
-    WatchWriterBlock writing ``<output.dir>/<prefix>_watch.h5`` (:mod:`bf_epic_blocks.blocks.watch`)."""
+def _watch_stage(cfg, dev, calfold, station, pattern, table=None, imager=None, search=None):
+    """The watchlist (``watch:``), or (None, None): (the WatchWriterBlock writing
+    ``<output.dir>/<prefix>_watch.h5`` from a DFTImagerBlock tracking the targets' directions on the
+    voltages the imager reads, the calibration folded in as the imager folds it; the SnippetBlock on the
+    imager's images that saves what the search's candidates, the light curves and trigger files ask)
+    (:mod:`bf_epic_blocks.blocks.watch`, :mod:`bf_epic_blocks.blocks.snippets`)."""
     wc = cfg.get("watch")
     if not wc:
-        return None
+        return None, None
     if dev == "gpus":
         raise ValueError(f"watch: the watchlist runs on one device; device {cfg['device']!r} shards the channels "
                          "over several GPUs (use one GPU, or watch: null)")
@@ -556,11 +563,22 @@ def _watch_stage(cfg, dev, calfold, station, pattern, table=None):
     ndir = sum(t.ndir for t in pixels.targets)
     plan = imaging_plan(cfg, ndir, int((~station.flags).any(axis=1).sum()),
                         len(channel_freqs(cfg)) if cfg["source"]["kind"] == "simulated" else 1, dev)
-    imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], plan=plan, **common)
+    main_imager = imager
+    watch_imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], plan=plan, **common)
     out = cfg["output"]
     path = Path(out["dir"]) / f"{out['prefix']}_watch.h5"
     log.info("watch: %d targets (%d directions) at every image -> %s", len(pixels.targets), ndir, path)
-    return WatchWriterBlock(imager, path, pixels, png_every_s=wc["png_every_s"])
+    from ..blocks.snippets import SnippetBlock, TriggerBus
+    bus = TriggerBus()
+    writer = WatchWriterBlock(watch_imager, path, pixels, png_every_s=wc["png_every_s"], bus=bus,
+                              trigger_sigma=wc["trigger_sigma"], ring_s=wc["ring_s"])
+    snippets = None
+    if main_imager is not None:
+        snippets = SnippetBlock(main_imager, out["dir"], out["prefix"], bus, ring_s=wc["ring_s"],
+                                after_s=wc["save_after_s"], hold_off_s=wc["hold_off_s"], trigger_dir=wc["trigger_dir"])
+    if search is not None:
+        search.on_candidate = lambda row: bus.post(row["time_utc"].unix, f"candidate S/N {row['snr']:.1f}")
+    return writer, snippets
 
 
 def _search_stage(cfg, imager, outdir, flag_weights=None):
@@ -819,7 +837,10 @@ def run(cfg, show_progress=None, parts=None):
                  g.solver.solver_stats["solve_s"], summary["solver"]["wait_s"])
     if g.watch is not None:
         summary["watch"] = {"images": g.watch.rows, "inactive_rows": g.watch.inactive,
-                            "targets": [t.name for t in g.watch.pixels.targets]}
+                            "targets": [t.name for t in g.watch.pixels.targets],
+                            "light_curve_triggers": g.watch.triggers}
+        if g.snippets is not None:
+            summary["watch"]["triggers"] = dict(g.snippets.trig_stats)
     log.info("%s: frames read %d, imaged %d, skipped %d, dropped (partial integration) %d; %d images, "
              "%d files in %s (%.1f s)", cfg["name"], summary["frames_read"], summary["frames_imaged"],
              summary["frames_skipped"], summary["frames_dropped_partial"], summary["images"],

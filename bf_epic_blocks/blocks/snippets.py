@@ -1,0 +1,188 @@
+"""Triggered saves: the last seconds of band-averaged images kept in a ring, written to an HDF5 snippet
+with the seconds after it when something triggers.
+
+Triggers come from the transient search (each candidate), a watch target's light curve crossing its
+threshold (:class:`~.watch.WatchWriterBlock`), or outside: a file dropped in ``trigger_dir`` (its first
+line is the reason; the file is moved to ``trigger_dir/done``). All go through a :class:`TriggerBus`;
+:class:`SnippetBlock` reads the main imager's images, keeps the ring and writes the snippets. A trigger
+within ``hold_off_s`` of the last one saved is counted, not saved, so that a flash that fires hundreds of
+triggers writes one snippet.
+
+Snippet file ``<prefix>_snippet_<UTC>_<reason>.h5`` (h5py): ``images`` (ntime, ...) float32, the band
+mean of the imager's first product at each image (the grid (N, N), NaN below the horizon, or the pixel
+list); ``time_unix`` (ntime,) float64 image centres; attributes ``reason``, ``trigger_unix``, ``product``,
+``pixels`` (the imager header's pixel description, JSON), ``held`` (triggers held off while it was open),
+``complete`` (True once closed).
+"""
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import os
+import re
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from . import _compat
+from ._compat import bfp, span_array
+
+__all__ = ["SnippetBlock", "TriggerBus"]
+
+log = logging.getLogger(__name__)
+
+
+class TriggerBus:
+    """Triggers posted from any thread, taken by the snippet block: (time_unix of the data, reason)."""
+
+    def __init__(self):
+        self._q = collections.deque()
+        self._lock = threading.Lock()
+        self.posted = 0
+
+    def post(self, time_unix, reason):
+        with self._lock:
+            self._q.append((float(time_unix), str(reason)))
+            self.posted += 1
+
+    def take(self):
+        with self._lock:
+            out = list(self._q)
+            self._q.clear()
+        return out
+
+
+def _slug(text):
+    return re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip("-")[:40] or "trigger"
+
+
+class SnippetBlock(bfp.SinkBlock):
+    """Keep the last ``ring_s`` of band-averaged images; on a trigger write them and the next
+    ``after_s`` to a snippet (module docstring).
+
+    Parameters
+    ----------
+    iring : the imager's images (time, freq, pol, pixels...).
+    outdir, prefix : where the snippets go, ``<prefix>_snippet_...h5``.
+    bus : the :class:`TriggerBus` the triggers come through.
+    ring_s, after_s, hold_off_s : seconds of images before and after a trigger, and between saves.
+    trigger_dir : a folder whose new files are triggers (None: none).
+    ``stats``: triggers seen, saved, held off, and from files; ``written`` the snippets closed.
+    """
+
+    def __init__(self, iring, outdir, prefix, bus, ring_s=2.0, after_s=1.0, hold_off_s=10.0, trigger_dir=None,
+                 **kwargs):
+        super().__init__(iring, **kwargs)
+        self.outdir, self.prefix, self.bus = Path(outdir), prefix, bus
+        self.ring_s, self.after_s, self.hold_off_s = float(ring_s), float(after_s), float(hold_off_s)
+        self.trigger_dir = None if trigger_dir is None else Path(trigger_dir)
+        self.trig_stats = {"triggers": 0, "saved": 0, "held": 0, "from_files": 0}
+        self.written = []
+        self._ring = collections.deque()
+        self._open = None            # (h5py File, end time, nrows)
+        self._last_saved = -np.inf
+
+    def define_valid_input_spaces(self):
+        return "any"
+
+    def on_sequence(self, iseq):
+        hdr = iseq.header
+        tens = hdr["_tensor"]
+        self._t0, self._dt = float(tens["scales"][0][0]), float(tens["scales"][0][1])
+        self._pixels = json.dumps(hdr.get("pixels", {}), default=lambda o: np.asarray(o).tolist())
+        self._product = (hdr.get("pol_products") or ["?"])[0]
+        self._image = 0
+        self._ring.clear()
+        self._keep = max(1, int(round(self.ring_s / self._dt)))
+
+    def on_data(self, ispan):
+        x = span_array(ispan)
+        n = int(x.shape[0])
+        if n == 0:
+            return
+        with _compat.stream_context():
+            band = x[:, :, 0].mean(axis=1)                     # (n, pixels...): the band mean, first product
+            band = band.get() if hasattr(band, "get") else np.asarray(band)
+        first = getattr(ispan, "frame_offset", self._image)
+        t = self._t0 + (first + np.arange(n) + 0.5) * self._dt
+        self._image = first + n
+        self._append_open(t, band)
+        for i in range(n):
+            self._ring.append((t[i], band[i]))
+        while len(self._ring) > self._keep:
+            self._ring.popleft()
+        for when, reason in self._triggers(t[-1]):
+            self._trigger(when, reason)
+
+    def _triggers(self, now):
+        out = self.bus.take()
+        if self.trigger_dir is not None and self.trigger_dir.is_dir():
+            done = self.trigger_dir / "done"
+            for e in sorted(os.scandir(self.trigger_dir), key=lambda e: e.name):
+                if not e.is_file():
+                    continue
+                try:
+                    reason = Path(e.path).read_text(errors="replace").strip().splitlines()
+                    reason = reason[0][:200] if reason and reason[0] else e.name
+                    done.mkdir(exist_ok=True)
+                    os.replace(e.path, done / e.name)
+                except OSError as err:
+                    log.warning("SnippetBlock: trigger file %s not read: %s", e.path, err)
+                    continue
+                self.trig_stats["from_files"] += 1
+                out.append((now, f"file: {reason}"))
+        return out
+
+    def _trigger(self, when, reason):
+        self.trig_stats["triggers"] += 1
+        if when - self._last_saved < self.hold_off_s:
+            self.trig_stats["held"] += 1
+            if self._open is not None:
+                self._open[0].attrs["held"] = int(self._open[0].attrs["held"]) + 1
+            return
+        self._last_saved = when
+        self._close()
+        import h5py
+        from astropy.time import Time
+        stamp = Time(when, format="unix", scale="utc").strftime("%Y%m%dT%H%M%S.%f")[:-3]
+        path = self.outdir / f"{self.prefix}_snippet_{stamp}_{_slug(reason)}.h5"
+        self.outdir.mkdir(parents=True, exist_ok=True)
+        f = h5py.File(path, "w")
+        shape = self._ring[0][1].shape if self._ring else ()
+        f.create_dataset("images", (0,) + shape, "f4", maxshape=(None,) + shape, chunks=(16,) + shape)
+        f.create_dataset("time_unix", (0,), "f8", maxshape=(None,), chunks=(256,))
+        f.attrs.update({"reason": reason, "trigger_unix": when, "product": self._product, "pixels": self._pixels,
+                        "held": 0, "complete": False, "band_averaged": True})
+        self._open = [f, when + self.after_s, 0]
+        self.trig_stats["saved"] += 1
+        if self._ring and self._rows(np.array([r[0] for r in self._ring]), np.stack([r[1] for r in self._ring])):
+            self._close()                      # the trigger came late (a search's latency): all is in the ring
+        log.info("triggered save (%s) at %s UTC -> %s", reason, Time(when, format="unix").isot, path.name)
+
+    def _rows(self, t, imgs):
+        f, end, nrow = self._open
+        keep = t <= end
+        t, imgs = t[keep], imgs[keep]
+        if t.size:
+            for k, v in (("images", imgs), ("time_unix", t)):
+                f[k].resize(nrow + t.size, axis=0)
+                f[k][nrow:] = v
+            self._open[2] = nrow + t.size
+        return not keep.all()
+
+    def _append_open(self, t, band):
+        if self._open is not None and self._rows(t, band):
+            self._close()
+
+    def _close(self):
+        if self._open is not None:
+            f = self._open[0]
+            f.attrs["complete"] = True
+            self.written.append(f.filename)
+            f.close()
+            self._open = None
+
+    def on_sequence_end(self, iseq):
+        self._close()
