@@ -341,6 +341,65 @@ def test_a_candidate_saves_one_snippet_with_the_images_around_it(tmp_path):
     assert np.all(np.diff(t) > 0) and np.allclose(np.diff(t), 0.00064, atol=1e-6)   # every image, once
     assert not list(trig.glob("*.txt")) and (trig / "done" / "gcn.txt").exists()
     assert t0.size == img.shape[0]
+    # each trigger as a VOEvent (the FRB community's fields), the candidate's where the search put it
+    import voeventparse as vp
+    al = summary["watch"]["alerts"]
+    assert al["voevents"] == st["triggers"] and al["voevents_skipped"] == 0
+    events = [vp.load(open(p, "rb")) for p in sorted((tmp_path / "voevents").glob("*.xml"))]
+    assert all(vp.valid_as_v2_0(v) for v in events)
+    cand = [v for v in events if "candidate" in str(v.Why.Inference.Name)]
+    pos = vp.get_event_position(cand[0])
+    assert abs(pos.ra - 310.0) < 5 and abs(pos.dec - 20.0) < 5
+    ev = vp.get_grouped_params(cand[0])
+    assert float(ev["event parameters"]["snr"]["value"]) > 10
+    assert float(ev["observatory parameters"]["sampling_time"]["value"]) == pytest.approx(0.64)
+
+
+def test_alerts_are_posted_retried_and_never_wait_for_a_hung_webhook():
+    """A local webhook that fails twice then accepts: the alert arrives, two retries counted. One that
+    hangs: send() returns at once, the tries time out and the alert is counted as failed."""
+    import json
+    import threading
+    import time
+    from http.server import BaseHTTPRequestHandler, HTTPServer
+
+    from bf_epic_blocks.io.alerts import AlertSender
+    got, state = [], {"fail": 2, "hang": False}
+
+    class Hook(BaseHTTPRequestHandler):
+        def do_POST(self):
+            body = self.rfile.read(int(self.headers["Content-Length"]))
+            if state["hang"]:
+                time.sleep(1.0)
+            if state["fail"] > 0:
+                state["fail"] -= 1
+                self.send_response(500)
+                self.end_headers()
+                return
+            got.append(json.loads(body))
+            self.send_response(204)
+            self.end_headers()
+
+        def log_message(self, *a):
+            pass
+    srv = HTTPServer(("127.0.0.1", 0), Hook)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    url = f"http://127.0.0.1:{srv.server_port}/hook"
+    try:
+        s = AlertSender(url, None, timeout_s=2.0, tries=4, backoff_s=0.05)
+        s.send({"time_utc": "2024-06-01T10:00:00.33", "reason": "candidate S/N 20", "snr": 20.0})
+        s.close(wait_s=10)
+        assert got == [{"time_utc": "2024-06-01T10:00:00.33", "reason": "candidate S/N 20", "snr": 20.0}]
+        assert s.stats["posted"] == 1 and s.stats["retries"] == 2 and s.stats["failed"] == 0
+        state["hang"] = True
+        h = AlertSender(url, None, timeout_s=0.2, tries=2, backoff_s=0.05)
+        t0 = time.perf_counter()
+        h.send({"time_utc": "2024-06-01T10:00:01", "reason": "x"})
+        assert time.perf_counter() - t0 < 0.05
+        h.close(wait_s=5)
+        assert h.stats["failed"] == 1 and h.stats["posted"] == 0
+    finally:
+        srv.shutdown()
 
 
 def test_a_flash_saves_once_and_counts_the_rest(tmp_path):

@@ -35,17 +35,32 @@ log = logging.getLogger(__name__)
 
 
 class TriggerBus:
-    """Triggers posted from any thread, taken by the snippet block: (time_unix of the data, reason)."""
+    """Triggers posted from any thread, taken by the snippet block: (time_unix of the data, reason).
+    ``listeners``: callables told of each trigger as a dict (``time_utc`` ISO, ``reason``, and what the
+    poster knows: ``ra_deg``, ``dec_deg``, ``snr``, ``dm``, ``width_ms``), e.g. an
+    :class:`~bf_epic_blocks.io.alerts.AlertSender`'s ``send``."""
 
     def __init__(self):
         self._q = collections.deque()
         self._lock = threading.Lock()
         self.posted = 0
+        self.listeners = []
 
-    def post(self, time_unix, reason):
+    def post(self, time_unix, reason, info=None):
         with self._lock:
             self._q.append((float(time_unix), str(reason)))
             self.posted += 1
+            n = self.posted
+        if self.listeners:
+            from astropy.time import Time
+            stamp = Time(float(time_unix), format="unix").isot.replace("-", "").replace(":", "")
+            alert = {"id": f"{stamp}_{n}",
+                     "time_utc": Time(float(time_unix), format="unix").isot, "reason": str(reason), **(info or {})}
+            for fn in self.listeners:
+                try:
+                    fn(alert)
+                except Exception as e:  # noqa: BLE001 - a listener must not stop the poster
+                    log.warning("TriggerBus: a listener failed: %s", e)
 
     def take(self):
         with self._lock:
@@ -133,6 +148,13 @@ class SnippetBlock(bfp.SinkBlock):
                     continue
                 self.trig_stats["from_files"] += 1
                 out.append((now, f"file: {reason}"))
+                for fn in self.bus.listeners:       # told like the bus's own triggers
+                    try:
+                        from astropy.time import Time
+                        fn({"id": f"file_{e.name}", "time_utc": Time(now, format="unix").isot,
+                            "reason": f"file: {reason}"})
+                    except Exception as err:  # noqa: BLE001
+                        log.warning("SnippetBlock: a trigger listener failed: %s", err)
         return out
 
     def _trigger(self, when, reason):
@@ -146,7 +168,7 @@ class SnippetBlock(bfp.SinkBlock):
         self._close()
         import h5py
         from astropy.time import Time
-        stamp = Time(when, format="unix", scale="utc").strftime("%Y%m%dT%H%M%S.%f")[:-3]
+        stamp = Time(when, format="unix", scale="utc").isot.replace("-", "").replace(":", "")    # ...T100000.329
         path = self.outdir / f"{self.prefix}_snippet_{stamp}_{_slug(reason)}.h5"
         self.outdir.mkdir(parents=True, exist_ok=True)
         f = h5py.File(path, "w")

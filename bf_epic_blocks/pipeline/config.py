@@ -813,13 +813,14 @@ SCHEMA = Section({
                            doc="A folder watched for trigger files: each new file triggers a save (its first "
                                "line is the reason) and is moved to <trigger_dir>/done; null: none."),
         "webhook": Key(Str(r"https?://\S+", "an http(s) URL"), None,
-                       doc="URL a trigger is posted to; null: none."),
+                       doc="URL each trigger is posted to as JSON (retried with back-off, never holding the "
+                           "pipeline); null: none."),
     }, what="a watch mapping {targets, products, png_every_s, ring_s, save_after_s, hold_off_s, trigger_sigma, "
             "trigger_dir, webhook}",
         doc="A second DFT imager images the targets' directions at every image the imager makes; their "
             "spectra go to <output.dir>/<prefix>_watch.h5, and search candidates, light curves and trigger "
-            "files save snippets of the band-averaged images (guide/watch.md). Alerts (webhook) are checked "
-            "but not sent yet."), None,
+            "files save snippets of the band-averaged images and send alerts (a webhook, VOEvent files) "
+            "(guide/watch.md)."), None,
         doc="Spectra of named directions at every image, in an HDF5 file; null: off."),
     "output": Key(Section({
         "dir": Key(Str(r"\S.*", "a directory path"), None,

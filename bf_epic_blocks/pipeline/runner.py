@@ -576,8 +576,20 @@ def _watch_stage(cfg, dev, calfold, station, pattern, table=None, imager=None, s
     if main_imager is not None:
         snippets = SnippetBlock(main_imager, out["dir"], out["prefix"], bus, ring_s=wc["ring_s"],
                                 after_s=wc["save_after_s"], hold_off_s=wc["hold_off_s"], trigger_dir=wc["trigger_dir"])
+    from ..io.alerts import AlertSender
+    station_info = {"station": station.name, "npol": 2}
+    if cfg["source"]["kind"] == "simulated":        # what the alerts' VOEvents say of the observation
+        freq, width = channel_freqs(cfg), float(cfg["source"]["channels"]["width_hz"])
+        station_info.update(freq_mhz=round(float(np.mean(freq)) / 1e6, 6),
+                            bandwidth_mhz=round(freq.size * width / 1e6, 6),
+                            sampling_time_ms=round(im["accumulate_frames"] * 1e3 / width, 6))
+    writer.alerts = AlertSender(wc["webhook"], out["dir"])
+    bus.listeners.append(lambda a: writer.alerts.send({**station_info, **a}))
     if search is not None:
-        search.on_candidate = lambda row: bus.post(row["time_utc"].unix, f"candidate S/N {row['snr']:.1f}")
+        search.on_candidate = lambda row: bus.post(
+            row["time_utc"].unix, f"candidate S/N {row['snr']:.1f}",
+            {"ra_deg": row["ra_deg"], "dec_deg": row["dec_deg"], "snr": round(row["snr"], 2), "dm": row["dm"],
+             "width_ms": round(row["width_ms"], 4), "kind": row["kind"]})
     return writer, snippets
 
 
@@ -841,6 +853,11 @@ def run(cfg, show_progress=None, parts=None):
                             "light_curve_triggers": g.watch.triggers}
         if g.snippets is not None:
             summary["watch"]["triggers"] = dict(g.snippets.trig_stats)
+        alerts = getattr(g.watch, "alerts", None)
+        if alerts is not None:
+            alerts.close()
+            summary["watch"]["alerts"] = dict(alerts.stats)
+            summary["files"] += alerts.written
     log.info("%s: frames read %d, imaged %d, skipped %d, dropped (partial integration) %d; %d images, "
              "%d files in %s (%.1f s)", cfg["name"], summary["frames_read"], summary["frames_imaged"],
              summary["frames_skipped"], summary["frames_dropped_partial"], summary["images"],
