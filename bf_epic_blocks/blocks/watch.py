@@ -96,6 +96,7 @@ class WatchWriterBlock(bfp.SinkBlock):
         self.bus, self.trigger_sigma, self.ring_s = bus, trigger_sigma, float(ring_s)
         self.triggers = 0
         self._history = None
+        self._was = None
         self.path, self.pixels = Path(path), pixels
         self.png_every_s = None if png_every_s is None else float(png_every_s)
         self._writer = None
@@ -145,6 +146,8 @@ class WatchWriterBlock(bfp.SinkBlock):
         for i, k in enumerate(idx):
             _, active, rd = self.pixels.state(self._tag0 + k * self._tag_per_image)
             ra_dec[i] = rd
+            if self._was is None or not np.array_equal(active, self._was):
+                self._log_changes(active, tu[i])
             if not active.all():
                 data[i, ~active] = np.nan
                 self.inactive += int((~active).sum())
@@ -157,6 +160,18 @@ class WatchWriterBlock(bfp.SinkBlock):
         if self.png_every_s is not None and self._since_png >= self.png_every_s:
             self._since_png = 0.0
             self.write_pngs()
+
+    def _log_changes(self, active, t_unix):
+        """Log the directions that set, rise, leave or enter their window (their rows are NaN while out)."""
+        from astropy.time import Time
+        names = [n for t in self.pixels.targets
+                 for n in [t.name] + [f"{t.name}+off{j + 1}" for j in range(len(t.offsets_deg))]]
+        was = np.ones_like(active) if self._was is None else self._was
+        when = Time(t_unix, format="unix").isot
+        for j in np.flatnonzero(active != was):
+            log.info("watch: %s is %s at %s UTC%s", names[j], "recorded again" if active[j] else "not recorded",
+                     when, "" if active[j] else " (below the horizon or outside its window: NaN rows)")
+        self._was = active.copy()
 
     def _light_curve_triggers(self, tu, data):
         """Post a trigger for each target whose band-mean light curve crosses its threshold in this gulp

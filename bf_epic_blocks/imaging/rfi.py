@@ -44,8 +44,9 @@ from scipy import special
 from ..cuda import get_kernel, register
 from ._xp import get_xp
 
-__all__ = ["COUNTED", "REASONS", "apply_flags", "block_power", "broadband_flags", "channel_mask", "expected_sk", "min_mean_power", "parse_bad_freq_list",
-           "power_sums", "quantised_power_moments", "sk_flags", "sk_thresholds", "spectral_kurtosis"]
+__all__ = ["COUNTED", "REASONS", "apply_flags", "block_power", "broadband_flags", "channel_mask", "expected_sk",
+           "min_mean_power", "parse_bad_freq_list", "power_sums", "quantised_power_moments", "sk_code", "sk_flags",
+           "sk_thresholds", "spectral_kurtosis"]
 
 register("imaging/rfi.cu")
 
