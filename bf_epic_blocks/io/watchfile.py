@@ -219,6 +219,10 @@ def dynamic_spectrum_png(path_png, time_unix, freq_hz, data, title="") -> str:
     ax2.set_ylabel("band mean")
     day = Time(t[0], format="unix", scale="utc").isot[:10] if t.size else ""
     ax2.set_xlabel(f"UTC ({day})")
-    ax2.xaxis.set_major_formatter(mdates.DateFormatter("%H:%M:%S"))
+    if t.size > 1 and t[-1] - t[0] < 20:      # under ~20 s the ticks need the milliseconds
+        from matplotlib.ticker import FuncFormatter
+        ax2.xaxis.set_major_formatter(FuncFormatter(lambda v, _: mdates.num2date(v).strftime("%H:%M:%S.%f")[:-3]))
+    else:
+        ax2.xaxis.set_major_formatter(mdates.DateFormatter("%H:%M:%S"))
     fig.savefig(path_png)
     return str(path_png)
