@@ -285,6 +285,22 @@ def test_the_watched_burst_drifts_as_its_dispersion_says_and_only_on_source(watc
     assert str(out / "lwasv_sim_transient_watch.h5") in summary["files"]
 
 
+def test_a_window_before_the_data_is_a_warning_and_nan_rows(tmp_path, caplog):
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    cfg = load_config("pipelines/lwasv_sim_allsky.yaml", [
+        "source.duration_s=0.02", "imager.accumulate_frames=250", "source.channels.count=2", "source.diffuse=null",
+        "output.png=false", "output.fits=false", f"output.dir={tmp_path}",
+        "watch={targets: [{name: Old, ra_deg: 300.0, dec_deg: 35.0, start: '2020-01-01T00:00:00', "
+        "stop: '2020-01-02T00:00:00'}, CygA]}"])
+    with caplog.at_level("WARNING"):
+        summary = runner.run(cfg, show_progress=False)
+    assert any("Old's window ended" in r.getMessage() for r in caplog.records)
+    w = read_watch(tmp_path / "lwasv_sim_allsky_watch.h5")
+    assert np.all(np.isnan(w["Old"]["data"])) and np.all(np.isfinite(w["CygA"]["data"]))
+    assert summary["watch"]["inactive_rows"] == 2
+
+
 def test_a_target_between_grid_cells_gets_its_whole_flux(tmp_path):
     """A 1,000 Jy point source at a chosen position (noise-free, unquantised, isotropic antennas): the
     watch direction placed on it records 1,000 Jy (to the sampling scatter of 5,000 samples, 1.4%), where

@@ -112,6 +112,8 @@ class WatchWriterBlock(bfp.SinkBlock):
         return list(dict.fromkeys(self.files + [str(p) for p in self.pngs]))
 
     def on_sequence(self, iseq):
+        from astropy.time import Time
+
         from ..io.watchfile import WatchWriter
         hdr = iseq.header
         tens = hdr["_tensor"]
@@ -130,6 +132,10 @@ class WatchWriterBlock(bfp.SinkBlock):
                      self._writer.path)
         self._since_png = 0.0
         self._image = 0
+        for tg in self.pixels.targets:
+            if tg.stop is not None and tg.stop.unix < self._t0:
+                log.warning("watch: %s's window ended at %s UTC, before these data begin (%s UTC): it is never "
+                            "recorded (NaN rows)", tg.name, tg.stop.isot, Time(self._t0, format="unix").isot)
 
     def on_data(self, ispan):
         x = span_array(ispan)
@@ -177,16 +183,17 @@ class WatchWriterBlock(bfp.SinkBlock):
         """Post a trigger for each target whose band-mean light curve crosses its threshold in this gulp
         (the baseline from the images before the gulp)."""
         import collections
+        import warnings
         first = np.cumsum([0] + [t.ndir for t in self.pixels.targets])[:-1]
-        with np.errstate(invalid="ignore"), __import__("warnings").catch_warnings():
-            __import__("warnings").simplefilter("ignore", RuntimeWarning)
+        with warnings.catch_warnings():             # all-NaN rows (a target down) are NaN, not warnings
+            warnings.simplefilter("ignore", RuntimeWarning)
             lc = np.nanmean(data[..., 0][:, first], axis=2)                     # (n, ntarget)
         if self._history is None:
             self._history = collections.deque(maxlen=max(32, int(round(self.ring_s / self._dt))))
         if len(self._history) >= 32:
             h = np.asarray(self._history)
-            with np.errstate(invalid="ignore"), __import__("warnings").catch_warnings():
-                __import__("warnings").simplefilter("ignore", RuntimeWarning)
+            with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
                 med = np.nanmedian(h, axis=0)
                 sd = 1.4826 * np.nanmedian(np.abs(h - med), axis=0)
                 z = (lc - med) / sd
