@@ -535,3 +535,28 @@ def test_plan_offers_the_integer_modes_only_when_4bit_voltages_reach_the_imager(
     assert imager_sample_bits(cfg, "cpu") is None and imager_sample_bits(cfg, "gpus") is None
     cfg["calibration"]["gains_table"] = "gains.csv"
     assert imager_sample_bits(cfg, "gpu") is None
+
+
+@pytest.mark.parametrize("setting, part", [
+    ("source.channels.count=1000000", "input rings"),
+    ("imager.grid.size=4096", "image rings"),
+    ("imager.search.widths=[100000000]", "search"),
+    ("imager.search.dms=[1.0e6]", "search"),
+    ("source.gulp_nframe=1000000000", "input rings"),
+])
+def test_a_configuration_that_cannot_fit_is_refused_before_it_allocates(setting, part, capsys):
+    """plan and run refuse it with the memory it needs, its largest part and what the machine has, before
+    anything large is allocated (each used to fail allocating GiB to TiB, or to take minutes)."""
+    import time
+    yaml = str(PIPES / "lwasv_sim_transient.yaml")
+    for cmd in ("plan", "run"):
+        t0 = time.perf_counter()
+        rc = cli.main([cmd, yaml, "--set", setting, "--set", "output.dir=/nonexistent/never-written"])
+        err = capsys.readouterr().err
+        assert rc != 0 and "needs about" in err and part in err and "available" in err, (cmd, err)
+        assert time.perf_counter() - t0 < 30, cmd
+
+
+def test_an_empty_search_list_is_refused_by_the_schema(capsys):
+    assert cli.main(["validate", str(PIPES / "lwasv_sim_transient.yaml"), "--set", "imager.search.dms=[]"]) == 2
+    assert "imager.search.dms: expected a list of DMs >= 0 (at least 1), got []" in capsys.readouterr().err

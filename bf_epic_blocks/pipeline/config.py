@@ -430,8 +430,8 @@ IMAGER_SEARCH = Section({
     "window_s": Key(Float(0.0, lo_open=True), 1.0,
                     doc="Seconds of images in the sliding window that gives each pixel's mean and variance; "
                         "with a simulated source, shorter than `source.duration_s`."),
-    "dms": Key(ListOf(Float(0.0), "DMs >= 0"), [0.0], doc="Trial dispersion measures, pc cm^-3."),
-    "widths": Key(ListOf(Int(1), "integers >= 1"), [1, 2, 4, 8], doc="Boxcar widths, in images."),
+    "dms": Key(ListOf(Float(0.0), "DMs >= 0", min_len=1), [0.0], doc="Trial dispersion measures, pc cm^-3."),
+    "widths": Key(ListOf(Int(1), "integers >= 1", min_len=1), [1, 2, 4, 8], doc="Boxcar widths, in images."),
     "average_channels": Key(Bool(), True,
                             doc="Dedisperse and average the channels into one series per DM; false searches "
                                 "each channel on its own."),

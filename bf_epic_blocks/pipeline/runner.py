@@ -69,15 +69,31 @@ def capture_format(src_cfg):
 def _scan(path, report=True, fmt="tbf"):
     """scan_tbf / scan_tbx with its warnings (a truncated last frame) sent to the log instead of stderr
     (``report=False``: not at all, when the source block will report them itself)."""
+    import os
     import warnings
     from ..io.tbf import scan_tbf
     from ..io.tbx import scan_tbx
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        info = (scan_tbx if fmt == "tbx" else scan_tbf)(path)
-    for w in caught if report else ():
-        log.warning("%s", w.message)
-    return info
+    try:                     # the same file unchanged: scanned once (run's memory check, then its graph)
+        st = os.stat(path)
+        key = (os.path.realpath(path), fmt, st.st_size, st.st_mtime_ns)
+    except OSError:
+        key = None
+    hit = _SCANS.get(key) if key is not None else None
+    if hit is None:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            info = (scan_tbx if fmt == "tbx" else scan_tbf)(path)
+        hit = (info, [str(w.message) for w in caught])
+        if key is not None:
+            if len(_SCANS) >= 4:
+                _SCANS.pop(next(iter(_SCANS)))
+            _SCANS[key] = hit
+    for m in hit[1] if report else ():
+        log.warning("%s", m)
+    return hit[0]
+
+
+_SCANS: dict = {}
 
 
 def load_station_for(cfg, info=None):
@@ -788,6 +804,8 @@ def run(cfg, show_progress=None, parts=None):
         bar = tqdm(total=None, unit="frame", desc=cfg["name"], unit_scale=True)
         progress = bar.update
     t0, t0_unix = time.perf_counter(), time.time()
+    if parts is None:
+        check_fits(cfg)
     g = build_graph(cfg, progress=progress, parts=parts)
     if bar is not None:
         bar.total = g.nframe_total
@@ -1019,11 +1037,75 @@ def plan(cfg):
                      "bf_epic_blocks/imaging/measured.json)")
     else:
         lines.append("  (run time of the w-stacking/MOFF imagers: see tools/bench/bench_wstack.py)")
+    # refused before anything large is planned or allocated: the rings, the imager's working set and
+    # images first (the search's own planning grows with the channels), then with the search
+    # (what is allocated whole: the rings, 4 gulps each, and the search's arrays; the imager's working set
+    # above is an upper bound its engines cut into chunks, so it is not counted)
+    mem = {"input rings": 4 * input_bytes,
+           "image rings": 4 * (gulp // acc + 1) * nchan * len(prods) * npix * 4}
+    _memory_check(cfg, dev, mem)
     if im.get("search"):
         d["search"], text = _plan_search(im["search"], freq, acc * dt, npix, dev,
                                          t_gulp / (gulp * dt) if t_gulp == t_gulp else float("nan"))
         lines += text
+        mem["search"] = sum(d["search"]["memory_bytes"].values())
+    have, where = _memory_check(cfg, dev, mem)
+    d["memory_bytes"], d["memory_available_bytes"] = mem, have
+    lines.append(f"  memory: about {_gib(sum(mem.values()))} ("
+                 + ", ".join(f"{k} {_gib(v)}" for k, v in mem.items()) + ")"
+                 + (f"; {_gib(have)} available on {where}" if have is not None else f"; {where}"))
     return d, "\n".join(lines)
+
+
+def check_fits(cfg):
+    """Refuse, before anything large is allocated, a configuration whose arrays need more memory than this
+    machine (or its GPU) has: :func:`plan`'s estimates against :func:`available_memory` (a ValueError naming
+    both). A live UDP source is planned from its packets, so it is not checked here."""
+    if cfg["source"]["kind"] != "udp":
+        plan(cfg)
+
+
+def _gib(b):
+    return f"{b / 2**30:.1f} GiB" if b >= 2**30 else f"{b / 2**20:.1f} MiB"
+
+
+def available_memory(dev):
+    """(bytes, where) the pipeline's arrays can take: on a GPU ('gpu', 'gpus') the first GPU's free memory
+    (CuPy), else the host's available memory (Linux's MemAvailable); (None, why) where it cannot be told."""
+    if dev in ("gpu", "gpus"):
+        from ..imaging._xp import cupy_or_none
+        cp = cupy_or_none()
+        try:
+            free, _ = cp.cuda.runtime.memGetInfo()
+            return int(free), "the GPU"
+        except Exception:           # no CuPy, no driver, no GPU: planning for a GPU elsewhere
+            return None, "GPU memory not checked here (no GPU)"
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024, "the host"
+    except OSError:
+        pass
+    try:
+        import os
+        return int(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")), "the host"
+    except (AttributeError, ValueError, OSError):
+        return None, "host memory not checked here"
+
+
+def _memory_check(cfg, dev, mem):
+    """Refuse a configuration whose arrays (``mem``: name -> bytes, estimates from :func:`plan`) need more
+    memory than the device has: a clear error naming the need, its parts and what the machine has,
+    before anything large is allocated. Returns (available bytes or None, where)."""
+    have, where = available_memory(dev)
+    need = sum(mem.values())
+    if have is not None and need > have:
+        parts = ", ".join(f"{k} {_gib(v)}" for k, v in sorted(mem.items(), key=lambda kv: -kv[1]) if v)
+        raise ValueError(f"{cfg['name']}: this configuration needs about {_gib(need)} of memory ({parts}), and "
+                         f"{where} has {_gib(have)} available: lower source.channels / source.gulp_nframe, "
+                         "imager.grid.size, or the search's dms and widths")
+    return have, where
 
 
 def _pixel_parts(cfg):

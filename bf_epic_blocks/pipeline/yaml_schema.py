@@ -274,16 +274,16 @@ class TimeStr:
 
 
 class ListOf:
-    """A list whose every item passes ``item`` (a leaf check or a Section)."""
+    """A list whose every item passes ``item`` (a leaf check or a Section), with at least ``min_len`` items."""
 
-    def __init__(self, item, what: str):
-        self.item, self.what = item, what
+    def __init__(self, item, what: str, min_len: int = 0):
+        self.item, self.what, self.min_len = item, what, int(min_len)
 
     def describe(self) -> str:
-        return f"a list of {self.what}"
+        return f"a list of {self.what}" + (f" (at least {self.min_len})" if self.min_len else "")
 
     def check(self, v, path, ctx):
-        if not isinstance(v, list):
+        if not isinstance(v, list) or len(v) < self.min_len:
             ctx.error(path, f"expected {self.describe()}, got {v!r}")
             return INVALID
         return [run_check(self.item, x, f"{path}[{i}]", ctx) for i, x in enumerate(v)]
