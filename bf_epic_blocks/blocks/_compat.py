@@ -75,6 +75,15 @@ def space_of(obj):
                     "span, sequence or block")
 
 
+def input_xp(block):
+    """The array module (CuPy or NumPy) of a block's first input ring: CuPy where it lives on a GPU
+    ('cuda'), else NumPy (also for a block driven outside a pipeline, without rings)."""
+    if hasattr(block, "irings") and space_of(block.irings[0]) == "cuda":
+        import cupy
+        return cupy
+    return np
+
+
 def _bf_cuda_to_cupy(data):  # pragma: no cover - needs real Bifrost and a GPU
     """Zero-copy CuPy view of a real-Bifrost 'cuda' array; structured complex-integer types
     become plain arrays (ci4 -> uint8, pairs -> trailing axis of 2) since CuPy has none."""

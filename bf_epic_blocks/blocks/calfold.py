@@ -129,11 +129,7 @@ class CalFoldBlock(bfp.TransformBlock):
         return ohdr
 
     def _xp(self, iseq):
-        space = _compat.space_of(self.irings[0]) if hasattr(self, "irings") else "system"
-        if space == "cuda":
-            import cupy
-            return cupy
-        return np
+        return _compat.input_xp(self)
 
     def on_data(self, ispan, ospan):
         idata = span_array(ispan)

@@ -267,12 +267,7 @@ class GainSolverBlock(bfp.SinkBlock):
             w = np.ones((nchan, nstand, npol), np.complex128)
         self._flags = lay["flags"] | np.all(w == 0, axis=0)
         self._w = w
-        space = _compat.space_of(self.irings[0]) if hasattr(self, "irings") else "system"
-        if space == "cuda":
-            import cupy
-            self._xp = cupy
-        else:
-            self._xp = np
+        self._xp = _compat.input_xp(self)
         self._sums = CovarianceSums(nchan, nstand, npol, self._xp)
         # after interference flagging, each baseline's mean covariance is over the samples it kept
         fl = hdr.get("flagging") or {}

@@ -102,12 +102,7 @@ class RFIFlagBlock(bfp.TransformBlock):
         ihdr = iseq.header
         lay = efield_layout(ihdr, "RFIFlagBlock")
         self._lay = lay
-        space = _compat.space_of(self.irings[0]) if hasattr(self, "irings") else "system"
-        if space == "cuda":
-            import cupy
-            self._xp = cupy
-        else:
-            self._xp = np
+        self._xp = _compat.input_xp(self)
         nchan = lay["nchan"]
         freq = np.asarray(lay["freq_hz"], np.float64)
         bw = float(np.median(np.diff(freq))) if nchan > 1 else float(lay.get("chan_bw_hz", 25e3))
@@ -405,30 +400,28 @@ class FlagWeights:
     def take(self, tag0, i0, count):
         """q (count, nchan) for images i0 .. i0 + count - 1 of sequence ``tag0``, or None where none of them
         needs rescaling; those images' entries are let go."""
-        with self._cond:
-            if self._seq != tag0:
-                return None
-            mine = [c for c in self._chunks if i0 <= c[0] < i0 + count]
-            self._chunks = [c for c in self._chunks if c[0] >= i0 + count]
-        if not any(c[2] for c in mine) or len(mine) != count:
+        mine = self._pop("_chunks", tag0, i0, count)
+        if mine is None:
             return None
         self.stats["images_rescaled"] += sum(1 for c in mine if c[2])
-        xp = get_xp(mine[0][1])
-        return xp.stack([c[1] for c in mine])
-
+        return get_xp(mine[0][1]).stack([c[1] for c in mine])
 
     def take_empty(self, tag0, i0, count):
         """bool (count, nchan): the channel images of images i0 .. i0 + count - 1 that kept nothing (every
         stand flagged throughout), or None where none of them has such a channel; entries are let go."""
+        mine = self._pop("_empty", tag0, i0, count)
+        return None if mine is None else get_xp(mine[0][1]).stack([c[1] for c in mine])
+
+    def _pop(self, name, tag0, i0, count):
+        """The entries (image, value, flag) of images i0 .. i0 + count - 1 from list ``name``, let go; None
+        where the sequence differs, one is missing, or none has its flag set."""
         with self._cond:
             if self._seq != tag0:
                 return None
-            mine = [c for c in self._empty if i0 <= c[0] < i0 + count]
-            self._empty = [c for c in self._empty if c[0] >= i0 + count]
-        if not any(c[2] for c in mine) or len(mine) != count:
-            return None
-        xp = get_xp(mine[0][1])
-        return xp.stack([c[1] for c in mine])
+            held = getattr(self, name)
+            mine = [c for c in held if i0 <= c[0] < i0 + count]
+            setattr(self, name, [c for c in held if c[0] >= i0 + count])
+        return mine if len(mine) == count and any(c[2] for c in mine) else None
 
 
 def _repeats(frames):

@@ -132,7 +132,8 @@ class SnippetBlock(bfp.SinkBlock):
             self._trigger(when, reason)
 
     def _triggers(self, now):
-        out = self.bus.take()
+        """The bus's triggers, with each new file of ``trigger_dir`` posted to it first (at the data's time
+        ``now``, so that its listeners hear of it as of any other)."""
         if self.trigger_dir is not None and self.trigger_dir.is_dir():
             done = self.trigger_dir / "done"
             for e in sorted(os.scandir(self.trigger_dir), key=lambda e: e.name):
@@ -147,15 +148,8 @@ class SnippetBlock(bfp.SinkBlock):
                     log.warning("SnippetBlock: trigger file %s not read: %s", e.path, err)
                     continue
                 self.trig_stats["from_files"] += 1
-                out.append((now, f"file: {reason}"))
-                for fn in self.bus.listeners:       # told like the bus's own triggers
-                    try:
-                        from astropy.time import Time
-                        fn({"id": f"file_{e.name}", "time_utc": Time(now, format="unix").isot,
-                            "reason": f"file: {reason}"})
-                    except Exception as err:  # noqa: BLE001
-                        log.warning("SnippetBlock: a trigger listener failed: %s", err)
-        return out
+                self.bus.post(now, f"file: {reason}")
+        return self.bus.take()
 
     def _trigger(self, when, reason):
         self.trig_stats["triggers"] += 1

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import FS_HZ
-from ..sky.watch import parse_targets, target_lm
+from ..sky.watch import direction_names, parse_targets, target_lm
 from . import _compat
 from ._compat import bfp, span_array
 
@@ -45,6 +45,9 @@ class WatchPixels:
         self.targets = parse_targets(targets)
         self.location, self.step_s = location, float(step_s)
         self._cache = {}
+        # each direction's name ('CygA', 'CygA+off1') and each target's own (first) direction
+        self.names, index = direction_names(self.targets)
+        self.first = np.searchsorted(index, np.arange(len(self.targets)))
 
     def _step(self, time_tag):
         return int(math.floor(time_tag / FS_HZ / self.step_s))
@@ -60,8 +63,7 @@ class WatchPixels:
             d = target_lm(self.targets, t, self.location)
             active = d.active[0]
             lm = np.where(active[:, None], d.lm[0], 0.0)
-            first = np.searchsorted(d.target_index, np.arange(len(self.targets)))
-            ra_dec = np.stack([d.ra_deg[0, first], d.dec_deg[0, first]], axis=-1)
+            ra_dec = np.stack([d.ra_deg[0, self.first], d.dec_deg[0, self.first]], axis=-1)
             hit = (lm, active, ra_dec)
             if len(self._cache) > 8:
                 self._cache.clear()
@@ -170,8 +172,7 @@ class WatchWriterBlock(bfp.SinkBlock):
     def _log_changes(self, active, t_unix):
         """Log the directions that set, rise, leave or enter their window (their rows are NaN while out)."""
         from astropy.time import Time
-        names = [n for t in self.pixels.targets
-                 for n in [t.name] + [f"{t.name}+off{j + 1}" for j in range(len(t.offsets_deg))]]
+        names = self.pixels.names
         was = np.ones_like(active) if self._was is None else self._was
         when = Time(t_unix, format="unix").isot
         for j in np.flatnonzero(active != was):
@@ -184,10 +185,9 @@ class WatchWriterBlock(bfp.SinkBlock):
         (the baseline from the images before the gulp)."""
         import collections
         import warnings
-        first = np.cumsum([0] + [t.ndir for t in self.pixels.targets])[:-1]
         with warnings.catch_warnings():             # all-NaN rows (a target down) are NaN, not warnings
             warnings.simplefilter("ignore", RuntimeWarning)
-            lc = np.nanmean(data[..., 0][:, first], axis=2)                     # (n, ntarget)
+            lc = np.nanmean(data[..., 0][:, self.pixels.first], axis=2)        # (n, ntarget)
         if self._history is None:
             self._history = collections.deque(maxlen=max(32, int(round(self.ring_s / self._dt))))
         if len(self._history) >= 32:

@@ -166,11 +166,9 @@ def block_power(x, m, a, *, ci4=False, group=1, skip=None):
         keep[:ns * a] = ~np.repeat(skip, a)
         k = xp.asarray(keep[:nb * m]).reshape((nb * m,) + (1,) * (x.ndim - 1))
         xs = x[:nb * m]
-        zero = xp.zeros((), xs.dtype) if not getattr(xs.dtype, "names", None) else None
-        if zero is None:       # a structured ci4 host array: its bytes are zeroed instead
-            xs = xs.view(xp.uint8) if xs.dtype.itemsize == 1 else xs
-            zero = xp.zeros((), xs.dtype)
-        S1, S2 = power_sums(xp.where(k, xs, zero), m, ci4=ci4)
+        names = getattr(xs.dtype, "names", None)
+        xs = xs[names[0]] if names else xs          # a structured ci4 host array: its bytes
+        S1, S2 = power_sums(xp.where(k, xs, xp.zeros((), xs.dtype)), m, ci4=ci4)
     else:
         S1, S2 = power_sums(x[:nb * m], m, ci4=ci4) if nb else (xp.zeros((0,) + x.shape[1:]),) * 2
     sh = _short_sums(x[:ns * a], a, ci4) if ns else xp.zeros((0,) + x.shape[1:], xp.float32)

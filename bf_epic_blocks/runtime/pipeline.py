@@ -103,15 +103,10 @@ def priority_stream(cupy, priority):
     (:attr:`Block.stream_priority`). A CuPy without stream priorities gives a plain stream."""
     if priority not in ('high', 'low'):
         raise ValueError(f"stream priority must be 'high' or 'low', got {priority!r}")
-    # CUDA clamps a priority to the device's range (lower is higher; 0, the default, is the least)
-    level = -1000 if priority == 'high' else 0
+    # CUDA clamps a priority to the device's range (lower is higher; 0, the default, is the least), so
+    # no range query is needed (CuPy 14 has none)
     try:
-        least, greatest = cupy.cuda.runtime.deviceGetStreamPriorityRange()
-        level = greatest if priority == 'high' else least
-    except AttributeError:      # a CuPy without the query: the clamp does it
-        pass
-    try:
-        return cupy.cuda.Stream(non_blocking=True, priority=level)
+        return cupy.cuda.Stream(non_blocking=True, priority=-1000 if priority == 'high' else 0)
     except TypeError:           # a CuPy without stream priorities
         return cupy.cuda.Stream(non_blocking=True)
 

@@ -33,7 +33,8 @@ import numpy as np
 from ..imaging.pixels import lm_from_azalt
 from .catalogue import KNOWN_SOURCES, _iers_offline, _key, as_location
 
-__all__ = ["WATCH_BODIES", "WATCH_KINDS", "WatchTarget", "TargetDirections", "parse_targets", "target_lm"]
+__all__ = ["WATCH_BODIES", "WATCH_KINDS", "WatchTarget", "TargetDirections", "direction_names", "parse_targets",
+           "target_lm"]
 
 #: Bodies astropy's built-in ephemeris places (``astropy.coordinates.get_body``), without the Earth
 #: and the Earth-Moon barycentre, which are not in a ground station's sky.
@@ -209,7 +210,9 @@ class TargetDirections:
         return self.up & self.in_window
 
 
-def _dir_names(targets):
+def direction_names(targets):
+    """(names, target index) of every direction, in :func:`target_lm`'s order: a target ('CygA'), then its
+    offsets ('CygA+off1', ...)."""
     names, index = [], []
     for i, t in enumerate(targets):
         names.append(t.name)
@@ -252,7 +255,7 @@ def target_lm(targets, times, location) -> TargetDirections:
     t = t.reshape(-1) if not t.isscalar else t.reshape(1)
     ntime = t.shape[0]
     loc = as_location(location)
-    names, index = _dir_names(targets)
+    names, index = direction_names(targets)
     ndir = len(names)
     ra = np.empty((ntime, ndir))
     dec = np.empty((ntime, ndir))
