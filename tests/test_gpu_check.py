@@ -122,3 +122,18 @@ def test_flag_tables_compare_by_each_channels_fraction(tmp_path):
                                                                              overwrite=True)
     res = gpu_check.compare_dirs(g, c)["x_flags.ecsv"]
     assert not res["ok"] and res["max_fraction_diff"] == pytest.approx(0.05)
+
+
+def test_datasets_inside_groups_are_compared(tmp_path):
+    """The watch file keeps each target's spectra in its own group: a difference there is caught."""
+    import h5py
+    g, c = tmp_path / "gpu", tmp_path / "cpu"
+    rng = np.random.default_rng(1)
+    spec = rng.uniform(1, 10, (20, 8, 1)).astype(np.float32)
+    for d, x in ((c, spec), (g, spec * np.float32(1 + 1e-3))):
+        d.mkdir(parents=True)
+        with h5py.File(d / "w_watch.h5", "w") as f:
+            f.create_dataset("complete", data=True)
+            f.create_group("targets/FRB1").create_dataset("data", data=x)
+    res = gpu_check.compare_dirs(g, c)["w_watch.h5"]
+    assert not res["ok"] and res["rel_diff"] == pytest.approx(1e-3, rel=1e-2), res

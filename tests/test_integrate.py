@@ -81,10 +81,18 @@ def test_wholeband_pipeline_made_small(tmp_path):
                              "imager.grid.size=16", "imager.search.window_s=0.06", "imager.search.dms=[1.0]",
                              "imager.search.threshold=7", "output.integrate.seconds=0.1",
                              "output.cube.dtype=float32", "output.cube.average_channels=false",
+                             "watch.save_after_s=0.05", "watch.png_every_s=1.0",
                              "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.3, duration_s: 0.0015, "
                              "flux_jy: 2000.0, dm: 0.6}]"])
     summary = run(cfg, show_progress=False)
     dt = 16 * DT
+    # the candidates save one snippet: the band-averaged images before the burst and 0.05 s after it
+    import h5py
+    snips = sorted(tmp_path.glob("*_snippet_*candidate*.h5"))
+    assert len(snips) == 1 and summary["watch"]["triggers"]["saved"] == 1, summary["watch"]
+    with h5py.File(snips[0]) as f:
+        t, when = f["time_unix"][:], float(f.attrs["trigger_unix"])
+        assert f.attrs["complete"] and t.min() < when - 0.2 and t.max() >= when + 0.049
     tab = read_candidates(tmp_path / "lwasv_sim_wholeband_candidates.ecsv")
     best = tab[int(np.argmax(tab["snr"]))]
     print(tab["snr", "dm", "width", "image", "ra_deg", "dec_deg"])

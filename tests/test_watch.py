@@ -437,3 +437,33 @@ def test_a_flash_saves_once_and_counts_the_rest(tmp_path):
     assert summary["search"]["candidates"] >= 1 and summary["watch"]["light_curve_triggers"] >= 1
     assert st["triggers"] >= 2 and st["saved"] == 1 and st["held"] == st["triggers"] - 1
     assert len(list(tmp_path.glob("*_snippet_*.h5"))) == 1
+
+
+def test_a_trigger_that_arrives_after_the_last_images_is_still_saved(tmp_path):
+    """A search lags its images: its candidate can reach the bus after the snippet block has seen its
+    last gulp. ``finish()`` (the runner calls it once every block is done) saves it from the ring, the
+    images up to the end of the data, marked incomplete when its after-window ran past the data."""
+    import h5py
+
+    from bf_epic_blocks.blocks.array_io import ArraySourceBlock
+    from bf_epic_blocks.blocks.snippets import SnippetBlock, TriggerBus
+    from bf_epic_blocks.blocks import bfp
+    dt, n = 0.01, 50
+    imgs = np.arange(n * 4, dtype=np.float32).reshape(n, 1, 1, 2, 2)      # time, freq, product, pixels
+    hdr = {"name": "x", "time_tag": 0, "pol_products": ["I"],
+           "_tensor": {"dtype": "f32", "shape": [-1, 1, 1, 2, 2], "labels": ["time", "freq", "pol", "l", "m"],
+                       "scales": [[1000.0, dt], None, None, None, None]}}
+    bus = TriggerBus()
+    with bfp.Pipeline() as p:
+        snip = SnippetBlock(ArraySourceBlock(imgs, hdr, gulp_nframe=10), tmp_path, "t", bus, ring_s=0.2,
+                            after_s=0.1)
+        p.run()
+    bus.post(1000.0 + 0.46, "candidate S/N 9.0")          # late: the block has had all 50 images
+    snip.finish()
+    files = sorted(tmp_path.glob("t_snippet_*.h5"))
+    assert len(files) == 1 and snip.trig_stats["saved"] == 1
+    with h5py.File(files[0]) as f:
+        t = f["time_unix"][:]
+        assert not f.attrs["complete"]                    # the after-window (to 0.56 s) passed the data's end
+        np.testing.assert_allclose(t - 1000.0, (np.arange(30, 50) + 0.5) * dt)
+        np.testing.assert_array_equal(f["images"][:], imgs[30:, 0, 0])

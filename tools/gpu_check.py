@@ -123,10 +123,13 @@ def _fits_arrays(path):
 def _h5_arrays(path):
     import h5py
     out = {}
+
+    def take(name, d):           # every numeric dataset, in groups too (the watch file's targets)
+        if isinstance(d, h5py.Dataset) and d.dtype.kind in "fiu":
+            out[name] = (d[()], d.dtype)
+
     with h5py.File(path, "r") as f:
-        for name, d in f.items():
-            if hasattr(d, "dtype") and d.dtype.kind in "fiu":
-                out[name] = (d[()], d.dtype)
+        f.visititems(take)
     return out
 
 

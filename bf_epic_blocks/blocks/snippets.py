@@ -1,5 +1,5 @@
-"""Triggered saves: the last seconds of band-averaged images kept in a ring, written to an HDF5 snippet
-with the seconds after it when something triggers.
+"""Triggered saves: the last seconds of band-averaged images kept in a ring where the images are (the
+GPU's memory on a GPU), written to an HDF5 snippet with the seconds after it when something triggers.
 
 Triggers come from the transient search (each candidate), a watch target's light curve crossing its
 threshold (:class:`~.watch.WatchWriterBlock`), or outside: a file dropped in ``trigger_dir`` (its first
@@ -12,7 +12,9 @@ Snippet file ``<prefix>_snippet_<UTC>_<reason>.h5`` (h5py): ``images`` (ntime, .
 mean of the imager's first product at each image (the grid (N, N), NaN below the horizon, or the pixel
 list); ``time_unix`` (ntime,) float64 image centres; attributes ``reason``, ``trigger_unix``, ``product``,
 ``pixels`` (the imager header's pixel description, JSON), ``held`` (triggers held off while it was open),
-``complete`` (True once closed).
+``complete`` (True when it holds its whole after-window; False when the data ended first or the next save
+cut it short). A trigger that reaches the bus after the last images (a search lags its images) is saved from
+the ring when the run ends.
 """
 from __future__ import annotations
 
@@ -32,6 +34,11 @@ from ._compat import bfp, span_array
 __all__ = ["SnippetBlock", "TriggerBus"]
 
 log = logging.getLogger(__name__)
+
+
+def _host(a):
+    """A NumPy copy of a CuPy array (NumPy arrays as they are)."""
+    return a.get() if hasattr(a, "get") else np.asarray(a)
 
 
 class TriggerBus:
@@ -95,7 +102,8 @@ class SnippetBlock(bfp.SinkBlock):
         self.trigger_dir = None if trigger_dir is None else Path(trigger_dir)
         self.trig_stats = {"triggers": 0, "saved": 0, "held": 0, "from_files": 0}
         self.written = []
-        self._ring = collections.deque()
+        self._ring = None            # (keep, pixels...) float32 band means, where the images are (CuPy or NumPy)
+        self._ring_t = None          # (keep,) float64 their times on the host; NaN: an empty slot
         self._open = None            # (h5py File, end time, nrows)
         self._last_saved = -np.inf
 
@@ -109,7 +117,7 @@ class SnippetBlock(bfp.SinkBlock):
         self._pixels = json.dumps(hdr.get("pixels", {}), default=lambda o: np.asarray(o).tolist())
         self._product = (hdr.get("pol_products") or ["?"])[0]
         self._image = 0
-        self._ring.clear()
+        self._ring = None
         self._keep = max(1, int(round(self.ring_s / self._dt)))
 
     def on_data(self, ispan):
@@ -117,19 +125,40 @@ class SnippetBlock(bfp.SinkBlock):
         n = int(x.shape[0])
         if n == 0:
             return
-        with _compat.stream_context():
-            band = x[:, :, 0].mean(axis=1)                     # (n, pixels...): the band mean, first product
-            band = band.get() if hasattr(band, "get") else np.asarray(band)
         first = getattr(ispan, "frame_offset", self._image)
         t = self._t0 + (first + np.arange(n) + 0.5) * self._dt
         self._image = first + n
-        self._append_open(t, band)
-        for i in range(n):
-            self._ring.append((t[i], band[i]))
-        while len(self._ring) > self._keep:
-            self._ring.popleft()
+        with _compat.stream_context():
+            band = x[:, :, 0].mean(axis=1)                     # (n, pixels...): the band mean, first product
+            self._remember(t, band)
+            if self._open is not None:                         # only an open snippet brings images to the host
+                self._append_open(t, _host(band))
         for when, reason in self._triggers(t[-1]):
             self._trigger(when, reason)
+
+    def _remember(self, t, band):
+        """Write the gulp's band means into the ring (a device copy; the host sees them only on a trigger)."""
+        if self._ring is None:
+            xp = _compat.input_xp(self)
+            self._ring = xp.zeros((self._keep,) + tuple(band.shape[1:]), np.float32)
+            self._ring_t = np.full(self._keep, np.nan)
+        if t.size > self._keep:
+            t, band = t[-self._keep:], band[-self._keep:]
+        slots = (np.arange(t.size) + self._image - t.size) % self._keep
+        lo = int(slots[0])
+        k = min(t.size, self._keep - lo)                       # at most two contiguous pieces
+        self._ring[lo:lo + k] = band[:k]
+        self._ring[:t.size - k] = band[k:]
+        self._ring_t[slots] = t
+
+    def _ring_rows(self):
+        """(times, images) of the ring on the host, oldest first."""
+        if self._ring is None:
+            return np.empty(0), None
+        order = np.argsort(self._ring_t)                       # NaN (empty) last
+        order = order[~np.isnan(self._ring_t[order])]
+        with _compat.stream_context():
+            return self._ring_t[order], _host(self._ring)[order]
 
     def _triggers(self, now):
         """The bus's triggers, with each new file of ``trigger_dir`` posted to it first (at the data's time
@@ -159,21 +188,22 @@ class SnippetBlock(bfp.SinkBlock):
                 self._open[0].attrs["held"] = int(self._open[0].attrs["held"]) + 1
             return
         self._last_saved = when
-        self._close()
+        self._close(complete=False)      # the previous one, cut short by this one
         import h5py
         from astropy.time import Time
         stamp = Time(when, format="unix", scale="utc").isot.replace("-", "").replace(":", "")    # ...T100000.329
         path = self.outdir / f"{self.prefix}_snippet_{stamp}_{_slug(reason)}.h5"
         self.outdir.mkdir(parents=True, exist_ok=True)
         f = h5py.File(path, "w")
-        shape = self._ring[0][1].shape if self._ring else ()
+        t_ring, imgs = self._ring_rows()
+        shape = imgs.shape[1:] if imgs is not None else ()
         f.create_dataset("images", (0,) + shape, "f4", maxshape=(None,) + shape, chunks=(16,) + shape)
         f.create_dataset("time_unix", (0,), "f8", maxshape=(None,), chunks=(256,))
         f.attrs.update({"reason": reason, "trigger_unix": when, "product": self._product, "pixels": self._pixels,
                         "held": 0, "complete": False, "band_averaged": True})
         self._open = [f, when + self.after_s, 0]
         self.trig_stats["saved"] += 1
-        if self._ring and self._rows(np.array([r[0] for r in self._ring]), np.stack([r[1] for r in self._ring])):
+        if t_ring.size and self._rows(t_ring, imgs):
             self._close()                      # the trigger came late (a search's latency): all is in the ring
         log.info("triggered save (%s) at %s UTC -> %s", reason, Time(when, format="unix").isot, path.name)
 
@@ -192,13 +222,23 @@ class SnippetBlock(bfp.SinkBlock):
         if self._open is not None and self._rows(t, band):
             self._close()
 
-    def _close(self):
+    def _close(self, complete=True):
+        """Close the open snippet; ``complete``: its after-window was covered (False: the data ended first)."""
         if self._open is not None:
             f = self._open[0]
-            f.attrs["complete"] = True
+            f.attrs["complete"] = bool(complete)
             self.written.append(f.filename)
             f.close()
             self._open = None
 
     def on_sequence_end(self, iseq):
-        self._close()
+        self._close(complete=False)
+
+    def finish(self):
+        """Save the triggers that reached the bus after the last images (a search lags its images),
+        from the ring; the runner calls this once every block is done."""
+        if self._ring is None:
+            return
+        for when, reason in self._triggers(float(np.nanmax(self._ring_t))):
+            self._trigger(when, reason)
+        self._close(complete=False)

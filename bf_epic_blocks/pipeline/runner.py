@@ -819,6 +819,8 @@ def run(cfg, show_progress=None, parts=None):
             g.pipeline.run()
         if hasattr(g.search, "finish"):
             g.search.finish()       # a pixel split's parts' candidates, one table
+        if g.snippets is not None:
+            g.snippets.finish()     # the search's last candidates, posted after the snippet block's last images
         if g.writer is not None:
             g.writer.flush()        # files its helper process still writes
     finally:
