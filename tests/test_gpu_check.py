@@ -137,3 +137,39 @@ def test_datasets_inside_groups_are_compared(tmp_path):
             f.create_group("targets/FRB1").create_dataset("data", data=x)
     res = gpu_check.compare_dirs(g, c)["w_watch.h5"]
     assert not res["ok"] and res["rel_diff"] == pytest.approx(1e-3, rel=1e-2), res
+
+
+def test_a_float16_cube_does_not_loosen_the_next_file_s_tolerance(tmp_path, sky):
+    """The cube's one-float16-unit allowance is the cube's alone: a float32 file compared after it is
+    held to the float32 tolerance, and the result names the dataset that differs most."""
+    import h5py
+    g, c = tmp_path / "gpu", tmp_path / "cpu"
+    _cube(c / "a_cube.h5", sky)
+    _cube(g / "a_cube.h5", sky)
+    for d, x in ((c, sky), (g, sky * (1 + 1e-4))):
+        with h5py.File(d / "b_watch.h5", "w") as f:
+            f.create_dataset("time_unix", data=np.arange(3.0))
+            f.create_group("T").create_dataset("data", data=np.asarray(x, np.float32))
+    res = gpu_check.compare_dirs(g, c)
+    assert res["a_cube.h5"]["ok"]
+    assert not res["b_watch.h5"]["ok"] and res["b_watch.h5"]["allowed"] == gpu_check.TOL_FP32, res["b_watch.h5"]
+    assert res["b_watch.h5"]["worst"] == "T/data"
+
+
+def test_a_quantised_sky_allows_a_few_flipped_values_and_no_more(tmp_path):
+    """Runs of a 4-bit simulated sky: a few (image, channel) values fed by a sample that rounded to the
+    next level on one side differ by ~1e-3; that passes when they are under 1% of the values, and
+    fails when more values differ (a bug) or one differs by more than 1e-2."""
+    g, c = tmp_path / "gpu", tmp_path / "cpu"
+    rng = np.random.default_rng(2)
+    ref = rng.uniform(1, 10, (200, 16, 1)).astype(np.float32)
+    cases = {"few": (0.004, 1e-3, True), "many": (0.05, 1e-3, False), "big": (0.004, 5e-2, False)}
+    for name, (frac, size, ok) in cases.items():
+        got = ref.copy()
+        idx = rng.choice(ref.size, int(frac * ref.size), replace=False)
+        got.flat[idx] += np.float32(size * ref.max())
+        _fits(c / f"{name}.fits", ref)
+        _fits(g / f"{name}.fits", got)
+    res = gpu_check.compare_dirs(g, c, flips=True)
+    assert res["few"+".fits"]["ok"] and not res["many.fits"]["ok"] and not res["big.fits"]["ok"], res
+    assert not gpu_check.compare_dirs(g, c)["few.fits"]["ok"]           # without a quantiser: caught

@@ -376,7 +376,7 @@ class DFTImagerBlock(bfp.TransformBlock):
             if q is not None:          # images that kept part of the array: back to the whole array's units
                 with _compat.stream_context():
                     xp = self._xp
-                    inv = xp.where(q > 0, 1.0 / xp.where(q > 0, q, 1.0), 0.0).astype(out.dtype)
+                    inv = xp.asarray(np.where(q > 0, 1.0 / np.where(q > 0, q, 1.0), 0.0).astype(out.dtype))
                     out[:nout] *= inv.reshape(inv.shape + (1,) * (out.ndim - 2))
             self._nimg += nout
         return nout

@@ -349,7 +349,9 @@ class FlagWeights:
     the fraction of a point source's power the image holds. The imager divides each image by it (0 where
     nothing was left: the image is then 0, and the band and time means skip it), so that images of part
     of the array or part of the time stay in Jy. Only images that hold a partial value (0 < q < 1) are
-    rescaled; the rest (q = 1, or 0 with zero data) are left as they are.
+    rescaled; the rest (q = 1, or 0 with zero data) are left as they are. ``take`` and ``take_empty``
+    hand out NumPy arrays on any device: they cross from the flagger's thread and CUDA stream to the
+    imager's and the search's.
     """
 
     def __init__(self, accumulate, track_empty=False):
@@ -376,6 +378,10 @@ class FlagWeights:
         cuts = [0] + [t for t in range(-(-first // A) * A - first, n, A) if t > 0] + [n]
         cuts = sorted(set(cuts))
         seg = cs[xp.asarray(cuts[1:])] - cs[xp.asarray(cuts[:-1])]           # (nseg, nchan)
+        # to the host before another thread sees it: the imager and the search run on their own CUDA
+        # streams, which nothing orders after this one's kernels (and CuPy's pool may hand this stream's
+        # freed memory back to it while they still read); (nseg, nchan) is a few hundred kB a gulp
+        seg = _host(seg)
         with self._cond:
             if self._seq != tag0:
                 return
@@ -404,13 +410,13 @@ class FlagWeights:
         if mine is None:
             return None
         self.stats["images_rescaled"] += sum(1 for c in mine if c[2])
-        return get_xp(mine[0][1]).stack([c[1] for c in mine])
+        return np.stack([c[1] for c in mine])
 
     def take_empty(self, tag0, i0, count):
         """bool (count, nchan): the channel images of images i0 .. i0 + count - 1 that kept nothing (every
         stand flagged throughout), or None where none of them has such a channel; entries are let go."""
         mine = self._pop("_empty", tag0, i0, count)
-        return None if mine is None else get_xp(mine[0][1]).stack([c[1] for c in mine])
+        return None if mine is None else np.stack([c[1] for c in mine])
 
     def _pop(self, name, tag0, i0, count):
         """The entries (image, value, flag) of images i0 .. i0 + count - 1 from list ``name``, let go; None

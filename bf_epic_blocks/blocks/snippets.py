@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import json
+import math
 import logging
 import os
 import re
@@ -90,15 +91,20 @@ class SnippetBlock(bfp.SinkBlock):
     outdir, prefix : where the snippets go, ``<prefix>_snippet_...h5``.
     bus : the :class:`TriggerBus` the triggers come through.
     ring_s, after_s, hold_off_s : seconds of images before and after a trigger, and between saves.
+    late_s : seconds a trigger may reach the bus after its own time (a search's latency: its window and
+        the dispersion sweep) and still find all ``ring_s`` before it; the ring holds ring_s + late_s.
+        A snippet holds the images from ``trigger - ring_s`` to ``trigger + after_s`` whenever it arrives
+        within that, so that it does not depend on how far the search lagged.
     trigger_dir : a folder whose new files are triggers (None: none).
     ``stats``: triggers seen, saved, held off, and from files; ``written`` the snippets closed.
     """
 
     def __init__(self, iring, outdir, prefix, bus, ring_s=2.0, after_s=1.0, hold_off_s=10.0, trigger_dir=None,
-                 **kwargs):
+                 late_s=2.0, **kwargs):
         super().__init__(iring, **kwargs)
         self.outdir, self.prefix, self.bus = Path(outdir), prefix, bus
         self.ring_s, self.after_s, self.hold_off_s = float(ring_s), float(after_s), float(hold_off_s)
+        self.late_s = float(late_s)
         self.trigger_dir = None if trigger_dir is None else Path(trigger_dir)
         self.trig_stats = {"triggers": 0, "saved": 0, "held": 0, "from_files": 0}
         self.written = []
@@ -118,7 +124,7 @@ class SnippetBlock(bfp.SinkBlock):
         self._product = (hdr.get("pol_products") or ["?"])[0]
         self._image = 0
         self._ring = None
-        self._keep = max(1, int(round(self.ring_s / self._dt)))
+        self._keep = max(1, int(math.ceil((self.ring_s + self.late_s) / self._dt)))
 
     def on_data(self, ispan):
         x = span_array(ispan)
@@ -150,6 +156,10 @@ class SnippetBlock(bfp.SinkBlock):
         self._ring[lo:lo + k] = band[:k]
         self._ring[:t.size - k] = band[k:]
         self._ring_t[slots] = t
+
+    def _image_time(self):
+        """The time of the newest image seen."""
+        return self._t0 + (self._image - 0.5) * self._dt
 
     def _ring_rows(self):
         """(times, images) of the ring on the host, oldest first."""
@@ -197,6 +207,13 @@ class SnippetBlock(bfp.SinkBlock):
         f = h5py.File(path, "w")
         t_ring, imgs = self._ring_rows()
         shape = imgs.shape[1:] if imgs is not None else ()
+        if t_ring.size:
+            keep = t_ring >= when - self.ring_s
+            t_ring, imgs = t_ring[keep], imgs[keep]
+            if t_ring.size and t_ring[0] > when - self.ring_s + self._dt:
+                log.warning("SnippetBlock: the trigger (%s) came %.2f s after its time, more than late_s = %.2f s: "
+                            "its snippet starts %.2f s before it, not %.2f s", reason, self._image_time() - when,
+                            self.late_s, when - t_ring[0], self.ring_s)
         f.create_dataset("images", (0,) + shape, "f4", maxshape=(None,) + shape, chunks=(16,) + shape)
         f.create_dataset("time_unix", (0,), "f8", maxshape=(None,), chunks=(256,))
         f.attrs.update({"reason": reason, "trigger_unix": when, "product": self._product, "pixels": self._pixels,

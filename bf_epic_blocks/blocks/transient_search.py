@@ -213,13 +213,13 @@ class TransientSearchBlock(bfp.SinkBlock):
         empty = self.flag_weights.take_empty(self._flag_seq, self._j, n)
         if empty is None:
             return cells
-        ok = (~empty)[:, :, None]
+        ok = xp.asarray(~empty)[:, :, None]
         cnt = ok.sum(axis=0)                                                   # (nchan, 1)
         mean = xp.where(ok, cells, 0).sum(axis=0) / xp.maximum(cnt, 1)
         if self._fill_mean is not None:
             mean = xp.where(cnt > 0, mean, self._fill_mean)
         self._fill_mean = mean
-        self.flag_weights.stats["channel_images_filled"] += int(empty.sum())
+        self.flag_weights.stats["channel_images_filled"] += int(empty.sum())     # a host array: no wait
         return xp.where(ok, cells, mean[None].astype(cells.dtype))
 
     def _push(self, x, index=None):

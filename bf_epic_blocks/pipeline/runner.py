@@ -591,7 +591,8 @@ def _watch_stage(cfg, dev, calfold, station, pattern, table=None, imager=None, s
     snippets = None
     if main_imager is not None:
         snippets = SnippetBlock(main_imager, out["dir"], out["prefix"], bus, ring_s=wc["ring_s"],
-                                after_s=wc["save_after_s"], hold_off_s=wc["hold_off_s"], trigger_dir=wc["trigger_dir"])
+                                after_s=wc["save_after_s"], hold_off_s=wc["hold_off_s"], trigger_dir=wc["trigger_dir"],
+                                late_s=_search_latency_s(cfg))
     from ..io.alerts import AlertSender
     station_info = {"station": station.name, "npol": 2}
     if cfg["source"]["kind"] == "simulated":        # what the alerts' VOEvents say of the observation
@@ -607,6 +608,19 @@ def _watch_stage(cfg, dev, calfold, station, pattern, table=None, imager=None, s
             {"ra_deg": row["ra_deg"], "dec_deg": row["dec_deg"], "snr": round(row["snr"], 2), "dm": row["dm"],
              "width_ms": round(row["width_ms"], 4), "kind": row["kind"]})
     return writer, snippets
+
+
+def _search_latency_s(cfg):
+    """Seconds after a burst by which the search has reported it, with room to spare: its window, the
+    sweep of its largest DM across the band (the simulated source's channels, else the LWA's 10-88 MHz
+    as the bound) and 1 s of the pipeline's own lag."""
+    sc = cfg["imager"].get("search")
+    if not sc:
+        return 1.0
+    from ..conventions import dispersion_delay_s
+    freq = channel_freqs(cfg) if cfg["source"]["kind"] == "simulated" else np.array([10e6, 88e6])
+    dm = max([float(d) for d in (sc.get("dms") or [0.0])] + [0.0])
+    return float(sc["window_s"]) + float(dispersion_delay_s(dm, freq.min(), freq.max())) + 1.0
 
 
 def _search_stage(cfg, imager, outdir, flag_weights=None):
