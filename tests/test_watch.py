@@ -468,3 +468,58 @@ def test_a_trigger_that_arrives_after_the_last_images_is_still_saved(tmp_path):
         # from ring_s (0.2 s) before the trigger's own time, however late it came: images 26 .. 49
         np.testing.assert_allclose(t - 1000.0, (np.arange(26, 50) + 0.5) * dt)
         np.testing.assert_array_equal(f["images"][:], imgs[26:, 0, 0])
+
+
+def test_the_png_bins_are_block_means_of_the_last_window():
+    """The quicklook keeps NaN-aware means of bin_n images (across gulps of any length), the last nbins
+    of them and the bin being filled: what a PNG of a minute of 0.64-ms images shows, without re-reading
+    the file."""
+    from bf_epic_blocks.io.watchfile import BinnedSpectra
+    rng = np.random.default_rng(5)
+    n, bin_n, nbins = 1000, 16, 20
+    t = np.arange(n) * 0.00064
+    d = rng.normal(size=(n, 3, 8))
+    d[100:140, 1] = np.nan                                     # a target below the horizon for a while
+    d[800:816, 2, 3] = np.nan                                  # one whole bin (the 50th) of one channel
+    b = BinnedSpectra(3, 8, bin_n, nbins)
+    i = 0
+    for g in rng.integers(1, 70, 100):                       # gulps of any length
+        b.add(t[i:i + g], d[i:i + g])
+        i += g
+        if i >= n:
+            break
+    tb, mb = b.rows()
+    full = n // bin_n                                          # 62 bins completed, then 8 images more
+    want_t = [t[k * bin_n:(k + 1) * bin_n].mean() for k in range(full - nbins, full)] + [t[full * bin_n:].mean()]
+    with np.errstate(invalid="ignore"), __import__("warnings").catch_warnings():
+        __import__("warnings").simplefilter("ignore", RuntimeWarning)
+        want = [np.nanmean(d[k * bin_n:(k + 1) * bin_n], axis=0) for k in range(full - nbins, full)] + \
+            [np.nanmean(d[full * bin_n:], axis=0)]
+    np.testing.assert_allclose(tb, want_t)
+    np.testing.assert_allclose(mb, np.stack(want), equal_nan=True)
+    assert np.isnan(mb[50 - (full - nbins), 2, 3]) and np.isfinite(mb[49 - (full - nbins), 2, 3])
+
+
+def test_pngs_drawn_by_a_helper_process(tmp_path, monkeypatch):
+    """On a GPU `bf-epic run` draws the watch PNGs in a helper process (png_process): the same PNGs
+    appear, the last round is waited for, and the helper is stopped when the run ends."""
+    from bf_epic_blocks.blocks import watch as watch_mod
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    orig = watch_mod.WatchWriterBlock.__init__
+    made = []
+
+    def init(self, *a, **k):
+        k["png_process"] = True
+        orig(self, *a, **k)
+        made.append(self)
+    monkeypatch.setattr(watch_mod.WatchWriterBlock, "__init__", init)
+    cfg = load_config("pipelines/lwasv_sim_transient.yaml", [
+        "source.duration_s=0.45", "output.cube=null", "imager.grid.size=16", "imager.search=null",
+        f"output.dir={tmp_path}", "watch.png_every_s=0.1"])
+    summary = runner.run(cfg, show_progress=False)
+    pngs = sorted(p.name for p in tmp_path.glob("*_watch_*.png"))
+    assert pngs == ["lwasv_sim_transient_watch_CygA.png", "lwasv_sim_transient_watch_FRB1.png",
+                    "lwasv_sim_transient_watch_Sun.png"]
+    assert all((tmp_path / p).read_bytes()[:4] == b"\x89PNG" for p in pngs)
+    assert made[0].png_process and made[0]._pool is None and summary["watch"]["png_skipped"] >= 0

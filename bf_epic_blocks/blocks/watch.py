@@ -85,16 +85,23 @@ class WatchWriterBlock(bfp.SinkBlock):
     pixels : the :class:`WatchPixels` the imager tracks with (for each image's active directions and
         the bodies' positions).
     png_every_s : seconds of data between rewrites of each target's PNG (``<stem>_<target>.png``, the last
-        ``png_every_s`` of its first product); None: no PNG.
+        ``png_every_s`` of its first product, in at most PNG_COLUMNS time bins kept in memory); None: no PNG.
     bus, trigger_sigma, ring_s : a :class:`~.snippets.TriggerBus` told when a target's band-mean light
         curve (its first product) rises more than ``trigger_sigma`` robust sigma (1.4826 MAD) above its
         median over the last ``ring_s`` of data (once that holds 32 images); None: no triggers.
+    png_process : draw the PNGs in a helper process (:meth:`write_pngs`; `bf-epic run` does on a GPU).
     ``rows`` counts the images written; ``inactive`` the direction-rows written as NaN; ``triggers`` the
-    triggers posted.
+    triggers posted; ``png_skipped`` the PNG rounds skipped while the last was still drawing.
     """
 
-    def __init__(self, iring, path, pixels, png_every_s=60.0, bus=None, trigger_sigma=None, ring_s=2.0, **kwargs):
+    #: time bins across a PNG (a minute of 0.64-ms images is ~94,000)
+    PNG_COLUMNS = 1000
+
+    def __init__(self, iring, path, pixels, png_every_s=60.0, bus=None, trigger_sigma=None, ring_s=2.0,
+                 png_process=False, **kwargs):
         super().__init__(iring, **kwargs)
+        self.png_process, self.png_skipped = bool(png_process), 0
+        self._pool = self._png_future = None
         self.bus, self.trigger_sigma, self.ring_s = bus, trigger_sigma, float(ring_s)
         self.triggers = 0
         self._history = None
@@ -134,6 +141,11 @@ class WatchWriterBlock(bfp.SinkBlock):
                      self._writer.path)
         self._since_png = 0.0
         self._image = 0
+        if self.png_every_s is not None:
+            from ..io.watchfile import BinnedSpectra
+            keep = max(1, int(round(self.png_every_s / self._dt)))
+            per = max(1, -(-keep // self.PNG_COLUMNS))
+            self._png = BinnedSpectra(len(self.pixels.targets), nchan, per, -(-keep // per))
         for tg in self.pixels.targets:
             if tg.stop is not None and tg.stop.unix < self._t0:
                 log.warning("watch: %s's window ended at %s UTC, before these data begin (%s UTC): it is never "
@@ -160,6 +172,8 @@ class WatchWriterBlock(bfp.SinkBlock):
                 data[i, ~active] = np.nan
                 self.inactive += int((~active).sum())
         self._writer.append(tu, data, ra_dec)
+        if self.png_every_s is not None:
+            self._png.add(tu, data[:, self.pixels.first][..., 0])          # (n, ntarget, nchan)
         if self.bus is not None and self.trigger_sigma is not None:
             self._light_curve_triggers(tu, data)
         self.rows += n
@@ -206,33 +220,81 @@ class WatchWriterBlock(bfp.SinkBlock):
         for row in lc:
             self._history.append(row)
 
-    def write_pngs(self):
+    def write_pngs(self, wait=False):
         """Each target's dynamic spectrum and light curve (its first product) over the last
-        ``png_every_s`` of data, from the file; the paths are kept in ``pngs``."""
-        from ..io.watchfile import dynamic_spectrum_png
+        ``png_every_s`` of data, in time bins (BinnedSpectra); the paths are kept in ``pngs``.
+
+        With ``png_process`` the drawing runs in a helper process (matplotlib's interpreter time would
+        hold the lock the pipeline's other threads need, and a stalled writer stalls the imagers through
+        the rings); a round that finds the last one still drawing is skipped and counted
+        (``png_skipped``); ``wait``: wait for this round (the sequence's last)."""
         if self._writer is None or self._writer.nrows == 0:
             return []
-        keep = max(1, int(round((self.png_every_s or 60.0) / self._dt)))
-        out = []
-        for tg, ds in zip(self._writer.targets, self._writer.groups):
-            lo = max(0, self._writer.nrows - keep)
-            t = ds["time_unix"][lo:]
-            d = ds["data"][lo:, :, 0]
-            p = self._writer.path.with_name(f"{self._writer.path.stem}_{tg.name}.png")
+        t, binned = self._png.rows()
+        jobs = [(str(self._writer.path.with_name(f"{self._writer.path.stem}_{tg.name}.png")), t, self._freq,
+                 binned[:, j].astype(np.float32), f"{tg.name} ({self._products[0]})")
+                for j, tg in enumerate(self._writer.targets)]
+        if self.png_process:
+            fut = self._png_future
+            if fut is not None and not fut.done() and not wait:
+                self.png_skipped += 1
+                return self.pngs
             try:
-                out.append(dynamic_spectrum_png(p, t, self._freq, d, title=f"{tg.name} ({self._products[0]})"))
-            except Exception as e:  # noqa: BLE001 - a quicklook must not stop the recording
-                log.warning("WatchWriterBlock: the PNG of %s was not written: %s", tg.name, e)
-        self.pngs = out
-        return out
+                if fut is not None:
+                    self._collect_pngs(fut)
+                self._png_future = self._png_pool().submit(_draw_pngs, jobs)
+                if wait:
+                    self._collect_pngs(self._png_future)
+                return self.pngs
+            except Exception as e:  # noqa: BLE001 - a helper that cannot start or broke: draw here
+                log.warning("WatchWriterBlock: the PNG helper process failed (%s); drawing in this thread", e)
+                self.png_process = False
+        self.pngs = _draw_pngs(jobs)
+        return self.pngs
+
+    def _png_pool(self):
+        if self._pool is None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+            # spawn, not fork: the parent has threads and a CUDA context
+            self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        return self._pool
+
+    def _collect_pngs(self, fut):
+        self.pngs = fut.result()
+        self._png_future = None
+
+    def close(self):
+        """Wait for the PNGs being drawn and stop the helper process."""
+        if self._png_future is not None:
+            try:
+                self._collect_pngs(self._png_future)
+            except Exception as e:  # noqa: BLE001
+                log.warning("WatchWriterBlock: the last PNGs were not written: %s", e)
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
 
     def on_sequence_end(self, iseq):
         """The PNGs brought up to date and the file closed (marked complete); a later sequence (a live
         stream that restarts) writes ``<stem>_s01.h5``, ... beside it."""
         if self._writer is not None:
             if self.png_every_s is not None:
-                self.write_pngs()
+                self.write_pngs(wait=True)
             self._writer.close()
             self.files.append(str(self._writer.path))
             self._writer = None
         self._nseq += 1
+
+
+def _draw_pngs(jobs):
+    """Draw each (path, time_unix, freq_hz, data (nbins, nchan), title) as a dynamic-spectrum PNG; the
+    paths drawn (a failure is logged and left out: a quicklook must not stop the recording)."""
+    from ..io.watchfile import dynamic_spectrum_png
+    out = []
+    for path, t, freq, d, title in jobs:
+        try:
+            out.append(dynamic_spectrum_png(path, t, freq, d, title=title))
+        except Exception as e:  # noqa: BLE001
+            log.warning("WatchWriterBlock: the PNG %s was not written: %s", path, e)
+    return out

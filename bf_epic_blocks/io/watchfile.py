@@ -180,6 +180,53 @@ def read_watch(path) -> dict:
     return out
 
 
+class BinnedSpectra:
+    """The last ``nbins`` time bins of ``bin_n`` images each of several targets' spectra, as NaN-aware
+    means, kept in memory for the quicklook PNGs: a minute of 0.64-ms images is ~94,000 rows a target,
+    more than a PNG shows and more than it should re-read from the file each time.
+
+    ``add(t (n,), data (n, ntarget, nchan))`` in time order; ``rows()`` -> (t (nb,), means (nb, ntarget,
+    nchan)) of the bins completed so far and the one being filled, oldest first.
+    """
+
+    def __init__(self, ntarget, nchan, bin_n, nbins):
+        import collections
+        self.bin_n = max(1, int(bin_n))
+        self._done = collections.deque(maxlen=max(1, int(nbins)))
+        self._sum = np.zeros((ntarget, nchan))
+        self._cnt = np.zeros((ntarget, nchan))
+        self._tsum, self._n = 0.0, 0
+
+    def add(self, t, data):
+        t = np.asarray(t, np.float64)
+        data = np.asarray(data, np.float64)
+        i = 0
+        while i < t.size:
+            k = min(t.size - i, self.bin_n - self._n)
+            part = data[i:i + k]
+            ok = np.isfinite(part)
+            self._sum += np.where(ok, part, 0.0).sum(axis=0)
+            self._cnt += ok.sum(axis=0)
+            self._tsum += float(t[i:i + k].sum())
+            self._n += k
+            i += k
+            if self._n == self.bin_n:
+                self._done.append(self._current())
+                self._sum[:] = 0.0
+                self._cnt[:] = 0.0
+                self._tsum, self._n = 0.0, 0
+
+    def _current(self):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self._tsum / self._n, np.where(self._cnt > 0, self._sum / np.maximum(self._cnt, 1), np.nan)
+
+    def rows(self):
+        done = list(self._done) + ([self._current()] if self._n else [])
+        if not done:
+            return np.zeros(0), np.zeros((0,) + self._sum.shape)
+        return np.array([d[0] for d in done]), np.stack([d[1] for d in done])
+
+
 def dynamic_spectrum_png(path_png, time_unix, freq_hz, data, title="") -> str:
     """Write a PNG: the dynamic spectrum (UTC on x, MHz on y) above its band-averaged light curve.
 

@@ -587,7 +587,7 @@ def _watch_stage(cfg, dev, calfold, station, pattern, table=None, imager=None, s
     from ..blocks.snippets import SnippetBlock, TriggerBus
     bus = TriggerBus()
     writer = WatchWriterBlock(watch_imager, path, pixels, png_every_s=wc["png_every_s"], bus=bus,
-                              trigger_sigma=wc["trigger_sigma"], ring_s=wc["ring_s"])
+                              trigger_sigma=wc["trigger_sigma"], ring_s=wc["ring_s"], png_process=dev != "cpu")
     snippets = None
     if main_imager is not None:
         snippets = SnippetBlock(main_imager, out["dir"], out["prefix"], bus, ring_s=wc["ring_s"],
@@ -840,6 +840,8 @@ def run(cfg, show_progress=None, parts=None):
     finally:
         if g.writer is not None:
             g.writer.close()
+        if g.watch is not None:
+            g.watch.close()         # the PNGs its helper process still draws
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0
@@ -887,6 +889,7 @@ def run(cfg, show_progress=None, parts=None):
                             "light_curve_triggers": g.watch.triggers}
         if g.snippets is not None:
             summary["watch"]["triggers"] = dict(g.snippets.trig_stats)
+        summary["watch"]["png_skipped"] = g.watch.png_skipped
         alerts = getattr(g.watch, "alerts", None)
         if alerts is not None:
             alerts.close()

@@ -69,16 +69,21 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=2, help="runs of each variant, interleaved")
     ap.add_argument("--device", default="gpu")
     ap.add_argument("--json")
+    ap.add_argument("--no-warmup", action="store_true", help="skip the first, thrown-away run (kernels cached)")
     args = ap.parse_args(argv)
-    # a first short run compiles every kernel (each case's last variant has the most) and is thrown away
-    run_variant(sum((CASES[c][-1][1] for c in args.case), []), min(args.seconds, 5.0), args.device)
+    if not args.no_warmup:
+        # a first short run compiles every kernel (each case's last variant has the most) and is thrown away
+        run_variant(sum((CASES[c][-1][1] for c in args.case), []), min(args.seconds, 5.0), args.device)
     out = {}
-    print(f"{'case':<10} {'variant':<16} {'flowing s per s of data (each run)':<38} {'median':>8} {'added':>8}")
+    print(f"{'case':<10} {'variant':<16} {'flowing s per s of data (each run)':<38} {'median':>8} {'added':>8}",
+          flush=True)
     for case in args.case:
         runs = {name: [] for name, _ in CASES[case]}
         for _ in range(args.repeat):
             for name, sets in CASES[case]:
                 row = run_variant(sets, args.seconds, args.device)
+                print(f"  {case}, {name}: flowing {row['flowing_s']:.2f} s for {row['data_s']:g} s of data, "
+                      f"whole run {row['wall_s']:.1f} s", flush=True)
                 runs[name].append({"flowing_s_per_data_s": row["flowing_s"] / row["data_s"],
                                    "wall_s": row["wall_s"], "gpu_mib_peak": row["gpu_mib"]["peak"],
                                    "candidates": (row.get("search") or {}).get("candidates"),
@@ -92,7 +97,7 @@ def main(argv=None):
             res[name] = {"runs": runs[name], "median_s_per_data_s": med, "added_fraction": med / base - 1.0,
                          "spread_fraction": (max(per) - min(per)) / med}
             print(f"{case:<10} {name:<16} {' '.join(f'{p:.4f}' for p in per):<38} {med:8.4f} "
-                  f"{100 * (med / base - 1):7.1f}%")
+                  f"{100 * (med / base - 1):7.1f}%", flush=True)
         out[case] = {"variants": res, "overrides": {n: s for n, s in CASES[case]}}
     if args.json:
         write_json(args.json, {"benchmark": "bench_cost", "date": utc_now(), "machine": machine(args.device),
