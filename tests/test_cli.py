@@ -557,6 +557,19 @@ def test_a_configuration_that_cannot_fit_is_refused_before_it_allocates(setting,
         assert time.perf_counter() - t0 < 30, cmd
 
 
+def test_planning_a_refused_configuration_caches_no_station_terms(monkeypatch, capsys):
+    """plan (and run's check before it builds) needs no per-channel station terms: a million channels
+    are refused without computing or caching 256 x 2 x 1e6 of them (which wrote GBs to the station
+    cache and took more than the refusal's 30 s to read back)."""
+    from bf_epic_blocks.station import tables
+    saved = []
+    monkeypatch.setattr(tables, "_save_cached", lambda path, table, freqs: saved.append(np.size(freqs)))
+    monkeypatch.setattr(tables, "_load_cached", lambda path: None)       # as on a machine with no cache yet
+    rc = cli.main(["plan", str(PIPES / "lwasv_sim_transient.yaml"), "--set", "source.channels.count=1000000"])
+    assert rc != 0 and "needs about" in capsys.readouterr().err
+    assert all(n < 1000 for n in saved), saved
+
+
 def test_an_empty_search_list_is_refused_by_the_schema(capsys):
     assert cli.main(["validate", str(PIPES / "lwasv_sim_transient.yaml"), "--set", "imager.search.dms=[]"]) == 2
     assert "imager.search.dms: expected a list of DMs >= 0 (at least 1), got []" in capsys.readouterr().err

@@ -96,19 +96,21 @@ def _scan(path, report=True, fmt="tbf"):
 _SCANS: dict = {}
 
 
-def load_station_for(cfg, info=None):
+def load_station_for(cfg, info=None, per_channel=True):
     """The StationTable the configuration names, with the YAML flags added (``auto``: the TBF file's).
 
     For a simulated source or a capture file (``info``: its scan) the channels are known here, so the
     table comes from the station cache when an earlier run made it
-    (:func:`bf_epic_blocks.station.load_station`)."""
+    (:func:`bf_epic_blocks.station.load_station`). ``per_channel=False``: without the per-channel terms
+    (what :func:`plan` needs), so that planning a configuration, even one refused for its size, neither
+    computes nor caches them."""
     from ..station import load_station
     st_cfg, src = cfg["station"], cfg["source"]
     name = st_cfg.get("ssmif") or st_cfg.get("name")
     if name == "auto":
         name = (info or _scan(src["path"], report=False)).station_hint
     freq = channel_freqs(cfg) if src["kind"] == "simulated" else None if info is None else np.asarray(info.freq_hz)
-    return load_station(name, extra_flags=st_cfg.get("flags") or None, freq_hz=freq)
+    return load_station(name, extra_flags=st_cfg.get("flags") or None, freq_hz=freq if per_channel else None)
 
 
 def channel_freqs(cfg):
@@ -969,7 +971,7 @@ def plan(cfg):
                          "same stream (source.kind: file) instead")
     fmt = capture_format(src)
     info = _scan(src["path"], fmt=fmt) if fmt is not None else None
-    station = load_station_for(cfg, info)
+    station = load_station_for(cfg, info, per_channel=False)
     if fmt is not None:
         freq, dt = np.asarray(info.freq_hz), 1.0 / info.chan_bw_hz
         block = channel_block_range(cfg, info)
