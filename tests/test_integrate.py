@@ -81,7 +81,8 @@ def test_wholeband_pipeline_made_small(tmp_path):
                              "imager.grid.size=16", "imager.search.window_s=0.06", "imager.search.dms=[1.0]",
                              "imager.search.threshold=7", "output.integrate.seconds=0.1",
                              "output.cube.dtype=float32", "output.cube.average_channels=false",
-                             "watch.save_after_s=0.05", "watch.png_every_s=1.0",
+                             "watch={targets: [{name: FRB1, ra_deg: 310.0, dec_deg: 20.0}, CygA], "
+                             "save_after_s: 0.05, png_every_s: 1.0}",
                              "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.3, duration_s: 0.0015, "
                              "flux_jy: 2000.0, dm: 0.6}]"])
     summary = run(cfg, show_progress=False)

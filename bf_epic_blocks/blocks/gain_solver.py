@@ -572,6 +572,7 @@ class GainSolverBlock(bfp.SinkBlock):
         self.models.append(md)
         self._posted_in_seq += 1
         self.solver_stats["solutions"] += 1
+        self.last_solution_at = time.perf_counter()          # the service's solution age
         if self.table is not None:
             self.table.post(valid_from, sol.corrections)
             if decided is not None:            # the images wait for this, never for the files below

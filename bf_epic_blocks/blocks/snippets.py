@@ -50,9 +50,22 @@ class TriggerBus:
 
     def __init__(self):
         self._q = collections.deque()
+        self._requests = collections.deque()
         self._lock = threading.Lock()
         self.posted = 0
         self.listeners = []
+
+    def request(self, reason):
+        """A trigger from outside the data (the service's POST /trigger): the snippet block posts it at the
+        time of its newest images, as it does a trigger file."""
+        with self._lock:
+            self._requests.append(str(reason))
+
+    def take_requests(self):
+        with self._lock:
+            out = list(self._requests)
+            self._requests.clear()
+        return out
 
     def post(self, time_unix, reason, info=None):
         with self._lock:
@@ -106,7 +119,7 @@ class SnippetBlock(bfp.SinkBlock):
         self.ring_s, self.after_s, self.hold_off_s = float(ring_s), float(after_s), float(hold_off_s)
         self.late_s = float(late_s)
         self.trigger_dir = None if trigger_dir is None else Path(trigger_dir)
-        self.trig_stats = {"triggers": 0, "saved": 0, "held": 0, "from_files": 0}
+        self.trig_stats = {"triggers": 0, "saved": 0, "held": 0, "from_files": 0, "from_requests": 0}
         self.written = []
         self._ring = None            # (keep, pixels...) float32 band means, where the images are (CuPy or NumPy)
         self._ring_t = None          # (keep,) float64 their times on the host; NaN: an empty slot
@@ -188,6 +201,9 @@ class SnippetBlock(bfp.SinkBlock):
                     continue
                 self.trig_stats["from_files"] += 1
                 self.bus.post(now, f"file: {reason}")
+        for reason in self.bus.take_requests():
+            self.trig_stats["from_requests"] += 1
+            self.bus.post(now, reason)
         return self.bus.take()
 
     def _trigger(self, when, reason):

@@ -569,6 +569,7 @@ class UDPCapture:
         self.address, self.port = self.sock.getsockname()[:2]
         self.rcvbuf_granted = self.sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
         self.stats = _new_stats()
+        self.layout = None               # the stream's StreamLayout once its first packet is read
         log.info("%s: listening; receive buffer %.1f MiB%s", self.label, self.rcvbuf_granted / 2**20,
                  "" if self.rcvbuf_granted >= int(rcvbuf_bytes) else
                  f" (asked {int(rcvbuf_bytes) / 2**20:.1f} MiB: raise net.core.rmem_max for more)")
@@ -692,7 +693,7 @@ class UDPCapture:
                 if isinstance(got, str):
                     stats["garbage"][got] += 1
                     continue
-                layout = got
+                layout = self.layout = got          # what the stream is, for the service's real-time figure
                 learn = []
                 grid0, ticks, hbytes = layout.time_tag0, layout.sample_ticks, layout.header_bytes
             got = fmt.parse(buf, n, layout)

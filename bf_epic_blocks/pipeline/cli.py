@@ -50,6 +50,10 @@ def build_parser():
         if name == "calibrate":
             s.add_argument("-o", "--output", metavar="TABLE.npz",
                            help="where the table goes (default: output.dir/<prefix>_gains.npz); its PNG beside it")
+        if name == "run":
+            s.add_argument("--serve", metavar="HOST:PORT",
+                           help="serve metrics (/metrics), health (/health) and a status page (/) while it runs; "
+                                "the YAML's service: section sets the rest (guide/service.md)")
         if name in ("run", "batch", "calibrate"):
             s.add_argument("--no-progress", action="store_true", help="no progress bar")
             s.add_argument("--summary-json", metavar="PATH", help="also write the run summary as JSON")
@@ -123,6 +127,8 @@ def main(argv=None):
     from .config import ConfigError, load_config
     try:
         overrides = list(args.overrides)
+        if getattr(args, "serve", None):
+            overrides.append(f"service.listen={json.dumps(args.serve)}")
         if args.command == "batch":  # the YAML's own source.path need not exist: validate against an input
             first = next((f for f in args.inputs if Path(f).is_file()), args.inputs[0])
             overrides.insert(0, f"source.path={json.dumps(str(Path(first).expanduser().resolve()))}")

@@ -822,6 +822,27 @@ SCHEMA = Section({
             "files save snippets of the band-averaged images and send alerts (a webhook, VOEvent files) "
             "(guide/watch.md)."), None,
         doc="Spectra of named directions at every image, in an HDF5 file; null: off."),
+    "service": Key(Section({
+        "listen": Key(Str(r"\S+", "HOST:PORT"), "127.0.0.1:8080",
+                      doc="Where the service listens (`bf-epic run --serve HOST:PORT` sets it): /metrics "
+                          "(Prometheus), /health (JSON), / (a status page), POST /trigger (with the token)."),
+        "allow_remote": Key(Bool(), False,
+                            doc="Allow an address other than this machine's loopback (put it behind the "
+                                "station's firewall)."),
+        "token": Key(Str(r"\S{16,}", "a token of at least 16 characters"), None,
+                     doc="The token a request that changes state (POST /trigger) must carry as "
+                         "`Authorization: Bearer TOKEN`; null: the variable `token_env` names, else none "
+                         "(such requests are refused)."),
+        "token_env": Key(Str(r"[A-Za-z_][A-Za-z0-9_]*", "an environment variable name"), "BF_EPIC_SERVICE_TOKEN",
+                         doc="The environment variable holding the token when `token` is null."),
+        "no_data_s": Key(Float(0.0, lo_open=True), 10.0,
+                         doc="Seconds without new data at the source before /health says down."),
+        "min_free_gb": Key(Float(0.0), 5.0,
+                           doc="Free disk in the output folder under which /health says degraded (under half "
+                               "of it: down)."),
+    }, what="a service mapping {listen, allow_remote, token, token_env, no_data_s, min_free_gb}",
+        doc="The run's metrics and health over HTTP (guide/service.md)."), None,
+        doc="Serve metrics and health while the pipeline runs; null: no service."),
     "output": Key(Section({
         "dir": Key(Str(r"\S.*", "a directory path"), None,
                    doc="Directory of the outputs, relative to the working directory; null: `output/<name>`."),

@@ -808,9 +808,33 @@ def block_timing(blocks, t0):
 STALL_WARN_S = 60.0
 
 
-def run(cfg, show_progress=None, parts=None):
+def _start_service(cfg, g):
+    """The HTTP service (``service:``, :mod:`bf_epic_blocks.service`) on the built graph ``g``, started."""
+    import os
+
+    from ..service.monitor import Limits, Monitor
+    from ..service.server import Service
+    sc, src = cfg["service"], cfg["source"]
+    dt = None
+    if src["kind"] == "simulated":
+        dt = 1.0 / float(src["channels"]["width_hz"])
+    elif capture_format(src) is not None:
+        dt = 1.0 / _scan(src["path"], report=False, fmt=capture_format(src)).chan_bw_hz
+    solve = cfg["calibration"].get("solve")
+    return Service(Monitor(g, cfg, dt), sc["listen"], allow_remote=sc["allow_remote"],
+                   token=sc["token"] or os.environ.get(sc["token_env"]) or None,
+                   bus=getattr(g.snippets, "bus", None),
+                   limits=Limits(no_data_s=sc["no_data_s"], min_free_gb=sc["min_free_gb"]),
+                   cadence_s=solve["cadence_s"] if solve else None, name=cfg["name"]).start()
+
+
+def run(cfg, show_progress=None, parts=None, service_ready=None):
     """Build and run the pipeline; returns a summary dict (files written, frame counts, timing).
-    ``parts``: see :func:`build_graph`."""
+    ``parts``: see :func:`build_graph`. With ``service:``, the HTTP service runs beside it
+    (:mod:`bf_epic_blocks.service`; ``service_ready(service)`` is called once it listens)."""
+    if cfg.get("service"):
+        from ..service.server import check_listen, parse_listen
+        check_listen(parse_listen(cfg["service"]["listen"])[0], cfg["service"]["allow_remote"])
     bar = None
     if show_progress is None:
         show_progress = sys.stderr.isatty()
@@ -829,10 +853,20 @@ def run(cfg, show_progress=None, parts=None):
     log.info("running %s: %s source -> %s%s%s imager -> %s", cfg["name"], cfg["source"]["kind"],
              "interference flagging -> " if flagging_enabled(cfg) else "",
              "" if type(g.calfold).__name__ != "CalFoldBlock" else "calfold -> ", cfg["imager"]["kind"], g.outdir)
+    service = None
     try:
+        if cfg.get("service"):
+            service = _start_service(cfg, g)
+            if service_ready is not None:
+                service_ready(service)
         from .watchdog import StallWatchdog
-        with StallWatchdog(g.pipeline.blocks, STALL_WARN_S):
-            g.pipeline.run()
+        try:
+            with StallWatchdog(g.pipeline.blocks, STALL_WARN_S):
+                g.pipeline.run()
+        except Exception as e:
+            if service is not None:
+                service.monitor.failed = str(e)
+            raise
         if hasattr(g.search, "finish"):
             g.search.finish()       # a pixel split's parts' candidates, one table
         if g.snippets is not None:
@@ -844,6 +878,10 @@ def run(cfg, show_progress=None, parts=None):
             g.writer.close()
         if g.watch is not None:
             g.watch.close()         # the PNGs its helper process still draws
+        if service is not None:
+            service.monitor.finished = True
+            summary_service = dict(service.stats, url=service.url)
+            service.stop()
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0
@@ -859,6 +897,8 @@ def run(cfg, show_progress=None, parts=None):
         "images": int(img.get("images", 0)), "tbf": src_stats, "calibration": getattr(g.calfold, "cal_stats", {}),
     }
     summary["blocks"] = block_timing(g.pipeline.blocks, t0)
+    if service is not None:
+        summary["service"] = summary_service
     summary["started_unix_s"] = t0_unix      # the blocks' times are seconds after this (time.time())
     for name, bt in summary["blocks"].items():
         log.debug("block %s: %d gulps, %.3f s in on_data (%.2f ms/gulp), first data at %s s, last at %s s",

@@ -44,7 +44,7 @@ def targets(n, ra0=310.0, dec0=30.0, span_deg=30.0):
 
 #: case -> [(variant name, overrides)]; the first variant is the case's baseline
 CASES = {
-    "watch": [("no watchlist", ["watch=null"]),
+    "watch": [("no watchlist", []),
               ("10 targets", [f"watch.targets={targets(10)}"]),
               ("100 targets", [f"watch.targets={targets(100)}"])],
     "flagging": [("flagging off", ["flagging.enabled=off"]),

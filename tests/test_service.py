@@ -1,0 +1,172 @@
+"""The station service (`bf-epic run --serve`): health judged from chosen snapshots, the HTTP surface
+(what it serves, what it refuses), and a real run scraped while it goes."""
+import threading
+import time
+import urllib.error
+import urllib.request
+
+import pytest
+
+pytest.importorskip("aiohttp")
+pytest.importorskip("prometheus_client")
+
+from bf_epic_blocks.service.monitor import Limits, assess  # noqa: E402
+from bf_epic_blocks.service.server import Service, parse_listen  # noqa: E402
+
+
+def _snap(**kw):
+    s = {"uptime_s": 100.0, "data_s": 90.0, "realtime": 1.2, "realtime_recent": 1.2, "last_data_age_s": 0.1,
+         "blocks": {"Src_0": {"ngulp": 10, "process_s": 0.5, "nframe_written": 10240}}, "source": {},
+         "imager": {"images": 5}, "flagging": {"seen": 10, "flagged_sk-high": 2}, "failed": None, "finished": False, "live": True,
+         "disk": {"total_bytes": 1e12, "used_bytes": 1e11, "free_bytes": 9e11}, "gpu": None}
+    s.update(kw)
+    return s
+
+
+@pytest.mark.parametrize("change, status, words", [
+    ({}, "go", None),
+    ({"failed": "block 'X' failed: boom"}, "down", "stopped"),
+    ({"last_data_age_s": 30.0}, "down", "no data for 30 s"),
+    ({"last_data_age_s": 30.0, "finished": True}, "go", None),          # a capture that ended is not a stall
+    ({"realtime_recent": 0.8}, "degraded", "behind real time"),
+    ({"realtime_recent": 0.8, "live": False}, "go", None),              # a file may be read at any pace
+    ({"source": {"frames_missing": 12, "packets": 100}}, "degraded", "frames_missing 12"),
+    ({"solver": {"solutions": 3, "solution_age_s": 40.0}}, "degraded", "calibration stale"),
+    ({"solver": {"solutions": 3, "solution_age_s": 20.0}}, "go", None),
+    ({"disk": {"total_bytes": 1e12, "used_bytes": 1e12, "free_bytes": 4e9}}, "degraded", "disk low"),
+    ({"disk": {"total_bytes": 1e12, "used_bytes": 1e12, "free_bytes": 1e9}}, "down", "disk nearly full"),
+])
+def test_health_from_chosen_snapshots(change, status, words):
+    got, reasons = assess(_snap(**change), Limits(no_data_s=10.0, min_free_gb=5.0), cadence_s=10.0)
+    assert got == status, reasons
+    assert (words is None and not reasons) or any(words in r for r in reasons), reasons
+
+
+class FakeMonitor:
+    def __init__(self):
+        self.snap = _snap()
+
+    def snapshot(self):
+        return dict(self.snap)
+
+
+class FakeBus:
+    def __init__(self):
+        self.requests = []
+
+    def request(self, reason):
+        self.requests.append(reason)
+
+
+def _get(url, data=None, headers=None, method=None):
+    req = urllib.request.Request(url, data=data, headers=headers or {}, method=method)
+    try:
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return r.status, r.read().decode(), r.headers.get("Content-Type", "")
+    except urllib.error.HTTPError as e:
+        return e.code, e.read().decode(), e.headers.get("Content-Type", "")
+
+
+@pytest.fixture
+def served():
+    mon, bus = FakeMonitor(), FakeBus()
+    srv = Service(mon, "127.0.0.1:0", token="a-token-of-sixteen-chars", bus=bus, name="test").start()
+    yield srv, mon, bus
+    srv.stop()
+
+
+def test_metrics_health_and_page(served):
+    from prometheus_client.parser import text_string_to_metric_families
+    srv, mon, _ = served
+    code, body, ctype = _get(srv.url + "/metrics")
+    assert code == 200 and ctype.startswith("text/plain")
+    fams = {f.name: f for f in text_string_to_metric_families(body)}
+    assert fams["bf_epic_up"].samples[0].value == 1.0
+    assert fams["bf_epic_realtime_factor"].samples[0].value == pytest.approx(1.2)
+    assert fams["bf_epic_imager_images"].samples[0].value == 5
+    gulps = {s.labels["block"]: s.value for s in fams["bf_epic_block_ngulp"].samples}
+    assert gulps == {"Src_0": 10.0}
+    assert fams["bf_epic_health"].samples[0].value == 0
+    assert fams["bf_epic_flagging_flagged_sk_high"].samples[0].value == 2        # a metric's name from 'sk-high'
+    code, body, _ = _get(srv.url + "/health")
+    assert code == 200 and '"status": "go"' in body
+    mon.snap = _snap(last_data_age_s=60.0)
+    time.sleep(0.6)                                          # past the shared snapshot's 0.5 s
+    code, body, _ = _get(srv.url + "/health")
+    assert code == 503 and '"status": "down"' in body and "no data for 60 s" in body
+    code, body, ctype = _get(srv.url + "/")
+    assert code == 200 and ctype.startswith("text/html") and "down" in body and "no data" in body
+
+
+def test_refusals(served):
+    srv, _, bus = served
+    assert _get(srv.url + "/../../etc/passwd")[0] == 404
+    assert _get(srv.url + "/output/x.fits")[0] == 404                       # no files are served
+    assert _get(srv.url + "/metrics", data=b"x", method="PUT")[0] == 405
+    assert _get(srv.url + "/trigger", data=b"GRB")[0] == 401                 # no token
+    assert _get(srv.url + "/trigger", data=b"GRB", headers={"Authorization": "Bearer wrong-token-xxxxxxxx"})[0] == 401
+    big = b"x" * (65 * 1024)
+    assert _get(srv.url + "/trigger", data=big,
+                headers={"Authorization": "Bearer a-token-of-sixteen-chars"})[0] == 413
+    assert bus.requests == []
+    code, body, _ = _get(srv.url + "/trigger", data=b"GRB 261128A\nmore",
+                         headers={"Authorization": "Bearer a-token-of-sixteen-chars"})
+    assert code == 202 and bus.requests == ["http: GRB 261128A"]
+    assert srv.stats["refused"] >= 6 and srv.stats["triggers"] == 1
+
+
+def test_no_token_configured_means_nothing_changes():
+    bus = FakeBus()
+    srv = Service(FakeMonitor(), "127.0.0.1:0", token=None, bus=bus).start()
+    try:
+        assert _get(srv.url + "/trigger", data=b"x", headers={"Authorization": "Bearer anything-at-all-xx"})[0] == 403
+        assert bus.requests == []
+    finally:
+        srv.stop()
+
+
+def test_listen_addresses():
+    assert parse_listen("8080") == ("127.0.0.1", 8080) and parse_listen("localhost:9") == ("localhost", 9)
+    with pytest.raises(ValueError, match="HOST:PORT"):
+        parse_listen("127.0.0.1:http")
+    with pytest.raises(ValueError, match="allow_remote"):
+        Service(FakeMonitor(), "0.0.0.0:0")
+    srv = Service(FakeMonitor(), "0.0.0.0:0", allow_remote=True).start()
+    srv.stop()
+
+
+def test_a_run_scraped_while_it_goes(tmp_path):
+    """`bf-epic run` with the service on: /metrics and /health answer while the pipeline runs (frames
+    grow between scrapes), a trigger with the token saves a snippet, and the run's summary counts the
+    requests."""
+    from prometheus_client.parser import text_string_to_metric_families
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    token = "tok-" + "x" * 20
+    cfg = load_config("pipelines/lwasv_sim_transient.yaml", [
+        "source.duration_s=0.45", "output.cube=null", "imager.grid.size=16", "imager.search=null",
+        f"output.dir={tmp_path}", "watch.png_every_s=10", f"service={{listen: '127.0.0.1:0', token: {token}}}"])
+    seen = []
+
+    def scrape(srv):
+        def loop():
+            while srv._thread is not None:
+                try:
+                    code, body, _ = _get(srv.url + "/metrics")
+                except OSError:
+                    break
+                fams = {f.name: f for f in text_string_to_metric_families(body)}
+                seen.append(fams["bf_epic_data_seconds"].samples[0].value if "bf_epic_data_seconds" in fams else 0.0)
+                if len(seen) == 1:
+                    _get(srv.url + "/trigger", data=b"operator", headers={"Authorization": f"Bearer {token}"})
+                    seen.append(_get(srv.url + "/health")[0])
+                time.sleep(0.6)
+        threading.Thread(target=loop, daemon=True).start()
+
+    summary = runner.run(cfg, show_progress=False, service_ready=scrape)
+    assert len(seen) >= 3 and seen[1] == 200
+    data_s = [v for i, v in enumerate(seen) if i != 1]
+    assert data_s == sorted(data_s) and data_s[-1] > 0          # the data read, growing as the run goes
+    assert summary["service"]["requests"] >= 3 and summary["service"]["triggers"] == 1
+    assert summary["watch"]["triggers"]["from_requests"] == 1
+    assert len(list(tmp_path.glob("*_snippet_*http-operator*.h5"))) == 1
