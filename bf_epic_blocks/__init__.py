@@ -3,7 +3,9 @@
 Rooms, each importing only the rooms below it (tests/test_layering.py holds the tree to this)::
 
     pipeline/   YAML schema, config -> graph of blocks, the bf-epic CLI
-    blocks/     thin Bifrost adapters (DFTImagerBlock, WStackBlock, CalFoldBlock, sources, writers)
+    blocks/  service/
+                thin Bifrost adapters (DFTImagerBlock, WStackBlock, CalFoldBlock, sources, writers);
+                the running pipeline's metrics and health over HTTP (`bf-epic run --serve`)
     station/  sky/  io/  runtime/
                 LSL station tables and offline set-up; catalogue sources, astropy directions and
                 the simulated E-field; readers (TBF) and writers (FITS, PNG); the ring runtime

@@ -1,7 +1,7 @@
 """The package's rooms import only downwards, and no module imports itself back through others.
 
 Rooms, lowest first (``bf_epic_blocks/__init__.py`` draws them):
-conventions, cuda (the ground floor) < imaging < station, sky, io, runtime, search < blocks < pipeline.
+conventions, cuda (the ground floor) < imaging < station, sky, io, runtime, search < blocks, service < pipeline.
 Rooms of the same level may import each other (``io`` uses ``runtime``'s ci4 codec, ``sky`` the
 ci4 packer); any cycle between modules fails, lazy (function-level) imports included, because a
 cycle hidden in a function is still two modules that cannot be understood apart.
@@ -16,7 +16,7 @@ import pytest
 PKG = "bf_epic_blocks"
 ROOT = Path(__file__).resolve().parent.parent / PKG
 LEVEL = {"conventions": 0, "cuda": 0, "imaging": 1, "station": 2, "sky": 2, "io": 2, "runtime": 2, "search": 2,
-         "blocks": 3, "pipeline": 4}
+         "blocks": 3, "service": 3, "pipeline": 4}
 
 
 def _modules():
