@@ -94,8 +94,9 @@ class UDPSourceBlock(bfp.SourceBlock):
         """Next capture event of one of ``kinds`` (None when the capture closed or the block stops)."""
         self.capture.start()
         stop = getattr(self, "shutdown_event", None)
+        drain = getattr(self, "drain_event", None)          # our runtime's graceful end (Pipeline.drain)
         while True:
-            if stop is not None and stop.is_set():
+            if (stop is not None and stop.is_set()) or (drain is not None and drain.is_set()):
                 return None
             ev = self.capture.next_event(0.2)
             if ev is None:

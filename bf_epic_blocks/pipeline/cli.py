@@ -198,7 +198,8 @@ def main(argv=None):
                 json.dump(summary, fh, indent=2, default=str)
         print(f"wrote {len(summary['files'])} files to {summary['outdir']} "
               f"({summary['images']} images; frames read {summary['frames_read']}, imaged {summary['frames_imaged']}, "
-              f"skipped {summary['frames_skipped']})")
+              f"skipped {summary['frames_skipped']})"
+              + (f"; stopped by {summary['stopped_by']}" if summary.get("stopped_by") else ""))
         return 0
     except KeyboardInterrupt:
         print("bf-epic: interrupted", file=sys.stderr)

@@ -806,6 +806,43 @@ def block_timing(blocks, t0):
 
 #: seconds without a finished gulp anywhere before ``run`` logs where each block is (:mod:`.watchdog`)
 STALL_WARN_S = 60.0
+#: seconds a SIGTERM leaves the blocks to finish their images and close their files before they are stopped
+STOP_TIMEOUT_S = 30.0
+
+
+@contextlib.contextmanager
+def _stop_on_sigterm(pipeline, timeout_s=STOP_TIMEOUT_S):
+    """While the pipeline runs in the main thread, SIGTERM (systemd's stop) ends the data gracefully
+    (``Pipeline.drain``, where the runtime has it): the blocks finish the images in their rings and close
+    their files, and ``run`` returns as at the end of the data. A second SIGTERM, or ``timeout_s`` without
+    an end, stops the blocks at once (KeyboardInterrupt). Yields a dict whose ``signal`` is set once one
+    came."""
+    import signal
+    import threading
+    state = {"signal": None}
+    if threading.current_thread() is not threading.main_thread() or not hasattr(pipeline, "drain"):
+        yield state
+        return
+
+    def stop(signum, frame):
+        if state["signal"] is not None:
+            raise KeyboardInterrupt
+        state["signal"] = "SIGTERM"
+        log.warning("SIGTERM: ending the data; the blocks finish their images and close their files (at most "
+                    "%g s)", timeout_s)
+        pipeline.drain()
+        import _thread
+        state["timer"] = threading.Timer(timeout_s, _thread.interrupt_main)
+        state["timer"].daemon = True
+        state["timer"].start()
+
+    old = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield state
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        if "timer" in state:
+            state["timer"].cancel()
 
 
 def _start_service(cfg, g):
@@ -861,7 +898,7 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
                 service_ready(service)
         from .watchdog import StallWatchdog
         try:
-            with StallWatchdog(g.pipeline.blocks, STALL_WARN_S):
+            with StallWatchdog(g.pipeline.blocks, STALL_WARN_S), _stop_on_sigterm(g.pipeline) as stopped:
                 g.pipeline.run()
         except Exception as e:
             if service is not None:
@@ -887,7 +924,10 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
     wall = time.perf_counter() - t0
     src_stats = getattr(g.source, "tbf_stats", None) or getattr(g.source, "udp_stats", None) or {}
     img = getattr(g.imager, "img_stats", {})
-    frames_read = src_stats.get("samples", g.nframe_total)
+    # a source stopped early (SIGTERM) wrote fewer than its total: the runtime's count where there is one
+    written = (getattr(g.source, "stats", None) or {}).get("nframe_written") if isinstance(
+        getattr(g.source, "stats", None), dict) else None
+    frames_read = src_stats.get("samples", written if written is not None else g.nframe_total)
     skipped = sum(int(getattr(b, "stats", {}).get("nframe_skipped", 0) or 0)
                   for b in (g.calfold, g.imager, *g.sinks) if isinstance(getattr(b, "stats", None), dict))
     summary = {
@@ -897,6 +937,7 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
         "images": int(img.get("images", 0)), "tbf": src_stats, "calibration": getattr(g.calfold, "cal_stats", {}),
     }
     summary["blocks"] = block_timing(g.pipeline.blocks, t0)
+    summary["stopped_by"] = stopped["signal"]
     if service is not None:
         summary["service"] = summary_service
     summary["started_unix_s"] = t0_unix      # the blocks' times are seconds after this (time.time())

@@ -223,6 +223,16 @@ class Pipeline(BlockScope):
     def _thread_done(self):
         self._changed.set()
 
+    def drain(self):
+        """End the data gracefully: each source block ends its sequence after the gulp it is writing and
+        reads no more; the blocks downstream finish what is in the rings and end their sequences as at
+        the end of the data (their files closed). ``run`` then returns as after a normal end."""
+        for b in self.blocks:
+            ev = getattr(b, "drain_event", None)
+            if ev is not None:
+                ev.set()
+        self._changed.set()
+
     def shutdown(self, wait=True):
         """Stop every block: wake all ring waits (they raise PipelineShutdown) and join."""
         self._shutdown_event.set()
@@ -494,10 +504,15 @@ class SourceBlock(Block):
             raise ValueError(f"block '{self.name}': gulp_nframe must be an int >= 1")
         self.sourcenames = sourcenames
         self.orings = [self.create_ring(space=space or 'system')]
+        # set by Pipeline.drain: end the sequence after the gulp being written and read no more, so
+        # that every block downstream ends its sequence as at the end of the data (files closed)
+        self.drain_event = threading.Event()
 
     def main(self, writers):
         for sourcename in self.sourcenames:
             self._check_shutdown()
+            if self.drain_event.is_set():
+                break
             with self.create_reader(sourcename) as ireader:
                 oheaders = self.on_sequence(ireader, sourcename)
                 if isinstance(oheaders, (list, tuple)):
@@ -523,8 +538,11 @@ class SourceBlock(Block):
                                     f"list of frame counts, one per output ({len(ospans)}); "
                                     f"got {ostrides!r}")
                             self._commit_spans(ospans, ostrides, ooverlaps)
-                        if any(n == 0 for n in ostrides):
+                        if any(n == 0 for n in ostrides) or self.drain_event.is_set():
                             break
+        close = getattr(self.sourcenames, "close", None)   # a generator of live streams: let it clean up
+        if close is not None:
+            close()
 
     def define_output_nframes(self, _):
         return [self.gulp_nframe] * self.num_outputs()
