@@ -206,3 +206,51 @@ def test_sigterm_finishes_the_images_and_closes_every_file(tmp_path):
     with h5py.File(watch, "r") as f:
         assert bool(f["complete"][()]) and f["FRB1/data"].shape[0] > 0
     assert (tmp_path / "lwasv_sim_transient_candidates.ecsv").exists()
+
+
+def test_the_budget_deletes_the_oldest_first_and_never_a_protected_file():
+    from bf_epic_blocks.service.budget import choose_deletions
+    day = 86400.0
+    files = [("/o/a.fits", 400, 1.0 * day), ("/o/b.fits", 300, 2.0 * day), ("/o/c.h5", 500, 3.0 * day),
+             ("/o/d.fits", 200, 4.0 * day), ("/o/e.png", 100, 5.0 * day)]           # 1,500 bytes in all
+    now = 5.5 * day
+    assert choose_deletions(files, keep_bytes=2000, now=now) == []
+    assert choose_deletions(files, keep_bytes=1000, now=now) == ["/o/a.fits", "/o/b.fits"]     # 1,500 -> 800
+    assert choose_deletions(files, keep_bytes=1000, now=now, protected={"/o/a.fits"}) == \
+        ["/o/b.fits", "/o/c.h5"]                                     # a is open: b and c go instead (1,500 -> 700)
+    assert choose_deletions(files, keep_s=3.0 * day, now=now) == ["/o/a.fits", "/o/b.fits"]   # older than 3 days
+    assert choose_deletions(files, keep_bytes=50, now=now, protected={"/o/c.h5"}) == \
+        ["/o/a.fits", "/o/b.fits", "/o/d.fits", "/o/e.png"]          # all but the protected one
+
+
+def test_a_run_keeps_its_folder_within_the_budget(tmp_path, monkeypatch):
+    """A run with output.keep_days and keep_gb: last week's products in its folder are deleted while it
+    runs (counted in the summary), its own files and files it has open are not."""
+    import os
+
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    monkeypatch.setattr(runner, "BUDGET_EVERY_S", 0.2)
+    old = []
+    for k in range(5):
+        p = tmp_path / f"lwasv_sim_transient_old{k}.fits"
+        p.write_bytes(b"x" * 1000)
+        t = time.time() - (8 - k) * 86400
+        os.utime(p, (t, t))
+        old.append(p)
+    held = tmp_path / "held_open_by_this_process.dat"
+    fh = open(held, "wb")
+    fh.write(b"y" * 1000)
+    fh.flush()
+    os.utime(held, (time.time() - 9 * 86400,) * 2)
+    try:
+        cfg = load_config("pipelines/lwasv_sim_transient.yaml", [
+            "source.duration_s=0.45", "output.cube=null", "imager.grid.size=16", f"output.dir={tmp_path}",
+            "watch=null", "output.keep_days=7"])
+        summary = runner.run(cfg, show_progress=False)
+    finally:
+        fh.close()
+    assert [p.exists() for p in old] == [False, False, True, True, True]      # 8 and 7+ days old: gone
+    assert held.exists()                                                     # open: kept however old
+    assert summary["output_budget"]["deleted_files"] == 2
+    assert (tmp_path / "lwasv_sim_transient_candidates.ecsv").exists()

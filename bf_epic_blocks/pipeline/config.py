@@ -856,6 +856,11 @@ SCHEMA = Section({
                          doc="FITS and PNG of longer images than the imager's (a cube and the search still see "
                              "every image); null: each image as the imager makes it."),
         "cube": Key(OUTPUT_CUBE, None, doc="HDF5 image cubes with a time axis; null: none."),
+        "keep_gb": Key(Float(0.0, lo_open=True), None,
+                       doc="Keep `dir` within this many GB while the run goes: the oldest files go first, never "
+                           "one being written (guide/service.md); null: no limit."),
+        "keep_days": Key(Float(0.0, lo_open=True), None,
+                         doc="Delete files in `dir` older than this many days while the run goes; null: none."),
     }, what="an output mapping"), {}, doc="What is written, and where."),
 }, what="a pipeline mapping",
     doc="Numbers such as `1e-3` are read as numbers, although YAML 1.1 (PyYAML) reads them as strings.")

@@ -51,6 +51,7 @@ class Graph:
     solver: object = None
     watch: object = None
     snippets: object = None
+    budget: object = None          # the output budget's sweeper while the run goes
 
     @property
     def sinks(self):
@@ -806,6 +807,8 @@ def block_timing(blocks, t0):
 
 #: seconds without a finished gulp anywhere before ``run`` logs where each block is (:mod:`.watchdog`)
 STALL_WARN_S = 60.0
+#: seconds between the output budget's sweeps (``output.keep_gb`` / ``keep_days``)
+BUDGET_EVERY_S = 30.0
 #: seconds a SIGTERM leaves the blocks to finish their images and close their files before they are stopped
 STOP_TIMEOUT_S = 30.0
 
@@ -890,8 +893,13 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
     log.info("running %s: %s source -> %s%s%s imager -> %s", cfg["name"], cfg["source"]["kind"],
              "interference flagging -> " if flagging_enabled(cfg) else "",
              "" if type(g.calfold).__name__ != "CalFoldBlock" else "calfold -> ", cfg["imager"]["kind"], g.outdir)
-    service = None
+    service = budget = None
     try:
+        out = cfg["output"]
+        if out.get("keep_gb") is not None or out.get("keep_days") is not None:
+            from ..service.budget import OutputBudget
+            budget = OutputBudget(g.outdir, out.get("keep_gb"), out.get("keep_days"), every_s=BUDGET_EVERY_S).start()
+            g.budget = budget
         if cfg.get("service"):
             service = _start_service(cfg, g)
             if service_ready is not None:
@@ -915,6 +923,8 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
             g.writer.close()
         if g.watch is not None:
             g.watch.close()         # the PNGs its helper process still draws
+        if budget is not None:
+            budget.stop()
         if service is not None:
             service.monitor.finished = True
             summary_service = dict(service.stats, url=service.url)
@@ -938,6 +948,8 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
     }
     summary["blocks"] = block_timing(g.pipeline.blocks, t0)
     summary["stopped_by"] = stopped["signal"]
+    if budget is not None:
+        summary["output_budget"] = dict(budget.stats)
     if service is not None:
         summary["service"] = summary_service
     summary["started_unix_s"] = t0_unix      # the blocks' times are seconds after this (time.time())

@@ -125,6 +125,8 @@ class Monitor:
         except OSError:
             snap["disk"] = None
         snap["gpu"] = _gpu_memory() if self.cfg["device"] != "cpu" else None
+        if getattr(g, "budget", None) is not None:
+            snap["budget"] = dict(g.budget.stats)
         return snap
 
 
