@@ -254,3 +254,39 @@ def test_a_run_keeps_its_folder_within_the_budget(tmp_path, monkeypatch):
     assert held.exists()                                                     # open: kept however old
     assert summary["output_budget"]["deleted_files"] == 2
     assert (tmp_path / "lwasv_sim_transient_candidates.ecsv").exists()
+
+
+def test_the_systemd_unit_restarts_on_failure_and_stops_gracefully():
+    """tools/systemd/bf-epic@.service: restarted on failure, journald logging, SIGTERM to stop with
+    more time than the run takes to close its files, and `bf-epic run` of the instance's YAML."""
+    import configparser
+    from pathlib import Path
+
+    from bf_epic_blocks.pipeline import runner
+    unit = Path(__file__).resolve().parent.parent / "tools" / "systemd" / "bf-epic@.service"
+    cp = configparser.ConfigParser(interpolation=None, strict=False)
+    cp.optionxform = str
+    cp.read_string(unit.read_text())
+    svc = cp["Service"]
+    assert svc["Restart"] == "on-failure" and svc["KillSignal"] == "SIGTERM"
+    assert float(svc["TimeoutStopSec"]) > runner.STOP_TIMEOUT_S
+    assert svc["StandardOutput"] == "journal" and svc["StandardError"] == "journal"
+    assert " run /etc/bf-epic/%i.yaml" in svc["ExecStart"] and svc["ExecStart"].split()[0].endswith("/bf-epic")
+    assert cp["Install"]["WantedBy"] == "multi-user.target"
+
+
+def test_systemd_accepts_the_unit(tmp_path):
+    """`systemd-analyze verify` on the unit (where systemd is installed): its only complaint here is
+    that /opt/bf-epic is not installed on this machine."""
+    import shutil
+    import subprocess
+    from pathlib import Path
+    exe = shutil.which("systemd-analyze")
+    if exe is None:
+        pytest.skip("systemd-analyze is not installed")
+    unit = Path(__file__).resolve().parent.parent / "tools" / "systemd" / "bf-epic@.service"
+    (tmp_path / "bf-epic@test.service").write_text(unit.read_text())
+    r = subprocess.run([exe, "verify", "--man=no", str(tmp_path / "bf-epic@test.service")],
+                       capture_output=True, text=True, timeout=60)
+    lines = [ln for ln in (r.stdout + r.stderr).splitlines() if ln.strip()]
+    assert all("/opt/bf-epic/.venv/bin/bf-epic is not executable" in ln for ln in lines), lines
