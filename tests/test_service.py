@@ -102,6 +102,7 @@ def test_refusals(served):
     srv, _, bus = served
     assert _get(srv.url + "/../../etc/passwd")[0] == 404
     assert _get(srv.url + "/output/x.fits")[0] == 404                       # no files are served
+    assert _get(srv.url + "/png/image")[0] == 404 and _get(srv.url + "/png/..%2f..%2fetc%2fpasswd")[0] == 404
     assert _get(srv.url + "/metrics", data=b"x", method="PUT")[0] == 405
     assert _get(srv.url + "/trigger", data=b"GRB")[0] == 401                 # no token
     assert _get(srv.url + "/trigger", data=b"GRB", headers={"Authorization": "Bearer wrong-token-xxxxxxxx"})[0] == 401
@@ -145,8 +146,8 @@ def test_a_run_scraped_while_it_goes(tmp_path):
     token = "tok-" + "x" * 20
     cfg = load_config("pipelines/lwasv_sim_transient.yaml", [
         "source.duration_s=0.45", "output.cube=null", "imager.grid.size=16", "imager.search=null",
-        f"output.dir={tmp_path}", "watch.png_every_s=10", f"service={{listen: '127.0.0.1:0', token: {token}}}"])
-    seen = []
+        f"output.dir={tmp_path}", "watch.png_every_s=0.05", f"service={{listen: '127.0.0.1:0', token: {token}}}"])
+    seen, pics, got, page = [], {}, {}, []
 
     def scrape(srv):
         def loop():
@@ -160,6 +161,12 @@ def test_a_run_scraped_while_it_goes(tmp_path):
                 if len(seen) == 1:
                     _get(srv.url + "/trigger", data=b"operator", headers={"Authorization": f"Bearer {token}"})
                     seen.append(_get(srv.url + "/health")[0])
+                pics.update(srv.pictures())
+                for k in srv.pictures():
+                    req = urllib.request.Request(srv.url + f"/png/{k}")
+                    with urllib.request.urlopen(req, timeout=10) as r:
+                        got[k] = (r.status, r.read()[:8])
+                page.append(_get(srv.url + "/")[1])
                 time.sleep(0.6)
         threading.Thread(target=loop, daemon=True).start()
 
@@ -170,7 +177,10 @@ def test_a_run_scraped_while_it_goes(tmp_path):
     assert summary["service"]["requests"] >= 3 and summary["service"]["triggers"] == 1
     assert summary["watch"]["triggers"]["from_requests"] == 1
     assert len(list(tmp_path.glob("*_snippet_*http-operator*.h5"))) == 1
-
+    # the page shows the watch targets' PNGs once drawn, each served by its key and nothing by a path
+    assert any(k.startswith("watch-") for k in got), pics
+    assert all(v == (200, b"\x89PNG\r\n\x1a\n") for v in got.values()), got
+    assert any('src="/png/watch-' in p for p in page)
 
 def test_sigterm_finishes_the_images_and_closes_every_file(tmp_path):
     """systemd stops a service with SIGTERM: `bf-epic run` ends the data, the blocks finish the images

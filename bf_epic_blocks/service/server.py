@@ -7,12 +7,14 @@ sockets, never on the pipeline's threads):
   snapshot taken at each scrape;
 * ``GET /health``: JSON ``{"status": "go" | "degraded" | "down", "reasons": [...], ...}``, HTTP 200, or
   503 when down (:func:`~.monitor.assess`);
-* ``GET /``: a small status page that refreshes itself (health and key figures);
+* ``GET /``: a small status page that refreshes itself (health, key figures, the latest PNGs);
+* ``GET /png/KEY``: one of the PNGs the run wrote that the page shows (:meth:`Service.pictures`);
 * ``POST /trigger``: a triggered save (the watchlist's, ``watch:``) with the request body's first line as
   its reason; it changes state, so it needs the service's token (``Authorization: Bearer TOKEN``) and is
   refused (403) where no token is configured.
 
-Nothing else is served: no files, so no path reaches the disk. Requests over 64 KiB are refused (413);
+Nothing else is served: the PNGs are looked up by key among the run's own files, so no path in a
+request reaches the disk. Requests over 64 KiB are refused (413);
 header lines over aiohttp's 8 KiB limit are refused (400). The service binds to the loopback interface
 unless the YAML's ``service.allow_remote`` says otherwise.
 """
@@ -123,7 +125,7 @@ _PAGE = """<!doctype html><html lang="en"><head><meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1"><meta http-equiv="refresh" content="5">
 <title>bf-epic: {name}</title><style>body{{font-family:sans-serif;margin:1em;max-width:50em}}
 .go{{color:#080}}.degraded{{color:#a60}}.down{{color:#c00}}td{{padding:.1em .8em}}</style></head><body>
-<h1>{name}</h1><p class="{status}"><b>{status}</b></p><ul>{reasons}</ul><table>{rows}</table>
+<h1>{name}</h1><p class="{status}"><b>{status}</b></p><ul>{reasons}</ul><table>{rows}</table>{pictures}
 <p><a href="/metrics">metrics</a> &middot; <a href="/health">health (JSON)</a></p></body></html>"""
 
 
@@ -149,6 +151,26 @@ class Service:
             if self._snap is None or now - self._snap_at > 0.5:
                 self._snap, self._snap_at = self.monitor.snapshot(), now
             return self._snap
+
+    def pictures(self):
+        """{key: path} of the PNGs the run has written that the page shows: ``image`` (the image writer's
+        latest quicklook), ``candidates`` (the search's), ``watch-<target>`` (each watch target's). Only
+        these are served, by key: no path in a request reaches the disk."""
+        g = getattr(self.monitor, "g", None)
+        out = {}
+        if g is None:
+            return out
+        from pathlib import Path
+        writer = getattr(g, "writer", None)
+        pngs = [p for p in (getattr(writer, "written", None) or []) if str(p).endswith(".png")]
+        if pngs:
+            out["image"] = pngs[-1]
+        cands = sorted(Path(g.outdir).glob("*_candidates.png")) if getattr(g, "outdir", None) else []
+        if cands:
+            out["candidates"] = str(cands[-1])
+        for p in (getattr(getattr(g, "watch", None), "pngs", None) or []):
+            out["watch-" + Path(p).stem.rsplit("_", 1)[-1]] = p
+        return {k: str(v) for k, v in out.items() if Path(v).is_file()}
 
     def _app(self):
         from aiohttp import web
@@ -191,10 +213,21 @@ class Service:
                    ("images", (snap.get("imager") or {}).get("images", "-")),
                    ("candidates", (snap.get("search") or {}).get("candidates", "-")),
                    ("watch rows", (snap.get("watch") or {}).get("rows", "-"))]
+            stamp = int(snap["uptime_s"])
+            pics = "".join(f'<figure><img src="/png/{html.escape(k)}?t={stamp}" alt="{html.escape(k)}" '
+                           f'style="max-width:100%"><figcaption>{html.escape(k)}</figcaption></figure>'
+                           for k in sorted(self.pictures()))
             text = _PAGE.format(name=html.escape(self.name), status=status,
                                 reasons="".join(f"<li>{html.escape(r)}</li>" for r in reasons),
-                                rows="".join(f"<tr><td>{k}</td><td>{html.escape(str(v))}</td></tr>" for k, v in fig))
+                                rows="".join(f"<tr><td>{k}</td><td>{html.escape(str(v))}</td></tr>" for k, v in fig),
+                                pictures=pics)
             return web.Response(text=text, content_type="text/html")
+
+        async def picture(request):
+            path = self.pictures().get(request.match_info["key"])
+            if path is None:
+                raise web.HTTPNotFound(text="no such picture (see / for those there are)")
+            return web.FileResponse(path, headers={"Cache-Control": "no-store"})
 
         async def trigger(request):
             if not self.token:
@@ -217,6 +250,7 @@ class Service:
         app.router.add_get("/", page)
         app.router.add_get("/metrics", metrics)
         app.router.add_get("/health", health)
+        app.router.add_get("/png/{key}", picture)
         app.router.add_post("/trigger", trigger)
         return app
 
