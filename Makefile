@@ -24,6 +24,7 @@ $(VENV)/.installed: setup.cfg pyproject.toml
 	touch $@
 
 test: setup
+	PYTHON=$(BIN)/python bash tools/install_system_deps.sh --browser
 	$(BIN)/python -m pytest -q -ra
 
 test-quick: setup

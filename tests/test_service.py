@@ -300,3 +300,65 @@ def test_systemd_accepts_the_unit(tmp_path):
                        capture_output=True, text=True, timeout=60)
     lines = [ln for ln in (r.stdout + r.stderr).splitlines() if ln.strip()]
     assert all("/opt/bf-epic/.venv/bin/bf-epic is not executable" in ln for ln in lines), lines
+
+
+def _browser():
+    """A headless Chromium from the distribution's packages, driven by Selenium (None where absent)."""
+    import shutil
+    webdriver = pytest.importorskip("selenium.webdriver")
+    from selenium.webdriver.chrome.service import Service as DriverService
+    chrome = shutil.which("chromium") or shutil.which("chromium-browser")
+    driver = shutil.which("chromedriver")
+    if not chrome or not driver:
+        pytest.skip("the distribution's chromium and chromium-driver are not installed "
+                    "(tools/install_system_deps.sh --browser)")
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = chrome
+    for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=900,1400"):
+        opts.add_argument(a)
+    return webdriver.Chrome(service=DriverService(executable_path=driver), options=opts)
+
+
+def _png(path, value):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    fig, ax = plt.subplots(figsize=(3, 3))
+    ax.imshow(np.full((8, 8), value), vmin=0, vmax=1)
+    ax.set_title(f"sky {value}")
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def test_the_page_in_a_real_browser(tmp_path):
+    """The status page in headless Chromium: it shows the health, the figures and the run's latest
+    image, and updates by itself (a new image and a new count appear without a reload by the test)."""
+    from types import SimpleNamespace
+    a, b = tmp_path / "run_i0000.png", tmp_path / "run_i0001.png"
+    _png(a, 0.2)
+    mon = FakeMonitor()
+    mon.g = SimpleNamespace(writer=SimpleNamespace(written=[str(a)]), outdir=str(tmp_path), watch=None)
+    srv = Service(mon, "127.0.0.1:0", name="lwasv_live").start()
+    drv = _browser()
+    try:
+        drv.get(srv.url + "/")
+        assert "lwasv_live" in drv.title and "go" in drv.page_source
+        img = drv.find_element("css selector", 'img[alt="image"]')
+        assert drv.execute_script("return arguments[0].complete && arguments[0].naturalWidth", img) > 100
+        # the run goes on: a new image and more images counted; the page refreshes itself (every 5 s)
+        _png(b, 0.8)
+        mon.g.writer.written.append(str(b))
+        mon.snap = _snap(imager={"images": 77}, uptime_s=160.0)
+        t0 = time.monotonic()
+        while "77" not in drv.page_source and time.monotonic() - t0 < 15:
+            time.sleep(0.5)
+        assert "77" in drv.page_source
+        img = drv.find_element("css selector", 'img[alt="image"]')
+        assert drv.execute_script("return arguments[0].naturalWidth", img) > 100
+        assert "t=160" in img.get_attribute("src")
+        drv.save_screenshot(str(tmp_path / "page.png"))
+        assert (tmp_path / "page.png").stat().st_size > 5000
+    finally:
+        drv.quit()
+        srv.stop()
