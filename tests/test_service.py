@@ -362,3 +362,22 @@ def test_the_page_in_a_real_browser(tmp_path):
     finally:
         drv.quit()
         srv.stop()
+
+
+def test_slow_and_many_clients_do_not_hold_the_others(served):
+    """A client that sends half a request and stalls, and 200 clients at once: every other request is
+    still answered, each within a few seconds."""
+    import socket
+    from concurrent.futures import ThreadPoolExecutor
+    srv = served[0]
+    slow = [socket.create_connection((srv.host, srv.port)) for _ in range(20)]
+    for s in slow:
+        s.sendall(b"GET /metrics HTTP/1.1\r\nHost: x\r\n")          # never finished
+    try:
+        t0 = time.monotonic()
+        with ThreadPoolExecutor(200) as ex:
+            codes = list(ex.map(lambda i: _get(srv.url + ("/metrics" if i % 2 else "/"))[0], range(400)))
+        assert codes == [200] * 400 and time.monotonic() - t0 < 30
+    finally:
+        for s in slow:
+            s.close()
