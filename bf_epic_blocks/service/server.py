@@ -38,6 +38,8 @@ log = logging.getLogger(__name__)
 
 #: the largest request body accepted (a trigger's reason is one line)
 MAX_REQUEST_BYTES = 64 * 1024
+#: pending connections the listening socket holds (the kernel caps it at net.core.somaxconn)
+BACKLOG = 1024
 
 
 def parse_listen(text):
@@ -265,7 +267,9 @@ class Service:
             try:
                 self._runner = web.AppRunner(self._app(), access_log=None, handle_signals=False, shutdown_timeout=1.0)
                 loop.run_until_complete(self._runner.setup())
-                site = web.TCPSite(self._runner, self.host, self.port)
+                # a backlog for a station's worth of pages and scrapes connecting at once (aiohttp's 128
+                # drops the rest of a burst of 200)
+                site = web.TCPSite(self._runner, self.host, self.port, backlog=BACKLOG)
                 loop.run_until_complete(site.start())
                 self.port = self._runner.addresses[0][1]
             except Exception as e:  # noqa: BLE001 - reported to start()'s caller
