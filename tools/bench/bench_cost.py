@@ -20,7 +20,6 @@ usage: python tools/bench/bench_cost.py [--case watch flagging solver] [--second
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 from pathlib import Path
