@@ -32,7 +32,7 @@ from ..imaging import rfi
 from ..imaging._xp import get_xp
 from ..runtime.dtypes import ci4_bytes
 from . import _compat
-from ._compat import bfp, span_array, unpack_complex
+from ._compat import bfp, span_array, to_numpy, unpack_complex
 from .headers import derived_header, efield_layout
 from .nonfinite import lookup_tally, register_tally
 
@@ -180,7 +180,7 @@ class RFIFlagBlock(bfp.TransformBlock):
             per = rfi.broadband_flags(P, self.impulse_sigma, per_input=True)   # (nfull, nstand)
             imp[:nfull] = allf
             imp_st[:nfull] = per & ~allf[:, None]
-            imp_h[:nfull] = _host(allf).astype(bool)
+            imp_h[:nfull] = to_numpy(allf).astype(bool)
         # spectral kurtosis per block of m (a last block of at least 64 samples as it is), without impulses
         nb = n // m
         blocks = [(k * m, m) for k in range(nb)]
@@ -227,7 +227,7 @@ class RFIFlagBlock(bfp.TransformBlock):
             per_chan = (cnt[..., -1].astype(xp.int64) * fr).sum(axis=0)          # (nchan,)
             partial = ((used > 0) & (used < nl)).any()
             wholly = (used == 0).any()
-            host = _host(xp.concatenate([by_reason.astype(xp.float64), per_chan.astype(xp.float64),
+            host = to_numpy(xp.concatenate([by_reason.astype(xp.float64), per_chan.astype(xp.float64),
                                          partial.reshape(1).astype(xp.float64), wholly.reshape(1).astype(xp.float64)]))
         counts = host[:len(REASONS) + 1]                                         # by reason, then any reason
         per_chan = host[len(REASONS) + 1:-2]
@@ -381,7 +381,7 @@ class FlagWeights:
         # to the host before another thread sees it: the imager and the search run on their own CUDA
         # streams, which nothing orders after this one's kernels (and CuPy's pool may hand this stream's
         # freed memory back to it while they still read); (nseg, nchan) is a few hundred kB a gulp
-        seg = _host(seg)
+        seg = to_numpy(seg)
         with self._cond:
             if self._seq != tag0:
                 return
@@ -436,9 +436,6 @@ def _repeats(frames):
     frames = np.asarray(frames)
     return int(frames[0]) if frames.size and (frames == frames[0]).all() else [int(f) for f in frames]
 
-
-def _host(a):
-    return a.get() if hasattr(a, "get") else np.asarray(a)
 
 
 def rfi_flag(iring, *args, **kwargs):

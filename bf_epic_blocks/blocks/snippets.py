@@ -30,16 +30,12 @@ from pathlib import Path
 import numpy as np
 
 from . import _compat
-from ._compat import bfp, span_array
+from ._compat import bfp, span_array, to_numpy
 
 __all__ = ["SnippetBlock", "TriggerBus"]
 
 log = logging.getLogger(__name__)
 
-
-def _host(a):
-    """A NumPy copy of a CuPy array (NumPy arrays as they are)."""
-    return a.get() if hasattr(a, "get") else np.asarray(a)
 
 
 class TriggerBus:
@@ -151,7 +147,7 @@ class SnippetBlock(bfp.SinkBlock):
             band = x[:, :, 0].mean(axis=1)                     # (n, pixels...): the band mean, first product
             self._remember(t, band)
             if self._open is not None:                         # only an open snippet brings images to the host
-                self._append_open(t, _host(band))
+                self._append_open(t, to_numpy(band))
         for when, reason in self._triggers(t[-1]):
             self._trigger(when, reason)
 
@@ -181,7 +177,7 @@ class SnippetBlock(bfp.SinkBlock):
         order = np.argsort(self._ring_t)                       # NaN (empty) last
         order = order[~np.isnan(self._ring_t[order])]
         with _compat.stream_context():
-            return self._ring_t[order], _host(self._ring)[order]
+            return self._ring_t[order], to_numpy(self._ring)[order]
 
     def _triggers(self, now):
         """The bus's triggers, with each new file of ``trigger_dir`` posted to it first (at the data's time
