@@ -104,3 +104,38 @@ def test_the_sharded_engine_images_whole_integrations_only(method):
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
     with pytest.raises(ValueError, match="whole integrations only"):
         eng.image_gulp(X[:15], out)
+
+
+def test_a_gulp_that_crosses_a_tracking_step_is_batched_on_each_side_with_the_right_pixels():
+    """Tracking pixels held for steps of 30 frames (3 integrations of 10), gulps of 40 frames: each gulp
+    crosses a step. The integrations before a step are made by one batched call, and those after it by
+    another with the operator rebuilt (a lone integration, as at frame 30, one at a time: the CPU
+    route batches two or more), and each image is the float64 DFT at its own pixels."""
+    from bf_epic_blocks.blocks.headers import efield_layout
+    xyz, freq, X, lm = scene(T=80)
+    flags = np.zeros((len(xyz), 2), bool)
+    hdr = efield_header("a", 0, freq, DT, {"xyz_m": xyz, "flags": flags}, dtype="cf32")
+    tpf = efield_layout(hdr, "test")["ticks_per_frame"]
+
+    def pixels_at(frame):
+        return lm + 0.05 * (frame // 30)
+
+    with bfp.Pipeline():
+        src = ArraySourceBlock(X, hdr, gulp_nframe=40)
+        img = DFTImagerBlock(src, lambda tag: pixels_at(int(tag // tpf)), 10, products=("XX",), precision="fp64")
+    ohdr = img.on_sequence(types.SimpleNamespace(header=hdr))
+    eng = img.engine
+    whole, batched = eng._whole, []
+
+    def spy_whole(pos, g, out, nout):
+        batched.append((eng.frame + pos, g))
+        return whole(pos, g, out, nout)
+    eng._whole = spy_whole
+    out = np.zeros([8] + list(ohdr["_tensor"]["shape"][1:]), np.float32)
+    got = eng.image_gulp(X[:40], out)
+    got += eng.image_gulp(X[40:80], out[got:])
+    assert got == 8
+    assert batched == [(0, 3), (40, 2), (60, 2)]
+    assert img.img_stats["operator_builds"] == 3
+    ref = np.stack([brute_image(X[i:i + 10], xyz, freq, pixels_at(i), ("XX",)) for i in range(0, 80, 10)])
+    np.testing.assert_allclose(out[:got], ref, rtol=0, atol=1e-5 * np.abs(ref).max())

@@ -221,6 +221,48 @@ def test_the_search_ignores_sparks_and_a_carrier_and_still_finds_the_burst(tmp_p
     assert best["dm"] == 1.0
 
 
+def test_a_stand_s_own_spark_near_a_bright_source_is_no_candidate(tmp_path):
+    """One stand's 1-image spark under a bright source. The flagger takes that stand out of that image only
+    (not the whole band's stands, as a detector of the summed power would; not the stand for the whole
+    kurtosis block, as a spark's high kurtosis would), which still changes the array's beam for one image
+    across the band: the source's sidelobes jump as a burst at DM 0 would. The search takes that image as
+    missing: no candidate near it, and the image is counted."""
+    from bf_epic_blocks.blocks import TransientSearchBlock
+    from bf_epic_blocks.conventions import FS_HZ
+    from bf_epic_blocks.io.candidates import CandidateWriter
+    from bf_epic_blocks.search import SearchSettings
+
+    rng = np.random.default_rng(8)
+    nst, acc, nchan = 24, 16, 16
+    xyz = np.c_[rng.uniform(-30, 30, (nst, 2)), rng.normal(0, 0.3, nst)]
+    freq = 74e6 + 25e3 * np.arange(nchan)
+    T = int(0.3 / DT) // acc * acc
+    noise = 1.0
+    # a source as the sky's are, Gaussian noise from one direction (its kurtosis is noise's), twice the
+    # receiver noise per stand
+    src = _gauss(rng, (T, nchan, 1, 2), 2 * noise) * _phase(xyz, freq, 0.1, 0.2)[None, :, :, None]
+    X = (src + _gauss(rng, (T, nchan, nst, 2), noise)).astype(np.complex64)
+    spark = 230 * acc                                                   # one image, stand 7, 40x the noise
+    X[spark:spark + acc, :, 7] += _gauss(rng, (acc, nchan, 2), 40 * noise)
+    st = {"name": "lwasv", "xyz_m": xyz, "lat_deg": 34.3484, "lon_deg": -106.8858, "elev_m": 1477.0}
+    hdr = efield_header("spark", int(1717236000 * FS_HZ), freq, DT, st, dtype="cf32")
+    with bfp.Pipeline() as p:
+        src_b = ArraySourceBlock(X, hdr, gulp_nframe=1024)
+        w = FlagWeights(acc, track_empty=True)
+        fb = RFIFlagBlock(src_b, far=1e-3, block_frames=1024, impulse_frames=acc, weights=w)
+        img = DFTImagerBlock(fb, imaging.lm_grid(16), acc, products=["I"], pattern=False, flag_weights=w)
+        srch = TransientSearchBlock(img, SearchSettings(threshold=6.0, window_s=0.1, dms=[0.0, 0.5, 1.0]),
+                                    writer=CandidateWriter(tmp_path / "c"), flag_weights=w)
+        p.run()
+    assert fb.flag_stats["flagged"]["impulse-stand"] == acc * nchan          # the spark, on stand 7 only
+    assert fb.flag_stats["flagged"]["impulse"] == 0
+    assert w.stats["images_missing_stand_spark"] == 1
+    # nothing near the spark's image, nor at the edges of its SK block (images 192 and 256): the spark's
+    # samples are left out of stand 7's kurtosis, which would otherwise flag the stand for the whole block
+    near = [(int(r["image"]), round(float(r["snr"]), 1)) for r in srch.candidates if 188 <= int(r["image"]) <= 260]
+    assert not near, near
+
+
 def test_bad_flagging_input_is_a_clear_error(tmp_path):
     from bf_epic_blocks.pipeline.config import ConfigError, load_config
     from bf_epic_blocks.pipeline.runner import build_graph, run

@@ -181,6 +181,44 @@ def test_watchfile_round_trip_and_reading_while_written(tmp_path):
         assert bool(f["complete"][()])
 
 
+def test_a_writer_that_holds_rows_writes_them_once_they_span_flush_s(tmp_path):
+    """flush_s: rows are held until they span that much data (or fill max_pending_bytes), then written
+    in order with their times and the bodies' positions; close() writes what is left."""
+    path = tmp_path / "held.h5"
+    rng = np.random.default_rng(3)
+    entries = ["CygA", {"name": "B1", "ra_deg": 310.0, "dec_deg": 20.0, "offsets_deg": [[1.0, 0.0]]},
+               {"name": "Sun", "body": "sun"}]
+    ndir, n = 4, 25                               # CygA, B1 and its offset, Sun; 25 rows an append
+    times = 1.7e9 + np.arange(8 * n) * 0.01       # 0.25 s of data an append
+    data = rng.normal(size=(8 * n, ndir, 5, 2)).astype(np.float32)
+    radec = np.stack([np.full((8 * n, 2), [299.87, 40.73]), np.full((8 * n, 2), [310.0, 20.0]),
+                      np.c_[100 + times * 1e-6, 23 + 0 * times]], axis=1)
+    with WatchWriter(path, entries, np.linspace(40e6, 50e6, 5), ["I", "V"], flush_s=0.6) as w:
+        in_file = []
+        for k in range(7):
+            w.append(times[k * n:(k + 1) * n], data[k * n:(k + 1) * n], radec[k * n:(k + 1) * n])
+            in_file.append(_file_rows(path, "B1"))
+            assert w.rows == (k + 1) * n
+        # rows 0..74 span 0.74 s >= 0.6 after the third append; the next three appends the same again
+        assert in_file == [0, 0, 3 * n, 3 * n, 3 * n, 6 * n, 6 * n]
+        assert w.nrows == 6 * n
+    got = read_watch(path)
+    m = 7 * n
+    np.testing.assert_array_equal(got["CygA"]["data"], data[:m, 0])
+    np.testing.assert_array_equal(got["B1"]["data"], data[:m, 1])
+    np.testing.assert_array_equal(got["B1"]["offset_data"], data[:m, 2:3])
+    np.testing.assert_array_equal(got["Sun"]["data"], data[:m, 3])
+    np.testing.assert_array_equal(got["Sun"]["time_unix"], times[:m])
+    np.testing.assert_array_equal(got["Sun"]["ra_deg"], radec[:m, 2, 0])
+    # a small max_pending_bytes writes as often as it fills, whatever flush_s says
+    row_bytes = ndir * 5 * 2 * 4
+    with WatchWriter(tmp_path / "small.h5", entries, np.linspace(40e6, 50e6, 5), ["I", "V"], flush_s=100.0,
+                     max_pending_bytes=10 * row_bytes) as w:
+        w.append(times[:n], data[:n], radec[:n])
+        assert (w.nrows, w.rows) == (20, n)
+    np.testing.assert_array_equal(read_watch(tmp_path / "small.h5")["B1"]["offset_data"], data[:n, 2:3])
+
+
 def test_watchfile_checks_shapes(tmp_path):
     with WatchWriter(tmp_path / "w.h5", ["CygA", "sun"], [50e6], ["I"]) as w:
         with pytest.raises(ValueError, match="shape"):

@@ -129,8 +129,9 @@ class Engine:
                     if self.acc.ntime == 0 and self.solution_hook is not None:
                         g = min(g, self.solution_hook(self, pos, max(g, 1)))
                     least = self._batch_min()
-                    if self.acc.ntime == 0 and least is not None and g >= least and \
-                            (not tracking or self._held(pos, g)):
+                    if self.acc.ntime == 0 and least is not None and g >= least and tracking:
+                        g = self._held_count(pos, g)        # those made with the pixels of now
+                    if self.acc.ntime == 0 and least is not None and g >= least:
                         self._whole(pos, g, out, nout)
                         nout += g
                         pos += g * A
@@ -178,13 +179,17 @@ class Engine:
                 raise ValueError("DFTImagerBlock: a tracking pixel function must keep the pixel count")
             self._rebuild(lm)
 
-    def _held(self, pos, g):
-        """Whether a tracking pixel function gives the current pixels for every one of the g integrations
-        from frame ``pos`` (it holds them for steps of time, e.g. the watchlist's second): its last
-        integration's pixels equal the first's, so the g images are made by one batched call."""
-        tag = self.time_tag + (self.frame + pos + (g - 1) * self.accumulate) * self.ticks_per_frame
-        lm = np.asarray(self.pixels_fn(tag), dtype=np.float64)
-        return lm.shape == self.lm.shape and np.array_equal(lm, self.lm)
+    def _held_count(self, pos, g):
+        """How many of the g integrations from frame ``pos`` a tracking pixel function gives the current
+        pixels for (it holds them for steps of time, e.g. the watchlist's second): those are made by one
+        batched call, and the next call starts at the integration whose pixels moved (rebuilt there), so
+        that a gulp crossing a step is two batched calls, not one integration at a time."""
+        for k in range(1, g):
+            tag = self.time_tag + (self.frame + pos + k * self.accumulate) * self.ticks_per_frame
+            lm = np.asarray(self.pixels_fn(tag), dtype=np.float64)
+            if lm.shape != self.lm.shape or not np.array_equal(lm, self.lm):
+                return k
+        return g
 
     def _rebuild(self, lm):
         raise NotImplementedError

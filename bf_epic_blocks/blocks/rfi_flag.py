@@ -171,16 +171,19 @@ class RFIFlagBlock(bfp.TransformBlock):
         if ns > nfull:
             frames[-1] = n - nfull * a
         imp_h = np.zeros(ns, bool)
+        st_h = None
         imp = xp.zeros(ns, bool)
         imp_st = xp.zeros((ns, nstand), bool)
         if nfull >= 3:
             if self._static_host.any():
                 P = xp.where(self._static[None, :, None], xp.float32(0.0), P)  # listed channels weigh nothing
-            allf = rfi.broadband_flags(P, self.impulse_sigma)                  # (nfull,)
             per = rfi.broadband_flags(P, self.impulse_sigma, per_input=True)   # (nfull, nstand)
+            allf = rfi.broadband_flags(self._band_power(P, per), self.impulse_sigma)   # (nfull,)
             imp[:nfull] = allf
             imp_st[:nfull] = per & ~allf[:, None]
-            imp_h[:nfull] = to_numpy(allf).astype(bool)
+            both = to_numpy(xp.concatenate([allf[:, None], imp_st[:nfull]], axis=1))   # one copy to the host
+            imp_h[:nfull] = both[:, 0]
+            st_h = both[:, 1:]                                                # (nfull, nstand) own sparks
         # spectral kurtosis per block of m (a last block of at least 64 samples as it is), without impulses
         nb = n // m
         blocks = [(k * m, m) for k in range(nb)]
@@ -205,12 +208,52 @@ class RFIFlagBlock(bfp.TransformBlock):
                     part = xp.where(k, part, xp.zeros((), part.dtype))
                 s1, s2 = rfi.power_sums(part, mm, ci4=ci4)
             code[i] = rfi.sk_code(s1, s2, used, self.far, bits=self._bits)[0]
+            if st_h is not None:
+                self._sk_without_own_sparks(code[i], x, t0, mm, hit[t0:t0 + mm], st_h, ci4)
         # each short block's SK block (m is a multiple of a: a short block lies in one)
         which = np.minimum(np.arange(ns) * a // m, max(len(blocks) - 1, 0)).astype(np.int32)
         which[(np.arange(ns) * a) >= sum(mm for _, mm in blocks)] = -1
         cnt = rfi.apply_flags(self._bytes(raw), self._bytes(out[:n]), code, which, imp, imp_st, self._static,
                               self._live, a, self.spread * max(1, self._nlive))
         return cnt, frames
+
+    def _sk_without_own_sparks(self, code, x, t0, mm, hit, st_h, ci4):
+        """A stand whose own spark was flagged in a short block of the SK block [t0, t0 + mm) has its SK
+        taken again without that spark's samples (nor the band-wide impulses' ``hit``), into ``code``
+        (nchan, nstand) in place: otherwise the spark raises the stand's kurtosis in every channel and the
+        stand is flagged for the whole block, a step in the array's beam across the band at the block's
+        edges that the search sees as a burst at DM 0. Sparks are rare, so this is a loop over the stands
+        that had one (none in most gulps)."""
+        a = self.impulse_frames
+        j0, j1 = t0 // a, min(st_h.shape[0], -(-(t0 + mm) // a))
+        sub = st_h[j0:j1]
+        for s in np.flatnonzero(sub.any(axis=0)):
+            bad = hit.copy()
+            for j in j0 + np.flatnonzero(sub[:, s]):
+                bad[max(j * a - t0, 0):min((j + 1) * a - t0, mm)] = True
+            used = mm - int(bad.sum())
+            if used < rfi.MIN_M_QUANTISED:
+                code[:, s] = 0                                    # mostly spark: flagged as such
+                continue
+            keep = self._xp.asarray(~bad).reshape((mm,) + (1,) * (x.ndim - 1))
+            part = x[t0:t0 + mm, :, s:s + 1]
+            s1, s2 = rfi.power_sums(self._xp.where(keep, part, self._xp.zeros((), part.dtype)), mm, ci4=ci4)
+            code[:, s] = rfi.sk_code(s1, s2, used, self.far, bits=self._bits)[0][:, 0]
+
+    def _band_power(self, P, per):
+        """(nfull, nchan, 1): each short block's power summed over the stands for the band-wide detector,
+        without the stands that ``per`` (nfull, nstand) says sparked on their own (the rest scaled up to
+        all the live stands) where fewer than half the live stands did: one stand's spark, 40 times its
+        noise, raises a 24-stand array's total by more than half and would otherwise flag every stand.
+        Where half or more sparked at once, the spark is the sky's, and the plain sum is kept."""
+        xp = self._xp
+        live = P.sum(axis=(0, 1)) > 0                                          # (nstand,)
+        nl = xp.maximum(live.sum(), 1).astype(xp.float32)
+        own = per & live[None, :]
+        k = own.sum(axis=1).astype(xp.float32)                                 # (nfull,)
+        total = P.sum(axis=2)
+        kept = xp.where(own[:, None, :], xp.float32(0.0), P).sum(axis=2) * (nl / xp.maximum(nl - k, 1))[:, None]
+        return xp.where((2 * k < nl)[:, None], kept, total)[..., None]
 
     def on_data(self, ispan, ospan):
         raw = span_array(ispan)
@@ -227,13 +270,17 @@ class RFIFlagBlock(bfp.TransformBlock):
             per_chan = (cnt[..., -1].astype(xp.int64) * fr).sum(axis=0)          # (nchan,)
             partial = ((used > 0) & (used < nl)).any()
             wholly = (used == 0).any()
+            stand_imp = cnt[..., REASONS.index("impulse-stand")].max(axis=1) > 0  # (ns,) a stand's own spark
             host = to_numpy(xp.concatenate([by_reason.astype(xp.float64), per_chan.astype(xp.float64),
+                                         stand_imp.astype(xp.float64),
                                          partial.reshape(1).astype(xp.float64), wholly.reshape(1).astype(xp.float64)]))
         counts = host[:len(REASONS) + 1]                                         # by reason, then any reason
-        per_chan = host[len(REASONS) + 1:-2]
+        nch = self._lay["nchan"]
+        per_chan = host[len(REASONS) + 1:len(REASONS) + 1 + nch]
+        stand_imp = host[len(REASONS) + 1 + nch:-2] > 0
         partial, wholly = bool(host[-2]), bool(host[-1])
         if self.weights is not None:
-            self.weights.add(self._tag0, first, used, frames, nl, partial, wholly)
+            self.weights.add(self._tag0, first, used, frames, nl, partial, wholly, altered=stand_imp)
         self._frame = first + n
         nlive = nl
         st = self.flag_stats
@@ -352,6 +399,13 @@ class FlagWeights:
     rescaled; the rest (q = 1, or 0 with zero data) are left as they are. ``take`` and ``take_empty``
     hand out NumPy arrays on any device: they cross from the flagger's thread and CUDA stream to the
     imager's and the search's.
+
+    For the search (``track_empty``), an image is missing in a channel where it kept nothing, and in
+    every channel where a stand's own spark took that stand out of part of it: rescaling restores a
+    point source's flux, not the array's beam, so the bright sources' sidelobes change in that one
+    image across the band, which is what a burst at DM 0 looks like (on a whole-band sky, dozens of
+    candidates from a few false alarms a minute). Spectral-kurtosis flags change one channel's beam at
+    block boundaries only, which the search does not see.
     """
 
     def __init__(self, accumulate, track_empty=False):
@@ -359,16 +413,17 @@ class FlagWeights:
         self.A, self.track_empty = int(accumulate), bool(track_empty)
         self._cond = threading.Condition()
         self._seq, self._chunks, self._empty, self._open = None, [], [], None
-        self.stats = {"images_rescaled": 0, "channel_images_filled": 0}
+        self.stats = {"images_rescaled": 0, "channel_images_filled": 0, "images_missing_stand_spark": 0}
 
     def begin(self, tag0):
         with self._cond:
             self._seq, self._chunks, self._empty, self._open = tag0, [], [], None
 
-    def add(self, tag0, first, used, frames, nlive, partial, wholly=False):
+    def add(self, tag0, first, used, frames, nlive, partial, wholly=False, altered=None):
         """The flagger's gulp at frame ``first``: ``used`` (ns, nchan) stands left per short block of
         ``frames`` (ns,) frames; ``partial``: whether any short block kept part of the array; ``wholly``:
-        whether any (short block, channel) kept nothing."""
+        whether any (short block, channel) kept nothing; ``altered`` (ns,) host bool or None: the short
+        blocks in which a stand's own spark took it out (their images are missing for the search)."""
         xp = get_xp(used)
         u = (used.astype(xp.float64) / max(1, nlive)) ** 2
         u = xp.repeat(u, _repeats(frames), axis=0)                            # (n, nchan) per frame
@@ -382,24 +437,29 @@ class FlagWeights:
         # streams, which nothing orders after this one's kernels (and CuPy's pool may hand this stream's
         # freed memory back to it while they still read); (nseg, nchan) is a few hundred kB a gulp
         seg = to_numpy(seg)
+        alt = np.zeros(n, bool) if altered is None else np.repeat(np.asarray(altered, bool), frames)
         with self._cond:
             if self._seq != tag0:
                 return
             for j in range(len(cuts) - 1):
                 t0, t1 = cuts[j], cuts[j + 1]
                 img = (first + t0) // A
+                a = bool(alt[t0:t1].any())
                 if self._open is None or self._open[0] != img:
-                    self._open = [img, seg[j], t1 - t0, partial, wholly]
+                    self._open = [img, seg[j], t1 - t0, partial, wholly, a]
                 else:
                     self._open[1] = self._open[1] + seg[j]
                     self._open[2] += t1 - t0
                     self._open[3] = self._open[3] or partial
                     self._open[4] = self._open[4] or wholly
+                    self._open[5] = self._open[5] or a
                 if self._open[2] == A:
                     q = self._open[1] / A
                     self._chunks.append((img, q, self._open[3]))
                     if self.track_empty:
-                        self._empty.append((img, q == 0, self._open[4]))
+                        if self._open[5]:
+                            self.stats["images_missing_stand_spark"] += 1
+                        self._empty.append((img, (q == 0) | self._open[5], self._open[4] or self._open[5]))
                     self._open = None
             self._cond.notify_all()
 

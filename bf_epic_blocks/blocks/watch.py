@@ -90,12 +90,15 @@ class WatchWriterBlock(bfp.SinkBlock):
         curve (its first product) rises more than ``trigger_sigma`` robust sigma (1.4826 MAD) above its
         median over the last ``ring_s`` of data (once that holds 32 images); None: no triggers.
     png_process : draw the PNGs in a helper process (:meth:`write_pngs`; `bf-epic run` does on a GPU).
-    ``rows`` counts the images written; ``inactive`` the direction-rows written as NaN; ``triggers`` the
+    ``rows`` counts the images received (the file holds them within WRITE_EVERY_S of data); ``inactive`` the direction-rows written as NaN; ``triggers`` the
     triggers posted; ``png_skipped`` the PNG rounds skipped while the last was still drawing.
     """
 
     #: time bins across a PNG (a minute of 0.64-ms images is ~94,000)
     PNG_COLUMNS = 1000
+    #: seconds of data the file's writer holds before it writes them (each HDF5 write holds the lock the
+    #: pipeline's other threads need for about as long for one gulp's rows as for a second's)
+    WRITE_EVERY_S = 1.0
 
     def __init__(self, iring, path, pixels, png_every_s=60.0, bus=None, trigger_sigma=None, ring_s=2.0,
                  png_process=False, **kwargs):
@@ -135,7 +138,8 @@ class WatchWriterBlock(bfp.SinkBlock):
         self._tag_per_image = self._dt * FS_HZ
         if self._writer is None:
             path = self.path if self._nseq == 0 else self.path.with_name(f"{self.path.stem}_s{self._nseq:02d}.h5")
-            self._writer = WatchWriter(path, self.pixels.targets, self._freq, self._products)
+            self._writer = WatchWriter(path, self.pixels.targets, self._freq, self._products,
+                                       flush_s=self.WRITE_EVERY_S)
             log.info("WatchWriterBlock: %d targets (%d directions), %s, every %.3g ms image -> %s",
                      len(self.pixels.targets), self._writer.ndir, "/".join(self._products), 1e3 * self._dt,
                      self._writer.path)
@@ -228,7 +232,7 @@ class WatchWriterBlock(bfp.SinkBlock):
         hold the lock the pipeline's other threads need, and a stalled writer stalls the imagers through
         the rings); a round that finds the last one still drawing is skipped and counted
         (``png_skipped``); ``wait``: wait for this round (the sequence's last)."""
-        if self._writer is None or self._writer.nrows == 0:
+        if self._writer is None or self._writer.rows == 0:
             return []
         t, binned = self._png.rows()
         jobs = [(str(self._writer.path.with_name(f"{self._writer.path.stem}_{tg.name}.png")), t, self._freq,

@@ -15,9 +15,12 @@ Attributes: ``kind``, ``products``, ``offsets_deg`` ((noff, 2) [east_deg, north_
 (ISO UTC, '' without a window), ``ra_deg``/``dec_deg`` (fixed targets), ``body`` (bodies).
 
 The writer opens the file in HDF5's single-writer/multiple-reader mode (SWMR; ``libver='latest'``)
-and flushes after every append, so a reader (``h5py.File(path, 'r', libver='latest', swmr=True)``,
-then ``dataset.refresh()``) sees each append as it lands. Everything is created before SWMR starts:
-the writer adds no groups or attributes later, only rows.
+and flushes after every write, so a reader (``h5py.File(path, 'r', libver='latest', swmr=True)``,
+then ``dataset.refresh()``) sees each write as it lands. Everything is created before SWMR starts:
+the writer adds no groups or attributes later, only rows. A writer given ``flush_s`` holds the rows of
+up to that many seconds of data (and at most ``max_pending_bytes``) and writes them together: each
+HDF5 write and resize costs the same for 64 rows as for 1,000, so a pipeline's writer makes one a
+second, not one a gulp.
 """
 from __future__ import annotations
 
@@ -30,7 +33,8 @@ from ..sky.watch import parse_targets
 __all__ = ["WatchWriter", "read_watch", "dynamic_spectrum_png", "FORMAT"]
 
 FORMAT = "bf_epic_blocks watchlist"
-_CHUNK_BYTES = 64 << 10   # small chunks: a reader sees rows soon, and a slow stream wastes little
+_CHUNK_BYTES = 1 << 20    # a chunk of a target's rows: large enough that a second of 0.64-ms images is a
+                          # few chunks, small enough that a short run wastes little
 
 
 def _iso(t) -> str:
@@ -43,10 +47,14 @@ class WatchWriter:
     path : the file (overwritten). targets : :class:`~bf_epic_blocks.sky.watch.WatchTarget` list or
     entries for :func:`~bf_epic_blocks.sky.watch.parse_targets`. freq_hz : (nchan,) channel centres.
     products : product names (``['I']``), the last axis of the data. chunk_rows : rows per HDF5 chunk
-    (default: about 64 KiB of a target's data). Use as a context manager, or call :meth:`close`.
+    (default: about 1 MiB of a target's data). flush_s : hold rows until they span this many seconds
+    of data, then write them (None: write at every :meth:`append`); max_pending_bytes bounds what is
+    held. :attr:`nrows` counts the rows in the file, :attr:`rows` those appended. Use as a context
+    manager, or call :meth:`close` (which writes what is held).
     """
 
-    def __init__(self, path, targets, freq_hz, products, *, chunk_rows: int | None = None):
+    def __init__(self, path, targets, freq_hz, products, *, chunk_rows: int | None = None,
+                 flush_s: float | None = None, max_pending_bytes: int = 64 << 20):
         import h5py
         self.targets = parse_targets(targets)
         self.freq_hz = np.asarray(freq_hz, np.float64).reshape(-1)
@@ -54,6 +62,10 @@ class WatchWriter:
         self.nchan, self.nprod = self.freq_hz.size, len(self.products)
         self.ndir = sum(t.ndir for t in self.targets)
         self.nrows = 0
+        self.flush_s = None if flush_s is None else float(flush_s)
+        self._cap = max(1, int(max_pending_bytes) // max(1, self.ndir * self.nchan * self.nprod * 4))
+        self._npend = 0
+        self._pend = None          # (data (ndir, cap, nchan, nprod), time (cap,), ra_dec (cap, ntarget, 2))
         row = self.nchan * self.nprod * 4
         rows = int(chunk_rows) if chunk_rows is not None else max(1, min(4096, _CHUNK_BYTES // max(row, 1)))
         self.path = Path(path)
@@ -91,7 +103,7 @@ class WatchWriter:
         f.flush()
 
     def append(self, time_unix, data, ra_dec=None) -> None:
-        """Add ``n`` rows to every target and flush.
+        """Add ``n`` rows to every target: written and flushed now, or held until ``flush_s`` of data are.
 
         time_unix : (n,) float64 Unix seconds (UTC). data : (n, ndir, nchan, nprod), directions ordered
         as :func:`~bf_epic_blocks.sky.watch.target_lm` orders them (a target, then its offsets; ndir is
@@ -112,14 +124,48 @@ class WatchWriter:
             rd = np.asarray(ra_dec, np.float64)
             if rd.shape != (n, len(self.targets), 2):
                 raise ValueError(f"ra_dec must have shape (n, ntarget, 2) = {(n, len(self.targets), 2)}, got {rd.shape}")
+        if self.flush_s is None:
+            self._write(t, np.moveaxis(d, 1, 0), rd if moving else None)
+            return
+        if self._pend is None:
+            self._pend = (np.empty((self.ndir, self._cap, self.nchan, self.nprod), np.float32),
+                          np.empty(self._cap), np.empty((self._cap, len(self.targets), 2)))
+        pd, pt, pr = self._pend
+        i = 0
+        while i < n:
+            k = min(n - i, self._cap - self._npend)
+            a, b = self._npend, self._npend + k
+            pd[:, a:b] = np.moveaxis(d[i:i + k], 1, 0)
+            pt[a:b] = t[i:i + k]
+            if moving:
+                pr[a:b] = rd[i:i + k]
+            self._npend, i = b, i + k
+            if self._npend == self._cap or pt[self._npend - 1] - pt[0] >= self.flush_s:
+                self.flush()
+
+    @property
+    def rows(self) -> int:
+        """Rows appended: those in the file and those held for the next write."""
+        return self.nrows + self._npend
+
+    def flush(self) -> None:
+        """Write the rows held (nothing when none are)."""
+        if self._npend:
+            pd, pt, pr = self._pend
+            m, self._npend = self._npend, 0
+            self._write(pt[:m], pd[:, :m], pr[:m])
+
+    def _write(self, t, d, rd):
+        """Write rows: t (n,), d (ndir, n, nchan, nprod), rd (n, ntarget, 2) or None; resize, write, flush."""
+        n = t.size
         lo, hi = self.nrows, self.nrows + n
         col = 0
         for i, (tg, ds) in enumerate(zip(self.targets, self._groups)):
-            for k, v in ds.items():
+            for v in ds.values():
                 v.resize(hi, axis=0)
-            ds["data"][lo:hi] = d[:, col]
+            ds["data"][lo:hi] = d[col]
             if tg.offsets_deg:
-                ds["offset_data"][lo:hi] = d[:, col + 1:col + tg.ndir]
+                ds["offset_data"][lo:hi] = np.moveaxis(d[col + 1:col + tg.ndir], 0, 1)
             ds["time_unix"][lo:hi] = t
             if tg.moving:
                 ds["ra_deg"][lo:hi], ds["dec_deg"][lo:hi] = rd[:, i, 0], rd[:, i, 1]
@@ -136,6 +182,7 @@ class WatchWriter:
         """Mark the file complete and close it (again: nothing)."""
         if self._f is None:
             return
+        self.flush()
         self._complete[()] = True
         self._f.close()
         self._f = None

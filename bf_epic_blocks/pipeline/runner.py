@@ -470,7 +470,10 @@ def _flag_report(cfg, fb, outdir, summary):
             summary["files"] += fb.write_report(outdir, cfg["output"]["prefix"], f"{cfg['name']}: interference flags")
         except Exception as e:  # noqa: BLE001 - a report must not fail a run that imaged
             log.warning("interference flag report not written: %s", e)
-    return {k: v for k, v in fs.items() if k != "channel_fraction"}
+    out = {k: v for k, v in fs.items() if k != "channel_fraction"}
+    if fb.weights is not None:      # images rescaled for the imager; channel images the search took as missing
+        out.update(fb.weights.stats)
+    return out
 
 
 def solver_settings(sv):

@@ -98,10 +98,10 @@ def main(argv=None):
             print(f"{case:<10} {name:<16} {' '.join(f'{p:.4f}' for p in per):<38} {med:8.4f} "
                   f"{100 * (med / base - 1):7.1f}%", flush=True)
         out[case] = {"variants": res, "overrides": {n: s for n, s in CASES[case]}}
-    if args.json:
-        write_json(args.json, {"benchmark": "bench_cost", "date": utc_now(), "machine": machine(args.device),
-                               "seconds": args.seconds, "repeat": args.repeat, "cases": out})
-        print(f"wrote {args.json}")
+        if args.json:        # after each case, so that a run cut short keeps the cases it finished
+            write_json(args.json, {"benchmark": "bench_cost", "date": utc_now(), "machine": machine(args.device),
+                                   "seconds": args.seconds, "repeat": args.repeat, "cases": out})
+            print(f"wrote {args.json}", flush=True)
     return out
 
 
