@@ -75,8 +75,8 @@ def test_realistic_file_validates_and_resolves_paths(yaml_dir, monkeypatch):
     assert cfg["imager"]["tolerance"] is None and gridded_epsilon(cfg["imager"]["tolerance"]) == 1e-4
     assert cfg["device"] == "gpu:1"
     assert cfg["output"] == {"dir": "out/tbf", "fits": True, "png": True, "table": False,
-                             "prefix": "lwasv_tbf_allsky", "integrate": None, "cube": None, "keep_gb": None,
-                             "keep_days": None}
+                             "prefix": "lwasv_tbf_allsky", "integrate": None, "cube": None, "oims": None,
+                             "keep_gb": None, "keep_days": None}
 
 
 def test_minimal_simulated_defaults():

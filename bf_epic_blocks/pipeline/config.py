@@ -464,6 +464,15 @@ OUTPUT_INTEGRATE = Section({
     "average_channels": Key(Bool(), True, doc="Average the channels into one band-averaged image."),
 }, what="an integrate mapping {seconds, average_channels}")
 
+OUTPUT_OIMS = Section({
+    "ngrid": Key(Int(2), 128,
+                 doc="Pixels per side of the OIMS images (Orville's grid: 130 / ngrid degrees a pixel, the zenith "
+                     "between the middle four pixels), imaged exactly at those directions."),
+    "seconds": Key(Float(0.0, lo_open=True), 5.0, doc="Length of each OIMS integration (Orville's is 5 s)."),
+    "products": Key(Products(), ["I", "Q", "U", "V"],
+                    doc="The images' Stokes products; OIMS2fits reads I, Q, U, V (or XX, XY, YX, YY)."),
+}, what="an oims mapping {ngrid, seconds, products}")
+
 OUTPUT_CUBE = Section({
     "dtype": Key(Choice("float32", "float16"), "float32", doc="The data type the cube stores its pixels in."),
     "average_channels": Key(Bool(), False, doc="Store one band-averaged image per time, not every channel."),
@@ -856,6 +865,9 @@ SCHEMA = Section({
                          doc="FITS and PNG of longer images than the imager's (a cube and the search still see "
                              "every image); null: each image as the imager makes it."),
         "cube": Key(OUTPUT_CUBE, None, doc="HDF5 image cubes with a time axis; null: none."),
+        "oims": Key(OUTPUT_OIMS, None,
+                    doc="The station's image database (Orville's OIMS files, one an hour, for its archive, "
+                        "OIMS2fits and LWATV tools; guide/service.md); null: none."),
         "keep_gb": Key(Float(0.0, lo_open=True), None,
                        doc="Keep `dir` within this many GB while the run goes: the oldest files go first, never "
                            "one being written (guide/service.md); null: no limit."),

@@ -52,10 +52,12 @@ class Graph:
     watch: object = None
     snippets: object = None
     budget: object = None          # the output budget's sweeper while the run goes
+    oims: object = None
 
     @property
     def sinks(self):
-        return [b for b in (self.writer, self.search, self.cube, self.watch, self.snippets) if b is not None]
+        return [b for b in (self.writer, self.search, self.cube, self.watch, self.snippets, self.oims)
+                if b is not None]
 
 
 def capture_format(src_cfg):
@@ -112,6 +114,18 @@ def load_station_for(cfg, info=None, per_channel=True):
         name = (info or _scan(src["path"], report=False)).station_hint
     freq = channel_freqs(cfg) if src["kind"] == "simulated" else None if info is None else np.asarray(info.freq_hz)
     return load_station(name, extra_flags=st_cfg.get("flags") or None, freq_hz=freq if per_channel else None)
+
+
+def channel_width_hz(cfg):
+    """The source's channel width in Hz: the simulated channels', a capture file's (scanned), or the NDP
+    F-engine's (196 MHz / 8192) for a live stream, which learns its channels from the packets."""
+    src = cfg["source"]
+    if src["kind"] == "simulated":
+        return float(src["channels"]["width_hz"])
+    if src["kind"] == "udp":
+        from ..io.udp import NDP_CHAN_BW_HZ
+        return float(NDP_CHAN_BW_HZ)
+    return float(_scan(src["path"], report=False, fmt=capture_format(src)).chan_bw_hz)
 
 
 def channel_freqs(cfg):
@@ -367,6 +381,9 @@ def build_graph(cfg, progress=None, parts=None):
             if cfg.get("watch"):
                 raise ValueError("watch: the watchlist runs beside one imager; imager.split: pixels splits it "
                                  "over several GPUs (use imager.split: channels, one GPU, or watch: null)")
+            if cfg["output"].get("oims"):
+                raise ValueError("output.oims: the OIMS imager runs beside one imager; imager.split: pixels "
+                                 "splits it over several GPUs (use one GPU, or output.oims: null)")
             return _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern, progress)
         source, feed, nframe_total, block = _source_stage(cfg, dev, fmt, info, station, gulp, space, progress)
         feed, weights = _flagging_stage(cfg, feed)
@@ -376,8 +393,39 @@ def build_graph(cfg, progress=None, parts=None):
         search = _search_stage(cfg, imager, outdir, weights if getattr(imager, "flag_weights", None) else None)
         writer, cube = _output_stage(cfg, imager, pixels, block)
         watch, snippets = _watch_stage(cfg, dev, calfold, station, pattern, table, imager, search)
+        oims = _oims_stage(cfg, dev, calfold, station, pattern, table)
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube, solver, watch,
-                 snippets)
+                 snippets, oims=oims)
+
+
+def _oims_stage(cfg, dev, calfold, station, pattern, table=None):
+    """``output.oims``: a DFTImagerBlock on Orville's grid (:func:`~..blocks.oims_writer.oims_pixels`) at the
+    OIMS cadence, beside the main imager on the same voltages (the calibration folded in as the imager
+    folds it), and the OimsWriterBlock writing its images into hourly OIMS files; or None."""
+    oc = cfg["output"].get("oims")
+    if not oc:
+        return None
+    if dev == "gpus":
+        raise ValueError(f"output.oims: the OIMS imager runs on one device; device {cfg['device']!r} shards the "
+                         "channels over several GPUs (use one GPU, or output.oims: null)")
+    from ..blocks import DFTImagerBlock
+    from ..blocks.oims_writer import OimsWriterBlock, oims_pixels
+    im, cal = cfg["imager"], cfg["calibration"]
+    width = float(channel_width_hz(cfg))
+    acc = max(1, int(round(float(oc["seconds"]) * width)))
+    lm, _ = oims_pixels(oc["ngrid"])
+    common = dict(products=oc["products"], remove_autocorr=im["remove_autocorr"])
+    if folds_calibration(cfg, dev):
+        common.update(cable=bool(cal["cable"]), pattern=pattern or False)
+        if table is not None:
+            common.update(gains=table)
+    sub = {**cfg, "imager": {**im, "accumulate_frames": acc, "products": list(oc["products"])}}
+    plan = imaging_plan(sub, len(lm), int((~station.flags).any(axis=1).sum()),
+                        len(channel_freqs(cfg)) if cfg["source"]["kind"] == "simulated" else 1, dev)
+    imager = DFTImagerBlock(calfold, lm, acc, plan=plan, **common)
+    log.info("output.oims: %d x %d grid (%d pixels above the horizon), %s, %.3g s integrations -> %s",
+             oc["ngrid"], oc["ngrid"], len(lm), "/".join(oc["products"]), acc / width, cfg["output"]["dir"])
+    return OimsWriterBlock(imager, cfg["output"]["dir"], oc["ngrid"], station=station.name)
 
 
 def _source_stage(cfg, dev, fmt, info, station, gulp, space, progress):
@@ -981,6 +1029,8 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
                  "calibration waited %.2f s for it", g.solver.solver_stats["solutions"],
                  g.solver.solver_stats["failures"], g.solver.solver_stats["sum_s"],
                  g.solver.solver_stats["solve_s"], summary["solver"]["wait_s"])
+    if g.oims is not None:
+        summary["oims"] = {"integrations": g.oims.integrations, "files": list(g.oims.files)}
     if g.watch is not None:
         summary["watch"] = {"images": g.watch.rows, "inactive_rows": g.watch.inactive,
                             "targets": [t.name for t in g.watch.pixels.targets],
