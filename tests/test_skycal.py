@@ -299,7 +299,8 @@ def test_covariance_sums_of_flagged_data_are_means_over_the_kept_samples(xp):
 
 def test_the_solver_after_the_flagger_solves_from_the_unflagged_data_only():
     """Interference the test chose, on a sky whose gains it chose: a 2-ms broadband spark from one direction
-    in every stand, and one stand's own 0.6-ms spike. The flagger zeroes them; the covariances the gain
+    in every stand, and one stand's own 0.6-ms spike. The flagger zeroes them (the spike on its stand
+    only); the covariances the gain
     solver sums from the flagger's output (its masks read from the zeros, as GainSolverBlock does) are means
     over the kept samples, and the gains come out within 1% of the truth, where the same data unflagged
     give gains wrong by several per cent."""
@@ -322,7 +323,8 @@ def test_the_solver_after_the_flagger_solves_from_the_unflagged_data_only():
     spark = _steer(st.xyz_m, f, 0.6, -0.7)                              # a spark near the horizon, all stands
     w = 40 * math.sqrt(1000.0) * (rng.standard_normal((50, f.size)) + 1j * rng.standard_normal((50, f.size)))
     x[3000:3050] += (w[:, :, None] * spark[None])[..., None]
-    x[6000:6016, :, 17, :] += 60 * math.sqrt(1000.0) * rng.standard_normal((16, f.size, 2))  # stand 17's own
+    own = int(np.flatnonzero(~st.flags.any(axis=1))[17])               # a stand in use
+    x[6000:6016, :, own, :] += 60 * math.sqrt(1000.0) * rng.standard_normal((16, f.size, 2))  # its own spike
     hdr = efield_header("cal+rfi", 0, f, 40e-6, {"name": "lwasv", "xyz_m": st.xyz_m, "flags": st.flags},
                         dtype="cf32")
     with bfp.Pipeline() as pipe:
@@ -331,7 +333,10 @@ def test_the_solver_after_the_flagger_solves_from_the_unflagged_data_only():
         sink = ArraySinkBlock(fb)
         pipe.run()
     y = np.asarray(sink.result(0)).reshape(x.shape)
-    assert (y[3000:3050] == 0).all() and (y[6000:6016, :, 17] == 0).all()
+    assert (y[3000:3050] == 0).all() and (y[6000:6016, :, own] == 0).all()
+    # one stand's spike is that stand's: the others keep those samples
+    others = np.flatnonzero(~st.flags.any(axis=1) & (np.arange(A) != own))
+    assert (y[6000:6016][:, :, others] != 0).mean() > 0.99
     me = SimpleNamespace(_flag_block=16, _xp=np, _lay={"dtype": "cf32"})
 
     def solved(data, flagged):

@@ -245,9 +245,11 @@ class RFIFlagBlock(bfp.TransformBlock):
         without the stands that ``per`` (nfull, nstand) says sparked on their own (the rest scaled up to
         all the live stands) where fewer than half the live stands did: one stand's spark, 40 times its
         noise, raises a 24-stand array's total by more than half and would otherwise flag every stand.
-        Where half or more sparked at once, the spark is the sky's, and the plain sum is kept."""
+        Where half or more sparked at once, the spark is the sky's, and the plain sum is kept. Stands not
+        in use (the station's flags) are left out of both."""
         xp = self._xp
-        live = P.sum(axis=(0, 1)) > 0                                          # (nstand,)
+        live = self._live.astype(bool)                                         # (nstand,) stands in use
+        P = xp.where(live[None, None, :], P, xp.float32(0.0))                  # a dead stand's spark is not data
         nl = xp.maximum(live.sum(), 1).astype(xp.float32)
         own = per & live[None, :]
         k = own.sum(axis=1).astype(xp.float32)                                 # (nfull,)
