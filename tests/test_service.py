@@ -98,6 +98,34 @@ def test_metrics_health_and_page(served):
     assert code == 200 and ctype.startswith("text/html") and "down" in body and "no data" in body
 
 
+def test_the_page_lists_the_latest_candidates_first():
+    """recent_candidates from a search's rows (an astropy Time each, as TransientSearchBlock keeps them):
+    the last ten, latest first; the page shows them as a table, its text escaped."""
+    from astropy.time import Time
+    from bf_epic_blocks.service.monitor import recent_candidates
+    rows = [{"time_utc": Time(1.7e9 + i, format="unix"), "snr": 7.0 + i, "dm": 0.1 * i, "width_ms": 0.64,
+             "ra_deg": 300.0, "dec_deg": 40.0, "kind": "point"} for i in range(12)]
+    rows[-1]["kind"] = "<b>sky-wide</b>"
+    got = recent_candidates(rows)
+    assert [c["snr"] for c in got] == [18.0 - i for i in range(10)]
+    assert got[0]["time_utc"] == Time(1.7e9 + 11, format="unix").isot and got[0]["dm"] == pytest.approx(1.1)
+    body = _page_of(_snap(recent_candidates=got))
+    assert "<h2>Recent candidates</h2>" in body and body.count("<tr><td>20") == 10
+    assert body.index("<td>18.0</td>") < body.index("<td>9.0</td>")
+    assert "&lt;b&gt;sky-wide&lt;/b&gt;" in body and "<b>sky-wide</b>" not in body
+    assert "Recent candidates" not in _page_of(_snap())
+
+
+def _page_of(snap):
+    mon = FakeMonitor()
+    mon.snap = snap
+    srv = Service(mon, "127.0.0.1:0", name="test").start()
+    try:
+        return _get(srv.url + "/")[1]
+    finally:
+        srv.stop()
+
+
 def test_refusals(served):
     srv, _, bus = served
     assert _get(srv.url + "/../../etc/passwd")[0] == 404

@@ -43,13 +43,30 @@ def _num(d):
     return out
 
 
+#: candidates the page lists, the latest first
+RECENT = 10
+
+
+def recent_candidates(rows, n=RECENT):
+    """The last ``n`` of a TransientSearchBlock's candidate rows, latest first, as plain values: ``time_utc``
+    (ISO), ``snr``, ``dm`` (pc cm^-3), ``width_ms``, ``ra_deg``, ``dec_deg``, ``kind`` ('point' or
+    'sky-wide'). The search appends to its list from its own thread; a copy of its tail is read."""
+    out = []
+    for r in list(rows[-n:])[::-1]:
+        t = r.get("time_utc")
+        out.append({"time_utc": getattr(t, "isot", str(t)), "snr": float(r["snr"]), "dm": float(r["dm"]),
+                    "width_ms": float(r["width_ms"]), "ra_deg": float(r["ra_deg"]), "dec_deg": float(r["dec_deg"]),
+                    "kind": str(r.get("kind", "point"))})
+    return out
+
+
 class Monitor:
     """A live view of a built pipeline graph (``runner.build_graph``'s result) for the service.
 
     ``snapshot()`` -> dict: ``uptime_s``, ``data_s`` (seconds of data the source has read), ``realtime``
     (data seconds per wall second since the first data), ``realtime_recent`` (over the last ~60 s of
     snapshots), ``last_data_age_s``, ``blocks`` {name: runtime stats}, ``source`` (its stats), ``imager``,
-    ``search``, ``watch``, ``solver`` (with ``solution_age_s``), ``flagging``, ``disk`` (output folder:
+    ``search``, ``recent_candidates`` (:func:`recent_candidates`), ``watch``, ``solver`` (with ``solution_age_s``), ``flagging``, ``disk`` (output folder:
     total, used, free bytes), ``gpu`` (free and total bytes, where CuPy sees one), ``failed`` (the error
     that stopped the pipeline, or None), ``finished``.
     """
@@ -102,6 +119,7 @@ class Monitor:
         snap["realtime_recent"] = (d1 - d0) / (t1 - t0) if t1 - t0 > 1.0 else snap["realtime"]
         if g.search is not None:
             snap["search"] = _num(getattr(g.search, "search_stats", None))
+            snap["recent_candidates"] = recent_candidates(getattr(g.search, "rows", None) or [])
         if g.watch is not None:
             w = {"rows": g.watch.rows, "inactive_rows": g.watch.inactive, "light_curve_triggers": g.watch.triggers}
             if g.snippets is not None:

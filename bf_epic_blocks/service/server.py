@@ -127,7 +127,7 @@ _PAGE = """<!doctype html><html lang="en"><head><meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1"><meta http-equiv="refresh" content="5">
 <title>bf-epic: {name}</title><style>body{{font-family:sans-serif;margin:1em;max-width:50em}}
 .go{{color:#080}}.degraded{{color:#a60}}.down{{color:#c00}}td{{padding:.1em .8em}}</style></head><body>
-<h1>{name}</h1><p class="{status}"><b>{status}</b></p><ul>{reasons}</ul><table>{rows}</table>{pictures}
+<h1>{name}</h1><p class="{status}"><b>{status}</b></p><ul>{reasons}</ul><table>{rows}</table>{candidates}{pictures}
 <p><a href="/metrics">metrics</a> &middot; <a href="/health">health (JSON)</a></p></body></html>"""
 
 
@@ -219,7 +219,14 @@ class Service:
             pics = "".join(f'<figure><img src="/png/{html.escape(k)}?t={stamp}" alt="{html.escape(k)}" '
                            f'style="max-width:100%"><figcaption>{html.escape(k)}</figcaption></figure>'
                            for k in sorted(self.pictures()))
-            text = _PAGE.format(name=html.escape(self.name), status=status,
+            cands = snap.get("recent_candidates") or []
+            table = "" if not cands else (
+                "<h2>Recent candidates</h2><table><tr><th>UTC</th><th>S/N</th><th>DM</th><th>width ms</th>"
+                "<th>RA</th><th>Dec</th><th></th></tr>" + "".join(
+                    f"<tr><td>{html.escape(c['time_utc'])}</td><td>{c['snr']:.1f}</td><td>{c['dm']:.3f}</td>"
+                    f"<td>{c['width_ms']:.2f}</td><td>{c['ra_deg']:.2f}</td><td>{c['dec_deg']:.2f}</td>"
+                    f"<td>{html.escape(c['kind'])}</td></tr>" for c in cands) + "</table>")
+            text = _PAGE.format(name=html.escape(self.name), status=status, candidates=table,
                                 reasons="".join(f"<li>{html.escape(r)}</li>" for r in reasons),
                                 rows="".join(f"<tr><td>{k}</td><td>{html.escape(str(v))}</td></tr>" for k, v in fig),
                                 pictures=pics)
