@@ -361,7 +361,8 @@ def _png(path, value):
 
 def test_the_page_in_a_real_browser(tmp_path):
     """The status page in headless Chromium: it shows the health, the figures and the run's latest
-    image, and updates by itself (a new image and a new count appear without a reload by the test)."""
+    image, and updates by itself (a new image, a new count and a candidate in the candidate list appear
+    without a reload by the test)."""
     from types import SimpleNamespace
     a, b = tmp_path / "run_i0000.png", tmp_path / "run_i0001.png"
     _png(a, 0.2)
@@ -374,14 +375,20 @@ def test_the_page_in_a_real_browser(tmp_path):
         assert "lwasv_live" in drv.title and "go" in drv.page_source
         img = drv.find_element("css selector", 'img[alt="image"]')
         assert drv.execute_script("return arguments[0].complete && arguments[0].naturalWidth", img) > 100
-        # the run goes on: a new image and more images counted; the page refreshes itself (every 5 s)
+        assert not drv.find_elements("xpath", "//h2[text()='Recent candidates']")
+        # the run goes on: a new image, more images counted and a candidate; the page refreshes itself
         _png(b, 0.8)
         mon.g.writer.written.append(str(b))
-        mon.snap = _snap(imager={"images": 77}, uptime_s=160.0)
+        cand = {"time_utc": "2026-11-28T10:00:02.999", "snr": 371.0, "dm": 1.5017, "width_ms": 5.12,
+                "ra_deg": 310.68, "dec_deg": 20.19, "kind": "point"}
+        mon.snap = _snap(imager={"images": 77}, uptime_s=160.0, recent_candidates=[cand])
         t0 = time.monotonic()
         while "77" not in drv.page_source and time.monotonic() - t0 < 15:
             time.sleep(0.5)
         assert "77" in drv.page_source
+        cells = [td.text for td in drv.find_elements("xpath", "//h2[text()='Recent candidates']"
+                                                             "/following-sibling::table[1]//td")]
+        assert cells[:4] == ["2026-11-28T10:00:02.999", "371.0", "1.502", "5.12"], cells
         img = drv.find_element("css selector", 'img[alt="image"]')
         assert drv.execute_script("return arguments[0].naturalWidth", img) > 100
         assert "t=160" in img.get_attribute("src")

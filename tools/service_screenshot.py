@@ -3,7 +3,8 @@
     python tools/service_screenshot.py [PIPELINE.yaml] [--out docs/guide/img/service-page.png]
 
 Runs the pipeline (default: the transient demo with its watchlist, made longer so the page has time
-to show its PNGs), waits until the page shows a picture, and saves what the browser draws.
+to show its PNGs), waits until the page shows two pictures and a candidate, and saves what the browser
+draws.
 """
 import argparse
 import shutil
@@ -40,7 +41,8 @@ def main(argv=None):
             drv = webdriver.Chrome(service=DriverService(executable_path=shutil.which("chromedriver")), options=opts)
             try:
                 t0 = time.monotonic()
-                while len(srv.pictures()) < 2 and time.monotonic() - t0 < 120:
+                while (len(srv.pictures()) < 2 or not srv.snapshot().get("recent_candidates")) \
+                        and time.monotonic() - t0 < 120:
                     time.sleep(0.5)
                 drv.get(srv.url + "/")
                 time.sleep(1.0)
