@@ -561,3 +561,26 @@ def test_pngs_drawn_by_a_helper_process(tmp_path, monkeypatch):
                     "lwasv_sim_transient_watch_Sun.png"]
     assert all((tmp_path / p).read_bytes()[:4] == b"\x89PNG" for p in pngs)
     assert made[0].png_process and made[0]._pool is None and summary["watch"]["png_skipped"] >= 0
+
+
+def test_a_png_is_replaced_whole_never_seen_half_written(tmp_path, monkeypatch):
+    """A PNG being redrawn (the watchlist's, every png_every_s) is drawn beside its path and renamed over
+    it: while matplotlib writes, the path still holds the last complete picture (the service serves it
+    meanwhile)."""
+    from matplotlib.figure import Figure
+    path = tmp_path / "ds.png"
+    t, f = 1.7e9 + np.arange(20.0), np.linspace(30e6, 80e6, 8)
+    dynamic_spectrum_png(path, t, f, np.ones((20, 8)))
+    first = path.read_bytes()
+    seen = []
+    real = Figure.savefig
+
+    def watching(self, fname, *a, **k):
+        out = real(self, fname, *a, **k)
+        seen.append(path.read_bytes())          # what a reader gets while the new picture is being written
+        return out
+    monkeypatch.setattr(Figure, "savefig", watching)
+    dynamic_spectrum_png(path, t, f, np.arange(160.0).reshape(20, 8))
+    assert seen == [first]
+    assert path.read_bytes() != first and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["ds.png"]

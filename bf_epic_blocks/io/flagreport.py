@@ -52,5 +52,6 @@ def write_flag_report(outdir, prefix, freq_hz, summary, waterfall, row_s, title=
     ax2.set_ylabel("flagged (%)")
     fig.tight_layout()
     png = out / f"{prefix}_flags.png"
-    fig.savefig(png)
+    from .quicklook import save_figure
+    save_figure(fig, png)
     return [str(table), str(png)]

@@ -116,6 +116,6 @@ def gain_table_png(path, table_path=None, *, table=None, solution=-1, title=None
     fig.suptitle(title or f"gain solution {solution % len(t['valid_from'])} of {len(t['valid_from'])}: "
                  f"{prov.get('station', '')}, model {', '.join(model.get('sources', []))}")
     fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    from .quicklook import save_figure
+    save_figure(fig, path)
     return path

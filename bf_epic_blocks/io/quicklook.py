@@ -17,7 +17,7 @@ import numpy as np
 
 from ..imaging._xp import to_numpy
 
-__all__ = ["quicklook_png", "quicklook_grid_png"]
+__all__ = ["quicklook_png", "quicklook_grid_png", "save_figure"]
 
 _MARKER_COLOUR = "cyan"  # far from every colour of the sequential maps used for the sky
 
@@ -83,13 +83,27 @@ def _draw_sky(ax, image, grid, *, cmap, lo, hi, sources, horizon, label_sources=
     return im
 
 
+def save_figure(fig, path, **kwargs) -> str:
+    """``fig.savefig`` to ``path`` as a whole: drawn into a hidden file beside it, then renamed over it
+    (``os.replace``), so that a reader (the service's page, a person's browser) never gets a file that is
+    half written, and the last complete one stays until the next is. Returns the path."""
+    import os
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        fig.savefig(tmp, format=kwargs.pop("format", path.suffix.lstrip(".") or "png"), **kwargs)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return str(path)
+
+
 def _save(fig, path, dpi):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     FigureCanvasAgg(fig)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, format="png")
-    return str(path)
+    return save_figure(fig, path, dpi=dpi, format="png")
 
 
 def quicklook_png(path, image, grid, *, title=None, sources=None, horizon=True, cmap="inferno", vmin=None,

@@ -318,5 +318,6 @@ def dynamic_spectrum_png(path_png, time_unix, freq_hz, data, title="") -> str:
         ax2.xaxis.set_major_formatter(FuncFormatter(lambda v, _: mdates.num2date(v).strftime("%H:%M:%S.%f")[:-3]))
     else:
         ax2.xaxis.set_major_formatter(mdates.DateFormatter("%H:%M:%S"))
-    fig.savefig(path_png)
+    from .quicklook import save_figure
+    save_figure(fig, path_png)
     return str(path_png)
