@@ -406,8 +406,8 @@ class FlagWeights:
     every channel where a stand's own spark took that stand out of part of it: rescaling restores a
     point source's flux, not the array's beam, so the bright sources' sidelobes change in that one
     image across the band, which is what a burst at DM 0 looks like (on a whole-band sky, dozens of
-    candidates from a few false alarms a minute). Spectral-kurtosis flags change one channel's beam at
-    block boundaries only, which the search does not see.
+    candidates from a few false alarms a minute). Spectral-kurtosis flags change one channel's beam, one
+    stand at a time, at block boundaries (a stand's spark is left out of its SK: RFIFlagBlock).
     """
 
     def __init__(self, accumulate, track_empty=False):
