@@ -183,13 +183,16 @@ class Engine:
         """How many of the g integrations from frame ``pos`` a tracking pixel function gives the current
         pixels for (it holds them for steps of time, e.g. the watchlist's second): those are made by one
         batched call, and the next call starts at the integration whose pixels moved (rebuilt there), so
-        that a gulp crossing a step is two batched calls, not one integration at a time."""
-        for k in range(1, g):
+        that a gulp crossing a step is two batched calls, not one integration at a time. Pixels that
+        move in steps do not come back within a gulp, so the last integration's are asked first: in
+        most gulps they are the same, and one call answers."""
+        def same(k):
             tag = self.time_tag + (self.frame + pos + k * self.accumulate) * self.ticks_per_frame
             lm = np.asarray(self.pixels_fn(tag), dtype=np.float64)
-            if lm.shape != self.lm.shape or not np.array_equal(lm, self.lm):
-                return k
-        return g
+            return lm.shape == self.lm.shape and np.array_equal(lm, self.lm)
+        if g <= 1 or same(g - 1):
+            return g
+        return next(k for k in range(1, g) if not same(k))
 
     def _rebuild(self, lm):
         raise NotImplementedError
