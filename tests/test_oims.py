@@ -219,6 +219,16 @@ def test_a_pipeline_writes_the_sky_into_the_station_s_oims_file(tmp_path):
     img = got["data"][0, :, 0].sum(axis=0)                              # Stokes I, summed over the channels
     peak = np.unravel_index(np.argmax(img), img.shape)
     assert abs(peak[0] - want[0]) <= 1 and abs(peak[1] - want[1]) <= 1, (peak, want)
+    # the LWATV view under Orville's names (1-s names: the second 0.5-s integration redraws the first),
+    # of the band's middle channel, and the timestamp file
+    png = tmp_path / "lwatv" / "60462" / "60462_100000_74.050MHz.png"
+    assert str(png) in summary["files"]
+    assert (tmp_path / "lwatv" / "lwatv_timestamp").read_text() == "60462:10:00:00"
+    from matplotlib.image import imread
+    pix = imread(png)
+    assert pix.shape[1] > pix.shape[0] > 300 and pix[..., :3].std() > 0.05       # I and |V| side by side, drawn
+    assert sorted(p.name for p in (tmp_path / "lwatv").rglob("*")) == ["60462", "60462_100000_74.050MHz.png",
+                                                                         "lwatv_timestamp"]
 
 
 def test_a_bad_oims_section_is_a_clear_error():

@@ -10,6 +10,13 @@ each to an hourly file named as Orville names its own::
 
 with the integration's start (MJD UTC), length, mean LST, the zenith's RA and Dec as the phase centre,
 and, per channel, the mask of channels the interference flagger left wholly flagged.
+
+With ``lwatv``, each integration is also drawn as the station's LWATV view
+(:func:`~bf_epic_blocks.io.quicklook.lwatv_png`: I and |V| of one channel, the catalogue's sources and
+the Sun labelled, the band's spectrum below, as the mean of I within 45 degrees of the zenith) under
+Orville's names, ``<output.dir>/lwatv/<MJD>/<MJD>_<HHMMSS>_<MHz>MHz.png``, and
+``<output.dir>/lwatv/lwatv_timestamp`` holds the latest one's ``MJD:HH:MM:SS``. It is drawn in this
+block's thread, once an integration.
 """
 from __future__ import annotations
 
@@ -40,14 +47,17 @@ class OimsWriterBlock(bfp.SinkBlock):
     (time, freq, pol, pixel)) to the hourly OIMS file of ``outdir`` (module docstring).
 
     ngrid : the grid's side (the imager's pixels are ``oims_pixels(ngrid)``). station : the name in the
-    files' headers (default: the header's station name). ``integrations`` counts the integrations, ``files``
+    files' headers (default: the header's station name). lwatv, lwatv_mhz : draw the LWATV view of the
+    channel nearest lwatv_mhz (default the band's middle) at each integration (module docstring). ``integrations`` counts the integrations, ``files``
     lists the files (in order of first use).
     """
 
-    def __init__(self, iring, outdir, ngrid, station=None, **kwargs):
+    def __init__(self, iring, outdir, ngrid, station=None, lwatv=False, lwatv_mhz=None, **kwargs):
         super().__init__(iring, **kwargs)
         self.outdir, self.ngrid, self.station = Path(outdir), int(ngrid), station
+        self.lwatv, self.lwatv_mhz, self.pngs = bool(lwatv), lwatv_mhz, []
         self.lm, self.keep = oims_pixels(self.ngrid)
+        self.lm_grid = oims_lm(self.ngrid)
         self._w = self._name = None
         self.integrations, self.files = 0, []
 
@@ -118,12 +128,50 @@ class OimsWriterBlock(bfp.SinkBlock):
             self._file_for(start.mjd).add(cube, start_mjd=start.mjd, int_len_s=self.int_ticks / FS_HZ,
                                           freq_hz=self.freq, lst_turns=lst, center_ra_deg=zen.ra.deg,
                                           center_dec_deg=zen.dec.deg, mask=mask)
+            if self.lwatv:
+                self._draw_lwatv(cube, start, mid)
             self.j += 1
             self.integrations += 1
 
+    def _draw_lwatv(self, cube, start, mid):
+        """The LWATV PNG of this integration and the timestamp file (module docstring); a failure is logged
+        and counted, never stops the recording."""
+        import os
+        from ..io.quicklook import lwatv_png
+        from .image_writer import _labels
+        if "I" not in self.products:
+            if not getattr(self, "_lwatv_warned", False):
+                log.warning("OimsWriterBlock: no LWATV view: the products %s have no I", self.products)
+                self._lwatv_warned = True
+            return
+        want = self.freq[len(self.freq) // 2] if self.lwatv_mhz is None else float(self.lwatv_mhz) * 1e6
+        c = int(np.argmin(np.abs(self.freq - want)))
+        i = self.products.index("I")
+        v = self.products.index("V") if "V" in self.products else None
+        inner = self.keep & ((self.lm_grid ** 2).sum(axis=-1) < 0.5)        # within 45 deg of the zenith
+        spectrum = cube[:, i][:, inner].mean(axis=1)
+        d = start.datetime
+        mjd = int(np.floor(start.mjd))
+        folder = self.outdir / "lwatv" / str(mjd)
+        path = folder / f"{mjd}_{d.hour:02d}{d.minute:02d}{d.second:02d}_{self.freq[c] / 1e6:.3f}MHz.png"
+        try:
+            loc = (self.loc.lon.deg, self.loc.lat.deg, self.loc.height.to_value("m"))
+            lwatv_png(path, cube[c, i], None if v is None else np.abs(cube[c, v]), 130.0 / self.ngrid,
+                      when=d.strftime("%Y/%m/%d %H:%M:%S UTC"), freq_hz=self.freq[c], labels=_labels(mid, loc),
+                      spectrum=spectrum, spectrum_freq_hz=self.freq,
+                      spectrum_label="mean of I within 45 deg of the zenith, per channel")
+            self.pngs.append(str(path))
+            ts = self.outdir / "lwatv" / "lwatv_timestamp"
+            tmp = ts.with_name(".lwatv_timestamp.tmp")
+            tmp.write_text(f"{mjd}:{d.hour:02d}:{d.minute:02d}:{d.second:02d}")
+            os.replace(tmp, ts)
+        except Exception as e:  # noqa: BLE001 - a view must not stop the recording
+            self.lwatv_failed = getattr(self, "lwatv_failed", 0) + 1
+            log.warning("OimsWriterBlock: the LWATV view %s was not drawn: %s", path, e)
+
     @property
     def written(self):
-        return list(self.files)
+        return list(self.files) + list(self.pngs)
 
     def close(self):
         """Close the open file (its header's start, stop and time order written)."""

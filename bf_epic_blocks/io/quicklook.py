@@ -17,7 +17,7 @@ import numpy as np
 
 from ..imaging._xp import to_numpy
 
-__all__ = ["quicklook_png", "quicklook_grid_png", "save_figure"]
+__all__ = ["quicklook_png", "quicklook_grid_png", "lwatv_png", "save_figure"]
 
 _MARKER_COLOUR = "cyan"  # far from every colour of the sequential maps used for the sky
 
@@ -178,3 +178,59 @@ def quicklook_grid_png(path, cube, grid, freq_hz, *, title=None, sources=None, h
     if shared_scale and im is not None:
         fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.03, pad=0.02, label=units)
     return _save(fig, path, dpi)
+
+
+def lwatv_png(path, stokes_i, abs_v, pixel_deg, *, when="", freq_hz=None, labels=(), spectrum=None,
+              spectrum_freq_hz=None, spectrum_label="") -> str:
+    """The station's LWATV view of one channel: Stokes I and |V| side by side on black, each clipped at the
+    horizon, with the sources labelled, the time and frequency written in, and the band's spectrum below
+    with the shown channel marked (as Orville draws its ``lwatv`` PNGs).
+
+    stokes_i, abs_v : (ngrid, ngrid) images in OIMS orientation (row North, column West; the zenith at
+        ((ngrid - 1) / 2, (ngrid - 1) / 2)); abs_v None: I alone. pixel_deg : degrees a pixel (sine
+        projection). labels : [(name, l, m)] above the horizon. spectrum : (nchan,) values against
+        spectrum_freq_hz (drawn on a log scale where all are positive), the shown channel freq_hz marked.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    img_i = np.nan_to_num(np.asarray(stokes_i, np.float64))
+    n = img_i.shape[0]
+    c = (n - 1) / 2.0
+    r = np.degrees(1.0) / float(pixel_deg)                       # the horizon's radius in pixels
+    panels = [("I", img_i)] + ([("|V|", np.abs(np.nan_to_num(np.asarray(abs_v, np.float64))))] if abs_v is not None else [])
+    fig = Figure(figsize=(5 * len(panels), 6.2), facecolor="black")
+    FigureCanvasAgg(fig)
+    top = 0.22
+    inside = (np.hypot(*np.meshgrid(np.arange(n) - c, np.arange(n) - c, indexing="ij")) < r)
+    vmax = max(1e-6, float(np.percentile(img_i[inside], 99.75))) if inside.any() else 1.0
+    for k, (name, img) in enumerate(panels):
+        ax = fig.add_axes([k / len(panels), top, 1.0 / len(panels), 1 - top - 0.06])
+        ax.set_facecolor("black")
+        im = ax.imshow(img, origin="lower", vmin=0, vmax=vmax, interpolation="bilinear", cmap="jet")
+        clip = Circle((c, c), 1.03 * r, facecolor="none", edgecolor="none")
+        ax.add_patch(clip)
+        im.set_clip_path(clip)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        for lab, l, m in labels:
+            ax.text(c - l * r, c + m * r, str(lab), color="white", fontsize=12)
+        ax.text(0.02 if k == 0 else 0.98, 0.98, name, color="white", fontsize=13, va="top",
+                ha="left" if k == 0 else "right", transform=ax.transAxes)
+    fig.text(0.01, 0.995, when, color="white", fontsize=12, va="top")
+    if freq_hz is not None:
+        fig.text(0.99, 0.995, f"{float(freq_hz) / 1e6:.3f} MHz", color="white", fontsize=12, va="top", ha="right")
+    if spectrum is not None and spectrum_freq_hz is not None:
+        sp = np.asarray(spectrum, np.float64)
+        f = np.asarray(spectrum_freq_hz, np.float64) / 1e6
+        sax = fig.add_axes([0.06, 0.03, 0.88, top - 0.06], facecolor="black")
+        (sax.semilogy if np.all(sp > 0) else sax.plot)(f, sp, color="white")
+        if freq_hz is not None:
+            j = int(np.argmin(np.abs(f - float(freq_hz) / 1e6)))
+            sax.scatter([f[j]], [sp[j]], color="red", zorder=3)
+        sax.tick_params(colors="white", labelsize=8)
+        sax.set_xlabel("MHz", color="white", fontsize=8)
+        sax.set_title(spectrum_label, color="white", fontsize=8, loc="left")
+        for sp_ in sax.spines.values():
+            sp_.set_color("white")
+    return save_figure(fig, path, dpi=78, format="png", facecolor="black")

@@ -471,7 +471,12 @@ OUTPUT_OIMS = Section({
     "seconds": Key(Float(0.0, lo_open=True), 5.0, doc="Length of each OIMS integration (Orville's is 5 s)."),
     "products": Key(Products(), ["I", "Q", "U", "V"],
                     doc="The images' Stokes products; OIMS2fits reads I, Q, U, V (or XX, XY, YX, YY)."),
-}, what="an oims mapping {ngrid, seconds, products}")
+    "lwatv": Key(Bool(), True,
+                 doc="Also draw each integration as the station's LWATV view (I and |V| of one channel, the "
+                     "sources labelled, the band's spectrum) into lwatv/<MJD>/ under Orville's names."),
+    "lwatv_mhz": Key(Float(0.0, lo_open=True), None,
+                     doc="The LWATV view's channel: the one nearest this frequency; null: the band's middle."),
+}, what="an oims mapping {ngrid, seconds, products, lwatv, lwatv_mhz}")
 
 OUTPUT_CUBE = Section({
     "dtype": Key(Choice("float32", "float16"), "float32", doc="The data type the cube stores its pixels in."),

@@ -425,7 +425,8 @@ def _oims_stage(cfg, dev, calfold, station, pattern, table=None):
     imager = DFTImagerBlock(calfold, lm, acc, plan=plan, **common)
     log.info("output.oims: %d x %d grid (%d pixels above the horizon), %s, %.3g s integrations -> %s",
              oc["ngrid"], oc["ngrid"], len(lm), "/".join(oc["products"]), acc / width, cfg["output"]["dir"])
-    return OimsWriterBlock(imager, cfg["output"]["dir"], oc["ngrid"], station=station.name)
+    return OimsWriterBlock(imager, cfg["output"]["dir"], oc["ngrid"], station=station.name,
+                           lwatv=oc["lwatv"], lwatv_mhz=oc["lwatv_mhz"])
 
 
 def _source_stage(cfg, dev, fmt, info, station, gulp, space, progress):

@@ -156,7 +156,8 @@ class Service:
 
     def pictures(self):
         """{key: path} of the PNGs the run has written that the page shows: ``image`` (the image writer's
-        latest quicklook), ``candidates`` (the search's), ``watch-<target>`` (each watch target's). Only
+        latest quicklook), ``candidates`` (the search's), ``lwatv`` (the latest LWATV view, ``output.oims``),
+        ``watch-<target>`` (each watch target's). Only
         these are served, by key: no path in a request reaches the disk."""
         g = getattr(self.monitor, "g", None)
         out = {}
@@ -170,6 +171,9 @@ class Service:
         cands = sorted(Path(g.outdir).glob("*_candidates.png")) if getattr(g, "outdir", None) else []
         if cands:
             out["candidates"] = str(cands[-1])
+        lwatv = getattr(getattr(g, "oims", None), "pngs", None) or []
+        if lwatv:
+            out["lwatv"] = lwatv[-1]
         for p in (getattr(getattr(g, "watch", None), "pngs", None) or []):
             out["watch-" + Path(p).stem.rsplit("_", 1)[-1]] = p
         return {k: str(v) for k, v in out.items() if Path(v).is_file()}
