@@ -237,3 +237,32 @@ def test_a_bad_oims_section_is_a_clear_error():
         load_config("pipelines/lwasv_sim_allsky.yaml", ["output.oims={ngrid: 1}"])
     with pytest.raises(ValueError, match="output.oims.seconds"):
         load_config("pipelines/lwasv_sim_allsky.yaml", ["output.oims={seconds: 0}"])
+
+
+def test_a_day_of_lwatv_views_becomes_one_movie(tmp_path):
+    """`bf-epic movie FOLDER`: the folder's LWATV PNGs in time order, 'nomovie+' views left out, as an H.264
+    MP4 that ffmpeg (imageio-ffmpeg's) reads back frame for frame; bad folders are clear errors."""
+    pytest.importorskip("imageio_ffmpeg")
+    import imageio_ffmpeg
+
+    from bf_epic_blocks.io.quicklook import lwatv_png
+    from bf_epic_blocks.pipeline.cli import main
+    day = tmp_path / "lwatv" / "60462"
+    # a spot that moves East to West (column 10, 16, 22) at 10:00:00, :05, :10, written out of order
+    for hhmmss, col in (("100010", 22), ("100000", 10), ("100005", 16)):
+        img = np.zeros((32, 32))
+        img[14:18, col - 2:col + 2] = 1.0
+        lwatv_png(day / f"60462_{hhmmss}_74.050MHz.png", img, None, 130 / 32, when=hhmmss)
+    lwatv_png(day / "nomovie+60462_100000_38.100MHz.png", np.ones((32, 32)), None, 130 / 32)
+    assert main(["movie", str(day), "--fps", "5"]) == 0
+    out = tmp_path / "lwatv" / "60462.mp4"
+    reader = imageio_ffmpeg.read_frames(str(out))
+    meta = reader.__next__()
+    frames = [np.frombuffer(f, np.uint8).reshape(meta["size"][1], meta["size"][0], 3).astype(int) for f in reader]
+    assert len(frames) == 3 and meta["fps"] == 5
+    # the spot (jet's red, R - B large) in the frames' order: columns rising, so the views went in by time
+    cols = [int(np.argmax((f[..., 0] - f[..., 2]).clip(0).sum(axis=0))) for f in frames]
+    assert cols[0] < cols[1] < cols[2], cols
+    assert main(["movie", str(tmp_path / "none")]) == 2
+    (tmp_path / "empty").mkdir()
+    assert main(["movie", str(tmp_path / "empty")]) == 2

@@ -6,6 +6,7 @@
     bf-epic calibrate FILE [-o TABLE.npz] [--set key=value ...]
     bf-epic batch FILE --inputs TBF [TBF ...] [--scheduler tcp://HOST:PORT] [--workers N] [--set ...]
     bf-epic replay FILE --to 127.0.0.1:PORT [--rate R] [--drop F] [--seed N] [--format auto|tbf|tbx]
+    bf-epic movie FOLDER [-o MOVIE.mp4] [--fps 10]
 
 Errors in the YAML (unknown keys, wrong types, missing files, impossible parameters) are reported
 with the key's dotted path and exit status 2; errors while running exit with status 1 and one line
@@ -83,7 +84,34 @@ def build_parser():
     r.add_argument("--allow-remote", action="store_true", help="allow a non-loopback destination")
     r.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
     r.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    mv = sub.add_parser("movie", help="a day's LWATV views (output.oims.lwatv) as one MP4",
+                        description="Join the LWATV PNGs of one day's folder (<output.dir>/lwatv/<MJD>/) into an "
+                                    "H.264 MP4, in time order, leaving out 'nomovie+' views (the station's daily "
+                                    "LWATV movie). Needs imageio-ffmpeg (the service extra).")
+    mv.add_argument("folder", help="a folder of LWATV views, e.g. output/lwasv_udp_live/lwatv/60462")
+    mv.add_argument("-o", "--output", help="the movie (default: <folder>.mp4 beside the folder)")
+    mv.add_argument("--fps", type=float, default=10.0, help="frames a second (default 10)")
+    mv.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
+    mv.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     return p
+
+
+def _movie(args):
+    from pathlib import Path
+
+    from ..io.movie import movie_frames, write_movie
+    folder = Path(args.folder)
+    out = Path(args.output) if args.output else folder.with_suffix(".mp4")
+    try:
+        res = write_movie(movie_frames(folder), out, fps=args.fps)
+    except ImportError:
+        print("bf-epic: movie needs imageio-ffmpeg: pip install 'bf_epic_blocks[service]'", file=sys.stderr)
+        return 2
+    except (OSError, ValueError) as e:
+        print(f"bf-epic: movie failed: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {res['path']}: {res['frames']} frames of {res['width']} x {res['height']} at {args.fps:g} fps")
+    return 0
 
 
 def _replay(args):
@@ -124,6 +152,8 @@ def main(argv=None):
     _setup_logging(args)
     if args.command == "replay":
         return _replay(args)
+    if args.command == "movie":
+        return _movie(args)
     from .config import ConfigError, load_config
     try:
         overrides = list(args.overrides)
