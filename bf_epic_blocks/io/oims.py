@@ -245,12 +245,17 @@ def read_oims(path, *, data: bool = True) -> dict:
     ``start_time``/``stop_time`` (MJD UTC) and ``compression``; each entry its header's fields (times in MJD
     and days, frequencies in Hz, angles in degrees; fields a version lacks are absent) and
     ``extended_attributes`` (a dict, version 6). Raises :class:`OimsFormatError` naming what is wrong.
+
+    The file is memory-mapped, not read: an hour of whole-band images is tens of GB. Where the records
+    are evenly spaced (no extended attributes, as most files), ``data`` is a read-only view of the map,
+    read from disk as it is indexed; otherwise the images are copied into one array.
     """
     p = Path(path)
-    raw = p.read_bytes()
-    if len(raw) < 24:
-        raise OimsFormatError(f"{p}: {len(raw)} bytes: too short for an OIMS file (24-byte version string)")
-    name = raw[:24].rstrip(b"\0").decode("ascii", "replace")
+    size = p.stat().st_size
+    if size < 24:
+        raise OimsFormatError(f"{p}: {size} bytes: too short for an OIMS file (24-byte version string)")
+    raw = np.memmap(p, np.uint8, mode="r")
+    name = bytes(raw[:24]).rstrip(b"\0").decode("ascii", "replace")
     if not name.startswith("OrvilleImageDBv") or name[-3:] not in {f"{v:03d}" for v in range(1, 7)}:
         raise OimsFormatError(f"{p}: not an OIMS file (version string {name!r}, expected OrvilleImageDBv001..v006)")
     version = int(name[-3:])
@@ -294,7 +299,7 @@ def read_oims(path, *, data: bool = True) -> dict:
             raise OimsFormatError(f"{p}: integration {len(entries)} at offset {pos} needs {end - pos} bytes, "
                                   f"{len(raw) - pos} are left: the file is truncated")
         if ext_len > 0:
-            e["extended_attributes"] = json.loads(raw[body + img_bytes + mask_bytes:end].decode())
+            e["extended_attributes"] = json.loads(bytes(raw[body + img_bytes + mask_bytes:end]).decode())
         offsets.append(body)
         entries.append(e)
         pos = end
@@ -304,6 +309,14 @@ def read_oims(path, *, data: bool = True) -> dict:
         if mask_bytes:
             out["mask"][i] = np.frombuffer(raw, np.uint8, nchan, body + img_bytes) != 0
     if data:
-        out["data"] = np.stack([np.frombuffer(raw, "<f4", nchan * nst * ng * ng, b).reshape(nchan, nst, ng, ng)
-                                for b in offsets]) if offsets else np.zeros((0, nchan, nst, ng, ng), np.float32)
+        shape = (nchan, nst, ng, ng)
+        steps = set(np.diff(offsets).tolist())
+        if not offsets:
+            out["data"] = np.zeros((0,) + shape, np.float32)
+        elif len(steps) <= 1:                                 # evenly spaced: a view of the map
+            inner = (nst * ng * ng * 4, ng * ng * 4, ng * 4, 4)
+            out["data"] = np.ndarray((len(offsets),) + shape, "<f4", buffer=raw, offset=offsets[0],
+                                     strides=(steps.pop() if steps else img_bytes,) + inner)
+        else:
+            out["data"] = np.stack([np.frombuffer(raw, "<f4", img_bytes // 4, b).reshape(shape) for b in offsets])
     return out

@@ -398,6 +398,18 @@ def build_graph(cfg, progress=None, parts=None):
                  snippets, oims=oims)
 
 
+def _beside_kwargs(cfg, dev, products, pattern, table):
+    """DFTImagerBlock keywords for an imager beside the main one on the same voltages (the watchlist's,
+    OIMS's): its products, and the calibration folded in as the main imager folds it."""
+    im, cal = cfg["imager"], cfg["calibration"]
+    kw = dict(products=products, remove_autocorr=im["remove_autocorr"])
+    if folds_calibration(cfg, dev):
+        kw.update(cable=bool(cal["cable"]), pattern=pattern or False)
+        if table is not None:
+            kw.update(gains=table)
+    return kw
+
+
 def _oims_stage(cfg, dev, calfold, station, pattern, table=None):
     """``output.oims``: a DFTImagerBlock on Orville's grid (:func:`~..blocks.oims_writer.oims_pixels`) at the
     OIMS cadence, beside the main imager on the same voltages (the calibration folded in as the imager
@@ -410,15 +422,11 @@ def _oims_stage(cfg, dev, calfold, station, pattern, table=None):
                          "channels over several GPUs (use one GPU, or output.oims: null)")
     from ..blocks import DFTImagerBlock
     from ..blocks.oims_writer import OimsWriterBlock, oims_pixels
-    im, cal = cfg["imager"], cfg["calibration"]
+    im = cfg["imager"]
     width = float(channel_width_hz(cfg))
     acc = max(1, int(round(float(oc["seconds"]) * width)))
     lm, _ = oims_pixels(oc["ngrid"])
-    common = dict(products=oc["products"], remove_autocorr=im["remove_autocorr"])
-    if folds_calibration(cfg, dev):
-        common.update(cable=bool(cal["cable"]), pattern=pattern or False)
-        if table is not None:
-            common.update(gains=table)
+    common = _beside_kwargs(cfg, dev, oc["products"], pattern, table)
     sub = {**cfg, "imager": {**im, "accumulate_frames": acc, "products": list(oc["products"])}}
     plan = imaging_plan(sub, len(lm), int((~station.flags).any(axis=1).sum()),
                         len(channel_freqs(cfg)) if cfg["source"]["kind"] == "simulated" else 1, dev)
@@ -624,13 +632,9 @@ def _watch_stage(cfg, dev, calfold, station, pattern, table=None, imager=None, s
                          "over several GPUs (use one GPU, or watch: null)")
     from ..blocks import DFTImagerBlock
     from ..blocks.watch import WatchPixels, WatchWriterBlock
-    im, cal = cfg["imager"], cfg["calibration"]
+    im = cfg["imager"]
     pixels = WatchPixels(wc["targets"], station.location)
-    common = dict(products=wc["products"], remove_autocorr=im["remove_autocorr"])
-    if folds_calibration(cfg, dev):
-        common.update(cable=bool(cal["cable"]), pattern=pattern or False)
-        if table is not None:
-            common.update(gains=table)
+    common = _beside_kwargs(cfg, dev, wc["products"], pattern, table)
     ndir = sum(t.ndir for t in pixels.targets)
     plan = imaging_plan(cfg, ndir, int((~station.flags).any(axis=1).sum()),
                         len(channel_freqs(cfg)) if cfg["source"]["kind"] == "simulated" else 1, dev)
@@ -907,11 +911,7 @@ def _start_service(cfg, g):
     from ..service.monitor import Limits, Monitor
     from ..service.server import Service
     sc, src = cfg["service"], cfg["source"]
-    dt = None
-    if src["kind"] == "simulated":
-        dt = 1.0 / float(src["channels"]["width_hz"])
-    elif capture_format(src) is not None:
-        dt = 1.0 / _scan(src["path"], report=False, fmt=capture_format(src)).chan_bw_hz
+    dt = None if src["kind"] == "udp" else 1.0 / channel_width_hz(cfg)   # a live stream's comes with its packets
     solve = cfg["calibration"].get("solve")
     return Service(Monitor(g, cfg, dt), sc["listen"], allow_remote=sc["allow_remote"],
                    token=sc["token"] or os.environ.get(sc["token_env"]) or None,
@@ -987,8 +987,8 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
     src_stats = getattr(g.source, "tbf_stats", None) or getattr(g.source, "udp_stats", None) or {}
     img = getattr(g.imager, "img_stats", {})
     # a source stopped early (SIGTERM) wrote fewer than its total: the runtime's count where there is one
-    written = (getattr(g.source, "stats", None) or {}).get("nframe_written") if isinstance(
-        getattr(g.source, "stats", None), dict) else None
+    rt = getattr(g.source, "stats", None)
+    written = rt.get("nframe_written") if isinstance(rt, dict) else None
     frames_read = src_stats.get("samples", written if written is not None else g.nframe_total)
     skipped = sum(int(getattr(b, "stats", {}).get("nframe_skipped", 0) or 0)
                   for b in (g.calfold, g.imager, *g.sinks) if isinstance(getattr(b, "stats", None), dict))
