@@ -448,3 +448,31 @@ def test_real_bifrost_unguaranteed_reader_of_frames_that_straddle_the_ring_end()
     assert got.shape[0] <= n and kept.any()
     np.testing.assert_array_equal(got[kept], data[:got.shape[0]][kept])
     assert ring2.ReadSpan is original
+
+
+def test_a_source_under_real_bifrost_counts_its_frames_and_drains():
+    """bfp.SourceBlock under real Bifrost (CountedSource on Bifrost's class): the frames each gulp wrote,
+    its times (the service's monitor reads them), and after drain_event an empty gulp, which ends the
+    sequence in Bifrost's SourceBlock; a subclass calling its parent's on_data is counted once."""
+    from bf_epic_blocks.blocks._bifrost_fixes import CountedSource
+
+    class BifrostSourceBlock:                      # the part of bifrost.pipeline.SourceBlock that matters
+        pass
+    Base = type("SourceBlock", (CountedSource, BifrostSourceBlock), {})
+
+    class Src(Base):
+        def on_data(self, reader, ospans):
+            return [len(ospans[0])]
+
+    class Sub(Src):
+        def on_data(self, reader, ospans):
+            return super().on_data(reader, ospans)
+
+    for cls in (Src, Sub):
+        s = cls()
+        assert s.on_data(None, [[1, 2, 3]]) == [3] and s.on_data(None, [[1, 2]]) == [2]
+        st = s.stats
+        assert (st["ngulp"], st["nframe_written"]) == (2, 5)
+        assert st["first_data_at"] <= st["last_data_at"] and st["process_s"] >= 0
+        s.drain_event.set()
+        assert s.on_data(None, [[1, 2, 3], [4]]) == [0, 0] and s.stats["nframe_written"] == 5

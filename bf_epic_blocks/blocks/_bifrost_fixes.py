@@ -23,7 +23,9 @@ Two fixes:
 """
 from __future__ import annotations
 
+import functools
 import threading
+import time
 import types
 
 from ..runtime import pipeline as _builtin_pipeline
@@ -200,6 +202,15 @@ def catching_pipeline(bf_pipeline):
         """``bifrost.pipeline.Pipeline`` whose ``run()`` raises the first block failure as
         :class:`~bf_epic_blocks.runtime.pipeline.PipelineError`."""
 
+        def drain(self):
+            """End the data gracefully, as our runtime's ``Pipeline.drain``: each source's next gulp is
+            empty (:class:`CountedSource`), which ends its sequence; the blocks downstream finish what
+            the rings hold and close their files."""
+            for b in self.blocks:
+                ev = getattr(b, "drain_event", None)
+                if ev is not None:
+                    ev.set()
+
         def run(self):
             self._bf_epic_failure = None
             lock = threading.Lock()
@@ -247,10 +258,64 @@ def catching_pipeline(bf_pipeline):
     return Pipeline
 
 
+class CountedSource:
+    """A source block's ``stats`` under real Bifrost, as our runtime keeps them for every block
+    (``nframe_written``, ``ngulp``, ``process_s``, ``first_data_at``, ``last_data_at``): the service's
+    monitor reads how much data has come and when the last did from them. Each subclass's ``on_data``
+    is wrapped where it is defined (Bifrost's SourceBlock calls it once a gulp; it returns the frames
+    written, an int or one per output). Once ``drain_event`` is set (the Pipeline's ``drain``, on
+    SIGTERM) the next gulp is empty, which ends the sequence as the end of the data does."""
+
+    @property
+    def drain_event(self):
+        ev = self.__dict__.get("_drain_event")
+        if ev is None:
+            ev = self.__dict__["_drain_event"] = threading.Event()
+        return ev
+
+    @property
+    def stats(self):
+        st = self.__dict__.get("_counted_stats")
+        if st is None:
+            st = self.__dict__["_counted_stats"] = dict(ngulp=0, nframe_written=0, process_s=0.0,
+                                                        first_data_at=None, last_data_at=None)
+        return st
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        f = cls.__dict__.get("on_data")
+        if f is None:
+            return
+
+        @functools.wraps(f)
+        def on_data(self, *args, **kw):
+            if self.__dict__.get("_counting"):          # a subclass's on_data calling this one: counted there
+                return f(self, *args, **kw)
+            if self.drain_event.is_set():                # drained: an empty gulp ends the sequence
+                ospans = args[1] if len(args) > 1 else kw.get("ospans", [None])
+                return [0] * len(ospans)
+            t0 = time.perf_counter()
+            self.__dict__["_counting"] = True
+            try:
+                n = f(self, *args, **kw)
+            finally:
+                self.__dict__["_counting"] = False
+            st = self.stats
+            if st["first_data_at"] is None:
+                st["first_data_at"] = t0
+            st["last_data_at"] = t = time.perf_counter()
+            st["process_s"] += t - t0
+            st["ngulp"] += 1
+            first = n[0] if isinstance(n, (list, tuple)) and n else n
+            st["nframe_written"] += int(first or 0)
+            return n
+        cls.on_data = on_data
+
+
 def bifrost_namespace(bf_pipeline):
     """``bfp`` for real Bifrost: ``bf_pipeline``'s names, with ``Pipeline`` from
-    :func:`catching_pipeline` and the reading block classes given :class:`FrameAlignedReads`.
-    Each is a subclass of Bifrost's class of the same name."""
+    :func:`catching_pipeline`, the reading block classes given :class:`FrameAlignedReads`, and
+    ``SourceBlock`` given :class:`CountedSource`. Each is a subclass of Bifrost's class of the same name."""
     ns = types.ModuleType('bf_epic_blocks.blocks._compat.bfp', bf_pipeline.__doc__)
     ns.__dict__.update({k: v for k, v in vars(bf_pipeline).items() if not k.startswith('__')})
     ns.Pipeline = catching_pipeline(bf_pipeline)
@@ -259,4 +324,7 @@ def bifrost_namespace(bf_pipeline):
         doc = f"``bifrost.pipeline.{name}`` reading frame-aligned spans (:class:`FrameAlignedReads`)."
         cls = type(name, (FrameAlignedReads, base), {'__module__': __name__, '__doc__': doc})
         setattr(ns, name, cls)
+    ns.SourceBlock = type('SourceBlock', (CountedSource, bf_pipeline.SourceBlock),
+                          {'__module__': __name__,
+                           '__doc__': "``bifrost.pipeline.SourceBlock`` with ``stats`` (:class:`CountedSource`)."})
     return ns
