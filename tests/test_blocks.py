@@ -8,7 +8,7 @@ from bf_epic_blocks.blocks import (ArraySinkBlock, ArraySourceBlock, CalFoldBloc
 from bf_epic_blocks.imaging.calibration import FS_HZ, GainTable, apply_direction_independent, cable_weights
 from bf_epic_blocks.blocks import _compat
 from bf_epic_blocks.runtime.dtypes import pack_ci4
-from truth import point_source_efield
+from truth import brute_image, point_source_efield
 
 C_LIGHT = 299792458.0
 DT = 40e-6
@@ -204,32 +204,38 @@ def test_grid_output_layout_and_nan_outside(scene):
     assert peak == (8, 8 + 4), "a source East of the zenith (l = 0.5) is 4 columns right of the centre"
 
 
-def test_tracking_pixels_rebuild_operator(scene):
+def test_tracking_pixels_move_the_operator(scene):
+    """A pixel that moves at each integration: one operator built, moved three times in place, each
+    integration's image the float64 definition's at that integration's direction."""
     s = scene
-    calls = []
 
     def track(tag):
-        calls.append(tag)
         frame = (tag - 0) // TPF
         return [[0.1 + 0.01 * (frame // 10), 0.0]]
 
     X = point_source_efield(s["xyz"], s["freq"], 0.1, 0.0, 1.0, 40, npol=2)
     hdr = efield_header("t", 0, s["freq"], DT, {"xyz_m": s["xyz"]}, dtype="cf32")
     sink, blk = run_pipeline(X.astype(np.complex64), hdr, 16, 10, track, cable=False, products=("XX",))
-    assert sink.result(0).shape == (4, 3, 1, 1)
-    assert blk.img_stats["operator_builds"] == 4
-    np.testing.assert_allclose(sink.result(0)[0, :, 0, 0], 1.0, rtol=1e-5)  # first integration on the source
+    got = sink.result(0)
+    assert got.shape == (4, 3, 1, 1)
+    assert blk.img_stats["operator_builds"] == 1 and blk.img_stats["operator_moves"] == 3
+    np.testing.assert_allclose(got[0, :, 0, 0], 1.0, rtol=1e-5)  # first integration on the source
+    for i in range(4):
+        truth = brute_image(X[10 * i:10 * (i + 1)].astype(np.complex64), s["xyz"], s["freq"],
+                            np.array([[0.1 + 0.01 * i, 0.0]]), ("XX",))
+        np.testing.assert_allclose(got[i], truth, rtol=1e-5, atol=1e-6)
+    assert got[3, 0, 0, 0] < 0.9                                  # the pixel left the source
 
 
 def test_tracking_rebuilds_log_the_plan_once(scene, caplog):
-    """Four operator builds of one sequence share one plan: it is logged once, not per rebuild."""
+    """An operator built once and moved three times in one sequence: its plan is logged once."""
     s = scene
     X = point_source_efield(s["xyz"], s["freq"], 0.1, 0.0, 1.0, 40, npol=2)
     hdr = efield_header("t", 0, s["freq"], DT, {"xyz_m": s["xyz"]}, dtype="cf32")
     with caplog.at_level("INFO", logger="bf_epic_blocks.blocks.dft_imager"):
         _, blk = run_pipeline(X.astype(np.complex64), hdr, 16, 10,
                               lambda tag: [[0.1 + 0.01 * ((tag // TPF) // 10), 0.0]], cable=False, products=("XX",))
-    assert blk.img_stats["operator_builds"] == 4
+    assert blk.img_stats["operator_builds"] == 1 and blk.img_stats["operator_moves"] == 3
     plans = [r for r in caplog.records if r.getMessage().startswith("DFTImagerBlock: dft imager")]
     assert len(plans) == 1, [r.getMessage() for r in plans]
 

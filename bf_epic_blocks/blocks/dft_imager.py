@@ -110,7 +110,8 @@ class DFTImagerBlock(bfp.TransformBlock):
         self.pattern = pattern
         self.method = plan.method if plan is not None else method
         self.precision = plan.precision if plan is not None else precision
-        self.img_stats = {"images": 0, "frames_imaged": 0, "frames_dropped_partial": 0, "operator_builds": 0}
+        self.img_stats = {"images": 0, "frames_imaged": 0, "frames_dropped_partial": 0, "operator_builds": 0,
+                          "operator_moves": 0}
         self.engine = self._key = None   # the sequence's engine (.engines), and what its header was
 
     def define_valid_input_spaces(self):
@@ -196,6 +197,15 @@ class DFTImagerBlock(bfp.TransformBlock):
         self.img_stats["operator_builds"] += 1
         return op, route
 
+    def _repoint(self, op, lm):
+        """Operator ``op`` pointed at pixels ``lm`` in place (:class:`~.engines.DFTEngine`'s repoint): the
+        tracking pixels moved, nothing else did."""
+        lay, xp = self._lay, self._xp
+        pat = self._pattern_name
+        B = None if pat is None else patterns.pattern_array(pat, xp.asarray(lm), xp.asarray(lay["freq_hz"]), lay["npol"])
+        op.repoint(lm, pattern=B)
+        self.img_stats["operator_moves"] += 1
+
     def _sharded_route(self, lm):
         """The channels over the GPUs of ``gpus`` for pixels ``lm`` (:class:`~.engines.ShardedEngine`'s build)."""
         from ..imaging.multigpu import ShardedOperator
@@ -219,7 +229,8 @@ class DFTImagerBlock(bfp.TransformBlock):
                   pixels_fn=self.pixels if callable(self.pixels) and not isinstance(self.pixels, LMGrid) else None)
         if self.gpus is not None:
             return ShardedEngine(self._sharded_route, lm, **kw)
-        return DFTEngine(self._operator, lm, products=self.products, remove_autocorr=self.remove_autocorr, **kw)
+        return DFTEngine(self._operator, lm, products=self.products, remove_autocorr=self.remove_autocorr,
+                         repoint=self._repoint, **kw)
 
     def _engine_key(self, lm):
         """What this sequence's engine depends on in its header (and pixels): a new engine is built only

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import math
+import weakref
 
 import numpy as np
 
@@ -321,20 +322,12 @@ class DFTOperator:
         self.sel = _Selection(xp, self.chan_index, None if self.all_kept else self.keep_index, live_sel,
                               nchan, nant_in)
 
-        G = _geometric_from_host(xp, hxyz_kept, hf, hlm, hn, "fp64" if precision == "fp64" else "fp32")  # (nchan, npix, nant)
-        b = _check_pattern(pattern, nchan, npix, nant_in, npol, xp)
-        self.pixel_pattern = None                             # (nchan|1, npix, npol|1) or None
-        if b is not None and b.shape[2] != 1:
-            b = b[:, :, self.keep_index, :].astype(self.cdtype)
-            # One operator per pol: G_p = G * B[..., p].
-            Gp = G[:, None, :, :] * xp.moveaxis(b, 3, 1)
-            self.G = xp.ascontiguousarray(xp.broadcast_to(Gp, (nchan, npol, npix, self.nant)))
-        else:
-            self.G = G[:, None]
-            if b is not None:
-                self.pixel_pattern = b[:, :, 0, :].astype(self.cdtype)
+        self._host_geometry = (hxyz_kept, hf)          # float64 host copies: repoint() forms new phases from them
+        #: (nchan, 1|npol, npix, nant) operator, and (nchan|1, npix, npol|1) or None: an antenna-independent pattern
+        self.G, self.pixel_pattern = self._pixel_operator(hlm, hn, pattern)
         self.shared_geometry = self.G.shape[1] == 1
         self._derived = {}
+        self._routes = weakref.WeakSet()    # routes made from this operator (they add themselves): repoint() refreshes them
         #: the fused integer modes' operator (:mod:`.fused`), built now: never inside a graph capture
         self.fused = None
         if precision in FUSED:
@@ -345,15 +338,63 @@ class DFTOperator:
         #: (nant_kept, npol) NaN/Inf samples zeroed so far in complex input (device array), or None
         self.nonfinite_counts = None
 
+    def _pixel_operator(self, hlm, hn, pattern):
+        """(G, pixel_pattern) for pixels ``hlm`` (host float64, ``hn`` their n): G (nchan, 1|npol, npix, nant)
+        with an antenna-dependent pattern folded in (one operator per pol), else the geometry alone and the
+        pattern (nchan|1, npix, npol|1) kept apart (or None)."""
+        xp, (hxyz, hf) = self.xp, self._host_geometry
+        G = _geometric_from_host(xp, hxyz, hf, hlm, hn, "fp64" if self.precision == "fp64" else "fp32")
+        b = _check_pattern(pattern, self.nchan, self.npix, self.nant_in, self.npol, xp)
+        if b is not None and b.shape[2] != 1:
+            b = b[:, :, self.keep_index, :].astype(self.cdtype)
+            Gp = G[:, None, :, :] * xp.moveaxis(b, 3, 1)          # one operator per pol: G_p = G * B[..., p]
+            return xp.ascontiguousarray(xp.broadcast_to(Gp, (self.nchan, self.npol, self.npix, self.nant))), None
+        return G[:, None], (None if b is None else b[:, :, 0, :].astype(self.cdtype))
+
+    def repoint(self, pixels_lm, pattern=None):
+        """Point the operator's pixels at new directions, in place: the phases (and ``pattern``, given for
+        the new pixels as to the constructor) are formed again into the arrays that held them, with
+        every form derived from them (the GEMMs' operands, the fused modes' int8 pieces, the routes'
+        pattern factors), so routes made from this operator and the CUDA graphs replaying its images
+        stay valid. A tracking imager moves its pixels this way (:class:`~..blocks.engines.DFTEngine`)
+        instead of building a new operator and route (which costs the graphs' captures again).
+
+        pixels_lm : (npix, 2) as many pixels as before;  pattern : as the constructor's, of the same
+        kind (none, antenna-independent, or antenna-dependent) as the operator was built with."""
+        xp = self.xp
+        hlm = check_lm(to_numpy(pixels_lm))
+        if hlm.shape != (self.npix, 2):
+            raise ValueError(f"repoint: {hlm.shape[0]} pixels given to an operator of {self.npix}; "
+                             "an operator keeps its pixel count (build another for another count)")
+        G, bp = self._pixel_operator(hlm, n_from_lm(hlm[:, 0], hlm[:, 1]), pattern)
+        if G.shape != self.G.shape or (bp is None) != (self.pixel_pattern is None):
+            raise ValueError("repoint: the pattern is not of the kind the operator was built with "
+                             f"(operator {tuple(self.G.shape)}, pattern per pixel: {self.pixel_pattern is not None})")
+        self.G[...] = G
+        if bp is not None:
+            self.pixel_pattern[...] = bp
+        self.pixels_lm[...] = xp.asarray(hlm)
+        for key, old in self._derived.items():
+            if key[0] == "G":
+                old[...] = self._live_G(key[1])
+            elif key[0] == "stack":
+                for o, n in zip(old, stack_operator(self.live_G(key[1]), self.precision)):
+                    o[...] = n
+        if self.fused is not None:
+            self.fused.requantise(self)
+        for route in list(self._routes):
+            route.refresh()
+
     # ------------------------------------------------------------------ operator forms
+    def _live_G(self, pol):
+        g = self.G[:, 0 if self.shared_geometry else pol]
+        return g if self.chan_index is None else g[self.chan_index]
+
     def live_G(self, pol):
         """Operator of pol ``pol`` (0 when shared) for the live channels: (nchan_live, npix, nant)."""
         key = ("G", pol)
         if key not in self._derived:
-            g = self.G[:, 0 if self.shared_geometry else pol]
-            if self.chan_index is not None:
-                g = g[self.chan_index]
-            self._derived[key] = self.xp.ascontiguousarray(g)
+            self._derived[key] = self.xp.ascontiguousarray(self._live_G(pol))
         return self._derived[key]
 
     @property

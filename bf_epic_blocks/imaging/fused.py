@@ -97,7 +97,13 @@ def _pad(n, m):
     return -(-n // m) * m
 
 
-def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tiled=False):
+#: bytes of one chunk's padded complex64 operator on a GPU (its temporaries take a few times that): a small
+#: operator (a watchlist's few pixels) is quantised in one or two chunks, tens of kernels rather than
+#: thousands (its pixels move every second); a grid's ~7 MB a channel keeps the 16-channel chunks
+_CHUNK_BYTES_GPU = 64 * 2**20
+
+
+def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tiled=False, out=None):
     """The operator as int8 pieces in the kernel's layout (module docstring).
 
     G : complex (C, K, A_kept) geometric operator (live channels);  weights : complex (C, A_kept, P)
@@ -106,6 +112,8 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     (C, PA, Kpad), base, xmax). Works in G's array namespace, ``chunk`` channels at a time.
     tiled : A in the Hopper kernel's tiles instead, (C, PA, M/128, pieces, KD/128, 16384)
     (:func:`tile_operator`), made chunk by chunk (no second whole copy of A).
+    out : (A, oscale) arrays of those shapes to write into (an operator's pixels moved), or None.
+    On a GPU chunks hold at least ``chunk`` channels and up to :data:`_CHUNK_BYTES_GPU` of operator.
     """
     xp = get_xp(G)
     C, K, Ak = (int(s) for s in G.shape)
@@ -119,9 +127,15 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     Kpad, Apad = _pad(K, 64), _pad(nant_in, 64)          # rows a multiple of 128, KD of 128
     KD = 2 * Apad
     b, xmax = bases(pieces, KD)
-    Aq = xp.zeros((C, PA, 2 * Kpad // 128, pieces, KD // 128, TILE) if tiled else (C, PA, pieces, 2 * Kpad, KD),
-                  xp.int8)
-    osc = xp.zeros((C, PA, Kpad), xp.float32)
+    shape = (C, PA, 2 * Kpad // 128, pieces, KD // 128, TILE) if tiled else (C, PA, pieces, 2 * Kpad, KD)
+    if out is None:
+        Aq, osc = xp.zeros(shape, xp.int8), xp.zeros((C, PA, Kpad), xp.float32)
+    else:
+        Aq, osc = out
+        if Aq.shape != shape or osc.shape != (C, PA, Kpad):
+            raise ValueError(f"quantise_operator: out shaped {Aq.shape}, {osc.shape}; expected {shape}, {(C, PA, Kpad)}")
+    if xp is not np:
+        chunk = max(chunk, _CHUNK_BYTES_GPU // (Kpad * Apad * 8))
     kidx = xp.asarray(keep_index)
     for c0 in range(0, C, chunk):
         cs = slice(c0, min(C, c0 + chunk))
@@ -364,12 +378,20 @@ class FusedOperator:
         self.tiled = _hopper(self.config)          # operands in the Hopper kernel's tiles
         self.Aq, self.osc, self.base, self.xmax = quantise_operator(
             op.live_G(0), w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled)
+        self._w = w
         self.KD = kd
         self.chan = (xp.arange(op.nchan, dtype=xp.int32) if op.chan_index is None
                      else xp.asarray(op.chan_index, dtype=xp.int32))
         self.npix = op.npix
         self.flag = xp.zeros(1, xp.int32)
         self._pmaps = {}
+
+    def requantise(self, op):
+        """The pieces of ``op``'s operator again, written into the arrays that held them (its pixels moved:
+        :meth:`.dft.DFTOperator.repoint`); the base and sample range are the same (they depend on the
+        antennas only)."""
+        quantise_operator(op.live_G(0), self._w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled,
+                          out=(self.Aq, self.osc))
 
     @staticmethod
     def supports(T, n):

@@ -98,15 +98,27 @@ class Route:
         # antenna-independent pattern B_p conj(B_q) (C'|1, nblk, K) if there is one.
         norm = op.norm if op.chan_index is None else op.norm[op.chan_index]
         self._blkscale = xp.stack([norm[:, p] * norm[:, q] for p, q in blocks], axis=1)[..., None].astype(op.rdtype)
-        self._bw = None
-        if op.pixel_pattern is not None:
-            B = op.pixel_pattern if op.chan_index is None or op.pixel_pattern.shape[0] == 1 \
-                else op.pixel_pattern[op.chan_index]                                 # (C'|1, K, P|1)
-            self._bw = xp.stack([B[:, :, min(p, B.shape[2] - 1)] * xp.conj(B[:, :, min(q, B.shape[2] - 1)])
-                                 for p, q in blocks], axis=1)
+        self._bw = self._pattern_factors()
         self._bidx = [(self.pols.index(p), self.pols.index(q)) for p, q in blocks]
         self._coef = None
         self.reset()
+        op._routes.add(self)
+
+    def _pattern_factors(self):
+        """B_p conj(B_q) per block, (C'|1, nblk, K), of the operator's antenna-independent pattern, or None."""
+        op, xp = self.op, self.op.xp
+        if op.pixel_pattern is None:
+            return None
+        B = op.pixel_pattern if op.chan_index is None or op.pixel_pattern.shape[0] == 1 \
+            else op.pixel_pattern[op.chan_index]                                     # (C'|1, K, P|1)
+        return xp.stack([B[:, :, min(p, B.shape[2] - 1)] * xp.conj(B[:, :, min(q, B.shape[2] - 1)])
+                         for p, q in self.blocks], axis=1)
+
+    def refresh(self):
+        """The operator's pixels moved (:meth:`.dft.DFTOperator.repoint`): what this route keeps of them is
+        formed again in place (the arrays a captured CUDA graph reads stay where they are)."""
+        if self._bw is not None:
+            self._bw[...] = self._pattern_factors()
 
     # ------------------------------------------------------------------ the interface
     def reset(self):
@@ -364,22 +376,30 @@ class FusedIntegerRoute(DirectRoute):
         """(C', P', Kpad) float32: what the fused kernel's pol sums are multiplied by to give the product
         (the operator's scale, 1/(N_p N_q) times ``factor``, the pattern, the product's coefficient) --
         what :func:`.reduce.products_from_blocks` applies, made once per factor."""
-        op, xp = self.op, self.op.xp
         key = float(factor)
         if getattr(self, "_fac_key", None) != key:
-            osc = op.fused.osc                                              # (C', PA, Kpad)
-            PA, K = int(osc.shape[1]), op.npix
-            coef = product_coefficients(self.products, self.blocks)
-            scale = self._blkscale[..., 0] * op.rdtype(factor)              # (C', nblk)
-            fac = xp.zeros((osc.shape[0], len(self.pols), osc.shape[2]), xp.float32)
-            for b, (p, q) in enumerate(self.blocks):
-                i = self.pols.index(p)
-                f = osc[:, i if PA > 1 else 0].astype(xp.float64) * (scale[:, b].astype(xp.float64) * float(coef[0, b, 0]))[:, None]
-                if self._bw is not None:
-                    f[:, :K] *= self._bw[:, b, :].real.astype(xp.float64)
-                fac[:, i] = f
-            self._fac, self._fac_key = fac, key
+            self._fac, self._fac_key = self._grid_factor_array(key), key
         return self._fac
+
+    def refresh(self):
+        super().refresh()
+        if getattr(self, "_fac_key", None) is not None:
+            self._fac[...] = self._grid_factor_array(self._fac_key)
+
+    def _grid_factor_array(self, factor):
+        op, xp = self.op, self.op.xp
+        osc = op.fused.osc                                                  # (C', PA, Kpad)
+        PA, K = int(osc.shape[1]), op.npix
+        coef = product_coefficients(self.products, self.blocks)
+        scale = self._blkscale[..., 0] * op.rdtype(factor)                  # (C', nblk)
+        fac = xp.zeros((osc.shape[0], len(self.pols), osc.shape[2]), xp.float32)
+        for b, (p, q) in enumerate(self.blocks):
+            i = self.pols.index(p)
+            f = osc[:, i if PA > 1 else 0].astype(xp.float64) * (scale[:, b].astype(xp.float64) * float(coef[0, b, 0]))[:, None]
+            if self._bw is not None:
+                f[:, :K] *= self._bw[:, b, :].real.astype(xp.float64)
+            fac[:, i] = f
+        return fac
 
     def _grid_images(self, efield, factor, place, out, ci4=False):
         """A fused mode's 16-sample images made straight into ``out`` (g, nchan, 1, cells) by the kernel

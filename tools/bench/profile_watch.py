@@ -8,12 +8,18 @@ host seconds by thread, and writes them as JSON. Host time is what the other thr
 function holds Python's lock; GPU work shows only where the function waits for it.
 
     python tools/bench/profile_watch.py [--targets 10] [--seconds 6] [--device gpu] [--set KEY=VALUE ...]
-                                        [--json PATH]
+                                        [--json PATH] [--cprofile N]
+
+``--cprofile N`` also prints the N functions with the most cumulative time inside the operator rebuilds
+(``DFTEngine._rebuild``), from Python's cProfile.
 """
 from __future__ import annotations
 
 import argparse
 import collections
+import cProfile
+import io
+import pstats
 import functools
 import importlib
 import sys
@@ -59,11 +65,27 @@ def main(argv=None):
     ap.add_argument("--device", default="gpu")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="more overrides")
     ap.add_argument("--json")
+    ap.add_argument("--cprofile", type=int, default=0, metavar="N",
+                    help="print the N costliest functions inside the operator rebuilds")
     args = ap.parse_args(argv)
     from bf_epic_blocks.pipeline import runner
     from bf_epic_blocks.pipeline.config import load_config
     table = collections.defaultdict(lambda: [0, 0.0])
     wrap_all(table)
+    prof = cProfile.Profile() if args.cprofile else None
+    if prof is not None:
+        from bf_epic_blocks.blocks.engines import DFTEngine
+        rebuild = DFTEngine._rebuild
+
+        def profiled(self, lm, _f=rebuild):
+            if self.pixels_fn is None:          # the main imager's one build
+                return _f(self, lm)
+            prof.enable()
+            try:
+                return _f(self, lm)
+            finally:
+                prof.disable()
+        DFTEngine._rebuild = profiled
     sets = [f"device={args.device}", f"source.duration_s={args.seconds}", "output.dir=/tmp/profile_watch"]
     if args.targets:
         sets.append(f"watch.targets={targets(args.targets)}")
@@ -76,6 +98,10 @@ def main(argv=None):
     rows = sorted(((th, fn, n, t) for (th, fn), (n, t) in table.items()), key=lambda r: -r[3])
     for th, fn, n, t in rows:
         print(f"  {th[:24]:24s} {fn:34s} {n:6d} calls {t:8.3f} s {1e3 * t / max(n, 1):9.3f} ms/call")
+    if prof is not None:
+        buf = io.StringIO()
+        pstats.Stats(prof, stream=buf).sort_stats("cumulative").print_stats(args.cprofile)
+        print(buf.getvalue())
     if args.json:
         write_json(args.json, {"benchmark": "profile_watch", "date": utc_now(), "machine": machine(args.device),
                                "targets": args.targets, "seconds": args.seconds, "blocks": s["blocks"],
