@@ -584,3 +584,17 @@ def test_a_png_is_replaced_whole_never_seen_half_written(tmp_path, monkeypatch):
     assert seen == [first]
     assert path.read_bytes() != first and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert [p.name for p in tmp_path.iterdir()] == ["ds.png"]
+
+
+def test_the_light_curve_baseline_is_the_nan_aware_median_and_mad():
+    """The light curves' baseline (median, 1.4826 MAD per target) by the plain median where a history has
+    no NaN and the NaN-aware one where a target was down: both equal NumPy's nanmedian by definition."""
+    from bf_epic_blocks.blocks.watch import WatchWriterBlock
+    rng = np.random.default_rng(7)
+    h = rng.normal(5.0, 2.0, (3125, 4))
+    for hist in (h, np.where(np.arange(3125)[:, None] % 7 == 0, np.nan, h)):
+        med, sd = WatchWriterBlock._robust_baseline(hist)
+        want = np.nanmedian(hist, axis=0)
+        np.testing.assert_allclose(med, want)
+        np.testing.assert_allclose(sd, 1.4826 * np.nanmedian(np.abs(hist - want), axis=0))
+        assert np.all(np.abs(sd - 2.0) < 0.15)
