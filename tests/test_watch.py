@@ -362,11 +362,17 @@ def test_a_target_between_grid_cells_gets_its_whole_flux(tmp_path):
     assert np.all(nearest < 0.8 * w)
 
 
-def test_a_candidate_saves_one_snippet_with_the_images_around_it(tmp_path):
+@pytest.mark.parametrize("outputs", [["output.cube=null"],
+                                     ["output.cube.average_channels=true", "output.png=true",
+                                      "output.integrate={seconds: 0.1, average_channels: true}"]],
+                         ids=["imager", "band-means"])
+def test_a_candidate_saves_one_snippet_with_the_images_around_it(tmp_path, outputs):
     """The transient demo's burst, searched: its candidates (the burst and its neighbours in DM and
     width) save one snippet holding the band-averaged images from ring_s before the trigger to
     save_after_s after it, the burst's images inside; the others are held off and counted. A trigger file
-    dropped in trigger_dir saves its own snippet, named for its reason, and is moved to done/."""
+    dropped in trigger_dir saves its own snippet, named for its reason, and is moved to done/. The same
+    where the snippets read the band means the outputs make (the whole-band pipeline's case) rather than
+    the imager's images."""
     import h5py
 
     from bf_epic_blocks.pipeline import runner
@@ -374,8 +380,8 @@ def test_a_candidate_saves_one_snippet_with_the_images_around_it(tmp_path):
     trig = tmp_path / "triggers"
     trig.mkdir()
     (trig / "gcn.txt").write_text("GRB 240601A\n")
-    cfg = load_config("pipelines/lwasv_sim_transient.yaml", [
-        "source.duration_s=0.45", "output.cube=null", "imager.grid.size=16", "output.png=false",
+    cfg = load_config("pipelines/lwasv_sim_transient.yaml", outputs + [
+        "source.duration_s=0.45", "imager.grid.size=16",
         "imager.search.png=false", f"output.dir={tmp_path}",
         f"watch={{targets: [{{name: FRB1, ra_deg: 310.0, dec_deg: 20.0}}], ring_s: 0.3, save_after_s: 0.05, "
         f"hold_off_s: 0.2, trigger_dir: {trig}}}"])

@@ -391,8 +391,8 @@ def build_graph(cfg, progress=None, parts=None):
         calfold = _calibration_stage(cfg, dev, feed, pattern, table)
         imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table, weights)
         search = _search_stage(cfg, imager, outdir, weights if getattr(imager, "flag_weights", None) else None)
-        writer, cube = _output_stage(cfg, imager, pixels, block)
-        watch, snippets = _watch_stage(cfg, dev, calfold, station, pattern, table, imager, search)
+        writer, cube, band = _output_stage(cfg, imager, pixels, block)
+        watch, snippets = _watch_stage(cfg, dev, calfold, station, pattern, table, band or imager, search)
         oims = _oims_stage(cfg, dev, calfold, station, pattern, table)
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube, solver, watch,
                  snippets, oims=oims)
@@ -621,8 +621,10 @@ def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None
 def _watch_stage(cfg, dev, calfold, station, pattern, table=None, imager=None, search=None):
     """The watchlist (``watch:``), or (None, None): (the WatchWriterBlock writing
     ``<output.dir>/<prefix>_watch.h5`` from a DFTImagerBlock tracking the targets' directions on the
-    voltages the imager reads, the calibration folded in as the imager folds it; the SnippetBlock on the
-    imager's images that saves what the search's candidates, the light curves and trigger files ask)
+    voltages the imager reads, the calibration folded in as the imager folds it; the SnippetBlock on
+    ``imager`` -- the imager's images, or the band mean of each that the outputs already make, which
+    spares the snippets a pass over every channel's images -- that saves what the search's candidates,
+    the light curves and trigger files ask)
     (:mod:`bf_epic_blocks.blocks.watch`, :mod:`bf_epic_blocks.blocks.snippets`)."""
     wc = cfg.get("watch")
     if not wc:
@@ -688,8 +690,9 @@ def _search_stage(cfg, imager, outdir, flag_weights=None):
 
 
 def _output_stage(cfg, imager, pixels, block):
-    """(image writer or None, cube writer or None) on the imager's images, as ``output`` asks."""
-    files = imager
+    """(image writer or None, cube writer or None, band) on the imager's images, as ``output`` asks;
+    band: the block of each image's band mean on the host where the outputs made one, else None."""
+    files = band = imager
     wants = _outputs_average(cfg["output"])
     if len(wants) > 1 and all(wants):
         # the files and the cube both average the channels: the band mean of each image once (one
@@ -697,7 +700,7 @@ def _output_stage(cfg, imager, pixels, block):
         # the cube's conversion of its 1-channel images are small
         from ..blocks.integrate import ImageIntegratorBlock
         files = ImageIntegratorBlock(imager, nimage=1, average_channels=True, space="system")
-    return _output_blocks(cfg, files, pixels, block)
+    return _output_blocks(cfg, files, pixels, block) + (files if files is not band else None,)
 
 
 def imager_plan_for(cfg, pixels, station, dev):
