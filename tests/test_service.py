@@ -42,6 +42,19 @@ def test_health_from_chosen_snapshots(change, status, words):
     assert (words is None and not reasons) or any(words in r for r in reasons), reasons
 
 
+def test_service_behind_sets_when_a_slow_stream_is_degraded():
+    """service.behind: the real-time factor under which a live stream is degraded (0: never, for a stream
+    replayed slower than real time on purpose), read from the YAML."""
+    from bf_epic_blocks.pipeline.config import load_config
+    slow = _snap(realtime_recent=0.004)
+    assert assess(slow, Limits(behind=1.0))[0] == "degraded"
+    assert assess(slow, Limits(behind=0.0))[0] == "go"
+    assert assess(slow, Limits(behind=0.001))[0] == "go"
+    on = "service={listen: '127.0.0.1:8080'}"
+    assert load_config("pipelines/lwasv_udp_live.yaml", [on])["service"]["behind"] == 1.0
+    assert load_config("pipelines/lwasv_udp_live.yaml", [on, "service.behind=0"])["service"]["behind"] == 0.0
+
+
 class FakeMonitor:
     def __init__(self):
         self.snap = _snap()

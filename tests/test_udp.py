@@ -858,3 +858,46 @@ def test_station_packet_writers_refuse_what_their_streams_cannot_carry(tmp_path)
     rec = tmp_path / "odd.tbf"   # an NDP recording's grid is 8,192 ticks: not chips' 7,840
     gen_capture(rec, 8, nstand=64, nchan=24, first=2176, seed=1)
     assert cli.main(["replay", str(rec), "--to", "127.0.0.1:9", "--format", "chips"]) == 2
+
+
+def test_replay_loops_are_one_continuous_stream_and_a_shift_is_a_new_sequence(tmp_path):
+    """--loop: three passes of a file are one sequence holding its samples three times, time tags
+    continuing; then a replay --shift-s 10 s later in data time (an F-engine reset's jump; 10 s is not a
+    whole number of samples, so its frames are off the first sequence's time grid, as a restarted
+    F-engine's are) is a second sequence at once, starting 10 s after the first pass's first sample, the
+    receiver still running (the receiver once counted such frames as garbage until its idle timeout)."""
+    path = tmp_path / "gen.tbf"
+    ntime = 300
+    data, _ = gen_capture(path, ntime, seed=4)
+
+    def run(rate):
+        with UDPCapture(LOOPBACK, 0, "tbf", gulp_nframe=128, buffer_s=0.002, idle_timeout_s=1.0, resync_s=1.0,
+                        start_timeout_s=5, max_sequences=2) as cap:
+            cap.start()
+            res = {}
+
+            def send():
+                res["a"] = replay(path, LOOPBACK, cap.port, rate=rate, loops=3)
+                res["b"] = replay(path, LOOPBACK, cap.port, rate=rate, shift_s=10.0)
+            th = threading.Thread(target=send)
+            th.start()
+            seqs = [drain(cap), drain(cap)]
+            th.join()
+        return cap.stats, (seqs, res, cap.stats)
+
+    seqs, res, stats = without_kernel_drops(run)
+    (i1, d1, e1), (i2, d2, e2) = seqs
+    assert res["a"].sent == 3 * 3 * ntime and res["b"].sent == 3 * ntime
+    assert "time jump" in e1[1] and stats["sequences"] == 2
+    assert np.array_equal(d1, np.concatenate([data] * 3))                 # one stream, every sample once
+    assert np.array_equal(d2, data)
+    assert i2[0].time_tag0 - i1[0].time_tag0 == 10 * FS_HZ
+
+
+def test_replay_refuses_loops_of_packets_without_time_tags(tmp_path):
+    path = tmp_path / "gen.tbf"
+    gen_capture(path, 10, seed=4)
+    with pytest.raises(ValueError, match="do not carry"):
+        replay(path, LOOPBACK, 9, fmt="chips", loops=2)
+    with pytest.raises(ValueError, match="loops must be"):
+        replay(path, LOOPBACK, 9, loops=-1)

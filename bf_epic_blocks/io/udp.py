@@ -114,6 +114,8 @@ class PacketFormat:
     capture file, complete frames in file order (for the replayer).
     """
     name = "?"
+    #: (start, stop) bytes of a frame's big-endian int64 time tag, where the replayer can rewrite it
+    time_tag_bytes = None
 
     @staticmethod
     def to_samples(slots, layout):
@@ -145,6 +147,7 @@ _TBF_HDR = struct.Struct(">IIIhhq")  # sync, id<<24|count, second, first chan, n
 class TBFPackets(PacketFormat):
     """TBF frames (ADP id 1, NDP id 5) as UDP payloads; layout as :mod:`bf_epic_blocks.io.tbf`."""
     name = "tbf"
+    time_tag_bytes = (16, 24)        # the header's big-endian int64 time tag (the replayer rewrites it)
 
     def probe(self, buf, n):
         if n < HEADER_BYTES:
@@ -196,6 +199,7 @@ class TBXPackets(PacketFormat):
     (NumPy per packet is several times slower); the tests check both agree through the file reader.
     """
     name = "tbx"
+    time_tag_bytes = (20, 28)
 
     def probe(self, buf, n):
         from .tbx import CHAN_BW_HZ, FRAME_ID, HEADER_BYTES as TBX_HEADER
@@ -701,7 +705,8 @@ class UDPCapture:
                 stats["garbage"][got] += 1
                 continue
             tt, fc = got
-            if (tt - grid0) % ticks:
+            off_grid = (tt - grid0) % ticks
+            if off_grid and (seq is None or not seq.jumped(tt)):
                 stats["garbage"]["time_grid"] += 1
                 continue
             last_valid = time.monotonic()
@@ -713,7 +718,10 @@ class UDPCapture:
                     seq = self._begin(layout, learn)
                     learn = None
                 continue
-            status = seq.insert(tt, fc, payload)
+            # a frame off this sequence's time grid far ahead of it: the F-engine restarted on a new time
+            # base (its samples need not fall on the old grid), a new sequence at once rather than garbage
+            # until the idle timeout
+            status = "resync" if off_grid else seq.insert(tt, fc, payload)
             if status == "resync":
                 self._finish(seq, None, layout, "time jump (stream restarted?)")
                 if self.max_sequences and self._nseq >= self.max_sequences:
@@ -814,6 +822,10 @@ class _Assembly:
         self.emitted = 0
         self.frame_shape = (info.nchan, lay.nstand, 2)
 
+    def jumped(self, tt):
+        """Whether time tag ``tt`` lies further ahead of the newest sample than a resync allows."""
+        return (tt - self.tt0) // self.ticks - self.hi > self.max_jump
+
     def insert(self, tt, fc, payload):
         """Put one frame (payload: bytes-like of payload_bytes) into its slot; 'resync' on a big jump."""
         st = self.cap.stats
@@ -911,53 +923,85 @@ def choose_drops(nframe, drop, seed):
 
 
 def replay(path, host, port, rate=1.0, drop=0.0, seed=None, fmt="tbf", allow_remote=False, stop=None,
-           sndbuf_bytes=8 << 20):
+           sndbuf_bytes=8 << 20, loops=1, shift_s=0.0):
     """Send the frames of a capture file as UDP datagrams, paced at ``rate`` x real time.
 
     Frames go out in file order; frame i leaves when the wall clock since the start reaches
     (max time tag so far - first time tag) / 196 MHz / rate (a sender that falls behind sends at once).
     ``drop``: fraction of frames not sent, exactly round(drop * nframe) of them, chosen by
-    ``seed`` (:func:`choose_drops`). ``stop``: an Event that ends the replay early.
-    Returns a :class:`ReplayResult` (dropped = file-order frame indices).
+    ``seed`` (:func:`choose_drops`; the same frames of every pass). ``stop``: an Event that ends the replay
+    early. ``loops``: passes over the file (0: until ``stop``), each pass's time tags after the last's by
+    the file's span and one sample, so that the passes are one continuous stream (a soak from a short
+    file). ``shift_s``: seconds added to every time tag -- replayed after another replay, a jump in the
+    stream's time base, as an F-engine reset makes. Both rewrite the frames' time tags, which TBF and
+    TBX frames carry (the chips and snap2 streams count from their sync time: refused).
+    Returns a :class:`ReplayResult` (nframe: frames of one pass; sent: over all passes; dropped =
+    file-order frame indices of one pass).
     """
     if not rate > 0:
         raise ValueError(f"rate must be > 0, got {rate!r}")
+    if isinstance(loops, bool) or int(loops) != loops or loops < 0:
+        raise ValueError(f"loops must be an integer >= 0 (0 = until stopped), got {loops!r}")
+    if not math.isfinite(float(shift_s)):
+        raise ValueError(f"shift_s must be a finite number of seconds, got {shift_s!r}")
     if not allow_remote and not _is_loopback(host):
         raise ValueError(f"replay sends only to a loopback address (127.0.0.1) unless allowed; got {host!r}")
     fmt = packet_format(fmt) if isinstance(fmt, str) else fmt
+    rewrite = int(loops) != 1 or float(shift_s) != 0.0
+    if rewrite and fmt.time_tag_bytes is None:
+        raise ValueError(f"loops and shift_s rewrite the frames' time tags, which {fmt.name} packets do not "
+                         "carry (they count from a sync time); replay the file as tbf or tbx frames")
     frames, tts = fmt.file_frames(path)
     nframe = len(tts)
     dropped = choose_drops(nframe, drop, seed)
     keep = np.ones(nframe, bool)
     keep[dropped] = False
+    span = 0
+    if rewrite and nframe:
+        lay = fmt.probe(np.ascontiguousarray(frames[0]).tobytes(), frames.shape[1])
+        step = lay.sample_ticks if not isinstance(lay, str) else 1
+        span = int(tts.max() - tts.min()) + step
+    base = tts + int(round(float(shift_s) * FS_HZ)) if nframe else tts
     due = (np.maximum.accumulate(tts) - tts.min()) / FS_HZ / rate if nframe else tts
+    pass_s = span / FS_HZ / rate
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sent = 0
+    sent, passes = 0, 0
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, int(sndbuf_bytes))
         addr = (host, int(port))
         fb = frames.shape[1] if nframe else 0
-        flat = memoryview(np.ascontiguousarray(frames).reshape(-1)) if nframe else None  # no copy for a memmap
-        due_s, keep_l = due.tolist(), keep.tolist()  # plain Python: per-packet NumPy indexing is slow
         send, clock, sleep = sock.sendto, time.perf_counter, time.sleep
+        keep_l = keep.tolist()     # plain Python: per-packet NumPy indexing is slow
         t0 = clock()
-        for i in range(nframe):
-            if stop is not None and stop.is_set():
-                break
-            wait = due_s[i] - (clock() - t0)
-            if wait > 1e-3:
-                sleep(wait)
-            if keep_l[i]:
-                while True:
-                    try:
-                        send(flat[i * fb:(i + 1) * fb], addr)
-                        break
-                    except BlockingIOError:  # the local send buffer is full: let it drain
-                        sleep(1e-4)
-                sent += 1
+        while nframe and (loops == 0 or passes < loops) and not (stop is not None and stop.is_set()):
+            if rewrite:            # this pass's frames with their time tags moved on (a copy: the file is read-only)
+                buf = np.array(frames, dtype=np.uint8)
+                a, b = fmt.time_tag_bytes
+                buf[:, a:b] = (base + passes * span).astype(">i8").view(np.uint8).reshape(nframe, 8)
+                flat = memoryview(buf.reshape(-1))
+            else:
+                flat = memoryview(np.ascontiguousarray(frames).reshape(-1))  # no copy for a memmap
+            due_s = (due + passes * pass_s).tolist()
+            for i in range(nframe):
+                if stop is not None and stop.is_set():
+                    break
+                wait = due_s[i] - (clock() - t0)
+                if wait > 1e-3:
+                    sleep(wait)
+                if keep_l[i]:
+                    while True:
+                        try:
+                            send(flat[i * fb:(i + 1) * fb], addr)
+                            break
+                        except BlockingIOError:  # the local send buffer is full: let it drain
+                            sleep(1e-4)
+                    sent += 1
+            passes += 1
         wall = time.perf_counter() - t0
     finally:
         sock.close()
     data_s = float((tts.max() - tts.min()) / FS_HZ) if nframe else 0.0
+    if passes > 1:
+        data_s = passes * span / FS_HZ
     return ReplayResult(nframe=nframe, sent=sent, dropped=[int(i) for i in dropped], wall_s=wall, data_s=data_s,
                         sync_time=getattr(fmt, "replay_sync_time", None))

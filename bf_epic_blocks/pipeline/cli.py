@@ -6,6 +6,7 @@
     bf-epic calibrate FILE [-o TABLE.npz] [--set key=value ...]
     bf-epic batch FILE --inputs TBF [TBF ...] [--scheduler tcp://HOST:PORT] [--workers N] [--set ...]
     bf-epic replay FILE --to 127.0.0.1:PORT [--rate R] [--drop F] [--seed N] [--format auto|tbf|tbx]
+                   [--loop N] [--shift-s S]
     bf-epic movie FOLDER [-o MOVIE.mp4] [--fps 10]
 
 Errors in the YAML (unknown keys, wrong types, missing files, impossible parameters) are reported
@@ -81,6 +82,12 @@ def build_parser():
                         "tbx), or its samples as the F-engines' streams: chips (ADP, 16 stands per packet; "
                         "the sync time used is printed, give it to the receiver as source.sync_time) or "
                         "snap2 (NDP, 64 inputs per packet)")
+    r.add_argument("--loop", type=int, default=1, metavar="N",
+                   help="passes over the file, each one's time tags continuing the last's (0: until interrupted; "
+                        "a long stream from a short file, e.g. for a soak); TBF and TBX frames")
+    r.add_argument("--shift-s", type=float, default=0.0, metavar="S",
+                   help="seconds added to every time tag: sent after another replay, a jump in the stream's time "
+                        "base as an F-engine reset makes (the receiver starts a new sequence); TBF and TBX frames")
     r.add_argument("--allow-remote", action="store_true", help="allow a non-loopback destination")
     r.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
     r.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
@@ -121,7 +128,10 @@ def _replay(args):
         host, port = parse_host_port(args.to)
         fmt = detect_format(args.file) if args.format == "auto" else args.format
         res = replay(args.file, host, port, rate=args.rate, drop=args.drop, seed=args.seed, fmt=fmt,
-                     allow_remote=args.allow_remote)
+                     allow_remote=args.allow_remote, loops=args.loop, shift_s=args.shift_s)
+    except KeyboardInterrupt:
+        print("bf-epic: replay interrupted", file=sys.stderr)
+        return 130
     except (OSError, ValueError) as e:
         print(f"bf-epic: replay failed: {e}", file=sys.stderr)
         return 2

@@ -854,7 +854,11 @@ SCHEMA = Section({
         "min_free_gb": Key(Float(0.0), 5.0,
                            doc="Free disk in the output folder under which /health says degraded (under half "
                                "of it: down)."),
-    }, what="a service mapping {listen, allow_remote, token, token_env, no_data_s, min_free_gb}",
+        "behind": Key(Float(0.0), 1.0,
+                      doc="A live source's real-time factor over the last minute under which /health says "
+                          "degraded (behind real time); 0 never. Lower it only for streams sent slower than "
+                          "real time on purpose (a replayed test stream)."),
+    }, what="a service mapping {listen, allow_remote, token, token_env, no_data_s, min_free_gb, behind}",
         doc="The run's metrics and health over HTTP (guide/service.md)."), None,
         doc="Serve metrics and health while the pipeline runs; null: no service."),
     "output": Key(Section({

@@ -919,7 +919,8 @@ def _start_service(cfg, g):
     return Service(Monitor(g, cfg, dt), sc["listen"], allow_remote=sc["allow_remote"],
                    token=sc["token"] or os.environ.get(sc["token_env"]) or None,
                    bus=getattr(g.snippets, "bus", None),
-                   limits=Limits(no_data_s=sc["no_data_s"], min_free_gb=sc["min_free_gb"]),
+                   limits=Limits(no_data_s=sc["no_data_s"], min_free_gb=sc["min_free_gb"],
+                                 behind=sc["behind"]),
                    cadence_s=solve["cadence_s"] if solve else None, name=cfg["name"]).start()
 
 
