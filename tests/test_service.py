@@ -55,6 +55,33 @@ def test_service_behind_sets_when_a_slow_stream_is_degraded():
     assert load_config("pipelines/lwasv_udp_live.yaml", [on, "service.behind=0"])["service"]["behind"] == 0.0
 
 
+def test_data_lost_is_degraded_within_the_window_then_go_again(tmp_path):
+    """A live source that lost frames is degraded while the loss lies within service.lost_window_s, then go
+    again (a glitch long ago is not the state now); the totals since the start stay in the snapshot. The
+    Monitor over a stand-in graph whose source counters change between snapshots."""
+    import time
+    from types import SimpleNamespace
+
+    from bf_epic_blocks.service.monitor import Monitor
+    src = SimpleNamespace(name="Src", udp_stats={"packets": 10, "frames_missing": 0}, stats={})
+    g = SimpleNamespace(pipeline=SimpleNamespace(blocks=[]), source=src, imager=None, search=None, watch=None,
+                        solver=None, outdir=str(tmp_path), snippets=None)
+    cfg = {"source": {"kind": "udp"}, "device": "cpu"}
+    mon = Monitor(g, cfg, dt_s=1e-3, lost_window_s=0.3)
+    lim = Limits(lost_window_s=0.3, min_free_gb=0.0)
+    assert assess(mon.snapshot(), lim)[0] == "go"
+    src.udp_stats = {"packets": 20, "frames_missing": 12}          # frames lost
+    snap = mon.snapshot()
+    status, reasons = assess(snap, lim)
+    assert status == "degraded" and any("frames_missing 12" in r and "0.3 s" in r for r in reasons), reasons
+    time.sleep(0.35)
+    mon.snapshot()
+    time.sleep(0.35)
+    snap = mon.snapshot()
+    assert assess(snap, lim)[0] == "go" and snap["source"]["frames_missing"] == 12
+    assert snap["source_lost_recent"]["frames_missing"] == 0
+
+
 class FakeMonitor:
     def __init__(self):
         self.snap = _snap()

@@ -858,7 +858,12 @@ SCHEMA = Section({
                       doc="A live source's real-time factor over the last minute under which /health says "
                           "degraded (behind real time); 0 never. Lower it only for streams sent slower than "
                           "real time on purpose (a replayed test stream)."),
-    }, what="a service mapping {listen, allow_remote, token, token_env, no_data_s, min_free_gb, behind}",
+        "lost_window_s": Key(Float(0.0, lo_open=True), 600.0,
+                             doc="Data lost at the source (missing or late frames, overflowed samples, kernel "
+                                 "drops) within the last this many seconds makes /health say degraded; the "
+                                 "totals since the start stay in /metrics."),
+    }, what="a service mapping {listen, allow_remote, token, token_env, no_data_s, min_free_gb, behind, "
+            "lost_window_s}",
         doc="The run's metrics and health over HTTP (guide/service.md)."), None,
         doc="Serve metrics and health while the pipeline runs; null: no service."),
     "output": Key(Section({

@@ -916,11 +916,11 @@ def _start_service(cfg, g):
     sc, src = cfg["service"], cfg["source"]
     dt = None if src["kind"] == "udp" else 1.0 / channel_width_hz(cfg)   # a live stream's comes with its packets
     solve = cfg["calibration"].get("solve")
-    return Service(Monitor(g, cfg, dt), sc["listen"], allow_remote=sc["allow_remote"],
+    return Service(Monitor(g, cfg, dt, lost_window_s=sc["lost_window_s"]), sc["listen"], allow_remote=sc["allow_remote"],
                    token=sc["token"] or os.environ.get(sc["token_env"]) or None,
                    bus=getattr(g.snippets, "bus", None),
                    limits=Limits(no_data_s=sc["no_data_s"], min_free_gb=sc["min_free_gb"],
-                                 behind=sc["behind"]),
+                                 behind=sc["behind"], lost_window_s=sc["lost_window_s"]),
                    cadence_s=solve["cadence_s"] if solve else None, name=cfg["name"]).start()
 
 

@@ -24,12 +24,20 @@ class Limits:
     no_data_s : seconds without a new gulp at the source before the pipeline is down (no data);
     behind : a live source whose real-time factor over the last minute falls below this is degraded;
     stale_solution_s : a live solution older than this is stale (degraded); None: 3 x the cadence;
-    min_free_gb : the output folder's disk with less free than this is degraded (half of it: down).
+    min_free_gb : the output folder's disk with less free than this is degraded (half of it: down);
+    lost_window_s : data lost (frames missing, samples overflowed, kernel drops, late frames) within the
+    last this many seconds is degraded (the totals since the start stay in the metrics): a glitch weeks
+    ago is not today's state.
     """
     no_data_s: float = 10.0
     behind: float = 1.0
     stale_solution_s: float | None = None
     min_free_gb: float = 5.0
+    lost_window_s: float = 600.0
+
+
+#: the source's counters of data lost, by name (:func:`assess`)
+LOST = ("frames_missing", "samples_overflow", "kernel_drops", "frames_late")
 
 
 def _num(d):
@@ -71,9 +79,11 @@ class Monitor:
     that stopped the pipeline, or None), ``finished``.
     """
 
-    def __init__(self, graph, cfg, dt_s=None):
+    def __init__(self, graph, cfg, dt_s=None, lost_window_s=Limits.lost_window_s):
         self.g, self.cfg = graph, cfg
         self.started = time.perf_counter()
+        self.lost_window_s = float(lost_window_s)
+        self._lost = [(self.started, {})]       # (wall, the source's loss counters) of recent snapshots
         self.failed, self.finished = None, False
         src = cfg["source"]
         ch = src.get("channels") or {}
@@ -112,6 +122,14 @@ class Monitor:
             "failed": self.failed, "finished": self.finished, "live": self.live,
         }
         snap["realtime"] = (data_s / (now - first)) if data_s and first and now > first else None
+        # the data lost within the window: the counters now less those of the newest snapshot at least
+        # lost_window_s old (or the oldest kept; the run's start counts as all zero)
+        lost = {k: snap["source"].get(k, 0) for k in LOST}
+        self._lost.append((now, lost))
+        while len(self._lost) > 2 and now - self._lost[1][0] >= self.lost_window_s:
+            self._lost.pop(0)
+        base = self._lost[0][1]
+        snap["source_lost_recent"] = {k: v - base.get(k, 0) for k, v in lost.items()}
         self._history.append((now, data_s or 0.0))
         while len(self._history) > 2 and now - self._history[1][0] > 60.0:
             self._history.pop(0)
@@ -161,7 +179,7 @@ def _gpu_memory():
 def assess(snap, limits=Limits(), cadence_s=None):
     """(status, reasons) of a snapshot: 'down' (a block failed; no data for ``no_data_s``; the disk
     under half of ``min_free_gb``), 'degraded' (a live source behind real time; frames lost or missing
-    since the start; a stale calibration; the disk under ``min_free_gb``), else 'go'. ``reasons``: one
+    within ``lost_window_s`` -- ``source_lost_recent``, else the totals of ``source``; a stale calibration; the disk under ``min_free_gb``), else 'go'. ``reasons``: one
     line each, the worst first."""
     down, degraded = [], []
     if snap.get("failed"):
@@ -172,11 +190,12 @@ def assess(snap, limits=Limits(), cadence_s=None):
     rt = snap.get("realtime_recent")
     if snap.get("live") and rt is not None and rt < limits.behind:
         degraded.append(f"behind real time: x{rt:.2f} over the last minute")
-    src = snap.get("source") or {}
-    lost = {k: v for k, v in src.items() if k in ("frames_missing", "samples_overflow", "kernel_drops", "frames_late")
-            and v}
+    recent = snap.get("source_lost_recent")
+    src = recent if recent is not None else (snap.get("source") or {})
+    lost = {k: v for k, v in src.items() if k in LOST and v}
     if lost:
-        degraded.append("data lost: " + ", ".join(f"{k} {v}" for k, v in sorted(lost.items())))
+        within = "" if recent is None else f" in the last {limits.lost_window_s:g} s"
+        degraded.append(f"data lost{within}: " + ", ".join(f"{k} {v}" for k, v in sorted(lost.items())))
     sv = snap.get("solver")
     if sv is not None:
         stale = limits.stale_solution_s if limits.stale_solution_s is not None else \

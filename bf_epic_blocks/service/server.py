@@ -105,7 +105,7 @@ def _collector(monitor, get_snapshot):
                 if st.get("ngulp"):
                     per.add_metric([name], float(st["process_s"]) / st["ngulp"])
             yield per
-            for part in ("source", "imager", "search", "watch", "solver", "flagging", "budget"):
+            for part in ("source", "source_lost_recent", "imager", "search", "watch", "solver", "flagging", "budget"):
                 d = snap.get(part) or {}
                 for k, v in sorted(d.items()):
                     if v is None:

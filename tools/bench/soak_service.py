@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import socket
 import subprocess
@@ -45,6 +44,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.error
 import urllib.request
 from pathlib import Path
 
@@ -63,8 +63,6 @@ def free_port(kind=socket.SOCK_STREAM):
 
 def scrape(url):
     """(metrics {name: value} of the unlabelled samples, health JSON) or (None, None) while it does not answer."""
-    import urllib.error
-
     from prometheus_client.parser import text_string_to_metric_families
     try:
         with urllib.request.urlopen(url + "/metrics", timeout=5) as r:
