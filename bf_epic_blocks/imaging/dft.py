@@ -374,7 +374,9 @@ class DFTOperator:
         if bp is not None:
             self.pixel_pattern[...] = bp
         self.pixels_lm[...] = xp.asarray(hlm)
-        for key, old in self._derived.items():
+        for key, old in self._derived.items():      # ("G", pol), ("stack", pol); "accumulators": the routes'
+            if not isinstance(key, tuple):
+                continue
             if key[0] == "G":
                 old[...] = self._live_G(key[1])
             elif key[0] == "stack":
