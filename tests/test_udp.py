@@ -212,11 +212,17 @@ def test_garbage_is_counted_by_reason_and_ignored(tmp_path):
     during += [good[:12] + struct.pack(">h", 601) + good[14:]] * 4        # channel off the 12-channel blocks
     during += [good[:16] + struct.pack(">q", struct.unpack(">q", good[16:24])[0] + 1) + good[24:]] * 3  # off grid
     during += [good + b"\x00"] * 2                                        # one byte too many
+    tt0 = struct.unpack(">q", good[16:24])[0]
+    # corrupted time tags far ahead (10 s), two agreeing on a grid and one off it: fewer than a restarted
+    # F-engine's JUMP_CONFIRM frames, so the stream goes on (once, one of them ended it)
+    during += [good[:16] + struct.pack(">q", tt0 + NDP_TICKS * 250_000) + good[24:]] * 2
+    during += [good[:16] + struct.pack(">q", tt0 + 20 * 196_000_000 + 1) + good[24:]]
     infos, got, end, r, s = without_kernel_drops(
         lambda rate: capture_replay(path, rate, before=before, during=during, gulp=128))
-    assert np.array_equal(got, data)
+    assert np.array_equal(got, data) and len(infos) == 1
     assert sum(s["garbage"].values()) == len(before) + len(during)
     assert s["garbage"]["frame_id"] == 6 and s["garbage"]["channel"] == 4 and s["garbage"]["time_grid"] == 3
+    assert s["garbage"]["time_jump"] == 3
     assert s["packets"] == len(before) + len(during) + r.sent and s["frames_missing"] == 0
 
 

@@ -20,7 +20,9 @@ of a file for the replayer. One frame per datagram: ``tbf`` (:class:`TBFPackets`
   stand count, a misaligned channel, a time tag off the sample grid -- are counted in
   ``garbage`` (by reason) and ignored.
 * A forward jump of more than ``resync_s`` of data ends the sequence and starts a new one at the
-  new time (a restarted stream); no valid packet for ``idle_timeout_s`` ends the sequence.
+  new time (a restarted stream, whose samples need not lie on the old time grid), once
+  ``UDPCapture.JUMP_CONFIRM`` frames agree on the new time base (a lone corrupted time tag is counted
+  as garbage, ``time_jump``); no valid packet for ``idle_timeout_s`` ends the sequence.
 * The socket is never stalled: the thread only receives and copies, and hands finished gulps to the
   consumer through a bounded queue. If the consumer falls more than ``max_queue_bytes`` behind,
   a gulp is replaced by a "gap" marker (its samples counted in ``samples_overflow``) so that the
@@ -522,6 +524,10 @@ def _new_stats():
 class UDPCapture:
     """Receive frames of one packet format on ``(address, port)``; hand out ordered gulps.
 
+    ``JUMP_CONFIRM``: frames that must agree on a new time base (its sample grid, within a resync's reach)
+    before a jump ends the sequence: one frame with a corrupted time tag must not end a stream, and a
+    restarted F-engine sends every block of every sample.
+
     Parameters
     ----------
     address, port : where to bind (port 0 = an ephemeral port, then read ``self.port``).
@@ -546,6 +552,8 @@ class UDPCapture:
     frames_late, frames_duplicate,
     frames_unknown_block, frames_missing, samples, samples_overflow, sequences, garbage (by reason).
     """
+
+    JUMP_CONFIRM = 3
 
     def __init__(self, address="127.0.0.1", port=0, fmt="tbf", gulp_nframe=1024, buffer_s=0.05,
                  idle_timeout_s=1.0, start_timeout_s=None, resync_s=1.0, rcvbuf_bytes=64 << 20,
@@ -660,6 +668,7 @@ class UDPCapture:
         fmt, stats = self.fmt, self.stats
         seq = None                  # _Assembly of the open sequence (after learning)
         learn = None                # list of (tt, fc, payload bytes) while learning
+        jump = None                 # (time tag, frames) of a new time base not yet confirmed
         layout = None
         lo = hi = 0               # time-tag range seen while learning
         grid0 = ticks = hbytes = 0  # the stream's time grid and header size (from its layout)
@@ -676,7 +685,7 @@ class UDPCapture:
                 self._log_line()
             if last_valid is not None and now - last_valid > self.idle_timeout_s:
                 self._finish(seq, learn, layout, f"no packet for {self.idle_timeout_s:g} s")
-                seq = learn = layout = last_valid = None
+                seq = learn = layout = last_valid = jump = None
                 if self.max_sequences and self._nseq >= self.max_sequences:
                     return "all sequences received"
             if (last_valid is None and self._nseq == 0 and self.start_timeout_s
@@ -719,18 +728,31 @@ class UDPCapture:
                     learn = None
                 continue
             # a frame off this sequence's time grid far ahead of it: the F-engine restarted on a new time
-            # base (its samples need not fall on the old grid), a new sequence at once rather than garbage
-            # until the idle timeout
+            # base (its samples need not fall on the old grid) -- a new sequence rather than garbage until
+            # the idle timeout
             status = "resync" if off_grid else seq.insert(tt, fc, payload)
             if status == "resync":
+                # taken when JUMP_CONFIRM frames agree on the new time base (its grid, within a resync's
+                # reach), so that one corrupted time tag does not end the stream; the frames that agreed
+                # begin the new sequence
+                if jump is not None and not (tt - jump[0]) % ticks and abs(tt - jump[0]) // ticks <= seq.max_jump:
+                    jump[1].append((tt, fc, bytes(payload)))
+                else:                               # (an earlier candidate's frames stay garbage)
+                    jump = (tt, [(tt, fc, bytes(payload))])
+                garbage = stats["garbage"]
+                garbage["time_jump"] += 1           # until confirmed
+                if len(jump[1]) < self.JUMP_CONFIRM:
+                    continue
+                garbage["time_jump"] -= len(jump[1])
+                if not garbage["time_jump"]:
+                    del garbage["time_jump"]
                 self._finish(seq, None, layout, "time jump (stream restarted?)")
                 if self.max_sequences and self._nseq >= self.max_sequences:
                     return "all sequences received"
-                seq = None
-                layout = dataclasses.replace(layout, time_tag0=tt)
-                grid0 = tt
-                learn = [(tt, fc, bytes(payload))]
-                lo = hi = tt
+                seq, learn, jump = None, jump[1], None
+                lo, hi = min(x[0] for x in learn), max(x[0] for x in learn)
+                layout = dataclasses.replace(layout, time_tag0=lo)
+                grid0 = lo
 
     def _nwin(self, layout):
         return max(1, int(math.ceil(self.buffer_s * layout.chan_bw_hz)))
