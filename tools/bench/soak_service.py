@@ -13,6 +13,9 @@ in three phases over ``--minutes``:
 3. at 70% of the time, with no pause, a jump to another time base (the second reset, as an F-engine
    restarting mid-stream makes).
 
+``--drop F`` leaves out that fraction of the second phase's packets: frames missing, which /health calls
+degraded for ``service.lost_window_s`` (``--set service.lost_window_s=60`` for a short soak).
+
 Every ``--every`` seconds (default 5) the script scrapes ``/metrics`` and parses it with
 ``prometheus_client``'s own parser, reads ``/health``, and samples the run's resident memory (VmRSS, and
 the interval's peak VmHWM, reset after each reading). At the end it sends SIGTERM and checks:
@@ -92,6 +95,9 @@ def main(argv=None):
     ap.add_argument("--pause-s", type=float, default=30.0, help="seconds the sender stops for")
     ap.add_argument("--shift-s", type=float, default=3600.0, help="each reset's jump in time base")
     ap.add_argument("--keep-gb", type=float, default=0.02, help="output.keep_gb")
+    ap.add_argument("--drop", type=float, default=0.0,
+                    help="fraction of the second phase's packets not sent (frames missing: /health degraded for "
+                         "service.lost_window_s)")
     ap.add_argument("--term-s", type=float, default=60.0, help="seconds SIGTERM may take")
     ap.add_argument("--yaml", default=str(REPO / "pipelines" / "lwasv_udp_live.yaml"))
     ap.add_argument("--file", default=str(DEMO), help="the capture replayed")
@@ -118,10 +124,11 @@ def main(argv=None):
     samples_per_pass = 1                      # the demo file's one time sample (passes are counted in samples)
     sps = 25e3 * args.rate / samples_per_pass  # passes a wall second
 
-    def send(seconds, shift):
+    def send(seconds, shift, drop=0.0):
         n = max(1, int(round(seconds * sps)))
         return subprocess.run(bf_epic_command() + ["replay", args.file, "--to", f"127.0.0.1:{udp}", "--rate",
-                                                   str(args.rate), "--loop", str(n), "--shift-s", str(shift), "-q"],
+                                                   str(args.rate), "--loop", str(n), "--shift-s", str(shift),
+                                                   "--drop", str(drop), "--seed", "1", "-q"],
                               cwd=REPO, capture_output=True, text=True)
 
     rows, stop = [], threading.Event()
@@ -146,7 +153,7 @@ def main(argv=None):
     phases.append(("stream", send(a, 0.0)))
     time.sleep(args.pause_s)                                  # the sender stopped
     b = 0.7 * total - (time.monotonic() - t_start)
-    phases.append(("reset after a silence", send(max(b, 60.0), args.shift_s)))
+    phases.append(("reset after a silence", send(max(b, 60.0), args.shift_s, args.drop)))
     c = total - (time.monotonic() - t_start)
     phases.append(("reset mid-stream", send(max(c, 60.0), 2 * args.shift_s + 0.5)))
     time.sleep(2 * args.every)
