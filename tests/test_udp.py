@@ -907,3 +907,17 @@ def test_replay_refuses_loops_of_packets_without_time_tags(tmp_path):
         replay(path, LOOPBACK, 9, fmt="chips", loops=2)
     with pytest.raises(ValueError, match="loops must be"):
         replay(path, LOOPBACK, 9, loops=-1)
+
+
+def test_replay_loops_drop_each_pass_s_frames_with_the_fraction_asked(tmp_path):
+    """With --loop, --drop leaves out each frame of each pass with that probability (a short file's pass
+    would round its share to none), reproducibly by seed; what was sent and dropped adds up."""
+    path = tmp_path / "gen.tbf"
+    gen_capture(path, 4, seed=4)                                   # 12 frames a pass
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        rx.bind((LOOPBACK, 0))
+        rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
+        a = replay(path, LOOPBACK, rx.getsockname()[1], rate=1e6, loops=500, drop=0.1, seed=3)
+        b = replay(path, LOOPBACK, rx.getsockname()[1], rate=1e6, loops=500, drop=0.1, seed=3)
+    assert a.sent + len(a.dropped) == 500 * 12 and a.dropped == b.dropped
+    assert 0.08 < len(a.dropped) / 6000 < 0.12 and max(a.dropped) >= 12     # passes after the first too

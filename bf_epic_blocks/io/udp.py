@@ -951,14 +951,15 @@ def replay(path, host, port, rate=1.0, drop=0.0, seed=None, fmt="tbf", allow_rem
     Frames go out in file order; frame i leaves when the wall clock since the start reaches
     (max time tag so far - first time tag) / 196 MHz / rate (a sender that falls behind sends at once).
     ``drop``: fraction of frames not sent, exactly round(drop * nframe) of them, chosen by
-    ``seed`` (:func:`choose_drops`; the same frames of every pass). ``stop``: an Event that ends the replay
+    ``seed`` (:func:`choose_drops`); with ``loops`` other than 1, each frame of each pass with probability
+    ``drop`` instead (a short file's passes would otherwise drop none), drawn from ``seed``. ``stop``: an Event that ends the replay
     early. ``loops``: passes over the file (0: until ``stop``), each pass's time tags after the last's by
     the file's span and one sample, so that the passes are one continuous stream (a soak from a short
     file). ``shift_s``: seconds added to every time tag -- replayed after another replay, a jump in the
     stream's time base, as an F-engine reset makes. Both rewrite the frames' time tags, which TBF and
     TBX frames carry (the chips and snap2 streams count from their sync time: refused).
     Returns a :class:`ReplayResult` (nframe: frames of one pass; sent: over all passes; dropped =
-    file-order frame indices of one pass).
+    file-order frame indices, counted over the passes: pass * nframe + index).
     """
     if not rate > 0:
         raise ValueError(f"rate must be > 0, got {rate!r}")
@@ -975,7 +976,11 @@ def replay(path, host, port, rate=1.0, drop=0.0, seed=None, fmt="tbf", allow_rem
                          "carry (they count from a sync time); replay the file as tbf or tbx frames")
     frames, tts = fmt.file_frames(path)
     nframe = len(tts)
-    dropped = choose_drops(nframe, drop, seed)
+    per_pass = int(loops) != 1 and drop > 0
+    if per_pass and not 0.0 <= float(drop) < 1.0:
+        raise ValueError(f"drop must be in [0, 1), got {drop!r}")
+    dropped = [] if per_pass else [int(i) for i in choose_drops(nframe, drop, seed)]
+    rng = np.random.default_rng(seed) if per_pass else None
     keep = np.ones(nframe, bool)
     keep[dropped] = False
     span = 0
@@ -1004,6 +1009,10 @@ def replay(path, host, port, rate=1.0, drop=0.0, seed=None, fmt="tbf", allow_rem
             else:
                 flat = memoryview(np.ascontiguousarray(frames).reshape(-1))  # no copy for a memmap
             due_s = (due + passes * pass_s).tolist()
+            if per_pass:
+                miss = rng.random(nframe) < drop
+                keep_l = (~miss).tolist()
+                dropped.extend(int(i) + passes * nframe for i in np.flatnonzero(miss))
             for i in range(nframe):
                 if stop is not None and stop.is_set():
                     break
@@ -1025,5 +1034,5 @@ def replay(path, host, port, rate=1.0, drop=0.0, seed=None, fmt="tbf", allow_rem
     data_s = float((tts.max() - tts.min()) / FS_HZ) if nframe else 0.0
     if passes > 1:
         data_s = passes * span / FS_HZ
-    return ReplayResult(nframe=nframe, sent=sent, dropped=[int(i) for i in dropped], wall_s=wall, data_s=data_s,
+    return ReplayResult(nframe=nframe, sent=sent, dropped=dropped, wall_s=wall, data_s=data_s,
                         sync_time=getattr(fmt, "replay_sync_time", None))
