@@ -140,7 +140,9 @@ def _replay(args):
           f"(asked {args.rate:g}x real time)" + (f"; sync time {res.sync_time} (source.sync_time)"
                                                  if res.sync_time is not None else ""))
     if res.dropped:
-        print("dropped frame indices (file order): " + " ".join(map(str, res.dropped)))
+        shown = res.dropped[:100]
+        print("dropped frame indices (file order" + (", over the passes" if args.loop != 1 else "") + "): "
+              + " ".join(map(str, shown)) + (f" ... ({len(res.dropped) - 100} more)" if len(res.dropped) > 100 else ""))
     return 0
 
 

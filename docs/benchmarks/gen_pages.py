@@ -447,7 +447,13 @@ def soak_service_body():
         checks.append(f"{f}: " + "; ".join(f"{k}: {'ok' if v else 'FAILED'}" for k, v in d["checks"].items()))
     return (table(["record", "minutes", "x real time", "scrapes", "sequences", "health", "first peak MB",
                    "last peak MB", "folder MB (max, second half) / budget", "files deleted", "SIGTERM"], rows)
-            + "\n" + "\n\n".join(checks) + "\n")
+            + "\n" + "\n\n".join(checks) + "\n\n"
+            "The hour's memory check failed by a hair (last interval peak 537 MB against 483 MB after the warm-up, "
+            "1.11x): the resident set grew ~8 MB over the first 40 minutes, then stepped by ~73 MB when the stream "
+            "jumped to a new time base mid-stream and stayed flat at that level for the last 18 minutes. The "
+            "15-minute run's same reset added 17 MB. Whether each mid-stream reset keeps memory (a leak per "
+            "sequence) or the step is a one-time high-water mark is not yet known: a soak with a reset every few "
+            "minutes will tell.\n")
 page("soak_service", "The service left running: resets, a stopped sender, the budget",
      "`bf-epic run --serve` on the live YAML, fed by `bf-epic replay --loop` (the LWA-SV demo capture as a "
      "continuous stream at 0.4% of real time), the sender stopped for 30 s and back on a new time base, later a "
@@ -740,7 +746,7 @@ SUMMARY = {  # benchmark -> (what it measures, latest result, machine), for the 
                       '10–33% peak error at 40–60° from the zenith (zenith-phased)',
                       '2 CPU cores'),
     'soak_service': ('the service for an hour: resets, a stopped sender, memory, the budget',
-                     'SOAK_INDEX',
+                     '60 min: both resets counted, health back to go, budget held; memory +11% at the mid-stream reset',
                      '2 CPU cores'),
     'soak_transient': ('a long simulated night: bursts, flashes, memory',
                       '10 min at 3.5x real time, every burst found, memory flat',
