@@ -11,7 +11,7 @@ in three phases over ``--minutes``:
    ``source.idle_timeout_s``: the sequence ends), then the stream again on a new time base
    (``--shift-s``: the first reset, after a silence);
 3. at 70% of the time, with no pause, a jump to another time base (the second reset, as an F-engine
-   restarting mid-stream makes).
+   restarting mid-stream makes); ``--resets N``: N such jumps spread over the last 30%.
 
 ``--drop F`` leaves out that fraction of the second phase's packets: frames missing, which /health calls
 degraded for ``service.lost_window_s`` (``--set service.lost_window_s=60`` for a short soak).
@@ -21,7 +21,7 @@ Every ``--every`` seconds (default 5) the script scrapes ``/metrics`` and parses
 the interval's peak VmHWM, reset after each reading). At the end it sends SIGTERM and checks:
 
 * the run exited 0 within ``--term-s``;
-* every reset was counted: the source's sequences = 3 (the metrics' ``bf_epic_source_sequences``);
+* every reset was counted: the source's sequences = 2 + N (the metrics' ``bf_epic_source_sequences``);
 * /health was go, then left go while the sender was stopped, and came back to go;
 * memory flat: the last interval peak <= 1.1 x the first after the warm-up (the first 20% of samples);
 * the output budget held: the folder's bytes at most ``keep_gb`` + one sweep's writing, deletions counted.
@@ -95,6 +95,8 @@ def main(argv=None):
     ap.add_argument("--pause-s", type=float, default=30.0, help="seconds the sender stops for")
     ap.add_argument("--shift-s", type=float, default=3600.0, help="each reset's jump in time base")
     ap.add_argument("--keep-gb", type=float, default=0.02, help="output.keep_gb")
+    ap.add_argument("--resets", type=int, default=1,
+                    help="mid-stream jumps to a new time base in the last 30%% of the time (default 1)")
     ap.add_argument("--drop", type=float, default=0.0,
                     help="fraction of the second phase's packets not sent (frames missing: /health degraded for "
                          "service.lost_window_s)")
@@ -154,8 +156,9 @@ def main(argv=None):
     time.sleep(args.pause_s)                                  # the sender stopped
     b = 0.7 * total - (time.monotonic() - t_start)
     phases.append(("reset after a silence", send(max(b, 60.0), args.shift_s, args.drop)))
-    c = total - (time.monotonic() - t_start)
-    phases.append(("reset mid-stream", send(max(c, 60.0), 2 * args.shift_s + 0.5)))
+    for k in range(args.resets):                              # mid-stream jumps, evenly over the rest
+        c = (total - (time.monotonic() - t_start)) / (args.resets - k)
+        phases.append((f"reset mid-stream {k + 1}", send(max(c, 30.0), (2 + k) * args.shift_s + 0.5)))
     time.sleep(2 * args.every)
     t_term = time.monotonic()
     run.send_signal(signal.SIGTERM)
@@ -182,7 +185,7 @@ def main(argv=None):
     deleted = last.get("bf_epic_budget_deleted_files", 0)
     checks = {
         "exit 0 after SIGTERM": rc == 0,
-        "three sequences (two resets) counted": seqs == 3,
+        f"{2 + args.resets} sequences ({1 + args.resets} resets) counted": seqs == 2 + args.resets,
         "health left go and came back": bool(back),
         "memory flat (last peak <= 1.1 x first)": first is not None and final <= 1.1 * first,
         "output budget held": bool(folder) and max(folder[len(folder) // 2:]) <= 1.5 * args.keep_gb * 1e9 and deleted > 0,
