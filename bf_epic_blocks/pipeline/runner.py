@@ -692,15 +692,15 @@ def _search_stage(cfg, imager, outdir, flag_weights=None):
 def _output_stage(cfg, imager, pixels, block):
     """(image writer or None, cube writer or None, band) on the imager's images, as ``output`` asks;
     band: the block of each image's band mean on the host where the outputs made one, else None."""
-    files = band = imager
+    files, band = imager, None
     wants = _outputs_average(cfg["output"])
     if len(wants) > 1 and all(wants):
         # the files and the cube both average the channels: the band mean of each image once (one
         # pass over the images, not one per output), brought to the host, where the integration and
         # the cube's conversion of its 1-channel images are small
         from ..blocks.integrate import ImageIntegratorBlock
-        files = ImageIntegratorBlock(imager, nimage=1, average_channels=True, space="system")
-    return _output_blocks(cfg, files, pixels, block) + (files if files is not band else None,)
+        files = band = ImageIntegratorBlock(imager, nimage=1, average_channels=True, space="system")
+    return _output_blocks(cfg, files, pixels, block) + (band,)
 
 
 def imager_plan_for(cfg, pixels, station, dev):

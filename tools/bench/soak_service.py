@@ -51,6 +51,8 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import REPO, bf_epic_command, machine, utc_now, write_json  # noqa: E402
 from soak_transient import rss_mb  # noqa: E402
@@ -123,8 +125,13 @@ def main(argv=None):
     log = open(work / "run.log", "w")
     run = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=REPO)
     total = args.minutes * 60.0
-    samples_per_pass = 1                      # the demo file's one time sample (passes are counted in samples)
-    sps = 25e3 * args.rate / samples_per_pass  # passes a wall second
+    from bf_epic_blocks.io.formats import detect_format
+    from bf_epic_blocks.io.udp import packet_format
+    fmt = packet_format(detect_format(args.file))
+    frames, tts = fmt.file_frames(args.file)
+    lay = fmt.probe(bytes(frames[0]), frames.shape[1])
+    samples_per_pass = len(np.unique(tts))    # the demo file holds one time sample
+    sps = lay.chan_bw_hz * args.rate / samples_per_pass   # passes a wall second
 
     def send(seconds, shift, drop=0.0):
         n = max(1, int(round(seconds * sps)))
