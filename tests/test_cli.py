@@ -573,3 +573,20 @@ def test_planning_a_refused_configuration_caches_no_station_terms(monkeypatch, c
 def test_an_empty_search_list_is_refused_by_the_schema(capsys):
     assert cli.main(["validate", str(PIPES / "lwasv_sim_transient.yaml"), "--set", "imager.search.dms=[]"]) == 2
     assert "imager.search.dms: expected a list of DMs >= 0 (at least 1), got []" in capsys.readouterr().err
+
+
+def test_a_long_run_keeps_the_newest_paths_and_counts_every_file(tmp_path, monkeypatch):
+    """A service writes an image every few seconds for weeks: the writer keeps the newest paths (not every one
+    since it started) and the summary counts every file written."""
+    from bf_epic_blocks.blocks import image_writer
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    monkeypatch.setattr(image_writer.ImageWriterBlock, "KEEP_PATHS", 1)
+    tbf = _small_tbf(tmp_path / "rec.tbf", ntime=1200)
+    y = _recording_yaml(tmp_path, tbf)
+    s = runner.run(load_config(y, ["device=cpu", f"output.dir={tmp_path / 'out'}"]), show_progress=False)
+    on_disk = sorted(p.name for p in (tmp_path / "out").glob("*.fits"))
+    assert s["images"] == 4 and len(on_disk) == 4
+    assert s["files_written"] == 4
+    kept = [Path(f).name for f in s["files"]]
+    assert 1 <= len(kept) <= 2 and kept == on_disk[-len(kept):]

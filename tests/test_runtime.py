@@ -1094,3 +1094,43 @@ def test_priority_streams_are_ordered():
     assert lo.priority == 0 and hi.priority < lo.priority
     with pytest.raises(ValueError, match="high' or 'low"):
         priority_stream(cupy, "urgent")
+
+
+def test_sequence_after_sequence_keeps_memory_flat():
+    """A service images stream after stream (each F-engine reset starts a sequence) for weeks: a ring
+    forgets a sequence once every reader is past it (a station header holds ~10^5 numbers, ~8 MB a reset
+    was kept before)."""
+    import gc
+    import tracemalloc
+    r = Ring()
+    rd = r.open_reader()
+    it = rd.sequences()
+    table = [float(i) for i in range(20000)]      # ~0.6 MB as Python objects, like a cable table
+
+    def one(w, i):
+        with w.begin_sequence(hdr(f's{i}', table=table), 4) as s:
+            with s.reserve(4) as span:
+                span.data[...] = i
+                span.commit(4)
+        rs = next(it)
+        assert rs.name == f's{i}'
+        got = [np.asarray(span.data).copy() for span in rs.read(4)]
+        assert len(got) == 1 and (got[0] == i).all()
+
+    tracemalloc.start()
+    try:
+        with r.begin_writing() as w:
+            for i in range(5):
+                one(w, i)
+            gc.collect()
+            before = tracemalloc.get_traced_memory()[0]
+            for i in range(5, 45):
+                one(w, i)
+            gc.collect()
+            grown = tracemalloc.get_traced_memory()[0] - before
+            # a name stays unique for the ring's life, its sequence forgotten or not
+            with pytest.raises(ValueError, match='already used'):
+                w.begin_sequence(hdr('s3'), 4)
+    finally:
+        tracemalloc.stop()
+    assert grown < 1.5e6, f"40 more sequences kept {grown / 1e6:.1f} MB"

@@ -456,3 +456,44 @@ def test_slow_and_many_clients_do_not_hold_the_others(served):
     finally:
         for s in slow:
             s.close()
+
+
+_HEAP_PROBE = r"""
+import ctypes, sys
+import numpy as np
+from bf_epic_blocks.service.heap import fix_mmap_threshold
+class MI(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                 "fsmblks", "uordblks", "fordblks", "keepcost")]
+libc = ctypes.CDLL("libc.so.6")
+libc.mallinfo2.restype = MI
+fixed = fix_mmap_threshold() if sys.argv[1] == "fix" else False
+a = np.ones(20 << 20, np.uint8)     # mapped; freeing it raises an unfixed threshold to 20 MB
+del a
+before = libc.mallinfo2().hblkhd
+b = np.ones(8 << 20, np.uint8)      # mapped (handed back when freed) only under a fixed threshold
+print(int(fixed), (libc.mallinfo2().hblkhd - before) >> 20)
+"""
+
+
+def test_a_fixed_mmap_threshold_hands_large_arrays_back(tmp_path):
+    """A service's heap: after a 20-MB array is freed, an 8-MB one is still its own mapping (given back to
+    the system when freed) with the threshold fixed, and comes from the heap without (the control: what kept
+    tens of MB a reset in the soak)."""
+    import ctypes.util
+    import os
+    import subprocess
+    import sys
+    if "glibc" not in (os.confstr("CS_GNU_LIBC_VERSION") if hasattr(os, "confstr") else "") \
+            or not ctypes.util.find_library("c"):
+        pytest.skip("glibc's malloc only")
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_MMAP_THRESHOLD_"}
+
+    def probe(mode):
+        out = subprocess.run([sys.executable, "-c", _HEAP_PROBE, mode], capture_output=True, text=True,
+                             env=env, timeout=60, check=True).stdout.split()
+        return int(out[0]), int(out[1])
+    assert probe("fix") == (1, 8)
+    assert probe("nofix") == (0, 0)
+    env["MALLOC_MMAP_THRESHOLD_"] = "4194304"          # the operator's own setting is left as it is
+    assert probe("fix")[0] == 0

@@ -64,12 +64,14 @@ class ImageWriterBlock(bfp.SinkBlock):
                 by a helper process (spawned when the block is made, so its imports overlap the
                 pipeline's start); at most ``MAX_PENDING`` integrations wait for it, and each sequence's
                 files are all written when the sequence ends. Call :meth:`close` when the pipeline is done.
-    ``written`` lists the files written. Each file records, as NONFINIT, the non-finite voltage samples
-    zeroed upstream in its integration (from the tally the header's ``nonfinite`` names; 0 without one),
-    and after interference flagging, as FLAGFRAC, the fraction of its stand-samples flagged (from the
+    ``written`` lists the files written (the newest ``KEEP_PATHS``; ``nwritten`` counts all). Each file
+    records, as NONFINIT, the non-finite voltage samples zeroed upstream in its integration (from the tally
+    the header's ``nonfinite`` names; 0 without one), and after interference flagging, as FLAGFRAC, the fraction of its stand-samples flagged (from the
     tally the header's ``flagging`` names, by gulp).
     """
 
+    #: paths kept in ``written``: the newest this many (of ``nwritten``)
+    KEEP_PATHS = 10000
     #: integrations handed to the helper process and not yet written, at most
     MAX_PENDING = 32
 
@@ -83,6 +85,7 @@ class ImageWriterBlock(bfp.SinkBlock):
         self.location, self.label_sources, self.pixels_fn = location, label_sources, pixels_fn
         self.run_index = run_index
         self.written = []
+        self.nwritten = 0         # files written, all of them (``written`` keeps the newest KEEP_PATHS)
         self.frames = 0
         self._pool, self._ready, self._pending = None, None, deque()
         self._held = deque()      # integrations waiting for a helper that is still starting
@@ -95,9 +98,17 @@ class ImageWriterBlock(bfp.SinkBlock):
                 log.warning("ImageWriterBlock: no helper process (%s: %s); images are written in the writer's "
                             "thread", type(e).__name__, e)
 
+    def _record(self, paths):
+        """Note files written. A service writes one every few seconds for weeks: ``written`` keeps the newest
+        KEEP_PATHS (trimmed at twice that), ``nwritten`` counts them all."""
+        self.written += paths
+        self.nwritten += len(paths)
+        if len(self.written) > 2 * self.KEEP_PATHS:
+            del self.written[:-self.KEEP_PATHS]
+
     def _write_here(self, stem, fn, job):
         try:
-            self.written += fn(job)
+            self._record(fn(job))
         except Exception as e:
             raise RuntimeError(f"ImageWriterBlock: writing {stem} failed: {type(e).__name__}: {e}") from e
 
@@ -180,7 +191,7 @@ class ImageWriterBlock(bfp.SinkBlock):
             raise RuntimeError(f"ImageWriterBlock: writing {stem} failed in the helper process: "
                                f"{type(e).__name__}: {e}") from e
         self._pending.popleft()
-        self.written += paths or []
+        self._record(paths or [])
         self.helper_files += len(paths or [])
 
     def _helper_lost(self, err, stem):
@@ -305,10 +316,10 @@ class ImageWriterBlock(bfp.SinkBlock):
                 if self.hdr["pixels"]["kind"] == "track" and self.pixels_fn is not None:
                     lm = np.asarray(self.pixels_fn(int(self.hdr["time_tag"]) + j * self.int_ticks))
                 if self.do_table or self.do_fits:
-                    self.written.append(fits_out.write_pixel_table(f"{stem}_pixels.fits", frame, lm, self.freq,
-                                                                   self.products, t, self.loc, **common))
+                    self._record([fits_out.write_pixel_table(f"{stem}_pixels.fits", frame, lm, self.freq,
+                                                             self.products, t, self.loc, **common)])
                 if self.do_png:
-                    self.written.append(_patch_png(f"{stem}.png", frame, lm, self.products, t))
+                    self._record([_patch_png(f"{stem}.png", frame, lm, self.products, t)])
             self.frames_in_seq += 1
             self.frames += 1
 

@@ -230,6 +230,10 @@ def main(argv=None):
         # Python's 5 ms) shortens those waits, which raises the steady real-time factor of a GPU pipeline
         # reading a capture file.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
+        if cfg.get("service") or cfg["source"]["kind"] == "udp":
+            # a service, a live stream: runs for weeks, a sequence per F-engine reset; large arrays go back
+            from ..service.heap import fix_mmap_threshold
+            fix_mmap_threshold()
         if sys.flags.dont_write_bytecode:
             log.info("Python writes no bytecode caches here (PYTHONDONTWRITEBYTECODE): where the packages carry "
                      "no .pyc, every run compiles NumPy, CuPy, astropy and bf_epic_blocks again (~1 s on a GPU "
@@ -238,7 +242,7 @@ def main(argv=None):
         if args.summary_json:
             with open(args.summary_json, "w") as fh:
                 json.dump(summary, fh, indent=2, default=str)
-        print(f"wrote {len(summary['files'])} files to {summary['outdir']} "
+        print(f"wrote {summary.get('files_written', len(summary['files']))} files to {summary['outdir']} "
               f"({summary['images']} images; frames read {summary['frames_read']}, imaged {summary['frames_imaged']}, "
               f"skipped {summary['frames_skipped']})"
               + (f"; stopped by {summary['stopped_by']}" if summary.get("stopped_by") else ""))

@@ -1048,10 +1048,13 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
             alerts.close()
             summary["watch"]["alerts"] = dict(alerts.stats)
             summary["files"] += alerts.written
+    # "files" lists a long run's newest (a service's image writer keeps the paths of its last KEEP_PATHS)
+    summary["files_written"] = len(summary["files"]) + sum(max(int(getattr(b, "nwritten", 0)) - len(b.written), 0)
+                                                           for b in g.sinks)
     log.info("%s: frames read %d, imaged %d, skipped %d, dropped (partial integration) %d; %d images, "
              "%d files in %s (%.1f s)", cfg["name"], summary["frames_read"], summary["frames_imaged"],
              summary["frames_skipped"], summary["frames_dropped_partial"], summary["images"],
-             len(summary["files"]), g.outdir, wall)
+             summary["files_written"], g.outdir, wall)
     if src_stats.get("frames_missing"):
         log.warning("%d %s frames were missing and zero-filled", src_stats["frames_missing"],
                     getattr(g.source, "fmt", "TBF").upper())

@@ -138,7 +138,11 @@ class Ring:
         self.name = name
         self.owner = owner
         self._cond = threading.Condition()
+        # the sequences a reader may still open, oldest first; _seqs[0] is sequence number _seq0
+        # (a service runs for weeks, a sequence per F-engine reset: past ones are forgotten)
         self._seqs = []
+        self._seq0 = 0
+        self._names = set()      # every sequence name used: unique for the ring's life
         self._head = 0           # global frames committed
         self._tail = 0           # frames before this global number are gone (monotone)
         self._cap = 0
@@ -310,10 +314,27 @@ class Ring:
                 self._max_read = max(self._max_read, int(read_gulp))
             self._update_capacity()
 
+    @property
+    def _nseq(self):
+        """Sequences begun so far (forgotten ones included)."""
+        return self._seq0 + len(self._seqs)
+
+    def _seq_number(self, i):
+        return self._seqs[i - self._seq0]
+
     def _drop_old(self):
         for seq in self._seqs:
             if seq.buf is not None and seq.ended and seq.base + seq.nframe <= self._tail:
                 seq.buf = None  # entirely overrun: free its memory
+        self._forget()
+
+    def _forget(self):
+        """Forget the oldest sequences that are ended, hold no memory and every reader is past (their
+        headers go too). A ring without readers keeps them for a reader still to come."""
+        while (self._seqs and self._readers and self._seqs[0].ended and self._seqs[0].buf is None
+               and all(r.next_index > self._seq0 for r in self._readers)):
+            self._seqs.pop(0)
+            self._seq0 += 1
 
     # -- writer side ----------------------------------------------------------------------
     def begin_writing(self):
@@ -337,11 +358,13 @@ class Ring:
             if self._seqs and not self._seqs[-1].ended:
                 raise RuntimeError(f"ring '{self.name}': previous sequence "
                                    f"'{self._seqs[-1].header['name']}' was not ended")
-            if any(s.header['name'] == hdr['name'] for s in self._seqs):
+            if hdr['name'] in self._names:
                 raise ValueError(f"ring '{self.name}': sequence name {hdr['name']!r} is "
                                  "already used; names must be unique within a ring")
-            seq = _Seq(self, hdr, len(self._seqs), self._head)
+            self._forget()
+            seq = _Seq(self, hdr, self._nseq, self._head)
             self._seqs.append(seq)
+            self._names.add(hdr['name'])
             self._cond.notify_all()
         self._request(buf_nframe=buf_nframe, write_gulp=gulp_nframe)
         return seq
@@ -530,7 +553,7 @@ class _Reader:
         self.guarantee = bool(guarantee)
         self.pos = ring._tail     # oldest frame needed inside the open sequence
         self.current = None       # the open sequence, or None between sequences
-        self.next_index = 0       # index of the next sequence to open
+        self.next_index = ring._seq0  # number of the next sequence to open (the oldest still kept)
         self.closed = False
         self.event = None         # 'cuda': its latest release (or copy) event
 
@@ -540,8 +563,8 @@ class _Reader:
             return self.pos
         # Between sequences: the reader will need the next sequence from its start
         # (or, before that sequence exists, everything the writer writes from now on).
-        if self.next_index < len(ring._seqs):
-            return max(ring._seqs[self.next_index].base, ring._tail)
+        if self.next_index < ring._nseq:
+            return max(ring._seq_number(self.next_index).base, ring._tail)
         return ring._head
 
     def close(self):
@@ -562,17 +585,18 @@ class _Reader:
         ring = self.ring
         while True:
             with ring._cond:
-                while len(ring._seqs) <= self.next_index and not ring._ended:
+                while ring._nseq <= self.next_index and not ring._ended:
                     ring._wait()
-                if len(ring._seqs) <= self.next_index:
+                if ring._nseq <= self.next_index:
                     return
-                seq = ring._seqs[self.next_index]
+                seq = ring._seq_number(self.next_index)
                 self.pos = max(seq.base, ring._tail)
                 self.current = seq
             yield ReadSequence(self, seq)
             with ring._cond:  # done with it: release its frames
                 self.current = None
                 self.next_index += 1
+                ring._forget()
                 ring._cond.notify_all()
 
 
