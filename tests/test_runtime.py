@@ -437,6 +437,62 @@ def test_header_round_trip_is_json():
     assert out['note'] == [1, 2] and out is not h
 
 
+@pytest.mark.parametrize("extra", [
+    {"note": (1, 2), "nested": {"a": [(1.5, -0.0), [True, None, "s"]], "b": []}},
+    {"nan": float("nan"), "inf": [float("inf"), -float("inf")], "big": 2 ** 70},
+    {"station": {"cable_gain": [[[0.5, 1.0], [2.0, 3.0]]] * 3, "xyz_m": [[1.0, 2.0, 3.0]]}},
+    {"np64": np.float64(0.1), "rows": [np.float64(1.5), 2.0]},      # float subclasses: plain floats after
+    {1: "int key", None: "none key", True: "bool key"},                # keys JSON writes as strings
+])
+def test_header_copy_is_the_json_round_trip(extra):
+    """validate_header and a reader's header copy give what a JSON round trip gives (tuples as lists, floats as
+    floats, keys as strings), as a copy that shares nothing with the writer's dict."""
+    import json
+    from bf_epic_blocks.runtime.header import plain_copy
+    h = hdr()
+    h.update(extra)
+    want = json.loads(json.dumps(h, allow_nan=True))
+    got = validate_header(h)
+    assert json.dumps(got, sort_keys=True) == json.dumps(want, sort_keys=True)
+    assert all(type(a) is type(b) for a, b in zip(_leaves(got), _leaves(want)))
+    again = plain_copy(got)
+    assert json.dumps(again, sort_keys=True) == json.dumps(want, sort_keys=True)
+    for copy_ in (got, again):
+        for a, b in zip(_containers(copy_), _containers(h)):
+            assert a is not b
+
+
+def _leaves(x):
+    if isinstance(x, dict):
+        for k in sorted(x, key=str):
+            yield from _leaves(x[k])
+    elif isinstance(x, list):
+        for v in x:
+            yield from _leaves(v)
+    else:
+        yield x
+
+
+def _containers(x):
+    if isinstance(x, (dict, list, tuple)):
+        yield x
+        for v in (x.values() if isinstance(x, dict) else x):
+            yield from _containers(v)
+
+
+@pytest.mark.parametrize("bad", [np.float32(1.0), np.int64(3), {"k": object()}])
+def test_header_values_json_cannot_write_are_refused(bad):
+    with pytest.raises(HeaderError, match="not JSON-serialisable"):
+        validate_header(hdr(bad=bad))
+
+
+def test_a_header_that_holds_itself_is_refused():
+    h = hdr()
+    h["me"] = [h]
+    with pytest.raises(HeaderError, match="not JSON-serialisable"):
+        validate_header(h)
+
+
 def test_duplicate_sequence_name_rejected():
     r = Ring()
     with r.begin_writing() as w:

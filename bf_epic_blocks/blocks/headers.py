@@ -5,11 +5,10 @@ fails there, before any data moves, with a TypeError/ValueError saying what was 
 """
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 
 from ..conventions import FS_HZ
+from ..runtime.header import plain_copy
 
 EFIELD_LABELS = ("time", "freq", "station", "pol")
 EFIELD_DTYPES = ("ci4", "ci8", "ci16", "cf32", "cf64")
@@ -162,7 +161,7 @@ def _jsonable(obj):
 
 def derived_header(hdr):
     """A deep copy of ``hdr`` for an output sequence (headers must never be shared between rings)."""
-    return copy.deepcopy(hdr)
+    return plain_copy(hdr)
 
 
 #: station keys that describe voltages channel by channel: an imager's output leaves them behind

@@ -7,6 +7,7 @@ lists, one entry per axis. Other keys pass through untouched.
 """
 from __future__ import annotations
 
+import copy
 import json
 import math
 from numbers import Integral, Real
@@ -24,6 +25,39 @@ def split_shape(shape):
     return list(shape[:i]), list(shape[i + 1:])
 
 
+_SCALARS = frozenset((str, int, float, bool, type(None)))
+
+
+class _NotPlain(Exception):
+    """A value that only a JSON round trip can judge (a subclass, a NumPy scalar, a non-str key, a cycle)."""
+
+
+def _plain(x):
+    t = type(x)
+    if t in _SCALARS:
+        return x
+    if t is list or t is tuple:
+        if set(map(type, x)) <= _SCALARS:      # a flat list of numbers (a cable table's row): copied in C
+            return list(x)
+        return [_plain(v) for v in x]
+    if t is dict:
+        if not set(map(type, x)) <= {str}:
+            raise _NotPlain
+        return {k: _plain(v) for k, v in x.items()}
+    raise _NotPlain
+
+
+def plain_copy(obj):
+    """A deep copy of header data: what a JSON round trip gives (tuples become lists) for plain str, int,
+    float, bool, None, list, tuple and str-keyed dict values -- without the round trip, which for a
+    whole-band station header (10^5-10^6 numbers) holds the interpreter for a second at each sequence's
+    start; anything else is copied by :func:`copy.deepcopy`."""
+    try:
+        return _plain(obj)
+    except (_NotPlain, RecursionError):
+        return copy.deepcopy(obj)
+
+
 def validate_header(header, where='header'):
     """Check ``header`` and return a JSON round-tripped deep copy (as readers will see it).
 
@@ -32,7 +66,10 @@ def validate_header(header, where='header'):
     if not isinstance(header, dict):
         raise HeaderError(f"{where} must be a dict, got {type(header).__name__}")
     try:
-        hdr = json.loads(json.dumps(header, allow_nan=True))
+        try:    # plain values copy as the round trip would give them; only the rest needs the round trip
+            hdr = _plain(header)
+        except (_NotPlain, RecursionError):
+            hdr = json.loads(json.dumps(header, allow_nan=True))
     except (TypeError, ValueError) as exc:
         raise HeaderError(f"{where} is not JSON-serialisable ({exc}); use plain str/int/"
                           "float/list/dict values (convert NumPy scalars/arrays)") from exc

@@ -50,7 +50,7 @@ import numpy as np
 
 from ..imaging._xp import pinned_empty
 from .dtypes import SPACES, storage_dtype, itemsize_bytes
-from .header import validate_header, split_shape
+from .header import plain_copy, validate_header, split_shape
 
 _WAIT_S = 0.5  # condition waits re-check at least this often (belt and braces)
 
@@ -602,11 +602,10 @@ class _Reader:
 
 class ReadSequence(_SequenceBase):
     def __init__(self, reader, seq):
-        import copy
         self._reader = reader
         self._ring = reader.ring
         self._seq = seq
-        self._header = copy.deepcopy(seq.header)
+        self._header = plain_copy(seq.header)    # each reader's own (blocks may change theirs)
 
     @property
     def guarantee(self):
