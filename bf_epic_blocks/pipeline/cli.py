@@ -242,7 +242,7 @@ def main(argv=None):
         if args.summary_json:
             with open(args.summary_json, "w") as fh:
                 json.dump(summary, fh, indent=2, default=str)
-        print(f"wrote {summary.get('files_written', len(summary['files']))} files to {summary['outdir']} "
+        print(f"wrote {summary['files_written']} files to {summary['outdir']} "
               f"({summary['images']} images; frames read {summary['frames_read']}, imaged {summary['frames_imaged']}, "
               f"skipped {summary['frames_skipped']})"
               + (f"; stopped by {summary['stopped_by']}" if summary.get("stopped_by") else ""))

@@ -20,14 +20,13 @@ import argparse
 import os
 import sys
 import tempfile
-import time
 
 import numpy as np
 
 from bf_epic_blocks.io.tbx import iter_tbx_gulps, read_tbx, tbx_frame_bytes, write_tbx
 from bf_epic_blocks.station.offline import configure_offline
 
-from benchlib import machine, utc_now, write_json
+from benchlib import best, machine, utc_now, write_json
 
 
 def lsl_read(tbx, path):
@@ -49,15 +48,6 @@ def lsl_read(tbx, path):
         b = bi[c]
         out[ti[t], b * nc:(b + 1) * nc] = x
     return out
-
-
-def best(fn, repeat):
-    times, res = [], None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        res = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), res
 
 
 def main(argv=None):

@@ -125,6 +125,16 @@ def machine(device="cpu"):
     return info
 
 
+def best(fn, repeat):
+    """(shortest wall seconds of ``repeat`` calls of ``fn``, the last call's result): host-side timing."""
+    times, res = [], None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        res = fn()
+        times.append(time.perf_counter() - t0)
+    return min(times), res
+
+
 def utc_now():
     """The time now, UTC, ISO 8601 (what each result's ``date`` holds)."""
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")

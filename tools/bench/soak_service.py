@@ -73,9 +73,10 @@ def free_port(kind=socket.SOCK_STREAM):
 def synthetic_capture(path, nchan, ntime=25):
     """A TBF capture of LWA-SV's 256 stands: ``nchan`` channels from channel 1980 (49.5 MHz), ``ntime``
     samples of uniform 4-bit noise (seed 1), the demo file's time (2015-11-13)."""
+    from bf_epic_blocks.conventions import FS_HZ
     from bf_epic_blocks.io.tbf import write_tbf
     data = np.random.default_rng(1).integers(0, 256, size=(ntime, nchan, 256, 2), dtype=np.uint8)
-    write_tbf(path, data, 1980, 1447376362 * 196000000, frame_id=1)
+    write_tbf(path, data, 1980, 1447376362 * FS_HZ, frame_id=1)
     return path
 
 
