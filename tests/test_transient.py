@@ -1001,3 +1001,41 @@ def test_a_deferred_push_finds_what_a_push_finds(xp, dedisperse):
     for k in Crossings.FIELDS:
         assert np.array_equal(getattr(a, k), getattr(b, k)), k
     assert all(np.array_equal(u, v, equal_nan=True) for u, v in zip(sa, sb))
+
+
+@pytest.mark.parametrize("restart", [True, False])
+def test_a_new_gain_solution_restarts_the_search_instead_of_being_a_burst(tmp_path, monkeypatch, restart):
+    """Gains that change mid-sequence (a table of two solutions, the second 1.5x in amplitude from 0.1 s,
+    inside image 156) step the whole sky's brightness by 2.25x. The search restarts its window there and
+    leaves the straddling image out: no candidate, and the burst after the step is still found. Without
+    the restart (the control: the search not told of the table), the step is a sky-wide candidate."""
+    from pathlib import Path
+    from astropy.time import Time
+    from bf_epic_blocks.io.candidates import read_candidates
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    yaml = Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_transient.yaml"
+    tag0 = int(round(Time("2024-06-01T10:00:00", scale="utc").unix * FS_HZ))
+    step = tag0 + int(round(0.1 * FS_HZ))
+    gains = np.ones((2, 1, 256, 1), np.complex64)
+    gains[1] *= 1.5
+    np.savez(tmp_path / "gains.npz", valid_from=np.array([tag0, step], np.int64), gains=gains)
+    cfg = load_config(yaml, [f"output.dir={tmp_path}", "source.duration_s=0.3", "source.channels.count=8",
+                             "imager.grid.size=16", "imager.search.window_s=0.06", "imager.search.dms=[0, 1.0, 2.0]",
+                             f"calibration.gains_table={tmp_path / 'gains.npz'}", "watch=null", "output.cube=null",
+                             "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.22, duration_s: 0.0015, "
+                             "flux_jy: 1500.0, dm: 1.0}]"])
+    if not restart:
+        monkeypatch.setattr(runner, "_static_gains", lambda cfg: None)
+    summary = runner.run(cfg, show_progress=False)
+    tab = read_candidates(tmp_path / "lwasv_sim_transient_candidates.ecsv")
+    print(tab["time_utc", "snr", "dm", "kind", "image"])
+    burst = [r for r in tab if r["kind"] == "point" and abs(r["image"] - 0.22 / (16 * DT)) <= 2]
+    assert burst and burst[0]["dm"] == 1.0                    # found either way
+    steps = [r for r in tab if abs(r["image"] - 156) <= 8]
+    if restart:
+        assert not steps and len(tab) == 1
+        assert summary["search"]["gain_resets"] == 1 and summary["search"]["images_straddling_gains"] == 1
+    else:
+        assert steps and steps[0]["kind"] == "sky-wide"
+        assert summary["search"]["gain_resets"] == 0

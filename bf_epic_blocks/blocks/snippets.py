@@ -220,9 +220,13 @@ class SnippetBlock(bfp.SinkBlock):
         t_ring, imgs = self._ring_rows()
         shape = imgs.shape[1:] if imgs is not None else ()
         if t_ring.size:
+            filled = t_ring.size >= self._keep      # not: the sequence began less than the ring's span ago
             keep = t_ring >= when - self.ring_s
             t_ring, imgs = t_ring[keep], imgs[keep]
-            if t_ring.size and t_ring[0] > when - self.ring_s + self._dt:
+            if t_ring.size and t_ring[0] > when - self.ring_s + self._dt and not filled:
+                log.info("SnippetBlock: the trigger (%s) came %.2f s after the sequence's first image: its snippet "
+                         "starts there, not %.2f s before it", reason, when - t_ring[0], self.ring_s)
+            elif t_ring.size and t_ring[0] > when - self.ring_s + self._dt:
                 log.warning("SnippetBlock: the trigger (%s) came %.2f s after its time, more than late_s = %.2f s: "
                             "its snippet starts %.2f s before it, not %.2f s", reason, self._image_time() - when,
                             self.late_s, when - t_ring[0], self.ring_s)

@@ -8,9 +8,12 @@ crossing can join, and at the end of each sequence makes every candidate so far 
 (``candidates``) and hands it to its writer, if it has one
 (:class:`bf_epic_blocks.io.candidates.CandidateWriter`: the table and a PNG).
 
-Resets: a new sequence, and any images lost to an overrun (``guarantee=False``; ``on_skip``),
-clear the sliding window; the search restarts only once the window is full again, so a gap never
-produces candidates. Pending candidates are finished (with their light curves) before a reset.
+Resets: a new sequence, any images lost to an overrun (``guarantee=False``; ``on_skip``), and a new
+gain solution (``gains``: each solution scales the whole sky's images at once, a step the window
+would take for a sky-wide burst) clear the sliding window; the search restarts only once the window is
+full again, so a gap or a step never produces candidates. The image that straddles a solution's start
+(half its frames with each) is left out. Pending candidates are finished (with their light curves)
+before a reset.
 """
 from __future__ import annotations
 
@@ -51,12 +54,19 @@ class TransientSearchBlock(bfp.SinkBlock):
     flag_weights : the :class:`~.rfi_flag.FlagWeights` of the interference flagger before the imager (made
         with ``track_empty=True``): channel images that kept nothing are treated as missing (filled with
         their channel's mean), never as a dip or a signal.
+    gains : the gain table the images were calibrated with, where its solutions change during a sequence
+        (a :class:`~bf_epic_blocks.imaging.calibration.GainTable` or the live solver's
+        :class:`~.gain_solver.LiveGainTable`: anything with ``valid_from`` time tags, every solution that
+        applies to an image known by the time the image is in the ring): the window restarts at each.
 
     ``candidates`` is the astropy Table of all candidates so far; ``search_stats`` counts images
-    searched, trials per width, crossings, resets and images lost; ``written`` lists the writer's files.
+    searched, trials per width, crossings, resets (``gain_resets`` of them at a new gain solution) and
+    images lost (``images_straddling_gains`` of them left out at a solution's start); ``written`` lists
+    the writer's files.
     """
 
-    def __init__(self, iring, settings=None, *args, writer=None, location=None, flag_weights=None, **kwargs):
+    def __init__(self, iring, settings=None, *args, writer=None, location=None, flag_weights=None, gains=None,
+                 **kwargs):
         moved = sorted(set(kwargs) & set(SearchSettings.__dataclass_fields__))
         if moved:
             raise TypeError(f"TransientSearchBlock: {', '.join(moved)} is set in the settings object: pass "
@@ -70,6 +80,8 @@ class TransientSearchBlock(bfp.SinkBlock):
         super().__init__(iring, *args, **kwargs)
         self.settings, self.writer, self.location = settings, writer, location
         self.flag_weights = flag_weights
+        self.gains = gains
+        self._gains_done = None       # the time tag through which gain solutions have been seen
         #: fit every point candidate's source at once (a pixel split's part: SearchParts folds the other
         #: parts' sidelobes with it), not only when a fainter one needs it
         self.fit_every_row = False
@@ -79,7 +91,8 @@ class TransientSearchBlock(bfp.SinkBlock):
         self._warmed = False            # the candidate path's GPU kernels compiled (TransientSearch.warm_up)
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
                              "images_lost": 0, "trials_per_width": [0] * len(self.widths), "sequences": 0,
-                             "sky_wide": 0, "sidelobes_folded": 0, "crossings_dropped": 0}
+                             "sky_wide": 0, "sidelobes_folded": 0, "crossings_dropped": 0, "gain_resets": 0,
+                             "images_straddling_gains": 0}
         self._sky = None
 
     # the settings SearchParts and the candidate code read, as the block uses them
@@ -155,6 +168,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         self._pending = Crossings()
         self._j = 0                                   # sequence index of the next image
         self._flag_seq, self._fill_mean = int(hdr.get("time_tag", 0)), None
+        self._gains_done = int(lay["time_tag"])       # a solution from before the sequence is no step in it
         self.search_stats["sequences"] += 1
         log.info("TransientSearchBlock %s: %d pixels, %d channels, window %d images (%.3f s), DMs %s, widths %s, "
                  "threshold %.1f", hdr.get("name"), len(lay["lm"]), lay["nchan"], window, window * lay["dt_s"],
@@ -200,9 +214,51 @@ class TransientSearchBlock(bfp.SinkBlock):
                     if n == 0:
                         return
             # a batch at a time, each finished before the next: an event is looked back at (its window,
-            # its boxcar on every pixel) while the search still holds it, whatever the gulp size
-            for a in range(0, n, self.search.max_batch):
-                self._push(x[a:a + self.search.max_batch], index)
+            # its boxcar on every pixel) while the search still holds it, whatever the gulp size; the
+            # window restarts where a new gain solution starts
+            pos = 0
+            for cut, skip in self._gain_cuts(n):
+                self._push_batches(x[pos:cut], index)
+                self._restart_at_gains(skip)
+                pos = cut + skip
+            self._push_batches(x[pos:], index)
+
+    def _push_batches(self, x, index):
+        for a in range(0, x.shape[0], self.search.max_batch):
+            self._push(x[a:a + self.search.max_batch], index)
+
+    def _gain_cuts(self, n):
+        """[(offset, skip)]: where, among the next ``n`` images (from image ``_j``), a gain solution starts
+        (the offset of the image holding its first frame) and whether that image straddles it (skip 1)."""
+        if self.gains is None:
+            return []
+        t0, ticks = int(self.lay["time_tag"]), int(self.lay["integration_ticks"])
+        end = t0 + (self._j + n) * ticks
+        cuts = []
+        for v in np.asarray(self.gains.valid_from, np.int64):
+            v = int(v)
+            if v <= self._gains_done or v >= end:
+                continue
+            e, rem = divmod(v - t0, ticks)
+            off = max(int(e) - self._j, 0)
+            skip = min(int(rem > 0), n - off)
+            if cuts and off < cuts[-1][0] + cuts[-1][1]:
+                continue                  # two solutions in one image: one restart after both
+            cuts.append((off, skip))
+            self._gains_done = v
+        return cuts
+
+    def _restart_at_gains(self, skip):
+        """A new gain solution from here: what is pending is finished, ``skip`` straddling images are left
+        out, and the window starts again."""
+        self._flush()
+        self._finish(final=True)
+        self._j += skip
+        self.search.reset(self._j)
+        self.search_stats["resets"] += 1
+        self.search_stats["gain_resets"] += 1
+        self.search_stats["images_straddling_gains"] += skip
+        log.info("TransientSearchBlock: a new gain solution; window reset at image %d", self._j)
 
     def _fill_flagged(self, cells):
         """Channel images that kept nothing (interference flagged every stand) are missing data, not a

@@ -90,6 +90,9 @@ def task_configs(cfg: dict, inputs) -> list[tuple[str, dict]]:
     Raises ValueError when ``cfg`` has no TBF source or two inputs share a stem (their outputs
     would overwrite each other). Paths are resolved against the working directory.
     """
+    if cfg.get("tunings"):
+        raise ValueError("bf-epic batch re-images one tuning's TBF files; this pipeline has tunings: (set "
+                         "tunings=null)")
     if cfg["source"]["kind"] != "tbf":
         raise ValueError(f"bf-epic batch re-images TBF files: the pipeline's source.kind must be 'tbf', "
                          f"got {cfg['source']['kind']!r}")

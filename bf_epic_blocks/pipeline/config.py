@@ -24,6 +24,7 @@ checked once every key has been, by the sections' ``post`` rules and :func:`_fil
 """
 from __future__ import annotations
 
+import copy
 import os
 import re
 from pathlib import Path
@@ -281,6 +282,132 @@ class WatchTargets:
         if dup:
             ctx.error(path, f"watch target names must be unique; repeated: {', '.join(dup)}")
         return out
+
+
+#: the top-level keys a tuning may set for itself (the station, the service and the name are the station's)
+TUNING_KEYS = ("source", "calibration", "flagging", "imager", "device", "watch", "output")
+
+
+class Tunings:
+    """tunings: a station's tunings, each ``{name, <section>: {...}}``: the sections it sets are merged key
+    by key over the pipeline's own (what it leaves out is the pipeline's). Each merged pipeline is checked
+    as a pipeline of its own in :func:`load_config`; here, the list's shape and the names."""
+
+    def describe(self) -> str:
+        return ("a list of at least two mappings {name, and any of " + ", ".join(TUNING_KEYS) +
+                "}, each a tuning's own settings")
+
+    def check(self, v, path, ctx):
+        if not isinstance(v, list) or len(v) < 2:
+            ctx.error(path, f"expected {self.describe()}, got {v!r}")
+            return INVALID
+        out, names = [], []
+        for i, x in enumerate(v):
+            where = f"{path}[{i}]"
+            if not isinstance(x, dict):
+                ctx.error(where, f"expected a mapping {{name, source: ..., ...}}, got {x!r}")
+                out.append(INVALID)
+                continue
+            name = x.get("name")
+            if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
+                ctx.error(f"{where}.name", f"expected a name of letters, digits, '_', '.' or '-', got {name!r}")
+                out.append(INVALID)
+                continue
+            bad = sorted(set(x) - set(TUNING_KEYS) - {"name"})
+            if bad:
+                ctx.error(where, f"a tuning sets only {', '.join(TUNING_KEYS)}; not {', '.join(bad)} (the "
+                                 "station's own keys are set once, outside `tunings`)")
+                out.append(INVALID)
+                continue
+            names.append(name)
+            out.append(x)
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            ctx.error(path, f"tuning names must be unique; repeated: {', '.join(dup)}")
+            return INVALID
+        return out
+
+
+def _merged(base, over):
+    """``base`` with ``over`` merged in, mapping by mapping (a list or a value in ``over`` replaces)."""
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+def _paths(d, prefix=""):
+    """Every dotted key path in the nested mapping ``d``."""
+    for k, v in d.items():
+        p = f"{prefix}{k}"
+        yield p
+        if isinstance(v, dict):
+            yield from _paths(v, p + ".")
+
+
+def _tuning_device(device, k):
+    """The device of a station's ``k``-th tuning that names none itself: tuning k on the k-th of several
+    GPUs (``gpu:all``: GPU k), round robin over a list; one device: every tuning on it."""
+    if isinstance(device, str) and device.startswith("gpu:") and (device == "gpu:all" or "," in device):
+        if device == "gpu:all":
+            return f"gpu:{k}"
+        idx = device[4:].split(",")
+        return f"gpu:{idx[k % len(idx)]}"
+    return device
+
+
+def _expand_tunings(cfg, raw, lines, base, source):
+    """cfg["tunings"] (a checked list of tuning mappings) replaced by each tuning's whole pipeline, checked
+    as one: the station's raw mapping with the tuning's sections merged over it, named
+    ``<name>_<tuning>``, writing to ``<output.dir>/<tuning>``. A simulated burst given once for the station
+    (``start_s`` its arrival at the station's highest channel) is delayed in each tuning by its dispersion
+    from there to the tuning's own highest channel, so every tuning sees one event. Raises ConfigError with
+    every problem, each named by its tuning."""
+    from ..conventions import dispersion_delay_s
+    station = {k: v for k, v in raw.items() if k != "tunings"}
+    errors, out = [], []
+    if cfg.get("service"):
+        errors.append("service: a station of several tunings is not served yet (one process per tuning with "
+                      "its own service, or no service)")
+    for i, t in enumerate(cfg["tunings"]):
+        over = {k: v for k, v in t.items() if k != "name"}
+        merged = _merged(station, over)
+        merged["name"] = f"{cfg['name']}_{t['name']}"
+        out_over = over.get("output") or {}
+        merged.setdefault("output", {})
+        if not (isinstance(merged["output"], dict)):
+            merged["output"] = {}
+        if "dir" not in out_over:
+            merged["output"]["dir"] = str(Path(cfg["output"]["dir"]) / t["name"])
+        if "prefix" not in out_over:
+            merged["output"]["prefix"] = merged["name"]
+        if "device" not in over:
+            merged["device"] = _tuning_device(cfg["device"], i)
+        prefix = f"tunings[{i}]."
+        mine = set(_paths(over))          # a base key's line is not where a tuning's own value came from
+        tl = {p: n for p, n in lines.items() if not p.startswith("tunings") and p not in mine}
+        tl.update({p[len(prefix):]: n for p, n in lines.items() if p.startswith(prefix)})
+        ctx = Context(base, tl)
+        tc = SCHEMA.check(merged, "", ctx)
+        if not ctx.errors:
+            _fill_and_cross_check(tc, merged["name"], ctx)
+        errors += [f"tunings[{i}] ({t['name']}): {e}" for e in ctx.errors]
+        out.append((tc, "transients" not in (over.get("source") or {})))
+    if errors:
+        raise ConfigError(errors, source)
+    sim = [tc for tc, _ in out if tc["source"]["kind"] == "simulated"]
+    if len(sim) == len(out):
+        def f_hi(tc):
+            ch = tc["source"]["channels"]
+            return (ch["first"] + ch["count"] - 1) * ch["width_hz"]
+        top = max(f_hi(tc) for tc, _ in out)
+        for tc, inherited in out:
+            if inherited:
+                for b in tc["source"]["transients"] or []:
+                    b["start_s"] = float(b["start_s"]) + float(dispersion_delay_s(b.get("dm") or 0.0, f_hi(tc), top))
+    for tc, _ in out:
+        tc["tunings"] = None
+    cfg["tunings"] = [tc for tc, _ in out]
 
 
 class OnOffAuto(Choice):
@@ -801,6 +928,12 @@ SCHEMA = Section({
             "its pick. Give `grid` or `track`, not both; with neither, the grid's defaults; `grid: null` "
             "removes a grid given in the file."),
         {}, doc="How the images are made."),
+    "tunings": Key(Tunings(), None,
+                   doc="A station of several tunings run as one process (guide/station.md): a list of "
+                       "`{name, source: ..., imager: ..., device: ...}`, each merged over the rest of this "
+                       "file as its own pipeline, named `<name>_<tuning>`, writing to `<output.dir>/<tuning>`; "
+                       "a burst seen by every tuning's search is reported once, in `<output.dir>/<name>_events."
+                       "ecsv`. With several GPUs (`device: gpu:all`), tuning k runs on the k-th. null: one tuning."),
     "device": Key(Device(), "cpu",
                   doc="Where the pipeline computes: cpu, gpu (gpu:0), gpu:N, or several GPUs of the host as "
                       "gpu:all or a list [0, 1] (returned as 'gpu:all' / 'gpu:0,1'), which share the dft "
@@ -1035,10 +1168,13 @@ def load_config(path_or_text, overrides: Iterable[str] = (), *, base_dir=None) -
         key = ov.partition("=")[0].strip()
         lines = {p: n for p, n in lines.items() if p != key and not p.startswith((key + ".", key + "["))}
     ctx = Context(base, lines)
+    station_raw = copy.deepcopy(raw) if isinstance(raw.get("tunings"), list) else None
     cfg = SCHEMA.check(raw, "", ctx)
     _fill_and_cross_check(cfg, default_name, ctx)
     if ctx.errors:
         raise ConfigError(ctx.errors, source)
+    if cfg.get("tunings"):
+        _expand_tunings(cfg, station_raw, lines, base, source)
     return cfg
 
 

@@ -390,7 +390,8 @@ def build_graph(cfg, progress=None, parts=None):
         solver, table = _solver_stage(cfg, feed, outdir)
         calfold = _calibration_stage(cfg, dev, feed, pattern, table)
         imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table, weights)
-        search = _search_stage(cfg, imager, outdir, weights if getattr(imager, "flag_weights", None) else None)
+        search = _search_stage(cfg, imager, outdir, weights if getattr(imager, "flag_weights", None) else None,
+                               gains=table if table is not None else _static_gains(cfg))
         writer, cube, band = _output_stage(cfg, imager, pixels, block)
         watch, snippets = _watch_stage(cfg, dev, calfold, station, pattern, table, band or imager, search)
         oims = _oims_stage(cfg, dev, calfold, station, pattern, table)
@@ -684,9 +685,17 @@ def _search_latency_s(cfg):
     return float(sc["window_s"]) + float(dispersion_delay_s(dm, freq.min(), freq.max())) + 1.0
 
 
-def _search_stage(cfg, imager, outdir, flag_weights=None):
-    """The transient search on the imager's images, if ``imager.search`` asks for one (else None)."""
-    return _search_block(cfg, imager, outdir, flag_weights) if cfg["imager"].get("search") else None
+def _search_stage(cfg, imager, outdir, flag_weights=None, gains=None):
+    """The transient search on the imager's images, if ``imager.search`` asks for one (else None); ``gains``:
+    the gain table whose solutions restart its window."""
+    return _search_block(cfg, imager, outdir, flag_weights, gains) if cfg["imager"].get("search") else None
+
+
+def _static_gains(cfg):
+    """``calibration.gains_table`` loaded (a GainTable), or None."""
+    from ..imaging.calibration import GainTable
+    path = cfg["calibration"].get("gains_table")
+    return GainTable.load(path) if path else None
 
 
 def _output_stage(cfg, imager, pixels, block):
@@ -748,14 +757,15 @@ def _search_settings(sc):
                           sidelobe_factor=sc["sidelobe_factor"])
 
 
-def _search_block(cfg, images, outdir, flag_weights=None):
+def _search_block(cfg, images, outdir, flag_weights=None, gains=None):
     """The TransientSearchBlock ``imager.search`` asks for, on ``images``, its candidates written to
     ``outdir`` by a :class:`~..io.candidates.CandidateWriter` (None: not written)."""
     from ..blocks.transient_search import TransientSearchBlock
     from ..io.candidates import CandidateWriter
     sc, out = cfg["imager"]["search"], cfg["output"]
     writer = CandidateWriter(outdir, out["prefix"], sc["table"], sc["png"]) if outdir is not None else None
-    return TransientSearchBlock(images, _search_settings(sc), writer=writer, location=None, flag_weights=flag_weights)
+    return TransientSearchBlock(images, _search_settings(sc), writer=writer, location=None, flag_weights=flag_weights,
+                                gains=gains)
 
 
 def _output_blocks(cfg, images, pixels, block):
@@ -927,58 +937,38 @@ def _start_service(cfg, g):
 def run(cfg, show_progress=None, parts=None, service_ready=None):
     """Build and run the pipeline; returns a summary dict (files written, frame counts, timing).
     ``parts``: see :func:`build_graph`. With ``service:``, the HTTP service runs beside it
-    (:mod:`bf_epic_blocks.service`; ``service_ready(service)`` is called once it listens)."""
+    (:mod:`bf_epic_blocks.service`; ``service_ready(service)`` is called once it listens). A station of
+    several tunings (``tunings:``) runs them together (:func:`run_station`)."""
+    if cfg.get("tunings") and parts is None:
+        return run_station(cfg, show_progress=show_progress)
     if cfg.get("service"):
         from ..service.server import check_listen, parse_listen
         check_listen(parse_listen(cfg["service"]["listen"])[0], cfg["service"]["allow_remote"])
-    bar = None
-    if show_progress is None:
-        show_progress = sys.stderr.isatty()
-    progress = None
-    if show_progress:
-        from tqdm import tqdm
-        bar = tqdm(total=None, unit="frame", desc=cfg["name"], unit_scale=True)
-        progress = bar.update
+    bar = progress_bar(cfg["name"], show_progress)
     t0, t0_unix = time.perf_counter(), time.time()
     if parts is None:
         check_fits(cfg)
-    g = build_graph(cfg, progress=progress, parts=parts)
+    g = build_graph(cfg, progress=None if bar is None else bar.update, parts=parts)
     if bar is not None:
         bar.total = g.nframe_total
         bar.refresh()
-    log.info("running %s: %s source -> %s%s%s imager -> %s", cfg["name"], cfg["source"]["kind"],
-             "interference flagging -> " if flagging_enabled(cfg) else "",
-             "" if type(g.calfold).__name__ != "CalFoldBlock" else "calfold -> ", cfg["imager"]["kind"], g.outdir)
+    log_graph(cfg, g)
     service = budget = None
     try:
-        out = cfg["output"]
-        if out.get("keep_gb") is not None or out.get("keep_days") is not None:
-            from ..service.budget import OutputBudget
-            budget = OutputBudget(g.outdir, out.get("keep_gb"), out.get("keep_days"), every_s=BUDGET_EVERY_S).start()
-            g.budget = budget
+        budget = start_budget(cfg, g)
         if cfg.get("service"):
             service = _start_service(cfg, g)
             if service_ready is not None:
                 service_ready(service)
-        from .watchdog import StallWatchdog
         try:
-            with StallWatchdog(g.pipeline.blocks, STALL_WARN_S), _stop_on_sigterm(g.pipeline) as stopped:
-                g.pipeline.run()
+            stopped = execute(g.pipeline)
         except Exception as e:
             if service is not None:
                 service.monitor.failed = str(e)
             raise
-        if hasattr(g.search, "finish"):
-            g.search.finish()       # a pixel split's parts' candidates, one table
-        if g.snippets is not None:
-            g.snippets.finish()     # the search's last candidates, posted after the snippet block's last images
-        if g.writer is not None:
-            g.writer.flush()        # files its helper process still writes
+        finish_graph(g)
     finally:
-        if g.writer is not None:
-            g.writer.close()
-        if g.watch is not None:
-            g.watch.close()         # the PNGs its helper process still draws
+        close_graph(g)
         if budget is not None:
             budget.stop()
         if service is not None:
@@ -987,7 +977,134 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
             service.stop()
         if bar is not None:
             bar.close()
+    summary = summarise(cfg, g, t0, time.perf_counter() - t0, stopped)
+    if budget is not None:
+        summary["output_budget"] = dict(budget.stats)
+    if service is not None:
+        summary["service"] = summary_service
+    summary["started_unix_s"] = t0_unix      # the blocks' times are seconds after this (time.time())
+    return summary
+
+
+def run_station(cfg, show_progress=None):
+    """Run every tuning of ``cfg`` (a checked station configuration: ``cfg["tunings"]`` their whole
+    pipelines) together; returns the station's summary: ``tunings`` (each tuning's own summary, as
+    :func:`run` returns it), the events, and totals over the tunings (:mod:`.station`)."""
+    from .station import Together, events_counts, tuning_search, write_events
+    tunings = cfg["tunings"]
+    names = [tc["name"][len(cfg["name"]) + 1:] for tc in tunings]
+    bar = progress_bar(cfg["name"], show_progress)
+    t0, t0_unix = time.perf_counter(), time.time()
+    for tc in tunings:
+        check_fits(tc)
+    graphs = []
+    for tc in tunings:
+        graphs.append(build_graph(tc, progress=None if bar is None else bar.update))
+        log_graph(tc, graphs[-1])
+    if bar is not None:
+        bar.total = sum(g.nframe_total or 0 for g in graphs) or None
+        bar.refresh()
+    searched = [k for k, g in enumerate(graphs) if g.search is not None]
+    live = None
+    if len(searched) > 1:
+        from ..search.coincidence import StationEvents
+        live = StationEvents([tuning_search(names[k], tunings[k], graphs[k]) for k in searched],
+                             refresh=lambda j: tuning_search(names[searched[j]], tunings[searched[j]], graphs[searched[j]]))
+        for j, k in enumerate(searched):
+            graphs[k].search.on_candidate = live.listener(j, graphs[k].search.on_candidate)
+    log.info("station %s: %d tunings (%s) together", cfg["name"], len(tunings), ", ".join(names))
+    budgets = []
+    try:
+        for tc, g in zip(tunings, graphs):
+            budgets.append(start_budget(tc, g))
+        stopped = execute(Together([g.pipeline for g in graphs]))
+        for g in graphs:
+            finish_graph(g)
+    finally:
+        for g in graphs:
+            close_graph(g)
+        for b in budgets:
+            if b is not None:
+                b.stop()
+        if bar is not None:
+            bar.close()
     wall = time.perf_counter() - t0
+    per = {}
+    for name, tc, g, b in zip(names, tunings, graphs, budgets + [None] * (len(graphs) - len(budgets))):
+        per[name] = summarise(tc, g, t0, wall, stopped)
+        if b is not None:
+            per[name]["output_budget"] = dict(b.stats)
+    summary = {"name": cfg["name"], "outdir": cfg["output"]["dir"], "wall_s": wall, "started_unix_s": t0_unix,
+               "stopped_by": stopped["signal"], "tunings": per,
+               "files": [f for s in per.values() for f in s["files"]]}
+    for k in ("frames_read", "frames_imaged", "frames_skipped", "frames_dropped_partial", "images", "files_written"):
+        summary[k] = sum(int(s[k]) for s in per.values())
+    if len(searched) > 1:
+        path = write_events(cfg, [tuning_search(names[k], tunings[k], graphs[k]) for k in searched],
+                            [graphs[k].search for k in searched])
+        summary["files"].append(str(path))
+        summary["files_written"] += 1
+        summary["events"] = dict(events_counts(path), joined_live=live.joined)
+        log.info("station %s: %d events, %d seen by more than one tuning (%s)", cfg["name"],
+                 summary["events"]["events"], summary["events"]["coincident"], path)
+    return summary
+
+
+def progress_bar(name, show_progress):
+    """A tqdm bar of frames (``show_progress`` None: when stderr is a terminal), or None."""
+    if show_progress is None:
+        show_progress = sys.stderr.isatty()
+    if not show_progress:
+        return None
+    from tqdm import tqdm
+    return tqdm(total=None, unit="frame", desc=name, unit_scale=True)
+
+
+def log_graph(cfg, g):
+    log.info("running %s: %s source -> %s%s%s imager -> %s", cfg["name"], cfg["source"]["kind"],
+             "interference flagging -> " if flagging_enabled(cfg) else "",
+             "" if type(g.calfold).__name__ != "CalFoldBlock" else "calfold -> ", cfg["imager"]["kind"], g.outdir)
+
+
+def start_budget(cfg, g):
+    """The output budget's sweeper of ``g.outdir`` (``output.keep_gb`` / ``keep_days``), started; or None."""
+    out = cfg["output"]
+    if out.get("keep_gb") is None and out.get("keep_days") is None:
+        return None
+    from ..service.budget import OutputBudget
+    g.budget = OutputBudget(g.outdir, out.get("keep_gb"), out.get("keep_days"), every_s=BUDGET_EVERY_S).start()
+    return g.budget
+
+
+def execute(pipeline):
+    """Run a built pipeline (anything with ``blocks`` and ``run()``) under the stall watchdog and, in the
+    main thread, the SIGTERM handler; returns the handler's state (``signal`` set when one came)."""
+    from .watchdog import StallWatchdog
+    with StallWatchdog(pipeline.blocks, STALL_WARN_S), _stop_on_sigterm(pipeline) as stopped:
+        pipeline.run()
+    return stopped
+
+
+def finish_graph(g):
+    """What a graph's sinks do once its pipeline has ended without error."""
+    if hasattr(g.search, "finish"):
+        g.search.finish()       # a pixel split's parts' candidates, one table
+    if g.snippets is not None:
+        g.snippets.finish()     # the search's last candidates, posted after the snippet block's last images
+    if g.writer is not None:
+        g.writer.flush()        # files its helper process still writes
+
+
+def close_graph(g):
+    """Close a graph's writers, however its pipeline ended."""
+    if g.writer is not None:
+        g.writer.close()
+    if g.watch is not None:
+        g.watch.close()         # the PNGs its helper process still draws
+
+
+def summarise(cfg, g, t0, wall, stopped):
+    """The summary of a graph that has run (``t0``: the run's ``time.perf_counter()`` at its start), logged."""
     src_stats = getattr(g.source, "tbf_stats", None) or getattr(g.source, "udp_stats", None) or {}
     img = getattr(g.imager, "img_stats", {})
     # a source stopped early (SIGTERM) wrote fewer than its total: the runtime's count where there is one
@@ -1004,11 +1121,6 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
     }
     summary["blocks"] = block_timing(g.pipeline.blocks, t0)
     summary["stopped_by"] = stopped["signal"]
-    if budget is not None:
-        summary["output_budget"] = dict(budget.stats)
-    if service is not None:
-        summary["service"] = summary_service
-    summary["started_unix_s"] = t0_unix      # the blocks' times are seconds after this (time.time())
     for name, bt in summary["blocks"].items():
         log.debug("block %s: %d gulps, %.3f s in on_data (%.2f ms/gulp), first data at %s s, last at %s s",
                   name, bt["ngulp"], bt["process_s"], 1e3 * bt["process_s"] / max(bt["ngulp"], 1),
@@ -1067,6 +1179,9 @@ def calibrate(cfg, out_path=None, show_progress=None):
     Writes the solved table (.npz, :mod:`..io.gaintable`) to ``out_path`` (default
     ``output.dir/<prefix>_gains.npz``) and its PNG beside it; returns a summary dict. Raises ValueError
     when no solution could be made (each failure's reason is in the message)."""
+    if cfg.get("tunings"):
+        raise ValueError("a station of several tunings is calibrated one tuning at a time: --set tunings=null "
+                         "with that tuning's source.channels, or a pipeline of its own")
     from pathlib import Path
 
     from ..blocks import bfp
@@ -1118,7 +1233,19 @@ def calibrate(cfg, out_path=None, show_progress=None):
 
 
 def plan(cfg):
-    """What the pipeline would do, without running it: a dict and a printable text."""
+    """What the pipeline would do, without running it: a dict and a printable text (a station's: each
+    tuning's, under ``tunings``)."""
+    if cfg.get("tunings"):
+        plans = {tc["name"][len(cfg["name"]) + 1:]: plan(tc) for tc in cfg["tunings"]}
+        per_device = {}
+        for tc, (d, _) in zip(cfg["tunings"], plans.values()):
+            per_device[tc["device"]] = per_device.get(tc["device"], 0) + sum(d.get("memory_bytes", {}).values())
+        lines = [f"station {cfg['name']}: {len(plans)} tunings; memory on {dev}: about {_gib(b)}"
+                 for dev, b in per_device.items()]
+        return ({"name": cfg["name"], "tunings": {k: d for k, (d, _) in plans.items()},
+                 "memory_bytes_per_device": per_device},
+                "\n\n".join(f"tuning {k} ({cfg['name']}_{k}):\n{text}" for k, (_, text) in plans.items())
+                + "\n\n" + "\n".join(lines))
     src, im = cfg["source"], cfg["imager"]
     if src["kind"] == "udp":
         raise ValueError("plan: a udp source learns its channels from the packets; plan a capture file of the "

@@ -1,0 +1,228 @@
+"""One burst, several tunings: a station's candidates from each tuning's search joined into events.
+
+A dispersed burst reaches a station's low tuning later than its high one, by the dispersion law
+(:func:`bf_epic_blocks.conventions.dispersion_delay_s`). Each tuning's search reports a candidate's time
+as its start at that tuning's highest channel (``f_ref``); here every detection's time is carried, at its
+own DM, to the station's highest channel ``F``:
+
+    t_F = t_ref + dispersion_delay_s(dm, F, f_ref)          (seconds; <= t_ref, as F >= f_ref)
+
+Two detections from different tunings are one event when all of these hold (the tolerances are what the
+searches themselves resolve, not free parameters):
+
+- **DM**: they differ by at most ``dm_trials`` trial steps of the coarser tuning at that DM (one step by
+  default: a tuning's tree or list of trials places a burst within half a step of its DM, either side);
+- **time**: their ``t_F`` differ by at most the sum, over the two, of one image, half the boxcar width, and
+  the time one DM step moves ``t_F`` (``|dispersion_delay_s(step, F, f_ref)|``), so that the DM each found
+  within its own trials cannot part them;
+- **place**: their directions differ by at most ``cells`` grid cells (1.5 by default) in (l, m) at the
+  coarser tuning's cell; sky-wide events (impulses, lightning: the whole sky over threshold) are joined on
+  DM and time alone, and only with sky-wide events.
+
+Events are formed greedily from the brightest detection down; each event takes at most one detection from
+each tuning (its brightest match). A candidate no other tuning saw is an event of one detection, so the
+events table lists everything the station's searches found, and ``ntunings`` says which were seen twice.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..conventions import dispersion_delay_s
+
+log = logging.getLogger("bf_epic_blocks")
+
+__all__ = ["TuningSearch", "Detection", "detection", "coincident", "station_events", "StationEvents"]
+
+
+@dataclass
+class TuningSearch:
+    """What joining needs of one tuning's search.
+
+    name : the tuning's name; f_ref_hz : its candidates' time reference (its highest channel, Hz);
+    dt_s : one image (s); dm_trials : its DM trials (pc cm^-3), any order; cell_lm : one grid cell in the
+    direction cosines (nan: no grid, places not compared)."""
+    name: str
+    f_ref_hz: float
+    dt_s: float
+    dm_trials: np.ndarray
+    cell_lm: float = float("nan")
+
+    def dm_step(self, dm: float) -> float:
+        """The trial spacing at ``dm``: the larger of the gaps either side of the nearest trial (0 for one
+        trial)."""
+        d = np.unique(np.asarray(self.dm_trials, dtype=np.float64))
+        if d.size < 2:
+            return 0.0
+        k = int(np.argmin(np.abs(d - dm)))
+        gaps = np.diff(d)
+        return float(max(gaps[max(k - 1, 0)], gaps[min(k, gaps.size - 1)]))
+
+
+@dataclass
+class Detection:
+    """One tuning's candidate as joining sees it (``t_f_unix`` its start at the station's highest channel)."""
+    tuning: int
+    row: int
+    t_f_unix: float
+    dm: float
+    width_s: float
+    l: float
+    m: float
+    snr: float
+    skywide: bool
+    time_unix: float                   # its own time (at its tuning's f_ref)
+    ra_deg: float = float("nan")
+    dec_deg: float = float("nan")
+    extra: dict = field(default_factory=dict)
+
+
+def detection(row, k: int, i: int, search: TuningSearch, f_station_hz: float) -> Detection:
+    """A :class:`Detection` from a candidate row (a table row or the search's row dict: ``time_utc`` an
+    astropy Time, ``dm``, ``width_ms``, ``l``, ``m``, ``snr``, ``kind``, ``ra_deg``, ``dec_deg``)."""
+    t = float(row["time_utc"].unix)
+    dm = float(row["dm"])
+    return Detection(tuning=k, row=i, t_f_unix=t + float(dispersion_delay_s(dm, f_station_hz, search.f_ref_hz)),
+                     dm=dm, width_s=float(row["width_ms"]) * 1e-3, l=float(row["l"]), m=float(row["m"]),
+                     snr=float(row["snr"]), skywide=str(row["kind"]) == "sky-wide", time_unix=t,
+                     ra_deg=float(row["ra_deg"]), dec_deg=float(row["dec_deg"]))
+
+
+def coincident(a: Detection, b: Detection, sa: TuningSearch, sb: TuningSearch, f_station_hz: float, *,
+               dm_trials: float = 1.0, cells: float = 1.5) -> bool:
+    """Whether detections ``a`` (of tuning ``sa``) and ``b`` (of ``sb``) are one burst (module docstring)."""
+    if a.skywide != b.skywide:
+        return False
+    step_a, step_b = sa.dm_step(a.dm), sb.dm_step(b.dm)
+    if abs(a.dm - b.dm) > dm_trials * max(step_a, step_b) + 1e-9:
+        return False
+    tol = (sa.dt_s + sb.dt_s + 0.5 * (a.width_s + b.width_s)
+           + abs(float(dispersion_delay_s(step_a, f_station_hz, sa.f_ref_hz)))
+           + abs(float(dispersion_delay_s(step_b, f_station_hz, sb.f_ref_hz))))
+    if abs(a.t_f_unix - b.t_f_unix) > tol:
+        return False
+    if a.skywide:
+        return True
+    cell = np.nanmax([sa.cell_lm, sb.cell_lm]) if not (math.isnan(sa.cell_lm) and math.isnan(sb.cell_lm)) \
+        else float("nan")
+    return math.isnan(cell) or math.hypot(a.l - b.l, a.m - b.m) <= cells * cell + 1e-12
+
+
+def _group(dets, searches, f_station_hz, dm_trials, cells):
+    """Events (lists of detections, the first the brightest) from detections, greedily by S/N."""
+    order = sorted(range(len(dets)), key=lambda i: -dets[i].snr)
+    used, events = set(), []
+    for i in order:
+        if i in used:
+            continue
+        a = dets[i]
+        used.add(i)
+        ev = [a]
+        for k in range(len(searches)):
+            if k == a.tuning:
+                continue
+            best = None
+            for j in order:
+                b = dets[j]
+                if j in used or b.tuning != k:
+                    continue
+                if coincident(a, b, searches[a.tuning], searches[k], f_station_hz, dm_trials=dm_trials, cells=cells):
+                    best = j
+                    break            # order is by S/N: the first match is the brightest
+            if best is not None:
+                used.add(best)
+                ev.append(dets[best])
+        events.append(ev)
+    return events
+
+
+def station_events(tables, searches, *, dm_trials: float = 1.0, cells: float = 1.5):
+    """The station's events from each tuning's candidate table.
+
+    tables : one astropy Table per tuning (:func:`bf_epic_blocks.io.candidates.candidate_table`'s
+        columns), in the order of ``searches`` (:class:`TuningSearch`).
+    Returns an astropy Table sorted by time, a row per event: ``event``; ``time_utc`` (its start at the
+    station's highest channel, from its brightest detection), ``dm`` (the detections' S/N²-weighted
+    mean), ``snr`` (their S/N added in quadrature), ``l``, ``m``, ``ra_deg``, ``dec_deg`` and ``kind`` (of
+    the brightest), ``ntunings``, ``tunings`` (names, comma-separated); and per tuning ``<name>_row`` (the
+    row of its candidate table, -1: not seen), ``<name>_snr``, ``<name>_dm``, ``<name>_time_utc`` (ISO, at
+    its own ``f_ref``; '' when not seen). ``meta`` holds the station's ``f_ref_mhz`` and the tolerances."""
+    from astropy.table import Table
+    from astropy.time import Time
+    f_station = max(s.f_ref_hz for s in searches)
+    dets = [detection(r, k, i, searches[k], f_station) for k, t in enumerate(tables) for i, r in enumerate(t)]
+    events = _group(dets, searches, f_station, dm_trials, cells)
+    events.sort(key=lambda ev: ev[0].t_f_unix)
+    cols = {"event": np.arange(len(events), dtype=np.int64),
+            "time_utc": Time([ev[0].t_f_unix for ev in events], format="unix", scale="utc") if events
+            else Time([], format="unix", scale="utc")}
+    w = [np.array([d.snr ** 2 for d in ev]) for ev in events]
+    cols["dm"] = np.array([float(np.sum(wi * [d.dm for d in ev]) / np.sum(wi)) for ev, wi in zip(events, w)])
+    cols["snr"] = np.array([math.sqrt(float(np.sum(wi))) for wi in w])
+    for k in ("l", "m", "ra_deg", "dec_deg"):
+        cols[k] = np.array([getattr(ev[0], k) for ev in events], dtype=np.float64)
+    cols["kind"] = np.array(["sky-wide" if ev[0].skywide else "point" for ev in events], dtype="U8")
+    cols["ntunings"] = np.array([len(ev) for ev in events], dtype=np.int64)
+    cols["tunings"] = np.array([",".join(searches[d.tuning].name for d in sorted(ev, key=lambda d: d.tuning))
+                                for ev in events], dtype="U64") if events else np.zeros(0, dtype="U1")
+    for k, s in enumerate(searches):
+        mine = [next((d for d in ev if d.tuning == k), None) for ev in events]
+        cols[f"{s.name}_row"] = np.array([-1 if d is None else d.row for d in mine], dtype=np.int64)
+        cols[f"{s.name}_snr"] = np.array([np.nan if d is None else d.snr for d in mine])
+        cols[f"{s.name}_dm"] = np.array([np.nan if d is None else d.dm for d in mine])
+        cols[f"{s.name}_time_utc"] = np.array(["" if d is None else Time(d.time_unix, format="unix").isot
+                                               for d in mine], dtype="U26") if events else np.zeros(0, dtype="U1")
+    t = Table(cols, meta={"f_ref_mhz": f_station / 1e6, "dm_trials": dm_trials, "cells": cells,
+                          "tunings": [s.name for s in searches],
+                          "time_reference": "event start at the station's highest channel frequency (f_ref_mhz)"})
+    t["time_utc"].format = "isot"
+    return t
+
+
+class StationEvents:
+    """Live joining: each tuning's search tells it of every candidate (``listener(k)`` is the search's
+    ``on_candidate``); a candidate that joins one from another tuning is logged at once as a station
+    event. ``joined`` counts them. Thread-safe (the searches run in their own threads). ``refresh(k)``,
+    where given, returns tuning ``k``'s :class:`TuningSearch` anew at each candidate (a search learns its
+    trials from its first sequence)."""
+
+    def __init__(self, searches, f_station_hz=None, *, dm_trials=1.0, cells=1.5, keep=1000, refresh=None):
+        self.searches = list(searches)
+        self.refresh = refresh
+        self.f_station_hz = f_station_hz
+        self.dm_trials, self.cells, self.keep = dm_trials, cells, int(keep)
+        self.recent = [[] for _ in self.searches]
+        self.joined = 0
+        self._lock = threading.Lock()
+
+    def listener(self, k, then=None):
+        """The callable for tuning ``k``'s search (``then``: a listener it already had, called first)."""
+        def told(row):
+            if then is not None:
+                then(row)
+            self.add(k, row)
+        return told
+
+    def add(self, k, row):
+        f = self.f_station_hz or max(s.f_ref_hz for s in self.searches)
+        with self._lock:
+            if self.refresh is not None:
+                self.searches = [self.refresh(j) for j in range(len(self.searches))]
+            d = detection(row, k, len(self.recent[k]), self.searches[k], f)
+            for j, others in enumerate(self.recent):
+                if j == k:
+                    continue
+                for o in reversed(others):
+                    if coincident(d, o, self.searches[k], self.searches[j], f, dm_trials=self.dm_trials,
+                                  cells=self.cells):
+                        self.joined += 1
+                        log.warning("station event: %s (S/N %.1f, DM %g) and %s (S/N %.1f, DM %g) saw one burst, "
+                                    "l %.3f m %.3f", self.searches[k].name, d.snr, d.dm, self.searches[j].name,
+                                    o.snr, o.dm, d.l, d.m)
+                        break
+            self.recent[k].append(d)
+            del self.recent[k][:-self.keep]
