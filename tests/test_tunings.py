@@ -133,7 +133,7 @@ def test_a_station_yaml_becomes_one_pipeline_per_tuning():
     (["tunings=[{name: a, station: {name: lwana}}, {name: b}]"], "not station"),
     (["tunings=[{name: a}, {name: 'b c'}]"], "tunings[1].name"),
     (["tunings=[{name: a}, {name: b, source: {channels: {count: 0}}}]"], "tunings[1] (b): source.channels.count"),
-    (["service={listen: '127.0.0.1:0'}"], "not served yet"),
+    (["tunings=[{name: a}, {name: b, service: {listen: '127.0.0.1:1', lisen: 2}}]"], "tunings[1] (b): service.lisen"),
 ])
 def test_a_bad_station_says_which_tuning_and_what(sets, message):
     from bf_epic_blocks.pipeline.config import ConfigError, load_config
@@ -231,3 +231,41 @@ def test_calibrate_and_batch_ask_for_one_tuning(capsys, tmp_path):
     from bf_epic_blocks.pipeline.config import load_config
     with pytest.raises(ValueError, match="tunings=null"):
         task_configs(load_config(STATION), [str(tmp_path / "a.tbf")])
+
+
+def test_each_tuning_serves_at_the_stations_port_plus_its_index():
+    from bf_epic_blocks.pipeline.config import load_config
+    cfg = load_config(STATION, ["service={listen: '127.0.0.1:8080'}"])
+    assert [t["service"]["listen"] for t in cfg["tunings"]] == ["127.0.0.1:8080", "127.0.0.1:8081"]
+    cfg = load_config(STATION, ["service={listen: '127.0.0.1:0'}"])
+    assert [t["service"]["listen"] for t in cfg["tunings"]] == ["127.0.0.1:0", "127.0.0.1:0"]
+    cfg = load_config(STATION, ["service={listen: '127.0.0.1:8080'}",
+                                "tunings=[{name: a}, {name: b, service: {listen: '127.0.0.1:9000'}}]"])
+    assert [t["service"]["listen"] for t in cfg["tunings"]] == ["127.0.0.1:8080", "127.0.0.1:9000"]
+    assert load_config(STATION)["tunings"][0]["service"] is None
+
+
+def test_a_served_station_serves_each_tuning_under_its_name(tmp_path):
+    """`bf-epic run --serve` of a station: each tuning's own /health and page while it runs, named."""
+    import json
+    import urllib.request
+    from bf_epic_blocks.pipeline.config import load_config
+    from bf_epic_blocks.pipeline.runner import run
+    cfg = load_config(STATION, [
+        f"output.dir={tmp_path}", "source.duration_s=0.1", "source.channels.count=4", "imager.grid.size=8",
+        "imager.tolerance=null", "imager.precision=fp32", "imager.search=null", "calibration.solve=null",
+        "watch=null", "output.integrate=null", "output.cube=null", "output.fits=false", "output.png=false",
+        "source.transients=null", "service={listen: '127.0.0.1:0', min_free_gb: 0}",
+        "tunings=[{name: low, source: {channels: {first: 2960}}}, {name: high, source: {channels: {first: 3360}}}]"])
+    seen = []
+
+    def ready(service):
+        with urllib.request.urlopen(service.url + "/health", timeout=10) as r:
+            seen.append((r.status, json.loads(r.read())["status"]))
+        with urllib.request.urlopen(service.url + "/", timeout=10) as r:
+            seen.append(r.read().decode())
+    summary = run(cfg, show_progress=False, service_ready=ready)
+    assert [x[0] for x in seen[0::2]] == [200, 200]
+    assert "lwasv_sim_station_low" in seen[1] and "lwasv_sim_station_high" in seen[3]
+    urls = [summary["tunings"][k]["service"]["url"] for k in ("low", "high")]
+    assert urls[0] != urls[1] and all(summary["tunings"][k]["service"]["requests"] >= 2 for k in ("low", "high"))

@@ -284,8 +284,8 @@ class WatchTargets:
         return out
 
 
-#: the top-level keys a tuning may set for itself (the station, the service and the name are the station's)
-TUNING_KEYS = ("source", "calibration", "flagging", "imager", "device", "watch", "output")
+#: the top-level keys a tuning may set for itself (the station and the name are the station's)
+TUNING_KEYS = ("source", "calibration", "flagging", "imager", "device", "watch", "output", "service")
 
 
 class Tunings:
@@ -345,6 +345,17 @@ def _paths(d, prefix=""):
             yield from _paths(v, p + ".")
 
 
+def _tuning_listen(listen, k):
+    """The ``k``-th tuning's ``service.listen``: the station's port + k (port 0: each its own free port)."""
+    from ..service.server import parse_listen
+    try:
+        host, port = parse_listen(listen)
+    except ValueError:
+        return listen                     # the tuning's own check names the problem
+    host = f"[{host}]" if ":" in host else host
+    return f"{host}:{port + k if port else 0}"
+
+
 def _tuning_device(device, k):
     """The device of a station's ``k``-th tuning that names none itself: tuning k on the k-th of several
     GPUs (``gpu:all``: GPU k), round robin over a list; one device: every tuning on it."""
@@ -366,9 +377,6 @@ def _expand_tunings(cfg, raw, lines, base, source):
     from ..conventions import dispersion_delay_s
     station = {k: v for k, v in raw.items() if k != "tunings"}
     errors, out = [], []
-    if cfg.get("service"):
-        errors.append("service: a station of several tunings is not served yet (one process per tuning with "
-                      "its own service, or no service)")
     for i, t in enumerate(cfg["tunings"]):
         over = {k: v for k, v in t.items() if k != "name"}
         merged = _merged(station, over)
@@ -383,6 +391,8 @@ def _expand_tunings(cfg, raw, lines, base, source):
             merged["output"]["prefix"] = merged["name"]
         if "device" not in over:
             merged["device"] = _tuning_device(cfg["device"], i)
+        if cfg.get("service") and "listen" not in (over.get("service") or {}):
+            merged["service"] = dict(merged.get("service") or {}, listen=_tuning_listen(cfg["service"]["listen"], i))
         prefix = f"tunings[{i}]."
         mine = set(_paths(over))          # a base key's line is not where a tuning's own value came from
         tl = {p: n for p, n in lines.items() if not p.startswith("tunings") and p not in mine}
@@ -933,7 +943,8 @@ SCHEMA = Section({
                        "`{name, source: ..., imager: ..., device: ...}`, each merged over the rest of this "
                        "file as its own pipeline, named `<name>_<tuning>`, writing to `<output.dir>/<tuning>`; "
                        "a burst seen by every tuning's search is reported once, in `<output.dir>/<name>_events."
-                       "ecsv`. With several GPUs (`device: gpu:all`), tuning k runs on the k-th. null: one tuning."),
+                       "ecsv`. With several GPUs (`device: gpu:all`), tuning k runs on the k-th; with `service`, "
+                       "tuning k serves at the station's port + k. null: one tuning."),
     "device": Key(Device(), "cpu",
                   doc="Where the pipeline computes: cpu, gpu (gpu:0), gpu:N, or several GPUs of the host as "
                       "gpu:all or a list [0, 1] (returned as 'gpu:all' / 'gpu:0,1'), which share the dft "

@@ -940,7 +940,7 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
     (:mod:`bf_epic_blocks.service`; ``service_ready(service)`` is called once it listens). A station of
     several tunings (``tunings:``) runs them together (:func:`run_station`)."""
     if cfg.get("tunings") and parts is None:
-        return run_station(cfg, show_progress=show_progress)
+        return run_station(cfg, show_progress=show_progress, service_ready=service_ready)
     if cfg.get("service"):
         from ..service.server import check_listen, parse_listen
         check_listen(parse_listen(cfg["service"]["listen"])[0], cfg["service"]["allow_remote"])
@@ -986,12 +986,17 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
     return summary
 
 
-def run_station(cfg, show_progress=None):
+def run_station(cfg, show_progress=None, service_ready=None):
     """Run every tuning of ``cfg`` (a checked station configuration: ``cfg["tunings"]`` their whole
     pipelines) together; returns the station's summary: ``tunings`` (each tuning's own summary, as
-    :func:`run` returns it), the events, and totals over the tunings (:mod:`.station`)."""
+    :func:`run` returns it), the events, and totals over the tunings (:mod:`.station`). With ``service:``,
+    each tuning is served at its own ``service.listen`` (``service_ready(service)`` for each)."""
     from .station import Together, events_counts, tuning_search, write_events
     tunings = cfg["tunings"]
+    if cfg.get("service"):
+        from ..service.server import check_listen, parse_listen
+        for tc in tunings:
+            check_listen(parse_listen(tc["service"]["listen"])[0], tc["service"]["allow_remote"])
     names = [tc["name"][len(cfg["name"]) + 1:] for tc in tunings]
     bar = progress_bar(cfg["name"], show_progress)
     t0, t0_unix = time.perf_counter(), time.time()
@@ -1013,11 +1018,21 @@ def run_station(cfg, show_progress=None):
         for j, k in enumerate(searched):
             graphs[k].search.on_candidate = live.listener(j, graphs[k].search.on_candidate)
     log.info("station %s: %d tunings (%s) together", cfg["name"], len(tunings), ", ".join(names))
-    budgets = []
+    budgets, services, served = [None] * len(graphs), [None] * len(graphs), [None] * len(graphs)
     try:
-        for tc, g in zip(tunings, graphs):
-            budgets.append(start_budget(tc, g))
-        stopped = execute(Together([g.pipeline for g in graphs]))
+        for k, (tc, g) in enumerate(zip(tunings, graphs)):
+            budgets[k] = start_budget(tc, g)
+            if tc.get("service"):
+                services[k] = _start_service(tc, g)
+                if service_ready is not None:
+                    service_ready(services[k])
+        try:
+            stopped = execute(Together([g.pipeline for g in graphs]))
+        except Exception as e:
+            for sv in services:
+                if sv is not None:
+                    sv.monitor.failed = str(e)
+            raise
         for g in graphs:
             finish_graph(g)
     finally:
@@ -1026,14 +1041,21 @@ def run_station(cfg, show_progress=None):
         for b in budgets:
             if b is not None:
                 b.stop()
+        for k, sv in enumerate(services):
+            if sv is not None:
+                sv.monitor.finished = True
+                served[k] = dict(sv.stats, url=sv.url)
+                sv.stop()
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0
     per = {}
-    for name, tc, g, b in zip(names, tunings, graphs, budgets + [None] * (len(graphs) - len(budgets))):
+    for name, tc, g, b, sv in zip(names, tunings, graphs, budgets, served):
         per[name] = summarise(tc, g, t0, wall, stopped)
         if b is not None:
             per[name]["output_budget"] = dict(b.stats)
+        if sv is not None:
+            per[name]["service"] = sv
     summary = {"name": cfg["name"], "outdir": cfg["output"]["dir"], "wall_s": wall, "started_unix_s": t0_unix,
                "stopped_by": stopped["signal"], "tunings": per,
                "files": [f for s in per.values() for f in s["files"]]}
