@@ -64,6 +64,20 @@ def test_one_burst_in_two_tunings_is_one_event_at_its_time_and_dm():
     assert ev.meta["f_ref_mhz"] == pytest.approx(93.575)
 
 
+def test_the_tunings_arrival_times_measure_the_dm_better_than_any_one_search():
+    """Each search's DM off by half a trial (+0.001 low, -0.005 high), its start at its own top channel right:
+    the event's DM, fitted to the two starts, is the burst's to 1e-6 and its time at the station's top
+    channel to a microsecond; an event of one detection keeps its search's DM."""
+    from bf_epic_blocks.search.coincidence import station_events
+    lo, hi = _burst_rows(dm=1.5)
+    lo["dm"], hi["dm"] = 1.501, 1.495
+    lone = _row(T0 + 5.0, 2.0, snr=8.0)
+    ev = station_events([_as_table([lo, lone]), _as_table([hi])], _searches())
+    assert list(ev["dm_from"]) == ["tunings", "trials"]
+    assert abs(ev["dm"][0] - 1.5) < 1e-6 and abs(ev["time_utc"][0].unix - T0) < 1e-6
+    assert ev["dm"][1] == 2.0 and abs(ev["time_utc"][1].unix - (T0 + 5.0 + delay_s(2.0, HI["f_ref_hz"], LO["f_ref_hz"]))) < 1e-5
+
+
 @pytest.mark.parametrize("change, joined", [
     ({}, True),
     ({"dt": 0.002}, True),          # 2 ms: within the time one high-tuning DM step (0.01) moves its start
@@ -205,6 +219,8 @@ def test_the_station_yaml_made_small_reports_its_burst_once(tmp_path):
     assert abs(best["time_utc"].unix - Time("2024-06-01T10:00:00", scale="utc").unix - 0.1) < 0.004
     for name, step in (("low", 0.5), ("high", 0.5)):
         assert abs(best[f"{name}_dm"] - 0.5) <= step + 1e-9
+    print(best["dm"], best["low_dm"], best["high_dm"])
+    assert best["dm_from"] == "tunings" and abs(best["dm"] - 0.5) < 0.02     # finer than either search's trials
     sep = SkyCoord(best["ra_deg"], best["dec_deg"], unit="deg").separation(SkyCoord(310.0, 20.0, unit="deg")).deg
     assert sep < 1.5 * np.degrees(2 / 16)
     assert (tmp_path / "low" / "lwasv_sim_station_low_candidates.ecsv").is_file()

@@ -22,6 +22,14 @@ searches themselves resolve, not free parameters):
 Events are formed greedily from the brightest detection down; each event takes at most one detection from
 each tuning (its brightest match). A candidate no other tuning saw is an event of one detection, so the
 events table lists everything the station's searches found, and ``ntunings`` says which were seen twice.
+
+An event seen by tunings at different frequencies measures its DM from the tunings' arrival times:
+each search dedisperses to its own highest channel, so its time there hardly depends on which of its DM
+trials won, and the delay between tunings spans a lever arm far longer than any one tuning's band (a
+burst's arrival at 57.6 MHz and 93.6 MHz differ by 0.78 s per unit DM; across one 19.6-MHz tuning at
+74 MHz, 0.28 s). A least-squares fit of ``t_k = t_F + K DM (f_k^-2 - F^-2)`` over the detections gives the
+event's ``dm`` and ``time_utc`` (``dm_from`` 'tunings'); an event of one detection keeps its search's
+(``dm_from`` 'trials').
 """
 from __future__ import annotations
 
@@ -36,7 +44,7 @@ from ..conventions import dispersion_delay_s
 
 log = logging.getLogger("bf_epic_blocks")
 
-__all__ = ["TuningSearch", "Detection", "detection", "coincident", "station_events", "StationEvents"]
+__all__ = ["TuningSearch", "Detection", "detection", "coincident", "fit_dm", "station_events", "StationEvents"]
 
 
 @dataclass
@@ -140,14 +148,29 @@ def _group(dets, searches, f_station_hz, dm_trials, cells):
     return events
 
 
+def fit_dm(times_s, f_ref_hz, f_station_hz):
+    """(dm, t_F): the DM (pc cm^-3) and the start at ``f_station_hz`` that best fit (least squares) the
+    starts ``times_s`` seen at frequencies ``f_ref_hz``; None where the frequencies do not differ."""
+    f = np.asarray(f_ref_hz, np.float64)
+    if f.size < 2 or np.ptp(f) == 0:
+        return None
+    x = np.asarray(dispersion_delay_s(1.0, f, f_station_hz))          # delay per unit DM at each
+    t = np.asarray(times_s, np.float64)
+    t0 = t.mean()                                                       # unix seconds: fit about their mean
+    a = np.column_stack([np.ones_like(x), x])
+    (c, dm), *_ = np.linalg.lstsq(a, t - t0, rcond=None)
+    return float(dm), float(t0 + c)
+
+
 def station_events(tables, searches, *, dm_trials: float = 1.0, cells: float = 1.5):
     """The station's events from each tuning's candidate table.
 
     tables : one astropy Table per tuning (:func:`bf_epic_blocks.io.candidates.candidate_table`'s
         columns), in the order of ``searches`` (:class:`TuningSearch`).
     Returns an astropy Table sorted by time, a row per event: ``event``; ``time_utc`` (its start at the
-    station's highest channel, from its brightest detection), ``dm`` (the detections' S/N²-weighted
-    mean), ``snr`` (their S/N added in quadrature), ``l``, ``m``, ``ra_deg``, ``dec_deg`` and ``kind`` (of
+    station's highest channel) and ``dm``: fitted to the detections' times where tunings at different
+    frequencies saw it (:func:`fit_dm`; ``dm_from`` 'tunings'), else from its brightest detection and the
+    detections' S/N²-weighted mean DM ('trials'); ``snr`` (their S/N added in quadrature), ``l``, ``m``, ``ra_deg``, ``dec_deg`` and ``kind`` (of
     the brightest), ``ntunings``, ``tunings`` (names, comma-separated); and per tuning ``<name>_row`` (the
     row of its candidate table, -1: not seen), ``<name>_snr``, ``<name>_dm``, ``<name>_time_utc`` (ISO, at
     its own ``f_ref``; '' when not seen). ``meta`` holds the station's ``f_ref_mhz`` and the tolerances."""
@@ -156,12 +179,16 @@ def station_events(tables, searches, *, dm_trials: float = 1.0, cells: float = 1
     f_station = max(s.f_ref_hz for s in searches)
     dets = [detection(r, k, i, searches[k], f_station) for k, t in enumerate(tables) for i, r in enumerate(t)]
     events = _group(dets, searches, f_station, dm_trials, cells)
-    events.sort(key=lambda ev: ev[0].t_f_unix)
-    cols = {"event": np.arange(len(events), dtype=np.int64),
-            "time_utc": Time([ev[0].t_f_unix for ev in events], format="unix", scale="utc") if events
-            else Time([], format="unix", scale="utc")}
+    fits = [fit_dm([d.time_unix for d in ev], [searches[d.tuning].f_ref_hz for d in ev], f_station) for ev in events]
     w = [np.array([d.snr ** 2 for d in ev]) for ev in events]
-    cols["dm"] = np.array([float(np.sum(wi * [d.dm for d in ev]) / np.sum(wi)) for ev, wi in zip(events, w)])
+    when = [ev[0].t_f_unix if fit is None else fit[1] for ev, fit in zip(events, fits)]
+    order = np.argsort(when, kind="stable")
+    events, fits, w, when = ([x[i] for i in order] for x in (events, fits, w, when))
+    cols = {"event": np.arange(len(events), dtype=np.int64),
+            "time_utc": Time(when, format="unix", scale="utc") if events else Time([], format="unix", scale="utc")}
+    cols["dm"] = np.array([float(np.sum(wi * [d.dm for d in ev]) / np.sum(wi)) if fit is None else fit[0]
+                           for ev, wi, fit in zip(events, w, fits)])
+    cols["dm_from"] = np.array(["trials" if fit is None else "tunings" for fit in fits], dtype="U8")
     cols["snr"] = np.array([math.sqrt(float(np.sum(wi))) for wi in w])
     for k in ("l", "m", "ra_deg", "dec_deg"):
         cols[k] = np.array([getattr(ev[0], k) for ev in events], dtype=np.float64)

@@ -1,6 +1,7 @@
 """The whole band through `bf-epic run`: real-time factor, memory over the run, and the injected burst.
 
-One run of ``pipelines/lwasv_sim_wholeband.yaml`` (or ``--yaml``) as a subprocess, timed from
+One run of ``pipelines/lwasv_sim_wholeband.yaml`` (or ``--yaml``, a station of several tunings too:
+``pipelines/lwasv_sim_station.yaml``) as a subprocess, timed from
 outside, as an operator runs it (``--set`` overrides pass through; the default is the YAML's 60 s on
 ``--device gpu``). Printed and written as JSON:
 
@@ -18,7 +19,9 @@ outside, as an operator runs it (``--set`` overrides pass through; the default i
 * each injected burst (``source.transients``): the brightest candidate within ``--match-s`` of its
   arrival, its DM off the burst's in trials (the tree's one-image sweep step), its place off the
   burst's in grid cells (the truth's own RA/Dec against the candidate's), and whether that is within
-  the issue's bounds (+-1 trial, <= 1.5 cells); and how many other candidates the run listed.
+  the issue's bounds (+-1 trial, <= 1.5 cells); and how many other candidates the run listed. A station:
+  each tuning's own, and each burst's station event (how many tunings saw it, its time at the
+  station's highest channel).
 
 usage: python tools/bench/bench_wholeband.py [--device gpu] [--seconds 60] [--set KEY=VALUE ...]
                                        [--sample-s 2] [--json PATH]
@@ -125,6 +128,38 @@ def burst_checks(cfg, table):
     return out
 
 
+def station_checks(cfg, outdir):
+    """A station's run: each tuning's bursts (:func:`burst_checks`, each row naming its tuning), the
+    candidates that are none of them, and each injected burst's station event (the brightest event
+    within MATCH_S of its arrival at the station's highest channel, and how many tunings saw it)."""
+    from astropy.table import Table
+    from bf_epic_blocks.io.candidates import read_candidates
+    bursts, others = [], 0
+    for tc in cfg["tunings"]:
+        name = tc["name"][len(cfg["name"]) + 1:]
+        cands = sorted(Path(tc["output"]["dir"]).glob("*_candidates.ecsv"))
+        table = read_candidates(cands[0]) if cands else None
+        rows = burst_checks(tc, table)
+        bursts += [dict(b, tuning=name) for b in rows]
+        others += (len(table) - len([b for b in rows if b.get("snr") is not None])) if table is not None else 0
+    path = Path(cfg["output"]["dir"]) / f"{cfg['output']['prefix']}_events.ecsv"
+    events = []
+    ev = Table.read(path, format="ascii.ecsv") if path.exists() else None
+    start = np.datetime64(str(cfg["source"]["start"]).replace("Z", ""))
+    for tr in cfg["source"].get("transients") or []:
+        row = {"name": tr.get("name"), "start_s": tr["start_s"], "dm": tr["dm"], "ntunings": 0}
+        if ev is not None and len(ev):
+            t = np.array([(np.datetime64(str(v).replace("Z", "")) - start) / np.timedelta64(1, "us") / 1e6
+                          for v in ev["time_utc"]])
+            near = np.flatnonzero(np.abs(t - tr["start_s"]) <= MATCH_S)
+            if near.size:
+                k = near[np.argmax(np.asarray(ev["snr"])[near])]
+                row.update(ntunings=int(ev["ntunings"][k]), tunings=str(ev["tunings"][k]), snr=float(ev["snr"][k]),
+                           dm_found=float(ev["dm"][k]), time_off_s=float(t[k] - tr["start_s"]))
+        events.append(row)
+    return bursts, others, {"events": 0 if ev is None else len(ev), "bursts": events}
+
+
 def run(args):
     from bf_epic_blocks.io.candidates import read_candidates
     from bf_epic_blocks.pipeline.config import load_config
@@ -163,10 +198,14 @@ def run(args):
     compiled = None if cache0 is None or cache1 is None else cache1 - cache0
     info = json.loads(summary.read_text())
     blocks = info.get("blocks", {})
-    # the searches (one per GPU of a pixel split), else the imagers: from the first's first images to
-    # the last's last
-    parts = [b for n, b in blocks.items() if n.startswith("TransientSearch")] or \
-        [b for n, b in blocks.items() if n.startswith(("DFTImager", "WStack"))]
+    if "tunings" in info:          # a station: every tuning's blocks, named <tuning>/<block>
+        blocks = {f"{t}/{n}": b for t, s in info["tunings"].items() for n, b in s["blocks"].items()}
+        info["search"] = {t: s.get("search") for t, s in info["tunings"].items()}
+    # the searches (one per GPU of a pixel split, one per tuning of a station), else the imagers: from
+    # the first's first images to the last's last
+    kind = (lambda n: n.rsplit("/", 1)[-1])
+    parts = [b for n, b in blocks.items() if kind(n).startswith("TransientSearch")] or \
+        [b for n, b in blocks.items() if kind(n).startswith(("DFTImager", "WStack"))]
     parts = [b for b in parts if b["first_data_s"] is not None and b["last_data_s"] is not None]
     sink = {"first_data_s": min(b["first_data_s"] for b in parts),
             "last_data_s": max(b["last_data_s"] for b in parts)} if parts else None
@@ -175,13 +214,16 @@ def run(args):
         # the runner's block times are seconds after its own start, which is after the process's
         lag = wall - info["wall_s"]
         flow = (sink["first_data_s"] + lag, sink["last_data_s"] + lag)
-    cands = sorted(outdir.glob("*_candidates.ecsv"))
-    table = read_candidates(cands[0]) if cands else None
     window = flow or (0.0, wall)
     gpu = growth(samples_gpu, *window)
     rss = growth(samples_rss, *window)
-    bursts = burst_checks(cfg, table)
-    found = [b for b in bursts if b.get("snr") is not None]
+    if cfg.get("tunings"):
+        bursts, others, events = station_checks(cfg, outdir)
+    else:
+        cands = sorted(outdir.glob("*_candidates.ecsv"))
+        table = read_candidates(cands[0]) if cands else None
+        bursts, events = burst_checks(cfg, table), None
+        others = (len(table) - len([b for b in bursts if b.get("snr") is not None])) if table is not None else 0
     row = {"data_s": data_s, "wall_s": wall, "pipeline_s": info["wall_s"], "rt_whole": data_s / wall,
            "rt_pipeline": data_s / info["wall_s"],
            "flowing_s": None if flow is None else flow[1] - flow[0],
@@ -191,8 +233,7 @@ def run(args):
            "rss_mib": dict(zip(("first", "peak", "growth"), rss)),
            "kernels_compiled": compiled,
            "images": info.get("images"), "search": info.get("search"), "bursts": bursts,
-           "other_candidates": (len(table) - len(found)) if table is not None else 0,
-           "blocks": blocks}
+           "other_candidates": others, "station_events": events, "blocks": blocks}
     out = {"benchmark": "bench_wholeband", "date": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime()),
            "yaml": str(args.yaml), "sets": sets, "machine": machine("gpu" if args.device.startswith("gpu") else "cpu"), "run": row,
            "samples": {"gpu_mib": samples_gpu, "rss_mib": samples_rss}}
@@ -216,14 +257,21 @@ def show(out):
     print(f"{r['data_s']:6.1f}  {r['wall_s']:7.1f}  {r['rt_whole']:7.3f}  {r['rt_pipeline']:10.3f}  "
           f"{fmt(r['rt_flowing'], '9.3f')}  {fmt(r['first_images_at_s'], '14.1f')}  {gpu:>26}  {rss:>25}")
     for b in r["bursts"]:
+        where = f" in {b['tuning']}" if b.get("tuning") else ""
         if b.get("snr") is None:
-            print(f"burst {b['name']}: DM {b['dm']} at {b['start_s']} s: NOT FOUND")
+            print(f"burst {b['name']}{where}: DM {b['dm']} at {b['start_s']} s: NOT FOUND")
         else:
-            print(f"burst {b['name']}: DM {b['dm']} at {b['start_s']} s: found DM {b['dm_found']:.4f} "
+            print(f"burst {b['name']}{where}: DM {b['dm']} at {b['start_s']} s: found DM {b['dm_found']:.4f} "
                   f"({b['dm_off_trials']:+.2f} trials), {b['time_off_s'] * 1e3:+.1f} ms, {b['offset_deg']:.2f} deg "
                   f"({b['offset_cells']:.2f} cells), S/N {b['snr']:.1f}: {'within' if b['found'] else 'OUTSIDE'} "
                   "+-1 trial and 1.5 cells")
     print(f"other candidates: {r['other_candidates']}")
+    if r.get("station_events"):
+        for e in r["station_events"]["bursts"]:
+            print(f"station event of burst {e['name']}: seen by {e['ntunings']} tuning(s)"
+                  + (f" ({e['tunings']}), DM {e['dm_found']:.4f}, {e['time_off_s'] * 1e3:+.1f} ms at the station's "
+                     f"top channel, S/N {e['snr']:.1f}" if e["ntunings"] else ""))
+        print(f"station events: {r['station_events']['events']}")
     if r.get("kernels_compiled"):
         print(f"CuPy kernels compiled during the run: {r['kernels_compiled']} (the kernel cache was not warm: "
               "the first images, and anything first used later, waited for them)")
