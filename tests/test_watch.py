@@ -514,6 +514,35 @@ def test_a_trigger_that_arrives_after_the_last_images_is_still_saved(tmp_path):
         np.testing.assert_array_equal(f["images"][:], imgs[26:, 0, 0])
 
 
+def test_a_trigger_soon_after_the_start_is_not_called_late(tmp_path, caplog):
+    """A burst 0.05 s into the data: the snippet holds what there is (from the first image), and the log
+    says so at INFO; it is not a trigger that came late (which is a warning: the ring lost images)."""
+    import logging
+
+    import h5py
+
+    from bf_epic_blocks.blocks.array_io import ArraySourceBlock
+    from bf_epic_blocks.blocks.snippets import SnippetBlock, TriggerBus
+    from bf_epic_blocks.blocks import bfp
+    dt, n = 0.01, 50
+    imgs = np.arange(n * 4, dtype=np.float32).reshape(n, 1, 1, 2, 2)
+    hdr = {"name": "x", "time_tag": 0, "pol_products": ["I"],
+           "_tensor": {"dtype": "f32", "shape": [-1, 1, 1, 2, 2], "labels": ["time", "freq", "pol", "l", "m"],
+                       "scales": [[1000.0, dt], None, None, None, None]}}
+    bus = TriggerBus()
+    with bfp.Pipeline() as p:
+        snip = SnippetBlock(ArraySourceBlock(imgs, hdr, gulp_nframe=10), tmp_path, "t", bus, ring_s=0.2,
+                            after_s=0.1)
+        p.run()
+    bus.post(1000.0 + 0.05, "candidate S/N 9.0")
+    with caplog.at_level(logging.INFO, logger="bf_epic_blocks.blocks.snippets"):
+        snip.finish()
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+    assert "after the sequence's first image" in caplog.text
+    with h5py.File(next(tmp_path.glob("t_snippet_*.h5"))) as f:
+        np.testing.assert_allclose(f["time_unix"][:][0] - 1000.0, 0.5 * dt)
+
+
 def test_the_png_bins_are_block_means_of_the_last_window():
     """The quicklook keeps NaN-aware means of bin_n images (across gulps of any length), the last nbins
     of them and the bin being filled: what a PNG of a minute of 0.64-ms images shows, without re-reading
