@@ -148,6 +148,8 @@ def test_a_station_yaml_becomes_one_pipeline_per_tuning():
     (["tunings=[{name: a}, {name: 'b c'}]"], "tunings[1].name"),
     (["tunings=[{name: a}, {name: b, source: {channels: {count: 0}}}]"], "tunings[1] (b): source.channels.count"),
     (["tunings=[{name: a}, {name: b, service: {listen: '127.0.0.1:1', lisen: 2}}]"], "tunings[1] (b): service.lisen"),
+    (["tunings=[{name: a}, {name: b, service: {listen: '127.0.0.1:http'}}]"], "tunings[1] (b): service.listen"),
+    (["service={listen: '127.0.0.1:70000'}"], "service.listen: port 70000 is outside"),
 ])
 def test_a_bad_station_says_which_tuning_and_what(sets, message):
     from bf_epic_blocks.pipeline.config import ConfigError, load_config

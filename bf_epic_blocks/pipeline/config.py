@@ -1260,6 +1260,13 @@ def _fill_and_cross_check(cfg: dict, default_name: str, ctx: Context) -> None:
                       f"{im['accumulate_frames']} frames ({im['accumulate_frames'] / ch['width_hz'] * 1e3:g} ms at "
                       f"{ch['width_hz']:g} Hz channels) is longer than source.duration_s = {src['duration_s']:g} s "
                       f"({int(nframe + 1e-9)} frames): no image would be produced")
+    sv = cfg.get("service")
+    if is_valid(sv) and sv is not None and is_valid(sv.get("listen")):
+        from ..service.server import parse_listen
+        try:
+            parse_listen(sv["listen"])
+        except ValueError as e:
+            ctx.error("service.listen", str(e).removeprefix("service.listen: "))
     search = im.get("search") if is_valid(im) else None
     if is_valid(search) and search is not None:
         if is_valid(search["product"]) and search["product"] is not None and is_valid(im["products"]) \
