@@ -109,16 +109,21 @@ def test_two_bursts_each_join_their_own_and_a_lone_candidate_stays_alone():
     assert np.isnan(ev["hi_snr"][2]) and ev["hi_time_utc"][2] == ""
 
 
-def test_live_joining_logs_the_event_once_both_are_seen(caplog):
+def test_live_joining_logs_the_event_once_both_are_seen_and_tells_its_listener(caplog):
     from bf_epic_blocks.search.coincidence import StationEvents
     lo, hi = _burst_rows()
-    live = StationEvents(_searches())
+    told = []
+    live = StationEvents(_searches(), on_event=told.append)
     live.listener(1)(hi)
-    assert live.joined == 0
+    assert live.joined == 0 and not told
     seen = []
     live.listener(0, then=seen.append)(lo)
     assert live.joined == 1 and seen == [lo]
     assert "station event: lo" in caplog.text
+    from astropy.time import Time
+    (a,) = told
+    assert a["tunings"] == "hi,lo" and a["dm"] == pytest.approx(1.5, abs=1e-5) and a["snr"] == pytest.approx(np.hypot(10, 10), abs=0.01)
+    assert abs(Time(a["time_utc"], scale="utc").unix - T0) < 1e-3 and a["reason"].startswith("station event S/N 14.1")
 
 
 # ----------------------------------------------------------------------------- configuration
@@ -208,7 +213,8 @@ def test_the_station_yaml_made_small_reports_its_burst_once(tmp_path):
         f"output.dir={tmp_path}", "source.duration_s=0.3", "source.channels.count=8", "imager.grid.size=16",
         "tunings=[{name: low, source: {channels: {first: 2960}}}, {name: high, source: {channels: {first: 3360}}}]",
         "imager.search={threshold: 6.0, window_s: 0.06, dms: [0, 0.5, 1.0, 1.5], widths: [1, 2, 4, 8]}",
-        "imager.tolerance=null", "imager.precision=fp32", "calibration.solve=null", "watch=null",
+        "imager.tolerance=null", "imager.precision=fp32", "calibration.solve=null",
+        "watch={targets: [CygA], png_every_s: 10.0}",
         "output.integrate=null", "output.cube=null", "output.fits=false", "output.png=false",
         "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.1, duration_s: 0.002, flux_jy: 1500.0, dm: 0.5}]"])
     summary = run(cfg, show_progress=False)
@@ -225,6 +231,11 @@ def test_the_station_yaml_made_small_reports_its_burst_once(tmp_path):
     assert best["dm_from"] == "tunings" and abs(best["dm"] - 0.5) < 0.02     # finer than either search's trials
     sep = SkyCoord(best["ra_deg"], best["dec_deg"], unit="deg").separation(SkyCoord(310.0, 20.0, unit="deg")).deg
     assert sep < 1.5 * np.degrees(2 / 16)
+    # the station event went out as an alert (a VOEvent in output.dir/voevents) beside each tuning's own
+    assert summary["events"]["alerts"]["queued"] >= 1
+    votes = list((tmp_path / "voevents").glob("*.xml"))
+    assert len(votes) == summary["events"]["alerts"]["voevents"] >= 1
+    assert "station event" in votes[0].read_text()
     assert (tmp_path / "low" / "lwasv_sim_station_low_candidates.ecsv").is_file()
     assert (tmp_path / "high" / "lwasv_sim_station_high_candidates.ecsv").is_file()
 

@@ -1010,11 +1010,16 @@ def run_station(cfg, show_progress=None, service_ready=None):
         bar.total = sum(g.nframe_total or 0 for g in graphs) or None
         bar.refresh()
     searched = [k for k, g in enumerate(graphs) if g.search is not None]
-    live = None
+    live = alerts = None
     if len(searched) > 1:
         from ..search.coincidence import StationEvents
+        if cfg.get("watch"):            # the watchlist's alerts out: the station's events too
+            from ..io.alerts import AlertSender
+            alerts = AlertSender(cfg["watch"]["webhook"], cfg["output"]["dir"])
         live = StationEvents([tuning_search(names[k], tunings[k], graphs[k]) for k in searched],
-                             refresh=lambda j: tuning_search(names[searched[j]], tunings[searched[j]], graphs[searched[j]]))
+                             refresh=lambda j: tuning_search(names[searched[j]], tunings[searched[j]], graphs[searched[j]]),
+                             on_event=None if alerts is None else (
+                                 lambda a: alerts.send({"station": cfg["station"].get("name") or "", **a})))
         for j, k in enumerate(searched):
             graphs[k].search.on_candidate = live.listener(j, graphs[k].search.on_candidate)
     log.info("station %s: %d tunings (%s) together", cfg["name"], len(tunings), ", ".join(names))
@@ -1046,6 +1051,8 @@ def run_station(cfg, show_progress=None, service_ready=None):
                 sv.monitor.finished = True
                 served[k] = dict(sv.stats, url=sv.url)
                 sv.stop()
+        if alerts is not None:
+            alerts.close()
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0
@@ -1067,6 +1074,10 @@ def run_station(cfg, show_progress=None, service_ready=None):
         summary["files"].append(str(path))
         summary["files_written"] += 1
         summary["events"] = dict(events_counts(path), joined_live=live.joined)
+        if alerts is not None:
+            summary["events"]["alerts"] = dict(alerts.stats)
+            summary["files"] += alerts.written
+            summary["files_written"] += len(alerts.written)
         log.info("station %s: %d events, %d seen by more than one tuning (%s)", cfg["name"],
                  summary["events"]["events"], summary["events"]["coincident"], path)
     return summary

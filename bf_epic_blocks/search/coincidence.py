@@ -215,11 +215,16 @@ class StationEvents:
     ``on_candidate``); a candidate that joins one from another tuning is logged at once as a station
     event. ``joined`` counts them. Thread-safe (the searches run in their own threads). ``refresh(k)``,
     where given, returns tuning ``k``'s :class:`TuningSearch` anew at each candidate (a search learns its
-    trials from its first sequence)."""
+    trials from its first sequence). ``on_event(alert)``, where given, is told of each join: a dict with
+    ``time_utc`` (ISO, the start at the station's highest channel) and ``dm`` (:func:`fit_dm` of the two
+    detections), ``ra_deg``, ``dec_deg``, ``snr`` (in quadrature), ``width_ms``, ``kind``, ``tunings``
+    and ``reason`` (the alerts' form, :class:`bf_epic_blocks.io.alerts.AlertSender`)."""
 
-    def __init__(self, searches, f_station_hz=None, *, dm_trials=1.0, cells=1.5, keep=1000, refresh=None):
+    def __init__(self, searches, f_station_hz=None, *, dm_trials=1.0, cells=1.5, keep=1000, refresh=None,
+                 on_event=None):
         self.searches = list(searches)
         self.refresh = refresh
+        self.on_event = on_event
         self.f_station_hz = f_station_hz
         self.dm_trials, self.cells, self.keep = dm_trials, cells, int(keep)
         self.recent = [[] for _ in self.searches]
@@ -250,6 +255,24 @@ class StationEvents:
                         log.warning("station event: %s (S/N %.1f, DM %g) and %s (S/N %.1f, DM %g) saw one burst, "
                                     "l %.3f m %.3f", self.searches[k].name, d.snr, d.dm, self.searches[j].name,
                                     o.snr, o.dm, d.l, d.m)
+                        if self.on_event is not None:
+                            self._tell(d, o, self.searches[k], self.searches[j], f)
                         break
             self.recent[k].append(d)
             del self.recent[k][:-self.keep]
+
+    def _tell(self, a, b, sa, sb, f_station_hz):
+        from astropy.time import Time
+        fit = fit_dm([a.time_unix, b.time_unix], [sa.f_ref_hz, sb.f_ref_hz], f_station_hz)
+        dm, t_f = fit if fit is not None else (a.dm, a.t_f_unix)
+        best = a if a.snr >= b.snr else b
+        names = ",".join(sorted((sa.name, sb.name)))
+        snr = math.hypot(a.snr, b.snr)
+        alert = {"time_utc": Time(t_f, format="unix", scale="utc").isot, "dm": round(float(dm), 5),
+                 "ra_deg": best.ra_deg, "dec_deg": best.dec_deg, "snr": round(snr, 2),
+                 "width_ms": round(1e3 * best.width_s, 4), "kind": "sky-wide" if best.skywide else "point",
+                 "tunings": names, "reason": f"station event S/N {snr:.1f} in {names}"}
+        try:
+            self.on_event(alert)
+        except Exception as e:  # noqa: BLE001 - a listener must not stop a search
+            log.warning("station events: the listener failed: %s", e)
