@@ -68,22 +68,27 @@ class Together:
 
 def tuning_search(name, tc, g):
     """The :class:`~bf_epic_blocks.search.coincidence.TuningSearch` of tuning ``name`` (its config ``tc``,
-    its built graph ``g``, whose search block has run or not)."""
+    its built graph ``g``): from its search block once it has seen a sequence (the images' frequencies and
+    cadence, its DM trials), before that from the configuration (a simulated source's channels; NaN for
+    a capture's or a stream's, which are known only from their data)."""
     import numpy as np
 
     from ..search.coincidence import TuningSearch
     s = g.search
-    inner = getattr(s, "search", None)
-    trials = getattr(inner, "dms", None)
+    lay = getattr(s, "lay", None)
+    trials = getattr(getattr(s, "search", None), "dms", None)
     if trials is None:
         trials = tc["imager"]["search"]["dms"]
     grid = tc["imager"].get("grid")
     cell = 2.0 / grid["size"] if grid else float("nan")
-    dt = tc["imager"]["accumulate_frames"] / float(tc["source"]["channels"]["width_hz"]) \
-        if tc["source"]["kind"] == "simulated" else float(getattr(s, "lay", {}).get("dt_s", float("nan")))
-    ch = tc["source"]["channels"]
-    f_ref = float((ch["first"] + ch["count"] - 1) * ch["width_hz"]) if tc["source"]["kind"] == "simulated" \
-        else float(s.lay["freq_hz"].max())
+    if lay is not None:
+        f_ref, dt = float(np.max(lay["freq_hz"])), float(lay["dt_s"])
+    elif tc["source"]["kind"] == "simulated":
+        ch = tc["source"]["channels"]
+        f_ref = float((ch["first"] + ch["count"] - 1) * ch["width_hz"])
+        dt = tc["imager"]["accumulate_frames"] / float(ch["width_hz"])
+    else:
+        f_ref = dt = float("nan")
     return TuningSearch(name, f_ref, dt, np.asarray(trials, dtype=np.float64), cell)
 
 

@@ -176,7 +176,7 @@ def station_events(tables, searches, *, dm_trials: float = 1.0, cells: float = 1
     its own ``f_ref``; '' when not seen). ``meta`` holds the station's ``f_ref_mhz`` and the tolerances."""
     from astropy.table import Table
     from astropy.time import Time
-    f_station = max(s.f_ref_hz for s in searches)
+    f_station = float(np.nanmax([s.f_ref_hz for s in searches]))
     dets = [detection(r, k, i, searches[k], f_station) for k, t in enumerate(tables) for i, r in enumerate(t)]
     events = _group(dets, searches, f_station, dm_trials, cells)
     fits = [fit_dm([d.time_unix for d in ev], [searches[d.tuning].f_ref_hz for d in ev], f_station) for ev in events]
@@ -240,7 +240,7 @@ class StationEvents:
         return told
 
     def add(self, k, row):
-        f = self.f_station_hz or max(s.f_ref_hz for s in self.searches)
+        f = self.f_station_hz or float(np.nanmax([s.f_ref_hz for s in self.searches]))
         with self._lock:
             if self.refresh is not None:
                 self.searches = [self.refresh(j) for j in range(len(self.searches))]
