@@ -259,9 +259,9 @@ SMALL = {"lwasv_sim_wholeband": [
     "source.duration_s=0.5", "source.channels.count=64", "imager.grid.size=32", "imager.precision=fp32",
     "imager.search.window_s=0.06", "imager.search.dms=[1.0]", "output.integrate.seconds=0.1",
     "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.3, duration_s: 0.0015, flux_jy: 1500.0, dm: 0.6}]"],
-    # both tunings, 16 channels each; a burst of DM 0.05 reaches the low tuning 0.1 s after the high one
+    # both tunings, 8 channels each; a burst of DM 0.05 reaches the low tuning 0.1 s after the high one
     "lwasv_sim_station": [
-        "source.duration_s=0.5", "source.channels.count=16", "imager.grid.size=32", "imager.tolerance=null",
+        "source.duration_s=0.5", "source.channels.count=8", "imager.grid.size=16", "imager.tolerance=null",
         "imager.precision=fp32", "imager.search.window_s=0.06", "imager.search.dms=[0.2]",
         "imager.search.threshold=6.5", "output.integrate.seconds=0.1", "source.refresh_s=0.1",
         "calibration.solve.cadence_s=0.2", "calibration.solve.integration_s=0.1", "calibration.solve.apply_delay_s=0.05",
