@@ -262,6 +262,15 @@ def test_calibrate_and_batch_ask_for_one_tuning(capsys, tmp_path):
         task_configs(load_config(STATION), [str(tmp_path / "a.tbf")])
 
 
+def test_live_tunings_need_their_own_ports():
+    from bf_epic_blocks.pipeline.config import ConfigError, load_config
+    live = ROOT / "pipelines" / "lwasv_udp_live.yaml"
+    with pytest.raises(ConfigError, match="one socket"):
+        load_config(live, ["source.port=4015", "tunings=[{name: a}, {name: b}]"])
+    cfg = load_config(live, ["source.port=4015", "tunings=[{name: a}, {name: b, source: {port: 4016}}]"])
+    assert [t["source"]["port"] for t in cfg["tunings"]] == [4015, 4016]
+
+
 def test_each_tuning_serves_at_the_stations_port_plus_its_index():
     from bf_epic_blocks.pipeline.config import load_config
     cfg = load_config(STATION, ["service={listen: '127.0.0.1:8080'}"])

@@ -403,6 +403,12 @@ def _expand_tunings(cfg, raw, lines, base, source):
             _fill_and_cross_check(tc, merged["name"], ctx)
         errors += [f"tunings[{i}] ({t['name']}): {e}" for e in ctx.errors]
         out.append((tc, "transients" not in (over.get("source") or {})))
+    live = [(tc["source"]["address"], tc["source"]["port"]) for tc, _ in out
+            if tc["source"]["kind"] == "udp" and tc["source"]["port"]]
+    shared = sorted({f"{a}:{p}" for a, p in live if live.count((a, p)) > 1})
+    if shared:
+        errors.append(f"tunings: live tunings listen on one socket ({', '.join(shared)}); give each its own "
+                      "source.port (each F-engine stream its own port)")
     if errors:
         raise ConfigError(errors, source)
     sim = [tc for tc, _ in out if tc["source"]["kind"] == "simulated"]
