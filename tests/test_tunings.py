@@ -149,6 +149,7 @@ def test_a_station_yaml_becomes_one_pipeline_per_tuning():
 @pytest.mark.parametrize("sets, message", [
     (["tunings=[{name: a}]"], "at least two"),
     (["tunings=[{name: a}, {name: a}]"], "repeated: a"),
+    (["tunings=[{name: a, source: 3}, {name: b, output: x}]"], "tunings[1] (b): output: expected"),
     (["tunings=[{name: a, station: {name: lwana}}, {name: b}]"], "not station"),
     (["tunings=[{name: a}, {name: 'b c'}]"], "tunings[1].name"),
     (["tunings=[{name: a}, {name: b, source: {channels: {count: 0}}}]"], "tunings[1] (b): source.channels.count"),

@@ -381,17 +381,17 @@ def _expand_tunings(cfg, raw, lines, base, source):
         over = {k: v for k, v in t.items() if k != "name"}
         merged = _merged(station, over)
         merged["name"] = f"{cfg['name']}_{t['name']}"
-        out_over = over.get("output") or {}
+        sub = {k: (v if isinstance(v, dict) else {}) for k, v in over.items()}   # a tuning's sections, as given
+        out_over = sub.get("output", {})
         merged.setdefault("output", {})
-        if not (isinstance(merged["output"], dict)):
-            merged["output"] = {}
-        if "dir" not in out_over:
-            merged["output"]["dir"] = str(Path(cfg["output"]["dir"]) / t["name"])
-        if "prefix" not in out_over:
-            merged["output"]["prefix"] = merged["name"]
+        if isinstance(merged["output"], dict):          # (anything else: the check below names it)
+            if "dir" not in out_over:
+                merged["output"]["dir"] = str(Path(cfg["output"]["dir"]) / t["name"])
+            if "prefix" not in out_over:
+                merged["output"]["prefix"] = merged["name"]
         if "device" not in over:
             merged["device"] = _tuning_device(cfg["device"], i)
-        if cfg.get("service") and "listen" not in (over.get("service") or {}):
+        if cfg.get("service") and "listen" not in sub.get("service", {}):
             merged["service"] = dict(merged.get("service") or {}, listen=_tuning_listen(cfg["service"]["listen"], i))
         prefix = f"tunings[{i}]."
         mine = set(_paths(over))          # a base key's line is not where a tuning's own value came from
@@ -402,15 +402,15 @@ def _expand_tunings(cfg, raw, lines, base, source):
         if not ctx.errors:
             _fill_and_cross_check(tc, merged["name"], ctx)
         errors += [f"tunings[{i}] ({t['name']}): {e}" for e in ctx.errors]
-        out.append((tc, "transients" not in (over.get("source") or {})))
+        out.append((tc, "transients" not in sub.get("source", {})))
+    if errors:
+        raise ConfigError(errors, source)
     live = [(tc["source"]["address"], tc["source"]["port"]) for tc, _ in out
             if tc["source"]["kind"] == "udp" and tc["source"]["port"]]
     shared = sorted({f"{a}:{p}" for a, p in live if live.count((a, p)) > 1})
     if shared:
-        errors.append(f"tunings: live tunings listen on one socket ({', '.join(shared)}); give each its own "
-                      "source.port (each F-engine stream its own port)")
-    if errors:
-        raise ConfigError(errors, source)
+        raise ConfigError([f"tunings: live tunings listen on one socket ({', '.join(shared)}); give each its own "
+                           "source.port (each F-engine stream its own port)"], source)
     sim = [tc for tc, _ in out if tc["source"]["kind"] == "simulated"]
     if len(sim) == len(out):
         def f_hi(tc):
