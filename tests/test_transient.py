@@ -1025,8 +1025,11 @@ def test_a_new_gain_solution_restarts_the_search_instead_of_being_a_burst(tmp_pa
                              f"calibration.gains_table={tmp_path / 'gains.npz'}", "watch=null", "output.cube=null",
                              "source.transients=[{ra_deg: 310.0, dec_deg: 20.0, start_s: 0.22, duration_s: 0.0015, "
                              "flux_jy: 1500.0, dm: 1.0}]"])
-    if not restart:
-        monkeypatch.setattr(runner, "_static_gains", lambda cfg: None)
+    if not restart:                      # the images calibrated as before, the search not told of the table
+        search_stage = runner._search_stage
+        monkeypatch.setattr(runner, "_search_stage",
+                            lambda cfg, imager, outdir, flag_weights=None, gains=None:
+                            search_stage(cfg, imager, outdir, flag_weights))
     summary = runner.run(cfg, show_progress=False)
     tab = read_candidates(tmp_path / "lwasv_sim_transient_candidates.ecsv")
     print(tab["time_utc", "snr", "dm", "kind", "image"])

@@ -483,17 +483,13 @@ def test_a_flash_saves_once_and_counts_the_rest(tmp_path):
     assert len(list(tmp_path.glob("*_snippet_*.h5"))) == 1
 
 
-def test_a_trigger_that_arrives_after_the_last_images_is_still_saved(tmp_path):
-    """A search lags its images: its candidate can reach the bus after the snippet block has seen its
-    last gulp. ``finish()`` (the runner calls it once every block is done) saves it from the ring, the
-    images up to the end of the data, marked incomplete when its after-window ran past the data."""
-    import h5py
-
+def _snippets_ran(tmp_path, dt=0.01, n=50):
+    """A SnippetBlock (ring 0.2 s, 0.1 s after a trigger) that has seen n images of 2x2 pixels, dt apart
+    from unix time 1000: (block, its bus, the images (time, freq, product, pixels), dt)."""
     from bf_epic_blocks.blocks.array_io import ArraySourceBlock
     from bf_epic_blocks.blocks.snippets import SnippetBlock, TriggerBus
     from bf_epic_blocks.blocks import bfp
-    dt, n = 0.01, 50
-    imgs = np.arange(n * 4, dtype=np.float32).reshape(n, 1, 1, 2, 2)      # time, freq, product, pixels
+    imgs = np.arange(n * 4, dtype=np.float32).reshape(n, 1, 1, 2, 2)
     hdr = {"name": "x", "time_tag": 0, "pol_products": ["I"],
            "_tensor": {"dtype": "f32", "shape": [-1, 1, 1, 2, 2], "labels": ["time", "freq", "pol", "l", "m"],
                        "scales": [[1000.0, dt], None, None, None, None]}}
@@ -502,6 +498,15 @@ def test_a_trigger_that_arrives_after_the_last_images_is_still_saved(tmp_path):
         snip = SnippetBlock(ArraySourceBlock(imgs, hdr, gulp_nframe=10), tmp_path, "t", bus, ring_s=0.2,
                             after_s=0.1)
         p.run()
+    return snip, bus, imgs, dt
+
+
+def test_a_trigger_that_arrives_after_the_last_images_is_still_saved(tmp_path):
+    """A search lags its images: its candidate can reach the bus after the snippet block has seen its
+    last gulp. ``finish()`` (the runner calls it once every block is done) saves it from the ring, the
+    images up to the end of the data, marked incomplete when its after-window ran past the data."""
+    import h5py
+    snip, bus, imgs, dt = _snippets_ran(tmp_path)
     bus.post(1000.0 + 0.46, "candidate S/N 9.0")          # late: the block has had all 50 images
     snip.finish()
     files = sorted(tmp_path.glob("t_snippet_*.h5"))
@@ -520,20 +525,7 @@ def test_a_trigger_soon_after_the_start_is_not_called_late(tmp_path, caplog):
     import logging
 
     import h5py
-
-    from bf_epic_blocks.blocks.array_io import ArraySourceBlock
-    from bf_epic_blocks.blocks.snippets import SnippetBlock, TriggerBus
-    from bf_epic_blocks.blocks import bfp
-    dt, n = 0.01, 50
-    imgs = np.arange(n * 4, dtype=np.float32).reshape(n, 1, 1, 2, 2)
-    hdr = {"name": "x", "time_tag": 0, "pol_products": ["I"],
-           "_tensor": {"dtype": "f32", "shape": [-1, 1, 1, 2, 2], "labels": ["time", "freq", "pol", "l", "m"],
-                       "scales": [[1000.0, dt], None, None, None, None]}}
-    bus = TriggerBus()
-    with bfp.Pipeline() as p:
-        snip = SnippetBlock(ArraySourceBlock(imgs, hdr, gulp_nframe=10), tmp_path, "t", bus, ring_s=0.2,
-                            after_s=0.1)
-        p.run()
+    snip, bus, _, dt = _snippets_ran(tmp_path)
     bus.post(1000.0 + 0.05, "candidate S/N 9.0")
     with caplog.at_level(logging.INFO, logger="bf_epic_blocks.blocks.snippets"):
         snip.finish()

@@ -234,10 +234,12 @@ class TransientSearchBlock(bfp.SinkBlock):
             return []
         t0, ticks = int(self.lay["time_tag"]), int(self.lay["integration_ticks"])
         end = t0 + (self._j + n) * ticks
+        vf = np.asarray(self.gains.valid_from, np.int64)     # increasing; a day's table holds thousands
+        a, b = np.searchsorted(vf, [self._gains_done, end], side="right")
         cuts = []
-        for v in np.asarray(self.gains.valid_from, np.int64):
+        for v in vf[a:b]:
             v = int(v)
-            if v <= self._gains_done or v >= end:
+            if v >= end:
                 continue
             e, rem = divmod(v - t0, ticks)
             off = max(int(e) - self._j, 0)

@@ -388,10 +388,11 @@ def build_graph(cfg, progress=None, parts=None):
         source, feed, nframe_total, block = _source_stage(cfg, dev, fmt, info, station, gulp, space, progress)
         feed, weights = _flagging_stage(cfg, feed)
         solver, table = _solver_stage(cfg, feed, outdir)
-        calfold = _calibration_stage(cfg, dev, feed, pattern, table)
+        gains = table if table is not None else _static_gains(cfg)     # what CalFoldBlock applies
+        calfold = _calibration_stage(cfg, dev, feed, pattern, gains)
         imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table, weights)
         search = _search_stage(cfg, imager, outdir, weights if getattr(imager, "flag_weights", None) else None,
-                               gains=table if table is not None else _static_gains(cfg))
+                               gains=gains)
         writer, cube, band = _output_stage(cfg, imager, pixels, block)
         watch, snippets = _watch_stage(cfg, dev, calfold, station, pattern, table, band or imager, search)
         oims = _oims_stage(cfg, dev, calfold, station, pattern, table)
@@ -572,18 +573,12 @@ def _solver_stage(cfg, feed, outdir):
     return gain_solver_block(cfg, feed, table, path), table
 
 
-def _calibration_stage(cfg, dev, feed, pattern, table=None):
+def _calibration_stage(cfg, dev, feed, pattern, gains=None):
     """The block the imager reads: CalFoldBlock on ``feed`` (gains, cable terms, the pattern applied to the
-    voltages; ``table`` a LiveGainTable the solver fills), or ``feed`` itself where the imager folds the
-    calibration into its operator (:func:`folds_calibration`)."""
+    voltages; ``gains`` the loaded ``calibration.gains_table`` or the LiveGainTable the solver fills), or
+    ``feed`` itself where the imager folds the calibration into its operator (:func:`folds_calibration`)."""
     from ..blocks import CalFoldBlock
-    from ..imaging.calibration import GainTable
     cal = cfg["calibration"]
-    gains = cal.get("gains_table")
-    if gains:
-        gains = GainTable.load(gains)
-    if table is not None:
-        gains = table
     # Live packets never wait for the imager, yet the blocks read them *guaranteed*: the capture
     # thread keeps receiving whatever the blocks do, and its bounded queue is the one place
     # where a pipeline that cannot keep up loses data (whole gulps, written as zeros and counted
@@ -991,7 +986,7 @@ def run_station(cfg, show_progress=None, service_ready=None):
     pipelines) together; returns the station's summary: ``tunings`` (each tuning's own summary, as
     :func:`run` returns it), the events, and totals over the tunings (:mod:`.station`). With ``service:``,
     each tuning is served at its own ``service.listen`` (``service_ready(service)`` for each)."""
-    from .station import Together, events_counts, tuning_search, write_events
+    from .station import Together, tuning_search, write_events
     tunings = cfg["tunings"]
     if cfg.get("service"):
         from ..service.server import check_listen, parse_listen
@@ -1069,11 +1064,11 @@ def run_station(cfg, show_progress=None, service_ready=None):
     for k in ("frames_read", "frames_imaged", "frames_skipped", "frames_dropped_partial", "images", "files_written"):
         summary[k] = sum(int(s[k]) for s in per.values())
     if len(searched) > 1:
-        path = write_events(cfg, [tuning_search(names[k], tunings[k], graphs[k]) for k in searched],
-                            [graphs[k].search for k in searched])
+        path, counts = write_events(cfg, [tuning_search(names[k], tunings[k], graphs[k]) for k in searched],
+                                    [graphs[k].search for k in searched])
         summary["files"].append(str(path))
         summary["files_written"] += 1
-        summary["events"] = dict(events_counts(path), joined_live=live.joined)
+        summary["events"] = dict(counts, joined_live=live.joined)
         if alerts is not None:
             summary["events"]["alerts"] = dict(alerts.stats)
             summary["files"] += alerts.written

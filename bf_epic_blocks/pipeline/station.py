@@ -93,9 +93,8 @@ def tuning_search(name, tc, g):
 
 
 def write_events(cfg, searches, blocks):
-    """Join the tunings' candidate tables and write ``<output.dir>/<name>_events.ecsv``; returns its path."""
-    from astropy.table import Table
-
+    """Join the tunings' candidate tables and write ``<output.dir>/<name>_events.ecsv``; returns its path
+    and ``{"events": rows, "coincident": rows seen by more than one tuning}``."""
     from ..io.candidates import candidate_table
     from ..search.coincidence import station_events
     tables = []
@@ -106,12 +105,5 @@ def write_events(cfg, searches, blocks):
     out = Path(cfg["output"]["dir"])
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{cfg['output']['prefix']}_events.ecsv"
-    Table(events).write(path, format="ascii.ecsv", overwrite=True)
-    return path
-
-
-def events_counts(path):
-    """{"events": rows, "coincident": rows seen by more than one tuning} of a written events table."""
-    from astropy.table import Table
-    t = Table.read(path, format="ascii.ecsv")
-    return {"events": len(t), "coincident": int((t["ntunings"] > 1).sum()) if len(t) else 0}
+    events.write(path, format="ascii.ecsv", overwrite=True)
+    return path, {"events": len(events), "coincident": int((events["ntunings"] > 1).sum()) if len(events) else 0}

@@ -96,6 +96,17 @@ def growth(samples, t0, t1):
     return vals[0][1], max(v for _, v in vals), g
 
 
+def brightest_near(table, start, start_s):
+    """(row index or None, every row's time in s after ``start``): the brightest row of ``table`` (a
+    ``time_utc`` and ``snr`` column; None or empty allowed) within MATCH_S of ``start_s``."""
+    if table is None or not len(table):
+        return None, None
+    t = np.array([(np.datetime64(str(v).replace("Z", "")) - start) / np.timedelta64(1, "us") / 1e6
+                  for v in table["time_utc"]])
+    near = np.flatnonzero(np.abs(t - start_s) <= MATCH_S)
+    return (int(near[np.argmax(np.asarray(table["snr"])[near])]) if near.size else None), t
+
+
 def burst_checks(cfg, table):
     """Each injected burst against the run's candidate table (astropy Table or None)."""
     from astropy.coordinates import SkyCoord
@@ -111,19 +122,15 @@ def burst_checks(cfg, table):
     for tr in src.get("transients") or []:
         row = {"name": tr.get("name"), "dm": tr["dm"], "ra_deg": tr["ra_deg"], "dec_deg": tr["dec_deg"],
                "start_s": tr["start_s"], "found": False}
-        if table is not None and len(table):
-            t = np.array([(np.datetime64(str(v).replace("Z", "")) - start) / np.timedelta64(1, "us") / 1e6
-                          for v in table["time_utc"]])
-            near = np.flatnonzero(np.abs(t - tr["start_s"]) <= MATCH_S)
-            if near.size:
-                k = near[np.argmax(np.asarray(table["snr"])[near])]
-                sep = SkyCoord(float(table["ra_deg"][k]), float(table["dec_deg"][k]), unit="deg").separation(
-                    SkyCoord(tr["ra_deg"], tr["dec_deg"], unit="deg")).deg
-                d_trials = (float(table["dm"][k]) - tr["dm"]) * per_dm
-                row.update(found=bool(abs(d_trials) <= 1.0 + 1e-9 and sep <= 1.5 * cell_deg),
-                           snr=float(table["snr"][k]), dm_found=float(table["dm"][k]), dm_off_trials=d_trials,
-                           time_off_s=float(t[k] - tr["start_s"]), offset_deg=float(sep),
-                           offset_cells=float(sep / cell_deg))
+        k, t = brightest_near(table, start, tr["start_s"])
+        if k is not None:
+            sep = SkyCoord(float(table["ra_deg"][k]), float(table["dec_deg"][k]), unit="deg").separation(
+                SkyCoord(tr["ra_deg"], tr["dec_deg"], unit="deg")).deg
+            d_trials = (float(table["dm"][k]) - tr["dm"]) * per_dm
+            row.update(found=bool(abs(d_trials) <= 1.0 + 1e-9 and sep <= 1.5 * cell_deg),
+                       snr=float(table["snr"][k]), dm_found=float(table["dm"][k]), dm_off_trials=d_trials,
+                       time_off_s=float(t[k] - tr["start_s"]), offset_deg=float(sep),
+                       offset_cells=float(sep / cell_deg))
         out.append(row)
     return out
 
@@ -148,14 +155,10 @@ def station_checks(cfg, outdir):
     start = np.datetime64(str(cfg["source"]["start"]).replace("Z", ""))
     for tr in cfg["source"].get("transients") or []:
         row = {"name": tr.get("name"), "start_s": tr["start_s"], "dm": tr["dm"], "ntunings": 0}
-        if ev is not None and len(ev):
-            t = np.array([(np.datetime64(str(v).replace("Z", "")) - start) / np.timedelta64(1, "us") / 1e6
-                          for v in ev["time_utc"]])
-            near = np.flatnonzero(np.abs(t - tr["start_s"]) <= MATCH_S)
-            if near.size:
-                k = near[np.argmax(np.asarray(ev["snr"])[near])]
-                row.update(ntunings=int(ev["ntunings"][k]), tunings=str(ev["tunings"][k]), snr=float(ev["snr"][k]),
-                           dm_found=float(ev["dm"][k]), time_off_s=float(t[k] - tr["start_s"]))
+        k, t = brightest_near(ev, start, tr["start_s"])
+        if k is not None:
+            row.update(ntunings=int(ev["ntunings"][k]), tunings=str(ev["tunings"][k]), snr=float(ev["snr"][k]),
+                       dm_found=float(ev["dm"][k]), time_off_s=float(t[k] - tr["start_s"]))
         events.append(row)
     return bursts, others, {"events": 0 if ev is None else len(ev), "bursts": events}
 
