@@ -62,6 +62,39 @@ def test_the_engine_is_made_again_only_when_the_header_asks_for_another_operator
     np.testing.assert_allclose(third, ref2, rtol=0, atol=1e-5 * np.abs(ref2).max())
 
 
+
+def test_a_new_operator_is_made_after_the_old_one_is_let_go():
+    """A rebuild (a gain solution, tracking pixels, a new sequence's array) never holds two operators:
+    a whole band's is GBs on the GPU. The real build sees the old operator already gone."""
+    import gc
+    import weakref
+    xyz, freq, X, lm = scene()
+    flags = np.zeros((len(xyz), 2), bool)
+    hdr = efield_header("a", 0, freq, DT, {"xyz_m": xyz, "flags": flags}, dtype="cf32")
+    with bfp.Pipeline():
+        src = ArraySourceBlock(X, hdr, gulp_nframe=8)
+        img = DFTImagerBlock(src, lm, 10, products=("XX", "YY"), precision="fp64")
+    made, old_alive = [], []
+    real = img._operator
+
+    def operator(lm_):
+        gc.collect()
+        old_alive.append([r() is not None for r in made])
+        op, route = real(lm_)
+        made.append(weakref.ref(op))
+        return op, route
+    img._operator = operator
+    sequence(img, hdr, X, [(0, 40)])
+    img.engine._rebuild(lm)                        # as a gain solution does
+    flags2 = flags.copy()
+    flags2[3] = True                               # another operator for the next sequence
+    third = sequence(img, efield_header("c", 0, freq, DT, {"xyz_m": xyz, "flags": flags2}, dtype="cf32"),
+                     X[:20], [(0, 20)])
+    assert old_alive == [[], [False], [False, False]]
+    w = np.broadcast_to(~flags2, (len(freq), len(xyz), 2)).astype(float)
+    ref = np.stack([brute_image(X[i:i + 10], xyz, freq, lm, ("XX", "YY"), weights=w) for i in (0, 10)])
+    np.testing.assert_allclose(third, ref, rtol=0, atol=1e-5 * np.abs(ref).max())
+
 def test_a_partial_integration_at_the_end_of_a_sequence_is_dropped_and_counted():
     xyz, freq, X, lm = scene()
     hdr = efield_header("a", 0, freq, DT, {"xyz_m": xyz}, dtype="cf32")

@@ -371,3 +371,26 @@ def test_ci4_bytes_decode_to_their_pairs():
     Q = unpack_int8_pairs(b, "ci4")                                       # (T, C, A, P, 2)
     assert np.array_equal(fused.layout_voltages(b[..., :2], None, [0, 1], 128, 8, ci4=True),
                           fused.layout_voltages(Q[..., :2, :], None, [0, 1], 128, 8))
+
+
+@pytest.mark.parametrize("pols_differ", [False, True])
+def test_the_plan_counts_the_operator_the_imager_holds(pols_differ):
+    """cost.operator_bytes (what `bf-epic plan` adds to the memory it checks) against the arrays the code
+    makes: G of a real DFTOperator, and the fused pieces quantise_operator makes (on the host; the same
+    shapes on a GPU). The whole LWA-SV band's (784 channels, 3,205 pixels, 254 of 256 stands, i8x2, the
+    pols' weights differing) is 4.755 + 9.781 GiB, what CuPy allocated on an H200."""
+    from bf_epic_blocks.imaging.cost import operator_bytes
+    rng = np.random.default_rng(0)
+    C, K, A, A_in = 3, 130, 70, 72
+    lm = rng.uniform(-0.5, 0.5, (K, 2))
+    op = DFTOperator(rng.normal(0, 20, (A, 3)), 60e6 + 25e3 * np.arange(C), lm, npol=2, precision="fp32")
+    got = operator_bytes(C, K, A, "fp32", gpu=False)
+    assert got["phases"] == op.G.nbytes and got["operands"] == 0
+    w = np.ones((C, A, 2), np.float32)
+    if pols_differ:
+        w[:, 5, 1] = 0.0
+    Aq, osc, _, _ = fused.quantise_operator(op.G[:, 0], w, np.arange(A), A_in, fused.PIECES["i8x2"], tiled=True)
+    got = operator_bytes(C, K, A, "i8x2", gpu=True, nant_in=A_in, pols_differ=pols_differ)
+    assert got["operands"] == Aq.nbytes + osc.nbytes
+    band = operator_bytes(784, 3205, 254, "i8x2", gpu=True, nant_in=256)
+    assert (round(band["phases"] / 2**30, 3), round(band["operands"] / 2**30, 3)) == (4.755, 9.781)

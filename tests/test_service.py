@@ -138,6 +138,29 @@ def test_metrics_health_and_page(served):
     assert code == 200 and ctype.startswith("text/html") and "down" in body and "no data" in body
 
 
+
+def test_memory_by_kind_follows_what_is_allocated_and_is_served(served):
+    """memory_figures: 20 MB of 2-kB buffers (malloc, not Python's small-object arenas) show in malloc's
+    figures (the resident set need not grow: freed heap pages are reused); the service serves each
+    figure as bf_epic_memory_*."""
+    from prometheus_client.parser import text_string_to_metric_families
+    from bf_epic_blocks.service.heap import memory_figures
+    before = memory_figures()
+    if "heap_in_use" not in before:
+        pytest.skip("not glibc >= 2.33 (no mallinfo2)")
+    keep = [bytearray(b"x" * 2000) for _ in range(10_000)]
+    after = memory_figures()
+    assert 19e6 <= after["heap_in_use"] - before["heap_in_use"] < 30e6
+    assert after["rss"] > after["heap_in_use"] - before["heap_in_use"]
+    del keep
+    srv, mon, _ = served
+    mon.snap = _snap(memory={"rss": 5e8, "heap_free": 1e6, "pinned_free_blocks": 3})
+    time.sleep(0.6)                                          # past the shared snapshot's 0.5 s
+    fams = {f.name: f.samples[0].value for f in text_string_to_metric_families(_get(srv.url + "/metrics")[1])
+            if f.samples}
+    assert fams["bf_epic_memory_rss_bytes"] == 5e8 and fams["bf_epic_memory_heap_free_bytes"] == 1e6
+    assert fams["bf_epic_memory_pinned_free_blocks"] == 3
+
 def test_the_page_lists_the_latest_candidates_first():
     """recent_candidates from a search's rows (an astropy Time each, as TransientSearchBlock keeps them):
     the last ten, latest first; the page shows them as a table, its text escaped."""

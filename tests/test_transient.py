@@ -686,6 +686,57 @@ def test_skipped_gulp_and_new_sequence_reset_the_window(tmp_path):
     assert len(blk.candidates) == 1
 
 
+def _peak_rise(fn):
+    """Bytes by which the traced peak rose above what was held when ``fn`` started (NumPy's arrays are
+    traced by tracemalloc)."""
+    import tracemalloc
+    tracemalloc.start()
+    try:
+        fn(start=True)
+        held = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        fn(start=False)
+        return tracemalloc.get_traced_memory()[1] - held
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.parametrize("dedisperse", ["shifts", "tree"])
+def test_a_reset_holds_the_history_once(dedisperse):
+    """A reset (every new sequence, every gain solution) makes the search's arrays again; the old ones go
+    first, so the history -- tens of GB for a whole band on a GPU -- is never held twice."""
+    freq = 74e6 + 25e3 * np.arange(64)
+    box = {}
+
+    def fn(start):
+        if start:
+            box["s"] = TransientSearch(freq, 16 * DT, 1024, 200, dms=[0.0, 1.0], dedisperse=dedisperse)
+        else:
+            box["s"].reset(17)
+    rise = _peak_rise(fn)
+    s = box["s"]
+    hist = s._hist.nbytes + (s._tree.ring.nbytes if s._tree is not None else s._chan.nbytes)
+    assert hist > 8e6 and s.next_image == 17
+    assert rise < 0.25 * hist, (rise, hist)
+
+
+def test_a_new_sequence_lets_the_last_search_go_first():
+    """The block's search for a new sequence is made after the last sequence's is let go."""
+    grid = imaging.lm_grid(64)
+    freq = 74e6 + 25e3 * np.arange(8)
+    hdr = image_header(grid, freq, 16 * DT)
+    with bfp.Pipeline():
+        src = ArraySourceBlock(np.zeros((1, 8, 1, 64, 64), np.float32), hdr, gulp_nframe=8)
+        blk = TransientSearchBlock(src, SearchSettings(threshold=6.0, window_s=300 * 16 * DT, dms=[0.0, 1.0]))
+
+    def fn(start):
+        blk.on_sequence(SimpleNamespace(header=hdr if start else dict(hdr, name="img2")))
+    rise = _peak_rise(fn)
+    hist = blk.search._hist.nbytes
+    assert hist > 8e6
+    assert rise < 0.5 * hist, (rise, hist)
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
 def test_cpu_and_gpu_find_the_same_candidates():

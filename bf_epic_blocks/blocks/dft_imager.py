@@ -270,6 +270,7 @@ class DFTImagerBlock(bfp.TransformBlock):
             self._gain_index, self._gains_tag0, key = -1, int(lay["time_tag"]), None
             self.gains.check_shape(lay["nchan"], lay["nstand"], lay["npol"])
         if self.engine is None or key is None or key != self._key:
+            self.engine = None      # the last sequence's operator let go before the new one is made
             self.engine, self._key = self._build(lm), key
         eng = self.engine
         eng.solution_hook = self._solution_hook if self.gains is not None else None

@@ -217,6 +217,8 @@ class DFTEngine(Engine):
         self._rebuild(lm)
 
     def _rebuild(self, lm):
+        # the old operator and route let go first: a whole band's are GBs, and a gain solution rebuilds them
+        self.op = self.acc = None
         self.op, self.acc = self.build(lm)
         self.lm = np.asarray(lm)
 
@@ -291,6 +293,7 @@ class ShardedEngine(Engine):
         self._rebuild(lm)
 
     def _rebuild(self, lm):
+        self.acc = None             # the old route's GPU memory let go before the new is made
         self.acc = self.build(lm)
         self.lm = np.asarray(lm)
 

@@ -130,6 +130,9 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.xp = self._xp()
         settings = self.settings
         kw, self._tlink = settings.search_keywords(lay["freq_hz"], lay["dt_s"])
+        # the last sequence's search let go first: its history (tens of GB for a whole band) is not held
+        # twice while the new one is made
+        self.search = None
         self.search = TransientSearch(lay["freq_hz"], lay["dt_s"], len(lay["lm"]), threshold=settings.threshold,
                                       xp=self.xp, max_pixels=settings.max_pixels, sky_fraction=settings.sky_fraction,
                                       **kw)

@@ -54,3 +54,35 @@ MEASURED_RATES_CMAC_S = {
 def predict_seconds(cmacs: float, device: str, method: str) -> float:
     """Predicted run time (s) of ``cmacs`` complex multiply-adds by ``method`` on 'cpu' or 'gpu'."""
     return float(cmacs) / MEASURED_RATES_CMAC_S[(device, method)]
+
+
+def operator_bytes(nchan: int, npix: int, nant: int, precision: str, *, gpu: bool, nant_in: int | None = None,
+                   pols_differ: bool = True) -> dict:
+    """Bytes a :class:`~.dft.DFTOperator` holds where it lives, by part, for ``nchan`` channels, ``npix``
+    pixels and ``nant`` antennas kept (of ``nant_in`` in the input, default ``nant``):
+
+    * ``phases``: the geometric operator G, complex (complex128 for 'fp64'), nchan x npix x nant;
+    * ``operands``: the form the GEMMs take -- the stacked real halves of the tensor-core modes on a GPU
+      (:func:`.gemm.stack_operator`), or the fused integer modes' int8 pieces and row scales
+      (:func:`.fused.quantise_operator`: one set per pol where the pols' weights differ, ``pols_differ``);
+    * ``building``: the most its construction adds while it runs (the fused modes' per-chunk working
+      arrays; freed once built, but it must fit).
+    """
+    from .fused import PIECES, _CHUNK_BYTES_GPU, _pad
+    from .gemm import STACKED, stack_operator
+    import numpy as np
+    nant_in = nant if nant_in is None else int(nant_in)
+    cplx = 16 if precision == "fp64" else 8
+    parts = {"phases": nchan * npix * nant * cplx, "operands": 0, "building": 0}
+    if gpu and precision in PIECES:
+        kpad, apad = _pad(npix, 64), _pad(nant_in, 64)
+        pa = 2 if pols_differ else 1
+        parts["operands"] = nchan * pa * (PIECES[precision] * 2 * kpad * 2 * apad + 4 * kpad)
+        chunk = min(nchan, max(16, _CHUNK_BYTES_GPU // (kpad * apad * 8)))
+        # D, its residual, the padded copy, its two real halves (complex64 each) and the chunk's pieces
+        parts["building"] = chunk * kpad * apad * (5 * 8 + PIECES[precision] * 2 * 2)
+    elif gpu and precision in STACKED:
+        probe = np.zeros((1, 8, 8), np.complex64)
+        per = sum(p.nbytes for p in stack_operator(probe, precision)) / probe.size
+        parts["operands"] = int(nchan * npix * nant * per)
+    return parts

@@ -1373,6 +1373,17 @@ def plan(cfg):
     # above is an upper bound its engines cut into chunks, so it is not counted)
     mem = {"input rings": 4 * input_bytes,
            "image rings": 4 * (gulp // acc + 1) * nchan * len(prods) * npix * 4}
+    if im["kind"] == "dft":
+        # the operator (held while the pipeline runs, and while a gain solution rebuilds it) and what its
+        # construction adds, on one GPU of several: npix is already one GPU's share of a pixel split; a
+        # channel split shares the channels
+        share = _pixel_parts(cfg) if several and not nparts else 1
+        per_gpu = (-(-nchan // share), npix)
+        pols_differ = bool((flags[:, 0] != flags[:, 1]).any()) or bool(cfg["calibration"]["cable"])
+        ob = cost.operator_bytes(per_gpu[0], per_gpu[1], nstand_any, precision, gpu=dev in ("gpu", "gpus"),
+                                 nant_in=station.nstand, pols_differ=pols_differ)
+        d["operator_bytes"] = ob
+        mem["imager operator"] = sum(ob.values())
     _memory_check(cfg, dev, mem)
     if im.get("search"):
         d["search"], text = _plan_search(im["search"], freq, acc * dt, npix, dev,

@@ -270,6 +270,9 @@ class StreamingFDMT:
     def reset(self):
         """Forget the past (its values count as 0, as :func:`fdmt`'s before its first time; float16: as
         the next push's first image)."""
+        # the old ring let go first, so that the new one takes its memory (CuPy's pool, or the pages the
+        # host gives back): never both at once
+        self.ring = None
         self.ring = self.xp.zeros((self.ring_size if self.xp is np else self.dev_ring_size, self.ld), self.dtype)
         self.ntime = 0
         self._phase_at = -1

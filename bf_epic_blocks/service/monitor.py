@@ -14,6 +14,8 @@ import shutil
 import time
 from dataclasses import dataclass
 
+from .heap import memory_figures
+
 __all__ = ["Monitor", "Limits", "assess"]
 
 
@@ -161,6 +163,7 @@ class Monitor:
         except OSError:
             snap["disk"] = None
         snap["gpu"] = _gpu_memory() if self.cfg["device"] != "cpu" else None
+        snap["memory"] = memory_figures()
         if getattr(g, "budget", None) is not None:
             snap["budget"] = dict(g.budget.stats)
         return snap

@@ -116,6 +116,10 @@ def _collector(monitor, get_snapshot):
                 d = snap.get(part) or {}
                 for k, v in sorted(d.items()):
                     yield GaugeMetricFamily(f"bf_epic_{part}_{k}", f"{part} {k.replace('_', ' ')}", value=float(v))
+            for k, v in sorted((snap.get("memory") or {}).items()):
+                unit = "" if k.endswith("_blocks") else "_bytes"
+                yield GaugeMetricFamily(f"bf_epic_memory_{k}{unit}", f"this process's memory: {k.replace('_', ' ')} "
+                                        "(bf_epic_blocks.service.heap.memory_figures)", value=float(v))
             status, _ = assess(snap, monitor.limits, monitor.cadence_s)
             yield GaugeMetricFamily("bf_epic_health", "0 go, 1 degraded, 2 down",
                                     value={"go": 0, "degraded": 1, "down": 2}[status])

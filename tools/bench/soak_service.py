@@ -237,7 +237,10 @@ def main(argv=None):
            "final_metrics": {k: v for k, v in last.items() if k.startswith(("bf_epic_source", "bf_epic_imager",
                                                                          "bf_epic_budget", "bf_epic_health"))},
            "checks": checks, "samples": [{**{k: r[k] for k in ("t_s", "rss_mb", "peak_mb", "health", "reasons")},
-                        "folder_bytes": r["metrics"].get("bf_epic_budget_folder_bytes")} for r in rows]}
+                        "folder_bytes": r["metrics"].get("bf_epic_budget_folder_bytes"),
+                        # where the resident set goes (the service's own figures: malloc, CuPy's pools)
+                        "memory": {k[len("bf_epic_memory_"):]: v for k, v in r["metrics"].items()
+                                   if k.startswith("bf_epic_memory_")}} for r in rows]}
     print(f"# soak: {args.minutes:g} min at {args.rate:g}x real time, {len(seen)} scrapes, workdir {work}")
     print(f"  sequences {seqs}; health {' -> '.join(h for i, h in enumerate(health) if i == 0 or h != health[i - 1])}")
     print(f"  memory: first peak {first} MB, last {final} MB; SIGTERM {term_s:.1f} s, exit {rc}")
