@@ -64,6 +64,23 @@ def test_bench_wholeband_growth_sees_flat_and_growing_memory():
     assert bw.growth([(1.0, None)], 0.0, 2.0) == (None, None, None)
 
 
+
+def test_bench_wholeband_lists_the_brightest_candidates_with_their_times():
+    """The record lists what the run found: the brightest rows first, each with its time after the
+    source's start (from the row's UTC time), DM, S/N, width, kind and place; none for no table."""
+    import astropy.units as u
+    import bench_wholeband as bw
+    from astropy.table import Table
+    from astropy.time import Time
+    start = "2026-11-28T00:00:00"
+    rows = [{"time_utc": (Time(start) + dt * u.s).isot, "snr": snr, "dm": dm, "width_ms": 0.64, "kind": "point",
+             "ra_deg": 10.0, "dec_deg": -5.0} for dt, snr, dm in ((1.5, 8.0, 0.1), (3.25, 30.0, 0.4), (0.5, 7.0, 0.0))]
+    got = bw.candidate_rows(Table(rows=rows), np.datetime64(start), "low", limit=2)
+    assert [(r["tuning"], r["time_s"], r["snr"], r["dm"]) for r in got] == [("low", 3.25, 30.0, 0.4),
+                                                                              ("low", 1.5, 8.0, 0.1)]
+    assert got[0]["kind"] == "point" and got[0]["ra_deg"] == 10.0
+    assert bw.candidate_rows(None, np.datetime64(start)) == []
+
 @pytest.mark.slow
 def test_bench_wholeband_runs_the_cli_and_finds_the_burst(tmp_path):
     """The benchmark on the whole-band YAML made small (16 channels, 16x16, the CPU): it runs `bf-epic

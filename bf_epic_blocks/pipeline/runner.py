@@ -1395,6 +1395,11 @@ def plan(cfg):
     lines.append(f"  memory: about {_gib(sum(mem.values()))} ("
                  + ", ".join(f"{k} {_gib(v)}" for k, v in mem.items()) + ")"
                  + (f"; {_gib(have)} available on {where}" if have is not None else f"; {where}"))
+    uncounted = [what for what, on in (("the live gain solver's", (cfg.get("calibration") or {}).get("solve")),
+                                       ("the watchlist's", cfg.get("watch"))) if on]
+    if uncounted:
+        # said, so that a figure close to the device's memory is read as a lower bound
+        lines.append(f"  (not counted above: {' and '.join(uncounted)} working arrays)")
     return d, "\n".join(lines)
 
 

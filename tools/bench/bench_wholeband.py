@@ -107,6 +107,19 @@ def brightest_near(table, start, start_s):
     return (int(near[np.argmax(np.asarray(table["snr"])[near])]) if near.size else None), t
 
 
+def candidate_rows(table, start, tuning=None, limit=100):
+    """The brightest ``limit`` rows of a candidate table as plain dicts (time in s after ``start``, DM,
+    S/N, width, kind, place), so that a record says what the run found besides its bursts."""
+    if table is None or not len(table):
+        return []
+    _, t = brightest_near(table, start, 0.0)
+    order = np.argsort(-np.asarray(table["snr"], np.float64))[:limit]
+    return [{**({"tuning": tuning} if tuning else {}), "time_s": round(float(t[k]), 6),
+             "dm": float(table["dm"][k]), "snr": round(float(table["snr"][k]), 2), "width_ms": float(table["width_ms"][k]),
+             "kind": str(table["kind"][k]), "ra_deg": round(float(table["ra_deg"][k]), 3),
+             "dec_deg": round(float(table["dec_deg"][k]), 3)} for k in order]
+
+
 def burst_checks(cfg, table):
     """Each injected burst against the run's candidate table (astropy Table or None)."""
     from astropy.coordinates import SkyCoord
@@ -141,11 +154,12 @@ def station_checks(cfg, outdir):
     within MATCH_S of its arrival at the station's highest channel, and how many tunings saw it)."""
     from astropy.table import Table
     from bf_epic_blocks.io.candidates import read_candidates
-    bursts, others = [], 0
+    bursts, others, listed = [], 0, []
     for tc in cfg["tunings"]:
         name = tc["name"][len(cfg["name"]) + 1:]
         cands = sorted(Path(tc["output"]["dir"]).glob("*_candidates.ecsv"))
         table = read_candidates(cands[0]) if cands else None
+        listed += candidate_rows(table, np.datetime64(str(tc["source"]["start"]).replace("Z", "")), name)
         rows = burst_checks(tc, table)
         bursts += [dict(b, tuning=name) for b in rows]
         others += (len(table) - len([b for b in rows if b.get("snr") is not None])) if table is not None else 0
@@ -160,7 +174,7 @@ def station_checks(cfg, outdir):
             row.update(ntunings=int(ev["ntunings"][k]), tunings=str(ev["tunings"][k]), snr=float(ev["snr"][k]),
                        dm_found=float(ev["dm"][k]), time_off_s=float(t[k] - tr["start_s"]))
         events.append(row)
-    return bursts, others, {"events": 0 if ev is None else len(ev), "bursts": events}
+    return bursts, others, {"events": 0 if ev is None else len(ev), "bursts": events}, listed
 
 
 def run(args):
@@ -221,11 +235,12 @@ def run(args):
     gpu = growth(samples_gpu, *window)
     rss = growth(samples_rss, *window)
     if cfg.get("tunings"):
-        bursts, others, events = station_checks(cfg, outdir)
+        bursts, others, events, listed = station_checks(cfg, outdir)
     else:
         cands = sorted(outdir.glob("*_candidates.ecsv"))
         table = read_candidates(cands[0]) if cands else None
         bursts, events = burst_checks(cfg, table), None
+        listed = candidate_rows(table, np.datetime64(str(cfg["source"]["start"]).replace("Z", "")))
         others = (len(table) - len([b for b in bursts if b.get("snr") is not None])) if table is not None else 0
     row = {"data_s": data_s, "wall_s": wall, "pipeline_s": info["wall_s"], "rt_whole": data_s / wall,
            "rt_pipeline": data_s / info["wall_s"],
@@ -236,7 +251,7 @@ def run(args):
            "rss_mib": dict(zip(("first", "peak", "growth"), rss)),
            "kernels_compiled": compiled,
            "images": info.get("images"), "search": info.get("search"), "bursts": bursts,
-           "other_candidates": others, "station_events": events, "blocks": blocks}
+           "other_candidates": others, "candidates": listed, "station_events": events, "blocks": blocks}
     out = {"benchmark": "bench_wholeband", "date": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime()),
            "yaml": str(args.yaml), "sets": sets, "machine": machine("gpu" if args.device.startswith("gpu") else "cpu"), "run": row,
            "samples": {"gpu_mib": samples_gpu, "rss_mib": samples_rss}}
