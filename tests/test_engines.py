@@ -32,13 +32,19 @@ def sequence(img, hdr, X, gulps):
     return out[:got]
 
 
-def test_the_engine_is_made_again_only_when_the_header_asks_for_another_operator():
+def imager_block():
+    """scene()'s voltages, its header (no flags) and an fp64 DFTImagerBlock of XX, YY over 10 samples."""
     xyz, freq, X, lm = scene()
     flags = np.zeros((len(xyz), 2), bool)
     hdr = efield_header("a", 0, freq, DT, {"xyz_m": xyz, "flags": flags}, dtype="cf32")
     with bfp.Pipeline():
         src = ArraySourceBlock(X, hdr, gulp_nframe=8)
         img = DFTImagerBlock(src, lm, 10, products=("XX", "YY"), precision="fp64")
+    return xyz, freq, X, lm, flags, hdr, img
+
+
+def test_the_engine_is_made_again_only_when_the_header_asks_for_another_operator():
+    xyz, freq, X, lm, flags, hdr, img = imager_block()
     ref = np.stack([brute_image(X[i:i + 10], xyz, freq, lm, ("XX", "YY")) for i in range(0, 40, 10)])
 
     first = sequence(img, hdr, X, [(0, 8), (8, 16), (16, 40)])
@@ -68,12 +74,7 @@ def test_a_new_operator_is_made_after_the_old_one_is_let_go():
     a whole band's is GBs on the GPU. The real build sees the old operator already gone."""
     import gc
     import weakref
-    xyz, freq, X, lm = scene()
-    flags = np.zeros((len(xyz), 2), bool)
-    hdr = efield_header("a", 0, freq, DT, {"xyz_m": xyz, "flags": flags}, dtype="cf32")
-    with bfp.Pipeline():
-        src = ArraySourceBlock(X, hdr, gulp_nframe=8)
-        img = DFTImagerBlock(src, lm, 10, products=("XX", "YY"), precision="fp64")
+    xyz, freq, X, lm, flags, hdr, img = imager_block()
     made, old_alive = [], []
     real = img._operator
 

@@ -103,6 +103,15 @@ def _pad(n, m):
 _CHUNK_BYTES_GPU = 64 * 2**20
 
 
+def operand_shape(C, PA, K, nant_in, pieces, tiled):
+    """Shape of the int8 pieces :func:`quantise_operator` makes (int8: its bytes are its size): ``C``
+    channels, ``PA`` pol sets, ``K`` pixels, ``nant_in`` input antennas; (C, PA, 2 Kpad/128, pieces, KD/128,
+    16384) tiled for the Hopper kernel, else (C, PA, pieces, 2 Kpad, KD), Kpad = K and KD = 2 nant_in
+    padded to 64 and 128."""
+    Kpad, KD = _pad(K, 64), 2 * _pad(nant_in, 64)
+    return (C, PA, 2 * Kpad // 128, pieces, KD // 128, TILE) if tiled else (C, PA, pieces, 2 * Kpad, KD)
+
+
 def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tiled=False, out=None):
     """The operator as int8 pieces in the kernel's layout (module docstring).
 
@@ -127,7 +136,7 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     Kpad, Apad = _pad(K, 64), _pad(nant_in, 64)          # rows a multiple of 128, KD of 128
     KD = 2 * Apad
     b, xmax = bases(pieces, KD)
-    shape = (C, PA, 2 * Kpad // 128, pieces, KD // 128, TILE) if tiled else (C, PA, pieces, 2 * Kpad, KD)
+    shape = operand_shape(C, PA, K, nant_in, pieces, tiled)
     if out is None:
         Aq, osc = xp.zeros(shape, xp.int8), xp.zeros((C, PA, Kpad), xp.float32)
     else:

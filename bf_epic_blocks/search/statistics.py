@@ -190,7 +190,7 @@ class TransientSearch:
         self.nvalues = 0                         # dedispersed values since the reset
         # the old arrays let go before the new are made, so that a reset (every sequence, every gain
         # solution) holds the history once, not twice (it is most of the search's memory)
-        self._chan = self._hist = self._s1 = self._s2 = self._ref = self._staged = None
+        self._chan = self._hist = self._s1 = self._s2 = None
         # the channels' recent past: their own history (shifted sums) or the tree's rings
         self._chan = xp.zeros((self.nchan, 0 if self._tree else self.shift, self.npix), dtype=xp.float32)
         if self._tree is not None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import logging
 import os
 import sys
@@ -24,13 +25,19 @@ MMAP_THRESHOLD = 1 << 20
 _M_MMAP_THRESHOLD = -3          # glibc's malloc.h
 
 
+@functools.lru_cache(maxsize=1)
+def _libc():
+    """The C library, loaded once (finding it runs ``ldconfig``: not on every metrics scrape)."""
+    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+
+
 def fix_mmap_threshold(nbytes: int = MMAP_THRESHOLD) -> bool:
     """Fix glibc's mmap threshold at ``nbytes`` for this process; True when set. False (nothing done) where
     the C library is not glibc, or ``MALLOC_MMAP_THRESHOLD_`` is set (the operator's choice stands)."""
     if os.environ.get("MALLOC_MMAP_THRESHOLD_"):
         return False
     try:
-        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+        mallopt = _libc().mallopt
     except (OSError, AttributeError):          # not glibc (macOS, Windows)
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
@@ -63,7 +70,7 @@ def memory_figures() -> dict:
     except (OSError, ValueError, IndexError, AttributeError):
         pass
     try:
-        fn = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallinfo2
+        fn = _libc().mallinfo2
         fn.restype = _Mallinfo2
         m = fn()
         out.update(heap_in_use=int(m.uordblks), heap_free=int(m.fordblks), heap_mapped=int(m.hblkhd))

@@ -96,13 +96,18 @@ def growth(samples, t0, t1):
     return vals[0][1], max(v for _, v in vals), g
 
 
+def seconds_after(table, start):
+    """Each row's ``time_utc`` in seconds after ``start`` (a numpy datetime64)."""
+    return np.array([(np.datetime64(str(v).replace("Z", "")) - start) / np.timedelta64(1, "us") / 1e6
+                     for v in table["time_utc"]])
+
+
 def brightest_near(table, start, start_s):
     """(row index or None, every row's time in s after ``start``): the brightest row of ``table`` (a
     ``time_utc`` and ``snr`` column; None or empty allowed) within MATCH_S of ``start_s``."""
     if table is None or not len(table):
         return None, None
-    t = np.array([(np.datetime64(str(v).replace("Z", "")) - start) / np.timedelta64(1, "us") / 1e6
-                  for v in table["time_utc"]])
+    t = seconds_after(table, start)
     near = np.flatnonzero(np.abs(t - start_s) <= MATCH_S)
     return (int(near[np.argmax(np.asarray(table["snr"])[near])]) if near.size else None), t
 
@@ -112,7 +117,7 @@ def candidate_rows(table, start, tuning=None, limit=100):
     S/N, width, kind, place), so that a record says what the run found besides its bursts."""
     if table is None or not len(table):
         return []
-    _, t = brightest_near(table, start, 0.0)
+    t = seconds_after(table, start)
     order = np.argsort(-np.asarray(table["snr"], np.float64))[:limit]
     return [{**({"tuning": tuning} if tuning else {}), "time_s": round(float(t[k]), 6),
              "dm": float(table["dm"][k]), "snr": round(float(table["snr"][k]), 2), "width_ms": float(table["width_ms"][k]),
