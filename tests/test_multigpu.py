@@ -144,3 +144,30 @@ def test_scatter_onto_grid_into_a_given_array():
     on = grid.mask.ravel()
     assert np.all(np.isnan(out[..., ~on]))
     assert np.max(np.abs(out[..., on] - ref)) / np.max(np.abs(ref)) < 1e-5
+
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(NGPU < 1, reason="needs CuPy and a CUDA device")
+def test_the_first_gulp_waits_for_the_operator_to_be_built():
+    """On a GPU shared with another process (here one multiplying matrices), a ShardedOperator's first
+    gulp is imaged only once its operators and placements are built: its non-blocking streams wait for the
+    stream they were built on. Twelve operators built and used at once, each equal to the float64 truth."""
+    import subprocess
+    import sys
+    load = subprocess.Popen([sys.executable, "-c", "import cupy as cp, time\n"
+                             "a = cp.random.rand(8192, 8192, dtype=cp.float32); t = time.time()\n"
+                             "while time.time() - t < 20: (a @ a).sum().item()\n"])
+    try:
+        import time
+        time.sleep(3)                                         # the other process is multiplying
+        bad = []
+        for k in range(12):
+            try:
+                test_scatter_onto_grid_into_a_given_array()
+            except AssertionError:
+                bad.append(k)
+    finally:
+        load.kill()
+        load.wait()
+    assert not bad, f"operators {bad} of 12 imaged before they were built"

@@ -1190,3 +1190,22 @@ def test_sequence_after_sequence_keeps_memory_flat():
     finally:
         tracemalloc.stop()
     assert grown < 1.5e6, f"40 more sequences kept {grown / 1e6:.1f} MB"
+
+
+def test_staging_buffers_are_made_once_for_the_room_asked(monkeypatch):
+    """HostToDevice makes its staging buffers for ``room`` bytes (a whole gulp) at once, so chunks of other
+    sizes (a stream's partial last gulp) reuse them instead of making page-locked buffers of their own."""
+    made = []
+    real = _compat.pinned_empty
+
+    def counting(shape, dtype):
+        made.append(int(np.prod(shape)))
+        return real(shape, dtype)
+    monkeypatch.setattr(_compat, "pinned_empty", counting)
+    h2d = _compat.HostToDevice(nstage=2)
+    for n in (37, 100, 11, 100, 33, 64):
+        buf, _ = h2d.staging(n, room=100)
+        assert buf.nbytes == n
+    assert made == [100, 100]
+    h2d.staging(150, room=100)             # larger than the room: a buffer of its own size, once
+    assert made == [100, 100, 150]

@@ -152,14 +152,18 @@ def test_memory_by_kind_follows_what_is_allocated_and_is_served(served):
     after = memory_figures()
     assert 19e6 <= after["heap_in_use"] - before["heap_in_use"] < 30e6
     assert after["rss"] > after["heap_in_use"] - before["heap_in_use"]
+    # the resident set by kind: the heap's pages are the process's own (anonymous), not a file's
+    assert after["rss_anon"] + after["rss_file"] <= after["rss"] * 1.01 + 1e6
+    assert after["rss_anon"] >= after["heap_in_use"] - before["heap_in_use"]
+    assert after["threads"] >= 1
     del keep
     srv, mon, _ = served
-    mon.snap = _snap(memory={"rss": 5e8, "heap_free": 1e6, "pinned_free_blocks": 3})
+    mon.snap = _snap(memory={"rss": 5e8, "heap_free": 1e6, "pinned_free_blocks": 3, "threads": 12})
     time.sleep(0.6)                                          # past the shared snapshot's 0.5 s
     fams = {f.name: f.samples[0].value for f in text_string_to_metric_families(_get(srv.url + "/metrics")[1])
             if f.samples}
     assert fams["bf_epic_memory_rss_bytes"] == 5e8 and fams["bf_epic_memory_heap_free_bytes"] == 1e6
-    assert fams["bf_epic_memory_pinned_free_blocks"] == 3
+    assert fams["bf_epic_memory_pinned_free_blocks"] == 3 and fams["bf_epic_memory_threads"] == 12
 
 def test_the_page_lists_the_latest_candidates_first():
     """recent_candidates from a search's rows (an astropy Time each, as TransientSearchBlock keeps them):

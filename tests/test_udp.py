@@ -921,3 +921,45 @@ def test_replay_loops_drop_each_pass_s_frames_with_the_fraction_asked(tmp_path):
         b = replay(path, LOOPBACK, rx.getsockname()[1], rate=1e6, loops=500, drop=0.1, seed=3)
     assert a.sent + len(a.dropped) == 500 * 12 and a.dropped == b.dropped
     assert 0.08 < len(a.dropped) / 6000 < 0.12 and max(a.dropped) >= 12     # passes after the first too
+
+
+@pytest.mark.gpu
+def test_streams_to_a_gpu_ring_leave_no_page_locked_blocks_behind(tmp_path):
+    """A service on a GPU receives stream after stream, each ending in a partial gulp of its own size. The
+    chunks cross to the GPU through staging buffers made once for a whole gulp, so CuPy's pinned pool keeps
+    no block per odd size (the GPU soak's resident set grew by such blocks at resets); the data arrive whole."""
+    cp = pytest.importorskip("cupy")
+    try:
+        cp.cuda.runtime.getDeviceCount()
+    except cp.cuda.runtime.CUDARuntimeError:
+        pytest.skip("no CUDA device")
+    from bf_epic_blocks.blocks import ArraySinkBlock, bfp
+    from bf_epic_blocks.blocks.udp_source import UDPSourceBlock
+
+    lengths = (1037, 511, 733)              # gulps of 50: the last is 37, 11, 33 samples
+    datas = []
+    for k, n in enumerate(lengths):
+        datas.append(gen_capture(tmp_path / f"s{k}.tbf", n, nstand=64, nchan=24, first=2176, seed=20 + k)[0])
+    pool = cp.get_default_pinned_memory_pool()
+
+    def run(rate):
+        pool.free_all_blocks()
+        with bfp.Pipeline() as p:
+            src = UDPSourceBlock(LOOPBACK, 0, 50, station="lwana", buffer_s=0.002, idle_timeout_s=0.3,
+                                 start_timeout_s=10, sequences=len(lengths), space="cuda")
+            sink = ArraySinkBlock(src)
+        th = threading.Thread(target=p.run)
+        th.start()
+        for k in range(len(lengths)):
+            replay(tmp_path / f"s{k}.tbf", LOOPBACK, src.port, rate=rate)
+            time.sleep(0.8)                 # past the idle timeout: the next stream is a new sequence
+        th.join(60)
+        assert not th.is_alive(), "the pipeline did not end after its three streams"
+        return src.udp_stats, (src, sink, pool.n_free_blocks())
+
+    src, sink, free_blocks = without_kernel_drops(run)
+    assert src.udp_stats["sequences"] == len(lengths)
+    for k, data in enumerate(datas):
+        got = sink.result(k).view(np.uint8).reshape(data.shape)
+        assert np.array_equal(got, data), f"stream {k}"
+    assert free_blocks == 0, f"{free_blocks} page-locked blocks left free in CuPy's pool"

@@ -199,6 +199,11 @@ class HostToDevice:
     overlaps the consumers' kernels (the ring's commit event orders them after it); on real
     Bifrost, Bifrost's stream, synchronised before returning (Bifrost's commit does not wait
     for our CuPy work). A non-contiguous ``dst`` falls back to :func:`assign_storage`.
+
+    ``room`` (bytes; ``copy`` and ``staging``): what the staging buffers are made for at first, a
+    whole gulp's, so that a partial gulp (the end of a stream, a time-base jump) does not make a
+    buffer of its own size. Page-locked blocks freed are kept by CuPy's pinned pool for a request
+    of exactly their size; a buffer per odd size would stay resident for the life of the process.
     """
 
     def __init__(self, nstage=2):
@@ -208,31 +213,34 @@ class HostToDevice:
         self.nbytes = 0        # bytes copied
         self.staged_bytes = 0  # of which went through a staging buffer
 
-    def _slot(self, nbytes):
-        """A pinned staging buffer of ``nbytes`` whose previous copy is done, and its slot."""
+    def _slot(self, nbytes, room=None):
+        """A pinned staging buffer of ``nbytes`` whose previous copy is done, and its slot; a new buffer
+        is made for ``max(nbytes, room)`` bytes."""
+        size = max(int(nbytes), int(room or 0))
         if len(self._stages) < self.nstage:
-            self._stages.append([pinned_empty((nbytes,), np.uint8), None])
+            self._stages.append([pinned_empty((size,), np.uint8), None])
         slot = self._stages[self._next]
         self._next = (self._next + 1) % self.nstage
         if slot[0].nbytes < nbytes:
             if slot[1] is not None:
                 slot[1].synchronize()
-            slot[0], slot[1] = pinned_empty((nbytes,), np.uint8), None
+            slot[0], slot[1] = None, None          # the old buffer goes back before the new is made
+            slot[0] = pinned_empty((size,), np.uint8)
         elif slot[1] is not None:
             slot[1].synchronize()  # its previous copy must be done before we overwrite it
         return slot[0][:nbytes], slot
 
-    def _stage(self, src):
-        buf, slot = self._slot(src.nbytes)
+    def _stage(self, src, room=None):
+        buf, slot = self._slot(src.nbytes, room)
         np.copyto(buf.view(src.dtype).reshape(src.shape), src)  # one host copy, any strides
         self.staged_bytes += src.nbytes
         return buf, slot
 
-    def staging(self, nbytes):
+    def staging(self, nbytes, room=None):
         """A pinned buffer of ``nbytes`` to fill (a file read straight into it, say) and then hand to
         :meth:`copy_staged`; returns ``(buffer, slot)``. Its previous copy is done. Up to
         ``nstage - 1`` buffers may be filling while another one's copy is queued."""
-        return self._slot(nbytes)
+        return self._slot(nbytes, room)
 
     def copy_staged(self, dst, buf, slot=None):
         """Queue the copy of the pinned ``buf`` into the C-contiguous CuPy array ``dst`` (same bytes)
@@ -249,7 +257,7 @@ class HostToDevice:
         self.nbytes += dst.nbytes
         return dst
 
-    def copy(self, dst, src):
+    def copy(self, dst, src, room=None):
         src = np.asarray(src)
         if src.nbytes != dst.nbytes:
             raise ValueError(f"host->device copy: {src.dtype} {src.shape} ({src.nbytes} bytes) "
@@ -260,7 +268,7 @@ class HostToDevice:
             return dst
         if is_pinned(src) and src.flags.c_contiguous:
             return self.copy_staged(dst, src)
-        return self.copy_staged(dst, *self._stage(src))
+        return self.copy_staged(dst, *self._stage(src, room))
 
 
 # --- Overrun accounting for readers with guarantee=False that place data by sequence index ----------

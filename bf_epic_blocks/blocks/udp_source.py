@@ -24,7 +24,8 @@ import logging
 import numpy as np
 
 from ..io.udp import UDPCapture
-from ._compat import assign_storage, bfp, span_array
+from ..imaging._xp import release_free_pinned
+from ._compat import HostToDevice, assign_storage, bfp, span_array
 from .headers import efield_header
 from .sources import _as_storage, _Reader
 
@@ -75,6 +76,9 @@ class UDPSourceBlock(bfp.SourceBlock):
         self.station, self.progress, self.nsequences = station, progress, int(sequences)
         self.udp_stats = self.capture.stats
         self._info = None
+        # gulps go to a GPU ring through staging buffers made once for a whole gulp: a page-locked block
+        # per chunk size (cupy.asarray's way) stays in CuPy's pinned pool for the life of the process
+        self._h2d = HostToDevice()
 
     # -- sequences come from the capture, not from a list of names -------------------------------
     def _names(self):
@@ -117,6 +121,13 @@ class UDPSourceBlock(bfp.SourceBlock):
              if isinstance(getattr(b, "stats", None), dict) and any(r is ring for r in getattr(b, "irings", []))]
         return {"skipped downstream": int(sum(n))} if n else {}
 
+    def _put(self, dst, n, host):
+        """``dst[:n] = host``: into a GPU span through the staging buffers, else in place."""
+        if type(dst).__module__.startswith("cupy"):
+            self._h2d.copy(dst[:n], host, room=dst.nbytes)
+        else:
+            assign_storage(dst[:n], host)
+
     # -- SourceBlock hooks -------------------------------------------------------------------------
     def create_reader(self, sourcename):
         return _UDPReader(info=self._info, next_t=0, pending=None, name=sourcename, capture=self.capture)
@@ -127,6 +138,7 @@ class UDPSourceBlock(bfp.SourceBlock):
                                    f"{self.capture.label}: the packets", "name the station that sends them")
 
     def on_sequence(self, reader, sourcename):
+        release_free_pinned()     # what the last stream's sizes left free, before this one's are made
         info = reader.info
         st = self._station(info)
         lay = info.layout
@@ -153,12 +165,12 @@ class UDPSourceBlock(bfp.SourceBlock):
             raise RuntimeError(f"{self.capture.label}: gulp at sample {t0}, expected {reader.next_t} (internal error)")
         if kind == "data":
             n = min(room, what.shape[0])
-            assign_storage(dst[:n], _as_storage(what[:n], dst.dtype))
+            self._put(dst, n, _as_storage(what[:n], dst.dtype))
             rest = what[n:]
             reader.pending = (kind, t0 + n, rest) if rest.shape[0] else None
         else:  # samples the block was too slow to take from the capture: zeros, counted there
             n = min(room, what)
-            assign_storage(dst[:n], _as_storage(np.zeros((n,) + tuple(dst.shape[1:]), np.uint8), dst.dtype))
+            self._put(dst, n, _as_storage(np.zeros((n,) + tuple(dst.shape[1:]), np.uint8), dst.dtype))
             reader.pending = (kind, t0 + n, what - n) if what > n else None
         reader.next_t += n
         if self.progress:

@@ -76,6 +76,15 @@ def pinned_empty(shape, dtype):
     return np.frombuffer(mem, dtype, count).reshape(shape)
 
 
+def release_free_pinned() -> None:
+    """Hand the page-locked host blocks CuPy's pinned pool keeps free back to the system (none in use
+    is touched). The pool keeps a freed block for a later request of exactly its size; a sequence
+    whose sizes differ from the last's (a partial gulp, another channel count) leaves its blocks
+    behind, resident, unless they are let go."""
+    if _cupy is not None:
+        _cupy.get_default_pinned_memory_pool().free_all_blocks()
+
+
 def get_xp(*arrays):
     """The array module (numpy or cupy) that owns ``arrays`` (numpy for host arrays/scalars)."""
     if _cupy is not None:

@@ -98,6 +98,14 @@ class ShardedOperator:
             for lane in self.lanes:
                 with cp.cuda.Device(lane.device):
                     lane.scatter = GridPlacement(index, n, cp)
+        # the operators and placements are built on each device's current stream, which the lanes'
+        # non-blocking streams do not wait for by themselves: on a busy GPU the first gulp was imaged
+        # with an operator still being built
+        for lane in self.lanes:
+            with cp.cuda.Device(lane.device):
+                built = cp.cuda.get_current_stream().record()
+                lane.copy.wait_event(built)
+                lane.compute.wait_event(built)
 
     def image(self, efield, products=None, *, remove_autocorr=False, method="auto", accumulate=None,
               decode=None, out="host"):

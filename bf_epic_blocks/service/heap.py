@@ -52,10 +52,32 @@ class _Mallinfo2(ctypes.Structure):
                                                       "fsmblks", "uordblks", "fordblks", "keepcost")]
 
 
+_STATUS = {"RssAnon:": "rss_anon", "RssFile:": "rss_file", "RssShmem:": "rss_shmem", "VmLck:": "locked"}
+
+
+def _status_figures(path: str = "/proc/self/status") -> dict:
+    """The resident set by kind and the thread count from ``/proc/<pid>/status`` (Linux); {} elsewhere."""
+    out = {}
+    try:
+        with open(path) as f:
+            for line in f:
+                parts = line.split()
+                if parts and parts[0] in _STATUS:
+                    out[_STATUS[parts[0]]] = int(parts[1]) * 1024      # kB
+                elif parts and parts[0] == "Threads:":
+                    out["threads"] = int(parts[1])
+    except (OSError, ValueError, IndexError):
+        pass
+    return out
+
+
 def memory_figures() -> dict:
     """This process's memory by kind, in bytes, so that a service whose resident set grows shows where:
 
-    * ``rss``: resident (``/proc/self/statm``; Linux);
+    * ``rss``: resident (``/proc/self/statm``; Linux), and of it ``rss_anon`` (the process's own: malloc,
+      page-locked buffers, the CUDA driver's host copies), ``rss_file`` (pages of files mapped: shared
+      libraries as their code is first run) and ``rss_shmem``; ``locked`` (page-locked, ``VmLck``) and
+      ``threads`` (a count), from ``/proc/self/status``;
     * ``heap_in_use``, ``heap_free``, ``heap_mapped``: glibc malloc's arenas, all of them (``mallinfo2``,
       glibc >= 2.33): allocated, free but kept, and in blocks of their own mapping;
     * with CuPy already in use (never imported here): ``gpu_pool_used`` and ``gpu_pool_held`` (CuPy's
@@ -69,6 +91,7 @@ def memory_figures() -> dict:
             out["rss"] = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     except (OSError, ValueError, IndexError, AttributeError):
         pass
+    out.update(_status_figures())
     try:
         fn = _libc().mallinfo2
         fn.restype = _Mallinfo2

@@ -117,7 +117,7 @@ def _collector(monitor, get_snapshot):
                 for k, v in sorted(d.items()):
                     yield GaugeMetricFamily(f"bf_epic_{part}_{k}", f"{part} {k.replace('_', ' ')}", value=float(v))
             for k, v in sorted((snap.get("memory") or {}).items()):
-                unit = "" if k.endswith("_blocks") else "_bytes"
+                unit = "" if k.endswith("_blocks") or k == "threads" else "_bytes"     # counts, not bytes
                 yield GaugeMetricFamily(f"bf_epic_memory_{k}{unit}", f"this process's memory: {k.replace('_', ' ')} "
                                         "(bf_epic_blocks.service.heap.memory_figures)", value=float(v))
             status, _ = assess(snap, monitor.limits, monitor.cadence_s)

@@ -80,6 +80,26 @@ def synthetic_capture(path, nchan, ntime=25):
     return path
 
 
+def resident_by_mapping(pid, top=12):
+    """{mapping name: resident MB} of the ``top`` largest, from ``/proc/<pid>/smaps`` (a shared library, a
+    device file, ``[heap]``, ``[anon]`` for the anonymous rest), so that a resident set that grows says
+    what grew; {} where smaps cannot be read."""
+    by = {}
+    name = None
+    try:
+        with open(f"/proc/{pid}/smaps") as fh:
+            for line in fh:
+                head = line.split(None, 5)
+                if len(head) >= 5 and "-" in head[0] and not head[0].endswith(":"):
+                    name = head[5].strip() if len(head) == 6 else "[anon]"
+                elif head and head[0] == "Rss:" and name is not None:
+                    by[name] = by.get(name, 0) + int(head[1])
+    except (OSError, ValueError, IndexError):
+        return {}
+    big = sorted(by.items(), key=lambda kv: -kv[1])[:top]
+    return {Path(k).name if k.startswith("/") else k: round(v / 1024, 1) for k, v in big}
+
+
 def scrape(url):
     """(metrics {name: value} of the unlabelled samples, health JSON) or (None, None) while it does not answer."""
     from prometheus_client.parser import text_string_to_metric_families
@@ -168,6 +188,7 @@ def main(argv=None):
             m, h = scrape(url)
             now, peak = rss_mb(run.pid)
             rows.append({"t_s": round(time.monotonic() - t0, 1), "rss_mb": now, "peak_mb": peak,
+                         "mappings": resident_by_mapping(run.pid),
                          "health": None if h is None else h.get("status"),
                          "reasons": None if h is None else h.get("reasons"), "metrics": m or {}})
             stop.wait(args.every)
@@ -226,7 +247,9 @@ def main(argv=None):
         "output budget held": bool(folder) and max(folder[len(folder) // 2:]) <= 1.1 * allowed and deleted > 0,
         "replays ended cleanly": all(p.returncode == 0 for _, p in phases),
     }
-    res = {"benchmark": "soak_service", "date": utc_now(), "machine": machine("cpu"), "minutes": args.minutes,
+    on_gpu = "device=gpu" in [kv.replace(" ", "") for kv in args.set]
+    res = {"benchmark": "soak_service", "date": utc_now(), "machine": machine("gpu" if on_gpu else "cpu"),
+           "minutes": args.minutes,
            "rate": args.rate, "scrapes": len(seen), "sequences": seqs, "health": health,
            "left_go_reasons": seen[left]["reasons"] if left is not None else None,
            "rss_first_peak_mb": first, "rss_last_peak_mb": final, "term_s": round(term_s, 2), "exit": rc,
@@ -238,6 +261,7 @@ def main(argv=None):
                                                                          "bf_epic_budget", "bf_epic_health"))},
            "checks": checks, "samples": [{**{k: r[k] for k in ("t_s", "rss_mb", "peak_mb", "health", "reasons")},
                         "folder_bytes": r["metrics"].get("bf_epic_budget_folder_bytes"),
+                        "mappings_mb": r["mappings"],
                         # where the resident set goes (the service's own figures: malloc, CuPy's pools)
                         "memory": {k[len("bf_epic_memory_"):]: v for k, v in r["metrics"].items()
                                    if k.startswith("bf_epic_memory_")}} for r in rows]}
