@@ -52,7 +52,7 @@ class _Mallinfo2(ctypes.Structure):
                                                       "fsmblks", "uordblks", "fordblks", "keepcost")]
 
 
-_STATUS = {"RssAnon:": "rss_anon", "RssFile:": "rss_file", "RssShmem:": "rss_shmem", "VmLck:": "locked"}
+_STATUS = {"RssAnon:": "rss_anon", "RssFile:": "rss_file", "RssShmem:": "rss_shmem"}
 
 
 def _status_figures(path: str = "/proc/self/status") -> dict:
@@ -74,10 +74,10 @@ def _status_figures(path: str = "/proc/self/status") -> dict:
 def memory_figures() -> dict:
     """This process's memory by kind, in bytes, so that a service whose resident set grows shows where:
 
-    * ``rss``: resident (``/proc/self/statm``; Linux), and of it ``rss_anon`` (the process's own: malloc,
-      page-locked buffers, the CUDA driver's host copies), ``rss_file`` (pages of files mapped: shared
-      libraries as their code is first run) and ``rss_shmem``; ``locked`` (page-locked, ``VmLck``) and
-      ``threads`` (a count), from ``/proc/self/status``;
+    * ``rss``: resident (``/proc/self/statm``; Linux), and of it, from ``/proc/self/status``: ``rss_anon``
+      (the process's own: malloc, the CUDA driver's host copies), ``rss_file`` (pages of files mapped:
+      shared libraries as their code is first run) and ``rss_shmem`` (shared: on a GPU, CuPy's page-locked
+      buffers, which the driver maps shared); ``threads`` (a count);
     * ``heap_in_use``, ``heap_free``, ``heap_mapped``: glibc malloc's arenas, all of them (``mallinfo2``,
       glibc >= 2.33): allocated, free but kept, and in blocks of their own mapping;
     * with CuPy already in use (never imported here): ``gpu_pool_used`` and ``gpu_pool_held`` (CuPy's
