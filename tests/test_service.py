@@ -245,23 +245,26 @@ def test_a_run_scraped_while_it_goes(tmp_path):
     seen, pics, got, page = [], {}, {}, []
 
     def scrape(srv):
+        def once():
+            code, body, _ = _get(srv.url + "/metrics")
+            fams = {f.name: f for f in text_string_to_metric_families(body)}
+            seen.append(fams["bf_epic_data_seconds"].samples[0].value if "bf_epic_data_seconds" in fams else 0.0)
+            if len(seen) == 1:
+                _get(srv.url + "/trigger", data=b"operator", headers={"Authorization": f"Bearer {token}"})
+                seen.append(_get(srv.url + "/health")[0])
+            pics.update(srv.pictures())
+            for k in srv.pictures():
+                req = urllib.request.Request(srv.url + f"/png/{k}")
+                with urllib.request.urlopen(req, timeout=10) as r:
+                    got[k] = (r.status, r.read()[:8])
+            page.append(_get(srv.url + "/")[1])
+
         def loop():
             while srv._thread is not None:
                 try:
-                    code, body, _ = _get(srv.url + "/metrics")
-                except OSError:
+                    once()
+                except OSError:       # the run ended and its server closed between two requests
                     break
-                fams = {f.name: f for f in text_string_to_metric_families(body)}
-                seen.append(fams["bf_epic_data_seconds"].samples[0].value if "bf_epic_data_seconds" in fams else 0.0)
-                if len(seen) == 1:
-                    _get(srv.url + "/trigger", data=b"operator", headers={"Authorization": f"Bearer {token}"})
-                    seen.append(_get(srv.url + "/health")[0])
-                pics.update(srv.pictures())
-                for k in srv.pictures():
-                    req = urllib.request.Request(srv.url + f"/png/{k}")
-                    with urllib.request.urlopen(req, timeout=10) as r:
-                        got[k] = (r.status, r.read()[:8])
-                page.append(_get(srv.url + "/")[1])
                 time.sleep(0.6)
         threading.Thread(target=loop, daemon=True).start()
 
