@@ -260,11 +260,12 @@ def capture_source_class(path):
     return {"tbf": TBFSourceBlock, "tbx": TBXSourceBlock}[detect_format(path)]
 
 
-def _write_span(dst, host, h2d):
+def _write_span(dst, host, h2d, room=None):
     """Host samples (in the ring's storage form: packed ci4 bytes, ...) into span array ``dst``:
-    on a GPU an asynchronous copy of the packed bytes through pinned memory (``h2d``)."""
+    on a GPU an asynchronous copy of the packed bytes through pinned memory (``h2d``; ``room``: bytes
+    its staging buffers are made for, see :class:`~._compat.HostToDevice`)."""
     if type(dst).__module__.startswith("cupy"):
-        h2d.copy(dst, host)
+        h2d.copy(dst, host, room=room)
     else:
         assign_storage(dst, _as_storage(host, dst.dtype))
 

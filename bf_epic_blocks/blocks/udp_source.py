@@ -25,9 +25,9 @@ import numpy as np
 
 from ..io.udp import UDPCapture
 from ..imaging._xp import release_free_pinned
-from ._compat import HostToDevice, assign_storage, bfp, span_array
+from ._compat import HostToDevice, bfp, span_array
 from .headers import efield_header
-from .sources import _as_storage, _Reader
+from .sources import _Reader, _write_span
 
 log = logging.getLogger(__name__)
 
@@ -121,13 +121,6 @@ class UDPSourceBlock(bfp.SourceBlock):
              if isinstance(getattr(b, "stats", None), dict) and any(r is ring for r in getattr(b, "irings", []))]
         return {"skipped downstream": int(sum(n))} if n else {}
 
-    def _put(self, dst, n, host):
-        """``dst[:n] = host``: into a GPU span through the staging buffers, else in place."""
-        if type(dst).__module__.startswith("cupy"):
-            self._h2d.copy(dst[:n], host, room=dst.nbytes)
-        else:
-            assign_storage(dst[:n], host)
-
     # -- SourceBlock hooks -------------------------------------------------------------------------
     def create_reader(self, sourcename):
         return _UDPReader(info=self._info, next_t=0, pending=None, name=sourcename, capture=self.capture)
@@ -165,12 +158,12 @@ class UDPSourceBlock(bfp.SourceBlock):
             raise RuntimeError(f"{self.capture.label}: gulp at sample {t0}, expected {reader.next_t} (internal error)")
         if kind == "data":
             n = min(room, what.shape[0])
-            self._put(dst, n, _as_storage(what[:n], dst.dtype))
+            _write_span(dst[:n], what[:n], self._h2d, room=dst.nbytes)
             rest = what[n:]
             reader.pending = (kind, t0 + n, rest) if rest.shape[0] else None
         else:  # samples the block was too slow to take from the capture: zeros, counted there
             n = min(room, what)
-            self._put(dst, n, _as_storage(np.zeros((n,) + tuple(dst.shape[1:]), np.uint8), dst.dtype))
+            _write_span(dst[:n], np.zeros((n,) + tuple(dst.shape[1:]), np.uint8), self._h2d, room=dst.nbytes)
             reader.pending = (kind, t0 + n, what - n) if what > n else None
         reader.next_t += n
         if self.progress:

@@ -68,22 +68,17 @@ def operator_bytes(nchan: int, npix: int, nant: int, precision: str, *, gpu: boo
     * ``building``: the most its construction adds while it runs (the fused modes' per-chunk working
       arrays; freed once built, but it must fit).
     """
-    import math
-
     import numpy as np
 
-    from .fused import PIECES, _CHUNK_BYTES_GPU, _pad, operand_shape
+    from .fused import PIECES, _pad, gpu_chunk_channels, operand_bytes
     from .gemm import STACKED, stack_operator
     nant_in = nant if nant_in is None else int(nant_in)
     cplx = 16 if precision == "fp64" else 8
     parts = {"phases": nchan * npix * nant * cplx, "operands": 0, "building": 0}
     if gpu and precision in PIECES:
         kpad, apad = _pad(npix, 64), _pad(nant_in, 64)
-        pa = 2 if pols_differ else 1
-        # the int8 pieces (tiled or not, the same bytes) and a float32 scale per row
-        parts["operands"] = (math.prod(operand_shape(nchan, pa, npix, nant_in, PIECES[precision], False))
-                             + nchan * pa * 4 * kpad)
-        chunk = min(nchan, max(16, _CHUNK_BYTES_GPU // (kpad * apad * 8)))
+        parts["operands"] = operand_bytes(nchan, 2 if pols_differ else 1, npix, nant_in, PIECES[precision])
+        chunk = min(nchan, gpu_chunk_channels(npix, nant_in))
         # D, its residual, the padded copy, its two real halves (complex64 each) and the chunk's pieces
         parts["building"] = chunk * kpad * apad * (5 * 8 + PIECES[precision] * 2 * 2)
     elif gpu and precision in STACKED:

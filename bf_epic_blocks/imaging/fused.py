@@ -60,6 +60,8 @@ samples) and keep B whole in shared memory, so that the pieces after the first r
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..cuda import get_kernel, register
@@ -112,6 +114,18 @@ def operand_shape(C, PA, K, nant_in, pieces, tiled):
     return (C, PA, 2 * Kpad // 128, pieces, KD // 128, TILE) if tiled else (C, PA, pieces, 2 * Kpad, KD)
 
 
+def operand_bytes(C, PA, K, nant_in, pieces):
+    """Bytes of what :func:`quantise_operator` returns for these sizes: its int8 pieces (tiled or not, the
+    same bytes) and a float32 scale per padded row."""
+    return math.prod(operand_shape(C, PA, K, nant_in, pieces, False)) + 4 * C * PA * _pad(K, 64)
+
+
+def gpu_chunk_channels(K, nant_in, chunk=16):
+    """Channels :func:`quantise_operator` quantises at once on a GPU: at least ``chunk``, and as many as
+    :data:`_CHUNK_BYTES_GPU` of padded complex64 operator hold."""
+    return max(int(chunk), _CHUNK_BYTES_GPU // (_pad(K, 64) * _pad(nant_in, 64) * 8))
+
+
 def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tiled=False, out=None):
     """The operator as int8 pieces in the kernel's layout (module docstring).
 
@@ -144,7 +158,7 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
         if Aq.shape != shape or osc.shape != (C, PA, Kpad):
             raise ValueError(f"quantise_operator: out shaped {Aq.shape}, {osc.shape}; expected {shape}, {(C, PA, Kpad)}")
     if xp is not np:
-        chunk = max(chunk, _CHUNK_BYTES_GPU // (Kpad * Apad * 8))
+        chunk = gpu_chunk_channels(K, nant_in, chunk)
     kidx = xp.asarray(keep_index)
     for c0 in range(0, C, chunk):
         cs = slice(c0, min(C, c0 + chunk))
