@@ -160,6 +160,55 @@ def test_covariance_sums_ci4_and_complex_match_the_definition(xp):
     assert np.allclose(to_numpy(s_int.mean()), want / 300)
 
 
+def test_fitted_scale_is_the_chosen_one_and_the_least_squares_definition(xp):
+    """fit_scale against truth: R made exactly of g g* (M + s E) gives back the chosen s per channel and
+    pol; with noise added, the result is the least-squares minimiser written out elementwise in float64
+    here (the residual's derivative in s is zero there), and a negative optimum is clipped to 0."""
+    rng = np.random.default_rng(21)
+    c, p, n = 3, 2, 24
+    cplx = lambda *sh: rng.standard_normal(sh) + 1j * rng.standard_normal(sh)
+    M, E = cplx(c, p, n, n), cplx(c, p, n, n)
+    g = cplx(c, p, n)
+    W = (rng.uniform(size=(c, 1, n, n)) > 0.3).astype(float)
+    s_true = rng.uniform(0.2, 3.0, (c, p))
+    GG = g[..., :, None] * np.conj(g[..., None, :])
+    R = GG * (M + s_true[..., None, None] * E)
+    cdt = np.complex128 if xp is np else xp.complex64
+    got = to_numpy(skycal.fit_scale(*(xp.asarray(a.astype(cdt)) for a in (R, M, E, g)), xp.asarray(W)))
+    assert np.allclose(got, s_true, rtol=1e-10 if xp is np else 2e-4)
+    Rn = R + 5.0 * cplx(c, p, n, n)
+    A = GG * E
+    want = (W * np.conj(A) * (Rn - GG * M)).real.sum((-1, -2)) / (W * np.abs(A) ** 2).sum((-1, -2))
+    got = to_numpy(skycal.fit_scale(*(xp.asarray(a.astype(cdt)) for a in (Rn, M, E, g)), xp.asarray(W)))
+    assert np.allclose(got, np.clip(want, 0, None), rtol=1e-9 if xp is np else 1e-3, atol=1e-6)
+    resid = lambda s: (W * np.abs(Rn - GG * (M + s[..., None, None] * E)) ** 2).sum((-1, -2))
+    assert np.all(resid(want) <= resid(want * 1.01)) and np.all(resid(want) <= resid(want * 0.99))
+    neg = to_numpy(skycal.fit_scale(*(xp.asarray(a.astype(cdt)) for a in (GG * (M - E), M, E, g)), xp.asarray(W)))
+    assert np.all(neg == 0)
+
+
+def test_input_health_figures_are_their_definitions(xp):
+    """input_health's residual, power and baseline count against the sums written out here, with one
+    input left out of the solve (its baselines do not count for the others)."""
+    rng = np.random.default_rng(22)
+    c, p, n = 5, 2, 12
+    cplx = lambda *sh: rng.standard_normal(sh) + 1j * rng.standard_normal(sh)
+    R, M, g = cplx(c, p, n, n), cplx(c, p, n, n), cplx(c, p, n)
+    R = R + np.conj(R.swapaxes(-1, -2)) + 10 * np.eye(n)
+    W = (rng.uniform(size=(c, n, n)) > 0.2).astype(float)
+    live = np.ones((p, n), bool)
+    live[1, 4] = False
+    h = skycal.input_health(*(xp.asarray(a) for a in (R, M, W, g)), live)
+    Wl = W[:, None] * live[None, :, :, None] * live[None, :, None, :]
+    fit = g[..., :, None] * np.conj(g[..., None, :]) * M
+    ref = (Wl * np.abs(fit) ** 2).sum(-1)
+    res = np.where(ref > 0, (Wl * np.abs(R - fit) ** 2).sum(-1) / np.where(ref > 0, ref, 1), np.inf)
+    assert np.allclose(h["residual"], np.median(res, axis=0).T, rtol=1e-10)
+    assert np.allclose(h["power"], np.median(np.einsum("cpaa->cpa", R).real, axis=0).T)
+    assert np.allclose(h["gain_amp"], np.median(np.abs(g), axis=0).T)
+    assert np.array_equal(h["baselines"], np.median((Wl > 0).sum(-1), axis=0).T)
+
+
 def test_bad_input_is_a_clear_error():
     st = lwasv()
     f = np.array([74e6])

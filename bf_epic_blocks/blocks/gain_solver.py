@@ -521,9 +521,11 @@ class GainSolverBlock(bfp.SinkBlock):
             # 4-bit inputs driven so hard that their samples clip lose correlation, and their gains
             # come out wrong by tens of per cent: flagged from the raw power (4-bit units^2)
             idx = xp.arange(lay["nstand"])
-            praw = np.median(to_numpy(raw[..., idx, idx].real), axis=0).T                 # (a, p)
+            praw = to_numpy(xp.median(raw[..., idx, idx].real, axis=0)).T                  # (a, p)
             saturated = clip_fraction(praw) > self.saturated_above
-        R = raw.astype(cdt) * w[..., :, None] * xp.conj(w[..., None, :])
+        R = raw.astype(cdt, copy=False)          # the sums' mean: an array of this solve's own, scaled in place
+        R *= w[..., :, None]
+        R *= xp.conj(w[..., None, :])
         M = model_covariance(lay["xyz_m"], lay["freq_hz"], model.lmn, model.flux_pol, xp=xp, dtype=cdt)
         E = None
         if self.diffuse:

@@ -237,6 +237,20 @@ def reference_phase(g, ref):
     return g * ph[..., None]
 
 
+def _cycles_exp(xp, a, b, dtype):
+    """exp(2 pi i a b) in ``dtype``, formed where ``xp`` computes: the cycles a b in float64, reduced to
+    [-1/2, 1/2] before the exponential (a whole band's delay-search table is ~5e5 exponentials, tens of
+    ms on a host, microseconds on a GPU)."""
+    cyc = xp.asarray(a, xp.float64) * xp.asarray(b, xp.float64)
+    cyc = cyc - xp.rint(cyc)
+    return xp.exp((2j * math.pi) * cyc).astype(dtype)
+
+
+def _median0(a):
+    """The median over axis 0 where ``a`` lives, as a NumPy array (a GPU's arrays come back reduced)."""
+    return to_numpy(get_xp(a).median(a, axis=0))
+
+
 def smooth_across_channels(g, freq_hz, valid, window, max_delay_s):
     """Regularise per-channel gains across the band: a delay per input, then a running complex mean.
 
@@ -260,7 +274,7 @@ def smooth_across_channels(g, freq_hz, valid, window, max_delay_s):
     ntau = 2 * int(math.ceil(tmax / step)) + 1 if tmax > 0 else 1
     taus = (np.arange(ntau) - ntau // 2) * step
     fc = f - f.mean()                                    # centred: the fitted phase is the band-centre one
-    E = xp.asarray(np.exp(2j * math.pi * fc[:, None] * taus[None, :]).astype(np.complex128)).astype(g.dtype)
+    E = _cycles_exp(xp, fc[:, None], taus[None, :], g.dtype)                                # (c, ntau)
     gv = (g * v).transpose(1, 2, 0)                                                         # (p, a, c)
     power = xp.abs(xp.matmul(gv, E))                                                        # (p, a, ntau)
     k = to_numpy(xp.argmax(power, axis=-1))
@@ -274,7 +288,7 @@ def smooth_across_channels(g, freq_hz, valid, window, max_delay_s):
         den = ym - 2 * y0 + yp
         inner = (k > 0) & (k < ntau - 1) & (den < 0)
         tau = tau + np.where(inner, 0.5 * (ym - yp) / np.where(inner, den, 1) * step, 0.0)
-    rot = xp.asarray(np.exp(2j * math.pi * fc[:, None, None] * tau[None]).astype(np.complex128)).astype(g.dtype)
+    rot = _cycles_exp(xp, fc[:, None, None], tau[None], g.dtype)                           # (c, p, a)
     r = g * rot * v                                                                         # (c, p, a)
     w = int(min(window, nchan))
     # running sums over channels (valid ones only): a box of w channels centred on each
@@ -288,6 +302,11 @@ def smooth_across_channels(g, freq_hz, valid, window, max_delay_s):
     cnt = cv[hi_d] - cv[lo_d]
     sm = xp.where(cnt > 0, num / xp.where(cnt > 0, cnt, 1), 0)
     return sm * xp.conj(rot), tau
+
+
+def _abs2(z):
+    """|z|^2 of a complex array, without the square root."""
+    return z.real ** 2 + z.imag ** 2
 
 
 def input_health(R, M, W, g, live):
@@ -304,15 +323,18 @@ def input_health(R, M, W, g, live):
     lv = xp.asarray(live).astype(R.real.dtype)                                              # (p, a)
     W4 = W[:, None] if W.ndim == 3 else W
     Wl = W4 * lv[None, :, :, None] * lv[None, :, None, :]
-    fit = g[..., :, None] * xp.conj(g[..., None, :]) * M
-    res = xp.sum(Wl * xp.abs(R - fit) ** 2, axis=-1)
-    ref = xp.sum(Wl * xp.abs(fit) ** 2, axis=-1)
+    fit = g[..., :, None] * xp.conj(g[..., None, :])
+    fit *= M
+    ref = xp.sum(Wl * _abs2(fit), axis=-1)
+    fit -= R                                                                                # -(the residual)
+    res = xp.sum(Wl * _abs2(fit), axis=-1)
+    del fit
     rel = xp.where(ref > 0, res / xp.where(ref > 0, ref, 1), np.inf)
     power = R[..., idx, idx].real
     amp = xp.abs(g)
     ppg = xp.where(amp > 0, power / xp.where(amp > 0, amp, 1) ** 2, np.inf)
     nbl = xp.sum(Wl > 0, axis=-1)
-    med = lambda a: np.median(to_numpy(a), axis=0).T                                      # (c, p, a) -> (a, p)
+    med = lambda a: _median0(a).T                                                           # (c, p, a) -> (a, p)
     return {"gain_amp": med(amp), "power": med(power), "power_per_gain": med(ppg), "residual": med(rel),
             "baselines": med(nbl)}
 
@@ -336,12 +358,20 @@ def _robust_median(x, good):
 
 def fit_scale(R, M, E, g, W):
     """The scale s >= 0 per (channel, pol) minimising sum W |R - g g* (M + s E)|^2 with g held:
-    s = Re sum W conj(A) (R - g g* M) / sum W |A|^2, A = g g* E. Returns float (nchan, npol)."""
+    s = Re sum W conj(A) (R - g g* M) / sum W |A|^2, A = g g* E. Returns float (nchan, npol).
+
+    Formed as quadratic forms in g and a = |g|^2 (an identity, no approximation): with X = W conj(E),
+    num = Re [g^H (X . R) g - a^T (X . M) a] and den = a^T (W |E|^2) a, so that no (nant, nant) product
+    of the gains is ever made (three elementwise products and three batched matrix-vector products
+    instead of ten full-size passes)."""
     xp = get_xp(R)
-    GG = g[..., :, None] * xp.conj(g[..., None, :])
-    A = GG * E
-    num = xp.sum(W * (xp.conj(A) * (R - GG * M)).real, axis=(-1, -2))
-    den = xp.sum(W * (A.real ** 2 + A.imag ** 2), axis=(-1, -2))
+    a = _abs2(g)                                                                            # (..., nant)
+    X = W * xp.conj(E)
+
+    def quad(A, v):          # v^H A v, batched over the leading axes
+        return xp.sum(xp.conj(v) * xp.matmul(A, v[..., None])[..., 0], axis=-1)
+    num = (quad(X * R, g) - quad(X * M, a.astype(R.dtype))).real
+    den = quad(W * _abs2(E), a).real
     return xp.clip(xp.where(den > 0, num / xp.where(den > 0, den, 1), 0), 0, None)
 
 
@@ -382,7 +412,7 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
         reasons[sat] = "saturated"
         sflag = sflag | sat
     idx = np.arange(nant)
-    powr = np.median(to_numpy(R[..., idx, idx].real), axis=0).T                           # (a, p)
+    powr = _median0(R[..., idx, idx].real).T                                               # (a, p)
     nopow = ~sflag & ~(np.isfinite(powr) & (powr > 0))
     reasons[nopow] = "no-power"
     if flags0 is not None:
@@ -394,7 +424,7 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     if not bool(to_numpy(xp.any(W > 0))):
         raise ValueError(f"solve_gains: no baseline is longer than min_baseline_lambda = {s.min_baseline_lambda} "
                          f"wavelengths at {float(np.max(freq_hz)) / 1e6:.3f} MHz")
-    mpow = np.median(to_numpy(xp.abs(M[..., idx, idx])), axis=0).T      # the point sources alone
+    mpow = _median0(xp.abs(M[..., idx, idx])).T                          # the point sources alone
     if not np.any(mpow > 0):
         raise ValueError("solve_gains: the model is empty (no source above the horizon, or zero flux)")
     g = None if g0 is None else xp.asarray(g0).astype(R.dtype)
@@ -446,10 +476,12 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     g = reference_phase(g, ref)
     valid = xp.asarray(np.broadcast_to(good.T[None], (nchan, npol, nant)) & conv[:, :, None])
     gs, tau = smooth_across_channels(g, freq_hz, valid, s.smooth_channels, s.max_delay_s)
-    gs = to_numpy(gs).transpose(0, 2, 1)                                                    # (c, a, p)
-    weak = np.abs(gs) <= 1e-6 * np.nanmax(np.abs(gs))
-    gs = np.where(good[None] & ~weak, gs, 0)
-    corr = np.where(gs != 0, 1.0 / np.where(gs != 0, gs, 1), 0)
+    gs = gs.astype(xp.complex128).transpose(0, 2, 1)                                        # (c, a, p)
+    amp = xp.abs(gs)
+    keep = xp.asarray(good)[None] & (amp > 1e-6 * xp.nanmax(amp))     # a NaN gain is not kept
+    gs = xp.where(keep, gs, 0)
+    corr = xp.where(keep, 1.0 / xp.where(keep, gs, 1), 0)
+    gs, corr = to_numpy(gs), to_numpy(corr)
     quality = {k: np.asarray(v, np.float64) for k, v in h.items()}
     quality.update(converged=conv, delay_s=np.asarray(tau, np.float64).T)
     flags = reasons != ""

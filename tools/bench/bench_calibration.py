@@ -240,13 +240,45 @@ def case_cost(args, work):
     return rows
 
 
+def _stage_timers(xp, names):
+    """Wrap ``skycal``'s stage functions so each call is timed between two device synchronisations
+    (a profile: the waits change the total, so the solves' walls are measured without these wrappers).
+    Returns (seconds per stage, calls per stage, undo)."""
+    from benchlib import synchronize
+    from bf_epic_blocks.imaging import skycal
+    spent, calls, saved = {n: 0.0 for n in names}, {n: 0 for n in names}, {}
+    for n in names:
+        fn = saved[n] = getattr(skycal, n)
+
+        def timed(*a, _fn=fn, _n=n, **k):
+            synchronize(xp)
+            t0 = time.perf_counter()
+            out = _fn(*a, **k)
+            synchronize(xp)
+            spent[_n] += time.perf_counter() - t0
+            calls[_n] += 1
+            return out
+        setattr(skycal, n, timed)
+
+    def undo():
+        for n, fn in saved.items():
+            setattr(skycal, n, fn)
+    return spent, calls, undo
+
+
 def case_solver(args, work):
     """The solver's two parts alone on an idle device, at the whole band: summing the covariances of 1 s of
-    4-bit data (25 gulps of 1,024 frames x 784 channels x 256 stands x 2 pols) and one solve."""
+    4-bit data (25 gulps of 1,024 frames x 784 channels x 256 stands x 2 pols) and solves: a cold one (no
+    start, no diffuse term) and a live solver's steady state (the analytic Galactic sky fitted with its
+    scale, each solve started from the last solution with its flags carried, the gains drifting between
+    solves), with the live solve's time by stage."""
     import math
+
+    from astropy.time import Time
 
     from benchlib import array_module, synchronize
     from bf_epic_blocks.imaging import skycal
+    from bf_epic_blocks.sky.model import diffuse_model
     from bf_epic_blocks.station.tables import load_station
     xp = array_module(args.device)
     st = load_station("lwasv")
@@ -264,16 +296,33 @@ def case_solver(args, work):
         sums.add(gulp, ci4=True)
     synchronize(xp)
     t_sum = time.perf_counter() - t0
+    # the integer GEMMs alone, the same calls on rows already laid out: what the sums' other part (the
+    # rows' layout from the 4-bit bytes) costs is the difference
+    from bf_epic_blocks.imaging.gemm import int_gram
+    rows = xp.asarray(rng.integers(-8, 8, (min(sums.chunk, nchan), 2 * st.nstand, 1024), dtype=np.int8))
+    G = xp.zeros((rows.shape[0], 2 * st.nstand, 2 * st.nstand), xp.int32 if xp is not np else np.float64)
+    ncall = ngulp * 2 * (-(-nchan // sums.chunk))
+    int_gram(rows, out=G)
+    synchronize(xp)
+    t0 = time.perf_counter()
+    for _ in range(ncall):
+        int_gram(rows, out=G, accumulate=True)
+    synchronize(xp)
+    t_gemm = time.perf_counter() - t0
     lmn = np.array([[0.10, 0.15, math.sqrt(1 - 0.0325)], [-0.30, 0.50, math.sqrt(1 - 0.34)]])
     flux = np.full((nchan, 2, 2), 8500.0)
     cdt = np.complex128 if xp is np else xp.complex64
     M = skycal.model_covariance(st.xyz_m, f, lmn, flux, xp=xp, dtype=cdt)
     amp = np.exp(0.25 * rng.standard_normal((st.nstand, 2)))
     g = amp * np.exp(1j * rng.uniform(0, 2 * np.pi, (st.nstand, 2)))
-    G = xp.asarray(np.broadcast_to(g.T[None], (nchan, 2, st.nstand)).astype(cdt))
-    R = G[..., :, None] * xp.conj(G[..., None, :]) * M
+
+    def corrupt(gains, model):
+        G = xp.asarray(np.broadcast_to(gains.T[None], (nchan, 2, st.nstand)).astype(cdt))
+        R = G[..., :, None] * xp.conj(G[..., None, :]) * model
+        R[..., idx, idx] += 1000.0
+        return R
     idx = xp.arange(st.nstand)
-    R[..., idx, idx] += 1000.0
+    R = corrupt(g, M)
     W = skycal.baseline_weights(st.xyz_m, f, 4.0, xp=xp)
     times = []
     for rep in range(3):
@@ -282,11 +331,56 @@ def case_solver(args, work):
         sol = skycal.solve_gains(R, M, st.xyz_m, f, st.flags, weights=W)
         synchronize(xp)
         times.append(time.perf_counter() - t0)
-    row = {"nchan": nchan, "frames": ngulp * 1024, "sum_s": t_sum, "solve_s": float(np.median(times)),
+    row = {"nchan": nchan, "frames": ngulp * 1024, "sum_s": t_sum, "sum_gemm_s": t_gemm, "solve_s": float(np.median(times)),
            "solve_first_s": times[0], "iterations": sol.info["iterations"], "summary": sol.summary()}
-    print(f"solver, {nchan} channels: covariance sums of {ngulp * 1024} frames {t_sum:.3f} s; one solve "
+    print(f"solver, {nchan} channels: covariance sums of {ngulp * 1024} frames {t_sum:.3f} s (of which the "
+          f"integer GEMMs alone {t_gemm:.3f} s, {ncall} calls); one solve "
           f"{row['solve_s']:.3f} s (first {times[0]:.3f} s, {sol.info['iterations']} iterations)")
+    # the live solver's steady state
+    E = diffuse_model(st.xyz_m, f, Time("2026-06-01T08:00:00", scale="utc"), st.location, pattern="dipole",
+                      xp=xp, dtype=cdt)
+    scale = float(to_host(xp.median(xp.abs(M[..., idx, idx])) / xp.maximum(xp.median(xp.abs(E[..., idx, idx])), 1e-30)))
+    ME = M + (0.7 * scale) * E                                            # the sky: sources + 0.7 x the diffuse term
+    last = skycal.solve_gains(corrupt(g, ME), M, st.xyz_m, f, st.flags, weights=W, extra=E)
+    live_t, live_it, drifted = [], [], g
+    stages = ("stefcal", "fit_scale", "input_health", "reference_phase", "smooth_across_channels")
+    for rep in range(4):
+        drifted = drifted * (1.003 * np.exp(1j * np.deg2rad(0.3) * rng.standard_normal(g.shape)))
+        Rk = corrupt(drifted, ME)
+        profile = rep == 3
+        if profile:
+            spent, calls, undo = _stage_timers(xp, stages)
+        synchronize(xp)
+        t0 = time.perf_counter()
+        try:
+            last = skycal.solve_gains(Rk, M, st.xyz_m, f, st.flags, weights=W, extra=E,
+                                      g0=last.gains.transpose(0, 2, 1), extra_scale0=last.info["extra_scale"],
+                                      flags0=last.reasons)
+            synchronize(xp)
+        finally:
+            if profile:
+                undo()
+        dt = time.perf_counter() - t0
+        if not profile:
+            live_t.append(dt)
+            live_it.append(last.info["iterations"])
+        else:
+            profiled = dt
+    err = skycal.gain_error(last.corrections, drifted[None].repeat(nchan, 0), ~last.flags)[0]
+    row.update(live_solve_s=float(np.median(live_t)), live_solve_each_s=[round(t, 4) for t in live_t],
+               live_iterations=live_it, live_gain_error=err, live_summary=last.summary(),
+               live_stages_s={n: round(spent[n], 4) for n in stages}, live_stage_calls=calls,
+               live_profiled_s=round(profiled, 4))
+    print(f"solver, live (diffuse term fitted, warm start, flags carried): one solve {row['live_solve_s']:.3f} s "
+          f"(each {row['live_solve_each_s']}, iterations {live_it}); gain error {100 * err:.3f}% rms")
+    print("  stages of one live solve, each between synchronisations (total %.3f s): " % profiled
+          + ", ".join(f"{n} {spent[n]:.4f} s x{calls[n]}" for n in stages)
+          + f"; the rest {profiled - sum(spent.values()):.4f} s")
     return row
+
+
+def to_host(a):
+    return a.get() if hasattr(a, "get") else a
 
 
 def peak_stats(folder):
