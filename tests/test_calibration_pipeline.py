@@ -158,6 +158,8 @@ def test_solutions_folded_into_the_operator_give_the_voltages_calibrated(runs):
     p.run()
     folded = sink.result()                                             # (nimg, nchan, nprod, N, N)
     assert img.img_stats["solutions_applied"] == 2
+    # each solution went in once: in place, or by a new operator where it flagged other inputs
+    assert img.img_stats["operator_builds"] - 1 + img.img_stats.get("operator_reweights", 0) == 2
     live = _images(tmp / "live")
     assert folded.shape[0] == live.shape[0] == 4
     for i in range(4):

@@ -327,10 +327,18 @@ class DFTImagerBlock(bfp.TransformBlock):
         idx = self.gains.index(tags)
         if int(idx[0]) != self._gain_index:
             self._gain_index = int(idx[0])
-            eng._rebuild(eng.lm)
+            op = getattr(eng, "op", None)
+            # the same inputs flagged: the solution goes into the operator in place (its route and CUDA
+            # graphs kept); other flags change N_A and the antennas kept, and need a new operator
+            if op is not None and hasattr(op, "reweight") and op.reweight(self._weights()):
+                how = "in place"
+                self.img_stats["operator_reweights"] = self.img_stats.get("operator_reweights", 0) + 1
+            else:
+                how = "by a new operator"
+                eng._rebuild(eng.lm)
             self.img_stats["solutions_applied"] = self.img_stats.get("solutions_applied", 0) + 1
-            log.info("%s: gain solution %d folded into the operator from frame %d (%d inputs kept)",
-                     type(self).__name__, self._gain_index, eng.frame + pos, eng.nant_used)
+            log.info("%s: gain solution %d folded into the operator %s from frame %d (%d inputs kept)",
+                     type(self).__name__, self._gain_index, how, eng.frame + pos, eng.nant_used)
         same = np.flatnonzero(idx != idx[0])
         return int(same[0]) if same.size else count
 

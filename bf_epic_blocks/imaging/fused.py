@@ -416,6 +416,20 @@ class FusedOperator:
         quantise_operator(op.live_G(0), self._w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled,
                           out=(self.Aq, self.osc))
 
+    def can_reweight(self, w):
+        """Whether weights ``w`` (C', A_kept, P) of the live channels fit this operator's pieces: one set for
+        both pols (PA = 1) holds only weights the pols share."""
+        shared = w.shape[-1] == 1 or bool(np.all(w == w[..., :1]))
+        return int(self.osc.shape[1]) == (1 if shared else int(w.shape[-1]))
+
+    def reweight(self, op):
+        """The pieces for ``op``'s new weights (:meth:`.dft.DFTOperator.reweight`), written into the arrays
+        that held them."""
+        w = op.data_weights if op.chan_index is None else op.data_weights[op.chan_index]
+        if w is not self._w:
+            self._w[...] = w
+        self.requantise(op)
+
     @staticmethod
     def supports(T, n):
         """Whether groups of ``n`` of T samples can be summed: the kernel sums 16 samples at a time, and

@@ -1146,6 +1146,9 @@ def summarise(cfg, g, t0, wall, stopped):
         "frames_read": int(frames_read or 0), "frames_imaged": int(img.get("frames_imaged", 0)),
         "frames_dropped_partial": int(img.get("frames_dropped_partial", 0)), "frames_skipped": skipped,
         "images": int(img.get("images", 0)), "tbf": src_stats, "calibration": getattr(g.calfold, "cal_stats", {}),
+        # how the imager's operator changed: built, solutions folded in place, tracking pixels moved
+        "operator": {k: int(img.get(k, 0)) for k in ("operator_builds", "operator_reweights", "operator_moves",
+                                                     "solutions_applied")},
     }
     summary["blocks"] = block_timing(g.pipeline.blocks, t0)
     summary["stopped_by"] = stopped["signal"]

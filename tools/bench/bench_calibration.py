@@ -216,6 +216,7 @@ def case_cost(args, work):
             img = next(v for k, v in summ["blocks"].items() if "Imager" in k)
             r[tag] = {"data_s": dur, "pipeline_s": summ["wall_s"], "imager_s": img["process_s"],
                       "first_image_s": img["first_data_s"], "realtime_factor": dur / summ["wall_s"]}
+            r[tag]["operator"] = summ.get("operator")
             if "solver" in summ:
                 sv = summ["solver"]
                 r[tag]["solver"] = {k: sv.get(k) for k in ("solutions", "failures", "sum_s", "solve_s", "wait_s",
@@ -236,7 +237,7 @@ def case_cost(args, work):
     print(f"cost, steady: solving live (a solution every 10 s from 1 s of data) adds "
           f"{100 * both['steady_added_fraction']:.1f}% to the pipeline's time per second of data; the solver's "
           f"own seconds per solution (sums + solve, GPU shared with the imager): {sv['sum_s_each']} + "
-          f"{sv['solve_s_each']}; warm-up {sv.get('warm_s')}")
+          f"{sv['solve_s_each']}; warm-up {sv.get('warm_s')}; the imager's operator: {both['long'].get('operator')}")
     return rows
 
 
