@@ -172,15 +172,23 @@ class DFTImagerBlock(bfp.TransformBlock):
             g = np.asarray(self.gains.corrections(self._gain_index), dtype=np.complex128)   # (nchan|1, nstand, npol|1)
             w = w * g
         if self.cable:
-            st = self._station_hdr
+            w = w * self._cable_weights()
+        return w
+
+    def _cable_weights(self):
+        """The header's cable terms as weights (nchan, nstand, npol), made once a sequence: each gain solution
+        folded in multiplies them again (at the whole band they are 4e5 complex exponentials, ~0.1 s of
+        the imager's thread)."""
+        if getattr(self, "_cable", None) is None or self._cable[0] is not self._lay:   # a new sequence
+            st, lay = self._station_hdr, self._lay
             if "cable_delay_s" not in st or "cable_gain" not in st:
                 raise ValueError("DFTImagerBlock: cable=True needs station.cable_delay_s and station.cable_gain "
                                  "(nstand, npol, nchan) in the header")
             from ..imaging.calibration import cable_weights
             npol = lay["npol"]
-            w = w * cable_weights(np.asarray(st["cable_delay_s"])[:, :npol], np.asarray(st["cable_gain"])[:, :npol],
-                                  lay["freq_hz"])
-        return w
+            self._cable = (lay, cable_weights(np.asarray(st["cable_delay_s"])[:, :npol],
+                                             np.asarray(st["cable_gain"])[:, :npol], lay["freq_hz"]))
+        return self._cable[1]
 
     def _operator(self, lm):
         """(operator, route) for pixels ``lm`` on this block's device (:class:`~.engines.DFTEngine`'s build)."""

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 
@@ -201,6 +202,9 @@ class GainSolverBlock(bfp.SinkBlock):
         power, Gaussian voltages: :func:`~bf_epic_blocks.imaging.skycal.clip_fraction`) is flagged 'saturated'.
     diffuse : add the analytic Galactic sky to the model with a fitted scale
         (:func:`~bf_epic_blocks.sky.model.diffuse_model`), recomputed every ``diffuse_refresh_s`` of data.
+    png_process : draw the PNGs in a helper process (spawned at the first; matplotlib holds the interpreter
+        about a second a PNG at the whole band, which the pipeline's threads would wait for), or in the
+        worker thread (False, or where the helper cannot start).
     apply_from : 'after' (live: a solution applies from the first frame after its data) or 'start'
         (offline: from the first frame of its cadence, so a table applied to the same data calibrates
         them from their start; the table's ``valid_from`` says which).
@@ -215,7 +219,7 @@ class GainSolverBlock(bfp.SinkBlock):
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
                  reference_stand=None, apply_from="after", align_frames=1, diffuse=True, diffuse_refresh_s=300.0,
-                 saturated_above=0.1, apply_delay_s=0.0, solutions_per_file=None, **kwargs):
+                 saturated_above=0.1, apply_delay_s=0.0, solutions_per_file=None, png_process=True, **kwargs):
         super().__init__(iring, **kwargs)
         if not (integration_s > 0 and cadence_s >= integration_s):
             raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="
@@ -241,7 +245,10 @@ class GainSolverBlock(bfp.SinkBlock):
         self.last_solution, self._part = None, 0
         self.solutions_per_file = None if not solutions_per_file else int(solutions_per_file)
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
-                             "samples": 0, "sum_s_each": [], "solve_s_each": []}
+                             "samples": 0, "sum_s_each": [], "solve_s_each": [], "pngs": 0, "pngs_in_helper": 0,
+                             "pngs_skipped": 0}
+        self.png_process = bool(png_process)
+        self._png_pool = self._png_future = None
         self._sum_this = 0.0
         from concurrent.futures import ThreadPoolExecutor
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gain-solver")
@@ -475,6 +482,7 @@ class GainSolverBlock(bfp.SinkBlock):
             if self.table_path and self.solutions:
                 self.write(self.part_path(self._part), final=True)   # the last solution's PNG, if not drawn
         finally:
+            self.close()
             if self.table is not None:
                 self.table.end_sequence(self._tag0)
 
@@ -613,7 +621,7 @@ class GainSolverBlock(bfp.SinkBlock):
     def write(self, path, final=False):
         """Write the solutions so far to ``path`` (.npz) and, with ``png``, the last solution's PNG beside it
         (at a part's first solution, then about every minute of data, and when ``final``)."""
-        from ..io.gaintable import gain_table_png, write_gain_table
+        from ..io.gaintable import write_gain_table
         if not self.solutions:
             return None
         n = self.solver_stats["solutions"]
@@ -625,19 +633,73 @@ class GainSolverBlock(bfp.SinkBlock):
         due = len(self.solutions) == 1 or (n - 1) % self._png_every == 0 or final
         if self.png and due and self._png_of != n:
             self._png_of = n
-            # the last solution's PNG, drawn from memory, about once a minute of data (matplotlib's
-            # drawing holds the interpreter a second at the whole band)
+            # the last solution's PNG, drawn from memory, about once a minute of data
             last = self.solutions[-1]
-            try:
-                gain_table_png(str(p)[:-4] + ".png", table={
-                    "gains": last.corrections[None], "flags": last.flags[None], "flag_reason": last.reasons[None],
-                    "freq_hz": self._lay["freq_hz"], "valid_from": self.valid_from,
-                    "provenance": self.provenance()}, solution=-1,
-                    title=f"gain solution {n - 1} ({len(self.solutions)} in this table): {self._station_name}, "
-                          f"model {', '.join(self.models[-1].get('sources', []))}")
-            except Exception as e:   # a plot must not stop a pipeline
-                log.warning("gain table PNG not written: %s", e)
+            self._draw_png((str(p)[:-4] + ".png", {
+                "gains": last.corrections[None], "flags": last.flags[None], "flag_reason": last.reasons[None],
+                "freq_hz": self._lay["freq_hz"], "valid_from": self.valid_from, "provenance": self.provenance()},
+                f"gain solution {n - 1} ({len(self.solutions)} in this table): {self._station_name}, "
+                f"model {', '.join(self.models[-1].get('sources', []))}"), wait=final)
         return p
+
+    def _draw_png(self, job, wait=False):
+        """Draw ``job`` (path, table, title) in the helper process (:attr:`png_process`), or here. A PNG asked
+        while the last is still being drawn is skipped (counted): the next one comes a minute later.
+        ``wait``: return once it is written (a sequence's last)."""
+        fut = self._png_future
+        if fut is not None:
+            if not (wait or fut.done()):
+                self.solver_stats["pngs_skipped"] += 1
+                return
+            self._collect_png(fut)
+        if self.png_process:
+            try:
+                if self._png_pool is None:
+                    import multiprocessing
+                    from concurrent.futures import ProcessPoolExecutor
+                    # spawn, not fork: this process has threads and a CUDA context
+                    self._png_pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+                self._png_future = self._png_pool.submit(_draw_gain_png, *job)
+                if wait:
+                    self._collect_png(self._png_future)
+                return
+            except Exception as e:  # noqa: BLE001 - a helper that cannot start or broke: draw here
+                log.warning("GainSolverBlock: the PNG helper process failed (%s); drawing in this thread", e)
+                self.png_process = False
+        self._count_png(_draw_gain_png(*job))
+
+    def _collect_png(self, fut):
+        self._png_future = None
+        try:
+            self._count_png(fut.result())
+        except Exception as e:  # noqa: BLE001 - a plot must not stop a pipeline
+            log.warning("gain table PNG not written: %s", e)
+
+    def _count_png(self, drawn):
+        path, pid = drawn
+        if path is not None:
+            self.solver_stats["pngs"] += 1
+            self.solver_stats["pngs_in_helper"] += int(pid != os.getpid())
+
+    def close(self):
+        """Wait for the PNG being drawn and stop the helper process (it starts again if asked)."""
+        if self._png_future is not None:
+            self._collect_png(self._png_future)
+        if self._png_pool is not None:
+            self._png_pool.shutdown()
+            self._png_pool = None
+
+
+def _draw_gain_png(path, table, title):
+    """(path or None, the drawing process's id): the gain table PNG of ``table`` (one solution); a failure is
+    logged, never raised (a plot must not stop a pipeline)."""
+    from ..io.gaintable import gain_table_png
+    try:
+        gain_table_png(path, table=table, solution=-1, title=title)
+    except Exception as e:  # noqa: BLE001
+        log.warning("gain table PNG %s not written: %s", path, e)
+        path = None
+    return path, os.getpid()
 
 
 def gain_solver(iring, sources, *args, **kwargs):

@@ -18,6 +18,8 @@ Cases (``--case``, repeatable; default all but ``cost`` on a CPU):
 * ``cost`` -- (GPU) the whole band (784 channels), `pipelines/lwasv_sim_wholeband.yaml` without its
   search and cube: the solver's seconds (summing covariances + solving) against the imager's, a
   solution every 10 s from 1 s of data; and the same run without solving (the imager's own route).
+* ``png`` -- the gain table's whole-band PNG: how long the solver's thread is held drawing it, and
+  handing it to the helper process instead.
 * ``real`` -- the real LWA-NA TBX and TBF captures (one time sample each) calibrated against the Sun
   and the A-team: the images' peak-to-rms (and peak over the median absolute deviation) before and after.
 
@@ -384,6 +386,40 @@ def to_host(a):
     return a.get() if hasattr(a, "get") else a
 
 
+def case_png(args, work):
+    """The gain table's PNG at the whole band (784 channels x 256 stands x 2 pols), as the live solver
+    draws it about once a minute of data: the seconds its caller (the solver's worker thread) is held,
+    drawn in that thread, and handed to the helper process (the first hand-over starts the process)."""
+    from bf_epic_blocks.blocks.gain_solver import GainSolverBlock, _draw_gain_png
+    rng = np.random.default_rng(1)
+    nchan, nant = args.nchan, 256
+    g = np.exp(0.2 * rng.standard_normal((1, nchan, nant, 2)) + 1j * rng.uniform(-np.pi, np.pi, (1, nchan, nant, 2)))
+    flags = np.zeros((1, nant, 2), bool)
+    flags[0, :7, 0] = True
+    reasons = np.where(flags, "deaf", "")
+    table = {"gains": g, "flags": flags, "flag_reason": reasons, "freq_hz": 74e6 + 25e3 * np.arange(nchan),
+             "valid_from": [0], "provenance": {"station": "LWA-SV", "model": {"sources": ["CygA", "CasA"]}}}
+    blk = GainSolverBlock.__new__(GainSolverBlock)          # only its PNG hand-over, no pipeline
+    blk.solver_stats = {"pngs": 0, "pngs_in_helper": 0, "pngs_skipped": 0}
+    blk.png_process, blk._png_pool, blk._png_future = True, None, None
+    row = {"nchan": nchan}
+    t0 = time.perf_counter()
+    _draw_gain_png(str(work / "here.png"), table, "in this thread")
+    row["in_thread_s"] = time.perf_counter() - t0
+    held = []
+    for k in range(3):
+        t0 = time.perf_counter()
+        blk._draw_png((str(work / f"helper{k}.png"), table, "in the helper"))
+        held.append(time.perf_counter() - t0)
+        blk._collect_png(blk._png_future)
+    blk.close()
+    row.update(helper_first_s=held[0], helper_s=float(np.median(held[1:])), drawn_in_helper=blk.solver_stats["pngs_in_helper"])
+    print(f"png, {nchan} channels: drawn in the caller's thread {row['in_thread_s']:.2f} s; handed to the helper "
+          f"process {1e3 * row['helper_s']:.1f} ms (the first, starting the process, {row['helper_first_s']:.2f} s); "
+          f"{row['drawn_in_helper']} of 3 drawn there")
+    return row
+
+
 def peak_stats(folder):
     from astropy.io import fits
     out = []
@@ -421,7 +457,7 @@ def case_real(args, work):
 
 
 CASES = {"accuracy": case_accuracy, "drift": case_drift, "cost": case_cost, "real": case_real,
-         "solver": case_solver}
+         "solver": case_solver, "png": case_png}
 
 
 def main(argv=None):
