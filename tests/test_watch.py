@@ -587,7 +587,7 @@ def test_pngs_drawn_by_a_helper_process(tmp_path, monkeypatch):
     assert pngs == ["lwasv_sim_transient_watch_CygA.png", "lwasv_sim_transient_watch_FRB1.png",
                     "lwasv_sim_transient_watch_Sun.png"]
     assert all((tmp_path / p).read_bytes()[:4] == b"\x89PNG" for p in pngs)
-    assert made[0].png_process and made[0]._pool is None and summary["watch"]["png_skipped"] >= 0
+    assert made[0].png_process and made[0]._drawing._pool is None and summary["watch"]["png_skipped"] >= 0
 
 
 def test_a_png_is_replaced_whole_never_seen_half_written(tmp_path, monkeypatch):

@@ -40,6 +40,7 @@ from ..imaging.skycal import (CovarianceSums, SolveSettings, baseline_weights, c
                               solve_gains)
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
+from ._drawing import DrawingHelper
 from .headers import efield_layout
 
 __all__ = ["GainSolverBlock", "LiveGainTable", "gain_solver"]
@@ -247,8 +248,7 @@ class GainSolverBlock(bfp.SinkBlock):
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
                              "samples": 0, "sum_s_each": [], "solve_s_each": [], "pngs": 0, "pngs_in_helper": 0,
                              "pngs_skipped": 0}
-        self.png_process = bool(png_process)
-        self._png_pool = self._png_future = None
+        self._drawing = DrawingHelper("GainSolverBlock", png_process)
         self._sum_this = 0.0
         from concurrent.futures import ThreadPoolExecutor
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gain-solver")
@@ -643,37 +643,11 @@ class GainSolverBlock(bfp.SinkBlock):
         return p
 
     def _draw_png(self, job, wait=False):
-        """Draw ``job`` (path, table, title) in the helper process (:attr:`png_process`), or here. A PNG asked
-        while the last is still being drawn is skipped (counted): the next one comes a minute later.
+        """Draw ``job`` (path, table, title) in the helper process (:class:`~._drawing.DrawingHelper`), or
+        here where it cannot run; a PNG asked while the last is still drawing is skipped (counted).
         ``wait``: return once it is written (a sequence's last)."""
-        fut = self._png_future
-        if fut is not None:
-            if not (wait or fut.done()):
-                self.solver_stats["pngs_skipped"] += 1
-                return
-            self._collect_png(fut)
-        if self.png_process:
-            try:
-                if self._png_pool is None:
-                    import multiprocessing
-                    from concurrent.futures import ProcessPoolExecutor
-                    # spawn, not fork: this process has threads and a CUDA context
-                    self._png_pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-                self._png_future = self._png_pool.submit(_draw_gain_png, *job)
-                if wait:
-                    self._collect_png(self._png_future)
-                return
-            except Exception as e:  # noqa: BLE001 - a helper that cannot start or broke: draw here
-                log.warning("GainSolverBlock: the PNG helper process failed (%s); drawing in this thread", e)
-                self.png_process = False
-        self._count_png(_draw_gain_png(*job))
-
-    def _collect_png(self, fut):
-        self._png_future = None
-        try:
-            self._count_png(fut.result())
-        except Exception as e:  # noqa: BLE001 - a plot must not stop a pipeline
-            log.warning("gain table PNG not written: %s", e)
+        if not self._drawing.run(_draw_gain_png, job, self._count_png, wait=wait):
+            self.solver_stats["pngs_skipped"] += 1
 
     def _count_png(self, drawn):
         path, pid = drawn
@@ -683,11 +657,7 @@ class GainSolverBlock(bfp.SinkBlock):
 
     def close(self):
         """Wait for the PNG being drawn and stop the helper process (it starts again if asked)."""
-        if self._png_future is not None:
-            self._collect_png(self._png_future)
-        if self._png_pool is not None:
-            self._png_pool.shutdown()
-            self._png_pool = None
+        self._drawing.close()
 
 
 def _draw_gain_png(path, table, title):

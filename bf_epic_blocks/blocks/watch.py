@@ -22,6 +22,7 @@ from ..sky.watch import direction_names, parse_targets, target_lm
 from ..imaging._xp import get_xp
 from . import _compat
 from ._compat import bfp, span_array
+from ._drawing import DrawingHelper
 
 __all__ = ["WatchPixels", "WatchWriterBlock"]
 
@@ -109,8 +110,7 @@ class WatchWriterBlock(bfp.SinkBlock):
     def __init__(self, iring, path, pixels, png_every_s=60.0, bus=None, trigger_sigma=None, ring_s=2.0,
                  png_process=False, **kwargs):
         super().__init__(iring, **kwargs)
-        self.png_process, self.png_skipped = bool(png_process), 0
-        self._pool = self._png_future = None
+        self._drawing = DrawingHelper("WatchWriterBlock", png_process)
         self.bus, self.trigger_sigma, self.ring_s = bus, trigger_sigma, float(ring_s)
         self.triggers = 0
         self._history = None
@@ -264,46 +264,24 @@ class WatchWriterBlock(bfp.SinkBlock):
         jobs = [(str(self._writer.path.with_name(f"{self._writer.path.stem}_{tg.name}.png")), t, self._freq,
                  binned[:, j].astype(np.float32), f"{tg.name} ({self._products[0]})")
                 for j, tg in enumerate(self._writer.targets)]
-        if self.png_process:
-            fut = self._png_future
-            if fut is not None and not fut.done() and not wait:
-                self.png_skipped += 1
-                return self.pngs
-            try:
-                if fut is not None:
-                    self._collect_pngs(fut)
-                self._png_future = self._png_pool().submit(_draw_pngs, jobs)
-                if wait:
-                    self._collect_pngs(self._png_future)
-                return self.pngs
-            except Exception as e:  # noqa: BLE001 - a helper that cannot start or broke: draw here
-                log.warning("WatchWriterBlock: the PNG helper process failed (%s); drawing in this thread", e)
-                self.png_process = False
-        self.pngs = _draw_pngs(jobs)
+        self._drawing.run(_draw_pngs, (jobs,), self._set_pngs, wait=wait)
         return self.pngs
 
-    def _png_pool(self):
-        if self._pool is None:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-            # spawn, not fork: the parent has threads and a CUDA context
-            self._pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
-        return self._pool
+    def _set_pngs(self, paths):
+        self.pngs = paths
 
-    def _collect_pngs(self, fut):
-        self.pngs = fut.result()
-        self._png_future = None
+    @property
+    def png_process(self):
+        """Whether the PNGs are drawn in the helper process (False once it failed)."""
+        return self._drawing.enabled
+
+    @property
+    def png_skipped(self):
+        return self._drawing.skipped
 
     def close(self):
         """Wait for the PNGs being drawn and stop the helper process."""
-        if self._png_future is not None:
-            try:
-                self._collect_pngs(self._png_future)
-            except Exception as e:  # noqa: BLE001
-                log.warning("WatchWriterBlock: the last PNGs were not written: %s", e)
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
+        self._drawing.close()
 
     def on_sequence_end(self, iseq):
         """The PNGs brought up to date and the file closed (marked complete); a later sequence (a live

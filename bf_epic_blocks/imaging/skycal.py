@@ -158,9 +158,8 @@ class Solution:
 def _phases(xyz_m, freq_hz, lmn):
     """exp(+2 pi i nu s.r / c), complex128 (nchan, nsrc, nant), phases reduced in float64."""
     path = np.asarray(lmn, np.float64) @ np.asarray(xyz_m, np.float64).T                  # (nsrc, nant) m
-    cyc = np.asarray(freq_hz, np.float64)[:, None, None] / SPEED_OF_LIGHT_M_S * path[None]
-    cyc -= np.rint(cyc)
-    return np.exp(2j * math.pi * cyc)
+    return _cycles_exp(np, np.asarray(freq_hz, np.float64)[:, None, None] / SPEED_OF_LIGHT_M_S, path[None],
+                       np.complex128)
 
 
 def model_covariance(xyz_m, freq_hz, lmn, flux_pol, xp=np, dtype=None):

@@ -399,9 +399,10 @@ def case_png(args, work):
     reasons = np.where(flags, "deaf", "")
     table = {"gains": g, "flags": flags, "flag_reason": reasons, "freq_hz": 74e6 + 25e3 * np.arange(nchan),
              "valid_from": [0], "provenance": {"station": "LWA-SV", "model": {"sources": ["CygA", "CasA"]}}}
+    from bf_epic_blocks.blocks._drawing import DrawingHelper
     blk = GainSolverBlock.__new__(GainSolverBlock)          # only its PNG hand-over, no pipeline
     blk.solver_stats = {"pngs": 0, "pngs_in_helper": 0, "pngs_skipped": 0}
-    blk.png_process, blk._png_pool, blk._png_future = True, None, None
+    blk._drawing = DrawingHelper("bench")
     row = {"nchan": nchan}
     t0 = time.perf_counter()
     _draw_gain_png(str(work / "here.png"), table, "in this thread")
@@ -411,7 +412,7 @@ def case_png(args, work):
         t0 = time.perf_counter()
         blk._draw_png((str(work / f"helper{k}.png"), table, "in the helper"))
         held.append(time.perf_counter() - t0)
-        blk._collect_png(blk._png_future)
+        blk._drawing.wait()
     blk.close()
     row.update(helper_first_s=held[0], helper_s=float(np.median(held[1:])), drawn_in_helper=blk.solver_stats["pngs_in_helper"])
     print(f"png, {nchan} channels: drawn in the caller's thread {row['in_thread_s']:.2f} s; handed to the helper "
