@@ -10,7 +10,7 @@ imager's gulp-to-gulp gaps (the longest ones with the steps running beside them)
 Host time is what a thread waits for, including a wait for the GPU work it queued.
 
     python tools/bench/profile_solver.py [--seconds 40] [--integration 1] [--device gpu] [--set KEY=VALUE ...]
-                                         [--json PATH]
+                                         [--sample] [--json PATH]
 """
 from __future__ import annotations
 
@@ -61,6 +61,61 @@ def wrap_all(events, t0):
         setattr(owner, name, functools.wraps(f)(timed))
 
 
+class StackSampler:
+    """Where a thread's host time goes inside the steps named: every ``every_s`` while a thread is in one
+    of them, its innermost frame and its innermost frame in this package are counted (a sampling
+    profile: a line that waits on the GPU collects samples as much as one that computes)."""
+
+    def __init__(self, steps, every_s=0.005):
+        self.steps, self.every_s = set(steps), every_s
+        self.inside = {}                       # thread ident -> step name
+        self.counts = collections.Counter()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="stack-sampler", daemon=True)
+
+    def wrap(self, owner, name, key):
+        f = getattr(owner, name)
+
+        def entered(*a, _f=f, **k):
+            me = threading.get_ident()
+            outer = me in self.inside
+            if not outer:
+                self.inside[me] = key
+            try:
+                return _f(*a, **k)
+            finally:
+                if not outer:
+                    self.inside.pop(me, None)
+        setattr(owner, name, functools.wraps(f)(entered))
+
+    def _run(self):
+        pkg = str(Path(REPO, "bf_epic_blocks"))
+        while not self._stop.wait(self.every_s):
+            frames = sys._current_frames()
+            for ident, step in list(self.inside.items()):
+                fr = frames.get(ident)
+                if fr is None:
+                    continue
+                inner, ours = f"{Path(fr.f_code.co_filename).name}:{fr.f_lineno} {fr.f_code.co_name}", None
+                while fr is not None and ours is None:
+                    if fr.f_code.co_filename.startswith(pkg):
+                        ours = f"{Path(fr.f_code.co_filename).name}:{fr.f_lineno} {fr.f_code.co_name}"
+                    fr = fr.f_back
+                self.counts[(step, ours, inner)] += 1
+
+    def start(self):
+        self._thread.start()
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join()
+
+    def table(self, top=15):
+        """The most-sampled (step, our line, innermost line) with their seconds."""
+        return [{"step": s, "line": o, "innermost": i, "seconds": n * self.every_s}
+                for (s, o, i), n in self.counts.most_common(top)]
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=40.0, help="seconds of data")
@@ -68,10 +123,18 @@ def main(argv=None):
     ap.add_argument("--device", default="gpu")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="more overrides")
     ap.add_argument("--gaps", type=int, default=12, help="the longest gulp-to-gulp gaps listed")
+    ap.add_argument("--sample", action="store_true",
+                    help="also sample the lines the imager's thread spends its time on while it folds in a solution")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     events = []
     wrap_all(events, time.perf_counter())
+    sampler = None
+    if args.sample:
+        from bf_epic_blocks.imaging.dft import DFTOperator
+        sampler = StackSampler(["DFTOperator.reweight"])
+        sampler.wrap(DFTOperator, "reweight", "DFTOperator.reweight")
+        sampler.start()
     from bf_epic_blocks.pipeline import runner
     from bf_epic_blocks.pipeline.config import load_config
     sets = [f"device={args.device}", "imager.search=null", "output.cube=null", "output.fits=false",
@@ -80,6 +143,10 @@ def main(argv=None):
             f"calibration.solve.integration_s={args.integration}", *args.set]
     cfg = load_config(REPO / "pipelines" / "lwasv_sim_wholeband.yaml", sets)
     s = runner.run(cfg, show_progress=False)
+    samples = []
+    if sampler is not None:
+        sampler.stop()
+        samples = sampler.table()
     print(f"# {args.seconds:g} s of data, a solution every 10 s from {args.integration:g} s: pipeline "
           f"{s['wall_s']:.1f} s; operator {s.get('operator')}")
     agg = collections.defaultdict(lambda: [0, 0.0, 0.0])
@@ -107,13 +174,18 @@ def main(argv=None):
     print("  the solutions' steps (start s, seconds, step):")
     for a, d, k, th in timeline:
         print(f"    {a:8.2f} {d:7.3f}  {k}")
+    if samples:
+        print("  where the imager's thread spent a solution's fold-in (sampled every "
+              f"{1e3 * sampler.every_s:g} ms: seconds, our line, innermost line):")
+        for r in samples:
+            print(f"    {r['seconds']:7.3f}  {r['line']}  <-  {r['innermost']}")
     if args.json:
         write_json(args.json, {"benchmark": "profile_solver", "date": utc_now(), "machine": machine(args.device),
                                "seconds": args.seconds, "integration_s": args.integration, "wall_s": s["wall_s"],
                                "operator": s.get("operator"), "blocks": s["blocks"],
                                "functions": [{"thread": th, "function": k, "calls": n, "seconds": t, "longest_s": mx}
                                              for th, k, n, t, mx in rows],
-                               "longest_gaps": longest,
+                               "longest_gaps": longest, "samples": samples,
                                "steps": [{"start_s": a, "seconds": d, "step": k, "thread": th}
                                          for a, d, k, th in timeline]})
 
