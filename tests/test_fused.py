@@ -128,6 +128,40 @@ def test_integer_modes_need_a_gpu():
 # ----------------------------------------------------------------------------------------- GPU
 @GPU
 @pytest.mark.gpu
+@pytest.mark.parametrize("tiled", [False, True])
+@pytest.mark.parametrize("case", ["pols-differ", "pols-share", "cast-in-chunks"])
+def test_gpu_quantising_kernel_equals_the_numpy_pieces(case, tiled, monkeypatch):
+    """The one-launch quantising kernel (quantise.cu) against the NumPy arithmetic it mirrors, which the
+    tests above hold to float64 truth: the same int8 pieces byte for byte and the same row scales, with
+    flagged antennas, antennas and pixels not multiples of 64, a channel-pol flagged, and refilled in place
+    over garbage (every byte is written)."""
+    import cupy as cp
+    xyz, freq, lm, _ = scene(nant=77, nchan=5, npix_grid=22, seed=8)
+    rng = np.random.default_rng(9)
+    w = np.exp(2j * np.pi * rng.random((5, 77, 2))) * rng.uniform(0.3, 3.0, (5, 77, 2))
+    if case == "pols-share":
+        w[..., 1] = w[..., 0]
+    w[:, [4, 40], :] = 0
+    w[2, 7, :] = 0
+    keep = np.flatnonzero((w != 0).any(axis=(0, 2)))
+    G = imaging.geometric_operator(xyz[keep], freq, lm, "fp64" if case == "cast-in-chunks" else "fp32")
+    want = fused.quantise_operator(G, w[:, keep], keep, 80, 2, tiled=tiled)
+    if case == "cast-in-chunks":                     # a complex128 G is cast 2 channels a launch: 3 launches
+        monkeypatch.setattr(fused, "_CHUNK_BYTES_GPU", 1)
+    Gd = cp.asarray(G)
+    got = fused.quantise_operator(Gd, cp.asarray(w[:, keep]), keep, 80, 2, tiled=tiled, chunk=2,
+                                  weights_host=w[:, keep])
+    assert got[0].shape == want[0].shape and got[2:] == want[2:]
+    diff = got[0].get() != want[0]
+    assert not diff.any(), f"{int(diff.sum())} of {diff.size} bytes differ"
+    assert np.array_equal(got[1].get(), want[1])
+    junk = (cp.full(got[0].shape, 99, cp.int8), cp.full(got[1].shape, 7.0, cp.float32))
+    fused.quantise_operator(Gd, cp.asarray(w[:, keep]), cp.asarray(keep), 80, 2, tiled=tiled, out=junk)
+    assert np.array_equal(junk[0].get(), want[0]) and np.array_equal(junk[1].get(), want[1])
+
+
+@GPU
+@pytest.mark.gpu
 @pytest.mark.parametrize("kernel", ["device", "portable", "portable-staged", "hopper"])
 @pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
 def test_gpu_kernel_equals_its_int64_emulation(precision, kernel):

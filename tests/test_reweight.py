@@ -161,3 +161,34 @@ def test_an_imager_folds_each_new_solution_in_place(xp):
         assert err < 1e-5, (j, err)
     assert img.img_stats["solutions_applied"] == 3
     assert img.img_stats["operator_builds"] == 1 and img.img_stats["operator_reweights"] == 3
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAVE_GPU, reason="needs CuPy and a CUDA device")
+def test_gpu_a_new_solution_does_not_wait_for_the_queued_images():
+    """Folding a solution in is queued behind the images already asked for, never waited on: the imager's
+    thread runs ahead of its GPU work by up to the rings' depth, and a wait at each solution drains that
+    queue and leaves the GPU idle while the host forms the new operator (the live solver's cost at the
+    whole band). A kernel that spins ~0.5 s stands for the queued images; reweight returns while it
+    still runs, and the images after it see the new gains."""
+    import cupy as cp
+    xyz, freq, q, rng = _scene(9, nant=48, T=64)
+    lm = _pixels(rng, 8)
+    w_a, w_b = _gains(rng, 3, 48), _gains(rng, 3, 48)
+    op = DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(lm), npol=2, precision="i8x2",
+                     weights=cp.asarray(w_a))
+    acc = op.accumulator(("I",), method="direct")
+    acc.images(cp.asarray(q), 16)
+    spin = cp.RawKernel(r"""extern "C" __global__ void spin(long long n) {
+        long long t0 = clock64(); while (clock64() - t0 < n) { } }""", "spin")
+    rate = cp.cuda.Device().attributes["ClockRate"] * 1e3                      # cycles per second
+    stream = cp.cuda.Stream(non_blocking=True)
+    with stream:
+        cp.cuda.get_current_stream().synchronize()
+        spin((1,), (1,), (np.int64(0.5 * rate),))
+        assert op.reweight(w_b) is True                  # host weights, as the imager's solution hook hands
+        assert not stream.done, "reweight waited for the queued work"
+        got = acc.images(cp.asarray(q), 16).get()
+    truth = np.stack([brute_image(_cplx(q)[i * 16:(i + 1) * 16], xyz, freq, lm, ("I",), weights=w_b) for i in range(4)])
+    err = np.abs(got - truth).max() / np.abs(truth).max()
+    assert err < BOUND["i8x2"], err

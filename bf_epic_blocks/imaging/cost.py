@@ -79,8 +79,8 @@ def operator_bytes(nchan: int, npix: int, nant: int, precision: str, *, gpu: boo
         kpad, apad = _pad(npix, 64), _pad(nant_in, 64)
         parts["operands"] = operand_bytes(nchan, 2 if pols_differ else 1, npix, nant_in, PIECES[precision])
         chunk = min(nchan, gpu_chunk_channels(npix, nant_in))
-        # D, its residual, the padded copy, its two real halves (complex64 each) and the chunk's pieces
-        parts["building"] = chunk * kpad * apad * (5 * 8 + PIECES[precision] * 2 * 2)
+        # the quantising kernel reads the complex64 operator as it is; a cast chunk where it is not
+        parts["building"] = chunk * kpad * apad * 8
     elif gpu and precision in STACKED:
         probe = np.zeros((1, 8, 8), np.complex64)
         per = sum(p.nbytes for p in stack_operator(probe, precision)) / probe.size

@@ -314,6 +314,9 @@ class DFTOperator:
         self.dead = xp.asarray(dead)
         self.chan_index = None if chan_index is None else xp.asarray(chan_index)
         self.norm = xp.asarray(norm)
+        # host copies of what a new gain solution is checked against and folded with (reweight): reading
+        # them back from the device would wait for the stream's queued images
+        self._host = {"keep": keep_index, "live": live, "w": w, "chan": chan_index}
         self.data_weights = xp.asarray(w.astype(self.cdtype))                    # (nchan, nant, npol)
         self.weights128 = xp.asarray(w)                                          # for integer covariances
         self.data_live = xp.asarray(live)
@@ -392,24 +395,25 @@ class DFTOperator:
         the weights the data are multiplied by, the integer covariances' weights and the fused modes'
         int8 pieces are formed again into the arrays that held them, and the routes refresh what they
         keep, so routes and their captured CUDA graphs stay valid and no GBs are let go and made again.
-        The host's part is forming the fused modes' int8 pieces (~0.5 s at the whole band on an H200's
-        host), and it reads the kept antennas and live mask back from the device, which waits for the
-        stream's queued work.
+        On a GPU it is a few launches (the fused modes' int8 pieces in one kernel) and nothing is read back
+        from the device (host copies), so the work is queued behind the images already asked for and the
+        imager's thread never waits for them.
 
-        weights : as the constructor's. Returns True when done; False, with the operator unchanged, when
+        weights : as the constructor's, on the host (NumPy): a device array is read back, which waits for the
+        queued work. Returns True when done; False, with the operator unchanged, when
         the new weights flag or unflag an input (N_A, the kept antennas and the live channels depend on
         which weights are zero), turn unit weights into others or back (the routes chose their exact
         integer paths by that), change the fp16 operands' range scale, or make the pols' weights differ
         where a fused mode shared one operator between them: those need a new operator."""
         xp = self.xp
         w = _broadcast_weights(to_numpy(weights), self.nchan, self.nant_in, self.npol, np)
-        kidx = to_numpy(self.keep_index)
+        kidx = self._host["keep"]
         dropped = np.ones(self.nant_in, bool)
         dropped[kidx] = False
         if (w[:, dropped, :] != 0).any():
             return False
         w = w[:, kidx, :]
-        if not np.array_equal(w != 0, to_numpy(self.data_live)):
+        if not np.array_equal(w != 0, self._host["live"]):
             return False
         if bool(((w == 0) | (w == 1)).all()) != self.unit_weights:
             return False
@@ -417,9 +421,10 @@ class DFTOperator:
         cov_scale = 2.0 ** -math.ceil(math.log2(wmax * wmax)) if self.precision in FP16 and wmax > 0 else 1.0
         if cov_scale != self.cov_scale:
             return False
-        if self.fused is not None and not self.fused.can_reweight(w if self.chan_index is None
-                                                                  else w[to_numpy(self.chan_index)]):
+        chan = self._host["chan"]
+        if self.fused is not None and not self.fused.can_reweight(w if chan is None else w[chan]):
             return False
+        self._host["w"] = w
         self.data_weights[...] = xp.asarray(w.astype(self.cdtype))
         self.weights128[...] = xp.asarray(w)
         if self.fused is not None:
@@ -427,6 +432,11 @@ class DFTOperator:
         for route in list(self._routes):
             route.refresh()
         return True
+
+    def live_weights_host(self):
+        """The kept antennas' weights of the live channels, (C', A_kept, P) complex128 NumPy (host copy)."""
+        chan = self._host["chan"]
+        return self._host["w"] if chan is None else self._host["w"][chan]
 
     # ------------------------------------------------------------------ operator forms
     def _live_G(self, pol):

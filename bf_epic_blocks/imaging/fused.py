@@ -57,6 +57,8 @@ samples) and keep B whole in shared memory, so that the pieces after the first r
   ``ldmatrix`` fragment loads (double-buffered), four 64-byte K stages; B staged with A when even
   this kernel cannot hold it whole.
 * ``fused_layout.cu``: the voltages (int8 pairs or ci4 bytes) into B, plain or tiled.
+* ``quantise.cu``: the operator into A's pieces and row scales, plain or tiled, one launch for every
+  channel (:func:`quantise_operator`), so a new gain solution costs the imager's thread a few launches.
 """
 from __future__ import annotations
 
@@ -126,7 +128,7 @@ def gpu_chunk_channels(K, nant_in, chunk=16):
     return max(int(chunk), _CHUNK_BYTES_GPU // (_pad(K, 64) * _pad(nant_in, 64) * 8))
 
 
-def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tiled=False, out=None):
+def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tiled=False, out=None, weights_host=None):
     """The operator as int8 pieces in the kernel's layout (module docstring).
 
     G : complex (C, K, A_kept) geometric operator (live channels);  weights : complex (C, A_kept, P)
@@ -137,6 +139,8 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     (:func:`tile_operator`), made chunk by chunk (no second whole copy of A).
     out : (A, oscale) arrays of those shapes to write into (an operator's pixels moved), or None.
     On a GPU chunks hold at least ``chunk`` channels and up to :data:`_CHUNK_BYTES_GPU` of operator.
+    weights_host : the same weights as a NumPy array, or None (read back from the device: a wait for the
+        stream's queued work, which an imager folding in a new solution must not make).
     """
     xp = get_xp(G)
     C, K, Ak = (int(s) for s in G.shape)
@@ -144,7 +148,7 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     P = int(w.shape[-1])
     # decided on the host (a few MB): on a GPU the whole-array test is a CUB reduction, whose
     # compilation costs seconds of a fresh process's first image
-    wh = to_numpy(weights)
+    wh = to_numpy(weights) if weights_host is None else np.asarray(weights_host)
     shared = P == 1 or bool(np.all(wh == wh[..., :1]))
     PA = 1 if shared else P
     Kpad, Apad = _pad(K, 64), _pad(nant_in, 64)          # rows a multiple of 128, KD of 128
@@ -152,27 +156,32 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     b, xmax = bases(pieces, KD)
     shape = operand_shape(C, PA, K, nant_in, pieces, tiled)
     if out is None:
-        Aq, osc = xp.zeros(shape, xp.int8), xp.zeros((C, PA, Kpad), xp.float32)
+        new = xp.zeros if xp is np else xp.empty                 # the GPU kernel writes every byte
+        Aq, osc = new(shape, xp.int8), new((C, PA, Kpad), xp.float32)
     else:
         Aq, osc = out
         if Aq.shape != shape or osc.shape != (C, PA, Kpad):
             raise ValueError(f"quantise_operator: out shaped {Aq.shape}, {osc.shape}; expected {shape}, {(C, PA, Kpad)}")
     if xp is not np:
-        chunk = gpu_chunk_channels(K, nant_in, chunk)
+        _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk)
+        return Aq, osc, b, xmax
     kidx = xp.asarray(keep_index)
     for c0 in range(0, C, chunk):
         cs = slice(c0, min(C, c0 + chunk))
         nc = cs.stop - cs.start
         for pa in range(PA):
-            D = G[cs].astype(xp.complex64) * w[cs, None, :, pa].astype(xp.complex64)       # (nc, K, Ak)
-            s = xp.maximum(xp.abs(D.real), xp.abs(D.imag)).max(axis=-1)                    # (nc, K)
+            # D = G w (nc, K, Ak) as float32 halves, each product and sum rounded on its own: NumPy's own
+            # complex64 product may fuse them, and the GPU kernel's pieces are these, byte for byte
+            g, ww = G[cs].astype(xp.complex64), w[cs, None, :, pa].astype(xp.complex64)
+            Dre = g.real * ww.real - g.imag * ww.imag
+            Dim = g.real * ww.imag + g.imag * ww.real
+            s = xp.maximum(xp.abs(Dre), xp.abs(Dim)).max(axis=-1)                          # (nc, K)
             s = xp.where(s > 0, s, xp.float32(1)).astype(xp.float32)
             # residuals in float32: |d| <= 127 carries 7.6e-6 absolute rounding, well below the
-            # finest step 1/b^2 = 2.5e-4 (b = 63)
-            r = (D / s[..., None] * xp.float32(127)).astype(xp.complex64)
-            full = xp.zeros((nc, Kpad, Apad), xp.complex64)
-            full[:, :K, kidx] = r
-            dr, di = full.real.copy(), full.imag.copy()
+            # finest step 1/b^2 = 2.5e-4 (b = 63); real halves divided as such, as the GPU kernel does
+            dr, di = (xp.zeros((nc, Kpad, Apad), xp.float32) for _ in range(2))
+            dr[:, :K, kidx] = Dre / s[..., None] * xp.float32(127)
+            di[:, :K, kidx] = Dim / s[..., None] * xp.float32(127)
             part = xp.empty((nc, pieces, 2 * Kpad, KD), xp.int8) if tiled else None
             for i in range(pieces):
                 qr, qi = xp.rint(dr), xp.rint(di)
@@ -189,6 +198,36 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
             sc = (s.astype(xp.float64) / (127.0 * float(b) ** (pieces - 1))) ** 2
             osc[cs, pa, :K] = sc.astype(xp.float32)
     return Aq, osc, b, xmax
+
+
+def _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk):
+    """:func:`quantise_operator` on a GPU: one kernel (``quantise.cu``) per launch of whole channels, the same
+    arithmetic as the NumPy path (bit-equal pieces). A complex64 contiguous G is read as it is, every channel in
+    one launch; another G is cast ``chunk`` channels (or :data:`_CHUNK_BYTES_GPU`) at a time.
+
+    Why one kernel: the array expressions make ~40 launches a 16-channel chunk, ~2,000 at the whole band,
+    and an imager folding in a new solution makes them from its own thread behind the images it has
+    queued: past the stream's ~1,000 pending launches each one waits for the GPU, so the thread spends
+    seconds there and the GPU idles while the host makes the rest."""
+    import cupy as cp
+    C, K, Ak = (int(s) for s in G.shape)
+    P, PA, Kpad = int(w.shape[-1]), int(osc.shape[1]), int(osc.shape[2])
+    for name, a in (("A", Aq), ("oscale", osc)):
+        if not a.flags.c_contiguous:
+            raise ValueError(f"quantise_operator: out {name} must be C-contiguous")
+    inv = cp.full(Apad, -1, cp.int32)
+    inv[cp.asarray(keep_index)] = cp.arange(Ak, dtype=cp.int32)
+    wc = cp.ascontiguousarray(w, dtype=cp.complex64)
+    whole = G.dtype == cp.complex64 and G.flags.c_contiguous
+    step = C if whole else gpu_chunk_channels(K, Apad, chunk)
+    kernel = get_kernel("imaging/quantise.cu", "bf_quantise_operator")
+    oscale = np.float64(127.0 * float(b) ** (pieces - 1))
+    for c0 in range(0, C, step):
+        c1 = min(C, c0 + step)
+        g = G[c0:c1] if whole else cp.ascontiguousarray(G[c0:c1], dtype=cp.complex64)
+        kernel((Kpad, c1 - c0, PA), (256,), (g, wc[c0:c1], inv, Aq[c0:c1], osc[c0:c1], np.int32(K), np.int32(Ak),
+                                             np.int32(P), np.int32(Apad), np.int32(pieces), np.float32(b), oscale,
+                                             np.int32(bool(tiled))))
 
 
 def padded_ntime(T):
@@ -396,11 +435,12 @@ class FusedOperator:
         xp = op.xp
         self.pieces = PIECES[precision]
         w = op.data_weights if op.chan_index is None else op.data_weights[op.chan_index]
+        self._w_host = op.live_weights_host()
         kd = 2 * _pad(op.nant_in, 64)
         self.config = kernel_config(kd, cp.cuda.Device().compute_capability)
         self.tiled = _hopper(self.config)          # operands in the Hopper kernel's tiles
         self.Aq, self.osc, self.base, self.xmax = quantise_operator(
-            op.live_G(0), w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled)
+            op.live_G(0), w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled, weights_host=self._w_host)
         self._w = w
         self.KD = kd
         self.chan = (xp.arange(op.nchan, dtype=xp.int32) if op.chan_index is None
@@ -414,7 +454,7 @@ class FusedOperator:
         :meth:`.dft.DFTOperator.repoint`); the base and sample range are the same (they depend on the
         antennas only)."""
         quantise_operator(op.live_G(0), self._w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled,
-                          out=(self.Aq, self.osc))
+                          out=(self.Aq, self.osc), weights_host=self._w_host)
 
     def can_reweight(self, w):
         """Whether weights ``w`` (C', A_kept, P) of the live channels fit this operator's pieces: one set for
@@ -428,6 +468,7 @@ class FusedOperator:
         w = op.data_weights if op.chan_index is None else op.data_weights[op.chan_index]
         if w is not self._w:
             self._w[...] = w
+        self._w_host = op.live_weights_host()
         self.requantise(op)
 
     @staticmethod
@@ -543,6 +584,7 @@ def _fused_kernel(pieces, kd, cfg, grid=False):
 # The configurations the shipped paths compile: both piece counts; an array of 256 antennas (KD = 512)
 # for either kernel, and for the portable one also B staged (KD = 1536, beyond what B whole fits).
 register("imaging/fused_layout.cu")
+register("imaging/quantise.cu")
 register("imaging/fused.cu", *[(_defines(PORTABLE_CONFIG, np_, 512), None) for np_ in PIECES.values()],
          *[(_defines(dict(PORTABLE_CONFIG, BFULL=0), np_, 1536), None) for np_ in PIECES.values()])
 register("imaging/fused_hopper.cu", *[(_defines(HOPPER_CONFIG, np_, 512, g), "sm_90a")
