@@ -679,6 +679,19 @@ def cal_body():
          f"{both['long']['solver']['wait_s']:.2f}"],
         ["solutions folded into the operator in place / by a new operator",
          f"{both['long']['operator']['operator_reweights']} / {both['long']['operator']['operator_builds'] - 1}"]]))
+    b0 = load("bench_calibration_cost_gpu_before.json")["cases"]["cost"]["imager + solver"]
+    pf, pf0 = load("profile_solver_gpu.json"), load("profile_solver_gpu_before.json")
+
+    def fold(p):
+        r = next(f for f in p["functions"] if f["function"] == "DFTOperator.reweight")
+        return r["seconds"] / r["calls"], r["longest_s"]
+    (m1, x1), (m0, x0) = fold(pf), fold(pf0)
+    out.append("\nFolding a solution into the operator, before and after its int8 pieces were made by one kernel "
+               "(`imaging/quantise.cu`) instead of ~2,000 array launches queued behind the imager's images "
+               "(same machine, same session; `profile_solver_gpu*.json` from `tools/bench/profile_solver.py --sample`):\n")
+    out.append(table(["measure", "array launches", "one kernel"], [
+        ["the imager's thread per solution folded in, mean / longest (s)", f"{m0:.3f} / {x0:.3f}", f"{m1:.3f} / {x1:.3f}"],
+        ["time solving adds, steady", f"{100 * b0['steady_added_fraction']:.1f}%", f"{100 * both['steady_added_fraction']:.1f}%"]]))
     h = load("bench_calibration_cost_gpu_h100.json")["cases"]["cost"]["imager + solver"]
     out.append(f"\nThe same case on one NVIDIA H100 at an earlier commit, with 20-s and 40-s runs "
                f"(`bench_calibration_cost_gpu_h100.json`): {100 * h['steady_added_fraction']:.1f}%.\n")
@@ -704,12 +717,16 @@ page("bench_calibration", "Calibration from the sky: accuracy against chosen tru
       "python tools/bench/bench_calibration.py --device gpu --case drift --json bench_calibration_drift_gpu.json",
       "python tools/bench/bench_calibration.py --device gpu --case solver --json bench_calibration_solver_gpu.json",
       "python tools/bench/bench_calibration.py --device gpu --case cost --cost-s 60 --cost-short-s 20 --json bench_calibration_cost_gpu.json",
-      "python tools/bench/bench_calibration.py --case png --json bench_calibration_png_cpu.json"],
+      "python tools/bench/bench_calibration.py --case png --json bench_calibration_png_cpu.json",
+      "python tools/bench/profile_solver.py --seconds 40 --sample --json profile_solver_gpu.json",
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_calibrate lwasv_sim_station --json gpu_check_quantise.json"],
      [("bench_calibration_accuracy_cpu.json", CPU2), ("bench_calibration_real_cpu.json", CPU2),
       ("bench_calibration_drift_gpu.json", H100),
       ("bench_calibration_solver_gpu.json", H200), ("bench_calibration_solver_gpu_before.json", H200),
-      ("bench_calibration_cost_gpu.json", H200), ("bench_calibration_cost_gpu_h100.json", H100),
-      ("bench_calibration_png_cpu.json", CPU2), ("gpu_check_live_solve.json", H200)], cal_body)
+      ("bench_calibration_cost_gpu.json", H200), ("bench_calibration_cost_gpu_before.json", H200),
+      ("bench_calibration_cost_gpu_h100.json", H100), ("profile_solver_gpu.json", H200),
+      ("profile_solver_gpu_before.json", H200), ("bench_calibration_png_cpu.json", CPU2),
+      ("gpu_check_live_solve.json", H200), ("gpu_check_quantise.json", H200)], cal_body)
 
 # ---------------------------------------------------------------- bench_rfi
 def rfi_body():
