@@ -174,7 +174,7 @@ def _row(part, gx, gy, image, snr, dm=1.0, kind="point", width=2, sky_fraction=0
     part_pixel = int(np.flatnonzero(np.flatnonzero(part.mask) == gy * part.size + gx)[0])
     return {"time_utc": Time("2024-06-01T10:00:00", scale="utc"), "sequence": "s", "image": image,
             "pixel": part_pixel, "grid_x": gx, "grid_y": gy, "l": (gx - 8) / 8, "m": (gy - 8) / 8, "ra_deg": 0.0,
-            "dec_deg": 0.0, "snr": snr, "dm": dm, "channel": -1, "width": width, "width_ms": 1.28, "nmembers": 2,
+            "dec_deg": 0.0, "snr": snr, "dm": dm, "dm_trial": dm, "channel": -1, "width": width, "width_ms": 1.28, "nmembers": 2,
             "nsidelobes": 0, "kind": kind, "sky_fraction": sky_fraction, "lightcurve": np.zeros(3), "_sigma": 1.0}
 
 

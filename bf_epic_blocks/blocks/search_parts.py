@@ -164,11 +164,11 @@ class SearchParts:
                     if r["snr"] <= factor * expect:
                         host = p
                         break
-                if s.average and len(s.dms) > 1 and p["dm"] != r["dm"] and dt <= shift + tlink + wmax \
+                if s.average and len(s.dms) > 1 and p["dm_trial"] != r["dm_trial"] and dt <= shift + tlink + wmax \
                         and np.hypot(*(xy[ip] - xy[iq])) <= b0._space:
                     expect = dm_sidelobe_snr(b0.lay["freq_hz"], b0.lay["dt_s"],
-                                             (p["image"], p["dm"], p["width"], p["snr"]),
-                                             (r["image"], r["dm"], r["width"]))
+                                             (p["image"], p["dm_trial"], p["width"], p["snr"]),
+                                             (r["image"], r["dm_trial"], r["width"]))
                     if r["snr"] <= factor * expect:
                         host = p
                         break

@@ -554,11 +554,16 @@ class TransientSearchBlock(bfp.SinkBlock):
         else:
             mean, sigma = (float(_compat.to_numpy(a[ser, p])) for a in s.statistics())
         lc = (vals - mean) / sigma if sigma > 0 else vals * np.nan
+        # between trials (a burst wider than an image fills the boxcar over a range of them); a sky-wide
+        # event keeps its trial
+        dm = float(s.dms[ser]) if s.average else 0.0
+        if s.average and not cr.skywide[k]:
+            dm = s.refine_dm(ser, p, n_e)
         grid = lay["grid"]
         gx, gy = (int(lay["pixel_index"][p] % grid.size), int(lay["pixel_index"][p] // grid.size)) if grid else (-1, -1)
         self.rows.append({"time_utc": t, "sequence": str(self.hdr.get("name", "")), "image": e, "pixel": p,
                           "grid_x": gx, "grid_y": gy, "l": l, "m": m, "ra_deg": ra, "dec_deg": dec,
-                          "snr": float(cr.snr[k]), "dm": s.dms[ser] if s.average else 0.0,
+                          "snr": float(cr.snr[k]), "dm": dm, "dm_trial": float(s.dms[ser]) if s.average else 0.0,
                           "channel": -1 if s.average else ser, "width": w, "width_ms": w * lay["dt_s"] * 1e3,
                           "nmembers": nmembers, "nsidelobes": 0, "kind": "sky-wide" if cr.skywide[k] else "point",
                           "sky_fraction": sky_fraction, "lightcurve": lc,

@@ -41,8 +41,8 @@ __all__ = ["CANDIDATE_COLUMNS", "CandidateWriter", "candidate_table", "write_can
            "candidates_png"]
 
 CANDIDATE_COLUMNS = ("time_utc", "sequence", "image", "pixel", "grid_x", "grid_y", "l", "m", "ra_deg", "dec_deg",
-                     "snr", "dm", "channel", "width", "width_ms", "nmembers", "nsidelobes", "kind", "sky_fraction", "lightcurve")
-_UNITS = {"ra_deg": "deg", "dec_deg": "deg", "dm": "pc / cm3", "width_ms": "ms"}
+                     "snr", "dm", "dm_trial", "channel", "width", "width_ms", "nmembers", "nsidelobes", "kind", "sky_fraction", "lightcurve")
+_UNITS = {"ra_deg": "deg", "dec_deg": "deg", "dm": "pc / cm3", "dm_trial": "pc / cm3", "width_ms": "ms"}
 
 
 def candidate_table(rows, meta=None, lc_length=0):

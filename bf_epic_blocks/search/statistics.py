@@ -586,6 +586,75 @@ class TransientSearch:
         v = to_numpy(self._ring_read(a, int(width))[series].astype(self.xp.float64).mean(axis=0))
         return v + to_numpy(self._ref[series]).astype(np.float64)
 
+    def snr_by_series(self, pixel, n, first, last, slack=2, center=None):
+        """A found event's S/N in the series around the one it was found in: for each series ``first ..
+        last`` (clipped to those searched), the best boxcar S/N at ``pixel`` over every width and every
+        start within ``slack`` values of value index ``n`` -- and, with ``center`` (the series the event
+        was found in), ``slack + |series - center|``: one trial more sweep moves the event by up to one
+        image wherever in the band the series are aligned -- each against its own window (the W values
+        ending ``wmax`` before the boxcar's start, as :meth:`window_statistics`). In float64 from the
+        history (the search's own S/N rounds its running sums).
+
+        Returns (series (m,) int, snr (m,) float64): host arrays, NaN where a value is no longer held;
+        m is tens to hundreds of series (:meth:`refine_dm`'s use), one small read from the device."""
+        first, last = max(0, int(first)), min(self.nser - 1, int(last))
+        ser = np.arange(first, last + 1)
+        out = np.full(ser.size, np.nan)
+        reach = slack + (np.abs(ser - int(center)) if center is not None else np.zeros(ser.size, int))
+        R = int(reach.max()) if ser.size else 0
+        W, wm = self.window, self.wmax
+        a, b = n - R - wm - W + 1, n + R + wm - 1                 # every value a window or boxcar reads
+        if self._ref is None or ser.size == 0 or not self._held(a, b):
+            return ser, out
+        idx = self.xp.asarray(np.arange(a, b + 1) % self.capacity)
+        v = to_numpy(self._hist[first:last + 1, idx, int(pixel)]).astype(np.float64)       # (m, b - a + 1)
+        c1 = np.concatenate([np.zeros((ser.size, 1)), np.cumsum(v, axis=1)], axis=1)
+        c2 = np.concatenate([np.zeros((ser.size, 1)), np.cumsum(v * v, axis=1)], axis=1)
+        best = np.full(ser.size, -np.inf)
+        for o in range(-R, R + 1):
+            m0 = n + o - a                                           # the boxcar's start in v
+            lo, hi = m0 - wm - W + 1, m0 - wm + 1                    # its window, [lo, hi)
+            mean = (c1[:, hi] - c1[:, lo]) / W
+            sigma = np.sqrt(np.maximum(c2[:, hi] - c2[:, lo] - W * mean * mean, 0.0) / (W - 1))
+            ok = np.abs(o) <= reach
+            for w in self.widths:
+                box = (c1[:, m0 + w] - c1[:, m0]) / w
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    z = (box - mean) * np.sqrt(w) / sigma
+                best = np.where(ok, np.fmax(best, z), best)
+        out[:] = np.where(np.isfinite(best), best, np.nan)
+        return ser, out
+
+    def refine_dm(self, series, pixel, n, *, span=16, most=256):
+        """The DM of an event found in DM trial ``series`` at ``pixel`` starting at value ``n``, between
+        trials: :func:`~bf_epic_blocks.search.clustering.refine_peak` of :meth:`snr_by_series` across the
+        trials around it, ``span`` either side, widened (up to ``most``) while its S/N hump reaches the
+        edge -- unless the wider view's highest S/N lies outside the narrower one (another event: a bright
+        burst whose DM sidelobe this is), where the narrower view is kept. The trial's own DM where the
+        search does not average channels into DM trials, has fewer than three or trials not in increasing
+        order, no longer holds the values, or the peak cannot be placed (``refine_peak``'s NaN)."""
+        from .clustering import PEAK_LEVEL, refine_peak
+        own = float(self.dms[series]) if self.average else 0.0
+        if not self.average or len(self.dms) < 3 or np.any(np.diff(self.dms) <= 0):
+            return own
+        view = None
+        while True:
+            ser, snr = self.snr_by_series(pixel, n, series - span, series + span, center=series)
+            if not np.isfinite(snr).any():
+                break
+            if view is not None and not view[0][0] <= ser[int(np.nanargmax(snr))] <= view[0][-1]:
+                break
+            view = (ser, snr)
+            reaches = any(np.isfinite(e) and e >= PEAK_LEVEL * np.nanmax(snr) for e in (snr[0], snr[-1]))
+            if not (reaches and span < most and (ser[0] > 0 or ser[-1] < self.nser - 1)):
+                break
+            span *= 4
+        if view is None:
+            return own
+        ser, snr = view
+        got = refine_peak(np.asarray(self.dms, np.float64)[ser], snr, at=int(series - ser[0]))
+        return own if not np.isfinite(got) else got
+
     def series_values(self, series, pixel, first, last):
         """Dedispersed values of one series and pixel for value indices [first, last] (since the
         reset), host float64; NaN where not (or no longer) held."""
