@@ -138,7 +138,7 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     tiled : A in the Hopper kernel's tiles instead, (C, PA, M/128, pieces, KD/128, 16384)
     (:func:`tile_operator`), made chunk by chunk (no second whole copy of A).
     out : (A, oscale) arrays of those shapes to write into (an operator's pixels moved), or None.
-    On a GPU chunks hold at least ``chunk`` channels and up to :data:`_CHUNK_BYTES_GPU` of operator.
+    On a GPU one kernel makes every channel (:func:`_quantise_gpu`; ``chunk`` only where G must be cast).
     weights_host : the same weights as a NumPy array, or None (read back from the device: a wait for the
         stream's queued work, which an imager folding in a new solution must not make).
     """
