@@ -14,9 +14,10 @@ pixel gives two DMs:
 
 Each case prints the error of both in trials (one trial: one image of sweep across the band): rms
 and largest over its bursts, and the share within one trial. Cases: a 4-ms burst (6.25 images, the
-station pipeline's) bright and faint, and a 1-ms one (1.5 images).
+station pipeline's) bright and faint, a 1-ms one (1.5 images), and the station pipeline's high
+tuning (784 channels of 25 kHz) with its burst (4 ms, DM 0.35-0.45, S/N ~300).
 
-    python tools/bench/bench_dm_accuracy.py [--seeds 6] [--json bench_dm_accuracy_cpu.json]
+    python tools/bench/bench_dm_accuracy.py [--seeds 6] [--case NAME ...] [--json bench_dm_accuracy_cpu.json]
 """
 import argparse
 import sys
@@ -31,11 +32,16 @@ from benchlib import machine, utc_now, write_json  # noqa: E402
 
 NCHAN, CHAN_HZ, F0, DT = 96, 200e3, 74e6, 16 * 40e-6
 NIMG, ARRIVAL = 2600, 1500
-#: (name, burst width in images, amplitude per channel-image in units of the noise sigma)
-CASES = (("4 ms, S/N ~135", 6.25, 6.0), ("4 ms, S/N ~29", 6.25, 1.3), ("1 ms, S/N ~55", 1.5, 6.0))
+#: (name, burst width in images, amplitude per channel-image in units of the noise sigma, channels, channel
+#: width (Hz), DMs drawn from); the last: the station pipeline's high tuning and burst (784 channels of
+#: 25 kHz, DM 0.4, S/N ~300)
+CASES = (("4 ms, S/N ~135", 6.25, 6.0, NCHAN, CHAN_HZ, (0.3, 1.5)),
+         ("4 ms, S/N ~29", 6.25, 1.3, NCHAN, CHAN_HZ, (0.3, 1.5)),
+         ("1 ms, S/N ~55", 1.5, 6.0, NCHAN, CHAN_HZ, (0.3, 1.5)),
+         ("station, S/N ~300", 6.25, 4.8, 784, 25e3, (0.35, 0.45)))
 
 
-def run_case(width, amp, seed):
+def run_case(width, amp, seed, nchan=NCHAN, chan_hz=CHAN_HZ, dm_range=(0.3, 1.5)):
     """One pipeline run of four bursts; returns [(true DM, dm_trial, dm, snr)] and the trial step."""
     from bf_epic_blocks import imaging
     from bf_epic_blocks.blocks import ArraySourceBlock, TransientSearchBlock, bfp, headers
@@ -43,15 +49,15 @@ def run_case(width, amp, seed):
     from bf_epic_blocks.io.candidates import CandidateWriter, read_candidates
     from bf_epic_blocks.search import SearchSettings
     rng = np.random.default_rng(seed)
-    freq = F0 + CHAN_HZ * np.arange(NCHAN)
+    freq = F0 + chan_hz * np.arange(nchan)
     grid = imaging.lm_grid(8)
     N = grid.size
     valid = np.flatnonzero(grid.mask.ravel())
-    x = rng.normal(10.0, 1.0, (NIMG, NCHAN, 1, N * N)).astype(np.float32)
-    bursts = [(valid[i], rng.uniform(0.3, 1.5)) for i in (0, 4, 26, 38)]       # cells 4 or more apart
+    x = rng.normal(10.0, 1.0, (NIMG, nchan, 1, N * N)).astype(np.float32)
+    bursts = [(valid[i], rng.uniform(*dm_range)) for i in (0, 4, 26, 38)]     # cells 4 or more apart
     for cell, dm in bursts:
         t0 = ARRIVAL + rng.random()
-        for c in range(NCHAN):
+        for c in range(nchan):
             a = t0 + dispersion_delay_s(dm, freq[c], freq.max()) / DT
             for i in range(int(a), int(np.ceil(a + width))):
                 x[i, c, 0, cell] += amp * (min(a + width, i + 1) - max(a, i))
@@ -60,7 +66,7 @@ def run_case(width, amp, seed):
     hdr = headers.image_header("dm", int(1717236000 * FS_HZ), freq, DT, grid, station, ("I",))
     with tempfile.TemporaryDirectory() as d:
         with bfp.Pipeline() as pl:
-            src = ArraySourceBlock(x.reshape(NIMG, NCHAN, 1, N, N), hdr, gulp_nframe=64)
+            src = ArraySourceBlock(x.reshape(NIMG, nchan, 1, N, N), hdr, gulp_nframe=64)
             srch = TransientSearchBlock(src, SearchSettings(threshold=7.5, window_s=0.2, dms=[1.6], dedisperse="tree",
                                                              widths=[1, 2, 4, 8], sidelobe_factor=0.0),
                                         writer=CandidateWriter(d, png=False))
@@ -80,21 +86,25 @@ def run_case(width, amp, seed):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=6, help="runs per case (four bursts each)")
+    ap.add_argument("--case", action="append", help="only the cases whose name starts so (repeatable)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     rows = []
     print(f"{'case':18s} {'bursts':>6s} {'found':>5s} {'S/N':>6s} | {'best trial: rms':>15s} {'max':>5s} {'<=1':>5s} | "
           f"{'fitted: rms':>11s} {'max':>5s} {'<=1':>5s}  {'s':>5s}")
-    for name, width, amp in CASES:
+    for name, width, amp, nchan, chan_hz, dm_range in CASES:
+        if args.case and not any(name.startswith(c) for c in args.case):
+            continue
         t0 = time.perf_counter()
         got = []
         for seed in range(args.seeds):
-            res, step = run_case(width, amp, 3000 + seed)
+            res, step = run_case(width, amp, 3000 + seed, nchan, chan_hz, dm_range)
             got += [(dm, (a - dm) / step, (b - dm) / step, snr) for dm, a, b, snr in res]
         g = np.array(got)
         found = np.isfinite(g[:, 1])
         et, ef = g[found, 1], g[found, 2]
-        row = {"case": name, "width_images": width, "amplitude": amp, "bursts": len(g), "found": int(found.sum()),
+        row = {"case": name, "width_images": width, "amplitude": amp, "nchan": nchan, "chan_hz": chan_hz,
+               "dm_range": list(dm_range), "bursts": len(g), "found": int(found.sum()),
                "snr_median": float(np.median(g[found, 3])),
                "trial_rms": float(np.sqrt(np.mean(et ** 2))), "trial_max": float(np.abs(et).max()),
                "trial_within_1": float(np.mean(np.abs(et) <= 1)),
