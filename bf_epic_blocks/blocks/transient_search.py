@@ -556,14 +556,13 @@ class TransientSearchBlock(bfp.SinkBlock):
         lc = (vals - mean) / sigma if sigma > 0 else vals * np.nan
         # between trials (a burst wider than an image fills the boxcar over a range of them); a sky-wide
         # event keeps its trial
-        dm = float(s.dms[ser]) if s.average else 0.0
-        if s.average and not cr.skywide[k]:
-            dm = s.refine_dm(ser, p, n_e)
+        trial = float(s.dms[ser]) if s.average else 0.0
+        dm = s.refine_dm(ser, p, n_e) if s.average and not cr.skywide[k] else trial
         grid = lay["grid"]
         gx, gy = (int(lay["pixel_index"][p] % grid.size), int(lay["pixel_index"][p] // grid.size)) if grid else (-1, -1)
         self.rows.append({"time_utc": t, "sequence": str(self.hdr.get("name", "")), "image": e, "pixel": p,
                           "grid_x": gx, "grid_y": gy, "l": l, "m": m, "ra_deg": ra, "dec_deg": dec,
-                          "snr": float(cr.snr[k]), "dm": dm, "dm_trial": float(s.dms[ser]) if s.average else 0.0,
+                          "snr": float(cr.snr[k]), "dm": dm, "dm_trial": trial,
                           "channel": -1 if s.average else ser, "width": w, "width_ms": w * lay["dt_s"] * 1e3,
                           "nmembers": nmembers, "nsidelobes": 0, "kind": "sky-wide" if cr.skywide[k] else "point",
                           "sky_fraction": sky_fraction, "lightcurve": lc,
@@ -586,7 +585,7 @@ class TransientSearchBlock(bfp.SinkBlock):
                 with np.errstate(divide="ignore", invalid="ignore"):
                     img = (box - ws[0]) * np.sqrt(w) / ws[1]
             self._recent.append({"image": e, "pixel": p, "snr": float(cr.snr[k]), "row": len(self.rows) - 1,
-                                 "dm": float(s.dms[ser]) if s.average else 0.0, "width": w,
+                                 "dm": trial, "width": w,
                                  "sigma": float(self._sigma[ser, p]) if self._sigma is not None else float("nan"),
                                  "snr_image": img, "sigma_image": None if ws is None else ws[1]})
             if self.fit_every_row and self.sidelobe_factor:

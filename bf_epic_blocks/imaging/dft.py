@@ -159,6 +159,18 @@ def _geometric_from_host(xp, xyz, f, lm, n, precision):
     return out
 
 
+def _unit(w) -> bool:
+    """Whether host weights ``w`` are all 0 or 1 (the routes' exact integer paths need that)."""
+    return bool(((w == 0) | (w == 1)).all())
+
+
+def _cov_scale(w, precision) -> float:
+    """The power of two that scales fp16 covariance operands into range for host weights ``w``:
+    R' = w R w^H / T <= 2 * 127^2 * max|w|^2 (chosen on the host, from the weights); 1 in other modes."""
+    wmax = float(np.abs(w).max())
+    return 2.0 ** -math.ceil(math.log2(wmax * wmax)) if precision in FP16 and wmax > 0 else 1.0
+
+
 def _broadcast_weights(weights, nchan, nant, npol, xp):
     """Weights as a complex128 (nchan, nant, npol) array; accepts (nant,) or a 3-D broadcastable array."""
     if weights is None:
@@ -298,12 +310,9 @@ class DFTOperator:
         if chan_index is not None and int(chan_index.shape[0]) == 0:
             raise ValueError("every channel has every antenna flagged: there is nothing to image")
         self.partial_flags = not bool(live.all())
-        self.unit_weights = bool(((w == 0) | (w == 1)).all())
+        self.unit_weights = _unit(w)
         live_sel = live if chan_index is None else live[chan_index]
-        # fp16 covariance operands: R' = w R w^H / T <= 2 * 127^2 * max|w|^2, scaled by a power of two
-        # into fp16's range (chosen once, on the host, from the weights)
-        wmax = float(np.abs(w).max())
-        self.cov_scale = 2.0 ** -math.ceil(math.log2(wmax * wmax)) if self.precision in FP16 and wmax > 0 else 1.0
+        self.cov_scale = _cov_scale(w, self.precision)
         hxyz_kept = hxyz[keep_index]
         # 1/N_A is applied to the image (norm), not to the data, so that integer voltages with
         # unit weights stay integers (exact in fp16/tf32 and in integer covariances).
@@ -415,11 +424,7 @@ class DFTOperator:
         w = w[:, kidx, :]
         if not np.array_equal(w != 0, self._host["live"]):
             return False
-        if bool(((w == 0) | (w == 1)).all()) != self.unit_weights:
-            return False
-        wmax = float(np.abs(w).max())
-        cov_scale = 2.0 ** -math.ceil(math.log2(wmax * wmax)) if self.precision in FP16 and wmax > 0 else 1.0
-        if cov_scale != self.cov_scale:
+        if _unit(w) != self.unit_weights or _cov_scale(w, self.precision) != self.cov_scale:
             return False
         chan = self._host["chan"]
         if self.fused is not None and not self.fused.can_reweight(w if chan is None else w[chan]):

@@ -101,9 +101,8 @@ def _pad(n, m):
     return -(-n // m) * m
 
 
-#: bytes of one chunk's padded complex64 operator on a GPU (its temporaries take a few times that): a small
-#: operator (a watchlist's few pixels) is quantised in one or two chunks, tens of kernels rather than
-#: thousands (its pixels move every second); a grid's ~7 MB a channel keeps the 16-channel chunks
+#: bytes of one chunk of an operator that :func:`quantise_operator` must cast to complex64 on a GPU first
+#: (a complex64 operator, the fused modes' own, is read as it is, every channel in one launch)
 _CHUNK_BYTES_GPU = 64 * 2**20
 
 
