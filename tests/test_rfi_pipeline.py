@@ -115,6 +115,36 @@ def test_pure_4bit_noise_is_left_alone(sky):
     assert fb.summary()["fraction_flagged"] <= 0.005
 
 
+def test_a_gulp_without_impulses_waits_once_and_copies_nothing_to_the_device(sky, xp, monkeypatch):
+    """The flagger's gulp on noise: one copy to the host (its counts), and on a GPU no copy of a host array
+    to the device after the first gulp: such a copy waits for the queued kernels inside the CUDA driver,
+    holding up the imager's thread; the same gulp with an impulse takes the impulses' path as well."""
+    import bf_epic_blocks.blocks.rfi_flag as rf
+    host_copies, device_copies = [], []
+    real_to_numpy = rf.to_numpy
+
+    def counted(a):
+        host_copies.append(a.shape)
+        return real_to_numpy(a)
+    monkeypatch.setattr(rf, "to_numpy", counted)
+    if xp is not np:
+        real_asarray = xp.asarray
+
+        def asarray(a, *args, **kw):
+            if isinstance(a, np.ndarray) and len(host_copies) > 1:        # after the first gulp
+                device_copies.append(a.shape)
+            return real_asarray(a, *args, **kw)
+        monkeypatch.setattr(xp, "asarray", asarray)
+    _, fb = _flag(sky["noise"], sky["hdr"], "system" if xp is np else "cuda")
+    assert fb.flag_stats["flagged"]["impulse"] == fb.flag_stats["flagged"]["impulse-stand"] == 0
+    assert len(host_copies) == fb.flag_stats["gulps"] == T // GULP
+    assert device_copies == []
+    host_copies.clear()
+    _, fb = _flag(sky["dirty"], sky["hdr"], "system" if xp is np else "cuda")
+    assert fb.flag_stats["flagged"]["impulse"] > 0
+    assert fb.flag_stats["gulps"] < len(host_copies) <= 3 * fb.flag_stats["gulps"]
+
+
 def _image(X, hdr, flag):
     lm = np.concatenate([imaging.lm_grid(24).lm, [[0.2, 0.1], [0.9, -0.35]]])   # the source, the transmitter
     with bfp.Pipeline() as p:

@@ -29,7 +29,6 @@ import logging
 import numpy as np
 
 from ..imaging import rfi
-from ..imaging._xp import get_xp
 from ..runtime.dtypes import ci4_bytes
 from . import _compat
 from ._compat import bfp, span_array, to_numpy, unpack_complex
@@ -148,14 +147,18 @@ class RFIFlagBlock(bfp.TransformBlock):
         """Detect, zero and count one gulp: ``raw`` the span's array (n, nchan, nstand, npol), ``out`` the
         output span's; out[:n] gets the voltages with the flagged stand-samples zeroed.
 
-        Returns (cnt, frames): cnt int32 (ns, nchan, 7) on the ring's device, the live stands flagged per
-        short block j (frames [j a, (j + 1) a), a = ``impulse_frames``, the last one shorter where a does not
-        divide n) and channel, by reason (:data:`~bf_epic_blocks.imaging.rfi.COUNTED`: REASONS, then any);
-        frames (ns,) host int.
+        Returns (cnt, frames, summary): cnt int32 (ns, nchan, 7) on the ring's device, the live stands
+        flagged per short block j (frames [j a, (j + 1) a), a = ``impulse_frames``, the last one shorter
+        where a does not divide n) and channel, by reason (:data:`~bf_epic_blocks.imaging.rfi.COUNTED`:
+        REASONS, then any); frames (ns,) host int; summary the host figures of :meth:`_summarise`.
 
         Impulses are found first, and the short blocks they flag across the band are left out of the
         spectral-kurtosis sums (each block's SK then uses the samples left), so that a 1-ms spark costs its
-        own milliseconds and not the 41 ms of every block it falls in."""
+        own milliseconds and not the 41 ms of every block it falls in. The gulp is first flagged as if no
+        impulse were found, and the counts and the impulses come to the host in one copy; only where an
+        impulse was found (rare) is the spectral kurtosis taken again without it and the gulp flagged again.
+        On a GPU that is one wait a gulp and no copy from the host: a copy that waits for queued kernels
+        waits inside the CUDA driver and holds up every other thread's CUDA calls (the imager's)."""
         xp, lay = self._xp, self._lay
         n, nchan, nstand = (int(v) for v in raw.shape[:3])
         m, a = self.block_frames, self.impulse_frames
@@ -170,8 +173,6 @@ class RFIFlagBlock(bfp.TransformBlock):
         frames = np.full(ns, a, np.int64)
         if ns > nfull:
             frames[-1] = n - nfull * a
-        imp_h = np.zeros(ns, bool)
-        st_h = None
         imp = xp.zeros(ns, bool)
         imp_st = xp.zeros((ns, nstand), bool)
         if nfull >= 3:
@@ -181,20 +182,51 @@ class RFIFlagBlock(bfp.TransformBlock):
             allf = rfi.broadband_flags(self._band_power(P, per), self.impulse_sigma)   # (nfull,)
             imp[:nfull] = allf
             imp_st[:nfull] = per & ~allf[:, None]
-            both = to_numpy(xp.concatenate([allf[:, None], imp_st[:nfull]], axis=1))   # one copy to the host
-            imp_h[:nfull] = both[:, 0]
-            st_h = both[:, 1:]                                                # (nfull, nstand) own sparks
-        # spectral kurtosis per block of m (a last block of at least 64 samples as it is), without impulses
+        # spectral kurtosis per block of m (a last block of at least 64 samples as it is)
         nb = n // m
         blocks = [(k * m, m) for k in range(nb)]
         if n - nb * m >= rfi.MIN_M_QUANTISED:
             blocks.append((nb * m, n - nb * m))
         elif n - nb * m:
             self.flag_stats["untested"] += (n - nb * m) * nchan * nstand
-        hit = np.repeat(imp_h, frames)                                        # (n,) frames of band-wide impulses
-        if nb and hit[:nb * m].any():                                         # the whole blocks' sums without them
-            S1, S2, _ = rfi.block_power(x[:nb * m], m, a, ci4=ci4, group=group, skip=imp_h[:nb * m // a])
-        code = xp.zeros((len(blocks), nchan, nstand), xp.uint8)
+        which = self._which(ns, a, m, blocks)
+        code = self._sk_codes(x, S1, S2, blocks, np.zeros(n, bool), None, ci4)
+        cnt = rfi.apply_flags(self._bytes(raw), self._bytes(out[:n]), code, which, imp, imp_st, self._static,
+                              self._live, a, self.spread * max(1, self._nlive))
+        summary = self._summarise(cnt, frames, imp, imp_st)
+        if summary["impulse"] or summary["stand_spark"]:
+            # found: the SK again without the impulses' samples (and each sparking stand without its own)
+            both = to_numpy(xp.concatenate([imp[:, None], imp_st], axis=1))
+            imp_h, st_h = both[:, 0], both[:nfull, 1:]
+            hit = np.repeat(imp_h, frames)                                    # (n,) frames of band-wide impulses
+            if nb and hit[:nb * m].any():                                     # the whole blocks' sums without them
+                S1, S2, _ = rfi.block_power(x[:nb * m], m, a, ci4=ci4, group=group, skip=imp_h[:nb * m // a])
+            code = self._sk_codes(x, S1, S2, blocks, hit, st_h, ci4)
+            cnt = rfi.apply_flags(self._bytes(raw), self._bytes(out[:n]), code, which, imp, imp_st, self._static,
+                                  self._live, a, self.spread * max(1, self._nlive))
+            summary = self._summarise(cnt, frames, imp, imp_st)
+        return cnt, frames, summary
+
+    def _which(self, ns, a, m, blocks):
+        """int32 (ns,) on the ring's device: each short block's SK block (m is a multiple of a: a short block
+        lies in one), -1 past the tested frames; made once per gulp shape (a copy from the host)."""
+        key = (ns, a, m, tuple(blocks))
+        cache = self.__dict__.setdefault("_which_cache", {})
+        if key not in cache:
+            which = np.minimum(np.arange(ns) * a // m, max(len(blocks) - 1, 0)).astype(np.int32)
+            which[(np.arange(ns) * a) >= sum(mm for _, mm in blocks)] = -1
+            cache.clear()
+            cache[key] = self._xp.asarray(which)
+        return cache[key]
+
+    def _sk_codes(self, x, S1, S2, blocks, hit, st_h, ci4):
+        """uint8 (len(blocks), nchan, nstand) SK codes (:func:`~..imaging.rfi.sk_code`) of the blocks [t0,
+        t0 + mm), from the whole blocks' sums S1, S2 (without the frames ``hit`` (n,) host bool: band-wide
+        impulses); a last, shorter block is summed here. ``st_h`` (nfull, nstand) host bool or None: the
+        stands' own sparks, left out of each such stand's SK."""
+        xp = self._xp
+        nb = S1.shape[0]
+        code = xp.zeros((len(blocks),) + tuple(x.shape[1:3]), xp.uint8)
         for i, (t0, mm) in enumerate(blocks):
             used = mm - int(hit[t0:t0 + mm].sum())
             if used < rfi.MIN_M_QUANTISED:
@@ -208,14 +240,33 @@ class RFIFlagBlock(bfp.TransformBlock):
                     part = xp.where(k, part, xp.zeros((), part.dtype))
                 s1, s2 = rfi.power_sums(part, mm, ci4=ci4)
             code[i] = rfi.sk_code(s1, s2, used, self.far, bits=self._bits)[0]
-            if st_h is not None:
+            if st_h is not None and st_h.any():
                 self._sk_without_own_sparks(code[i], x, t0, mm, hit[t0:t0 + mm], st_h, ci4)
-        # each short block's SK block (m is a multiple of a: a short block lies in one)
-        which = np.minimum(np.arange(ns) * a // m, max(len(blocks) - 1, 0)).astype(np.int32)
-        which[(np.arange(ns) * a) >= sum(mm for _, mm in blocks)] = -1
-        cnt = rfi.apply_flags(self._bytes(raw), self._bytes(out[:n]), code, which, imp, imp_st, self._static,
-                              self._live, a, self.spread * max(1, self._nlive))
-        return cnt, frames
+        return code
+
+    def _summarise(self, cnt, frames, imp, imp_st):
+        """The gulp's figures on the host, in one copy from the device: a dict of ``counts`` (7,) float64 (the
+        stand-samples flagged by REASONS, then any), ``per_chan`` (nchan,), ``used`` (ns, nchan) the live
+        stands left per short block, ``stand_imp`` (ns,) bool (a live stand's own spark counted), ``partial``
+        and ``wholly`` (some (short block, channel) kept part of the live stands / none), and ``impulse``,
+        ``stand_spark``: whether any band-wide impulse, or any stand's own spark, was found."""
+        xp, nl = self._xp, self._nlive
+        ns, nchan = int(cnt.shape[0]), int(cnt.shape[1])
+        fr = int(frames[0]) if (frames == frames[0]).all() else xp.asarray(frames)[:, None]
+        used = nl - cnt[..., -1]                                             # (ns, nchan) stands left
+        by_reason = (cnt.sum(axis=1, dtype=xp.int64) * fr).sum(axis=0)      # (7,): REASONS, then any
+        per_chan = (cnt[..., -1].astype(xp.int64) * fr).sum(axis=0)          # (nchan,)
+        flags = xp.stack([((used > 0) & (used < nl)).any(), (used == 0).any(), imp.any(), imp_st.any()])
+        stand_imp = cnt[..., REASONS.index("impulse-stand")].max(axis=1) > 0  # (ns,) a stand's own spark
+        host = to_numpy(xp.concatenate([by_reason.astype(xp.float64), per_chan.astype(xp.float64),
+                                        stand_imp.astype(xp.float64), flags.astype(xp.float64),
+                                        used.reshape(-1).astype(xp.float64)]))
+        k = len(REASONS) + 1
+        out = {"counts": host[:k], "per_chan": host[k:k + nchan], "stand_imp": host[k + nchan:k + nchan + ns] > 0}
+        f = host[k + nchan + ns:k + nchan + ns + 4] > 0
+        out.update(partial=bool(f[0]), wholly=bool(f[1]), impulse=bool(f[2]), stand_spark=bool(f[3]),
+                   used=host[k + nchan + ns + 4:].reshape(ns, nchan))
+        return out
 
     def _sk_without_own_sparks(self, code, x, t0, mm, hit, st_h, ci4):
         """A stand whose own spark was flagged in a short block of the SK block [t0, t0 + mm) has its SK
@@ -261,26 +312,12 @@ class RFIFlagBlock(bfp.TransformBlock):
         raw = span_array(ispan)
         out = span_array(ospan)
         n = int(raw.shape[0])
-        xp = self._xp
         first = getattr(ispan, "frame_offset", self._frame)
         nl = self._nlive
         with _compat.stream_context():
-            cnt, frames = self.process(raw, out)
-            fr = int(frames[0]) if (frames == frames[0]).all() else xp.asarray(frames)[:, None]
-            used = nl - cnt[..., -1]                                             # (ns, nchan) stands left
-            by_reason = (cnt.sum(axis=1, dtype=xp.int64) * fr).sum(axis=0)      # (7,): REASONS, then any
-            per_chan = (cnt[..., -1].astype(xp.int64) * fr).sum(axis=0)          # (nchan,)
-            partial = ((used > 0) & (used < nl)).any()
-            wholly = (used == 0).any()
-            stand_imp = cnt[..., REASONS.index("impulse-stand")].max(axis=1) > 0  # (ns,) a stand's own spark
-            host = to_numpy(xp.concatenate([by_reason.astype(xp.float64), per_chan.astype(xp.float64),
-                                         stand_imp.astype(xp.float64),
-                                         partial.reshape(1).astype(xp.float64), wholly.reshape(1).astype(xp.float64)]))
-        counts = host[:len(REASONS) + 1]                                         # by reason, then any reason
-        nch = self._lay["nchan"]
-        per_chan = host[len(REASONS) + 1:len(REASONS) + 1 + nch]
-        stand_imp = host[len(REASONS) + 1 + nch:-2] > 0
-        partial, wholly = bool(host[-2]), bool(host[-1])
+            _, frames, summ = self.process(raw, out)
+        counts, per_chan, stand_imp = summ["counts"], summ["per_chan"], summ["stand_imp"]
+        partial, wholly, used = summ["partial"], summ["wholly"], summ["used"]
         if self.weights is not None:
             self.weights.add(self._tag0, first, used, frames, nl, partial, wholly, altered=stand_imp)
         self._frame = first + n
@@ -426,19 +463,18 @@ class FlagWeights:
         ``frames`` (ns,) frames; ``partial``: whether any short block kept part of the array; ``wholly``:
         whether any (short block, channel) kept nothing; ``altered`` (ns,) host bool or None: the short
         blocks in which a stand's own spark took it out (their images are missing for the search)."""
-        xp = get_xp(used)
-        u = (used.astype(xp.float64) / max(1, nlive)) ** 2
-        u = xp.repeat(u, _repeats(frames), axis=0)                            # (n, nchan) per frame
-        n = int(u.shape[0])
-        cs = xp.concatenate([xp.zeros((1,) + u.shape[1:]), xp.cumsum(u, axis=0)])
+        u = (to_numpy(used).astype(np.float64) / max(1, nlive)) ** 2          # (ns, nchan) per short block
+        fr = np.asarray(frames, np.int64).reshape(-1)
+        edges = np.concatenate([[0], np.cumsum(fr)])                          # (ns + 1,) each block's first frame
+        n = int(edges[-1])
+        cw = np.concatenate([np.zeros((1,) + u.shape[1:]), np.cumsum(u * fr[:, None], axis=0)])
         A = self.A
-        cuts = [0] + [t for t in range(-(-first // A) * A - first, n, A) if t > 0] + [n]
-        cuts = sorted(set(cuts))
-        seg = cs[xp.asarray(cuts[1:])] - cs[xp.asarray(cuts[:-1])]           # (nseg, nchan)
-        # to the host before another thread sees it: the imager and the search run on their own CUDA
-        # streams, which nothing orders after this one's kernels (and CuPy's pool may hand this stream's
-        # freed memory back to it while they still read); (nseg, nchan) is a few hundred kB a gulp
-        seg = to_numpy(seg)
+        cuts = np.array(sorted({0, n} | {t for t in range(-(-first // A) * A - first, n, A) if t > 0}), np.int64)
+        # the sum of u over frames [0, t) at each cut t: whole short blocks, then part of the one t falls in
+        j = np.minimum(np.searchsorted(edges, cuts, side="right") - 1, len(fr) - 1)
+        upto = cw[j] + u[j] * (cuts - edges[j])[:, None]
+        seg = upto[1:] - upto[:-1]                                            # (nseg, nchan)
+        cuts = cuts.tolist()
         alt = np.zeros(n, bool) if altered is None else np.repeat(np.asarray(altered, bool), frames)
         with self._cond:
             if self._seq != tag0:
