@@ -252,3 +252,26 @@ def test_the_gpu_band_mean_is_the_float64_mean_of_the_channels():
     assert got.shape == want.shape == (5, 1, 1, 300) and got.dtype == np.float64
     assert np.array_equal(np.isnan(got), np.isnan(want))
     assert np.allclose(got, want, rtol=1e-14, atol=0, equal_nan=True)
+
+
+def test_channel_images_that_imaged_anything(xp):
+    """rows_nonzero: a channel image with any value that is neither 0 nor NaN imaged something; zeros and
+    NaN (below the horizon) alone did not. Rows whose one value lies past the first 256, or is negative,
+    or at the very end, count; against the expression it stands for, on the host."""
+    from bf_epic_blocks.imaging.reduce import rows_nonzero
+    rng = np.random.default_rng(4)
+    x = rng.normal(10.0, 3.0, (6, 9, 1, 700)).astype(np.float32)
+    x[:, :, :, :50] = np.nan                                         # cells below the horizon
+    x[1, 2] = 0.0                                                    # a wholly flagged channel
+    x[2, 3] = 0.0
+    x[2, 3, 0, 699] = -1e-30                                         # one negative value, at the end
+    x[3, 4] = np.nan
+    x[3, 5] = 0.0
+    x[3, 5, 0, 300] = 2.0                                            # one value past the first 256
+    x[4, 0] = np.where(np.isnan(x[4, 0]), np.nan, 0.0)               # zeros and NaN
+    want = ((x > 0) | (x < 0)).reshape(6, 9, -1).any(axis=2)
+    got = rows_nonzero(xp.asarray(x))
+    got = got.get() if hasattr(got, "get") else got
+    assert got.dtype == bool and got.shape == (6, 9)
+    assert np.array_equal(got, want)
+    assert not got[1, 2] and got[2, 3] and not got[3, 4] and got[3, 5] and not got[4, 0]

@@ -267,6 +267,34 @@ def test_device_and_host_agree(xp):
     assert np.array_equal(to_numpy(rfi.broadband_flags(S1)), rfi.broadband_flags(S1h))
 
 
+def test_impulse_detectors_on_the_device_are_their_array_form(xp):
+    """broadband_flags (both forms) and band_power at a whole band's shapes (channels in groups of 3, 65
+    groups; 64 short blocks): the GPU's kernels give the NumPy array form's flags and powers, with sparks
+    on the whole band, on one stand, on half the stands at once, and dead stands."""
+    rng = np.random.default_rng(52)
+    nb, nchan, nst = 64, 195, 40
+    P = rng.poisson(32.0, (nb, nchan, nst)).astype(np.float32)          # integer short-block powers
+    P[10] += 40.0                                                       # a broadband spark
+    P[20, :, 5] *= 6.0                                                  # one stand's own
+    P[30, :, :22] *= 5.0                                                # over half the live stands at once
+    P[:, 7, 3] = 0.0                                                    # a channel with no power on one stand
+    live = np.ones(nst, bool)
+    live[[1, 2]] = False
+    for per_input in (True, False):
+        want = rfi.broadband_flags(P, 6.0, per_input=per_input)
+        got = to_numpy(rfi.broadband_flags(xp.asarray(P), 6.0, per_input=per_input))
+        assert np.array_equal(got, want), per_input
+    per = rfi.broadband_flags(P, 6.0, per_input=True)
+    assert per[20, 5] and per[30, :22].all() and not per[20, 6]
+    want = rfi.band_power(P, per, live)
+    got = to_numpy(rfi.band_power(xp.asarray(P), xp.asarray(per), xp.asarray(live)))
+    assert got.shape == want.shape == (nb, nchan, 1) and np.array_equal(got, want)
+    assert want[20, 0, 0] == pytest.approx(P[20, 0, live & (np.arange(nst) != 5)].sum() * 38 / 37)
+    assert want[30, 0, 0] == P[30, 0, live].sum()                       # most sparked: the sky's, kept
+    band = rfi.broadband_flags(want, 6.0)
+    assert band[10] and band[30] and not band[20]
+
+
 @pytest.mark.parametrize("bits", [4, None])
 def test_sk_code_is_sk_flags_per_stand(xp, bits):
     """sk_code's bits are sk_flags' low and high reasons, any pol of a stand (on a GPU: the kernel and its

@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 from ..imaging._xp import get_xp
-from ..imaging.reduce import channel_mean
+from ..imaging.reduce import channel_mean, rows_nonzero
 from . import _compat
 from ._compat import bfp, span_array
 from .headers import derived_header, image_layout
@@ -50,9 +50,20 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         super().__init__(iring, *args, **kwargs)
         self.nimage = None if nimage is None else int(nimage)
         self.seconds, self.average_channels = seconds, bool(average_channels)
-        self.int_stats = {"images_in": 0, "images_out": 0, "images_dropped_partial": 0, "channel_images_flagged": 0}
+        self._int_stats = {"images_in": 0, "images_out": 0, "images_dropped_partial": 0, "channel_images_flagged": 0}
+        self._flagged_dev = None          # on a GPU: channel images flagged, summed there until int_stats is read
         if space is not None:
             self.orings = [self.create_ring(space=space)]
+
+    @property
+    def int_stats(self):
+        """Counts: images in and out, images dropped at a sequence's end, channel images left out of a band
+        mean as wholly flagged (on a GPU summed there each gulp and brought to the host when read here:
+        a copy each gulp would wait for the imager's queued images)."""
+        if self._flagged_dev is not None:
+            pending, self._flagged_dev = self._flagged_dev, None
+            self._int_stats["channel_images_flagged"] += int(_compat.to_numpy(pending))
+        return self._int_stats
 
     def define_valid_input_spaces(self):
         return "any"
@@ -131,15 +142,15 @@ class ImageIntegratorBlock(bfp.TransformBlock):
                 out[nout] = _to_space(mean.astype(out.dtype), out)
                 nout += 1
                 self._sum, self._n, self._w = None, 0, None
-        self.int_stats["images_in"] += n
-        self.int_stats["images_out"] += nout
+        self._int_stats["images_in"] += n
+        self._int_stats["images_out"] += nout
         return nout
 
     @staticmethod
     def _live(x):
         """bool (n, C): the channel images of x (n, C, ...) that imaged anything. A channel whose voltages
         were all flagged images as zeros (NaN below the horizon; NaN compares False)."""
-        return ((x > 0) | (x < 0)).reshape(x.shape[0], x.shape[1], -1).any(axis=2)
+        return rows_nonzero(x)
 
     def _band_mean(self, x, live=None):
         """The channel mean of x (n, C, ...); after interference flagging (the header's ``flagging``) the mean
@@ -152,13 +163,17 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         n, C = x.shape[0], x.shape[1]
         live = self._live(x) if live is None else live
         used = live.sum(axis=1)
-        self.int_stats["channel_images_flagged"] += int(n * C - int(used.sum()))
+        if xp is np:
+            self._int_stats["channel_images_flagged"] += int(n * C - int(used.sum()))
+        else:
+            flagged = n * C - used.sum()
+            self._flagged_dev = flagged if self._flagged_dev is None else self._flagged_dev + flagged
         scale = xp.where(used > 0, C / xp.maximum(used, 1), 0.0).astype(xp.float64)
         return m * scale.reshape((n, 1) + (1,) * (m.ndim - 2))
 
     def on_sequence_end(self, iseq):
         if self._n:
-            self.int_stats["images_dropped_partial"] += self._n
+            self._int_stats["images_dropped_partial"] += self._n
             log.warning("ImageIntegratorBlock: %d images at the end of sequence %s did not fill an integration of %d "
                         "and were not written", self._n, iseq.header.get("name"), self.nimage)
             self._sum, self._n, self._w = None, 0, None

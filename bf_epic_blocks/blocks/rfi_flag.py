@@ -292,21 +292,10 @@ class RFIFlagBlock(bfp.TransformBlock):
             code[:, s] = rfi.sk_code(s1, s2, used, self.far, bits=self._bits)[0][:, 0]
 
     def _band_power(self, P, per):
-        """(nfull, nchan, 1): each short block's power summed over the stands for the band-wide detector,
-        without the stands that ``per`` (nfull, nstand) says sparked on their own (the rest scaled up to
-        all the live stands) where fewer than half the live stands did: one stand's spark, 40 times its
-        noise, raises a 24-stand array's total by more than half and would otherwise flag every stand.
-        Where half or more sparked at once, the spark is the sky's, and the plain sum is kept. Stands not
-        in use (the station's flags) are left out of both."""
-        xp = self._xp
-        live = self._live.astype(bool)                                         # (nstand,) stands in use
-        P = xp.where(live[None, None, :], P, xp.float32(0.0))                  # a dead stand's spark is not data
-        nl = xp.maximum(live.sum(), 1).astype(xp.float32)
-        own = per & live[None, :]
-        k = own.sum(axis=1).astype(xp.float32)                                 # (nfull,)
-        total = P.sum(axis=2)
-        kept = xp.where(own[:, None, :], xp.float32(0.0), P).sum(axis=2) * (nl / xp.maximum(nl - k, 1))[:, None]
-        return xp.where((2 * k < nl)[:, None], kept, total)[..., None]
+        """(nfull, nchan, 1): each short block's power for the band-wide detector
+        (:func:`~bf_epic_blocks.imaging.rfi.band_power`: the live stands' sum, without the stands that ``per``
+        (nfull, nstand) says sparked on their own where fewer than half the live stands did)."""
+        return rfi.band_power(P, per, self._live)
 
     def on_data(self, ispan, ospan):
         raw = span_array(ispan)

@@ -224,3 +224,24 @@ extern "C" __global__ void bf_channel_mean(const float* __restrict__ x, double* 
     for (int c = 0; c < C; ++c) s += (double)p[(long long)c * inner];
     out[(long long)blockIdx.y * inner + j] = s / C;
 }
+
+// bf_rows_nonzero: out[r] = 1 where row r of x (rows, len) float32 contiguous holds any value that is neither
+// zero nor NaN (x > 0 || x < 0), else 0. One thread block per row, reading it 256 values at a time and
+// stopping at the first stretch that holds such a value: an imaged channel's first pixels do, so a gulp of
+// images costs about a 256th of reading it; a wholly flagged channel (zeros) is read to its end.
+// Launch: grid (rows), block (256).
+extern "C" __global__ void bf_rows_nonzero(const float* __restrict__ x, unsigned char* __restrict__ out,
+                                           const long long len)
+{
+    const float* row = x + (size_t)blockIdx.x * (size_t)len;
+    int found = 0;
+    for (long long j0 = 0; j0 < len; j0 += blockDim.x) {
+        const long long j = j0 + threadIdx.x;
+        const float v = j < len ? row[j] : 0.0f;
+        if (__syncthreads_or(v > 0.0f || v < 0.0f)) {
+            found = 1;
+            break;
+        }
+    }
+    if (threadIdx.x == 0) out[blockIdx.x] = (unsigned char)found;
+}

@@ -21,7 +21,8 @@ import numpy as np
 from ..cuda import get_kernel, register
 from ._xp import get_xp
 
-__all__ = ["block_corr", "row_dot", "group_power", "products_from_blocks", "product_coefficients"]
+__all__ = ["block_corr", "row_dot", "group_power", "products_from_blocks", "product_coefficients",
+           "rows_nonzero"]
 
 
 def _raw(name):
@@ -224,3 +225,20 @@ def channel_mean(x):
     if n and inner:
         _raw("bf_channel_mean")(((inner + 255) // 256, n), (256,), (x, out, np.int32(C), np.int64(inner)))
     return out
+
+
+def rows_nonzero(x):
+    """bool (n, C): whether each (i, c) of x (n, C, ...) holds any value that is neither zero nor NaN
+    (``(x > 0) | (x < 0)``, any over the trailing axes): a channel image that imaged anything. On the GPU, a
+    C-contiguous float32 ``x`` is one kernel (``bf_rows_nonzero``, ``reduce.cu``) that stops reading a row
+    at its first such value; elsewhere the expression itself."""
+    xp = get_xp(x)
+    n, C = int(x.shape[0]), int(x.shape[1])
+    if xp is np or x.dtype != np.float32 or not x.flags.c_contiguous or x.ndim < 3:
+        return ((x > 0) | (x < 0)).reshape(n, C, -1).any(axis=2)
+    inner = int(np.prod(x.shape[2:]))
+    out = xp.zeros((n, C), xp.uint8)
+    if n * C and inner:
+        _raw("bf_rows_nonzero")((n * C,), (256,), (x, out, np.int64(inner)))
+    return out.view(xp.bool_)
+

@@ -188,3 +188,99 @@ extern "C" __global__ void rfi_apply_flags(const unsigned char* __restrict__ x, 
         }
     }
 }
+
+// rfi_group_means: the impulse detector's ratios averaged over groups of channels (imaging/rfi.py's
+// broadband_flags, which is their definition): means[b, q, i] = (1/g) sum over the g channels c of group q
+// of (ref[c, i] > 0 ? P[b, c, i] / ref[c, i] : 1), with ref the mean over the nb blocks of P[:, c, i] (ref_in
+// null) or ref_in (nchan, nin).  P (nb, nchan, nin) float32, means (nb, ng, nin) float32; g <= 64. A thread
+// per (q, i): consecutive threads read consecutive inputs. Launch: grid (ceil(ng nin / 256)), block (256).
+extern "C" __global__ void rfi_group_means(const float* __restrict__ P, const float* __restrict__ ref_in,
+                                           float* __restrict__ means, int nb, int nchan, int nin, int g,
+                                           int ng) {
+    const long long k = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    if (k >= (long long)ng * nin) return;
+    const int q = (int)(k / nin), i = (int)(k % nin);
+    float ref[64];
+    for (int e = 0; e < g; ++e) {
+        const int c = q * g + e;
+        if (ref_in != nullptr) {
+            ref[e] = ref_in[(size_t)c * nin + i];
+        } else {
+            float s = 0.0f;
+            for (int b = 0; b < nb; ++b) s += P[((size_t)b * nchan + c) * nin + i];
+            ref[e] = s / (float)nb;
+        }
+    }
+    for (int b = 0; b < nb; ++b) {
+        float acc = 0.0f;
+        for (int e = 0; e < g; ++e) {
+            const float r = ref[e];
+            acc += r > 0.0f ? P[((size_t)b * nchan + q * g + e) * nin + i] / r : 1.0f;
+        }
+        means[((size_t)b * ng + q) * nin + i] = acc / (float)g;
+    }
+}
+
+// rfi_robust_flags: flags[b, j] = 1 where stat[b, j] > med_j + kf MAD_j (med_j the median over b of column
+// j, MAD_j the median of |stat[:, j] - med_j|; NumPy's median rule for even nb), the products and sums
+// rounded one at a time as the array form does.  stat (nb, C) float32, nb <= 128, flags (nb, C) uint8.
+// A thread per column. Launch: grid (ceil(C / 128)), block (128).
+__device__ float rfi_sorted_median(float* v, int L) {
+    for (int i = 1; i < L; ++i) {
+        const float y = v[i];
+        int j = i - 1;
+        while (j >= 0 && v[j] > y) {
+            v[j + 1] = v[j];
+            --j;
+        }
+        v[j + 1] = y;
+    }
+    return (L % 2) ? v[L / 2] : (v[L / 2 - 1] + v[L / 2]) / 2.0f;
+}
+
+extern "C" __global__ void rfi_robust_flags(const float* __restrict__ stat, unsigned char* __restrict__ flags,
+                                            int nb, int C, float kf) {
+    const int j = blockIdx.x * blockDim.x + threadIdx.x;
+    if (j >= C) return;
+    float v[128];
+    for (int b = 0; b < nb; ++b) v[b] = stat[(size_t)b * C + j];
+    const float med = rfi_sorted_median(v, nb);
+    for (int b = 0; b < nb; ++b) v[b] = fabsf(__fsub_rn(stat[(size_t)b * C + j], med));
+    const float lim = __fadd_rn(med, __fmul_rn(kf, rfi_sorted_median(v, nb)));
+    for (int b = 0; b < nb; ++b) flags[(size_t)b * C + j] = stat[(size_t)b * C + j] > lim;
+}
+
+// rfi_band_power: out[b, c] the power of block b and channel c summed over the live stands, or where fewer
+// than half of the nl live stands sparked on their own in block b (own[b, i]), the sum without those stands
+// times nl / (nl - k), k of them (imaging/rfi.py's band_power is the definition). P (nb, nchan, nin) float32
+// (integers: the sums are exact in any order), own (nb, nin) and live (nin,) bytes, out (nb, nchan). A warp
+// per (b, c), its lanes across the stands. Launch: grid (ceil(32 nb nchan / 256)), block (256).
+extern "C" __global__ void rfi_band_power(const float* __restrict__ P, const unsigned char* __restrict__ own,
+                                          const unsigned char* __restrict__ live, float* __restrict__ out, int nb,
+                                          int nchan, int nin) {
+    const long long wid = ((long long)blockIdx.x * blockDim.x + threadIdx.x) / 32;
+    const int lane = threadIdx.x % 32;
+    if (wid >= (long long)nb * nchan) return;
+    const int b = (int)(wid / nchan);
+    const float* row = P + (size_t)wid * nin;
+    float total = 0.0f, kept = 0.0f;
+    int k = 0, nl = 0;
+    for (int i = lane; i < nin; i += 32) {
+        const bool l = live[i] != 0, o = l && own[(size_t)b * nin + i] != 0;
+        const float p = l ? row[i] : 0.0f;
+        total += p;
+        kept += o ? 0.0f : p;
+        k += o;
+        nl += l;
+    }
+    for (int off = 16; off > 0; off /= 2) {
+        total += __shfl_down_sync(0xffffffffu, total, off);
+        kept += __shfl_down_sync(0xffffffffu, kept, off);
+        k += __shfl_down_sync(0xffffffffu, k, off);
+        nl += __shfl_down_sync(0xffffffffu, nl, off);
+    }
+    if (lane == 0) {
+        const float fl = (float)max(nl, 1), fk = (float)k;
+        out[wid] = (2.0f * fk < fl) ? __fmul_rn(kept, fl / fmaxf(__fsub_rn(fl, fk), 1.0f)) : total;
+    }
+}

@@ -42,10 +42,10 @@ import numpy as np
 from scipy import special
 
 from ..cuda import get_kernel, register
-from ._xp import get_xp
+from ._xp import get_xp, to_numpy
 
-__all__ = ["COUNTED", "REASONS", "apply_flags", "block_power", "broadband_flags", "channel_mask", "expected_sk",
-           "min_mean_power", "parse_bad_freq_list", "power_sums", "quantised_power_moments", "sk_code", "sk_flags",
+__all__ = ["COUNTED", "REASONS", "apply_flags", "band_power", "block_power", "broadband_flags", "channel_mask",
+           "expected_sk", "min_mean_power", "parse_bad_freq_list", "power_sums", "quantised_power_moments", "sk_code", "sk_flags",
            "sk_thresholds", "spectral_kurtosis"]
 
 register("imaging/rfi.cu")
@@ -619,6 +619,10 @@ def broadband_flags(power, threshold_sigma=6.0, *, per_input=False):
         raise ValueError(f"threshold_sigma must be > 0, got {threshold_sigma!r}")
     power = xp.asarray(power, dtype=xp.float32)          # short-block powers are integers below 2^24
     rest = power.shape[2:] if per_input else ()
+    nb, nchan = int(power.shape[0]), int(power.shape[1])
+    g = max(1, nchan // CHANNEL_GROUPS)
+    if xp is not np and nb <= 128 and nchan // g <= 128 and g <= 64:
+        return _broadband_flags_gpu(power, threshold_sigma, per_input).reshape((nb,) + rest)
     if per_input:
         power = power.reshape(power.shape[0], power.shape[1], -1)
         ref = power.mean(axis=0, dtype=xp.float32)                      # (nchan, ninput)
@@ -631,6 +635,65 @@ def broadband_flags(power, threshold_sigma=6.0, *, per_input=False):
     med = _median_axis1(stat[None])                                      # (1, ninput | 1)
     mad = _median_axis1(xp.abs(stat - med)[None])
     return (stat > med + xp.float32(threshold_sigma * 1.4826) * mad).reshape((stat.shape[0],) + rest)
+
+
+def _broadband_flags_gpu(power, threshold_sigma, per_input):
+    """:func:`broadband_flags` on a GPU in five kernels or fewer (``rfi.cu``: the group means of the ratios,
+    the medians, the robust threshold), the array form's numbers: (nb, ninput | 1) bool."""
+    xp = get_xp(power)
+    nb, nchan = int(power.shape[0]), int(power.shape[1])
+    p3 = xp.ascontiguousarray(power.reshape(nb, nchan, -1))
+    ref = None
+    if not per_input:
+        if p3.shape[2] > 1:
+            p3 = p3.sum(axis=2, dtype=xp.float32)
+        p3 = p3.reshape(nb, nchan, 1)
+        ref = _median_axis1(p3.reshape(1, nb, nchan))                 # (1, nchan): each channel's median
+    nin = int(p3.shape[2])
+    g = max(1, nchan // CHANNEL_GROUPS)
+    ng = nchan // g
+    means = xp.empty((nb, ng, nin), xp.float32)
+    get_kernel("imaging/rfi.cu", "rfi_group_means")(
+        ((ng * nin + 255) // 256,), (256,), (p3, ref if ref is not None else np.uint64(0), means, np.int32(nb),
+                                             np.int32(nchan), np.int32(nin), np.int32(g), np.int32(ng)))
+    stat = _median_axis1(means)                                          # (nb, nin)
+    flags = xp.empty((nb, nin), xp.uint8)
+    get_kernel("imaging/rfi.cu", "rfi_robust_flags")(
+        ((nin + 127) // 128,), (128,), (stat, flags, np.int32(nb), np.int32(nin),
+                                        np.float32(threshold_sigma * 1.4826)))
+    return flags.view(xp.bool_)
+
+
+def band_power(power, own, live):
+    """The band-wide impulse detector's power: (nblock, nchan, 1) float32, each short block's power summed
+    over the live stands, where fewer than half the live stands sparked on their own (``own``) without
+    those stands and scaled up to all the live stands.
+
+    power : (nblock, nchan, nstand) float32 short-block powers (integers: sums exact in any order).
+    own : bool (nblock, nstand) stands flagged by their own impulse detector; live : bool (nstand,) stands
+    in use (the rest are left out of both sums: a dead stand's spark is not data).
+    One stand's spark, 40 times its noise, raises a 24-stand array's total by more than half and would
+    otherwise flag every stand; where half or more sparked at once, the spark is the sky's and the plain
+    sum is kept. On a GPU one kernel (``rfi.cu``: ``rfi_band_power``); this function's array form is the
+    definition."""
+    xp = get_xp(power)
+    nb, nchan, nst = (int(v) for v in power.shape)
+    if xp is not np:
+        out = xp.empty((nb, nchan), xp.float32)
+        if nb * nchan:
+            get_kernel("imaging/rfi.cu", "rfi_band_power")(
+                ((32 * nb * nchan + 255) // 256,), (256,),
+                (xp.ascontiguousarray(power, dtype=xp.float32), xp.ascontiguousarray(own, dtype=xp.uint8),
+                 xp.ascontiguousarray(live, dtype=xp.uint8), out, np.int32(nb), np.int32(nchan), np.int32(nst)))
+        return out[..., None]
+    live = xp.asarray(live, bool)
+    P = xp.where(live[None, None, :], power, xp.float32(0.0))
+    nl = xp.maximum(live.sum(), 1).astype(xp.float32)
+    own = own & live[None, :]
+    k = own.sum(axis=1).astype(xp.float32)                               # (nblock,)
+    total = P.sum(axis=2)
+    kept = xp.where(own[:, None, :], xp.float32(0.0), P).sum(axis=2) * (nl / xp.maximum(nl - k, 1))[:, None]
+    return xp.where((2 * k < nl)[:, None], kept, total)[..., None]
 
 
 def _median_axis1(x):
@@ -672,7 +735,7 @@ def apply_flags(x, out, sk_code, which, impulse, impulse_stand, static, live, a,
     x, out : (n, nchan, nstand, B) uint8, the voltages' bytes (B bytes per stand: its pols' samples, in
         any sample format: zero bytes are zero voltages); out[:n] is written.
     sk_code : uint8 (nsk, nchan, nstand): bit 0 a low SK, bit 1 a high SK (in either pol).
-    which : int (ns,) the SK block of each short block, -1 where untested.
+    which : int (ns,) the SK block of each short block, -1 where untested (host or device array).
     impulse : bool (ns,) band-wide impulses; impulse_stand : bool (ns, nstand) one stand's own.
     static : bool (nchan,) listed channels; live : bool (nstand,) stands in use (the rest are counted by no
         reason here, and zeroed only by the array-wide reasons).
@@ -689,7 +752,6 @@ def apply_flags(x, out, sk_code, which, impulse, impulse_stand, static, live, a,
     xp = get_xp(x)
     n, nchan, nstand = (int(v) for v in x.shape[:3])
     ns = -(-n // int(a))
-    which = np.asarray(which, np.int32)
     if xp is not np and x.dtype == np.uint8 and x.flags.c_contiguous and out.flags.c_contiguous:
         cnt = xp.empty((ns, nchan, len(COUNTED)), xp.int32)
         B = int(np.prod(x.shape[3:])) if x.ndim > 3 else 1
@@ -697,12 +759,13 @@ def apply_flags(x, out, sk_code, which, impulse, impulse_stand, static, live, a,
             u8 = xp.uint8
             get_kernel("imaging/rfi.cu", "rfi_apply_flags")(
                 (nchan, ns), (256,),
-                (x, out, xp.ascontiguousarray(sk_code, dtype=u8), xp.asarray(which), xp.asarray(impulse, u8),
+                (x, out, xp.ascontiguousarray(sk_code, dtype=u8), xp.asarray(which, xp.int32), xp.asarray(impulse, u8),
                  xp.ascontiguousarray(xp.asarray(impulse_stand, u8)), xp.asarray(static, u8), xp.asarray(live, u8),
                  cnt, np.int32(n), np.int32(nchan), np.int32(nstand), np.int32(B), np.int32(a),
                  np.float32(spread_max), np.int32((nstand * B) % 4 == 0 and x.data.ptr % 4 == 0
                                                   and out.data.ptr % 4 == 0)), shared_mem=nstand)
         return cnt
+    which = to_numpy(which).astype(np.int32)
     w = xp.asarray(np.maximum(which, 0))
     tested = xp.asarray(which >= 0)[:, None, None]
     code = xp.asarray(sk_code)[w] * tested if sk_code.shape[0] else xp.zeros((ns, nchan, nstand), xp.uint8)
