@@ -94,25 +94,42 @@ extern "C" __global__ void rfi_sk_code(const double* __restrict__ s1, const doub
     code[k] = c;
 }
 
-// rfi_median_axis1: out (R, C) = the median of x (R, L, C) over its middle axis (the mean of the two
-// middle values where L is even, as NumPy's), L <= 128: each thread sorts one column by insertion.
-// Launch: grid (ceil(R C / 128)), block (128).
+// rfi_warp_median: the median of v[0 .. L) (L <= 128, in shared memory, one warp's), NumPy's rule (the mean of
+// the two middle values where L is even), to every lane of the warp: each lane ranks its values against all
+// L (ties broken by position, so that the ranks are 0 .. L - 1), and the values ranked L / 2 (and L / 2 - 1)
+// are the middle of the sorted list. No sort, no local arrays: a few hundred compares a lane.
+__device__ float rfi_warp_median(const float* v, int L, float* mid) {
+    const int lane = threadIdx.x % 32;
+    for (int i = lane; i < L; i += 32) {
+        const float y = v[i];
+        int r = 0;
+        for (int j = 0; j < L; ++j) {
+            const float z = v[j];
+            r += (z < y) || (z == y && j < i);
+        }
+        if (r == L / 2) mid[1] = y;
+        if (r == L / 2 - 1) mid[0] = y;
+    }
+    __syncwarp();
+    const float m = (L % 2) ? mid[1] : (mid[0] + mid[1]) / 2.0f;
+    __syncwarp();
+    return m;
+}
+
+// rfi_median_axis1: out (R, C) = the median of x (R, L, C) over its middle axis (NumPy's rule), L <= 128. A
+// warp per (r, c). Launch: grid (ceil(32 R C / 256)), block (256).
 extern "C" __global__ void rfi_median_axis1(const float* __restrict__ x, float* __restrict__ out, int R, int L,
                                             int C) {
-    const long long k = (long long)blockIdx.x * blockDim.x + threadIdx.x;
-    if (k >= (long long)R * C) return;
+    __shared__ float v[8][128];
+    __shared__ float mid[8][2];
+    const int w = threadIdx.x / 32, lane = threadIdx.x % 32;
+    const long long k = ((long long)blockIdx.x * blockDim.x + threadIdx.x) / 32;
+    if (k >= (long long)R * C) return;                         // a whole warp leaves together
     const long long r = k / C, c = k % C;
-    float v[128];
-    for (int i = 0; i < L; ++i) {
-        const float y = x[((size_t)r * L + i) * (size_t)C + (size_t)c];
-        int j = i - 1;
-        while (j >= 0 && v[j] > y) {
-            v[j + 1] = v[j];
-            --j;
-        }
-        v[j + 1] = y;
-    }
-    out[k] = (L % 2) ? v[L / 2] : (v[L / 2 - 1] + v[L / 2]) / 2.0f;
+    for (int i = lane; i < L; i += 32) v[w][i] = x[((size_t)r * L + i) * (size_t)C + (size_t)c];
+    __syncwarp();
+    const float m = rfi_warp_median(v[w], L, mid[w]);
+    if (lane == 0) out[k] = m;
 }
 
 // rfi_apply_flags: one thread block per (short block j, channel c): the detectors' flags combined per
@@ -149,10 +166,11 @@ extern "C" __global__ void rfi_apply_flags(const unsigned char* __restrict__ x, 
         bad[s] = (unsigned char)(per | (lo << 1) | (hi << 2) | (is << 3));
         own += per;
     }
-    atomicAdd(&tot[7], own);
+    for (int off = 16; off > 0; off /= 2) own += __shfl_down_sync(0xffffffffu, own, off);
+    if (tid % 32 == 0 && own) atomicAdd(&tot[7], own);
     __syncthreads();
     const bool wide = (float)tot[7] > spread_max;
-    int n_st = 0, n_lo = 0, n_hi = 0, n_imp = 0, n_is = 0, n_sp = 0, n_any = 0;
+    int n_st = 0, n_lo = 0, n_hi = 0, n_imp = 0, n_is = 0, n_sp = 0, n_any = 0, mine = 0;
     for (int s = tid; s < nstand; s += blockDim.x) {
         const unsigned char f = bad[s];
         const bool per = f & 1, l = live[s] != 0, sp = wide && !per;
@@ -162,10 +180,16 @@ extern "C" __global__ void rfi_apply_flags(const unsigned char* __restrict__ x, 
             n_sp += sp; n_any += any;
         }
         bad[s] = any;
+        mine |= any;
     }
-    atomicAdd(&tot[0], n_st); atomicAdd(&tot[1], n_lo); atomicAdd(&tot[2], n_hi); atomicAdd(&tot[3], n_imp);
-    atomicAdd(&tot[4], n_is); atomicAdd(&tot[5], n_sp); atomicAdd(&tot[6], n_any);
-    __syncthreads();
+    // each warp's sums first, then one shared atomic per warp and counter (not one per thread)
+    int cs[7] = {n_st, n_lo, n_hi, n_imp, n_is, n_sp, n_any};
+    for (int r = 0; r < 7; ++r) {
+        int v = cs[r];
+        for (int off = 16; off > 0; off /= 2) v += __shfl_down_sync(0xffffffffu, v, off);
+        if (tid % 32 == 0 && v) atomicAdd(&tot[r], v);
+    }
+    const bool none = !__syncthreads_or(mine);                   // no stand zeroed here: a plain copy
     if (tid < 7) cnt[((size_t)j * nchan + c) * 7 + tid] = tot[tid];
     const int t0 = j * a, t1 = min(n, t0 + a);
     const long long R = (long long)nstand * B;                   // bytes of one (frame, channel) row
@@ -176,78 +200,67 @@ extern "C" __global__ void rfi_apply_flags(const unsigned char* __restrict__ x, 
             const size_t o = ((size_t)t * nchan + c) * (size_t)nq + q;
             uint4 v = reinterpret_cast<const uint4*>(x)[o];
             unsigned int* u = reinterpret_cast<unsigned int*>(&v);
-            for (int y = 0; y < 16; ++y)
-                if (bad[(16 * q + y) / B]) u[y / 4] &= ~(0xffu << (8 * (y % 4)));
+            if (!none)
+                for (int y = 0; y < 16; ++y)
+                    if (bad[(16 * q + y) / B]) u[y / 4] &= ~(0xffu << (8 * (y % 4)));
             reinterpret_cast<uint4*>(out)[o] = v;
         }
     } else {
         for (int t = t0; t < t1; ++t) {
             const size_t base = ((size_t)t * nchan + c) * (size_t)R;
             for (long long q = tid; q < R; q += blockDim.x)
-                out[base + q] = bad[q / B] ? 0 : x[base + q];
+                out[base + q] = (!none && bad[q / B]) ? 0 : x[base + q];
         }
     }
+}
+
+// rfi_block_mean: ref[c, i] = the mean over the nb blocks of P[b, c, i] (float32 sums in block order):
+// P (nb, nchan, nin) float32, ref (nchan, nin). A thread per (c, i). Launch: grid (ceil(nchan nin / 256)), (256).
+extern "C" __global__ void rfi_block_mean(const float* __restrict__ P, float* __restrict__ ref, int nb, long long n) {
+    const long long k = (long long)blockIdx.x * blockDim.x + threadIdx.x;
+    if (k >= n) return;
+    float s = 0.0f;
+    for (int b = 0; b < nb; ++b) s += P[(size_t)b * (size_t)n + (size_t)k];
+    ref[k] = s / (float)nb;
 }
 
 // rfi_group_means: the impulse detector's ratios averaged over groups of channels (imaging/rfi.py's
 // broadband_flags, which is their definition): means[b, q, i] = (1/g) sum over the g channels c of group q
-// of (ref[c, i] > 0 ? P[b, c, i] / ref[c, i] : 1), with ref the mean over the nb blocks of P[:, c, i] (ref_in
-// null) or ref_in (nchan, nin).  P (nb, nchan, nin) float32, means (nb, ng, nin) float32; g <= 64. A thread
-// per (q, i): consecutive threads read consecutive inputs. Launch: grid (ceil(ng nin / 256)), block (256).
-extern "C" __global__ void rfi_group_means(const float* __restrict__ P, const float* __restrict__ ref_in,
-                                           float* __restrict__ means, int nb, int nchan, int nin, int g,
-                                           int ng) {
+// of (ref[c, i] > 0 ? P[b, c, i] / ref[c, i] : 1), in channel order.  P (nb, nchan, nin) float32, ref (nchan,
+// nin), means (nb, ng, nin) float32. A thread per (b, q, i): consecutive threads read consecutive inputs.
+// Launch: grid (ceil(nb ng nin / 256)), block (256).
+extern "C" __global__ void rfi_group_means(const float* __restrict__ P, const float* __restrict__ ref,
+                                           float* __restrict__ means, int nb, int nchan, int nin, int g, int ng) {
     const long long k = (long long)blockIdx.x * blockDim.x + threadIdx.x;
-    if (k >= (long long)ng * nin) return;
-    const int q = (int)(k / nin), i = (int)(k % nin);
-    float ref[64];
+    if (k >= (long long)nb * ng * nin) return;
+    const int i = (int)(k % nin), q = (int)((k / nin) % ng), b = (int)(k / ((long long)nin * ng));
+    float acc = 0.0f;
     for (int e = 0; e < g; ++e) {
         const int c = q * g + e;
-        if (ref_in != nullptr) {
-            ref[e] = ref_in[(size_t)c * nin + i];
-        } else {
-            float s = 0.0f;
-            for (int b = 0; b < nb; ++b) s += P[((size_t)b * nchan + c) * nin + i];
-            ref[e] = s / (float)nb;
-        }
+        const float r = ref[(size_t)c * nin + i];
+        acc += r > 0.0f ? P[((size_t)b * nchan + c) * nin + i] / r : 1.0f;
     }
-    for (int b = 0; b < nb; ++b) {
-        float acc = 0.0f;
-        for (int e = 0; e < g; ++e) {
-            const float r = ref[e];
-            acc += r > 0.0f ? P[((size_t)b * nchan + q * g + e) * nin + i] / r : 1.0f;
-        }
-        means[((size_t)b * ng + q) * nin + i] = acc / (float)g;
-    }
+    means[k] = acc / (float)g;
 }
 
 // rfi_robust_flags: flags[b, j] = 1 where stat[b, j] > med_j + kf MAD_j (med_j the median over b of column
-// j, MAD_j the median of |stat[:, j] - med_j|; NumPy's median rule for even nb), the products and sums
-// rounded one at a time as the array form does.  stat (nb, C) float32, nb <= 128, flags (nb, C) uint8.
-// A thread per column. Launch: grid (ceil(C / 128)), block (128).
-__device__ float rfi_sorted_median(float* v, int L) {
-    for (int i = 1; i < L; ++i) {
-        const float y = v[i];
-        int j = i - 1;
-        while (j >= 0 && v[j] > y) {
-            v[j + 1] = v[j];
-            --j;
-        }
-        v[j + 1] = y;
-    }
-    return (L % 2) ? v[L / 2] : (v[L / 2 - 1] + v[L / 2]) / 2.0f;
-}
-
+// j, MAD_j the median of |stat[:, j] - med_j|, NumPy's rule for even nb), the product and the sum rounded
+// one at a time as the array form's are.  stat (nb, C) float32, nb <= 128, flags (nb, C) uint8. A warp per
+// column. Launch: grid (ceil(32 C / 256)), block (256).
 extern "C" __global__ void rfi_robust_flags(const float* __restrict__ stat, unsigned char* __restrict__ flags,
                                             int nb, int C, float kf) {
-    const int j = blockIdx.x * blockDim.x + threadIdx.x;
+    __shared__ float v[8][128];
+    __shared__ float mid[8][2];
+    const int w = threadIdx.x / 32, lane = threadIdx.x % 32;
+    const long long j = ((long long)blockIdx.x * blockDim.x + threadIdx.x) / 32;
     if (j >= C) return;
-    float v[128];
-    for (int b = 0; b < nb; ++b) v[b] = stat[(size_t)b * C + j];
-    const float med = rfi_sorted_median(v, nb);
-    for (int b = 0; b < nb; ++b) v[b] = fabsf(__fsub_rn(stat[(size_t)b * C + j], med));
-    const float lim = __fadd_rn(med, __fmul_rn(kf, rfi_sorted_median(v, nb)));
-    for (int b = 0; b < nb; ++b) flags[(size_t)b * C + j] = stat[(size_t)b * C + j] > lim;
+    for (int b = lane; b < nb; b += 32) v[w][b] = stat[(size_t)b * C + j];
+    __syncwarp();
+    const float med = rfi_warp_median(v[w], nb, mid[w]);
+    for (int b = lane; b < nb; b += 32) v[w][b] = fabsf(__fsub_rn(stat[(size_t)b * C + j], med));
+    __syncwarp();
+    const float lim = __fadd_rn(med, __fmul_rn(kf, rfi_warp_median(v[w], nb, mid[w])));
+    for (int b = lane; b < nb; b += 32) flags[(size_t)b * C + j] = stat[(size_t)b * C + j] > lim;
 }
 
 // rfi_band_power: out[b, c] the power of block b and channel c summed over the live stands, or where fewer

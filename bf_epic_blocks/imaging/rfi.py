@@ -652,15 +652,19 @@ def _broadband_flags_gpu(power, threshold_sigma, per_input):
     nin = int(p3.shape[2])
     g = max(1, nchan // CHANNEL_GROUPS)
     ng = nchan // g
+    if ref is None:                                                      # each (channel, input)'s mean
+        ref = xp.empty((nchan, nin), xp.float32)
+        get_kernel("imaging/rfi.cu", "rfi_block_mean")(
+            ((nchan * nin + 255) // 256,), (256,), (p3, ref, np.int32(nb), np.int64(nchan * nin)))
     means = xp.empty((nb, ng, nin), xp.float32)
     get_kernel("imaging/rfi.cu", "rfi_group_means")(
-        ((ng * nin + 255) // 256,), (256,), (p3, ref if ref is not None else np.uint64(0), means, np.int32(nb),
-                                             np.int32(nchan), np.int32(nin), np.int32(g), np.int32(ng)))
+        ((nb * ng * nin + 255) // 256,), (256,), (p3, xp.ascontiguousarray(ref), means, np.int32(nb), np.int32(nchan),
+                                                  np.int32(nin), np.int32(g), np.int32(ng)))
     stat = _median_axis1(means)                                          # (nb, nin)
     flags = xp.empty((nb, nin), xp.uint8)
     get_kernel("imaging/rfi.cu", "rfi_robust_flags")(
-        ((nin + 127) // 128,), (128,), (stat, flags, np.int32(nb), np.int32(nin),
-                                        np.float32(threshold_sigma * 1.4826)))
+        ((32 * nin + 255) // 256,), (256,), (stat, flags, np.int32(nb), np.int32(nin),
+                                             np.float32(threshold_sigma * 1.4826)))
     return flags.view(xp.bool_)
 
 
@@ -698,8 +702,8 @@ def band_power(power, own, live):
 
 def _median_axis1(x):
     """x (R, L, C) float32 -> its median over axis 1, (R, C) float32 (NumPy's rule: the mean of the two middle
-    values for even L). On a GPU with L <= 128 one kernel sorts each column in registers (``rfi.cu``),
-    where CuPy's median sorts the whole array."""
+    values for even L). On a GPU with L <= 128 one kernel ranks each column's values, a warp a column
+    (``rfi.cu``), where CuPy's median sorts the whole array."""
     xp = get_xp(x)
     R, L, C = (int(v) for v in x.shape)
     if xp is np or L > 128 or L == 0:
@@ -707,7 +711,7 @@ def _median_axis1(x):
     out = xp.empty((R, C), xp.float32)
     if R * C:
         get_kernel("imaging/rfi.cu", "rfi_median_axis1")(
-            ((R * C + 127) // 128,), (128,), (xp.ascontiguousarray(x, dtype=xp.float32), out, np.int32(R),
+            ((32 * R * C + 255) // 256,), (256,), (xp.ascontiguousarray(x, dtype=xp.float32), out, np.int32(R),
                                               np.int32(L), np.int32(C)))
     return out
 

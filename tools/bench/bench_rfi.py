@@ -33,6 +33,8 @@ def main():
     ap.add_argument("--long-s", type=float, default=30.0)
     args = ap.parse_args()
     rows = {"flagger": time_flagger(args)}
+    if args.device == "gpu":
+        rows["gpu_parts"] = gpu_parts(args)
     r = rows["flagger"]
     print(f"flagger, {args.nchan} channels x 256 stands x 2 pols, 1,024 frames ({args.device}): "
           f"{1e3 * r['median_s']:.3f} ms a gulp (min {1e3 * r['min_s']:.3f}), "
@@ -90,7 +92,7 @@ def time_flagger(args):
     times = []
     for _ in range(args.repeat + 2):
         t0 = time.perf_counter()
-        cnt, frames = fb.process(raw, out)
+        cnt, frames, _ = fb.process(raw, out)
         if xp is not np:
             xp.cuda.get_current_stream().synchronize()
         times.append(time.perf_counter() - t0)
@@ -107,6 +109,66 @@ def time_flagger(args):
     return {"median_s": float(np.median(t)), "min_s": float(t.min()), "copy_median_s": float(np.median(copies[2:])),
             "frames": n, "nchan": nchan,
             "flagged_fraction_noise": frac}
+
+
+def gpu_parts(args):
+    """GPU milliseconds (cupyx.profiler.benchmark) of one gulp's detection (power sums, both impulse detectors,
+    spectral kurtosis), its zeroing and counting (apply_flags), and the whole-band imager's images of the same
+    gulp (i8x2 on the 64 x 64 grid, as the whole-band pipeline makes them): the detector's share of the
+    imager's time is the issue's measure."""
+    import cupy as cp
+    from cupyx.profiler import benchmark
+
+    from bf_epic_blocks import imaging
+    from bf_epic_blocks.blocks.rfi_flag import RFIFlagBlock
+    from bf_epic_blocks.imaging import rfi
+    from bf_epic_blocks.imaging.dft import DFTOperator
+    from bf_epic_blocks.imaging.pixels import GridPlacement
+    from bf_epic_blocks.runtime.dtypes import ci4_bytes, pack_ci4
+    rng = np.random.default_rng(1)
+    n, nchan, nst, a, m = 1024, args.nchan, 256, 16, 1024
+    shape = (n, nchan, nst, 2)
+    raw = cp.asarray(pack_ci4(rng.normal(0, 2.5, shape).astype(np.float32)
+                              + 1j * rng.normal(0, 2.5, shape).astype(np.float32)))
+    out = cp.empty_like(raw)
+    fb = _standalone_flagger(RFIFlagBlock, cp, nchan, nst)
+    x = ci4_bytes(raw).reshape(shape)
+
+    def detect():
+        S1, S2, Sa = rfi.block_power(x, m, a, ci4=True, group=2)
+        P = Sa.reshape(Sa.shape[:3])
+        per = rfi.broadband_flags(P, fb.impulse_sigma, per_input=True)
+        allf = rfi.broadband_flags(rfi.band_power(P, per, fb._live), fb.impulse_sigma)
+        return rfi.sk_code(S1, S2, m, fb.far, bits=4), allf, per
+
+    code, allf, per = detect()
+    ns = n // a
+    which = fb._which(ns, a, m, [(0, m)])
+    imp_st = per & ~allf[:, None]
+
+    def zero():
+        return rfi.apply_flags(x, ci4_bytes(out).reshape(shape), code, which, allf, imp_st, fb._static, fb._live, a,
+                               fb.spread * nst)
+
+    def gpu_ms(f, k=20):
+        return float(np.median(benchmark(f, n_repeat=k, n_warmup=3).gpu_times[0])) * 1e3
+
+    xyz = rng.normal(0, 40, (nst, 3)) * [1, 1, 0.05]
+    freq = 74e6 + 25e3 * np.arange(nchan)
+    grid = imaging.lm_grid(64)
+    op = DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(grid.lm), npol=2, precision="i8x2")
+    acc = op.accumulator(("I",), method="direct")
+    place = GridPlacement(np.flatnonzero(grid.mask), grid.size ** 2, cp)
+    img = cp.zeros((n // a, nchan, 1, grid.size ** 2), cp.float32)
+    res = {"detector_ms": gpu_ms(detect), "zeroing_ms": gpu_ms(zero),
+           "copy_ms": gpu_ms(lambda: cp.copyto(out, raw)),
+           "imager_ms": gpu_ms(lambda: acc.images(raw, a, ci4=True, place=place, out=img), 10)}
+    res["detector_share"] = res["detector_ms"] / res["imager_ms"]
+    res["zeroing_share"] = res["zeroing_ms"] / res["imager_ms"]
+    print(f"GPU, one gulp: the whole-band imager {res['imager_ms']:.2f} ms; the detector {res['detector_ms']:.3f} ms "
+          f"({100 * res['detector_share']:.1f}%); zeroing and counts {res['zeroing_ms']:.3f} ms "
+          f"({100 * res['zeroing_share']:.1f}%); a plain copy {res['copy_ms']:.3f} ms")
+    return res
 
 
 def _standalone_flagger(cls, xp, nchan, nst):
