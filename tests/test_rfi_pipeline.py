@@ -343,12 +343,14 @@ def test_flagging_a_clean_sky_leaves_every_image_as_it_was(tmp_path, device):
     from bf_epic_blocks.pipeline.config import load_config
     from bf_epic_blocks.pipeline.runner import run
     yaml = Path(__file__).resolve().parent.parent / "pipelines" / "lwasv_sim_wholeband.yaml"
-    small = ["source.channels.count=256", "imager.grid.size=16", "imager.precision=fp32"] if device == "gpu" else \
-        ["source.channels.count=32", "imager.grid.size=16", "imager.precision=fp32"]
+    # on the CPU half a second of 32 channels: ~100 false-alarm flags (far 1e-3), enough to test the rescaling
+    small = ["source.channels.count=256", "imager.grid.size=16", "imager.precision=fp32", "source.duration_s=1.0"] \
+        if device == "gpu" else ["source.channels.count=32", "imager.grid.size=16", "imager.precision=fp32",
+                                 "source.duration_s=0.5"]
     images = {}
     for on in ("off", "on"):
         d = tmp_path / on
-        cfg = load_config(yaml, small + [f"device={device}", "source.duration_s=1.0", "imager.search=null",
+        cfg = load_config(yaml, small + [f"device={device}", "imager.search=null",
                                          "output.fits=false", "output.png=false", "output.integrate=null", "watch=null",
                                          f"flagging.enabled={on}", f"output.dir={d}",
                                          "output.cube={dtype: float32, average_channels: true}"])
