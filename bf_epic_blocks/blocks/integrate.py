@@ -123,7 +123,7 @@ class ImageIntegratorBlock(bfp.TransformBlock):
             live = None
             if self._flagging:
                 # images (or channel images) wholly flagged are left out of the time mean
-                live = self._live(part)                                                        # (take, C)
+                live = rows_nonzero(part)                                                      # (take, C)
                 w = live.any(axis=1, keepdims=True) if self.average_channels else live
                 w = w.sum(axis=0).astype(xp.float64)
                 self._w = w if self._w is None else self._w + w
@@ -146,22 +146,17 @@ class ImageIntegratorBlock(bfp.TransformBlock):
         self._int_stats["images_out"] += nout
         return nout
 
-    @staticmethod
-    def _live(x):
-        """bool (n, C): the channel images of x (n, C, ...) that imaged anything. A channel whose voltages
-        were all flagged images as zeros (NaN below the horizon; NaN compares False)."""
-        return rows_nonzero(x)
-
     def _band_mean(self, x, live=None):
         """The channel mean of x (n, C, ...); after interference flagging (the header's ``flagging``) the mean
-        of the channels that imaged anything (``live``, :meth:`_live`), since a wholly flagged channel's
+        of the channels that imaged anything (``live``: :func:`~..imaging.reduce.rows_nonzero`; a channel whose
+        voltages were all flagged images as zeros), since a wholly flagged channel's
         zeros would pull the mean down. An image with every channel flagged is 0."""
         m = channel_mean(x)
         if not self._flagging:
             return m
         xp = get_xp(x)
         n, C = x.shape[0], x.shape[1]
-        live = self._live(x) if live is None else live
+        live = rows_nonzero(x) if live is None else live
         used = live.sum(axis=1)
         if xp is np:
             self._int_stats["channel_images_flagged"] += int(n * C - int(used.sum()))

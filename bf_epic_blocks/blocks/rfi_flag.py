@@ -93,6 +93,7 @@ class RFIFlagBlock(bfp.TransformBlock):
                            "gulps": 0}
         self._rows, self._row_frames, self._pending = [], None, None
         self._chan_flagged = None
+        self._which_cache = (None, None)          # (gulp shape, each short block's SK block on the device)
 
     def define_valid_input_spaces(self):
         return "any"
@@ -179,7 +180,7 @@ class RFIFlagBlock(bfp.TransformBlock):
             if self._static_host.any():
                 P = xp.where(self._static[None, :, None], xp.float32(0.0), P)  # listed channels weigh nothing
             per = rfi.broadband_flags(P, self.impulse_sigma, per_input=True)   # (nfull, nstand)
-            allf = rfi.broadband_flags(self._band_power(P, per), self.impulse_sigma)   # (nfull,)
+            allf = rfi.broadband_flags(rfi.band_power(P, per, self._live), self.impulse_sigma)   # (nfull,)
             imp[:nfull] = allf
             imp_st[:nfull] = per & ~allf[:, None]
         # spectral kurtosis per block of m (a last block of at least 64 samples as it is)
@@ -190,10 +191,13 @@ class RFIFlagBlock(bfp.TransformBlock):
         elif n - nb * m:
             self.flag_stats["untested"] += (n - nb * m) * nchan * nstand
         which = self._which(ns, a, m, blocks)
-        code = self._sk_codes(x, S1, S2, blocks, np.zeros(n, bool), None, ci4)
-        cnt = rfi.apply_flags(self._bytes(raw), self._bytes(out[:n]), code, which, imp, imp_st, self._static,
-                              self._live, a, self.spread * max(1, self._nlive))
-        summary = self._summarise(cnt, frames, imp, imp_st)
+
+        def flag(code):                       # zero and count by the SK codes, the impulses and the list
+            cnt = rfi.apply_flags(self._bytes(raw), self._bytes(out[:n]), code, which, imp, imp_st, self._static,
+                                  self._live, a, self.spread * max(1, self._nlive))
+            return cnt, self._summarise(cnt, frames, imp, imp_st)
+
+        cnt, summary = flag(self._sk_codes(x, S1, S2, blocks, np.zeros(n, bool), None, ci4))
         if summary["impulse"] or summary["stand_spark"]:
             # found: the SK again without the impulses' samples (and each sparking stand without its own)
             both = to_numpy(xp.concatenate([imp[:, None], imp_st], axis=1))
@@ -201,23 +205,18 @@ class RFIFlagBlock(bfp.TransformBlock):
             hit = np.repeat(imp_h, frames)                                    # (n,) frames of band-wide impulses
             if nb and hit[:nb * m].any():                                     # the whole blocks' sums without them
                 S1, S2, _ = rfi.block_power(x[:nb * m], m, a, ci4=ci4, group=group, skip=imp_h[:nb * m // a])
-            code = self._sk_codes(x, S1, S2, blocks, hit, st_h, ci4)
-            cnt = rfi.apply_flags(self._bytes(raw), self._bytes(out[:n]), code, which, imp, imp_st, self._static,
-                                  self._live, a, self.spread * max(1, self._nlive))
-            summary = self._summarise(cnt, frames, imp, imp_st)
+            cnt, summary = flag(self._sk_codes(x, S1, S2, blocks, hit, st_h, ci4))
         return cnt, frames, summary
 
     def _which(self, ns, a, m, blocks):
         """int32 (ns,) on the ring's device: each short block's SK block (m is a multiple of a: a short block
         lies in one), -1 past the tested frames; made once per gulp shape (a copy from the host)."""
         key = (ns, a, m, tuple(blocks))
-        cache = self.__dict__.setdefault("_which_cache", {})
-        if key not in cache:
+        if self._which_cache[0] != key:
             which = np.minimum(np.arange(ns) * a // m, max(len(blocks) - 1, 0)).astype(np.int32)
             which[(np.arange(ns) * a) >= sum(mm for _, mm in blocks)] = -1
-            cache.clear()
-            cache[key] = self._xp.asarray(which)
-        return cache[key]
+            self._which_cache = (key, self._xp.asarray(which))
+        return self._which_cache[1]
 
     def _sk_codes(self, x, S1, S2, blocks, hit, st_h, ci4):
         """uint8 (len(blocks), nchan, nstand) SK codes (:func:`~..imaging.rfi.sk_code`) of the blocks [t0,
@@ -290,12 +289,6 @@ class RFIFlagBlock(bfp.TransformBlock):
             part = x[t0:t0 + mm, :, s:s + 1]
             s1, s2 = rfi.power_sums(self._xp.where(keep, part, self._xp.zeros((), part.dtype)), mm, ci4=ci4)
             code[:, s] = rfi.sk_code(s1, s2, used, self.far, bits=self._bits)[0][:, 0]
-
-    def _band_power(self, P, per):
-        """(nfull, nchan, 1): each short block's power for the band-wide detector
-        (:func:`~bf_epic_blocks.imaging.rfi.band_power`: the live stands' sum, without the stands that ``per``
-        (nfull, nstand) says sparked on their own where fewer than half the live stands did)."""
-        return rfi.band_power(P, per, self._live)
 
     def on_data(self, ispan, ospan):
         raw = span_array(ispan)

@@ -45,8 +45,8 @@ from ..cuda import get_kernel, register
 from ._xp import get_xp, to_numpy
 
 __all__ = ["COUNTED", "REASONS", "apply_flags", "band_power", "block_power", "broadband_flags", "channel_mask",
-           "expected_sk", "min_mean_power", "parse_bad_freq_list", "power_sums", "quantised_power_moments", "sk_code", "sk_flags",
-           "sk_thresholds", "spectral_kurtosis"]
+           "expected_sk", "min_mean_power", "parse_bad_freq_list", "power_sums", "quantised_power_moments", "sk_code",
+           "sk_flags", "sk_thresholds", "spectral_kurtosis"]
 
 register("imaging/rfi.cu")
 

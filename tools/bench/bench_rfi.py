@@ -184,6 +184,7 @@ def _standalone_flagger(cls, xp, nchan, nst):
     fb._flagged_stands = np.zeros(nst, bool)
     fb._live = xp.ones(nst, bool)
     fb._nlive = nst
+    fb._which_cache = (None, None)
     return fb
 
 
