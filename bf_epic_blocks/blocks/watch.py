@@ -21,7 +21,7 @@ from ..conventions import FS_HZ
 from ..sky.watch import direction_names, parse_targets, target_lm
 from ..imaging._xp import get_xp
 from . import _compat
-from ._compat import bfp, span_array
+from ._compat import bfp, span_array, to_numpy
 from ._drawing import DrawingHelper
 
 __all__ = ["WatchPixels", "WatchWriterBlock"]
@@ -170,7 +170,9 @@ class WatchWriterBlock(bfp.SinkBlock):
         # rows as one piece, and the host makes no transposed copy (100 targets' gulp is 20 MB)
         with _compat.stream_context():
             xd = get_xp(x).ascontiguousarray(x.transpose(3, 0, 1, 2))
-            xd = xd.get() if hasattr(xd, "get") else np.array(xd, np.float32)
+            # the stream first, then the copy (to_numpy): a copy into pageable memory that waits for the
+            # queued images inside the CUDA driver holds up every other thread's CUDA calls
+            xd = to_numpy(xd) if hasattr(xd, "get") else np.array(xd, np.float32)   # a copy: rows get NaN
         first = getattr(ispan, "frame_offset", self._image)
         idx = first + np.arange(n)
         tu = self._t0 + (idx + 0.5) * self._dt                          # image centres, Unix s
