@@ -227,6 +227,54 @@ def test_tracking_pixels_move_the_operator(scene):
     assert got[3, 0, 0, 0] < 0.9                                  # the pixel left the source
 
 
+@pytest.mark.parametrize("precision", ["fp32", "i8x2"])
+def test_watch_directions_ride_beside_the_grid_on_a_second_ring(xp, scene, precision):
+    """DFTImagerBlock(watch=): two directions imaged with a grid's pixels by one operator, moved each 32
+    frames (in place: one build), written to the second output ring: each 16-frame image the float64
+    definition's at that image's directions, the grid's images those of an imager without them, and the
+    watch ring's header a tracking pixel list. On a GPU from ci4 bytes in i8x2 the grid and the
+    directions come out of the fused kernel together."""
+    s = scene
+    if precision == "i8x2" and xp.__name__ != "cupy":
+        pytest.skip("the fused integer modes run on a GPU")
+    gpu = xp.__name__ == "cupy"
+    grid = imaging.lm_grid(12)
+
+    def dirs(tag):
+        k = (tag // TPF) // 32
+        return [[0.31 - 0.05 * k, -0.22], [-0.4, 0.1 + 0.02 * k]]
+
+    X = s["ints"][:128]
+    hdr = efield_header("w", 0, s["freq"], DT, station(s, with_cable=False), dtype="ci4")
+
+    def run(watch):
+        with bfp.Pipeline() as p:
+            src = ArraySourceBlock(pack_ci4(X), hdr, gulp_nframe=64, space="cuda" if gpu else "system")
+            img = DFTImagerBlock(src, grid, 16, products=("I",), precision=precision, method="direct", watch=watch)
+            sink = ArraySinkBlock(img)
+            wsink = ArraySinkBlock(img.watch_ring) if watch is not None else None
+            p.run()
+        return img, sink, wsink
+
+    img, sink, wsink = run(dirs)
+    got = wsink.result(0)
+    assert got.shape == (8, 3, 1, 2)
+    assert img.img_stats["operator_builds"] == 1 and img.img_stats["operator_moves"] == 3
+    w = np.where(s["flags"], 0.0, 1.0)[None]
+    bound = {"fp32": 1e-5, "i8x2": 4e-5}[precision]
+    for i in range(8):
+        truth = brute_image(X[16 * i:16 * (i + 1)], s["xyz"], s["freq"], np.array(dirs(16 * i * TPF)), ("I",),
+                            weights=w)
+        assert np.abs(got[i] - truth).max() < bound * np.abs(truth).max(), i
+    whdr = wsink.headers[0]
+    assert whdr["_tensor"]["labels"] == ["time", "freq", "pol", "pixel"] and whdr["pixels"]["kind"] == "track"
+    assert whdr["_tensor"]["scales"][0] == sink.headers[0]["_tensor"]["scales"][0]
+    _, alone, _ = run(None)
+    np.testing.assert_allclose(sink.result(0), alone.result(0), rtol=1e-6, atol=1e-7 * np.nanmax(alone.result(0)))
+    with pytest.raises(ValueError, match="ride beside a grid"):
+        DFTImagerBlock(ArraySourceBlock(pack_ci4(X), hdr, gulp_nframe=64), s["lm"], 16, watch=dirs)
+
+
 def test_tracking_rebuilds_log_the_plan_once(scene, caplog):
     """An operator built once and moved three times in one sequence: its plan is logged once."""
     s = scene

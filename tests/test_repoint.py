@@ -159,3 +159,46 @@ def test_gpu_fused_images_on_the_grid_after_a_move_use_the_new_factors():
     got = out.get()[..., grid.mask.ravel()]
     err = np.abs(got - truth).max() / np.abs(truth).max()
     assert err < BOUND["i8x2"], err
+
+
+@pytest.mark.parametrize("device, precision", [("cpu", "fp64"), pytest.param("gpu", "fp32", marks=GPU),
+                                               pytest.param("gpu", "i8x2", marks=GPU)])
+def test_directions_beside_a_grid_are_imaged_and_moved_alone_as_the_float64_definition(device, precision):
+    """A watchlist's directions after a grid's pixels in one operator (GridPlacement's ``extra``): the grid's
+    cells and the directions' own images (``xout``) equal the float64 sum, before and after only the
+    directions move (repoint from the first of them): on the GPU through the fused kernel's grid output with
+    its second destination (i8x2) and the products kernel's placement (fp32)."""
+    from bf_epic_blocks.imaging.pixels import GridPlacement
+    xp = np
+    if device == "gpu":
+        import cupy as xp
+    xyz, freq, q, rng = _scene(5, nant=48, T=64)
+    grid = imaging.lm_grid(12)
+    ng = grid.lm.shape[0]
+    dirs_a = np.array([[0.31, -0.22], [0.0, 0.0], [-0.55, 0.4]])            # between cells, the zenith, ...
+    dirs_b = dirs_a * 0.8 + [0.013, 0.007]
+    X = _cplx(q)
+    op = DFTOperator(xp.asarray(xyz), xp.asarray(freq), xp.asarray(np.concatenate([grid.lm, dirs_a])), npol=2,
+                     precision=precision)
+    acc = op.accumulator(("I",), method="direct")
+    place = GridPlacement(np.flatnonzero(grid.mask), grid.size ** 2, xp, extra=len(dirs_a))
+    for dirs in (dirs_a, dirs_b):
+        if dirs is dirs_b:
+            op.repoint(xp.asarray(dirs_b), first=ng)
+        out = xp.full((4, 3, 1, grid.size ** 2), -1.0, xp.float32)
+        xout = xp.full((4, 3, 1, len(dirs)), -1.0, xp.float32)
+        acc.images(xp.asarray(q), 16, place=place.beside(xout), out=out)
+        truth = np.stack([brute_image(X[i * 16:(i + 1) * 16], xyz, freq, np.concatenate([grid.lm, dirs]), ("I",))
+                          for i in range(4)])
+        got_grid = to_host(out)[..., grid.mask.ravel()]
+        bound = max(BOUND[precision], 3e-7) * np.abs(truth).max()            # (float32 images)
+        assert np.abs(got_grid - truth[..., :ng]).max() < bound
+        assert np.abs(to_host(xout) - truth[..., ng:]).max() < bound
+        assert np.all(np.isnan(to_host(out)[..., ~grid.mask.ravel()]))
+    np.testing.assert_array_equal(to_host(op.pixels_lm), np.concatenate([grid.lm, dirs_b]))
+    truth_a = brute_image(X[:16], xyz, freq, dirs_a, ("I",))
+    assert np.abs(truth[0, ..., ng:] - truth_a).max() > 100 * bound                          # they moved
+
+
+def to_host(a):
+    return a.get() if hasattr(a, "get") else np.asarray(a)

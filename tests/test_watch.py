@@ -625,3 +625,21 @@ def test_the_light_curve_baseline_is_the_nan_aware_median_and_mad():
         np.testing.assert_allclose(med, want)
         np.testing.assert_allclose(sd, 1.4826 * np.nanmedian(np.abs(hist - want), axis=0))
         assert np.all(np.abs(sd - 2.0) < 0.15)
+
+
+@pytest.mark.parametrize("products, rides", [(["I"], True), (["XX", "YY"], False)])
+def test_the_watch_directions_ride_in_the_main_imager_when_it_makes_their_products(tmp_path, products, rides):
+    """The watch directions are imaged by the main imager, beside its grid (one DFTImagerBlock, the watch
+    file written from its second ring), when it makes the products the watchlist asks; otherwise by a
+    watch imager of their own on the same voltages."""
+    from bf_epic_blocks.blocks import DFTImagerBlock
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    cfg = load_config("pipelines/lwasv_sim_transient.yaml", [
+        "source.duration_s=0.02", "imager.search=null", "output.cube=null", f"output.dir={tmp_path}",
+        f"watch={{targets: [CygA, {{name: Sun, body: sun}}], products: {products}}}"])
+    g = runner.build_graph(cfg)
+    imagers = [b for b in g.pipeline.blocks if isinstance(b, DFTImagerBlock)]
+    assert len(imagers) == (1 if rides else 2)
+    assert (g.watch.irings[0] is g.imager.watch_ring) == rides
+    assert (g.imager.watch is g.watch.pixels) == rides

@@ -73,6 +73,11 @@ class DFTImagerBlock(bfp.TransformBlock):
     flag_weights : a :class:`~.rfi_flag.FlagWeights` from the RFIFlagBlock before: each image that kept
            only part of the array (stands flagged for interference) is divided by the fraction of a point
            source's power it holds, so that it stays in the whole array's units.
+    watch : None, or a tracking pixel function ``watch(time_tag) -> (ndir, 2)`` (a watchlist's
+           :class:`~.watch.WatchPixels`) of directions imaged beside an :class:`LMGrid`'s pixels, by the same
+           operator and in the same kernel (their rows ride in the grid's last row tile), moved in place as
+           they track. Their images go to a second output ring, ``self.orings[1]`` (:attr:`watch_ring`):
+           frames (freq, pol, pixel) of the same images, header as a tracking imager's.
     Output: float32 frames of one image each; header ``imager`` and ``pixels`` say what they are.
     """
 
@@ -80,8 +85,15 @@ class DFTImagerBlock(bfp.TransformBlock):
 
     def __init__(self, iring, pixels, accumulate, products=None, remove_autocorr=False, method="auto",
                  precision=None, pattern=None, *args, gpus=None, weights=None, cable=False, tolerance=None,
-                 plan=None, gains=None, flag_weights=None, **kwargs):
+                 plan=None, gains=None, flag_weights=None, watch=None, **kwargs):
         super().__init__(iring, *args, **kwargs)
+        self.watch = watch
+        if watch is not None:
+            if not isinstance(pixels, LMGrid) or not callable(watch) or gpus is not None:
+                raise ValueError(f"{type(self).__name__}: watch directions ride beside a grid's pixels (an LMGrid) "
+                                 "on one device; got " + ("several GPUs" if gpus is not None else
+                                                          f"pixels {type(pixels).__name__}, watch {watch!r}"))
+            self.orings.append(self.create_ring(space=self.orings[0].space))
         self.flag_weights, self._nimg, self._flag_seq = flag_weights, 0, None
         self.gpus, self.weights, self.cable = gpus, weights, cable
         if gains is not None and gpus is not None:
@@ -120,6 +132,27 @@ class DFTImagerBlock(bfp.TransformBlock):
     def define_output_nframes(self, input_nframe):
         # At most ceil(n / accumulate) integrations can complete within n new frames.
         return max(1, math.ceil(input_nframe / self.accumulate))
+
+    @property
+    def watch_ring(self):
+        """The ring of the watch directions' images (``watch``), or None."""
+        return self.orings[1] if self.watch is not None else None
+
+    # a second output ring (the watch directions'): the TransformBlock hooks, for every output ring
+    def _define_output_nframes(self, input_nframes):
+        return [self.define_output_nframes(input_nframes[0])] * len(self.orings)
+
+    def _on_sequence(self, iseqs):
+        ohdr = self.on_sequence(iseqs[0])
+        return [ohdr] if self.watch is None else [ohdr, self._watch_header(ohdr)]
+
+    def _on_data(self, ispans, ospans):
+        if self.watch is not None:
+            self.engine.output.xout = span_array(ospans[1])
+        return [self.on_data(ispans[0], ospans[0])] * len(ospans)
+
+    def _on_skip(self, islices, ospans):
+        return [self.on_skip(islices[0], o) for o in ospans]
 
     # --------------------------------------------------------------- sequence set-up
     def _space_xp(self):
@@ -207,12 +240,20 @@ class DFTImagerBlock(bfp.TransformBlock):
 
     def _repoint(self, op, lm):
         """Operator ``op`` pointed at pixels ``lm`` in place (:class:`~.engines.DFTEngine`'s repoint): the
-        tracking pixels moved, nothing else did."""
+        tracking pixels moved, nothing else did (with ``watch``, only the watch directions after the grid's
+        pixels, whose rows alone are made again)."""
         lay, xp = self._lay, self._xp
         pat = self._pattern_name
+        first = 0 if self.watch is None else self.pixels.lm.shape[0]
+        lm = np.asarray(lm)[first:]
         B = None if pat is None else patterns.pattern_array(pat, xp.asarray(lm), xp.asarray(lay["freq_hz"]), lay["npol"])
-        op.repoint(lm, pattern=B)
+        op.repoint(lm, pattern=B, first=first)
         self.img_stats["operator_moves"] += 1
+
+    def _with_watch(self, time_tag):
+        """The grid's pixels and the watch directions at ``time_tag`` after them, (ngrid + ndir, 2)."""
+        w = check_lm(np.asarray(self.watch(time_tag), dtype=np.float64))
+        return np.concatenate([self.pixels.lm, w])
 
     def _sharded_route(self, lm):
         """The channels over the GPUs of ``gpus`` for pixels ``lm`` (:class:`~.engines.ShardedEngine`'s build)."""
@@ -233,8 +274,9 @@ class DFTImagerBlock(bfp.TransformBlock):
 
     def _build(self, lm):
         """This sequence's engine (:mod:`.engines`) for pixels ``lm``."""
-        kw = dict(accumulate=self.accumulate, dtype=self._lay["dtype"], name=type(self).__name__,
-                  pixels_fn=self.pixels if callable(self.pixels) and not isinstance(self.pixels, LMGrid) else None)
+        fn = self._with_watch if self.watch is not None else \
+            self.pixels if callable(self.pixels) and not isinstance(self.pixels, LMGrid) else None
+        kw = dict(accumulate=self.accumulate, dtype=self._lay["dtype"], name=type(self).__name__, pixels_fn=fn)
         if self.gpus is not None:
             return ShardedEngine(self._sharded_route, lm, **kw)
         return DFTEngine(self._operator, lm, products=self.products, remove_autocorr=self.remove_autocorr,
@@ -266,13 +308,18 @@ class DFTImagerBlock(bfp.TransformBlock):
             fn = self._pattern_name
             self._pattern_name = f"user:{getattr(fn, '__qualname__', id(fn))}"
             patterns.register_pattern(self._pattern_name, fn)
-        if isinstance(self.pixels, LMGrid):
+        if self.watch is not None:
+            lm = self._with_watch(lay["time_tag"])
+        elif isinstance(self.pixels, LMGrid):
             lm = self.pixels.lm
         elif callable(self.pixels):
             lm = check_lm(np.asarray(self.pixels(lay["time_tag"]), dtype=np.float64))
         else:
             lm = self.pixels
-        key = self._engine_key(lm)
+        self._seq_lm = lm
+        # (the watch directions move: the engine depends on their count, and moves them in place)
+        key = self._engine_key(lm if self.watch is None else np.concatenate([self.pixels.lm, np.zeros_like(lm[
+            self.pixels.lm.shape[0]:])]))
         if self.gains is not None:
             # every sequence starts uncalibrated (solution -1) with an operator of its own
             self._gain_index, self._gains_tag0, key = -1, int(lay["time_tag"]), None
@@ -300,7 +347,8 @@ class DFTImagerBlock(bfp.TransformBlock):
             scales = [[t0, dt * self.accumulate], fscale, None, [ax0, g.cell], [ax0, g.cell]]
             units = ["s", "Hz", None, None, None]
             ohdr["pixels"] = grid_pixels_header(g.size, g.cell, g.mask)
-            place = GridPlacement(np.flatnonzero(g.mask), g.size * g.size, self._xp)
+            place = GridPlacement(np.flatnonzero(g.mask), g.size * g.size, self._xp,
+                                  extra=len(lm) - len(g.lm))
         else:
             shape = [-1, lay["nchan"], nprod, len(lm)]
             labels = ["time", "freq", "pol", "pixel"]
@@ -319,9 +367,22 @@ class DFTImagerBlock(bfp.TransformBlock):
                           "remove_autocorr": bool(self.remove_autocorr), "nant_used": int(eng.nant_used),
                           "pattern": self._pattern_name,
                           "integration_ticks": self.accumulate * lay["ticks_per_frame"]}
-        log.info(type(self).__name__ + " %s: %d pixels, %d antennas used, %s route, %s, %d frames per image",
-                 ihdr.get("name"), eng.npix, eng.nant_used, eng.method, self.precision, self.accumulate)
+        log.info(type(self).__name__ + " %s: %d pixels%s, %d antennas used, %s route, %s, %d frames per image",
+                 ihdr.get("name"), eng.npix, "" if self.watch is None else
+                 f" ({len(lm) - len(self.pixels.lm)} of them watch directions)", eng.nant_used, eng.method,
+                 self.precision, self.accumulate)
         return ohdr
+
+    def _watch_header(self, ohdr):
+        """The watch ring's header: the images' (``ohdr``) with the watch directions as a tracking pixel list."""
+        whdr = dict(ohdr)
+        t = ohdr["_tensor"]
+        ndir = self.engine.npix - len(self.pixels.lm)
+        whdr["_tensor"] = {"dtype": "f32", "shape": [-1, t["shape"][1], t["shape"][2], ndir],
+                           "labels": ["time", "freq", "pol", "pixel"], "scales": t["scales"][:2] + [None, None],
+                           "units": t["units"][:2] + [None, None]}
+        whdr["pixels"] = {"kind": "track", "lm": np.asarray(self._seq_lm)[len(self.pixels.lm):].tolist()}
+        return whdr
 
     # --------------------------------------------------------------- per gulp
     def _solution_hook(self, eng, pos, count):
@@ -387,6 +448,8 @@ class DFTImagerBlock(bfp.TransformBlock):
             raise ValueError(f"DFTImagerBlock.warm_up: dtype 'ci4' or 'cf32' (what live sources and CalFoldBlock "
                              f"write), got {dtype!r}")
         out = xp.zeros(shape, np.float32)
+        if self.watch is not None:
+            self.engine.output.xout = xp.zeros(shape[:3] + [self.engine.npix - len(self.pixels.lm)], np.float32)
         self.engine.image_gulp(idata, out)
         xp.cuda.get_current_stream().synchronize()
         self.img_stats, self.plan, self.method, self.precision = saved
@@ -405,7 +468,8 @@ class DFTImagerBlock(bfp.TransformBlock):
                 with _compat.stream_context():
                     xp = self._xp
                     inv = xp.asarray(np.where(q > 0, 1.0 / np.where(q > 0, q, 1.0), 0.0).astype(out.dtype))
-                    out[:nout] *= inv.reshape(inv.shape + (1,) * (out.ndim - 2))
+                    for o in (out, self.engine.output.xout) if self.watch is not None else (out,):
+                        o[:nout] *= inv.reshape(inv.shape + (1,) * (o.ndim - 2))
             self._nimg += nout
         return nout
 

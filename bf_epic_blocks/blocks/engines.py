@@ -38,17 +38,25 @@ __all__ = ["DFTEngine", "Engine", "GriddedEngine", "ImageOutput", "ShardedEngine
 class ImageOutput:
     """Where a sequence's images go in the output span: frames of (nchan, nprod, npix), or (nchan, nprod,
     N, N) cells of a grid through a :class:`~..imaging.pixels.GridPlacement` ``place`` (N = ``size``).
-    ``count(g)`` is told of every g images written."""
+    ``count(g)`` is told of every g images written. A placement with directions beside the grid (its
+    ``extra``) writes those to frames of :attr:`xout` (nchan, nprod, extra), the second output span,
+    set for each gulp by the block."""
 
     def __init__(self, place, size, count):
         self.place, self.size, self.count = place, size, count
+        self.xout = None
+
+    def _place(self, j, g):
+        if not self.place.extra:
+            return self.place
+        return self.place.beside(self.xout[j:j + g])
 
     def write(self, out, j, imgs):
         """Images (g, nchan, nprod, npix) into output frames j .. j + g (scattered onto the grid)."""
         g = imgs.shape[0]
         if self.place is not None:
             N = self.size
-            self.place(imgs, out=out[j:j + g].reshape(imgs.shape[:3] + (N * N,)))
+            self._place(j, g)(imgs, out=out[j:j + g].reshape(imgs.shape[:3] + (N * N,)))
         else:
             out[j:j + g] = imgs
         self.count(g)
@@ -59,7 +67,7 @@ class ImageOutput:
         dst = out[j:j + g]
         if self.place is not None:
             N = self.size
-            make(place=self.place, out=dst.reshape(dst.shape[:3] + (N * N,)))
+            make(place=self._place(j, g), out=dst.reshape(dst.shape[:3] + (N * N,)))
         else:
             dst[...] = make()
         self.count(g)

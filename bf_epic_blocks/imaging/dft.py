@@ -356,14 +356,15 @@ class DFTOperator:
         pattern (nchan|1, npix, npol|1) kept apart (or None)."""
         xp, (hxyz, hf) = self.xp, self._host_geometry
         G = _geometric_from_host(xp, hxyz, hf, hlm, hn, "fp64" if self.precision == "fp64" else "fp32")
-        b = _check_pattern(pattern, self.nchan, self.npix, self.nant_in, self.npol, xp)
+        npix = int(hlm.shape[0])
+        b = _check_pattern(pattern, self.nchan, npix, self.nant_in, self.npol, xp)
         if b is not None and b.shape[2] != 1:
             b = b[:, :, self.keep_index, :].astype(self.cdtype)
             Gp = G[:, None, :, :] * xp.moveaxis(b, 3, 1)          # one operator per pol: G_p = G * B[..., p]
-            return xp.ascontiguousarray(xp.broadcast_to(Gp, (self.nchan, self.npol, self.npix, self.nant))), None
+            return xp.ascontiguousarray(xp.broadcast_to(Gp, (self.nchan, self.npol, npix, self.nant))), None
         return G[:, None], (None if b is None else b[:, :, 0, :].astype(self.cdtype))
 
-    def repoint(self, pixels_lm, pattern=None):
+    def repoint(self, pixels_lm, pattern=None, first=0):
         """Point the operator's pixels at new directions, in place: the phases (and ``pattern``, given for
         the new pixels as to the constructor) are formed again into the arrays that held them, with
         every form derived from them (the GEMMs' operands, the fused modes' int8 pieces, the routes'
@@ -371,31 +372,36 @@ class DFTOperator:
         stay valid. A tracking imager moves its pixels this way (:class:`~..blocks.engines.DFTEngine`)
         instead of building a new operator and route (which costs the graphs' captures again).
 
-        pixels_lm : (npix, 2) as many pixels as before;  pattern : as the constructor's, of the same
-        kind (none, antenna-independent, or antenna-dependent) as the operator was built with."""
+        pixels_lm : (npix - first, 2) the new directions of pixels ``first`` .. npix - 1 (all of them by
+        default; an operator keeps its pixel count), the others unchanged -- a grid's pixels with a
+        watchlist's directions after them move only the directions' rows;  pattern : as the
+        constructor's for those pixels, of the same kind (none, antenna-independent, or
+        antenna-dependent) as the operator was built with."""
         xp = self.xp
+        first = int(first)
         hlm = check_lm(to_numpy(pixels_lm))
-        if hlm.shape != (self.npix, 2):
-            raise ValueError(f"repoint: {hlm.shape[0]} pixels given to an operator of {self.npix}; "
+        if not 0 <= first < self.npix or hlm.shape != (self.npix - first, 2):
+            raise ValueError(f"repoint: {hlm.shape[0]} pixels given to an operator of {self.npix} (from its pixel {first}); "
                              "an operator keeps its pixel count (build another for another count)")
         G, bp = self._pixel_operator(hlm, n_from_lm(hlm[:, 0], hlm[:, 1]), pattern)
-        if G.shape != self.G.shape or (bp is None) != (self.pixel_pattern is None):
+        rows = (slice(None), slice(None), slice(first, None))
+        if G.shape != self.G[rows].shape or (bp is None) != (self.pixel_pattern is None):
             raise ValueError("repoint: the pattern is not of the kind the operator was built with "
                              f"(operator {tuple(self.G.shape)}, pattern per pixel: {self.pixel_pattern is not None})")
-        self.G[...] = G
+        self.G[rows] = G
         if bp is not None:
-            self.pixel_pattern[...] = bp
-        self.pixels_lm[...] = xp.asarray(hlm)
+            self.pixel_pattern[:, first:] = bp
+        self.pixels_lm[first:] = xp.asarray(hlm)
         for key, old in self._derived.items():      # ("G", pol), ("stack", pol); "accumulators": the routes'
             if not isinstance(key, tuple):
                 continue
             if key[0] == "G":
-                old[...] = self._live_G(key[1])
+                old[:, first:] = self._live_G(key[1])[:, first:]
             elif key[0] == "stack":
                 for o, n in zip(old, stack_operator(self.live_G(key[1]), self.precision)):
                     o[...] = n
         if self.fused is not None:
-            self.fused.requantise(self)
+            self.fused.requantise(self, first)
         for route in list(self._routes):
             route.refresh()
 

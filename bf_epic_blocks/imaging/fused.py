@@ -127,7 +127,8 @@ def gpu_chunk_channels(K, nant_in, chunk=16):
     return max(int(chunk), _CHUNK_BYTES_GPU // (_pad(K, 64) * _pad(nant_in, 64) * 8))
 
 
-def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tiled=False, out=None, weights_host=None):
+def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tiled=False, out=None, weights_host=None,
+                      first=0):
     """The operator as int8 pieces in the kernel's layout (module docstring).
 
     G : complex (C, K, A_kept) geometric operator (live channels);  weights : complex (C, A_kept, P)
@@ -140,6 +141,9 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     On a GPU one kernel makes every channel (:func:`_quantise_gpu`; ``chunk`` only where G must be cast).
     weights_host : the same weights as a NumPy array, or None (read back from the device: a wait for the
         stream's queued work, which an imager folding in a new solution must not make).
+    first : with ``out``, on a GPU, only pixels ``first`` .. K - 1 (and the padding) are made again: the
+        others' directions did not move (a grid's pixels with a watchlist's beside them). On the CPU every
+        pixel is (the same numbers for the others).
     """
     xp = get_xp(G)
     C, K, Ak = (int(s) for s in G.shape)
@@ -162,7 +166,7 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
         if Aq.shape != shape or osc.shape != (C, PA, Kpad):
             raise ValueError(f"quantise_operator: out shaped {Aq.shape}, {osc.shape}; expected {shape}, {(C, PA, Kpad)}")
     if xp is not np:
-        _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk)
+        _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk, first if out is not None else 0)
         return Aq, osc, b, xmax
     kidx = xp.asarray(keep_index)
     for c0 in range(0, C, chunk):
@@ -199,7 +203,7 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     return Aq, osc, b, xmax
 
 
-def _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk):
+def _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk, first=0):
     """:func:`quantise_operator` on a GPU: one kernel (``quantise.cu``) per launch of whole channels, the same
     arithmetic as the NumPy path (bit-equal pieces). A complex64 contiguous G is read as it is, every channel in
     one launch; another G is cast ``chunk`` channels (or :data:`_CHUNK_BYTES_GPU`) at a time.
@@ -224,9 +228,10 @@ def _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk):
     for c0 in range(0, C, step):
         c1 = min(C, c0 + step)
         g = G[c0:c1] if whole else cp.ascontiguousarray(G[c0:c1], dtype=cp.complex64)
-        kernel((Kpad, c1 - c0, PA), (256,), (g, wc[c0:c1], inv, Aq[c0:c1], osc[c0:c1], np.int32(K), np.int32(Ak),
-                                             np.int32(P), np.int32(Apad), np.int32(pieces), np.float32(b), oscale,
-                                             np.int32(bool(tiled))))
+        kernel((Kpad - first, c1 - c0, PA), (256,), (g, wc[c0:c1], inv, Aq[c0:c1], osc[c0:c1], np.int32(K),
+                                                     np.int32(Ak), np.int32(P), np.int32(Apad), np.int32(pieces),
+                                                     np.float32(b), oscale, np.int32(bool(tiled)), np.int32(first),
+                                                     np.int32(Kpad)))
 
 
 def padded_ntime(T):
@@ -362,13 +367,14 @@ def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None, grid=None):
     Returns float32 (T // 16, C', P, npix): [g, c, p, k] is the sum over samples 16 g .. 16 g + 15
     of |F_pk|^2 -- the direct route's block sums of the pols' own powers, as :mod:`.dft` keeps them.
 
-    grid : None, or (out, fac, cell) to image straight onto a grid (the Hopper kernel only):
-    out float32 (G, C', ncell), G <= T // 16, gets sum_p fac[c, p, k] * (the sum above) added to cell
-    ``cell[k]`` of pixel k (int32 (npix,)); fac float32 (C', P, Kpad) (``osc`` is then not used: fac
-    holds it times what the image's products need). Each pol's share is one atomic add to a cell the
-    caller cleared (two terms onto 0: the same bits in either order); cells no pixel has are not written.
-    It costs about what the per-pol sums do and saves the products pass that would follow them.
-    Returns ``out``.
+    grid : None, or (out, fac, cell) or (out, fac, cell, xout) to image straight onto a grid (the Hopper
+    kernel only): out float32 (G, C', ncell), G <= T // 16, gets sum_p fac[c, p, k] * (the sum above)
+    added to cell ``cell[k]`` of pixel k (int32 (npix,)); fac float32 (C', P, Kpad) (``osc`` is then not
+    used: fac holds it times what the image's products need). Each pol's share is one atomic add to a
+    cell the caller cleared (two terms onto 0: the same bits in either order); cells no pixel has are not
+    written. A pixel whose cell is ncell + j is a direction imaged beside the grid (a watchlist's): its
+    image is added to xout float32 (G, C', nx) at j (cleared by the caller). It costs about what the
+    per-pol sums do and saves the products pass that would follow them. Returns ``out``.
 
     config : None (the device's kernel, :func:`kernel_config`), or a kernel shape: a dict with
     ``kernel='wgmma'`` (:data:`HOPPER_CONFIG`), else the portable kernel (:data:`PORTABLE_CONFIG`
@@ -401,17 +407,23 @@ def fused_power(Aq, osc, Bv, T, P, flag, npix=None, config=None, grid=None):
     if grid is not None:
         if not hopper:
             raise ValueError("fused imaging onto a grid needs the Hopper kernel (config kernel='wgmma')")
-        out, fac, cell = grid
+        out, fac, cell = grid[:3]
+        xout = grid[3] if len(grid) > 3 else None
         G, ncell = int(out.shape[0]), int(out.shape[-1])
+        nx = 0 if xout is None else int(xout.shape[-1])
         if (out.dtype != cp.float32 or not out.flags.c_contiguous or out.size != G * C * ncell or G > T // 16
                 or fac.shape != (C, P, M // 2) or fac.dtype != cp.float32 or cell.shape != (npix,)
                 or cell.dtype != cp.int32):
             raise ValueError("fused_power: grid expects out float32 (G <= T/16, C', ncell) contiguous, fac float32 "
                              f"({C}, {P}, {M // 2}) and cell int32 ({npix},); got {out.dtype} {tuple(out.shape)}, "
                              f"{fac.dtype} {tuple(fac.shape)}, {cell.dtype} {tuple(cell.shape)}")
+        if xout is not None and (xout.dtype != cp.float32 or not xout.flags.c_contiguous or xout.size != G * C * nx):
+            raise ValueError(f"fused_power: grid's xout must be float32 ({G}, {C}, nx) contiguous, got {xout.dtype} "
+                             f"{tuple(xout.shape)}")
         k, smem = _fused_kernel(NP, KD, cfg, grid=True)
         k((rows, ncol // BN, C), (nt,), (Aq, Bv, fac, flag, out, np.int32(M), np.int32(ncol), np.int32(T), np.int32(PA),
-                                         base, np.int32(npix), cell, np.int32(ncell), np.int32(G)), shared_mem=smem)
+                                         base, np.int32(npix), cell, np.int32(ncell), np.int32(G),
+                                         out if xout is None else xout, np.int32(nx)), shared_mem=smem)
         return out
     out = cp.empty((T // 16, C, P, npix), cp.float32)
     k, smem = _fused_kernel(NP, KD, cfg)
@@ -448,12 +460,12 @@ class FusedOperator:
         self.flag = xp.zeros(1, xp.int32)
         self._pmaps = {}
 
-    def requantise(self, op):
+    def requantise(self, op, first=0):
         """The pieces of ``op``'s operator again, written into the arrays that held them (its pixels moved:
-        :meth:`.dft.DFTOperator.repoint`); the base and sample range are the same (they depend on the
-        antennas only)."""
+        :meth:`.dft.DFTOperator.repoint`; only pixels ``first`` onwards, where those are the ones that
+        moved); the base and sample range are the same (they depend on the antennas only)."""
         quantise_operator(op.live_G(0), self._w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled,
-                          out=(self.Aq, self.osc), weights_host=self._w_host)
+                          out=(self.Aq, self.osc), weights_host=self._w_host, first=first)
 
     def can_reweight(self, w):
         """Whether weights ``w`` (C', A_kept, P) of the live channels fit this operator's pieces: one set for
@@ -481,13 +493,15 @@ class FusedOperator:
         """Whether :meth:`place` can image straight onto a grid here (the Hopper kernel)."""
         return _hopper(self.config)
 
-    def place(self, pairs, pols, fac, cell, out, ci4=False):
+    def place(self, pairs, pols, fac, cell, out, ci4=False, xout=None):
         """Images of 16 samples each straight onto a grid: out[g, c, cell[k]] = sum_p fac[c, p, k] *
         (:meth:`sums` with n = 16)[g, c, p, k] (:func:`fused_power`'s ``grid``); out float32 (G, C', ncell),
-        G = T // 16 of the T samples in ``pairs``; cells no pixel has are left as they are."""
+        G = T // 16 of the T samples in ``pairs``; cells no pixel has are left as they are. xout: None, or
+        float32 (G, C', nx) for the pixels beside the grid (cells ncell + j)."""
         T = int(pairs.shape[0])
+        grid = (out, fac, cell) if xout is None else (out, fac, cell, xout)
         return fused_power(self.Aq, self.osc, self._layout(pairs, pols, ci4), padded_ntime(T), len(pols), self.flag,
-                           self.npix, self.config, grid=(out, fac, cell))
+                           self.npix, self.config, grid=grid)
 
     def _layout(self, pairs, pols, ci4):
         """The voltages in the kernel's layout (:func:`layout_voltages`), the range flag cleared first."""

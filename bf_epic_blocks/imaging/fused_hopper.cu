@@ -23,9 +23,10 @@
 //        beam pattern, product coefficient)
 //   flag int32 (1,): nonzero -> every output NaN
 //   out  float32 (T / 16, C, P, npix) sums over 16 samples of |F_pk|^2; GRID: (G, C, ncell) images, pol p's
-//        share of pixel k added to cell cellv[k] (the caller clears the cells)
+//        share of pixel k added to cell cellv[k] (the caller clears the cells); a pixel whose cell is
+//        ncell + j (j < nx) is one of nx directions imaged beside the grid, added to xout (G, C, nx) at j
 //   M, NCOL = P T, T (samples a pol, a multiple of 128), PA (1 or 2 gain sets), base (the pieces' base),
-//   npix (pixels written); GRID: cellv (npix,) int32, ncell, G (images written: g < G <= T / 16)
+//   npix (pixels written); GRID: cellv (npix,) int32, ncell, G (images written: g < G <= T / 16), xout, nx
 // Launch: grid (ceil(M / 128 / MT), NCOL / 128, C), block 384, dynamic shared memory as above.
 #include "fused_common.cuh"
 
@@ -79,15 +80,20 @@ __device__ __forceinline__ void mbar_arrive_lane0(unsigned a, int lane) {
 
 #if GRID
 // GRID: one pol's share of an image placed on the grid: lane u % 4 adds (an atomic add: the pols' shares
-// meet in one cell) the sum times its factor to ob[u us + cell[pix]], for images g0 + u < G
-__device__ __forceinline__ void put_cell(float* __restrict__ ob, const long long us, const int* f0, const int* f1,
+// meet in one cell) the sum times its factor to ob[u us + cell[pix]], for images g0 + u < G; a cell
+// beyond the grid's (cell >= ncell) is a direction beside it, added to xb[u xus + cell - ncell]
+__device__ __forceinline__ void put_cell(float* __restrict__ ob, const long long us, float* __restrict__ xb,
+                                         const long long xus, const int ncell, const int* f0, const int* f1,
                                          const int lane, const int u, const int pix, const int cell, const float sc,
                                          const bool bad, const int npix, const int g0, const int G)
 {
     const float s = quad_power(f0, f1);
     if ((lane & 3) == (u & 3) && pix < npix && g0 + u < G) {
         const float v = bad ? __int_as_float(0x7fc00000) : s * sc;
-        atomicAdd(ob + u * us + cell, v);
+        if (cell < ncell)
+            atomicAdd(ob + u * us + cell, v);
+        else
+            atomicAdd(xb + u * xus + (cell - ncell), v);
     }
 }
 #endif
@@ -107,6 +113,7 @@ __device__ __forceinline__ void tile_load(float& sc, int& cl, const float* __res
 
 // the epilogue units of tile (mt0 + tp) due at stage `it` of the next tile (all of them when it < 0)
 __device__ __forceinline__ void epi_units(const int* de, const int it, float* __restrict__ ob, const long long us,
+                                          float* __restrict__ xb, const long long xus, const int ncell,
                                           const float sc, const int cl, const int lane, const int tp,
                                           const int mt0, const int wgi, const int wq,
                                           const bool bad, const int npix, const int nit, const int g0, const int G)
@@ -116,7 +123,7 @@ __device__ __forceinline__ void epi_units(const int* de, const int it, float* __
     for (int u = 0; u < NU; u++)
         if (it < 0 || u % nit == it) {
 #if GRID
-            put_cell(ob, us, de + 8 * u, de + 8 * u + 4, lane, u, pix, cl, sc, bad, npix, g0, G);
+            put_cell(ob, us, xb, xus, ncell, de + 8 * u, de + 8 * u + 4, lane, u, pix, cl, sc, bad, npix, g0, G);
 #else
             put_unit(ob, us, de + 8 * u, de + 8 * u + 4, lane, u, pix, sc, bad, npix);
 #endif
@@ -128,7 +135,7 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
                const int* __restrict__ flag, float* __restrict__ out, const int M, const int NCOL,
                const int T, const int PA, const int base, const int npix
 #if GRID
-               , const int* __restrict__ cellv, const int ncell, const int G
+               , const int* __restrict__ cellv, const int ncell, const int G, float* __restrict__ xout, const int nx
 #endif
                )
 {
@@ -177,10 +184,14 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
     const int pu = (n0 / 16) / TU, g0 = n0 / 16 - pu * TU;
     float* ob = out + ((long long)g0 * C + c) * ncell;
     const long long us = (long long)C * ncell;
+    float* xb = xout + ((long long)g0 * C + c) * nx;
+    const long long xus = (long long)C * nx;
     const long long orow = (long long)(c * P + pu) * Kp;
 #else
-    const int g0 = 0, G = 0;                        // the grid's arguments: unused in the per-pol sums
+    const int g0 = 0, G = 0, ncell = 0;             // the grid's arguments: unused in the per-pol sums
     const int* cellv = nullptr;
+    float* xb = nullptr;
+    const long long xus = 0;
     float* ob = unit_out(out, n0 / 16, c, C, P, TU, npix);
     const long long us = (long long)C * P * npix;
     const long long orow = (long long)(c * PA + pa) * Kp;
@@ -213,12 +224,12 @@ bf_fused_power(const signed char* __restrict__ A, const signed char* __restrict_
                 asm volatile("wgmma.wait_group.sync.aligned 1;\n" ::: "memory");   /* all but this stage's */ \
                 if (g > 0 && !(NP > 1 && it % KB == 0 && it > 0)) mbar_arrive_lane0(emptyb + 8 * ((g - 1) % ST), lane); \
                 if (tt >= 1 && tt - 1 < ntile) \
-                    epi_units(de, it, ob, us, sce, cle, lane, tt - 1, mt0, wgi, wq, bad, npix, NIT, g0, G); \
+                    epi_units(de, it, ob, us, xb, xus, ncell, sce, cle, lane, tt - 1, mt0, wgi, wq, bad, npix, NIT, g0, G); \
             } \
         } else { \
             asm volatile("wgmma.wait_group.sync.aligned 0;\n" ::: "memory"); \
             if (tt - 1 < ntile) \
-                epi_units(de, -1, ob, us, sce, cle, lane, tt - 1, mt0, wgi, wq, bad, npix, NIT, g0, G); \
+                epi_units(de, -1, ob, us, xb, xus, ncell, sce, cle, lane, tt - 1, mt0, wgi, wq, bad, npix, NIT, g0, G); \
         } } while (0)
 
     float sc0 = 0.f, sc1 = 0.f;

@@ -11,6 +11,8 @@ with NaN outside.
 """
 from __future__ import annotations
 
+import copy
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -113,16 +115,22 @@ class GridPlacement:
 
     On the GPU one kernel writes every cell (a gather through the inverse index): no NaN fill pass
     and none of CuPy's fancy-index set-up, which costs more host time than the copy itself.
+
+    extra : directions imaged beside the grid's pixels (a watchlist's): the values' last ``extra``
+        pixels, npix = index.size + extra. They go to :attr:`xout` (..., extra), given for each call by
+        :meth:`beside`; kernels that write each pixel's cell (:attr:`cells`) find them at cells n + j.
     """
 
-    def __init__(self, index, n, xp=np):
+    def __init__(self, index, n, xp=np, extra=0):
         index = np.asarray(index).ravel()
         n = int(n)
         if index.dtype.kind not in "iu" or (index.size and (index.min() < 0 or index.max() >= n)) \
                 or np.unique(index).size != index.size:
             raise ValueError(f"GridPlacement: index must be distinct integers in 0..{n - 1}, got {index.size} "
                              f"values of dtype {index.dtype}")
-        self.n, self.npix, self.xp = n, int(index.size), xp
+        self.extra = int(extra)
+        self.n, self.ngrid, self.npix, self.xp = n, int(index.size), int(index.size) + self.extra, xp
+        self.xout = None
         self.index = xp.asarray(index)
         self._gather = self._cells = self._empty = None          # (_empty: clear()'s row)
         if xp.__name__ == "cupy":
@@ -143,8 +151,18 @@ class GridPlacement:
         if self._gather is None:
             return None
         if self._cells is None:
-            self._cells = self.xp.asarray(self.index, dtype=self.xp.int32)
+            cells = np.concatenate([to_numpy(self.index), self.n + np.arange(self.extra)]).astype(np.int32)
+            self._cells = self.xp.asarray(cells)
         return self._cells
+
+    def beside(self, xout):
+        """This placement with the destination of the pixels beside the grid for one call: ``xout``
+        (..., extra), the same leading axes as the grid's ``out`` (a shallow copy; ``self`` is unchanged)."""
+        if int(xout.shape[-1]) != self.extra:
+            raise ValueError(f"beside: xout has {xout.shape[-1]} pixels, the placement {self.extra} beside the grid")
+        bound = copy.copy(self)
+        bound.xout = xout
+        return bound
 
     def clear(self, out):
         """GPU: every image of ``out`` (..., n) float32 contiguous set to 0 in the pixels' cells and NaN in
@@ -176,11 +194,19 @@ class GridPlacement:
             raise ValueError(f"out must be shaped {values.shape[:-1] + (self.n,)}, got {tuple(out.shape)}")
         if self._gather is None:
             out[...] = np.nan
-            out[..., self.index] = values
+            out[..., self.index] = values[..., :self.ngrid]
         else:
             v = xp.ascontiguousarray(values, dtype=out.dtype)
             _place_kernel(xp)(v, self._gather, self.n, self.npix, out.dtype.type(np.nan), out)
+        self.put_beside(values)
         return out
+
+    def put_beside(self, values):
+        """The pixels beside the grid, values[..., ngrid:], into :attr:`xout` (nothing without them)."""
+        if self.extra:
+            if self.xout is None:
+                raise ValueError("GridPlacement: pixels beside the grid need their destination (beside(xout))")
+            self.xout[...] = values[..., self.ngrid:]
 
 
 def take_pixels(values, index):

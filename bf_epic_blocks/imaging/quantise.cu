@@ -14,8 +14,9 @@
 // Real row of pixel k: (q_re, -q_im) at columns 2a, 2a + 1; imaginary row: (q_im, q_re); the rows of
 // each 8 pixels are 16 consecutive rows, 8 real then 8 imaginary. osc = (s_k / (127 b^(pieces-1)))^2.
 //
-// Launch: grid (Kpad, Cl, PA), 256 threads; dynamic shared memory none. Each block makes one pixel's
-// row pair: a max over the kept antennas, then the Apad columns.
+// Launch: grid (Kpad - k0, Cl, PA), 256 threads; dynamic shared memory none. Each block makes one pixel's
+// row pair (pixel k0 + blockIdx.x: only pixels from k0 on when the others did not move): a max over the
+// kept antennas, then the Apad columns.
 
 __device__ __forceinline__ void d_of(const float2* __restrict__ g, const float2* __restrict__ w,
                                      long long grow, long long wrow, int a, int P, float& re, float& im)
@@ -40,10 +41,11 @@ extern "C" __global__ void bf_quantise_operator(const float2* __restrict__ g, co
                                                 const int* __restrict__ inv, signed char* __restrict__ A,
                                                 float* __restrict__ osc, const int K, const int Ak,
                                                 const int P, const int Apad, const int pieces, const float b,
-                                                const double oscale, const int tiled)
+                                                const double oscale, const int tiled, const int k0,
+                                                const int Kpad)
 {
-    const int k = blockIdx.x, c = blockIdx.y, pa = blockIdx.z;
-    const int Kpad = gridDim.x, PA = gridDim.z, M = 2 * Kpad, KD = 2 * Apad;
+    const int k = k0 + blockIdx.x, c = blockIdx.y, pa = blockIdx.z;
+    const int PA = gridDim.z, M = 2 * Kpad, KD = 2 * Apad;
     const long long grow = ((long long)c * K + k) * Ak;
     const long long wrow = (long long)c * Ak * P + pa;
     __shared__ float red[32];

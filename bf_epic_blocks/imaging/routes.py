@@ -185,6 +185,12 @@ class Route:
         if gather is not None and out.dtype == np.float32 and out.flags.c_contiguous:
             products_from_blocks(corr, scale, self._coef, weight=self._bw, gather=gather, out=out)
             self._fill_dead(out)
+            if place.extra:          # the directions beside the grid (few): their products on their own
+                k0 = place.ngrid
+                bw = None if self._bw is None else self._bw[..., k0:]
+                products_from_blocks(xp.ascontiguousarray(corr[..., k0:]), scale, self._coef, weight=bw,
+                                     out=place.xout)
+                self._fill_dead(place.xout)
             return out
         res = products_from_blocks(corr, scale, self._coef, weight=self._bw).astype(op.rdtype, copy=False)
         if op.chan_index is not None:
@@ -192,7 +198,7 @@ class Route:
             full[..., op.chan_index, :, :] = res
             res = full
         self._fill_dead(res)
-        return res if place is None else place(res, out=out)
+        return res if place is None else place(res, out=out)   # (and the pixels beside the grid, if any)
 
     def _fill_dead(self, res):
         """NaN where all antennas of a contributing channel-pol are flagged (res: (..., nchan, nprod, cells))."""
@@ -408,8 +414,18 @@ class FusedIntegerRoute(DirectRoute):
         op = self.op
         o3 = out.reshape(out.shape[0], out.shape[1], out.shape[3])
         place.clear(o3)
-        op.fused.place(efield, self.pols, self._grid_factor(factor), place.cells, o3, ci4=ci4)
+        x3 = None
+        if place.extra:                                  # the directions beside the grid, in the same kernel
+            x = place.xout
+            if x is None or not x.flags.c_contiguous or x.shape != out.shape[:3] + (place.extra,):
+                raise ValueError(f"the pixels beside the grid need a contiguous {out.shape[:3] + (place.extra,)} "
+                                 f"destination, got {None if x is None else tuple(x.shape)}")
+            x.fill(0)
+            x3 = x.reshape(x.shape[0], x.shape[1], x.shape[3])
+        op.fused.place(efield, self.pols, self._grid_factor(factor), place.cells, o3, ci4=ci4, xout=x3)
         self._fill_dead(out)
+        if x3 is not None:
+            self._fill_dead(place.xout)
         return out
 
 

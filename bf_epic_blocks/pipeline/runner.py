@@ -30,7 +30,8 @@ import numpy as np
 from ..imaging import cost
 from ..imaging._xp import device_kind
 from ..conventions import FS_HZ
-from ..imaging.pixels import lm_grid
+from ..imaging.pixels import LMGrid, lm_grid
+from ..imaging.products import resolve_products
 
 log = logging.getLogger("bf_epic_blocks")
 
@@ -390,11 +391,13 @@ def build_graph(cfg, progress=None, parts=None):
         solver, table = _solver_stage(cfg, feed, outdir)
         gains = table if table is not None else _static_gains(cfg)     # what CalFoldBlock applies
         calfold = _calibration_stage(cfg, dev, feed, pattern, gains)
-        imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table, weights)
+        riders = _watch_riders(cfg, dev, pixels, station)
+        imager = _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table, weights, watch=riders)
         search = _search_stage(cfg, imager, outdir, weights if getattr(imager, "flag_weights", None) else None,
                                gains=gains)
         writer, cube, band = _output_stage(cfg, imager, pixels, block)
-        watch, snippets = _watch_stage(cfg, dev, calfold, station, pattern, table, band or imager, search)
+        watch, snippets = _watch_stage(cfg, dev, calfold, station, pattern, table, band or imager, search,
+                                       rides=imager if riders is not None else None)
         oims = _oims_stage(cfg, dev, calfold, station, pattern, table)
     return Graph(p, source, calfold, imager, writer, nframe_total, station, outdir, search, cube, solver, watch,
                  snippets, oims=oims)
@@ -591,10 +594,11 @@ def _calibration_stage(cfg, dev, feed, pattern, gains=None):
     return CalFoldBlock(feed, cable=bool(cal["cable"]), gains=gains, pattern=pattern)
 
 
-def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None, flag_weights=None):
+def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None, flag_weights=None, watch=None):
     """The imager block on ``calfold``: DFTImagerBlock (folding the calibration where no CalFoldBlock
     runs, with the live solutions of ``table`` if there is one; channels sharded over ``devs`` on several
-    GPUs), or WStackBlock for the gridded kinds."""
+    GPUs; the watch directions ``watch`` imaged beside its grid, :func:`_watch_riders`), or WStackBlock
+    for the gridded kinds."""
     from ..blocks import DFTImagerBlock
     im, cal = cfg["imager"], cfg["calibration"]
     common = dict(products=im["products"], remove_autocorr=im["remove_autocorr"])
@@ -607,6 +611,8 @@ def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None
             common.update(gpus=devs)
         elif flag_weights is not None:
             common.update(flag_weights=flag_weights)
+        if watch is not None:
+            common.update(watch=watch)
         return DFTImagerBlock(calfold, pixels, im["accumulate_frames"],
                               plan=imager_plan_for(cfg, pixels, station, dev), **common)
     from ..blocks.wstack import WStackBlock
@@ -614,10 +620,29 @@ def _imaging_stage(cfg, dev, devs, calfold, pixels, station, pattern, table=None
                        plan=imager_plan_for(cfg, pixels, station, dev), **common)
 
 
-def _watch_stage(cfg, dev, calfold, station, pattern, table=None, imager=None, search=None):
+def _watch_riders(cfg, dev, pixels, station):
+    """The watchlist's :class:`~..blocks.watch.WatchPixels` when its directions ride in the main imager
+    (``DFTImagerBlock(watch=)``), else None. They ride where the main imager is one device's dft imager of
+    a grid making the products the watchlist asks: their rows then fill the grid operator's last row tile
+    (up to 63 directions cost the GPU nothing; ~0.5% of the imager's time for 100, NVIDIA H200), where an
+    imager of their own reads and lays out every voltage again (~9% for 10). Elsewhere a watch imager
+    of their own images them (:func:`_watch_stage`)."""
+    wc = cfg.get("watch")
+    im = cfg["imager"]
+    if not wc or dev not in ("cpu", "gpu") or im["kind"] != "dft" or not isinstance(pixels, LMGrid):
+        return None
+    if list(resolve_products(2, wc["products"])) != list(resolve_products(2, im["products"])):
+        return None
+    from ..blocks.watch import WatchPixels
+    return WatchPixels(wc["targets"], station.location)
+
+
+def _watch_stage(cfg, dev, calfold, station, pattern, table=None, imager=None, search=None, rides=None):
     """The watchlist (``watch:``), or (None, None): (the WatchWriterBlock writing
-    ``<output.dir>/<prefix>_watch.h5`` from a DFTImagerBlock tracking the targets' directions on the
-    voltages the imager reads, the calibration folded in as the imager folds it; the SnippetBlock on
+    ``<output.dir>/<prefix>_watch.h5`` from the main imager's watch ring when the directions ride there
+    (``rides``: that DFTImagerBlock, :func:`_watch_riders`), else from a DFTImagerBlock of their own tracking
+    the targets' directions on the voltages the imager reads, the calibration folded in as the imager
+    folds it; the SnippetBlock on
     ``imager`` -- the imager's images, or the band mean of each that the outputs already make, which
     spares the snippets a pass over every channel's images -- that saves what the search's candidates,
     the light curves and trigger files ask)
@@ -631,19 +656,25 @@ def _watch_stage(cfg, dev, calfold, station, pattern, table=None, imager=None, s
     from ..blocks import DFTImagerBlock
     from ..blocks.watch import WatchPixels, WatchWriterBlock
     im = cfg["imager"]
-    pixels = WatchPixels(wc["targets"], station.location)
-    common = _beside_kwargs(cfg, dev, wc["products"], pattern, table)
-    ndir = sum(t.ndir for t in pixels.targets)
-    plan = imaging_plan(cfg, ndir, int((~station.flags).any(axis=1).sum()),
-                        len(channel_freqs(cfg)) if cfg["source"]["kind"] == "simulated" else 1, dev)
     main_imager = imager
-    watch_imager = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], plan=plan, **common)
+    if rides is not None:
+        pixels, wring = rides.watch, rides.watch_ring
+        ndir = sum(t.ndir for t in pixels.targets)
+        how = "imaged beside the main imager's grid"
+    else:
+        pixels = WatchPixels(wc["targets"], station.location)
+        common = _beside_kwargs(cfg, dev, wc["products"], pattern, table)
+        ndir = sum(t.ndir for t in pixels.targets)
+        plan = imaging_plan(cfg, ndir, int((~station.flags).any(axis=1).sum()),
+                            len(channel_freqs(cfg)) if cfg["source"]["kind"] == "simulated" else 1, dev)
+        wring = DFTImagerBlock(calfold, pixels, im["accumulate_frames"], plan=plan, **common)
+        how = "by a watch imager of their own"
     out = cfg["output"]
     path = Path(out["dir"]) / f"{out['prefix']}_watch.h5"
-    log.info("watch: %d targets (%d directions) at every image -> %s", len(pixels.targets), ndir, path)
+    log.info("watch: %d targets (%d directions) at every image, %s -> %s", len(pixels.targets), ndir, how, path)
     from ..blocks.snippets import SnippetBlock, TriggerBus
     bus = TriggerBus()
-    writer = WatchWriterBlock(watch_imager, path, pixels, png_every_s=wc["png_every_s"], bus=bus,
+    writer = WatchWriterBlock(wring, path, pixels, png_every_s=wc["png_every_s"], bus=bus,
                               trigger_sigma=wc["trigger_sigma"], ring_s=wc["ring_s"], png_process=dev != "cpu")
     snippets = None
     if main_imager is not None:
@@ -1303,7 +1334,7 @@ def plan(cfg):
     flags = station.flags
     nant_pol = int((~flags).sum())
     nstand_any = int((~flags).any(axis=1).sum())
-    from ..imaging.products import needs_cross, resolve_products
+    from ..imaging.products import needs_cross
     prods = resolve_products(2, im["products"])
     nblk = sum([any(p in ("XX", "I", "Q") for p in prods), any(p in ("YY", "I", "Q") for p in prods),
                 needs_cross(prods)])
