@@ -97,6 +97,28 @@ def test_candidate_tables_compare_by_their_candidates(tmp_path):
     assert not res["ok"] and "1 only on the GPU, 1 only on the CPU" in res["problem"]
 
 
+def test_fitted_dms_compare_by_their_trial_and_within_a_tolerance(tmp_path):
+    """A table with dm_trial: a candidate is the same on both when its trial is; its fitted DM (which moves
+    with the S/N's last digits) within DM_TOL, not bit for bit."""
+    from astropy.table import Table
+    from bf_epic_blocks.io.candidates import write_candidates
+
+    def cands(side, dm, trial=1.2):
+        t = Table(rows=[("s0", 10, 5, dm, trial, 2, 12.0)],
+                  names=("sequence", "image", "pixel", "dm", "dm_trial", "width", "snr"))
+        write_candidates(tmp_path / side / "c_candidates.ecsv", t)
+
+    cands("cpu", 1.23456)
+    cands("gpu", 1.23456 + 0.2 * gpu_check.DM_TOL)
+    res = gpu_check.compare_dirs(tmp_path / "gpu", tmp_path / "cpu")["c_candidates.ecsv"]
+    assert res["ok"] and res["dm_abs_diff"] > 0, res
+    cands("gpu", 1.23456 + 5 * gpu_check.DM_TOL)
+    assert not gpu_check.compare_dirs(tmp_path / "gpu", tmp_path / "cpu")["c_candidates.ecsv"]["ok"]
+    cands("gpu", 1.23456, trial=1.3)
+    res = gpu_check.compare_dirs(tmp_path / "gpu", tmp_path / "cpu")["c_candidates.ecsv"]
+    assert not res["ok"] and "1 only on the GPU, 1 only on the CPU" in res["problem"]
+
+
 def test_inputs_found_or_the_pipeline_skipped_with_a_reason(tmp_path):
     yml = tmp_path / "p.yaml"
     data = tmp_path / "data"
