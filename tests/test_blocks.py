@@ -247,10 +247,16 @@ def test_watch_directions_ride_beside_the_grid_on_a_second_ring(xp, scene, preci
     X = s["ints"][:128]
     hdr = efield_header("w", 0, s["freq"], DT, station(s, with_cable=False), dtype="ci4")
 
-    def run(watch):
+    class HalfKept:
+        """FlagWeights' interface: every image kept half a point source's power."""
+        def take(self, seq, first, n):
+            return np.full((n, 3), 0.5)                  # (images, channels)
+
+    def run(watch, flag_weights=None):
         with bfp.Pipeline() as p:
             src = ArraySourceBlock(pack_ci4(X), hdr, gulp_nframe=64, space="cuda" if gpu else "system")
-            img = DFTImagerBlock(src, grid, 16, products=("I",), precision=precision, method="direct", watch=watch)
+            img = DFTImagerBlock(src, grid, 16, products=("I",), precision=precision, method="direct", watch=watch,
+                                 flag_weights=flag_weights)
             sink = ArraySinkBlock(img)
             wsink = ArraySinkBlock(img.watch_ring) if watch is not None else None
             p.run()
@@ -271,6 +277,9 @@ def test_watch_directions_ride_beside_the_grid_on_a_second_ring(xp, scene, preci
     assert whdr["_tensor"]["scales"][0] == sink.headers[0]["_tensor"]["scales"][0]
     _, alone, _ = run(None)
     np.testing.assert_allclose(sink.result(0), alone.result(0), rtol=1e-6, atol=1e-7 * np.nanmax(alone.result(0)))
+    _, half, whalf = run(dirs, HalfKept())             # images rescaled to the whole array's units: both rings
+    np.testing.assert_allclose(whalf.result(0), 2 * got, rtol=1e-6)
+    np.testing.assert_allclose(half.result(0), 2 * sink.result(0), rtol=1e-6)
     with pytest.raises(ValueError, match="ride beside a grid"):
         DFTImagerBlock(ArraySourceBlock(pack_ci4(X), hdr, gulp_nframe=64), s["lm"], 16, watch=dirs)
 

@@ -381,7 +381,8 @@ class DFTOperator:
         first = int(first)
         hlm = check_lm(to_numpy(pixels_lm))
         if not 0 <= first < self.npix or hlm.shape != (self.npix - first, 2):
-            raise ValueError(f"repoint: {hlm.shape[0]} pixels given to an operator of {self.npix} (from its pixel {first}); "
+            raise ValueError(f"repoint: {hlm.shape[0]} pixels given to an operator of {self.npix} "
+                             f"(from its pixel {first}); "
                              "an operator keeps its pixel count (build another for another count)")
         G, bp = self._pixel_operator(hlm, n_from_lm(hlm[:, 0], hlm[:, 1]), pattern)
         rows = (slice(None), slice(None), slice(first, None))

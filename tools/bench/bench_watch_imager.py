@@ -72,7 +72,8 @@ def main(argv=None):
         op, xout, run = grid_imager(lm)
         ride_ms = gpu_ms(run)
         moved = lm * 0.99
-        ride_move_s = benchmark(lambda: op.repoint(cp.asarray(moved), first=ng), n_repeat=5, n_warmup=1).cpu_times.mean()
+        ride_move_s = benchmark(lambda: op.repoint(cp.asarray(moved), first=ng), n_repeat=5,
+                                n_warmup=1).cpu_times.mean()
         run()
         beside = xout.get()[:, :, 0]
         op = xout = run = None
