@@ -317,9 +317,10 @@ class DFTImagerBlock(bfp.TransformBlock):
         else:
             lm = self.pixels
         self._seq_lm = lm
-        # (the watch directions move: the engine depends on their count, and moves them in place)
-        key = self._engine_key(lm if self.watch is None else np.concatenate([self.pixels.lm, np.zeros_like(lm[
-            self.pixels.lm.shape[0]:])]))
+        # the watch directions move, and the engine moves them in place: it depends on their count only
+        key_lm = lm if self.watch is None else \
+            np.concatenate([self.pixels.lm, np.zeros((len(lm) - len(self.pixels.lm), 2))])
+        key = self._engine_key(key_lm)
         if self.gains is not None:
             # every sequence starts uncalibrated (solution -1) with an operator of its own
             self._gain_index, self._gains_tag0, key = -1, int(lay["time_tag"]), None

@@ -12,7 +12,6 @@ with NaN outside.
 from __future__ import annotations
 
 import copy
-
 from dataclasses import dataclass, field
 
 import numpy as np

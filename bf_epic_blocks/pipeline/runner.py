@@ -624,9 +624,9 @@ def _watch_riders(cfg, dev, pixels, station):
     """The watchlist's :class:`~..blocks.watch.WatchPixels` when its directions ride in the main imager
     (``DFTImagerBlock(watch=)``), else None. They ride where the main imager is one device's dft imager of
     a grid making the products the watchlist asks: their rows then fill the grid operator's last row tile
-    (up to 63 directions cost the GPU nothing; ~0.5% of the imager's time for 100, NVIDIA H200), where an
-    imager of their own reads and lays out every voltage again (~9% for 10). Elsewhere a watch imager
-    of their own images them (:func:`_watch_stage`)."""
+    (or add one), so the GPU images them with the grid's voltages already laid out, where an imager of
+    their own reads and lays out every voltage again (docs/benchmarks/bench_cost.md). Elsewhere a watch
+    imager of their own images them (:func:`_watch_stage`)."""
     wc = cfg.get("watch")
     im = cfg["imager"]
     if not wc or dev not in ("cpu", "gpu") or im["kind"] != "dft" or not isinstance(pixels, LMGrid):
