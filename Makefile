@@ -25,7 +25,7 @@ $(VENV)/.installed: setup.cfg pyproject.toml
 
 test: setup
 	PYTHON=$(BIN)/python bash tools/install_system_deps.sh --browser
-	$(BIN)/python -m pytest -q -ra
+	$(BIN)/python -m pytest -q -ra --durations=15
 
 test-quick: setup
 	$(BIN)/python -m pytest -q -ra -m "not slow and not real_data"
