@@ -643,3 +643,27 @@ def test_the_watch_directions_ride_in_the_main_imager_when_it_makes_their_produc
     assert len(imagers) == (1 if rides else 2)
     assert (g.watch.irings[0] is g.imager.watch_ring) == rides
     assert (g.imager.watch is g.watch.pixels) == rides
+
+
+def test_a_watch_imager_of_their_own_records_what_the_directions_beside_the_grid_do(tmp_path):
+    """The two routes of the watchlist on one recording: I from the directions beside the grid equals XX + YY
+    from a watch imager of their own (each route is tested against the float64 definition elsewhere), and
+    the Sun, below the horizon, is NaN in both."""
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    got = {}
+    for products in (["I"], ["XX", "YY"]):
+        out = tmp_path / "_".join(products)
+        cfg = load_config("pipelines/lwasv_sim_transient.yaml", [
+            "source.duration_s=0.03", "imager.search=null", "output.cube=null", "output.png=false",
+            "output.fits=false", f"output.dir={out}",
+            f"watch={{targets: [CygA, {{name: FRB1, ra_deg: 310.0, dec_deg: 20.0}}, {{name: Sun, body: sun}}], "
+            f"products: {products}}}"])
+        runner.run(cfg, show_progress=False)
+        got[products[0]] = read_watch(out / "lwasv_sim_transient_watch.h5")
+    for name in ("CygA", "FRB1"):
+        i, lin = got["I"][name], got["XX"][name]
+        assert list(i["products"]) == ["I"] and list(lin["products"]) == ["XX", "YY"]
+        assert i["data"].shape[0] == lin["data"].shape[0] > 10
+        np.testing.assert_allclose(i["data"][..., 0], lin["data"].sum(axis=-1), rtol=1e-5)
+    assert np.all(np.isnan(got["I"]["Sun"]["data"])) and np.all(np.isnan(got["XX"]["Sun"]["data"]))
