@@ -350,15 +350,11 @@ class DFTImagerBlock(bfp.TransformBlock):
             ohdr["pixels"] = grid_pixels_header(g.size, g.cell, g.mask)
             place = GridPlacement(np.flatnonzero(g.mask), g.size * g.size, self._xp,
                                   extra=len(lm) - len(g.lm))
+            ohdr["_tensor"] = {"dtype": "f32", "shape": shape, "labels": labels, "scales": scales, "units": units}
         else:
-            shape = [-1, lay["nchan"], nprod, len(lm)]
-            labels = ["time", "freq", "pol", "pixel"]
-            scales = [[t0, dt * self.accumulate], fscale, None, None]
-            units = ["s", "Hz", None, None]
-            kind = "track" if callable(self.pixels) else "list"
-            ohdr["pixels"] = {"kind": kind, "lm": np.asarray(lm).tolist()}
+            _pixel_list_output(ohdr, [[t0, dt * self.accumulate], fscale], lay["nchan"], nprod, lm,
+                               "track" if callable(self.pixels) else "list")
             place = None
-        ohdr["_tensor"] = {"dtype": "f32", "shape": shape, "labels": labels, "scales": scales, "units": units}
         size = self.pixels.size if isinstance(self.pixels, LMGrid) else None
         eng.begin(ImageOutput(place, size, self._count), time_tag=lay["time_tag"],
                   ticks_per_frame=lay["ticks_per_frame"], tally=self.tally, seq_name=ihdr.get("name"))
@@ -378,11 +374,8 @@ class DFTImagerBlock(bfp.TransformBlock):
         """The watch ring's header: the images' (``ohdr``) with the watch directions as a tracking pixel list."""
         whdr = dict(ohdr)
         t = ohdr["_tensor"]
-        ndir = self.engine.npix - len(self.pixels.lm)
-        whdr["_tensor"] = {"dtype": "f32", "shape": [-1, t["shape"][1], t["shape"][2], ndir],
-                           "labels": ["time", "freq", "pol", "pixel"], "scales": t["scales"][:2] + [None, None],
-                           "units": t["units"][:2] + [None, None]}
-        whdr["pixels"] = {"kind": "track", "lm": np.asarray(self._seq_lm)[len(self.pixels.lm):].tolist()}
+        _pixel_list_output(whdr, t["scales"][:2], t["shape"][1], t["shape"][2],
+                           np.asarray(self._seq_lm)[len(self.pixels.lm):], "track")
         return whdr
 
     # --------------------------------------------------------------- per gulp
@@ -480,6 +473,16 @@ class DFTImagerBlock(bfp.TransformBlock):
             self.img_stats["frames_dropped_partial"] += dropped
             log.warning("DFTImagerBlock: %d frames at the end of sequence %s did not fill an integration of %d "
                         "and were not imaged", dropped, iseq.header.get("name"), self.accumulate)
+
+
+def _pixel_list_output(hdr, scales, nchan, nprod, lm, kind):
+    """Set ``hdr``'s ``_tensor`` and ``pixels`` for frames of images of a pixel list: (freq, pol, pixel) of
+    ``nchan`` channels, ``nprod`` products and the (npix, 2) directions ``lm``; ``scales`` the time and
+    frequency axes' [start, step]; ``kind`` 'list' or 'track'."""
+    hdr["_tensor"] = {"dtype": "f32", "shape": [-1, int(nchan), int(nprod), len(lm)],
+                      "labels": ["time", "freq", "pol", "pixel"], "scales": list(scales) + [None, None],
+                      "units": ["s", "Hz", None, None]}
+    hdr["pixels"] = {"kind": kind, "lm": np.asarray(lm).tolist()}
 
 
 def dft_imager(iring, pixels, accumulate, *args, **kwargs):

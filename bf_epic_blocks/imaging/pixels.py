@@ -197,15 +197,11 @@ class GridPlacement:
         else:
             v = xp.ascontiguousarray(values, dtype=out.dtype)
             _place_kernel(xp)(v, self._gather, self.n, self.npix, out.dtype.type(np.nan), out)
-        self.put_beside(values)
-        return out
-
-    def put_beside(self, values):
-        """The pixels beside the grid, values[..., ngrid:], into :attr:`xout` (nothing without them)."""
-        if self.extra:
+        if self.extra:                                     # the pixels beside the grid
             if self.xout is None:
                 raise ValueError("GridPlacement: pixels beside the grid need their destination (beside(xout))")
             self.xout[...] = values[..., self.ngrid:]
+        return out
 
 
 def take_pixels(values, index):

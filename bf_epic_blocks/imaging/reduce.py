@@ -241,4 +241,3 @@ def rows_nonzero(x):
     if n * C and inner:
         _raw("bf_rows_nonzero")((n * C,), (256,), (x, out, np.int64(inner)))
     return out.view(xp.bool_)
-
