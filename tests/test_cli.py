@@ -60,7 +60,8 @@ def test_plan_reports_the_scene(capsys):
 def test_plan_reports_the_whole_band_search_and_what_it_costs(capsys):
     """`bf-epic plan` of the whole band on a GPU: the imaging's real-time factor alone, then the
     search (1,331 tree trials to DM 3), the memory it holds -- the history of every trial, 312 window
-    + 8 widest boxcar + 64 batch + 1,386 look-back values of 3,205 float32 pixels, the float16 tree's
+    + 8 widest boxcar + 64 batch + 50 look-back values of 3,205 float32 pixels (32 after an event, 18
+    trials either side: not the largest sweep of 1,330), the float16 tree's
     rings as a GPU holds them -- and imaging and
     search together from the measured rates, below the imaging's own factor."""
     from bf_epic_blocks.pipeline import config, runner
@@ -68,16 +69,16 @@ def test_plan_reports_the_whole_band_search_and_what_it_costs(capsys):
     d, text = runner.plan(cfg)
     sd = d["search"]
     assert sd["dedisperse"] == "tree" and sd["trials"] == 1331 and sd["tree_rows"] == 12283
-    assert sd["history_values"] == 312 + 8 + 64 + (8 + 16 + 1330 + 32)
+    assert sd["history_values"] == 312 + 8 + 64 + (32 + 18)
     assert sd["memory_bytes"]["history"] == 1331 * sd["history_values"] * 3205 * 4
     # the YAML's float16 tree (rows of 3,208: 16-byte loads) on a GPU: the rings, and the 5,591 merged rows kept in them with a
-    # push's 64 slots each (rows the working array then does not hold: the same total, 36.4 GiB below)
+    # push's 64 slots each (rows the working array then does not hold: the same total, 15.1 GiB below)
     assert sd["memory_bytes"]["tree"] == 2 * (444050 + 64 * 5591) * 3208
     assert sd["tree_precision"] == "fp16" and "12283 tree rows stored as fp16" in text
     assert 0 < sd["imaging_and_search_realtime_factor"] < d["realtime_factor"]
     assert "transient search: tree dedispersion, 1331 trials" in text and "imaging and search together" in text
     assert cli.main(["plan", str(PIPES / "lwasv_sim_wholeband.yaml"), "--set", "device=gpu"]) == 0
-    assert "holds 36.4 GiB where it runs" in capsys.readouterr().out      # (one pass of the tree on a GPU)
+    assert "holds 15.1 GiB where it runs" in capsys.readouterr().out      # (one pass of the tree on a GPU)
 
 
 @pytest.mark.slow

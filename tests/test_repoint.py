@@ -202,3 +202,30 @@ def test_directions_beside_a_grid_are_imaged_and_moved_alone_as_the_float64_defi
 
 def to_host(a):
     return a.get() if hasattr(a, "get") else np.asarray(a)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAVE_GPU, reason="needs CuPy and a CUDA device")
+def test_a_placement_beside_the_grid_reads_nothing_back_from_the_device(monkeypatch):
+    """Each gulp's placement beside the grid (``beside``: a copy for one call) clears its images and gives
+    each pixel's cell without reading the index back from the device: a read-back waits for every image
+    queued before it (on a station of two tunings it held the imager's thread 40 ms a gulp), and the forms
+    the kernels read are the placement's own, shared by its copies, not made again for each."""
+    import cupy as cp
+
+    from bf_epic_blocks.imaging import pixels
+    from bf_epic_blocks.imaging.pixels import GridPlacement
+    grid = imaging.lm_grid(12)
+    index = np.flatnonzero(grid.mask)
+    place = GridPlacement(index, grid.size ** 2, cp, extra=3)
+
+    def no_read_back(a):
+        raise AssertionError("the placement read an array back from the device")
+    monkeypatch.setattr(pixels, "to_numpy", no_read_back, raising=False)
+    out = cp.full((2, grid.size ** 2), -1.0, cp.float32)
+    bound = [place.beside(cp.zeros((2, 3), cp.float32)) for _ in range(2)]
+    bound[0].clear(out)
+    assert bound[0].cells is bound[1].cells is place.cells
+    np.testing.assert_array_equal(place.cells.get(), np.r_[index, grid.size ** 2 + np.arange(3)])
+    host = out.get()
+    assert np.all(host[:, index] == 0) and np.all(np.isnan(np.delete(host, index, axis=1)))

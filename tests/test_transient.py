@@ -1155,3 +1155,51 @@ def test_a_wide_burst_s_dm_is_found_between_the_trials_to_within_one(tmp_path):
     print("trials off, best trial:", np.round(off_trial, 2), "fitted:", np.round(off_fit, 2))
     assert np.abs(off_fit).max() <= 1.0
     assert np.abs(off_trial).max() > 1.0               # what the search's best trial alone reports
+
+
+def test_a_row_reads_the_history_once_its_values_are_there_not_when_its_cluster_closes(tmp_path, monkeypatch):
+    """A burst's crossings in the trials far from its DM are found up to the largest sweep after it, so its
+    cluster (and row) closes that much later; the row's look-back (light curve, window, boxcar image on
+    every pixel, DM between the trials) is read once the values after the event are searched, so the
+    history holds the window, a batch and the look-back's few values, not the largest sweep more (for
+    the station's whole band: 28 GiB of its 36 GiB search). The rows equal those of a search that holds
+    every value until its clusters close and reads them then."""
+    import importlib
+    ts = importlib.import_module("bf_epic_blocks.blocks.transient_search")
+    rng = np.random.default_rng(11)
+    nchan, nimg, dt = 64, 1800, 16 * DT
+    freq = 74e6 + 300e3 * np.arange(nchan)
+    grid = imaging.lm_grid(8)
+    N = grid.size
+    valid = np.flatnonzero(grid.mask.ravel())
+    x = rng.normal(10.0, 1.0, (nimg, nchan, 1, N * N)).astype(np.float32)
+    for cell, dm, t0 in [(valid[3], 0.3, 1150.4), (valid[30], 0.9, 1210.7)]:
+        for c in range(nchan):
+            a = t0 + conventions.dispersion_delay_s(dm, freq[c], freq.max()) / dt
+            x[int(a):int(a) + 4, c, 0, cell] += 5.0
+    settings = SearchSettings(threshold=7.5, window_s=0.2, dms=[1.6], dedisperse="tree", widths=[1, 2, 4, 8])
+
+    def run(out):
+        with bfp.Pipeline() as pl:
+            src = ArraySourceBlock(x.reshape(nimg, nchan, 1, N, N), image_header(grid, freq, dt), gulp_nframe=64)
+            srch = TransientSearchBlock(src, settings, writer=CandidateWriter(out, png=False))
+            pl.run()
+        return srch, [dict(r) for r in srch.rows]
+
+    srch, rows = run(tmp_path / "now")
+    s = srch.search
+    assert s.shift > 300
+    assert s.capacity < s.window + s.wmax + s.max_batch + 60                 # not + the largest sweep
+    monkeypatch.setattr(ts.TransientSearchBlock, "_take_look", lambda self, cr, k: None)    # read when closed
+    real = ts.TransientSearch
+    monkeypatch.setattr(ts, "TransientSearch", lambda *a, hold=0, **k: real(*a, hold=hold + 2 * s.shift, **k))
+    _, closed = run(tmp_path / "closed")
+    point = [r for r in rows if r["kind"] == "point"]
+    assert len(point) >= 2 and len(rows) == len(closed)
+    for r, c in zip(rows, closed):
+        assert (r["image"], r["pixel"], r["width"]) == (c["image"], c["pixel"], c["width"])
+        assert np.isfinite(r["lightcurve"]).all()
+        np.testing.assert_allclose(r["lightcurve"], c["lightcurve"], rtol=1e-9)
+        np.testing.assert_allclose([r["snr"], r["dm"]], [c["snr"], c["dm"]], rtol=1e-9)
+    assert {valid[r["pixel"]] for r in point} >= {valid[3], valid[30]}
+    assert srch._recent and all(r["snr_image"] is not None for r in srch._recent)     # the boxcar images held

@@ -24,6 +24,7 @@ import numpy as np
 from ..imaging.pixels import take_pixels
 from ..search import (ArrayBeam, Crossings, SearchSettings, TransientSearch, cluster_crossings, dm_sidelobe_snr,
                       locate_point_source)
+from ..search.settings import look_ahead
 from . import _compat
 from ._compat import bfp, span_array
 from .headers import image_layout, station_location
@@ -169,6 +170,8 @@ class TransientSearchBlock(bfp.SinkBlock):
             self._space = 2.0 * self._cell if settings.space_link is None else settings.space_link
         self.loc = self.location if self.location is not None else station_location(hdr)
         self._pending = Crossings()
+        self._looks = {}                # an open cluster's peak crossing -> what its row reads from the history
+        self._ahead = look_ahead(settings.lc_after, max(self.widths), settings.average_channels)
         self._j = 0                                   # sequence index of the next image
         self._flag_seq, self._fill_mean = int(hdr.get("time_tag", 0)), None
         self._gains_done = int(lay["time_tag"])       # a solution from before the sequence is no step in it
@@ -392,6 +395,12 @@ class TransientSearchBlock(bfp.SinkBlock):
                     near = (first[open_] <= newest[lab] + span) & (newest[open_] >= first[lab] - span)
                     if np.any(near & (peak[open_] > peak[lab])):
                         done[lab] = False
+        # an open cluster's peak is looked back at once the values after it are there: it may stay open
+        # for up to the largest sweep (its other trials' crossings are found that much later), longer than
+        # the search holds its values
+        for lab, k in zip(labels[peaks], peaks):
+            if not done[lab]:
+                self._take_look(cr, k)
         finals = sorted((k for lab, k in zip(labels[peaks], peaks) if done[lab]), key=lambda k: -cr.snr[k])
         self._sigma = _compat.to_numpy(self.search.statistics()[1]) if finals else None   # (nser, npix)
         for k in finals:                                 # brightest first: sidelobes fold into it
@@ -403,6 +412,38 @@ class TransientSearchBlock(bfp.SinkBlock):
         self._recent = [r for r in self._recent if r["image"] >= keep]
         self._fits = {r["row"]: self._fits[r["row"]] for r in self._recent if r["row"] in self._fits}
         self._pending = cr.take(~done[labels])
+        still = {_look_key(cr, k) for lab, k in zip(labels[peaks], peaks) if not done[lab]}
+        self._looks = {key: v for key, v in self._looks.items() if key in still}
+
+    def _value_index(self, cr, k):
+        """Value index (since the search's reset) of crossing k's first image, dedispersed at its trial."""
+        s = self.search
+        return int(cr.end_image[k]) - self.widths[int(cr.width_index[k])] + 1 - s.first_image - s.shift
+
+    def _take_look(self, cr, k):
+        """Crossing k's look-back (:meth:`_look`), kept for its row, where it has none and every value it
+        reads after the event has been searched."""
+        key = _look_key(cr, k)
+        if key not in self._looks and self._value_index(cr, k) + self._ahead < self.search.nvalues:
+            self._looks[key] = self._look(cr, k)
+
+    def _look(self, cr, k):
+        """What crossing k's candidate row reads from the search's history: the light curve's values
+        (host float64), the window statistics at the event's first and last image (host (mean, sigma), each
+        (npix,); None where not held), the boxcar image (npix,) or None, and the DM between the trials
+        (``refine_dm``; NaN for a sky-wide crossing, which keeps its trial)."""
+        s = self.search
+        ser, p, w = int(cr.series[k]), int(cr.pixel[k]), self.widths[int(cr.width_index[k])]
+        n_e = self._value_index(cr, k)
+        look = {"values": s.series_values(ser, p, n_e - self.lc_before, n_e + self.lc_after),
+                "window": s.window_statistics(ser, n_e), "dm": float("nan"), "box": None, "box_window": None}
+        if s.average and not cr.skywide[k]:
+            look["dm"] = s.refine_dm(ser, p, n_e)
+        if not cr.skywide[k]:
+            n_end = n_e + w - 1
+            look["box_window"] = s.window_statistics(ser, n_end) if n_end != n_e else look["window"]
+            look["box"] = s.box_image(ser, n_end, w)
+        return look
 
     def _sidelobe_of(self, cr, k, nmembers):
         """Fold point candidate k into a brighter point row at (nearly) the same time whose sidelobe it
@@ -544,11 +585,10 @@ class TransientSearchBlock(bfp.SinkBlock):
             r, d = lm_to_icrs([[l, m]], t, self.loc)
             ra, dec = float(r[0]), float(d[0])
         w = self.widths[wi]
-        # value index (since the reset) of the event's first image, dedispersed at this trial
-        n_e = int(cr.end_image[k]) - w + 1 - s.first_image - s.shift
-        vals = s.series_values(ser, p, n_e - self.lc_before, n_e + self.lc_after)
+        look = self._looks.pop(_look_key(cr, k), None) or self._look(cr, k)
+        vals = look["values"]
         # against the window the event was found with (a later one holds the event and overstates sigma)
-        ws = s.window_statistics(ser, n_e)
+        ws = look["window"]
         if ws is not None:
             mean, sigma = float(ws[0][p]), float(ws[1][p])
         else:
@@ -557,7 +597,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         # between trials (a burst wider than an image fills the boxcar over a range of them); a sky-wide
         # event keeps its trial
         trial = float(s.dms[ser]) if s.average else 0.0
-        dm = s.refine_dm(ser, p, n_e) if s.average and not cr.skywide[k] else trial
+        dm = look["dm"] if s.average and not cr.skywide[k] and np.isfinite(look["dm"]) else trial
         grid = lay["grid"]
         gx, gy = (int(lay["pixel_index"][p] % grid.size), int(lay["pixel_index"][p] // grid.size)) if grid else (-1, -1)
         self.rows.append({"time_utc": t, "sequence": str(self.hdr.get("name", "")), "image": e, "pixel": p,
@@ -577,9 +617,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         if not cr.skywide[k]:
             # kept for the sidelobe test of fainter candidates at the same time: the event's boxcar S/N
             # on every pixel, against the window it was found with (None once no longer held)
-            n_end = n_e + w - 1
-            ws = s.window_statistics(ser, n_end) if n_end != n_e else ws
-            box = s.box_image(ser, n_end, w)
+            ws, box = look["box_window"], look["box"]
             img = None
             if ws is not None and box is not None:
                 with np.errstate(divide="ignore", invalid="ignore"):
@@ -617,6 +655,11 @@ class TransientSearchBlock(bfp.SinkBlock):
         self._sky = _compat.to_numpy(mean[0])
         if self.writer is not None:
             self.writer.write(self.candidates, self._sky, grid=self.lay["grid"], lm=self.lay["lm"])
+
+
+def _look_key(cr, k):
+    """Crossing k of ``cr`` by what names it across calls (the pending crossings are re-clustered each)."""
+    return int(cr.end_image[k]), int(cr.series[k]), int(cr.width_index[k]), int(cr.pixel[k])
 
 
 def transient_search(iring, *args, **kwargs):

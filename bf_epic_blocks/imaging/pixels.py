@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..cuda import get_kernel, register
-from ._xp import get_xp, host_all, host_any, to_numpy
+from ._xp import get_xp, host_all, host_any
 
 
 def n_from_lm(l, m):
@@ -133,9 +133,16 @@ class GridPlacement:
         self.index = xp.asarray(index)
         self._gather = self._cells = self._empty = None          # (_empty: clear()'s row)
         if xp.__name__ == "cupy":
+            # every form the kernels read is made here, from the host index: a copy for one call
+            # (:meth:`beside`) shares them, and no call reads the index back from the device (a wait for
+            # the images queued before it)
             gather = np.full(n, -1, np.int32)
             gather[index] = np.arange(index.size, dtype=np.int32)
             self._gather = xp.asarray(gather)
+            self._cells = xp.asarray(np.concatenate([index, n + np.arange(self.extra)]).astype(np.int32))
+            row = np.full(n, np.nan, np.float32)
+            row[index] = 0.0
+            self._empty = xp.asarray(row)
 
     @property
     def gather(self):
@@ -147,11 +154,6 @@ class GridPlacement:
     def cells(self):
         """On the GPU, the int32 (npix,) cell of each pixel (kernels that write each pixel's cell); None on
         the CPU."""
-        if self._gather is None:
-            return None
-        if self._cells is None:
-            cells = np.concatenate([to_numpy(self.index), self.n + np.arange(self.extra)]).astype(np.int32)
-            self._cells = self.xp.asarray(cells)
         return self._cells
 
     def beside(self, xout):
@@ -166,11 +168,6 @@ class GridPlacement:
     def clear(self, out):
         """GPU: every image of ``out`` (..., n) float32 contiguous set to 0 in the pixels' cells and NaN in
         the others (one pass of 16-byte stores: what kernels that add each pixel's terms start from)."""
-        xp = self.xp
-        if self._empty is None:
-            row = np.zeros(self.n, np.float32)
-            row[np.setdiff1d(np.arange(self.n), to_numpy(self.index))] = np.nan
-            self._empty = xp.asarray(row)
         rows = out.size // self.n
         if not (out.dtype == np.float32 and out.flags.c_contiguous and out.shape[-1] == self.n):
             raise ValueError(f"clear: out must be float32 (..., {self.n}) contiguous, got {out.dtype} {tuple(out.shape)}")

@@ -12,8 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .dispersion import dm_delays
-from .statistics import TREE_CHANNELS
+from .statistics import REFINE_SLACK, REFINE_SPAN, TREE_CHANNELS
 
 __all__ = ["SearchSettings"]
 
@@ -118,18 +117,31 @@ class SearchSettings:
         widths = list(self.widths)
         window = max(3, int(round(self.window_s / dt_s)))
         tlink = max(widths) if self.time_link is None else self.time_link
-        shift = int(dm_delays(self.dms, freq_hz, dt_s).max()) if self.average_channels else 0
         dedisperse = self.dedisperse
         if dedisperse == "auto":
             dedisperse = "tree" if self.average_channels and len(np.atleast_1d(freq_hz)) >= TREE_CHANNELS else "shifts"
-        # an event is finished (and looked back at: its window, its boxcar on every pixel) at most this
-        # many values after it, gulps being pushed a batch at a time
+        # a candidate's row looks back at its crossing (the light curve, its window, its boxcar on every
+        # pixel, its S/N in the trials around it) once the values after it are there, a batch at a time,
+        # not when its cluster closes (up to the largest sweep later: tens of GB of history for a whole
+        # band): values reach this far after the event's first, and back beyond the window
+        hold = look_ahead(self.lc_after, max(widths), self.average_channels) + _reach(self.average_channels)
         kw = dict(window=window, dms=list(self.dms), widths=widths, average_channels=self.average_channels,
-                  hold=tlink + 2 * max(widths) + shift + self.lc_after, dedisperse=dedisperse,
-                  tree_precision=self.tree_precision)
+                  hold=hold, dedisperse=dedisperse, tree_precision=self.tree_precision)
         if dedisperse == "tree":
             kw["max_batch"] = 64            # the tree's many trials: a history of one gulp's batch, not 256
         return kw, tlink
+
+
+def _reach(average_channels):
+    """Values either side of an event that its DM between the trials reads (``refine_dm``'s first view)."""
+    return REFINE_SPAN + REFINE_SLACK if average_channels else 0
+
+
+def look_ahead(lc_after, wmax, average_channels):
+    """Values after an event's first (value index ``n``) that its candidate row reads: the light curve's
+    ``lc_after``, the widest boxcar, and the S/N in the trials around it (``refine_dm``'s first view reads
+    up to ``n + reach + wmax - 1``). The row is formed once value ``n + look_ahead`` has been searched."""
+    return max(int(lc_after), int(wmax), _reach(average_channels) + int(wmax) - 1)
 
 
 def _real(v):

@@ -46,6 +46,10 @@ __all__ = ["TREE_CHANNELS", "TransientSearch"]
 #: trials x channels adds per pixel-image, the tree ~trials x log2(channels)
 TREE_CHANNELS = 64
 
+#: trials either side of a found one that :meth:`TransientSearch.refine_dm` looks at first, and the starts
+#: either side of the event's (plus one per trial away) that :meth:`TransientSearch.snr_by_series` tries
+REFINE_SPAN, REFINE_SLACK = 16, 2
+
 
 class TransientSearch:
     """Streaming per-pixel search state (arrays in ``xp``: numpy or cupy).
@@ -586,7 +590,7 @@ class TransientSearch:
         v = to_numpy(self._ring_read(a, int(width))[series].astype(self.xp.float64).mean(axis=0))
         return v + to_numpy(self._ref[series]).astype(np.float64)
 
-    def snr_by_series(self, pixel, n, first, last, slack=2, center=None):
+    def snr_by_series(self, pixel, n, first, last, slack=REFINE_SLACK, center=None):
         """A found event's S/N in the series around the one it was found in: for each series ``first ..
         last`` (clipped to those searched), the best boxcar S/N at ``pixel`` over every width and every
         start within ``slack`` values of value index ``n`` -- and, with ``center`` (the series the event
@@ -625,7 +629,7 @@ class TransientSearch:
         out[:] = np.where(np.isfinite(best), best, np.nan)
         return ser, out
 
-    def refine_dm(self, series, pixel, n, *, span=16, most=256):
+    def refine_dm(self, series, pixel, n, *, span=REFINE_SPAN, most=256):
         """The DM of an event found in DM trial ``series`` at ``pixel`` starting at value ``n``, between
         trials: :func:`~bf_epic_blocks.search.clustering.refine_peak` of :meth:`snr_by_series` across the
         trials around it, ``span`` either side, widened (up to ``most``) while its S/N hump reaches the
