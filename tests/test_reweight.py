@@ -163,6 +163,53 @@ def test_an_imager_folds_each_new_solution_in_place(xp):
     assert img.img_stats["operator_builds"] == 1 and img.img_stats["operator_reweights"] == 3
 
 
+def test_a_solution_that_flags_another_input_lets_the_old_operator_go_before_the_new_is_built(monkeypatch):
+    """A solution that flags another input needs a new operator (N_A and the kept antennas change): the old
+    one is let go before the new is built, so that a whole band's (15 GB on a GPU) is not held twice at
+    each such solution; the images are the float64 definition with each solution (as above)."""
+    import gc
+    import weakref
+
+    from bf_epic_blocks import imaging
+    from bf_epic_blocks.blocks import ArraySinkBlock, ArraySourceBlock, DFTImagerBlock, bfp
+    from bf_epic_blocks.imaging import dft
+    from bf_epic_blocks.imaging.calibration import GainTable
+    from bf_epic_blocks.runtime.dtypes import pack_ci4
+    from test_blocks import DT, TPF, efield_header, station
+    rng = np.random.default_rng(9)
+    nst, nchan, T, acc = 12, 3, 160, 40
+    xyz = rng.normal(0, 20, (nst, 3)) * [1, 1, 0.05]
+    freq = 60e6 + 25e3 * np.arange(nchan)
+    X = rng.integers(-8, 8, (T, nchan, nst, 2)) + 1j * rng.integers(-8, 8, (T, nchan, nst, 2))
+    lm = imaging.lm_grid(8).lm
+    t0 = 10**12
+    g = rng.uniform(0.5, 1.5, (2, nchan, nst, 2)) * np.exp(2j * np.pi * rng.random((2, nchan, nst, 2)))
+    g[1, :, 5, 0] = 0                                                    # the second solution flags an input
+    table = GainTable([t0, t0 + 2 * acc * TPF], g)
+    hdr = efield_header("fold", t0, freq, DT, station(dict(xyz=xyz, flags=np.zeros((nst, 2), bool)), False),
+                        dtype="ci4")
+    built, alive_at_build = [], []
+    init = dft.DFTOperator.__init__
+
+    def recording(self, *a, **k):
+        gc.collect()
+        alive_at_build.append(sum(r() is not None for r in built))
+        init(self, *a, **k)
+        built.append(weakref.ref(self))
+    monkeypatch.setattr(dft.DFTOperator, "__init__", recording)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(pack_ci4(X), hdr, gulp_nframe=80)
+        img = DFTImagerBlock(src, lm, acc, products=["I"], gains=table, pattern=False, precision="fp64")
+        sink = ArraySinkBlock(img)
+        p.run()
+    got = sink.result(0)[:, :, 0]
+    for j in range(T // acc):
+        want = brute_image(X[j * acc:(j + 1) * acc], xyz, freq, lm, ("I",), weights=g[j // 2])[:, 0]
+        assert np.abs(got[j] - want).max() < 1e-6 * np.abs(want).max(), j          # (float32 images)
+    assert img.img_stats["solutions_applied"] == 2 and len(built) == img.img_stats["operator_builds"] >= 2
+    assert alive_at_build == [0] * len(built)
+
+
 @pytest.mark.gpu
 @pytest.mark.skipif(not HAVE_GPU, reason="needs CuPy and a CUDA device")
 def test_gpu_a_new_solution_does_not_wait_for_the_queued_images():

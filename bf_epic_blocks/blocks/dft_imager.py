@@ -398,6 +398,7 @@ class DFTImagerBlock(bfp.TransformBlock):
                 self.img_stats["operator_reweights"] = self.img_stats.get("operator_reweights", 0) + 1
             else:
                 how = "by a new operator"
+                op = None           # the old operator let go before the new is built (a whole band's: 15 GB)
                 eng._rebuild(eng.lm)
             self.img_stats["solutions_applied"] = self.img_stats.get("solutions_applied", 0) + 1
             log.info("%s: gain solution %d folded into the operator %s from frame %d (%d inputs kept)",
