@@ -462,6 +462,31 @@ def test_alerts_are_posted_retried_and_never_wait_for_a_hung_webhook():
         srv.shutdown()
 
 
+def test_voevents_that_cannot_be_made_say_why_once(tmp_path, monkeypatch, caplog):
+    """A machine whose voevent-parse cannot be imported (one of its own imports is missing: lxml on a bare
+    image): the sender says so once, naming the module that failed (not "not installed"), counts each
+    alert's VOEvent as skipped, and does not try a half-imported package again."""
+    import logging
+    import sys
+
+    from bf_epic_blocks.io.alerts import AlertSender
+    pkg = tmp_path / "site" / "voeventparse"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text("import lxml_not_on_this_machine\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    monkeypatch.delitem(sys.modules, "voeventparse", raising=False)
+    s = AlertSender(None, tmp_path / "out")
+    try:
+        with caplog.at_level(logging.WARNING, logger="bf_epic_blocks.io.alerts"):
+            for k in range(3):
+                s._voevent({"time_utc": f"2024-06-01T10:00:0{k}", "reason": "candidate S/N 20", "snr": 20.0})
+    finally:
+        s.close(wait_s=5)
+    said = [r.getMessage() for r in caplog.records if "VOEvent" in r.getMessage()]
+    assert len(said) == 1 and "lxml_not_on_this_machine" in said[0] and "not installed" not in said[0], said
+    assert s.stats["voevents_skipped"] == 3 and s.stats["voevents"] == 0
+
+
 def test_a_flash_saves_once_and_counts_the_rest(tmp_path):
     """A 3 MJy, 2-ms flash: the search's candidate (one sky-wide event: its sidelobes, DM and width trials
     are clustered into it) and the target's light curve both trigger; one snippet is written, the other

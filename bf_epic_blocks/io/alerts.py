@@ -88,6 +88,7 @@ class AlertSender:
         self.stats = {"queued": 0, "posted": 0, "failed": 0, "retries": 0, "dropped": 0, "voevents": 0,
                       "voevents_skipped": 0}
         self.written = []
+        self._no_voevents = None        # why VOEvents cannot be written here, once known
         self._q = queue.Queue(maxsize=int(maxsize))
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="alerts", daemon=True)
@@ -144,11 +145,18 @@ class AlertSender:
                     self.tries, err)
 
     def _voevent(self, a):
+        if self._no_voevents:
+            self.stats["voevents_skipped"] += 1
+            return
         try:
             xml = alert_voevent(a, stream=self.stream)
-        except ImportError:
-            if self.stats["voevents_skipped"] == 0:
-                log.warning("alerts: voevent-parse is not installed (pip install voevent-parse): no VOEvents")
+        except ImportError as e:
+            # voevent-parse missing, or one of its own imports (lxml): said once, with the module that failed,
+            # and not tried again (a package whose import failed half-way can be left half-imported)
+            self._no_voevents = self._no_voevents or ("voevent-parse is not installed (pip install voevent-parse)"
+                                                      if getattr(e, "name", None) == "voeventparse" else
+                                                      f"voevent-parse cannot be imported ({e})")
+            log.warning("alerts: %s: no VOEvents", self._no_voevents)
             self.stats["voevents_skipped"] += 1
             return
         except Exception as e:  # noqa: BLE001 - a bad alert must not stop the sender
