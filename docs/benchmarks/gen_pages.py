@@ -147,22 +147,36 @@ def wb_body():
                      f"{e['time_off_s'] * 1e3:+.1f}", "", f"{e['snr']:.1f}"])
     out.append(table(["seen by", "DM (truth 0.05)", "time off ms", "cells off", "S/N"], rows) + "\n")
     d = load("bench_wholeband_station_gpu1.json"); r = d["run"]
+    mem = load("memory_station_gpu1.json")
+    used = [u / 1e9 for t, u, h, dev in mem["samples"] if u > 0]
+    steady = sorted(used)[len(used) // 4:3 * len(used) // 4]
     out.append(f"### Case W2 whole, on {H200}\n")
-    out.append(f"Both tunings at 784 channels, 64x64, live calibration, 10 watch targets, 30 s of data (commit "
-               f"{d['commit']}, a cold kernel cache): **{r['rt_flowing']:.3f}x** real time flowing "
-               f"({r['rt_whole']:.3f}x the whole run, first images after {r['first_images_at_s']:.1f} s), GPU memory "
-               f"{r['gpu_mib']['first']:.0f}-{r['gpu_mib']['peak']:.0f} MiB of the card's 143,771 (CuPy's pool keeps "
-               "what it freed; `bf-epic plan` counts 108.2 GiB of arrays, the solver's and the watchlist's not yet "
-               "among them). Case W2 needs 1.0x on one H100: it is not there. The bursts (DM 0.4, 300 Jy):\n")
+    out.append(f"Both tunings at 784 channels, 64x64, live calibration, 10 watch targets (riding beside the grid), "
+               f"{r['data_s']:.0f} s of data (commit {d['commit']}, {r['kernels_compiled']} kernels compiled during the "
+               f"run): **{r['rt_flowing']:.3f}x** real time flowing ({r['rt_whole']:.3f}x the whole run, first images after "
+               f"{r['first_images_at_s']:.1f} s). Case W2 needs 1.0x on one H100: it is not there. The GPU's memory as "
+               f"`nvidia-smi` sees it, {r['gpu_mib']['first']:.0f}-{r['gpu_mib']['peak']:.0f} MiB, is mostly what CuPy's "
+               f"pool keeps of what it freed; the arrays in use, sampled in the process every 0.2 s through "
+               f"{mem['sets'][1].split('=')[1]} s of data ([memory_station_gpu1.json](../bench/memory_station_gpu1.json), "
+               f"commit {mem['commit']}), were {steady[0]:.1f}-{steady[-1]:.1f} GB for the middle half of the samples and "
+               f"{max(used):.1f} GB at most, while the two tunings' live solutions were formed (`bf-epic plan` counts "
+               "66.7 GiB = 71.6 GB, the solver's working arrays not among them). "
+               f"The host's resident set grew {r['rss_mib']['growth']:.0f} MiB. The bursts (DM 0.4, 300 Jy):\n")
     rows = [[b["tuning"], f"{b['dm_found']:.4f} ({b['dm_off_trials']:+.2f} trials)", f"{b['time_off_s'] * 1e3:+.1f}",
              f"{b['offset_cells']:.2f}", f"{b['snr']:.1f}"] for b in r["bursts"] if b.get("snr") is not None]
     for e in r["station_events"]["bursts"]:
         rows.append([f"station event ({e['tunings']})", f"{e['dm_found']:.4f}", f"{e['time_off_s'] * 1e3:+.1f}", "",
                      f"{e['snr']:.1f}"])
     out.append(table(["seen by", "DM (truth 0.4)", "time off ms", "cells off", "S/N"], rows) + "\n")
-    out.append(f"The high tuning found the burst 1.6 trials from its DM (outside the +-1 asked), so the two "
-               f"detections were not joined: one event, the high tuning's. {r['other_candidates']} other candidates "
-               "(16 in the low tuning) were not examined here: that run's outputs did not come back.\n")
+    lows = r["search"]["low"]["candidates"] - 1
+    out.append(f"{r['other_candidates']} other candidates ({lows} in the low tuning) were not examined here: that "
+               "run's outputs did not come back.\n")
+    old = load("bench_wholeband_station_gpu1_before.json")["run"]
+    out.append(f"Before ([bench_wholeband_station_gpu1_before.json](../bench/bench_wholeband_station_gpu1_before.json), "
+               f"{old['data_s']:.0f} s, a watch imager of their own): {old['rt_flowing']:.3f}x flowing. With the "
+               "directions riding beside the grid the station ran at 0.297x, until each gulp's placement stopped "
+               "reading its index back from the device (a wait for both tunings' queued images); `bf-epic plan` "
+               "counted 107.2 GiB before each candidate's look-back was read as soon as its values were searched.\n")
     return "\n".join(out)
 page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and searched",
      "`bf-epic run pipelines/lwasv_sim_wholeband.yaml` (one LWA-SV tuning: 784 channels at 74.0–93.6 MHz, a "
@@ -182,10 +196,11 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       "start_s: 0.15, duration_s: 0.002, flux_jy: 1500.0, dm: 0.05}]' --set 'tunings=[{name: low, source: "
       "{channels: {first: 1520}}}, {name: high, source: {channels: {first: 2960}}}]' "
       "--json bench_wholeband_station_cpu.json",
-      "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --device gpu --seconds 30 "
+      "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --device gpu --seconds 60 "
       "--json bench_wholeband_station_gpu1.json"],
      [("bench_wholeband_gpu.json", H100), ("bench_wholeband_gpu_all.json", H200X2),
-      ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200)], wb_body)
+      ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200),
+      ("bench_wholeband_station_gpu1_before.json", H200), ("memory_station_gpu1.json", H200)], wb_body)
 
 # ---------------------------------------------------------------- bench_search
 def search_body():
@@ -458,6 +473,11 @@ def gc_body():
             "devices. Keyed by the DM trial, the fitted DM within 1e-3 pc cm^-3 (at "
             f"{wb.get('commit')}): {'ALL OK' if wb['ok'] else 'FAILED'}.\n\n" + gc_rows(w) + "\n\n" + gc_rows(wb)
             + "\n")
+    h = load("gpu_check_history.json")
+    out += (f"\nThe searched pipelines and the all-sky grid, after the search's rows read their look-back as soon as "
+            f"its values are searched (its history shortened) and the grid's placement made its forms once (at "
+            f"{h.get('commit')}; the GPU tests run apart: 264 passed, 4 skipped; a UDP stream test failed once on its pinned pool's free blocks and passed when run again): {'ALL OK' if h['ok'] else 'FAILED'}.\n\n"
+            + gc_rows(h) + "\n")
     return out
 page("gpu_check", "The GPU check (`make gpu-check`)",
      "The GPU tests, then every shipped pipeline run by `bf-epic run` on the GPU and on the CPU with their "
@@ -469,9 +489,11 @@ page("gpu_check", "The GPU check (`make gpu-check`)",
       "lwasv_udp_live --json gpu_check_flagging.json",
       "python tools/gpu_check.py --skip-tests --only lwasv_sim_transient lwasv_sim_station lwasv_sim_wholeband "
       "--json gpu_check_watch.json",
-      "python tools/gpu_check.py --skip-tests --only lwasv_sim_wholeband --json gpu_check_wholeband.json"],
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_wholeband --json gpu_check_wholeband.json",
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_station lwasv_sim_wholeband lwasv_sim_transient "
+      "lwasv_sim_allsky --json gpu_check_history.json"],
      [("gpu_check.json", H200), ("gpu_check_flagging.json", H200), ("gpu_check_watch.json", H200),
-      ("gpu_check_wholeband.json", H200)], gc_body, script="tools/gpu_check.py")
+      ("gpu_check_wholeband.json", H200), ("gpu_check_history.json", H200)], gc_body, script="tools/gpu_check.py")
 
 # ---------------------------------------------------------------- moff_widefield
 def mw_body():
