@@ -409,3 +409,46 @@ def test_the_solver_after_the_flagger_solves_from_the_unflagged_data_only():
 def _steer(xyz, f, l, m):
     n = math.sqrt(1 - l * l - m * m)
     return np.exp(2j * np.pi * f[:, None] / C * (xyz @ np.array([l, m, n]))[None, :])
+
+
+@pytest.mark.parametrize("diffuse", [True, False])
+def test_the_plan_s_solver_memory_bounds_what_the_solver_allocates(diffuse):
+    """`bf-epic plan` counts a live solver's arrays (:func:`~bf_epic_blocks.imaging.cost.solver_bytes`):
+    what it holds (the covariance sums, the baseline weights, the diffuse model) and the most it adds while
+    summing an integration of 4-bit voltages (the integer Gram sums) or forming a solution (the sums' mean,
+    the model, the solver's own peak). On the CPU (complex128, float64 Gram sums), numpy's allocations as
+    tracemalloc sees them: each within 10% of the count, none above it."""
+    import tracemalloc
+
+    from bf_epic_blocks.imaging.cost import solver_bytes
+    from bf_epic_blocks.runtime.dtypes import pack_ci4
+    rng = np.random.default_rng(4)
+    nchan, nant, T = 16, 64, 64
+    xyz = rng.normal(0, 30, (nant, 3)) * [1, 1, 0.05]
+    f = 74e6 + 25e3 * np.arange(nchan)
+    g, Rt, M0 = corrupted(xyz, f, rng)
+    lmn, flux = two_sources(nchan)
+    want = solver_bytes(nchan, nant, 2, gpu=False, diffuse=diffuse)
+    q = rng.integers(-7, 8, (T, nchan, nant, 2)) + 1j * rng.integers(-7, 8, (T, nchan, nant, 2))
+    # (a first solve's one-off allocations, its imports' caches, are not the solver's arrays)
+    skycal.solve_gains(Rt.copy(), M0, xyz, f, extra=0.1 * M0 if diffuse else None)
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        sums = skycal.CovarianceSums(nchan, nant, 2)
+        W = skycal.baseline_weights(xyz, f, 4.0)
+        E = 0.1 * M0 if diffuse else None
+        held = tracemalloc.get_traced_memory()[0] - base
+        tracemalloc.reset_peak()
+        sums.add(pack_ci4(q), ci4=True)
+        summing = tracemalloc.get_traced_memory()[1] - base - held
+        sums.reset()
+        tracemalloc.reset_peak()
+        M = skycal.model_covariance(xyz, f, lmn, flux)
+        R = Rt.copy()                                           # (the sums' mean: an array of the solve's own)
+        skycal.solve_gains(R, M, xyz, f, weights=W, extra=E)
+        solving = tracemalloc.get_traced_memory()[1] - base - held
+    finally:
+        tracemalloc.stop()
+    assert 0.9 * want["held"] <= held <= want["held"] * 1.001, (held, want)
+    assert 0.9 * want["working"] <= max(summing, solving) <= want["working"], (summing, solving, want)

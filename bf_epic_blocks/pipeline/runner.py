@@ -1424,16 +1424,24 @@ def plan(cfg):
                                          t_gulp / (gulp * dt) if t_gulp == t_gulp else float("nan"))
         lines += text
         mem["search"] = sum(d["search"]["memory_bytes"].values())
+    solve = (cfg.get("calibration") or {}).get("solve")
+    if solve:
+        # what it holds, and the most it adds while a solution is formed (counted: it must fit then)
+        sb = cost.solver_bytes(nchan, station.nstand, 2, gpu=dev in ("gpu", "gpus"),
+                               diffuse=bool(solve.get("diffuse", True)))
+        d["solver_bytes"] = sb
+        mem["live gain solver"] = sum(sb.values())
+        lines.append(f"  live gain solver: holds {_gib(sb['held'])} (the covariance sums, the baseline weights"
+                     f"{', the diffuse model' if solve.get('diffuse', True) else ''}), up to {_gib(sb['working'])} "
+                     "more while it sums an integration or forms a solution")
     have, where = _memory_check(cfg, dev, mem)
     d["memory_bytes"], d["memory_available_bytes"] = mem, have
     lines.append(f"  memory: about {_gib(sum(mem.values()))} ("
                  + ", ".join(f"{k} {_gib(v)}" for k, v in mem.items()) + ")"
                  + (f"; {_gib(have)} available on {where}" if have is not None else f"; {where}"))
-    uncounted = [what for what, on in (("the live gain solver's", (cfg.get("calibration") or {}).get("solve")),
-                                       ("the watchlist's", cfg.get("watch"))) if on]
-    if uncounted:
+    if cfg.get("watch"):
         # said, so that a figure close to the device's memory is read as a lower bound
-        lines.append(f"  (not counted above: {' and '.join(uncounted)} working arrays)")
+        lines.append("  (not counted above: the watchlist's working arrays)")
     return d, "\n".join(lines)
 
 

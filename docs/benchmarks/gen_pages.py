@@ -159,8 +159,9 @@ def wb_body():
                f"pool keeps of what it freed; the arrays in use, sampled in the process every 0.2 s through "
                f"{mem['sets'][1].split('=')[1]} s of data ([memory_station_gpu1.json](../bench/memory_station_gpu1.json), "
                f"commit {mem['commit']}), were {steady[0]:.1f}-{steady[-1]:.1f} GB for the middle half of the samples and "
-               f"{max(used):.1f} GB at most, while the two tunings' live solutions were formed (`bf-epic plan` counts "
-               "66.7 GiB = 71.6 GB, the solver's working arrays not among them). "
+               f"{max(used):.1f} GB at most, while the two tunings' live solutions were formed (`bf-epic plan` counted "
+               "66.7 GiB = 71.6 GB without the solvers; it now counts 80.2 GiB = 86.1 GB, the two solvers at their "
+               "most at once among them). "
                f"The host's resident set grew {r['rss_mib']['growth']:.0f} MiB. The bursts (DM 0.4, 300 Jy):\n")
     rows = [[b["tuning"], f"{b['dm_found']:.4f} ({b['dm_off_trials']:+.2f} trials)", f"{b['time_off_s'] * 1e3:+.1f}",
              f"{b['offset_cells']:.2f}", f"{b['snr']:.1f}"] for b in r["bursts"] if b.get("snr") is not None]
