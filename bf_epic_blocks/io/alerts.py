@@ -153,9 +153,9 @@ class AlertSender:
         except ImportError as e:
             # voevent-parse missing, or one of its own imports (lxml): said once, with the module that failed,
             # and not tried again (a package whose import failed half-way can be left half-imported)
-            self._no_voevents = self._no_voevents or ("voevent-parse is not installed (pip install voevent-parse)"
-                                                      if getattr(e, "name", None) == "voeventparse" else
-                                                      f"voevent-parse cannot be imported ({e})")
+            self._no_voevents = ("voevent-parse is not installed (pip install voevent-parse)"
+                                 if getattr(e, "name", None) == "voeventparse" else
+                                 f"voevent-parse cannot be imported ({e})")
             log.warning("alerts: %s: no VOEvents", self._no_voevents)
             self.stats["voevents_skipped"] += 1
             return

@@ -1427,12 +1427,12 @@ def plan(cfg):
     solve = (cfg.get("calibration") or {}).get("solve")
     if solve:
         # what it holds, and the most it adds while a solution is formed (counted: it must fit then)
-        sb = cost.solver_bytes(nchan, station.nstand, 2, gpu=dev in ("gpu", "gpus"),
-                               diffuse=bool(solve.get("diffuse", True)))
+        diffuse = bool(solve.get("diffuse", True))
+        sb = cost.solver_bytes(nchan, station.nstand, 2, gpu=dev in ("gpu", "gpus"), diffuse=diffuse)
         d["solver_bytes"] = sb
         mem["live gain solver"] = sum(sb.values())
         lines.append(f"  live gain solver: holds {_gib(sb['held'])} (the covariance sums, the baseline weights"
-                     f"{', the diffuse model' if solve.get('diffuse', True) else ''}), up to {_gib(sb['working'])} "
+                     f"{', the diffuse model' if diffuse else ''}), up to {_gib(sb['working'])} "
                      "more while it sums an integration or forms a solution")
     have, where = _memory_check(cfg, dev, mem)
     d["memory_bytes"], d["memory_available_bytes"] = mem, have
