@@ -1209,3 +1209,52 @@ def test_staging_buffers_are_made_once_for_the_room_asked(monkeypatch):
     assert made == [100, 100]
     h2d.staging(150, room=100)             # larger than the room: a buffer of its own size, once
     assert made == [100, 100, 150]
+
+
+_SIGTERM_WHILE_LOCKED = r'''
+import os, signal, sys, threading
+import numpy as np
+from bf_epic_blocks.runtime import pipeline as rtp
+from bf_epic_blocks.blocks.array_io import ArraySourceBlock, ArraySinkBlock
+from bf_epic_blocks.pipeline.runner import execute
+
+
+class Held(threading.Event):
+    """The run loop's wake-up event, whose third clear() is interrupted by SIGTERM while it holds its lock."""
+    n = 0
+
+    def clear(self):
+        with self._cond:
+            Held.n += 1
+            if Held.n == 3:
+                os.kill(os.getpid(), signal.SIGTERM)
+                for _ in range(100000):    # the handler runs at one of these bytecodes, the lock held
+                    pass
+            self._flag = False
+
+
+x = np.arange(4000 * 2, dtype=np.float32).reshape(4000, 2)
+with rtp.Pipeline() as p:
+    src = ArraySourceBlock(x, {"name": "s", "time_tag": 0, "_tensor": {"dtype": "f32", "shape": [-1, 2]}},
+                           gulp_nframe=8)
+    sink = ArraySinkBlock(src, delay_s=0.004)
+p._changed = Held()
+stopped = execute(p)
+print(stopped["signal"], sink.stats["nframe_read"], Held.n >= 3)
+'''
+
+
+def test_sigterm_while_the_run_loop_holds_its_lock_still_drains():
+    """A signal handler runs in the main thread between two bytecodes, wherever the run loop is, even
+    inside the lock of the event it waits on. SIGTERM's handler must take no lock that the interrupted
+    loop may hold (it deadlocked there: the process never ended). Here SIGTERM comes inside that lock:
+    the pipeline drains and ``execute`` returns, saying SIGTERM stopped it, before the data's end."""
+    env = dict(os.environ, BF_EPIC_RUNTIME="builtin")
+    try:
+        out = subprocess.run([sys.executable, "-c", _SIGTERM_WHILE_LOCKED], capture_output=True, text=True,
+                             timeout=30, env=env)
+    except subprocess.TimeoutExpired as e:
+        pytest.fail(f"SIGTERM inside the run loop's lock: the process did not end within 30 s ({e.stderr!r})")
+    assert out.returncode == 0, out.stderr[-2000:]
+    sig, nread, reached = out.stdout.split()
+    assert sig == "SIGTERM" and reached == "True" and 0 < int(nread) < 4000, out.stdout

@@ -922,25 +922,37 @@ def _stop_on_sigterm(pipeline, timeout_s=STOP_TIMEOUT_S):
         yield state
         return
 
-    def stop(signum, frame):
-        if state["signal"] is not None:
-            raise KeyboardInterrupt
-        state["signal"] = "SIGTERM"
+    lock = threading.Lock()     # the run's end against the drain's timer; never taken by the handler
+    state["ended"] = False
+
+    def drain():
         log.warning("SIGTERM: ending the data; the blocks finish their images and close their files (at most "
                     "%g s)", timeout_s)
         pipeline.drain()
         import _thread
-        state["timer"] = threading.Timer(timeout_s, _thread.interrupt_main)
-        state["timer"].daemon = True
-        state["timer"].start()
+        with lock:
+            if not state["ended"]:
+                state["timer"] = threading.Timer(timeout_s, _thread.interrupt_main)
+                state["timer"].daemon = True
+                state["timer"].start()
+
+    def stop(signum, frame):
+        # The handler runs in the main thread between two bytecodes, possibly inside a lock the run loop
+        # holds (its wake-up event's); draining takes such locks, so another thread does it.
+        if state["signal"] is not None:
+            raise KeyboardInterrupt
+        state["signal"] = "SIGTERM"
+        threading.Thread(target=drain, name="sigterm-drain", daemon=True).start()
 
     old = signal.signal(signal.SIGTERM, stop)
     try:
         yield state
     finally:
         signal.signal(signal.SIGTERM, old)
-        if "timer" in state:
-            state["timer"].cancel()
+        with lock:
+            state["ended"] = True
+            if "timer" in state:
+                state["timer"].cancel()
 
 
 def _start_service(cfg, g):
