@@ -257,3 +257,22 @@ def test_configure_offline_does_not_import_astropy_but_configures_it_when_it_loa
     loaded, settings = _in_fresh_python(tmp_path, code).strip().splitlines()
     assert loaded == "False"
     assert settings.split() == ["False", "None", "warn", "False"]
+
+
+def test_planning_reads_the_station_cache_and_never_writes_it(tmp_path):
+    """`bf-epic plan` (and the check before every run) needs the stand count, not the cable terms: with
+    no cached table it takes LSL's and writes nothing; once a run has cached the table for its channels,
+    planning reads that file and does not import LSL's station module (seconds of every start)."""
+    code = ("import sys\n"
+            "from bf_epic_blocks.pipeline import runner\n"
+            "from bf_epic_blocks.pipeline.config import load_config\n"
+            "cfg = load_config('pipelines/lwasv_sim_transient.yaml', ['imager.grid.size=16'])\n"
+            "if sys.argv[1] == 'run':\n"
+            "    runner.load_station_for(cfg)\n"
+            "else:\n"
+            "    runner.plan(cfg)\n"
+            "print('lsl.common.stations' in sys.modules)\n")
+    cached = lambda: sorted((tmp_path / "bf_epic_blocks" / "stations").glob("lwasv-*.npz"))  # noqa: E731
+    assert _in_fresh_python(tmp_path, code, "plan").strip() == "True" and cached() == []
+    assert _in_fresh_python(tmp_path, code, "run").strip() == "True" and len(cached()) == 1
+    assert _in_fresh_python(tmp_path, code, "plan").strip() == "False" and len(cached()) == 1

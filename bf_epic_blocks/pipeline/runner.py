@@ -105,16 +105,16 @@ def load_station_for(cfg, info=None, per_channel=True):
 
     For a simulated source or a capture file (``info``: its scan) the channels are known here, so the
     table comes from the station cache when an earlier run made it
-    (:func:`bf_epic_blocks.station.load_station`). ``per_channel=False``: without the per-channel terms
-    (what :func:`plan` needs), so that planning a configuration, even one refused for its size, neither
-    computes nor caches them."""
+    (:func:`bf_epic_blocks.station.load_station`). ``per_channel=False``: what :func:`plan` needs, the
+    cached table where an earlier run made one, else LSL's without the per-channel terms, so that planning
+    a configuration, even one refused for its size, neither computes nor caches them."""
     from ..station import load_station
     st_cfg, src = cfg["station"], cfg["source"]
     name = st_cfg.get("ssmif") or st_cfg.get("name")
     if name == "auto":
         name = (info or _scan(src["path"], report=False)).station_hint
     freq = channel_freqs(cfg) if src["kind"] == "simulated" else None if info is None else np.asarray(info.freq_hz)
-    return load_station(name, extra_flags=st_cfg.get("flags") or None, freq_hz=freq if per_channel else None)
+    return load_station(name, extra_flags=st_cfg.get("flags") or None, freq_hz=freq, write_cache=per_channel)
 
 
 def channel_width_hz(cfg):

@@ -319,7 +319,7 @@ def _save_cached(path, table: StationTable, freq) -> None:
         pass                      # a read-only cache costs the next run LSL's import, nothing else
 
 
-def load_station(name_or_path, *, extra_flags=None, freq_hz=None) -> StationTable:
+def load_station(name_or_path, *, extra_flags=None, freq_hz=None, write_cache=True) -> StationTable:
     """Station metadata from LSL.
 
     Parameters
@@ -335,6 +335,8 @@ def load_station(name_or_path, *, extra_flags=None, freq_hz=None) -> StationTabl
         under the user's cache folder and later calls with the same station, LSL version and
         frequencies read that file instead of importing LSL (whose import, through SciPy, takes
         seconds of every run's start-up). The cached table answers cable terms for those frequencies only.
+    write_cache : False: a cached table is read where there is one, but LSL's is not written (a caller
+        that needs no cable terms, and must not compute them for every channel, still skips LSL's import).
 
     Requires LSL (``pip install lsl``); :func:`configure_offline` is applied first so that LSL and
     astropy never wait on a network.
@@ -366,7 +368,7 @@ def load_station(name_or_path, *, extra_flags=None, freq_hz=None) -> StationTabl
         table = _from_lsl(st, _norm_name(st.name) or path.stem)
     else:
         raise TypeError(f"load_station: expected a station name or an SSMIF path, got {type(name_or_path).__name__}")
-    if cache is not None:
+    if cache is not None and write_cache:
         _save_cached(cache, table, table._freqs(freq_hz))
     return table.with_flags(extra_flags) if extra_flags else table
 
