@@ -19,16 +19,31 @@ alone (the compile test) compiles them too.
 source CuPy hashes for its disk cache is the whole program (an ``-I`` path would let an edited header
 reuse a stale binary). System headers (``<cuda_fp16.h>``) are left to NVRTC.
 
+**The kernel store.** NVRTC compiles a whole-band pipeline's kernels (ours and the element-wise ones CuPy
+makes for array expressions) in ~20 s the first time, which a service must not wait for at every fresh
+start. ``bf-epic compile`` compiles them once, at install: it runs the pipelines named for a moment
+with CuPy's kernel cache pointed at the store (:func:`kernel_store`), a folder of CuPy's own cache files.
+A GPU run first copies the store's files that CuPy's cache lacks into it (:func:`seed_cupy_cache`), so a
+machine whose CuPy cache is empty (a fresh account, a wiped home) starts with every kernel compiled. A
+file is named by the hash of everything that made it (source, options, architecture, NVRTC and CuPy
+versions), so one from another GPU or CuPy version is never used, only copied.
+
 Every ``.cu`` file lists the configurations a shipped path compiles in :data:`COMPILE_CHECKS`, through
 :func:`register` at the import of the module that launches it (the GPU tests compile each one with
 NVRTC, and a ``.cu`` file missing there fails them).
 """
 from __future__ import annotations
 
+import os
 import re
+import sys
 from pathlib import Path
 
-__all__ = ["get_kernel", "get_module", "register", "source", "cu_files", "COMPILE_CHECKS"]
+__all__ = ["get_kernel", "get_module", "register", "source", "cu_files", "COMPILE_CHECKS", "kernel_store",
+           "cupy_cache_dir", "seed_cupy_cache", "KERNEL_STORE_ENV"]
+
+#: environment variable naming the kernel store's folder (default: ``<sys.prefix>/share/bf_epic_blocks/kernels``)
+KERNEL_STORE_ENV = "BF_EPIC_KERNELS"
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 
@@ -130,3 +145,52 @@ def register(path: str, *configs):
         cfg = (dict(defines), arch, tuple(rest[0]) if rest else ())
         if cfg not in COMPILE_CHECKS[path]:
             COMPILE_CHECKS[path].append(cfg)
+
+
+def kernel_store() -> Path:
+    """The kernel store's folder: ``$BF_EPIC_KERNELS``, else ``<sys.prefix>/share/bf_epic_blocks/kernels``
+    (inside the virtual environment the package is installed in)."""
+    env = os.environ.get(KERNEL_STORE_ENV)
+    return Path(env).expanduser() if env else Path(sys.prefix) / "share" / "bf_epic_blocks" / "kernels"
+
+
+def cupy_cache_dir() -> Path:
+    """The folder CuPy caches compiled kernels in: ``$CUPY_CACHE_DIR``, else ``~/.cupy/kernel_cache``
+    (CuPy's own rule, read without importing CuPy)."""
+    env = os.environ.get("CUPY_CACHE_DIR")
+    return Path(env).expanduser() if env else Path("~/.cupy/kernel_cache").expanduser()
+
+
+def seed_cupy_cache(store: Path | None = None, cache: Path | None = None) -> dict:
+    """Copy the store's compiled kernels that CuPy's cache lacks into it (whole files: each is written
+    beside its name and renamed). Returns ``{"store", "cache", "copied", "present", "failed"}``: ``present``
+    the store's files the cache already had, ``failed`` those that could not be copied (a read-only or
+    full cache: those kernels compile when first used, as without a store). No store: nothing copied."""
+    import shutil
+    store = kernel_store() if store is None else Path(store)
+    cache = cupy_cache_dir() if cache is None else Path(cache)
+    out = {"store": str(store), "cache": str(cache), "copied": 0, "present": 0, "failed": 0}
+    try:
+        names = [e.name for e in os.scandir(store) if e.is_file() and not e.name.startswith(".")]
+    except OSError:
+        return out
+    try:
+        have = set(os.listdir(cache))
+    except FileNotFoundError:
+        have = set()
+    except OSError:
+        out["failed"] = len(names)
+        return out
+    for name in names:
+        if name in have:
+            out["present"] += 1
+            continue
+        try:
+            cache.mkdir(parents=True, exist_ok=True)
+            tmp = cache / f".{name}.{os.getpid()}.tmp"
+            shutil.copyfile(store / name, tmp)
+            os.replace(tmp, cache / name)
+            out["copied"] += 1
+        except OSError:
+            out["failed"] += 1
+    return out

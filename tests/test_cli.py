@@ -591,3 +591,72 @@ def test_a_long_run_keeps_the_newest_paths_and_counts_every_file(tmp_path, monke
     assert s["files_written"] == 4
     kept = [Path(f).name for f in s["files"]]
     assert 1 <= len(kept) <= 2 and kept == on_disk[-len(kept):]
+
+
+def test_the_kernel_store_fills_cupy_s_cache_with_what_it_lacks(tmp_path, monkeypatch):
+    """A GPU run copies the store's compiled kernels that CuPy's cache lacks into it, whole, and leaves
+    those it has alone; a CPU run copies nothing; a cache that cannot be written is counted, not raised."""
+    from bf_epic_blocks.cuda import seed_cupy_cache
+    from bf_epic_blocks.pipeline.runner import seed_kernels
+    store, cache = tmp_path / "store", tmp_path / "cache"
+    store.mkdir()
+    for k in range(3):
+        (store / f"k{k}_2.cubin").write_bytes(bytes([k]) * (1000 + k))
+    cache.mkdir()
+    (cache / "k1_2.cubin").write_bytes(b"the cache's own")
+    monkeypatch.setenv("BF_EPIC_KERNELS", str(store))
+    monkeypatch.setenv("CUPY_CACHE_DIR", str(cache))
+    assert seed_kernels({"device": "cpu"}) is None and sorted(p.name for p in cache.iterdir()) == ["k1_2.cubin"]
+    got = seed_kernels({"device": "gpu:0"})
+    assert (got["copied"], got["present"], got["failed"]) == (2, 1, 0)
+    assert sorted(p.name for p in cache.iterdir()) == ["k0_2.cubin", "k1_2.cubin", "k2_2.cubin"]
+    assert (cache / "k2_2.cubin").read_bytes() == (store / "k2_2.cubin").read_bytes()
+    assert (cache / "k1_2.cubin").read_bytes() == b"the cache's own"
+    st = seed_kernels({"device": "cpu", "tunings": [{"device": "cpu"}, {"device": "gpu:1"}]})
+    assert (st["copied"], st["present"]) == (0, 3)
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    assert seed_cupy_cache(store, blocked)["failed"] == 3
+    assert seed_cupy_cache(tmp_path / "no-store", cache) == {"store": str(tmp_path / "no-store"), "cache": str(cache),
+                                                              "copied": 0, "present": 0, "failed": 0}
+
+
+def test_compile_refuses_what_it_cannot_run(tmp_path, capsys):
+    """`bf-epic compile` runs simulated pipelines on a GPU: a capture's pipeline, or no GPU, is a clear
+    error (exit 2) before anything runs."""
+    from conftest import HAVE_GPU
+    assert cli.main(["compile", str(PIPES / "lwasv_tbf_allsky.yaml"), "--store", str(tmp_path / "s")]) == 2
+    assert "reads a tbf source; compile runs simulated pipelines only" in capsys.readouterr().err
+    if not HAVE_GPU:
+        assert cli.main(["compile", str(PIPES / "lwasv_sim_allsky.yaml"), "--store", str(tmp_path / "s")]) == 2
+        assert "compile needs CuPy and a CUDA GPU" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.gpu
+@pytest.mark.slow
+def test_a_run_after_compile_compiles_nothing_on_an_empty_cache(tmp_path):
+    """The install step's promise: `bf-epic compile` of a pipeline fills the store; a run of it with CuPy's
+    cache empty then finds every kernel there (no file added to the cache beyond the store's)."""
+    import os
+    import subprocess
+    import sys
+
+    from conftest import HAVE_GPU
+    if not HAVE_GPU:
+        pytest.skip("needs CuPy and a CUDA device")
+    from benchlib import bf_epic_command, child_env
+    yaml, sets = str(PIPES / "lwasv_sim_transient.yaml"), ["--set", "imager.grid.size=16", "--set",
+                                                           "source.channels.count=32"]
+    env = dict(child_env(), BF_EPIC_KERNELS=str(tmp_path / "store"), CUPY_CACHE_DIR=str(tmp_path / "cache"))
+    out = subprocess.run([sys.executable, "-m", "bf_epic_blocks.pipeline.cli", "compile", yaml, "--seconds", "1.5",
+                          *sets], env=env, capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    stored = set(os.listdir(tmp_path / "store"))
+    assert len(stored) > 10 and not (tmp_path / "cache").exists()
+    run = subprocess.run(bf_epic_command() + ["run", yaml, "--no-progress", *sets, "--set", "source.duration_s=1.5",
+                                              "--set", f"output.dir={tmp_path / 'out'}", "--set", "device=gpu"],
+                         env=env, capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert f"{len(stored)} compiled kernels copied into CuPy's cache" in run.stderr
+    assert set(os.listdir(tmp_path / "cache")) == stored

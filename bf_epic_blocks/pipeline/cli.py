@@ -91,6 +91,23 @@ def build_parser():
     r.add_argument("--allow-remote", action="store_true", help="allow a non-loopback destination")
     r.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
     r.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    c = sub.add_parser("compile", help="compile the GPU kernels of simulated pipelines into the kernel store, "
+                                       "once at install, so that a run starts within seconds",
+                       description="Run each pipeline (a simulated source) on the GPU for a moment, its outputs "
+                                   "thrown away, with CuPy's kernel cache pointed at the kernel store "
+                                   "($BF_EPIC_KERNELS, default <prefix>/share/bf_epic_blocks/kernels). Every run on "
+                                   "a GPU copies the store's kernels into CuPy's cache, so even a machine whose "
+                                   "cache is empty starts without compiling. The kernels depend on the shapes "
+                                   "(stands, channels, grid, DM range), not on the source: compile the simulated "
+                                   "pipeline that matches a live one.")
+    c.add_argument("files", nargs="+", metavar="file", help="pipeline YAMLs with simulated sources")
+    c.add_argument("--seconds", type=float, default=3.0, help="seconds of data each is run for (default 3)")
+    c.add_argument("--store", metavar="DIR", help="the store's folder (default: $BF_EPIC_KERNELS or "
+                                                  "<prefix>/share/bf_epic_blocks/kernels)")
+    c.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a key in every pipeline (repeatable)")
+    c.add_argument("-v", "--verbose", action="store_true", help="debug logging and tracebacks")
+    c.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
     mv = sub.add_parser("movie", help="a day's LWATV views (output.oims.lwatv) as one MP4",
                         description="Join the LWATV PNGs of one day's folder (<output.dir>/lwatv/<MJD>/) into an "
                                     "H.264 MP4, in time order, leaving out 'nomovie+' views (the station's daily "
@@ -119,6 +136,60 @@ def _movie(args):
         return 2
     print(f"wrote {res['path']}: {res['frames']} frames of {res['width']} x {res['height']} at {args.fps:g} fps")
     return 0
+
+
+def _compile(args):
+    """``bf-epic compile``: 0 when every pipeline ran, 1 when one failed, 2 for bad arguments."""
+    import os
+    import subprocess
+    import tempfile
+    import time
+
+    from ..cuda import kernel_store
+    from .config import ConfigError, load_config
+    store = Path(args.store).expanduser() if args.store else kernel_store()
+    sets = [f"source.duration_s={args.seconds}", *args.overrides]
+    cfgs = []
+    for f in args.files:
+        try:
+            cfg = load_config(f, args.overrides)
+            kinds = {tc["source"]["kind"] for tc in cfg.get("tunings") or [cfg]}
+            if kinds != {"simulated"}:
+                print(f"bf-epic: compile: {f} reads a {'/'.join(sorted(kinds - {'simulated'}))} source; compile "
+                      f"runs simulated pipelines only: name the simulated one with its shapes (stands, channels, "
+                      f"grid)", file=sys.stderr)
+                return 2
+            cfgs.append(load_config(f, sets))
+        except (ConfigError, OSError, ValueError) as e:
+            print(f"bf-epic: compile: {e}", file=sys.stderr)
+            return 2
+    from ..imaging._xp import gpu_available
+    if not gpu_available():
+        print("bf-epic: compile needs CuPy and a CUDA GPU (pip install 'bf_epic_blocks[gpu]'); none here",
+              file=sys.stderr)
+        return 2
+    try:
+        store.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        print(f"bf-epic: compile: cannot make the kernel store {store}: {e}", file=sys.stderr)
+        return 2
+    env = dict(os.environ, CUPY_CACHE_DIR=str(store))
+    failed = 0
+    for f, cfg in zip(args.files, cfgs):
+        dev = [] if str(cfg["device"]).startswith("gpu") else ["--set", "device=gpu"]
+        n0, t0 = len(os.listdir(store)), time.perf_counter()
+        with tempfile.TemporaryDirectory(prefix="bf-epic-compile-") as tmp:
+            cmd = [sys.executable, "-m", "bf_epic_blocks.pipeline.cli", "run", f, "--no-progress", "-q",
+                   *[a for kv in sets for a in ("--set", kv)], "--set", f"output.dir={tmp}", *dev]
+            rc = subprocess.run(cmd, env=env).returncode
+        n1 = len(os.listdir(store))
+        if rc:
+            failed += 1
+            print(f"bf-epic: compile: {f}: the run failed (exit {rc}); {n1 - n0} kernels stored before it did",
+                  file=sys.stderr)
+            continue
+        print(f"{f}: {n1 - n0} kernels compiled into {store} in {time.perf_counter() - t0:.0f} s ({n1} there)")
+    return 1 if failed else 0
 
 
 def _replay(args):
@@ -166,6 +237,8 @@ def main(argv=None):
         return _replay(args)
     if args.command == "movie":
         return _movie(args)
+    if args.command == "compile":
+        return _compile(args)
     from .config import ConfigError, load_config
     try:
         overrides = list(args.overrides)

@@ -972,11 +972,30 @@ def _start_service(cfg, g):
                    cadence_s=solve["cadence_s"] if solve else None, name=cfg["name"]).start()
 
 
+def seed_kernels(cfg):
+    """On a GPU, the kernel store's compiled kernels into CuPy's cache (:func:`~bf_epic_blocks.cuda.seed_cupy_cache`),
+    logged; returns its counts (None on the CPU)."""
+    devices = {str(tc["device"]) for tc in cfg.get("tunings") or [cfg]}
+    if devices == {"cpu"}:
+        return None
+    from ..cuda import seed_cupy_cache
+    got = seed_cupy_cache()
+    if got["copied"]:
+        log.info("kernel store %s: %d compiled kernels copied into CuPy's cache %s (%d there already)",
+                 got["store"], got["copied"], got["cache"], got["present"])
+    if got["failed"]:
+        log.warning("kernel store %s: %d compiled kernels could not be copied into CuPy's cache %s; they "
+                    "compile when first used", got["store"], got["failed"], got["cache"])
+    return got
+
+
 def run(cfg, show_progress=None, parts=None, service_ready=None):
     """Build and run the pipeline; returns a summary dict (files written, frame counts, timing).
     ``parts``: see :func:`build_graph`. With ``service:``, the HTTP service runs beside it
     (:mod:`bf_epic_blocks.service`; ``service_ready(service)`` is called once it listens). A station of
     several tunings (``tunings:``) runs them together (:func:`run_station`)."""
+    if parts is None:
+        seed_kernels(cfg)
     if cfg.get("tunings") and parts is None:
         return run_station(cfg, show_progress=show_progress, service_ready=service_ready)
     if cfg.get("service"):

@@ -13,8 +13,9 @@ outside, as an operator runs it (``--set`` overrides pass through; the default i
   with several GPUs the fullest one's) and
   the run's resident set (``/proc``): first, peak, and the growth from the first quarter of the
   flowing time to the last (flat means ~0).
-* the CuPy kernels compiled during the run (files added to CuPy's kernel cache; 0 when every kernel
-  was cached): on an empty cache the first images wait for compilation, so releases are compared on
+* the CuPy kernels compiled during the run (files added to CuPy's kernel cache, less those copied from
+  the kernel store that ``bf-epic compile`` fills at install; 0 when every kernel was cached or stored):
+  on an empty cache and no store the first images wait for compilation, so releases are compared on
   equal caches (a run first on a fresh machine pays it, the next finds its kernels cached).
 * each injected burst (``source.transients``): the brightest candidate within ``--match-s`` of its
   arrival, its DM off the burst's in trials (the tree's one-image sweep step), its place off the
@@ -47,16 +48,31 @@ from benchlib import REPO, bf_epic_command, child_env, machine, write_json
 MATCH_S = 0.05
 
 
-def kernel_cache_files():
-    """Files in CuPy's on-disk kernel cache (``CUPY_CACHE_DIR``, default ``~/.cupy/kernel_cache``), 0 where
-    it does not exist yet; None where CuPy keeps its cache in memory (``CUPY_CACHE_IN_MEMORY=1``)."""
+def kernel_cache_names():
+    """Names of the files in CuPy's on-disk kernel cache (``CUPY_CACHE_DIR``, default ``~/.cupy/kernel_cache``),
+    empty where it does not exist yet; None where CuPy keeps its cache in memory (``CUPY_CACHE_IN_MEMORY=1``)."""
     if os.environ.get("CUPY_CACHE_IN_MEMORY", "0") not in ("", "0"):
         return None
     d = Path(os.environ.get("CUPY_CACHE_DIR") or Path.home() / ".cupy" / "kernel_cache")
     try:
-        return sum(1 for f in d.rglob("*") if f.is_file())
+        return {str(f.relative_to(d)) for f in d.rglob("*") if f.is_file()}
     except OSError:
-        return 0
+        return set()
+
+
+def kernel_cache_files():
+    """How many files CuPy's on-disk kernel cache holds (see :func:`kernel_cache_names`; None: in memory)."""
+    names = kernel_cache_names()
+    return None if names is None else len(names)
+
+
+def kernel_store_names():
+    """Names of the files in the package's kernel store (``bf-epic compile``; empty where there is none)."""
+    from bf_epic_blocks.cuda import kernel_store
+    try:
+        return set(os.listdir(kernel_store()))
+    except OSError:
+        return set()
 
 
 def gpu_used_mib():
@@ -195,7 +211,7 @@ def run(args):
         cmd += ["--set", s]
     samples_gpu, samples_rss = [], []
     stop = threading.Event()
-    cache0 = kernel_cache_files()
+    cache0, store = kernel_cache_names(), kernel_store_names()
     t0 = time.perf_counter()
     with tempfile.TemporaryFile("w+") as err:
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=child_env())
@@ -216,8 +232,10 @@ def run(args):
         if rc:
             err.seek(0)
             raise SystemExit(f"bf-epic run failed ({rc}): {err.read()[-3000:]}")
-    cache1 = kernel_cache_files()
-    compiled = None if cache0 is None or cache1 is None else cache1 - cache0
+    cache1 = kernel_cache_names()
+    # files new in the cache: compiled during the run, or copied from the kernel store at its start
+    compiled = None if cache0 is None or cache1 is None else len(cache1 - cache0 - store)
+    from_store = None if cache0 is None or cache1 is None else len((cache1 - cache0) & store)
     info = json.loads(summary.read_text())
     blocks = info.get("blocks", {})
     if "tunings" in info:          # a station: every tuning's blocks, named <tuning>/<block>
@@ -254,7 +272,7 @@ def run(args):
            "first_images_at_s": None if flow is None else flow[0],
            "gpu_mib": dict(zip(("first", "peak", "growth"), gpu)),
            "rss_mib": dict(zip(("first", "peak", "growth"), rss)),
-           "kernels_compiled": compiled,
+           "kernels_compiled": compiled, "kernels_from_store": from_store,
            "images": info.get("images"), "search": info.get("search"), "bursts": bursts,
            "other_candidates": others, "candidates": listed, "station_events": events, "blocks": blocks}
     out = {"benchmark": "bench_wholeband", "date": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime()),
