@@ -5,12 +5,14 @@
 # On a machine with an NVIDIA GPU:
 #   make gpu-check  -- CuPy too, then the GPU tests, every shipped pipeline by bf-epic run on the GPU
 #                      and the CPU with their outputs compared, and the planner's GPU picks (a table)
+#   make kernels    -- CuPy too, then every shipped GPU pipeline's kernels compiled once into the kernel
+#                      store (a few minutes), so that every later run starts within seconds
 #   make docs       -- the documentation site into output/site (mkdocs, warnings are errors)
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup test test-quick demo bench gpu-check docs clean
+.PHONY: setup test test-quick demo bench gpu-check kernels docs clean
 # CuPy for the GPU check: gpu (CUDA 12 wheels), gpu-cuda12 or gpu-cuda13 (the machine's own toolkit)
 GPU_EXTRA ?= gpu
 
@@ -41,6 +43,14 @@ docs: setup
 gpu-check: setup
 	$(BIN)/python -m pip install -q -e '.[$(GPU_EXTRA)]'
 	$(BIN)/python tools/gpu_check.py --json output/gpu_check.json
+
+# the simulated pipelines whose shapes the shipped GPU pipelines share (the live and capture ones included)
+KERNEL_PIPELINES ?= pipelines/lwasv_sim_station.yaml pipelines/lwasv_sim_wholeband.yaml \
+	pipelines/lwasv_sim_transient.yaml pipelines/lwasv_sim_allsky.yaml pipelines/lwasv_sim_calibrate.yaml
+
+kernels: setup
+	$(BIN)/python -m pip install -q -e '.[$(GPU_EXTRA)]'
+	$(BIN)/bf-epic compile $(KERNEL_PIPELINES)
 
 # one benchmark on the CPU; tools/bench/README.md lists them all
 bench: setup

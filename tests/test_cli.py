@@ -625,8 +625,8 @@ def test_compile_refuses_what_it_cannot_run(tmp_path, capsys):
     """`bf-epic compile` runs simulated pipelines on a GPU: a capture's pipeline, or no GPU, is a clear
     error (exit 2) before anything runs."""
     from conftest import HAVE_GPU
-    assert cli.main(["compile", str(PIPES / "lwasv_tbf_allsky.yaml"), "--store", str(tmp_path / "s")]) == 2
-    assert "reads a tbf source; compile runs simulated pipelines only" in capsys.readouterr().err
+    assert cli.main(["compile", str(PIPES / "lwasv_udp_live.yaml"), "--store", str(tmp_path / "s")]) == 2
+    assert "reads a udp source; compile runs simulated pipelines only" in capsys.readouterr().err
     if not HAVE_GPU:
         assert cli.main(["compile", str(PIPES / "lwasv_sim_allsky.yaml"), "--store", str(tmp_path / "s")]) == 2
         assert "compile needs CuPy and a CUDA GPU" in capsys.readouterr().err
@@ -653,10 +653,21 @@ def test_a_run_after_compile_compiles_nothing_on_an_empty_cache(tmp_path):
                           *sets], env=env, capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, out.stderr[-3000:]
     stored = set(os.listdir(tmp_path / "store"))
-    assert len(stored) > 10 and not (tmp_path / "cache").exists()
+    cache = tmp_path / "cache"
+    before = set(os.listdir(cache)) if cache.exists() else set()
+    assert len(stored) > 10 and not stored & before
     run = subprocess.run(bf_epic_command() + ["run", yaml, "--no-progress", *sets, "--set", "source.duration_s=1.5",
                                               "--set", f"output.dir={tmp_path / 'out'}", "--set", "device=gpu"],
                          env=env, capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stderr[-3000:]
     assert f"{len(stored)} compiled kernels copied into CuPy's cache" in run.stderr
-    assert set(os.listdir(tmp_path / "cache")) == stored
+    assert set(os.listdir(cache)) - before == stored       # every file new in the cache came from the store
+
+
+def test_compile_runs_each_pipeline_long_enough_for_its_periodic_steps_twice():
+    from bf_epic_blocks.pipeline.cli import compile_seconds
+    from bf_epic_blocks.pipeline.config import load_config
+    assert compile_seconds(load_config(str(PIPES / "lwasv_sim_allsky.yaml"))) == 3.0
+    # a solution every 10 s from 1 s of data, applied 1 s later: the second solution is made by 12 s
+    assert compile_seconds(load_config(str(PIPES / "lwasv_sim_station.yaml"))) == 13.0
+    assert compile_seconds(load_config(str(PIPES / "lwasv_sim_allsky.yaml"), ["output.integrate.seconds=4"])) == 9.0

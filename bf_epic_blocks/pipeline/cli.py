@@ -101,7 +101,8 @@ def build_parser():
                                    "(stands, channels, grid, DM range), not on the source: compile the simulated "
                                    "pipeline that matches a live one.")
     c.add_argument("files", nargs="+", metavar="file", help="pipeline YAMLs with simulated sources")
-    c.add_argument("--seconds", type=float, default=3.0, help="seconds of data each is run for (default 3)")
+    c.add_argument("--seconds", type=float, help="seconds of data each is run for (default: long enough for its "
+                                                  "periodic steps, a live solution, an integration, to run twice)")
     c.add_argument("--store", metavar="DIR", help="the store's folder (default: $BF_EPIC_KERNELS or "
                                                   "<prefix>/share/bf_epic_blocks/kernels)")
     c.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -138,6 +139,21 @@ def _movie(args):
     return 0
 
 
+def compile_seconds(cfg):
+    """Seconds of data ``bf-epic compile`` runs ``cfg`` for: long enough for every periodic step to run twice
+    (a live solution after the first compares with it; an integration's file is written), at least 3 s."""
+    need = 3.0
+    for tc in cfg.get("tunings") or [cfg]:
+        out, solve = tc["output"], tc["calibration"].get("solve")
+        for part in ("integrate", "oims"):
+            if out.get(part):
+                need = max(need, 2.0 * float(out[part]["seconds"]) + 1.0)
+        if solve:
+            need = max(need, float(solve["cadence_s"]) + float(solve["integration_s"]) + float(solve["apply_delay_s"])
+                       + 1.0)
+    return need
+
+
 def _compile(args):
     """``bf-epic compile``: 0 when every pipeline ran, 1 when one failed, 2 for bad arguments."""
     import os
@@ -148,8 +164,7 @@ def _compile(args):
     from ..cuda import kernel_store
     from .config import ConfigError, load_config
     store = Path(args.store).expanduser() if args.store else kernel_store()
-    sets = [f"source.duration_s={args.seconds}", *args.overrides]
-    cfgs = []
+    cfgs, runs = [], []
     for f in args.files:
         try:
             cfg = load_config(f, args.overrides)
@@ -159,7 +174,9 @@ def _compile(args):
                       f"runs simulated pipelines only: name the simulated one with its shapes (stands, channels, "
                       f"grid)", file=sys.stderr)
                 return 2
+            sets = [f"source.duration_s={args.seconds or compile_seconds(cfg)}", *args.overrides]
             cfgs.append(load_config(f, sets))
+            runs.append(sets)
         except (ConfigError, OSError, ValueError) as e:
             print(f"bf-epic: compile: {e}", file=sys.stderr)
             return 2
@@ -175,7 +192,7 @@ def _compile(args):
         return 2
     env = dict(os.environ, CUPY_CACHE_DIR=str(store))
     failed = 0
-    for f, cfg in zip(args.files, cfgs):
+    for f, cfg, sets in zip(args.files, cfgs, runs):
         dev = [] if str(cfg["device"]).startswith("gpu") else ["--set", "device=gpu"]
         n0, t0 = len(os.listdir(store)), time.perf_counter()
         with tempfile.TemporaryDirectory(prefix="bf-epic-compile-") as tmp:

@@ -886,7 +886,7 @@ def _build_pixel_split(cfg, p, split, station, gulp, fmt, info, pixels, pattern,
 
 
 def block_timing(blocks, t0):
-    """{block name: {ngulp, process_s, first_data_s, last_data_s}} from the runtime's ``stats``
+    """{block name: {ngulp, process_s, first_data_s, first_done_s, last_data_s}} from the runtime's ``stats``
     (times in seconds after ``t0``, a ``time.perf_counter()``); blocks without them (real Bifrost
     keeps its own ``perf`` proclog instead) are left out."""
     out = {}
@@ -896,7 +896,8 @@ def block_timing(blocks, t0):
             continue
         rel = (lambda t: None if t is None else round(t - t0, 4))
         out[b.name] = {"ngulp": int(st["ngulp"]), "process_s": round(float(st["process_s"]), 4),
-                       "first_data_s": rel(st["first_data_at"]), "last_data_s": rel(st["last_data_at"])}
+                       "first_data_s": rel(st["first_data_at"]), "first_done_s": rel(st.get("first_done_at")),
+                       "last_data_s": rel(st["last_data_at"])}
     return out
 
 

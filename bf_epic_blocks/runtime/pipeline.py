@@ -312,8 +312,8 @@ class Block(BlockScope):
     input frames lost to overruns (unguaranteed readers), ``nframe_written`` frames committed
     to the outputs (including on_skip output), ``nskip`` on_skip calls; ``process_s`` seconds
     spent in on_data (host time: GPU work still queued is not in it, as in Bifrost's ``perf``
-    proclog), ``first_data_at`` / ``last_data_at`` (``time.perf_counter()`` when the first
-    on_data began and the last one ended; None before any).
+    proclog), ``first_data_at`` / ``first_done_at`` / ``last_data_at`` (``time.perf_counter()`` when
+    the first on_data began, when it ended, and when the last one ended; None before any).
     """
     instance_counts = defaultdict(lambda: 0)
 
@@ -344,7 +344,7 @@ class Block(BlockScope):
         self.shutdown_event = threading.Event()
         self.stats = dict(nsequence=0, ngulp=0, nframe_read=0, nframe_skipped=0,
                           nframe_written=0, nskip=0, process_s=0.0, first_data_at=None,
-                          last_data_at=None)
+                          first_done_at=None, last_data_at=None)
         self._ireaders = []
         self._seq_count = 0
         self.stream = None     # the thread's CUDA stream (a block on a GPU, runtime only)
@@ -440,6 +440,8 @@ class Block(BlockScope):
     def _data_ends(self, t0):
         st = self.stats
         st['last_data_at'] = t = time.perf_counter()
+        if st['first_done_at'] is None:
+            st['first_done_at'] = t
         st['process_s'] += t - t0
         st['ngulp'] += 1
 

@@ -9,6 +9,8 @@ outside, as an operator runs it (``--set`` overrides pass through; the default i
   flowing: data seconds / the time from the search's first images to its last (the search is where
   every image ends; without one, the imager; several GPUs' searches: the first's first to the last's
   last), the figure the whole-band issue asks for (>= 1.5x).
+* start: seconds after the process started when the runner started, when every imager had made its
+  first images (the end of its first gulp) and when the search had them (the cold start).
 * memory, sampled every ``--sample-s``: the GPU's used memory (``nvidia-smi``, where there is one;
   with several GPUs the fullest one's) and
   the run's resident set (``/proc``): first, peak, and the growth from the first quarter of the
@@ -212,7 +214,7 @@ def run(args):
     samples_gpu, samples_rss = [], []
     stop = threading.Event()
     cache0, store = kernel_cache_names(), kernel_store_names()
-    t0 = time.perf_counter()
+    t0, t0_unix = time.perf_counter(), time.time()
     with tempfile.TemporaryFile("w+") as err:
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=child_env())
 
@@ -249,11 +251,14 @@ def run(args):
     parts = [b for b in parts if b["first_data_s"] is not None and b["last_data_s"] is not None]
     sink = {"first_data_s": min(b["first_data_s"] for b in parts),
             "last_data_s": max(b["last_data_s"] for b in parts)} if parts else None
+    # the runner's block times are seconds after its own start, which is this long after the process's
+    lag = info["started_unix_s"] - t0_unix if "started_unix_s" in info else wall - info["wall_s"]
     flow = None
     if sink and sink["last_data_s"] > sink["first_data_s"]:
-        # the runner's block times are seconds after its own start, which is after the process's
-        lag = wall - info["wall_s"]
         flow = (sink["first_data_s"] + lag, sink["last_data_s"] + lag)
+    # every imager's first images made (the end of its first gulp), seconds after the process started
+    made = [b.get("first_done_s") for n, b in blocks.items() if kind(n).startswith(("DFTImager", "WStack"))]
+    imaged_at = max(made) + lag if made and None not in made else None
     window = flow or (0.0, wall)
     gpu = growth(samples_gpu, *window)
     rss = growth(samples_rss, *window)
@@ -269,7 +274,8 @@ def run(args):
            "rt_pipeline": data_s / info["wall_s"],
            "flowing_s": None if flow is None else flow[1] - flow[0],
            "rt_flowing": None if flow is None else data_s / (flow[1] - flow[0]),
-           "first_images_at_s": None if flow is None else flow[0],
+           "first_images_at_s": None if flow is None else flow[0], "runner_started_at_s": lag,
+           "imagers_first_images_at_s": imaged_at,
            "gpu_mib": dict(zip(("first", "peak", "growth"), gpu)),
            "rss_mib": dict(zip(("first", "peak", "growth"), rss)),
            "kernels_compiled": compiled, "kernels_from_store": from_store,
@@ -313,6 +319,10 @@ def show(out):
                   + (f" ({e['tunings']}), DM {e['dm_found']:.4f}, {e['time_off_s'] * 1e3:+.1f} ms at the station's "
                      f"top channel, S/N {e['snr']:.1f}" if e["ntunings"] else ""))
         print(f"station events: {r['station_events']['events']}")
+    if r.get("imagers_first_images_at_s") is not None:
+        print(f"after the process started: the runner at {r['runner_started_at_s']:.2f} s, every imager's first "
+              f"images at {r['imagers_first_images_at_s']:.2f} s, the search's at {fmt(r['first_images_at_s'], '.2f')} s"
+              f" ({r.get('kernels_from_store') or 0} kernels from the store)")
     if r.get("kernels_compiled"):
         print(f"CuPy kernels compiled during the run: {r['kernels_compiled']} (the kernel cache was not warm: "
               "the first images, and anything first used later, waited for them)")
