@@ -412,7 +412,8 @@ def test_the_plan_counts_the_operator_the_imager_holds(pols_differ):
     """cost.operator_bytes (what `bf-epic plan` adds to the memory it checks) against the arrays the code
     makes: G of a real DFTOperator, and the fused pieces quantise_operator makes (on the host; the same
     shapes on a GPU). The whole LWA-SV band's (784 channels, 3,205 pixels, 254 of 256 stands, i8x2, the
-    pols' weights differing) is 4.755 + 9.781 GiB, what CuPy allocated on an H200."""
+    pols' weights differing) is 9.781 GiB of pieces, what CuPy allocated on an H200, and no phases (on a
+    GPU formed 256 MiB at a time while the pieces are made)."""
     from bf_epic_blocks.imaging.cost import operator_bytes
     rng = np.random.default_rng(0)
     C, K, A, A_in = 3, 130, 70, 72
@@ -425,6 +426,71 @@ def test_the_plan_counts_the_operator_the_imager_holds(pols_differ):
         w[:, 5, 1] = 0.0
     Aq, osc, _, _ = fused.quantise_operator(op.G[:, 0], w, np.arange(A), A_in, fused.PIECES["i8x2"], tiled=True)
     got = operator_bytes(C, K, A, "i8x2", gpu=True, nant_in=A_in, pols_differ=pols_differ)
-    assert got["operands"] == Aq.nbytes + osc.nbytes
+    assert got["operands"] == Aq.nbytes + osc.nbytes and got["phases"] == 0
+    assert got["building"] == op.G[:, 0].nbytes          # every channel's phases at once (complex64)
     band = operator_bytes(784, 3205, 254, "i8x2", gpu=True, nant_in=256)
-    assert (round(band["phases"] / 2**30, 3), round(band["operands"] / 2**30, 3)) == (4.755, 9.781)
+    assert (band["phases"], round(band["operands"] / 2**30, 3)) == (0, 9.781)
+    assert 0.24 * 2**30 < band["building"] <= 2**28
+
+
+def test_phases_formed_again_by_chunks_quantise_into_the_same_pieces():
+    """Where an operator does not hold its phases (the fused modes on a GPU), :meth:`DFTOperator.phases`
+    forms them from the host geometry a chunk of channels at a time: bit-equal to the held ones, and
+    quantised chunk by chunk into the arrays of the whole (the pols' weights differing in one channel
+    only, so that other chunks alone would make one pol set) they give the same int8 pieces and scales."""
+    rng = np.random.default_rng(3)
+    C, K, A = 7, 90, 40
+    op = DFTOperator(rng.normal(0, 20, (A, 3)), 60e6 + 25e3 * np.arange(C), rng.uniform(-0.5, 0.5, (K, 2)), npol=2,
+                     precision="fp32")
+    G = op.live_G(0).copy()
+    w = np.ones((C, A, 2), np.complex64) * np.exp(1j * rng.uniform(0, 6, (C, A, 1)))
+    w[2, 5, 1] = 0.5
+    pieces = fused.PIECES["i8x2"]
+    Aq, osc, _, _ = fused.quantise_operator(G, w, np.arange(A), A, pieces, tiled=True)
+    op.G = None
+    op._derived.clear()
+    out = (np.zeros_like(Aq), np.zeros_like(osc))
+    for c0 in range(0, C, 3):
+        cs = slice(c0, min(C, c0 + 3))
+        assert np.array_equal(op.phases(cs), G[cs])
+        fused.quantise_operator(op.phases(cs), w[cs], np.arange(A), A, pieces, tiled=True, out=(out[0][cs], out[1][cs]),
+                                weights_host=w[cs])
+    assert np.array_equal(out[0], Aq) and np.array_equal(out[1], osc)
+    assert np.array_equal(op.live_G(0), G) and op.G is not None      # a route asking for them: formed whole
+
+
+@pytest.mark.gpu
+@GPU
+def test_gpu_a_fused_operator_holds_no_phases_and_its_pieces_equal_the_whole_operator_s():
+    """A fused-mode operator on a GPU lets its phases go (4.8 GB at the whole band): its int8 pieces, made
+    a chunk of channels at a time (the chunk made small here), equal those quantised from the whole
+    operator, when built, after a new gain solution (reweight) and after its last pixels moved (repoint);
+    it still holds no phases after both."""
+    import cupy as cp
+    rng = np.random.default_rng(4)
+    C, K, A = 9, 200, 48
+    xyz, freq, lm = rng.normal(0, 20, (A, 3)), 60e6 + 25e3 * np.arange(C), rng.uniform(-0.5, 0.5, (K, 2))
+    w = np.ones((C, A, 2), np.complex64)
+    old = fused._REFORM_BYTES_GPU
+    fused._REFORM_BYTES_GPU = 2 * K * A * 8          # two channels a chunk: five chunks, the last one short
+    try:
+        op = DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(lm), npol=2, weights=cp.asarray(w),
+                         precision="i8x2")
+        assert op.G is None
+
+        def whole(weights):
+            G = op.phases()                          # every channel at once
+            return fused.quantise_operator(G, cp.asarray(weights), op.keep_index, op.nant_in, op.fused.pieces,
+                                           tiled=op.fused.tiled, weights_host=weights)
+        ref = whole(w)
+        assert cp.array_equal(op.fused.Aq, ref[0]) and cp.array_equal(op.fused.osc, ref[1])
+        w2 = (w * np.exp(1j * rng.uniform(0, 6, (C, A, 1)))).astype(np.complex64)
+        w2[:, 3] *= 0.25
+        assert op.reweight(w2)
+        ref = whole(w2)
+        assert cp.array_equal(op.fused.Aq, ref[0]) and cp.array_equal(op.fused.osc, ref[1]) and op.G is None
+        op.repoint(rng.uniform(-0.3, 0.3, (10, 2)), first=K - 10)
+        ref = whole(w2)
+        assert cp.array_equal(op.fused.Aq, ref[0]) and cp.array_equal(op.fused.osc, ref[1]) and op.G is None
+    finally:
+        fused._REFORM_BYTES_GPU = old

@@ -61,7 +61,8 @@ def operator_bytes(nchan: int, npix: int, nant: int, precision: str, *, gpu: boo
     """Bytes a :class:`~.dft.DFTOperator` holds where it lives, by part, for ``nchan`` channels, ``npix``
     pixels and ``nant`` antennas kept (of ``nant_in`` in the input, default ``nant``):
 
-    * ``phases``: the geometric operator G, complex (complex128 for 'fp64'), nchan x npix x nant;
+    * ``phases``: the geometric operator G, complex (complex128 for 'fp64'), nchan x npix x nant; not held
+      by the fused integer modes on a GPU, which form it a chunk at a time whenever they make their pieces;
     * ``operands``: the form the GEMMs take -- the stacked real halves of the tensor-core modes on a GPU
       (:func:`.gemm.stack_operator`), or the fused integer modes' int8 pieces and row scales
       (:func:`.fused.quantise_operator`: one set per pol where the pols' weights differ, ``pols_differ``);
@@ -70,17 +71,18 @@ def operator_bytes(nchan: int, npix: int, nant: int, precision: str, *, gpu: boo
     """
     import numpy as np
 
-    from .fused import PIECES, _pad, gpu_chunk_channels, operand_bytes
+    from . import fused
+    from .fused import PIECES, _pad, operand_bytes
     from .gemm import STACKED, stack_operator
     nant_in = nant if nant_in is None else int(nant_in)
     cplx = 16 if precision == "fp64" else 8
     parts = {"phases": nchan * npix * nant * cplx, "operands": 0, "building": 0}
     if gpu and precision in PIECES:
-        kpad, apad = _pad(npix, 64), _pad(nant_in, 64)
         parts["operands"] = operand_bytes(nchan, 2 if pols_differ else 1, npix, nant_in, PIECES[precision])
-        chunk = min(nchan, gpu_chunk_channels(npix, nant_in))
-        # the quantising kernel reads the complex64 operator as it is; a cast chunk where it is not
-        parts["building"] = chunk * kpad * apad * 8
+        # the phases of a chunk of channels at a time (FusedOperator._quantise), read by the quantising kernel
+        step = max(1, fused._REFORM_BYTES_GPU // (npix * max(1, nant) * 8))
+        parts["phases"] = 0
+        parts["building"] = min(nchan, step) * npix * nant * 8
     elif gpu and precision in STACKED:
         probe = np.zeros((1, 8, 8), np.complex64)
         per = sum(p.nbytes for p in stack_operator(probe, precision)) / probe.size

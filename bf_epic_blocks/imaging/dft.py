@@ -335,9 +335,15 @@ class DFTOperator:
                               nchan, nant_in)
 
         self._host_geometry = (hxyz_kept, hf)          # float64 host copies: repoint() forms new phases from them
-        #: (nchan, 1|npol, npix, nant) operator, and (nchan|1, npix, npol|1) or None: an antenna-independent pattern
-        self.G, self.pixel_pattern = self._pixel_operator(hlm, hn, pattern)
-        self.shared_geometry = self.G.shape[1] == 1
+        self._host_pixels = (np.array(hlm), np.array(hn))
+        # The fused integer modes image from their int8 pieces alone: on a GPU the phases (4.8 GB at the
+        # whole band) are not held but formed a chunk of channels at a time whenever the pieces are made
+        # (here, a new gain solution, pixels moved), and whole only for a route that asks for them (live_G).
+        held = not (precision in FUSED and xp.__name__ == "cupy")
+        #: (nchan, 1|npol, npix, nant) operator, or None where not held (:meth:`phases`), and
+        #: (nchan|1, npix, npol|1) or None: an antenna-independent pattern
+        self.G, self.pixel_pattern = self._pixel_operator(hlm, hn, pattern, phases=held)
+        self.shared_geometry = self.G is None or self.G.shape[1] == 1
         self._derived = {}
         self._routes = weakref.WeakSet()    # routes made from this operator (they add themselves): repoint() refreshes them
         #: the fused integer modes' operator (:mod:`.fused`), built now: never inside a graph capture
@@ -350,19 +356,20 @@ class DFTOperator:
         #: (nant_kept, npol) NaN/Inf samples zeroed so far in complex input (device array), or None
         self.nonfinite_counts = None
 
-    def _pixel_operator(self, hlm, hn, pattern):
+    def _pixel_operator(self, hlm, hn, pattern, phases=True):
         """(G, pixel_pattern) for pixels ``hlm`` (host float64, ``hn`` their n): G (nchan, 1|npol, npix, nant)
-        with an antenna-dependent pattern folded in (one operator per pol), else the geometry alone and the
-        pattern (nchan|1, npix, npol|1) kept apart (or None)."""
+        with an antenna-dependent pattern folded in (one operator per pol), else the geometry alone (None
+        when ``phases`` is False) and the pattern (nchan|1, npix, npol|1) kept apart (or None)."""
         xp, (hxyz, hf) = self.xp, self._host_geometry
-        G = _geometric_from_host(xp, hxyz, hf, hlm, hn, "fp64" if self.precision == "fp64" else "fp32")
         npix = int(hlm.shape[0])
         b = _check_pattern(pattern, self.nchan, npix, self.nant_in, self.npol, xp)
+        G = _geometric_from_host(xp, hxyz, hf, hlm, hn, "fp64" if self.precision == "fp64" else "fp32") \
+            if phases or (b is not None and b.shape[2] != 1) else None
         if b is not None and b.shape[2] != 1:
             b = b[:, :, self.keep_index, :].astype(self.cdtype)
             Gp = G[:, None, :, :] * xp.moveaxis(b, 3, 1)          # one operator per pol: G_p = G * B[..., p]
             return xp.ascontiguousarray(xp.broadcast_to(Gp, (self.nchan, self.npol, npix, self.nant))), None
-        return G[:, None], (None if b is None else b[:, :, 0, :].astype(self.cdtype))
+        return (None if G is None else G[:, None]), (None if b is None else b[:, :, 0, :].astype(self.cdtype))
 
     def repoint(self, pixels_lm, pattern=None, first=0):
         """Point the operator's pixels at new directions, in place: the phases (and ``pattern``, given for
@@ -384,12 +391,18 @@ class DFTOperator:
             raise ValueError(f"repoint: {hlm.shape[0]} pixels given to an operator of {self.npix} "
                              f"(from its pixel {first}); "
                              "an operator keeps its pixel count (build another for another count)")
-        G, bp = self._pixel_operator(hlm, n_from_lm(hlm[:, 0], hlm[:, 1]), pattern)
+        hn = n_from_lm(hlm[:, 0], hlm[:, 1])
+        G, bp = self._pixel_operator(hlm, hn, pattern, phases=self.G is not None)
         rows = (slice(None), slice(None), slice(first, None))
-        if G.shape != self.G[rows].shape or (bp is None) != (self.pixel_pattern is None):
+        if (G is not None and G.shape != self.G[rows].shape) or (G is None) != (self.G is None) \
+                or (bp is None) != (self.pixel_pattern is None):
             raise ValueError("repoint: the pattern is not of the kind the operator was built with "
-                             f"(operator {tuple(self.G.shape)}, pattern per pixel: {self.pixel_pattern is not None})")
-        self.G[rows] = G
+                             f"(operator {None if self.G is None else tuple(self.G.shape)}, pattern per pixel: "
+                             f"{self.pixel_pattern is not None})")
+        if G is not None:
+            self.G[rows] = G
+        self._host_pixels[0][first:] = hlm
+        self._host_pixels[1][first:] = hn
         if bp is not None:
             self.pixel_pattern[:, first:] = bp
         self.pixels_lm[first:] = xp.asarray(hlm)
@@ -451,7 +464,20 @@ class DFTOperator:
         return self._host["w"] if chan is None else self._host["w"][chan]
 
     # ------------------------------------------------------------------ operator forms
+    def phases(self, cs=slice(None)):
+        """(c, npix, nant) complex: the geometric operator of the live channels ``cs`` (a slice), from the
+        operator's phases where it holds them, else formed from its host geometry (bit-equal: the same
+        element-wise arithmetic). For one operator shared by the pols (``shared_geometry``)."""
+        if self.G is not None:
+            return self.live_G(0)[cs]
+        hxyz, hf = self._host_geometry
+        chan = self._host["chan"]
+        f = (hf if chan is None else hf[chan])[cs]
+        return _geometric_from_host(self.xp, hxyz, f, *self._host_pixels, "fp64" if self.precision == "fp64" else "fp32")
+
     def _live_G(self, pol):
+        if self.G is None:       # a route asks for the whole operator: formed now, and held from now on
+            self.G = self._pixel_operator(*self._host_pixels, None)[0]
         g = self.G[:, 0 if self.shared_geometry else pol]
         return g if self.chan_index is None else g[self.chan_index]
 

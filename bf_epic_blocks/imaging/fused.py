@@ -104,6 +104,8 @@ def _pad(n, m):
 #: bytes of one chunk of an operator that :func:`quantise_operator` must cast to complex64 on a GPU first
 #: (a complex64 operator, the fused modes' own, is read as it is, every channel in one launch)
 _CHUNK_BYTES_GPU = 64 * 2**20
+#: bytes of complex64 phases formed at once where an operator does not hold its phases (:class:`FusedOperator`)
+_REFORM_BYTES_GPU = 256 * 2**20
 
 
 def operand_shape(C, PA, K, nant_in, pieces, tiled):
@@ -153,7 +155,9 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     # compilation costs seconds of a fresh process's first image
     wh = to_numpy(weights) if weights_host is None else np.asarray(weights_host)
     shared = P == 1 or bool(np.all(wh == wh[..., :1]))
-    PA = 1 if shared else P
+    # given arrays to write into, their pol sets (a chunk of channels whose pols' weights happen to agree
+    # is written into the two sets of an operator whose other channels' do not)
+    PA = int(out[1].shape[1]) if out is not None else 1 if shared else P
     Kpad, Apad = _pad(K, 64), _pad(nant_in, 64)          # rows a multiple of 128, KD of 128
     KD = 2 * Apad
     b, xmax = bases(pieces, KD)
@@ -450,9 +454,8 @@ class FusedOperator:
         kd = 2 * _pad(op.nant_in, 64)
         self.config = kernel_config(kd, cp.cuda.Device().compute_capability)
         self.tiled = _hopper(self.config)          # operands in the Hopper kernel's tiles
-        self.Aq, self.osc, self.base, self.xmax = quantise_operator(
-            op.live_G(0), w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled, weights_host=self._w_host)
         self._w = w
+        self.Aq, self.osc, self.base, self.xmax = self._quantise(op)
         self.KD = kd
         self.chan = (xp.arange(op.nchan, dtype=xp.int32) if op.chan_index is None
                      else xp.asarray(op.chan_index, dtype=xp.int32))
@@ -464,8 +467,27 @@ class FusedOperator:
         """The pieces of ``op``'s operator again, written into the arrays that held them (its pixels moved:
         :meth:`.dft.DFTOperator.repoint`; only pixels ``first`` onwards, where those are the ones that
         moved); the base and sample range are the same (they depend on the antennas only)."""
-        quantise_operator(op.live_G(0), self._w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled,
-                          out=(self.Aq, self.osc), weights_host=self._w_host, first=first)
+        self._quantise(op, out=(self.Aq, self.osc), first=first)
+
+    def _quantise(self, op, out=None, first=0):
+        """:func:`quantise_operator` of ``op``'s phases with this operator's weights: from the phases it holds,
+        else formed and quantised :data:`_REFORM_BYTES_GPU` of phases at a time (the same pieces)."""
+        if op.G is not None:
+            return quantise_operator(op.live_G(0), self._w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled,
+                                     out=out, weights_host=self._w_host, first=first)
+        xp, wh = op.xp, self._w_host
+        C, K = int(wh.shape[0]), int(op.npix)
+        if out is None:
+            PA = 1 if wh.shape[-1] == 1 or bool(np.all(wh == wh[..., :1])) else int(wh.shape[-1])
+            out = (xp.empty(operand_shape(C, PA, K, op.nant_in, self.pieces, self.tiled), xp.int8),
+                   xp.empty((C, PA, _pad(K, 64)), xp.float32))
+        step = max(1, _REFORM_BYTES_GPU // (K * max(1, op.nant) * 8))
+        for c0 in range(0, C, step):
+            cs = slice(c0, min(C, c0 + step))
+            _, _, b, xmax = quantise_operator(op.phases(cs), self._w[cs], op.keep_index, op.nant_in, self.pieces,
+                                              tiled=self.tiled, out=(out[0][cs], out[1][cs]), weights_host=wh[cs],
+                                              first=first)
+        return out[0], out[1], b, xmax
 
     def can_reweight(self, w):
         """Whether weights ``w`` (C', A_kept, P) of the live channels fit this operator's pieces: one set for
