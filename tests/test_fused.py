@@ -470,7 +470,8 @@ def test_gpu_a_fused_operator_holds_no_phases_and_its_pieces_equal_the_whole_ope
     rng = np.random.default_rng(4)
     C, K, A = 9, 200, 48
     xyz, freq, lm = rng.normal(0, 20, (A, 3)), 60e6 + 25e3 * np.arange(C), rng.uniform(-0.5, 0.5, (K, 2))
-    w = np.ones((C, A, 2), np.complex64)
+    # gains, not unit weights: a solution folds in place only where both are (the routes chose by that)
+    w = (0.8 * np.exp(1j * rng.uniform(0, 6, (C, A, 1))) * np.ones((1, 1, 2))).astype(np.complex64)
     old = fused._REFORM_BYTES_GPU
     fused._REFORM_BYTES_GPU = 2 * K * A * 8          # two channels a chunk: five chunks, the last one short
     try:

@@ -372,8 +372,9 @@ class DFTOperator:
         return (None if G is None else G[:, None]), (None if b is None else b[:, :, 0, :].astype(self.cdtype))
 
     def repoint(self, pixels_lm, pattern=None, first=0):
-        """Point the operator's pixels at new directions, in place: the phases (and ``pattern``, given for
-        the new pixels as to the constructor) are formed again into the arrays that held them, with
+        """Point the operator's pixels at new directions, in place: the phases where it holds them (and
+        ``pattern``, given for the new pixels as to the constructor) are formed again into the arrays that
+        held them, with
         every form derived from them (the GEMMs' operands, the fused modes' int8 pieces, the routes'
         pattern factors), so routes made from this operator and the CUDA graphs replaying its images
         stay valid. A tracking imager moves its pixels this way (:class:`~..blocks.engines.DFTEngine`)
@@ -473,7 +474,8 @@ class DFTOperator:
         hxyz, hf = self._host_geometry
         chan = self._host["chan"]
         f = (hf if chan is None else hf[chan])[cs]
-        return _geometric_from_host(self.xp, hxyz, f, *self._host_pixels, "fp64" if self.precision == "fp64" else "fp32")
+        precision = "fp64" if self.precision == "fp64" else "fp32"
+        return _geometric_from_host(self.xp, hxyz, f, *self._host_pixels, precision)
 
     def _live_G(self, pol):
         if self.G is None:       # a route asks for the whole operator: formed now, and held from now on
