@@ -151,6 +151,8 @@ def wb_body():
     used = [u / 1e9 for t, u, h, dev in mem["samples"] if u > 0]
     steady = sorted(used)[len(used) // 4:3 * len(used) // 4]
     t_peak = max(mem["samples"], key=lambda s: s[1])[0]
+    lim = load("memory_station_gpu1_limit82.json")["samples"]
+    lim_dev, lim_used = max(s[3] for s in lim) / 1e9, max(s[1] for s in lim) / 1e9
     later = max(u / 1e9 for t, u, h, dev in mem["samples"] if t > t_peak + 2.0)
     out.append(f"### Case W2 whole, on {H200}\n")
     out.append(f"Both tunings at 784 channels, 64x64, live calibration, 10 watch targets (riding beside the grid), "
@@ -164,9 +166,11 @@ def wb_body():
                f"{later:.1f} GB at most while the live solutions were formed, and {max(used):.1f} GB once, "
                f"{t_peak:.1f} s after the start, while the blocks set up (`bf-epic plan` counts 70.9 GiB = 76.1 GB, the "
                "two solvers at their most at once among them). Before the operator let its phases go (commit 00a39d6, "
-               "0.655x flowing) they were 73.3-77.6 GB, and 84-85 GB at the solutions. The pool keeps what it freed: "
-               "flat and at most 76 GB as `nvidia-smi` sees it needs the start's transient gone and a pool limit, "
-               "not yet done. "
+               "0.655x flowing) they were 73.3-77.6 GB, and 84-85 GB at the solutions. The pool keeps what it freed, "
+               "up to the whole card; with CuPy's own limit, `CUPY_GPU_MEMORY_LIMIT=82000000000`, it lets go of "
+               f"freed blocks when it reaches it: the device's memory in use stayed at or below {lim_dev:.1f} GB "
+               f"through 20 s of data, the arrays in use at or below {lim_used:.1f} GB "
+               "([memory_station_gpu1_limit82.json](../bench/memory_station_gpu1_limit82.json)). "
                f"The host's resident set grew {r['rss_mib']['growth']:.0f} MiB. The bursts (DM 0.4, 300 Jy):\n")
     rows = [[b["tuning"], f"{b['dm_found']:.4f} ({b['dm_off_trials']:+.2f} trials)", f"{b['time_off_s'] * 1e3:+.1f}",
              f"{b['offset_cells']:.2f}", f"{b['snr']:.1f}"] for b in r["bursts"] if b.get("snr") is not None]
@@ -211,7 +215,8 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       "--json bench_wholeband_station_gpu1.json"],
      [("bench_wholeband_gpu.json", H100), ("bench_wholeband_gpu_all.json", H200X2),
       ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200),
-      ("bench_wholeband_station_gpu1_before.json", H200), ("memory_station_gpu1.json", H200)], wb_body)
+      ("bench_wholeband_station_gpu1_before.json", H200), ("memory_station_gpu1.json", H200),
+      ("memory_station_gpu1_limit82.json", H200)], wb_body)
 
 # ---------------------------------------------------------------- bench_search
 def search_body():
