@@ -71,8 +71,7 @@ def operator_bytes(nchan: int, npix: int, nant: int, precision: str, *, gpu: boo
     """
     import numpy as np
 
-    from . import fused
-    from .fused import PIECES, _pad, operand_bytes
+    from .fused import PIECES, operand_bytes, reform_channels
     from .gemm import STACKED, stack_operator
     nant_in = nant if nant_in is None else int(nant_in)
     cplx = 16 if precision == "fp64" else 8
@@ -80,9 +79,8 @@ def operator_bytes(nchan: int, npix: int, nant: int, precision: str, *, gpu: boo
     if gpu and precision in PIECES:
         parts["operands"] = operand_bytes(nchan, 2 if pols_differ else 1, npix, nant_in, PIECES[precision])
         # the phases of a chunk of channels at a time (FusedOperator._quantise), read by the quantising kernel
-        step = max(1, fused._REFORM_BYTES_GPU // (npix * max(1, nant) * 8))
         parts["phases"] = 0
-        parts["building"] = min(nchan, step) * npix * nant * 8
+        parts["building"] = min(nchan, reform_channels(npix, nant)) * npix * nant * 8
     elif gpu and precision in STACKED:
         probe = np.zeros((1, 8, 8), np.complex64)
         per = sum(p.nbytes for p in stack_operator(probe, precision)) / probe.size

@@ -108,6 +108,19 @@ _CHUNK_BYTES_GPU = 64 * 2**20
 _REFORM_BYTES_GPU = 256 * 2**20
 
 
+def pol_sets(weights_host) -> int:
+    """Sets of pieces an operator needs for host weights (C, A, P): one where the pols' weights agree
+    everywhere (or P = 1), else P."""
+    P = int(weights_host.shape[-1])
+    return 1 if P == 1 or bool(np.all(weights_host == weights_host[..., :1])) else P
+
+
+def reform_channels(npix, nant):
+    """Channels whose complex64 phases :class:`FusedOperator` forms at once where an operator does not hold
+    them (:data:`_REFORM_BYTES_GPU` of them, at least one)."""
+    return max(1, _REFORM_BYTES_GPU // (int(npix) * max(1, int(nant)) * 8))
+
+
 def operand_shape(C, PA, K, nant_in, pieces, tiled):
     """Shape of the int8 pieces :func:`quantise_operator` makes (int8: its bytes are its size): ``C``
     channels, ``PA`` pol sets, ``K`` pixels, ``nant_in`` input antennas; (C, PA, 2 Kpad/128, pieces, KD/128,
@@ -150,14 +163,12 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     xp = get_xp(G)
     C, K, Ak = (int(s) for s in G.shape)
     w = xp.asarray(weights)
-    P = int(w.shape[-1])
     # decided on the host (a few MB): on a GPU the whole-array test is a CUB reduction, whose
     # compilation costs seconds of a fresh process's first image
     wh = to_numpy(weights) if weights_host is None else np.asarray(weights_host)
-    shared = P == 1 or bool(np.all(wh == wh[..., :1]))
     # given arrays to write into, their pol sets (a chunk of channels whose pols' weights happen to agree
     # is written into the two sets of an operator whose other channels' do not)
-    PA = int(out[1].shape[1]) if out is not None else 1 if shared else P
+    PA = int(out[1].shape[1]) if out is not None else pol_sets(wh)
     Kpad, Apad = _pad(K, 64), _pad(nant_in, 64)          # rows a multiple of 128, KD of 128
     KD = 2 * Apad
     b, xmax = bases(pieces, KD)
@@ -478,10 +489,10 @@ class FusedOperator:
         xp, wh = op.xp, self._w_host
         C, K = int(wh.shape[0]), int(op.npix)
         if out is None:
-            PA = 1 if wh.shape[-1] == 1 or bool(np.all(wh == wh[..., :1])) else int(wh.shape[-1])
+            PA = pol_sets(wh)
             out = (xp.empty(operand_shape(C, PA, K, op.nant_in, self.pieces, self.tiled), xp.int8),
                    xp.empty((C, PA, _pad(K, 64)), xp.float32))
-        step = max(1, _REFORM_BYTES_GPU // (K * max(1, op.nant) * 8))
+        step = reform_channels(K, op.nant)
         for c0 in range(0, C, step):
             cs = slice(c0, min(C, c0 + step))
             _, _, b, xmax = quantise_operator(op.phases(cs), self._w[cs], op.keep_index, op.nant_in, self.pieces,
@@ -492,8 +503,7 @@ class FusedOperator:
     def can_reweight(self, w):
         """Whether weights ``w`` (C', A_kept, P) of the live channels fit this operator's pieces: one set for
         both pols (PA = 1) holds only weights the pols share."""
-        shared = w.shape[-1] == 1 or bool(np.all(w == w[..., :1]))
-        return int(self.osc.shape[1]) == (1 if shared else int(w.shape[-1]))
+        return int(self.osc.shape[1]) == pol_sets(w)
 
     def reweight(self, op):
         """The pieces for ``op``'s new weights (:meth:`.dft.DFTOperator.reweight`), written into the arrays
