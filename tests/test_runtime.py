@@ -177,8 +177,9 @@ def test_guaranteed_reader_loses_nothing_and_backpressures():
 
 def test_block_timing_counts_the_time_spent_in_on_data():
     """stats['process_s'] is the host time inside on_data (a sink that sleeps 4 ms a gulp spends at
-    least 50 x 4 ms there), first/last_data_at bracket the gulps, and the runner's block_timing
-    reports them after its start; blocks without them (real Bifrost) are left out."""
+    least 50 x 4 ms there), first/last_data_at bracket the gulps, first_done_at is the end of the first
+    (one 4-ms sleep after its start), and the runner's block_timing reports them after its start; blocks
+    without them (real Bifrost) are left out."""
     from bf_epic_blocks.pipeline.runner import block_timing
     x = np.arange(400 * 4, dtype=np.int32).reshape(400, 4)
     t0 = time.perf_counter()
@@ -189,10 +190,11 @@ def test_block_timing_counts_the_time_spent_in_on_data():
     st = sink.stats
     assert st['ngulp'] == 50 and 0.2 <= st['process_s'] <= time.perf_counter() - t0
     assert t0 < st['first_data_at'] < st['last_data_at'] and st['last_data_at'] - st['first_data_at'] >= 0.196
+    assert st['first_data_at'] + 0.004 <= st['first_done_at'] < st['last_data_at']
     bt = block_timing([src, sink, object()], t0)
     assert set(bt) == {src.name, sink.name}
     assert bt[sink.name]['ngulp'] == 50 and bt[sink.name]['process_s'] == round(st['process_s'], 4)
-    assert 0 < bt[sink.name]['first_data_s'] < bt[sink.name]['last_data_s']
+    assert 0 < bt[sink.name]['first_data_s'] < bt[sink.name]['first_done_s'] < bt[sink.name]['last_data_s']
 
 
 def test_unguaranteed_reader_skips_are_counted_and_zero_filled():
