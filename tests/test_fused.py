@@ -490,8 +490,13 @@ def test_gpu_a_fused_operator_holds_no_phases_and_its_pieces_equal_the_whole_ope
         assert op.reweight(w2)
         ref = whole(w2)
         assert cp.array_equal(op.fused.Aq, ref[0]) and cp.array_equal(op.fused.osc, ref[1]) and op.G is None
-        op.repoint(rng.uniform(-0.3, 0.3, (10, 2)), first=K - 10)
+        moved = rng.uniform(-0.3, 0.3, (10, 2))
+        op.repoint(moved, first=K - 10)
         ref = whole(w2)
         assert cp.array_equal(op.fused.Aq, ref[0]) and cp.array_equal(op.fused.osc, ref[1]) and op.G is None
+        # the phases it forms are the moved pixels' (not those it formed before the move), bit for bit
+        lm2 = np.concatenate([lm[:K - 10], moved])
+        assert cp.array_equal(op.phases(), imaging.geometric_operator(cp.asarray(xyz), cp.asarray(freq),
+                                                                      cp.asarray(lm2)))
     finally:
         fused._REFORM_BYTES_GPU = old

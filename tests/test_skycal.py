@@ -312,6 +312,60 @@ def test_the_diffuse_model_on_a_gpu_is_the_cpus(xp):
     assert np.abs(got - want).max() < 2e-5 * np.abs(want).max()
 
 
+def test_the_diffuse_model_s_gpu_form_in_small_chunks_is_the_cpus(monkeypatch):
+    """The GPU form's arithmetic (phases a channel at a time from the float64 path, GEMMs over the pixels),
+    run here with NumPy behind another namespace, against sky.diffuse's covariance, complex64 and
+    complex128."""
+    import types
+
+    from astropy.time import Time
+
+    from bf_epic_blocks.sky import model
+    from bf_epic_blocks.sky.diffuse import diffuse_covariance
+    st = lwasv()
+    f = np.array([38e6, 60e6, 74e6])
+    t = Time("2024-06-01T10:00:00")
+    want = diffuse_covariance(st.xyz_m, f, t, st.location, pattern="dipole")
+    ns = types.ModuleType("numpy_as_another_namespace")
+    ns.__dict__.update(np.__dict__)
+    monkeypatch.setattr(model, "DIFFUSE_CHUNK_BYTES", 1)          # one channel at a time
+    for dtype in (np.complex64, np.complex128):
+        got = model.diffuse_model(st.xyz_m, f, t, st.location, pattern="dipole", xp=ns, dtype=dtype)
+        assert got.dtype == dtype and got.shape == want.shape
+        assert np.abs(got - want).max() < 2e-6 * np.abs(want).max()
+
+
+@pytest.mark.gpu
+def test_gpu_the_diffuse_model_needs_its_output_and_its_chunks_only():
+    """A live solver's first diffuse model (64 channels of LWA-SV here, 784 on a station) adds at most its
+    output, the path and one chunk of phases to the GPU memory in use: it once formed float64 and complex128
+    copies of every 64 channels' phases (~8 GB), the station's highest peak."""
+    cp = pytest.importorskip("cupy")
+    if not cp.cuda.is_available():
+        pytest.skip("no GPU")
+    from astropy.time import Time
+
+    from bf_epic_blocks.sky import model
+    st = lwasv()
+    f = 74e6 + 25e3 * np.arange(64)
+    t = Time("2024-06-01T10:00:00")
+    pool = cp.get_default_memory_pool()
+    peak = [0]
+
+    def alloc(size):
+        p = pool.malloc(size)
+        peak[0] = max(peak[0], pool.used_bytes())
+        return p
+    base = pool.used_bytes()
+    cp.cuda.set_allocator(alloc)
+    try:
+        out = model.diffuse_model(st.xyz_m, f, t, st.location, pattern="dipole", xp=cp)
+    finally:
+        cp.cuda.set_allocator(pool.malloc)
+    extra = peak[0] - base - out.nbytes
+    assert extra <= model.DIFFUSE_CHUNK_BYTES + 64 * 2**20, extra / 2**20     # (+ the path, 34 MB)
+
+
 def test_covariance_sums_of_flagged_data_are_means_over_the_kept_samples(xp):
     """After interference flagging (whole short blocks of a stand zeroed), each baseline's mean is over
     the samples both its stands kept: the definition, summed here in float64 with the masks."""

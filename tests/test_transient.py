@@ -1203,3 +1203,43 @@ def test_a_row_reads_the_history_once_its_values_are_there_not_when_its_cluster_
         np.testing.assert_allclose([r["snr"], r["dm"]], [c["snr"], c["dm"]], rtol=1e-9)
     assert {valid[r["pixel"]] for r in point} >= {valid[3], valid[30]}
     assert srch._recent and all(r["snr_image"] is not None for r in srch._recent)     # the boxcar images held
+
+
+def test_an_event_s_window_statistics_read_its_one_series_not_the_whole_history():
+    """window_statistics (and box_image) of a window the circular history wraps: the one series' values,
+    as read from the whole history, with at most a few copies of that series' window allocated (a wrapped
+    read of every series first copied the whole history: ~5 GB a look on a station's GPU, the station's
+    out-of-memory under a pool limit)."""
+    import tracemalloc
+    rng = np.random.default_rng(3)
+    npix, W = 400, 24
+    s = TransientSearch(np.linspace(74e6, 80e6, 16), 1e-3, npix, W, dms=list(np.linspace(0, 0.3, 16)), max_batch=32)
+    assert s.nser >= 16
+    for _ in range(3 * s.capacity // 32 + 1):
+        s.push(rng.normal(10.0, 1.0, (32, 16, npix)).astype(np.float32))
+    ser = s.nser // 2
+
+    def wrapped():                                   # the latest window that wraps the history, if one is held
+        for n in range(s.nvalues - 1, 0, -1):
+            a = n - s.wmax - W + 1
+            if not s._held(a, n - s.wmax):
+                return None
+            if a % s.capacity + W > s.capacity:
+                return n, a
+    for _ in range(s.capacity):
+        if wrapped():
+            break
+        s.push(rng.normal(10.0, 1.0, (1, 16, npix)).astype(np.float32))
+    n, a = wrapped()
+    whole = s._ring_read(a, W)[ser].astype(np.float64)                        # every series read, then one
+    tracemalloc.start()
+    try:
+        mean, sigma = s.window_statistics(ser, n)
+        box = s.box_image(ser, n - s.wmax, W)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    ref = s._ref[ser].astype(np.float64)
+    assert np.allclose(mean, whole.mean(axis=0) + ref) and np.allclose(sigma, whole.std(axis=0, ddof=1))
+    assert np.allclose(box, whole.mean(axis=0) + ref)
+    assert peak <= 4 * W * npix * 8 + 200_000, (peak, s.nser * W * npix * s._hist.itemsize)

@@ -88,10 +88,12 @@ def operator_bytes(nchan: int, npix: int, nant: int, precision: str, *, gpu: boo
     return parts
 
 
-#: the sky solver's own peak (:func:`~.skycal.solve_gains`), in arrays of its covariances' shape and
-#: dtype, with and without a diffuse term: measured with tracemalloc at 16 channels and 64 antennas, 4.28
-#: and 3.28 in complex64 (a GPU's dtype), 4.03 and 3.03 in complex128 (the CPU's)
-SOLVE_PEAK_ARRAYS = {True: 4.3, False: 3.3}
+#: the sky solver's own peak (:func:`~.skycal.solve_gains`) beyond the model with its fitted diffuse term
+#: (one whole covariance where there is one), in covariances of one chunk of channels
+#: (:func:`~.skycal.solve_chunks`): measured with tracemalloc at 16 channels and 64 antennas in one chunk,
+#: 2.91 / 2.90 in complex64 (a GPU's dtype) and 2.66 / 2.64 in complex128 (the CPU's), with and without
+#: the diffuse term
+SOLVE_CHUNK_ARRAYS = 3.0
 
 
 def solver_bytes(nchan: int, nant: int, npol: int = 2, *, gpu: bool, diffuse: bool = True) -> dict:
@@ -103,12 +105,16 @@ def solver_bytes(nchan: int, nant: int, npol: int = 2, *, gpu: bool, diffuse: bo
       diffuse model (one array) where it is fitted;
     * ``working``: the most it adds, the larger of what summing adds (the integer Gram sums (npol, nchan,
       2 nant, 2 nant), int32 on a GPU, float64 on the CPU, while an integration is summed) and what forming
-      a solution adds (the sums' mean and the model, one array each, and the solver's own peak,
-      ``SOLVE_PEAK_ARRAYS``).
+      a solution adds (the sums' mean and the model, one array each, the model with its fitted diffuse
+      term where there is one, and the per-chunk steps' peak, ``SOLVE_CHUNK_ARRAYS`` covariances of one
+      chunk of channels).
     """
+    from .skycal import SOLVE_CHUNK_BYTES
     cplx = 8 if gpu else 16
-    cov = nchan * npol * nant * nant * cplx
+    per_chan = npol * nant * nant * cplx
+    cov = nchan * per_chan
+    chunk = min(nchan, max(1, SOLVE_CHUNK_BYTES // per_chan)) * per_chan
     held = cov + nchan * nant * nant * 8 + (cov if diffuse else 0)
     gram = npol * nchan * (2 * nant) ** 2 * (4 if gpu else 8)
-    solving = (2 + SOLVE_PEAK_ARRAYS[bool(diffuse)]) * cov
+    solving = (3 if diffuse else 2) * cov + SOLVE_CHUNK_ARRAYS * chunk
     return {"held": int(held), "working": int(max(gram, solving))}

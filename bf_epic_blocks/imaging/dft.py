@@ -139,14 +139,19 @@ def _geometric_from_host(xp, xyz, f, lm, n, precision):
     """:func:`geometric_operator` from geometry already checked on the host (:func:`_checked_geometry`'s
     float64 NumPy arrays), made in ``xp``: the operator's construction passes its own checked copies
     rather than device ones that would be copied back and checked again."""
+    return _geometric_from_path(xp, _path_m(xyz, lm, n), f, precision)
+
+
+def _geometric_from_path(xp, path, f, precision):
+    """:func:`geometric_operator` (nchan, npix, nant) in ``xp`` from the path differences ``path`` (:func:`_path_m`,
+    float64 (npix, nant), on the host or, for CuPy, already on the device) and host frequencies ``f``."""
     rdt, cdt = _check_precision(precision)
-    path = _path_m(xyz, lm, n)                                                    # (npix, nant) float64
     if xp.__name__ == "cupy":
         key = np.dtype(cdt).name
         if key not in _GEOM_KERNELS:
             _GEOM_KERNELS[key] = xp.ElementwiseKernel(*_GEOM_SRC[key], f"bf_geometric_{key}")
         fc = xp.asarray(f / SPEED_OF_LIGHT_M_S)[:, None, None]
-        out = xp.empty((f.shape[0], lm.shape[0], xyz.shape[0]), dtype=cdt)
+        out = xp.empty((f.shape[0],) + tuple(path.shape), dtype=cdt)
         _GEOM_KERNELS[key](xp.asarray(path)[None], fc, float(-SIGMA), out)
         return out
     cyc = (f[:, None, None] / SPEED_OF_LIGHT_M_S) * path[None]
@@ -336,6 +341,7 @@ class DFTOperator:
 
         self._host_geometry = (hxyz_kept, hf)          # float64 host copies: repoint() forms new phases from them
         self._host_pixels = (np.array(hlm), np.array(hn))
+        self._path_dev = None                           # the pixels' path differences on a GPU (phases())
         # The fused integer modes image from their int8 pieces alone: on a GPU the phases (4.8 GB at the
         # whole band) are not held but formed a chunk of channels at a time whenever the pieces are made
         # (here, a new gain solution, pixels moved), and whole only for a route that asks for them (live_G).
@@ -404,6 +410,7 @@ class DFTOperator:
             self.G[rows] = G
         self._host_pixels[0][first:] = hlm
         self._host_pixels[1][first:] = hn
+        self._path_dev = None
         if bp is not None:
             self.pixel_pattern[:, first:] = bp
         self.pixels_lm[first:] = xp.asarray(hlm)
@@ -475,7 +482,13 @@ class DFTOperator:
         chan = self._host["chan"]
         f = (hf if chan is None else hf[chan])[cs]
         precision = "fp64" if self.precision == "fp64" else "fp32"
-        return _geometric_from_host(self.xp, hxyz, f, *self._host_pixels, precision)
+        if self.xp.__name__ != "cupy":
+            return _geometric_from_host(self.xp, hxyz, f, *self._host_pixels, precision)
+        # on a GPU the path differences are formed and copied once per pixel set (6.7 MB at 3,264 pixels x
+        # 256 stands), not once per chunk: a solution's pieces are made ~20 chunks at a time
+        if self._path_dev is None:
+            self._path_dev = self.xp.asarray(_path_m(hxyz, *self._host_pixels))
+        return _geometric_from_path(self.xp, self._path_dev, f, precision)
 
     def _live_G(self, pol):
         if self.G is None:       # a route asks for the whole operator: formed now, and held from now on

@@ -196,6 +196,21 @@ def baseline_weights(xyz_m, freq_hz, min_baseline_lambda, xp=np):
     return xp.asarray(w)
 
 
+#: bytes of covariances (channels x pols x nant^2) the solver's per-channel steps (StEFCal, the diffuse
+#: term's scale, the health figures) take at a time: their temporaries are a few arrays of that size, so
+#: that a whole band's solve adds ~1 GB on a GPU rather than a few whole covariances (0.8 GB each at 784
+#: channels in complex64)
+SOLVE_CHUNK_BYTES = 128 * 2**20
+
+
+def solve_chunks(R):
+    """Slices of R's leading (channel) axis, each at most :data:`SOLVE_CHUNK_BYTES` of R (at least one
+    channel)."""
+    nchan = int(R.shape[0])
+    step = max(1, SOLVE_CHUNK_BYTES // max(1, R[:1].nbytes))
+    return [slice(c0, min(nchan, c0 + step)) for c0 in range(0, nchan, step)]
+
+
 def stefcal(R, M, W, g0=None, *, max_iter=200, tol=1e-6):
     """StEFCal (module docstring): gains g with R ~ g g^H (.) M where W > 0, batched.
 
@@ -321,18 +336,22 @@ def input_health(R, M, W, g, live):
     idx = xp.arange(nant)
     lv = xp.asarray(live).astype(R.real.dtype)                                              # (p, a)
     W4 = W[:, None] if W.ndim == 3 else W
-    Wl = W4 * lv[None, :, :, None] * lv[None, :, None, :]
-    fit = g[..., :, None] * xp.conj(g[..., None, :])
-    fit *= M
-    ref = xp.sum(Wl * _abs2(fit), axis=-1)
-    fit -= R                                                                                # -(the residual)
-    res = xp.sum(Wl * _abs2(fit), axis=-1)
-    del fit
+    ref = xp.empty(R.shape[:-1], R.real.dtype)
+    res = xp.empty(R.shape[:-1], R.real.dtype)
+    nbl = xp.empty(R.shape[:-1], xp.int64)
+    for cs in solve_chunks(R):                       # a few (nant, nant) temporaries a chunk of channels
+        Wl = (W4 if W4.shape[0] == 1 else W4[cs]) * lv[None, :, :, None] * lv[None, :, None, :]
+        fit = g[cs, ..., :, None] * xp.conj(g[cs, ..., None, :])
+        fit *= M[cs]
+        ref[cs] = xp.sum(Wl * _abs2(fit), axis=-1)
+        fit -= R[cs]                                                                        # -(the residual)
+        res[cs] = xp.sum(Wl * _abs2(fit), axis=-1)
+        nbl[cs] = xp.sum(Wl > 0, axis=-1)
+        del fit, Wl
     rel = xp.where(ref > 0, res / xp.where(ref > 0, ref, 1), np.inf)
     power = R[..., idx, idx].real
     amp = xp.abs(g)
     ppg = xp.where(amp > 0, power / xp.where(amp > 0, amp, 1) ** 2, np.inf)
-    nbl = xp.sum(Wl > 0, axis=-1)
     med = lambda a: _median0(a).T                                                           # (c, p, a) -> (a, p)
     return {"gain_amp": med(amp), "power": med(power), "power_per_gain": med(ppg), "residual": med(rel),
             "baselines": med(nbl)}
@@ -426,25 +445,36 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     mpow = _median0(xp.abs(M[..., idx, idx])).T                          # the point sources alone
     if not np.any(mpow > 0):
         raise ValueError("solve_gains: the model is empty (no source above the horizon, or zero flux)")
-    g = None if g0 is None else xp.asarray(g0).astype(R.dtype)
+    g = xp.ones((nchan, npol, nant), R.dtype) if g0 is None else xp.array(g0, dtype=R.dtype)
     iters = 0
     conv = np.zeros((nchan, npol), bool)
     Mp, scale = M, None
+    chunks = solve_chunks(R)
     if extra is not None:
         scale = xp.ones((nchan, npol), R.real.dtype) if extra_scale0 is None else \
             xp.asarray(extra_scale0).astype(R.real.dtype)
-        M = Mp + scale[..., None, None] * extra
+        M = xp.empty_like(Mp)                    # the model with the fitted term, formed a chunk at a time
+        for cs in chunks:
+            M[cs] = Mp[cs] + scale[cs, :, None, None] * extra[cs]
     for _ in range(rounds):
         good = reasons == ""
         live = xp.asarray(good.T)                                                           # (p, a)
-        Wl = W[:, None] * live[None, :, :, None] * live[None, :, None, :]
-        for _ in range(fits if extra is not None else 1):
-            g, it, conv = stefcal(R, M, Wl, g, max_iter=s.max_iter, tol=s.tol)
-            g = g * live[None]
-            iters += it
-            if extra is not None:
-                scale = fit_scale(R, Mp, extra, g, Wl)
-                M = Mp + scale[..., None, None] * extra
+        # channels are independent until the health figures: each chunk of channels runs its fits (StEFCal,
+        # alternating with the diffuse term's scale) on its own, so that their temporaries are a chunk's
+        most = 0
+        for cs in chunks:
+            Wl = W[cs, None] * live[None, :, :, None] * live[None, :, None, :]
+            n = 0
+            for _ in range(fits if extra is not None else 1):
+                gc, it, conv[cs] = stefcal(R[cs], M[cs], Wl, g[cs], max_iter=s.max_iter, tol=s.tol)
+                g[cs] = gc * live[None]
+                n += it
+                if extra is not None:
+                    scale[cs] = fit_scale(R[cs], Mp[cs], extra[cs], g[cs], Wl)
+                    M[cs] = Mp[cs] + scale[cs, :, None, None] * extra[cs]
+            most = max(most, n)
+            del Wl
+        iters += most
         h = input_health(R, M, W, g, good.T)
         new = np.zeros_like(good)
         amp_med = _robust_median(h["gain_amp"], good)

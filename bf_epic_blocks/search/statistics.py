@@ -576,7 +576,8 @@ class TransientSearch:
         a, b = n - self.wmax - self.window + 1, n - self.wmax
         if self._ref is None or not self._held(a, b):
             return None
-        v = self._ring_read(a, b - a + 1)[series].astype(self.xp.float64)        # (W, npix), offset
+        # the one series read (a wrapped window of every series would copy the whole history: ~5 GB)
+        v = self._ring_read(a, b - a + 1, slice(series, series + 1))[0].astype(self.xp.float64)   # (W, npix), offset
         ref = to_numpy(self._ref[series]).astype(np.float64)
         # reduced where the history lives: only (npix,) pairs cross to the host
         return to_numpy(v.mean(axis=0)) + ref, to_numpy(v.std(axis=0, ddof=1))
@@ -587,7 +588,7 @@ class TransientSearch:
         a = n_end - int(width) + 1
         if self._ref is None or not self._held(a, n_end):
             return None
-        v = to_numpy(self._ring_read(a, int(width))[series].astype(self.xp.float64).mean(axis=0))
+        v = to_numpy(self._ring_read(a, int(width), slice(series, series + 1))[0].astype(self.xp.float64).mean(axis=0))
         return v + to_numpy(self._ref[series]).astype(np.float64)
 
     def snr_by_series(self, pixel, n, first, last, slack=REFINE_SLACK, center=None):

@@ -14,11 +14,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..conventions import SIGMA
 from .catalogue import source_directions
 
 __all__ = ["SkyModel", "sky_model", "diffuse_model"]
 
 log = logging.getLogger(__name__)
+
+#: bytes of phases :func:`diffuse_model` forms at once on a GPU (the phases, their weighted copy, its
+#: conjugate and the GEMM's contiguous copy of its transpose: four arrays of channels x pixels x antennas)
+DIFFUSE_CHUNK_BYTES = 256 * 2**20
 
 
 @dataclass
@@ -83,10 +88,11 @@ def diffuse_model(xyz_m, freq_hz, time, location, *, pattern=None, xp=np, dtype=
     station sees on every baseline does not bias the gains. Pixels and baselines as
     :func:`.diffuse.diffuse_covariance` (no correlation beyond the array's core); the sums are complex
     GEMMs over the pixels where ``xp`` computes: :func:`.diffuse.diffuse_covariance` on the CPU, the same
-    sums as CuPy GEMMs on a GPU (which makes a whole band's in well under a second)."""
-    import math
-
-    from ..conventions import SPEED_OF_LIGHT_M_S
+    sums as CuPy GEMMs on a GPU (which makes a whole band's in well under a second). On a GPU the
+    phases are formed at most ``chunk`` channels and :data:`DIFFUSE_CHUNK_BYTES` at a time, in one
+    kernel from the float64 path (no float64 or complex128 intermediates): a whole band's model then
+    needs its output and ~0.3 GB more, not the ~10 GB of whole-chunk temporaries."""
+    from ..imaging.dft import _geometric_from_path
     from .diffuse import _resolve_grid, diffuse_covariance, diffuse_pixels
     if xp is np:
         return diffuse_covariance(xyz_m, freq_hz, time, location, pattern=pattern).astype(dtype or np.complex128)
@@ -94,20 +100,23 @@ def diffuse_model(xyz_m, freq_hz, time, location, *, pattern=None, xp=np, dtype=
     f = np.atleast_1d(np.asarray(freq_hz, np.float64))
     npix, bmax = _resolve_grid(xyz, f, None, None)
     lmn, flux, _ = diffuse_pixels(f, time, location, pattern=pattern, npix=npix)
-    dtype = dtype or (np.complex128 if xp is np else xp.complex64)
+    dtype = np.dtype(dtype or xp.complex64)
     nchan, npol, nant = f.size, flux.shape[1], xyz.shape[0]
-    path = xp.asarray(xyz @ lmn.T)                                                 # (nant, npix) metres
+    # exp(+2 pi i nu/c (r_a . s)) per (pixel, antenna): the geometric operator's kernel, exp(-SIGMA 2 pi i
+    # nu/c path), of path -SIGMA (r_a . s)
+    path = xp.asarray(-SIGMA * (lmn @ xyz.T))                                       # (npix, nant) metres
+    precision = "fp64" if dtype == np.complex128 else "fp32"
+    step = max(1, min(int(chunk), DIFFUSE_CHUNK_BYTES // (4 * lmn.shape[0] * nant * dtype.itemsize)))
     out = xp.empty((nchan, npol, nant, nant), dtype)
-    for c0 in range(0, nchan, chunk):
-        c1 = min(nchan, c0 + chunk)
-        # cycles in float64 where the sums are made, reduced before the exponential
-        cyc = path[None] * xp.asarray(f[c0:c1, None, None] / SPEED_OF_LIGHT_M_S)
-        cyc -= xp.rint(cyc)
-        a = xp.exp(2j * math.pi * cyc).astype(dtype)                                   # (c, nant, npix)
+    for c0 in range(0, nchan, step):
+        c1 = min(nchan, c0 + step)
+        a = _geometric_from_path(xp, path, f[c0:c1], precision)                    # (c, npix, nant)
         for p in range(npol):
             amp = xp.asarray(np.sqrt(flux[c0:c1, p] / 2.0)).astype(a.real.dtype)       # (c, npix)
-            m = a * amp[:, None, :]
-            out[c0:c1, p] = xp.matmul(m, xp.conj(m).swapaxes(-1, -2))
+            m = a * amp[:, :, None]
+            out[c0:c1, p] = xp.matmul(m.swapaxes(-1, -2), xp.conj(m))              # sum over pixels: a_i a_j^*
+            del m
+    del a
     d = np.sqrt(((xyz[:, None] - xyz[None]) ** 2).sum(-1))
     far = d > bmax
     np.fill_diagonal(far, False)

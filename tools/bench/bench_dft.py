@@ -14,7 +14,11 @@ max |I - I_ref| / max |I_ref| against a float64 evaluation of the definition on 
   * ``previous``: another release's DFTOperator, when ``--previous DIR`` points at a folder holding
     a copy of that package named ``bf_epic_prev``;
   * ``floor-f32`` / ``floor-f16`` (GPU, high-cadence regime): cuBLAS' fp16 GEMM alone on the direct
-    route's stacked shapes with fp32 / fp16 output -- what the regime would cost if |F|^2 were free.
+    route's stacked shapes with fp32 / fp16 output -- what the regime would cost if |F|^2 were free;
+  * ``floor-i8x2`` (GPU, high-cadence regime): cuBLAS' int8 GEMM (int32 sums and output) with the MACs
+    of the i8x2 mode: the stacked shapes (pixels and antennas padded to 64, as the fused kernel's) with K
+    doubled for the two pieces -- the integer floor. Its int32 field (0.86 GB a gulp) is written, which
+    the fused kernel never does.
 The fused integer modes (i8x2, i8x3: 4-bit voltages, direct route) have no covariance or cf32 rows;
 their hard scenes are the same scenes quantised to 4 bits.
 
@@ -72,9 +76,10 @@ def naive_direct(xp, G, X, n):
 
 
 def gemm_floor(xp, nchan, npix, nant, ncol, run, repeat):
-    """[(name, seconds)]: cuBLAS' batched fp16 GEMM alone on the direct route's stacked shapes,
+    """[(name, precision, seconds)]: cuBLAS' batched fp16 GEMM alone on the direct route's stacked shapes,
     (nchan, 2 npix, 2 nant) . (nchan, 2 nant, ncol), fp32 accumulation, with fp32 and fp16 output --
-    what regime B would cost if the |F|^2 sums were free (the issue's floor row)."""
+    what regime B would cost if the |F|^2 sums were free (the issue's floor row); and cuBLAS' int8 GEMM
+    with the i8x2 mode's MACs, (nchan, 2 npix, 4 nant) . (nchan, 4 nant, ncol), int32 sums and output."""
     from bf_epic_blocks.imaging import gemm as G
     # operands like the real ones (unit-modulus phases, 4-bit integers): all-ones operands run the
     # tensor cores at a higher clock and flatter the floor
@@ -85,8 +90,22 @@ def gemm_floor(xp, nchan, npix, nant, ncol, run, repeat):
     for name, dt, ot in (("floor-f32", xp.float32, G._CUDA_R_32F), ("floor-f16", xp.float16, G._CUDA_R_16F)):
         c = xp.empty((nchan, 2 * npix, ncol), dt)
         t, _ = run(lambda: G._gemm_ex(a, b, c, G._CUDA_R_16F, ot, G._COMPUTE["fp32"], np.float32, 0), repeat)
-        out.append((name, t))
+        out.append((name, "fp16", t))
         del c
+    # int8: row-major (nchan, m, k) . (nchan, n, k)^T -> (nchan, n, m) int32, as cuBLAS' column-major
+    # C (m x n) = A^T B with both operands K-contiguous (the layout its int8 kernels take); pixels and
+    # antennas padded to 64 as the fused kernel pads them (cuBLAS' int8 kernels want m a multiple of 16:
+    # 2 x 3,205 rows take a slower one, 3.1x the time on an H200)
+    m, k = 2 * (-(-npix // 64) * 64), 4 * (-(-nant // 64) * 64)
+    a8 = rng.integers(-127, 128, (nchan, m, k), dtype=xp.int8)
+    b8 = rng.integers(-8, 8, (nchan, ncol, k), dtype=xp.int8)
+    c8 = xp.empty((nchan, ncol, m), xp.int32)
+    one, zero = np.array(1, np.int32), np.array(0, np.int32)
+    args = (G._OP_T, G._OP_N, m, ncol, k, one.ctypes.data, a8.data.ptr, G._CUDA_R_8I, k, m * k, b8.data.ptr,
+            G._CUDA_R_8I, k, ncol * k, zero.ctypes.data, c8.data.ptr, G._CUDA_R_32I, m, m * ncol, nchan,
+            G._COMPUTE_32I, G._GEMM_DEFAULT)
+    t, _ = run(lambda: G._call_gemm(args), repeat)
+    out.append(("floor-i8x2", "i8", t))
     return out
 
 
@@ -116,6 +135,7 @@ def main(argv=None):
     ap.add_argument("--ntime", type=int, default=1024)
     ap.add_argument("--grids", type=int, nargs="+", default=None, help="grid sizes (default 64 128 256 on gpu)")
     ap.add_argument("--repeat", type=int, default=None)
+    ap.add_argument("--precisions", nargs="+", default=None, help="precisions to time (default: every one available)")
     ap.add_argument("--nref", type=int, default=200, help="pixels in the float64 reference subset")
     ap.add_argument("--previous", default=None, help="folder holding the previous release as package bf_epic_prev")
     ap.add_argument("--table", action="store_true", help="rewrite the package's measured.json from this run")
@@ -128,7 +148,7 @@ def main(argv=None):
     npol = a.npol or (2 if gpu else 1)
     repeat = a.repeat or (20 if gpu else 5)
     grids = a.grids or ([64, 128, 256] if gpu else [64])
-    precisions = [p for p in PRECISIONS if precision_available(p, xp)]
+    precisions = [p for p in PRECISIONS if precision_available(p, xp) and (a.precisions is None or p in a.precisions)]
     prev = None
     if a.previous:
         import_package(a.previous, "bf_epic_prev")
@@ -228,8 +248,8 @@ def main(argv=None):
         t_naive_dir, img = run(lambda: naive_direct(xp, G, Xd, n), repeat)
         row(grid_n, "x64", "naive-dir", "fp32", "cf32", t_naive_dir, rel(img[..., sub], refn))
         if gpu:   # the floor: cuBLAS' fp16 GEMM alone for the same shapes, the field written and nothing else
-            for name, t in gemm_floor(xp, nchan, grid.npix, len(xyz), npol * a.ntime, run, repeat):
-                row(grid_n, "x64", name, "fp16", "ci4", t, float("nan"), base=t_naive_dir)
+            for name, prec, t in gemm_floor(xp, nchan, grid.npix, len(xyz), npol * a.ntime, run, repeat):
+                row(grid_n, "x64", name, prec, "ci4", t, float("nan"), base=t_naive_dir)
         t_prev64 = None
         if prev is not None:
             pop = prev.DFTOperator(xyzd, fd, lmd, npol=npol, precision="fp32")
