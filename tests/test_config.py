@@ -467,3 +467,37 @@ def test_the_fused_integer_modes_are_refused_where_they_cannot_image(tmp_path):
             load_config(base, extra)
     with pytest.raises(ConfigError, match="tensor cores"):
         load_config(base, ["device=cpu"])
+
+
+def test_gpu_memory_gb_limits_the_pool_of_each_gpu_the_run_uses():
+    """gpu_memory_gb: CuPy's default pool limited on every GPU a (station's) configuration uses, in 1e9
+    bytes; nothing on the CPU or without it; a bad value is a clear error."""
+    from types import SimpleNamespace
+
+    from bf_epic_blocks.pipeline.runner import limit_gpu_pools
+    limits, current = {}, [None]
+
+    class Device:
+        def __init__(self, i):
+            self.i = i
+
+        def __enter__(self):
+            current[0] = self.i
+
+        def __exit__(self, *a):
+            current[0] = None
+
+    pool = SimpleNamespace(set_limit=lambda size: limits.__setitem__(current[0], size))
+    fake = SimpleNamespace(cuda=SimpleNamespace(Device=Device), get_default_memory_pool=lambda: pool)
+    cfg = load_config("source: {kind: simulated}\ndevice: gpu:1\ngpu_memory_gb: 75")
+    assert cfg["gpu_memory_gb"] == 75.0
+    assert limit_gpu_pools(cfg, cupy=fake) == {1: 75_000_000_000} and limits == {1: 75_000_000_000}
+    limits.clear()
+    station = {"gpu_memory_gb": 12.5, "tunings": [{"device": "gpu:0"}, {"device": "gpu:2"}]}
+    assert limit_gpu_pools(station, cupy=fake) == {0: 12_500_000_000, 2: 12_500_000_000} and len(limits) == 2
+    limits.clear()
+    assert limit_gpu_pools(load_config("source: {kind: simulated}\ngpu_memory_gb: 75"), cupy=fake) == {}   # the CPU
+    assert limit_gpu_pools(load_config("source: {kind: simulated}\ndevice: gpu"), cupy=fake) == {} and not limits
+    for bad in ("0", "-3", "lots"):
+        with pytest.raises(ConfigError, match="gpu_memory_gb"):
+            load_config(f"source: {{kind: simulated}}\ngpu_memory_gb: {bad}")

@@ -957,6 +957,12 @@ SCHEMA = Section({
                       "imager's work as `imager.split` says. On GPUs, with no gains table and a file or "
                       "simulated source, the dft imager folds the cable terms into its operator; "
                       "`calibration.gains_table` needs a single device."),
+    "gpu_memory_gb": Key(Float(0.0, lo_open=True), None,
+                         doc="The most CuPy's memory pool holds on each GPU the run uses, in GB (1e9 bytes): the "
+                             "pool lets go of the blocks it keeps when it reaches it (CuPy's `set_limit`, what "
+                             "`CUPY_GPU_MEMORY_LIMIT` does for a whole process), and an allocation beyond it "
+                             "fails the run with a clear error. CUDA's own context (~0.6 GB) comes on top. "
+                             "null: no limit (the pool keeps what it frees, up to the whole card)."),
     "watch": Key(Section({
         "targets": Key(WatchTargets(), REQUIRED,
                        doc="The watched directions: catalogue names (CygA, CasA, TauA, VirA), bodies (sun, moon, "

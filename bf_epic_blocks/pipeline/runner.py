@@ -990,6 +990,43 @@ def seed_kernels(cfg):
     return got
 
 
+def gpu_devices(cfg) -> list[int]:
+    """The GPU indices a (station's) configuration runs on: [] on the CPU."""
+    out = set()
+    for tc in cfg.get("tunings") or [cfg]:
+        dev = str(tc["device"])
+        if dev == "cpu":
+            continue
+        spec = dev.split(":")[1] if ":" in dev else "0"
+        if spec == "all" or "," in spec:
+            from ..imaging.multigpu import resolve_devices
+            out.update(resolve_devices("all" if spec == "all" else [int(i) for i in spec.split(",")]))
+        else:
+            out.add(int(spec))
+    return sorted(out)
+
+
+def limit_gpu_pools(cfg, cupy=None):
+    """``gpu_memory_gb``: CuPy's default memory pool on each GPU the run uses limited to it (logged);
+    returns {device: bytes} ({} without a limit or a GPU)."""
+    gb = cfg.get("gpu_memory_gb")
+    if gb is None:
+        return {}
+    devs = gpu_devices(cfg)
+    if not devs:
+        return {}
+    if cupy is None:
+        import cupy
+    size = int(round(float(gb) * 1e9))
+    done = {}
+    for d in devs:
+        with cupy.cuda.Device(d):
+            cupy.get_default_memory_pool().set_limit(size=size)
+        done[d] = size
+    log.info("gpu_memory_gb: CuPy's memory pool limited to %.3g GB on GPU %s", gb, ", ".join(map(str, devs)))
+    return done
+
+
 def run(cfg, show_progress=None, parts=None, service_ready=None):
     """Build and run the pipeline; returns a summary dict (files written, frame counts, timing).
     ``parts``: see :func:`build_graph`. With ``service:``, the HTTP service runs beside it
@@ -997,6 +1034,7 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
     several tunings (``tunings:``) runs them together (:func:`run_station`)."""
     if parts is None:
         seed_kernels(cfg)
+        limit_gpu_pools(cfg)
     if cfg.get("tunings") and parts is None:
         return run_station(cfg, show_progress=show_progress, service_ready=service_ready)
     if cfg.get("service"):
@@ -1334,7 +1372,10 @@ def plan(cfg):
         per_device = {}
         for tc, (d, _) in zip(cfg["tunings"], plans.values()):
             per_device[tc["device"]] = per_device.get(tc["device"], 0) + sum(d.get("memory_bytes", {}).values())
+        lim = cfg.get("gpu_memory_gb")
         lines = [f"station {cfg['name']}: {len(plans)} tunings; memory on {dev}: about {_gib(b)}"
+                 + ("" if lim is None or dev == "cpu" else
+                    f" (its pool limited to {lim:g} GB by gpu_memory_gb{'' if b <= lim * 1e9 else ': ABOVE IT'})")
                  for dev, b in per_device.items()]
         return ({"name": cfg["name"], "tunings": {k: d for k, (d, _) in plans.items()},
                  "memory_bytes_per_device": per_device},

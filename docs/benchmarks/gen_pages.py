@@ -147,31 +147,33 @@ def wb_body():
                      f"{e['time_off_s'] * 1e3:+.1f}", "", f"{e['snr']:.1f}"])
     out.append(table(["seen by", "DM (truth 0.05)", "time off ms", "cells off", "S/N"], rows) + "\n")
     d = load("bench_wholeband_station_gpu1.json"); r = d["run"]
-    mem = load("memory_station_gpu1.json")
-    used = [u / 1e9 for t, u, h, dev in mem["samples"] if u > 0]
-    steady = sorted(used)[len(used) // 4:3 * len(used) // 4]
-    t_peak = max(mem["samples"], key=lambda s: s[1])[0]
-    lim = load("memory_station_gpu1_limit82.json")["samples"]
-    lim_dev, lim_used = max(s[3] for s in lim) / 1e9, max(s[1] for s in lim) / 1e9
-    later = max(u / 1e9 for t, u, h, dev in mem["samples"] if t > t_peak + 2.0)
+    al = load("memory_station_gpu1_allocs.json")
+    pb, pa = al["before"], al["after"]
+    mid = [v for k, v in pa["per_second_max_gb"].items() if 20 <= int(k) <= 100]
     out.append(f"### Case W2 whole, on {H200}\n")
     out.append(f"Both tunings at 784 channels, 64x64, live calibration, 10 watch targets (riding beside the grid), "
-               f"{r['data_s']:.0f} s of data (commit {d['commit']}, {r['kernels_compiled']} kernels compiled during the "
-               f"run): **{r['rt_flowing']:.3f}x** real time flowing ({r['rt_whole']:.3f}x the whole run, first images after "
-               f"{r['first_images_at_s']:.1f} s). Case W2 needs 1.0x on one H100: it is not there. The GPU's memory as "
-               f"`nvidia-smi` sees it, {r['gpu_mib']['first']:.0f}-{r['gpu_mib']['peak']:.0f} MiB, is mostly what CuPy's "
-               f"pool keeps of what it freed; the arrays in use, sampled in the process every 0.2 s through "
-               f"{mem['sets'][1].split('=')[1]} s of data ([memory_station_gpu1.json](../bench/memory_station_gpu1.json), "
-               f"commit {mem['commit']}), were {steady[0]:.1f}-{steady[-1]:.1f} GB for the middle half of the samples, "
-               f"{later:.1f} GB at most while the live solutions were formed, and {max(used):.1f} GB once, "
-               f"{t_peak:.1f} s after the start, while the blocks set up (`bf-epic plan` counts 70.9 GiB = 76.1 GB, the "
-               "two solvers at their most at once among them). Before the operator let its phases go (commit 00a39d6, "
-               "0.655x flowing) they were 73.3-77.6 GB, and 84-85 GB at the solutions. The pool keeps what it freed, "
-               "up to the whole card; with CuPy's own limit, `CUPY_GPU_MEMORY_LIMIT=82000000000`, it lets go of "
-               f"freed blocks when it reaches it: the device's memory in use stayed at or below {lim_dev:.1f} GB "
-               f"through 20 s of data, the arrays in use at or below {lim_used:.1f} GB "
-               "([memory_station_gpu1_limit82.json](../bench/memory_station_gpu1_limit82.json)). "
-               f"The host's resident set grew {r['rss_mib']['growth']:.0f} MiB. The bursts (DM 0.4, 300 Jy):\n")
+               f"{r['data_s']:.0f} s of data (commit {d['commit']}, CuPy's pool limited to 75 GB by "
+               f"`CUPY_GPU_MEMORY_LIMIT={d['environment']['CUPY_GPU_MEMORY_LIMIT']}`, {r['kernels_compiled']} kernels "
+               f"compiled during the run): **{r['rt_flowing']:.3f}x** real time flowing ({r['rt_whole']:.3f}x the whole "
+               f"run, first images after {r['first_images_at_s']:.1f} s). Case W2 needs 1.0x on one H100: it is not "
+               f"there. The GPU's memory as `nvidia-smi` sees it (CUDA's context included) was "
+               f"{r['gpu_mib']['first']:.0f} MiB at the start, {r['gpu_mib']['peak']:.0f} MiB "
+               f"({r['gpu_mib']['peak'] * 2**20 / 1e9:.1f} GB) at most and {r['gpu_mib']['growth']:+.0f} MiB at the end: "
+               "within the 76 GB asked, and flat. Without the limit the pool keeps what it frees, up to the whole card.\n")
+    out.append(f"Where the peaks were ([memory_station_gpu1_allocs.json](../bench/memory_station_gpu1_allocs.json): "
+               "CuPy's pool in use every 5 ms and every allocation of 32 MiB or more, 14 s of data): at commit "
+               f"{pb['commit']} the arrays in use reached {pb['peak_in_use_gb']:.1f} GB {pb['peak_at_s']:.1f} s after "
+               "the start, the live solver's first diffuse model (float64 and complex128 copies of 64 channels' "
+               "phases, up to ~10 GB) while both searches allocated their state; each solve added ~4 GB "
+               "(StEFCal's and the scale fit's whole-band temporaries); and each event's window statistics copied "
+               "the whole search history (4.7-5.0 GB) whenever the window wrapped it, the allocation that failed "
+               "under a 75-GB limit. With the diffuse model and the solve made by chunks of channels "
+               f"(commit {pa['commit']}, before the one-series read) the peak was {pa['peak_in_use_gb']:.1f} GB, "
+               f"{min(mid):.1f}-{max(mid):.1f} GB through the run (per-second maxima); `bf-epic plan` counts 66.6 GiB "
+               "(71.5 GB), both solvers at their most at once among them.\n")
+    out.append(f"The host's resident set grew {r['rss_mib']['growth']:.0f} MiB (the last quarter's peak over the "
+               f"first's; {r['rss_mib']['first']:.0f} to {r['rss_mib']['peak']:.0f} MiB), ~4 MiB/s through the middle "
+               "of the run: not flat, cause not found. The bursts (DM 0.4, 300 Jy):\n")
     rows = [[b["tuning"], f"{b['dm_found']:.4f} ({b['dm_off_trials']:+.2f} trials)", f"{b['time_off_s'] * 1e3:+.1f}",
              f"{b['offset_cells']:.2f}", f"{b['snr']:.1f}"] for b in r["bursts"] if b.get("snr") is not None]
     for e in r["station_events"]["bursts"]:
@@ -186,12 +188,11 @@ def wb_body():
                "hundred ms of 4.7, 24, 36 and 38.5 s) and scattered over the sky. Gaussian noise would make ~0.04 "
                "above 7.5 in the 1.3e12 trials a tuning searches, so the low tuning's statistics are not Gaussian "
                "at those times; what makes them is not yet known.\n")
-    old = load("bench_wholeband_station_gpu1_before.json")["run"]
+    old = load("bench_wholeband_station_gpu1_before.json")
     out.append(f"Before ([bench_wholeband_station_gpu1_before.json](../bench/bench_wholeband_station_gpu1_before.json), "
-               f"{old['data_s']:.0f} s, a watch imager of their own): {old['rt_flowing']:.3f}x flowing. With the "
-               "directions riding beside the grid the station ran at 0.297x, until each gulp's placement stopped "
-               "reading its index back from the device (a wait for both tunings' queued images); `bf-epic plan` "
-               "counted 107.2 GiB before each candidate's look-back was read as soon as its values were searched.\n")
+               f"commit {old['commit']}, no limit): {old['run']['rt_flowing']:.3f}x flowing; `nvidia-smi` "
+               f"{old['run']['gpu_mib']['first']:.0f}-{old['run']['gpu_mib']['peak']:.0f} MiB, mostly the pool's cache. "
+               "Under a 75-GB limit the code before this record's changes (commit 5511414) ran out of memory.\n")
     return "\n".join(out)
 page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and searched",
      "`bf-epic run pipelines/lwasv_sim_wholeband.yaml` (one LWA-SV tuning: 784 channels at 74.0–93.6 MHz, a "
