@@ -501,3 +501,20 @@ def test_gpu_memory_gb_limits_the_pool_of_each_gpu_the_run_uses():
     for bad in ("0", "-3", "lots"):
         with pytest.raises(ConfigError, match="gpu_memory_gb"):
             load_config(f"source: {{kind: simulated}}\ngpu_memory_gb: {bad}")
+
+
+def test_a_run_refuses_what_does_not_fit_gpu_memory_gb():
+    """gpu_memory_gb bounds what a GPU configuration may need, before anything is allocated: one pipeline's
+    plan, and a station's tunings on one GPU together (66.6 GiB for lwasv_sim_station: 75 GB holds them,
+    60 GB does not), each refused with a clear error naming the limit."""
+    from bf_epic_blocks.pipeline import runner
+    cfg = load_config("pipelines/lwasv_sim_station.yaml", ["device=gpu"])
+    assert cfg["gpu_memory_gb"] == 75.0
+    runner.check_station_fits(cfg)                                   # 71.5 GB <= 75 GB
+    with pytest.raises(ValueError, match=r"gpu:0 need about 66.6 GiB together.*gpu_memory_gb: 60"):
+        runner.check_station_fits(load_config("pipelines/lwasv_sim_station.yaml", ["device=gpu", "gpu_memory_gb=60"]))
+    runner.check_station_fits(load_config("pipelines/lwasv_sim_station.yaml", ["device=gpu:all", "gpu_memory_gb=60"]))
+    one = load_config("pipelines/lwasv_sim_wholeband.yaml", ["device=gpu", "gpu_memory_gb=10"])
+    with pytest.raises(ValueError, match=r"CuPy's pool \(gpu_memory_gb: 10\)"):
+        runner.check_fits(one)
+    runner.check_fits(load_config("pipelines/lwasv_sim_wholeband.yaml", ["device=gpu", "gpu_memory_gb=60"]))

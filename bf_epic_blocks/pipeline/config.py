@@ -961,7 +961,9 @@ SCHEMA = Section({
                          doc="The most CuPy's memory pool holds on each GPU the run uses, in GB (1e9 bytes): the "
                              "pool lets go of the blocks it keeps when it reaches it (CuPy's `set_limit`, what "
                              "`CUPY_GPU_MEMORY_LIMIT` does for a whole process), and an allocation beyond it "
-                             "fails the run with a clear error. CUDA's own context (~0.6 GB) comes on top. "
+                             "fails the run with a clear error; `run` refuses a configuration whose plan needs "
+                             "more (a station's tunings on one GPU together). CUDA's own context (~0.6 GB) "
+                             "comes on top. "
                              "null: no limit (the pool keeps what it frees, up to the whole card)."),
     "watch": Key(Section({
         "targets": Key(WatchTargets(), REQUIRED,

@@ -1098,6 +1098,7 @@ def run_station(cfg, show_progress=None, service_ready=None):
     t0, t0_unix = time.perf_counter(), time.time()
     for tc in tunings:
         check_fits(tc)
+    check_station_fits(cfg)
     graphs = []
     for tc in tunings:
         graphs.append(build_graph(tc, progress=None if bar is None else bar.update))
@@ -1526,6 +1527,20 @@ def check_fits(cfg):
         plan(cfg)
 
 
+def check_station_fits(cfg):
+    """Refuse a station whose tunings on one GPU need together more than ``gpu_memory_gb`` (:func:`plan`'s
+    estimates, each tuning at its most at once): a ValueError naming the device, the need and the limit."""
+    gb = cfg.get("gpu_memory_gb")
+    if gb is None or any(tc["source"]["kind"] == "udp" for tc in cfg["tunings"]):
+        return
+    per_device = plan(cfg)[0]["memory_bytes_per_device"]
+    for dev, need in per_device.items():
+        if dev != "cpu" and need > gb * 1e9:
+            raise ValueError(f"{cfg['name']}: the tunings on {dev} need about {_gib(need)} together, more than "
+                             f"CuPy's pool may hold (gpu_memory_gb: {gb:g}, {_gib(gb * 1e9)}): raise gpu_memory_gb, "
+                             "or put the tunings on GPUs of their own (device: gpu:all)")
+
+
 def _gib(b):
     return f"{b / 2**30:.1f} GiB" if b >= 2**30 else f"{b / 2**20:.1f} MiB"
 
@@ -1560,6 +1575,9 @@ def _memory_check(cfg, dev, mem):
     memory than the device has: a clear error naming the need, its parts and what the machine has,
     before anything large is allocated. Returns (available bytes or None, where)."""
     have, where = available_memory(dev)
+    gb = cfg.get("gpu_memory_gb")
+    if dev in ("gpu", "gpus") and gb is not None and (have is None or gb * 1e9 < have):
+        have, where = int(gb * 1e9), f"CuPy's pool (gpu_memory_gb: {gb:g})"
     need = sum(mem.values())
     if have is not None and need > have:
         parts = ", ".join(f"{k} {_gib(v)}" for k, v in sorted(mem.items(), key=lambda kv: -kv[1]) if v)
