@@ -341,7 +341,7 @@ class DFTOperator:
 
         self._host_geometry = (hxyz_kept, hf)          # float64 host copies: repoint() forms new phases from them
         self._host_pixels = (np.array(hlm), np.array(hn))
-        self._path_dev = None                           # the pixels' path differences on a GPU (phases())
+        self._path = None                               # the pixels' path differences, where phases() forms them
         # The fused integer modes image from their int8 pieces alone: on a GPU the phases (4.8 GB at the
         # whole band) are not held but formed a chunk of channels at a time whenever the pieces are made
         # (here, a new gain solution, pixels moved), and whole only for a route that asks for them (live_G).
@@ -410,7 +410,7 @@ class DFTOperator:
             self.G[rows] = G
         self._host_pixels[0][first:] = hlm
         self._host_pixels[1][first:] = hn
-        self._path_dev = None
+        self._path = None
         if bp is not None:
             self.pixel_pattern[:, first:] = bp
         self.pixels_lm[first:] = xp.asarray(hlm)
@@ -482,13 +482,11 @@ class DFTOperator:
         chan = self._host["chan"]
         f = (hf if chan is None else hf[chan])[cs]
         precision = "fp64" if self.precision == "fp64" else "fp32"
-        if self.xp.__name__ != "cupy":
-            return _geometric_from_host(self.xp, hxyz, f, *self._host_pixels, precision)
-        # on a GPU the path differences are formed and copied once per pixel set (6.7 MB at 3,264 pixels x
+        # the path differences formed (and copied to the GPU) once per pixel set (6.7 MB at 3,264 pixels x
         # 256 stands), not once per chunk: a solution's pieces are made ~20 chunks at a time
-        if self._path_dev is None:
-            self._path_dev = self.xp.asarray(_path_m(hxyz, *self._host_pixels))
-        return _geometric_from_path(self.xp, self._path_dev, f, precision)
+        if self._path is None:
+            self._path = self.xp.asarray(_path_m(hxyz, *self._host_pixels))
+        return _geometric_from_path(self.xp, self._path, f, precision)
 
     def _live_G(self, pol):
         if self.G is None:       # a route asks for the whole operator: formed now, and held from now on

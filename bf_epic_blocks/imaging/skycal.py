@@ -463,7 +463,7 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
         # alternating with the diffuse term's scale) on its own, so that their temporaries are a chunk's
         most = 0
         for cs in chunks:
-            Wl = W[cs, None] * live[None, :, :, None] * live[None, :, None, :]
+            Wl = (W if W.shape[0] == 1 else W[cs])[:, None] * live[None, :, :, None] * live[None, :, None, :]
             n = 0
             for _ in range(fits if extra is not None else 1):
                 gc, it, conv[cs] = stefcal(R[cs], M[cs], Wl, g[cs], max_iter=s.max_iter, tol=s.tol)

@@ -992,17 +992,16 @@ def seed_kernels(cfg):
 
 def gpu_devices(cfg) -> list[int]:
     """The GPU indices a (station's) configuration runs on: [] on the CPU."""
+    from .config import parse_device, several_gpus
     out = set()
     for tc in cfg.get("tunings") or [cfg]:
         dev = str(tc["device"])
-        if dev == "cpu":
-            continue
-        spec = dev.split(":")[1] if ":" in dev else "0"
-        if spec == "all" or "," in spec:
+        if several_gpus(dev):
             from ..imaging.multigpu import resolve_devices
+            spec = dev.split(":")[1]
             out.update(resolve_devices("all" if spec == "all" else [int(i) for i in spec.split(",")]))
-        else:
-            out.add(int(spec))
+        elif dev != "cpu":
+            out.add(parse_device(dev)[1])
     return sorted(out)
 
 
@@ -1096,8 +1095,6 @@ def run_station(cfg, show_progress=None, service_ready=None):
     names = [tc["name"][len(cfg["name"]) + 1:] for tc in tunings]
     bar = progress_bar(cfg["name"], show_progress)
     t0, t0_unix = time.perf_counter(), time.time()
-    for tc in tunings:
-        check_fits(tc)
     check_station_fits(cfg)
     graphs = []
     for tc in tunings:
@@ -1528,13 +1525,17 @@ def check_fits(cfg):
 
 
 def check_station_fits(cfg):
-    """Refuse a station whose tunings on one GPU need together more than ``gpu_memory_gb`` (:func:`plan`'s
-    estimates, each tuning at its most at once): a ValueError naming the device, the need and the limit."""
-    gb = cfg.get("gpu_memory_gb")
-    if gb is None or any(tc["source"]["kind"] == "udp" for tc in cfg["tunings"]):
+    """:func:`check_fits` for a station, in one planning pass: each tuning refused as :func:`check_fits`
+    refuses it, and the tunings on one GPU together where they need more than ``gpu_memory_gb``
+    (:func:`plan`'s estimates, each tuning at its most at once): a ValueError naming the device, the need
+    and the limit. A live UDP tuning is not planned (as :func:`check_fits`), nor the station's total."""
+    if any(tc["source"]["kind"] == "udp" for tc in cfg["tunings"]):
+        for tc in cfg["tunings"]:
+            check_fits(tc)
         return
     per_device = plan(cfg)[0]["memory_bytes_per_device"]
-    for dev, need in per_device.items():
+    gb = cfg.get("gpu_memory_gb")
+    for dev, need in per_device.items() if gb is not None else ():
         if dev != "cpu" and need > gb * 1e9:
             raise ValueError(f"{cfg['name']}: the tunings on {dev} need about {_gib(need)} together, more than "
                              f"CuPy's pool may hold (gpu_memory_gb: {gb:g}, {_gib(gb * 1e9)}): raise gpu_memory_gb, "
