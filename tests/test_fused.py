@@ -354,6 +354,36 @@ def test_gpu_images_from_ci4_bytes_on_the_grid_equal_float64_truth():
 
 @GPU
 @pytest.mark.gpu
+def test_gpu_gulps_in_a_row_share_one_layout_and_each_equals_float64_truth():
+    """The voltages' layout is kept from gulp to gulp (one Workspace): the next gulp is laid out while the
+    last one's kernel may still be queued, on the same stream, so it overwrites nothing that kernel
+    reads. Each gulp's images, read after both ran, equal the float64 definition."""
+    import cupy as cp
+    from bf_epic_blocks.imaging.pixels import GridPlacement
+    from bf_epic_blocks.runtime.dtypes import pack_ci4
+    xyz, freq, _, Q1 = scene(nant=48, T=256, nchan=3, seed=21)
+    Q2 = scene(nant=48, T=256, nchan=3, seed=22)[3]
+    grid = imaging.lm_grid(16)
+    op = DFTOperator(cp.asarray(xyz), cp.asarray(freq), cp.asarray(grid.lm), npol=2, precision="i8x2")
+    acc = op.accumulator(("I",), method="direct")
+    place = GridPlacement(np.flatnonzero(grid.mask), grid.size ** 2, cp)
+    outs, ptrs = [], []
+    for Q in (Q1, Q2):
+        out = cp.full((16, 3, 1, grid.size ** 2), -7.0, cp.float32)
+        acc.images(cp.asarray(pack_ci4(Q[..., 0] + 1j * Q[..., 1].astype(np.float64))), 16, ci4=True,
+                   place=place, out=out)
+        outs.append(out)
+        ptrs.append(op.fused._b_work._buf.data.ptr)
+    assert ptrs[0] == ptrs[1]
+    on = grid.mask.ravel()
+    for Q, out in zip((Q1, Q2), outs):
+        ref = truth_powers(Q, xyz, freq, grid.lm, np.ones((3, 48, 2)), 16).sum(axis=2) / 16 / 48 ** 2
+        err = np.abs(out.get()[:, :, 0][..., on] - ref).max() / np.abs(ref).max()
+        assert err <= LIMIT["i8x2"], err
+
+
+@GPU
+@pytest.mark.gpu
 @pytest.mark.parametrize("products,T,precision", [(("I",), 256, "i8x2"), (("I",), 176, "i8x2"), (("XX",), 256, "i8x2"),
                                                   (("Q",), 256, "i8x3")])
 def test_gpu_images_made_on_the_grid_by_the_kernel_equal_float64_truth(products, T, precision):

@@ -67,7 +67,7 @@ import math
 import numpy as np
 
 from ..cuda import get_kernel, register
-from ._xp import get_xp, to_numpy
+from ._xp import Workspace, get_xp, to_numpy
 
 __all__ = ["FUSED", "PIECES", "bases", "quantise_operator", "padded_ntime", "layout_voltages", "fused_power",
            "reference_power", "kernel_config", "FusedOperator"]
@@ -284,7 +284,7 @@ def tile_voltages(Bv):
     return _tile_rows(Bv)
 
 
-def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False, tiled=False):
+def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False, tiled=False, work=None):
     """Integer (re, im) voltages (T, C_in, A_in, P_in, 2) int8 -> B (C', P' Tp, KD) int8, column
     p' Tp + t, Tp = :func:`padded_ntime` (T); samples t >= T are zero.
 
@@ -296,6 +296,8 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False, tiled=Fal
         no unpacked copy; |x| <= 8 <= xmax always).
     tiled : B in the Hopper kernel's tiles, (C', P' Tp / 128, KD / 128, 16384) (:func:`tile_voltages`),
         written there by the GPU kernels directly.
+    work : None, or a :class:`~bf_epic_blocks.imaging._xp.Workspace` whose array B is on the GPU (used
+        again by the next call on this stream: B must be read by work queued on it before then).
     """
     xp = get_xp(pairs)
     if ci4:
@@ -309,7 +311,7 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False, tiled=Fal
             cmap = xp.arange(Cin, dtype=xp.int32) if chan is None else xp.asarray(chan, dtype=xp.int32)
             pmap = xp.asarray(pols, dtype=xp.int32)
             Cl, Pp = int(cmap.shape[0]), int(pmap.shape[0])
-            out = xp.empty(_b_shape(Cl, Pp * Tp, KD, tiled), xp.int8)
+            out = _b_array(xp, _b_shape(Cl, Pp * Tp, KD, tiled), work)
             total = Cl * Tp * (KD // 16)
             get_kernel("imaging/fused_layout.cu", "bf_layout_ci4_p2")(
                 ((total + 255) // 256,), (256,),
@@ -329,7 +331,7 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False, tiled=Fal
     cmap = xp.arange(Cin, dtype=xp.int32) if chan is None else xp.asarray(chan, dtype=xp.int32)
     pmap = xp.asarray(pols, dtype=xp.int32)
     Cl, Pp = int(cmap.shape[0]), int(pmap.shape[0])
-    out = xp.empty(_b_shape(Cl, Pp * Tp, KD, tiled), xp.int8)
+    out = _b_array(xp, _b_shape(Cl, Pp * Tp, KD, tiled), work)
     if flag is None:
         flag = xp.zeros(1, xp.int32)
     total = Cl * Tp * (KD // 16)
@@ -341,6 +343,11 @@ def layout_voltages(pairs, chan, pols, KD, xmax, flag=None, ci4=False, tiled=Fal
     else:
         get_kernel("imaging/fused_layout.cu", "bf_layout_i8")(grid, (256,), head + (np.int32(Pin),) + tail)
     return out
+
+
+def _b_array(xp, shape, work):
+    """An int8 array of ``shape`` for B (every element written by the layout kernels): ``work``'s, or new."""
+    return xp.empty(shape, xp.int8) if work is None else work.take(xp, shape, np.int8)[0]
 
 
 def _ci4_pairs(b):
@@ -473,6 +480,9 @@ class FusedOperator:
         self.npix = op.npix
         self.flag = xp.zeros(1, xp.int32)
         self._pmaps = {}
+        # the voltages' layout, kept from gulp to gulp (a whole band's is 0.8 GB; made each gulp it churns
+        # the pool): the operator, like its range flag, is used on one stream
+        self._b_work = Workspace()
 
     def requantise(self, op, first=0):
         """The pieces of ``op``'s operator again, written into the arrays that held them (its pixels moved:
@@ -543,7 +553,7 @@ class FusedOperator:
             self._pmaps[key] = xp.asarray(list(pols), dtype=xp.int32)
         self.flag.fill(0)
         return layout_voltages(pairs, self.chan, self._pmaps[key], self.KD, self.xmax, self.flag, ci4=ci4,
-                               tiled=self.tiled)
+                               tiled=self.tiled, work=self._b_work)
 
     def sums(self, pairs, pols, n, ci4=False):
         """(g, C', P', npix) float32 sums of |F_p|^2 over groups of ``n`` samples (:meth:`supports`);

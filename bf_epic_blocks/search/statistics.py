@@ -187,24 +187,33 @@ class TransientSearch:
     # ------------------------------------------------------------------ state
     def reset(self, next_image=0):
         """Forget everything; the next pushed image has sequence index ``next_image``."""
-        xp = self.xp
         self.next_image = int(next_image)
         self.first_image = int(next_image)       # sequence index of the first image since the reset
         self.nimages = 0                         # images pushed since the reset
         self.nvalues = 0                         # dedispersed values since the reset
-        # the old arrays let go before the new are made, so that a reset (every sequence, every gain
-        # solution) holds the history once, not twice (it is most of the search's memory)
-        self._chan = self._hist = self._s1 = self._s2 = None
-        # the channels' recent past: their own history (shifted sums) or the tree's rings
-        self._chan = xp.zeros((self.nchan, 0 if self._tree else self.shift, self.npix), dtype=xp.float32)
+        # a reset (every sequence, every gain solution) clears the arrays in place: the history is most of
+        # the search's memory, and made again it would be freed and taken again from the pool (or, where
+        # shapes differ, the old arrays let go first: held once, not twice)
+        self._zeros("_chan", (self.nchan, 0 if self._tree else self.shift, self.npix), np.float32)
         if self._tree is not None:
             self._tree.reset()
-        self._hist = xp.zeros((self.nser, self.capacity, self.npix), dtype=xp.float32)
+        self._zeros("_hist", (self.nser, self.capacity, self.npix), np.float32)
         self._ref = None                         # per-pixel offset of the sums (nser, npix)
-        self._s1 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
-        self._s2 = xp.zeros((self.nser, self.npix), dtype=xp.float64)
+        self._zeros("_s1", (self.nser, self.npix), np.float64)
+        self._zeros("_s2", (self.nser, self.npix), np.float64)
         self._no_snr = None              # the statistics kernel's snr argument when it writes none
         self._staged, self.staged_images = None, 0   # push(defer=True)'s last batch, values not yet searched
+
+    def _zeros(self, name, shape, dtype):
+        """Attribute ``name`` set to zeros of ``shape``, ``dtype``: its array cleared in place where it has
+        that shape and dtype, else let go before a new one is made."""
+        a = self.__dict__.pop(name, None)
+        if a is not None and isinstance(a, self.xp.ndarray) and a.shape == tuple(shape) and a.dtype == dtype:
+            a.fill(0)
+        else:
+            a = None
+            a = self.xp.zeros(shape, dtype=dtype)
+        setattr(self, name, a)
 
     @property
     def ready(self):

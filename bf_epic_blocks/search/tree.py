@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..cuda import get_kernel, get_module, register
-from ..imaging._xp import get_xp, to_numpy
+from ..imaging._xp import Workspace, get_xp, to_numpy
 
 __all__ = ["FDMTPlan", "fdmt", "effective_back", "StreamingFDMT", "HalfRows"]
 
@@ -202,6 +202,7 @@ class StreamingFDMT:
             raise ValueError(f"precision: the tree stores 'fp32' or 'fp16' values, got {precision!r}")
         self.plan, self.npix, self.xp, self.precision = plan, int(npix), xp, precision
         self.dtype = np.float16 if precision == "fp16" else np.float32
+        self._work = Workspace()     # a push's working rows, made once (a whole band's: ~2.9 GB)
         # float16 rows are read HALF_VEC pixels at a time (one 16-byte load per thread): rows (and pixel
         # chunks) a whole number of those long
         self.pad = self.HALF_VEC if precision == "fp16" else 1
@@ -272,8 +273,12 @@ class StreamingFDMT:
         the next push's first image)."""
         # the old ring let go first, so that the new one takes its memory (CuPy's pool, or the pages the
         # host gives back): never both at once
-        self.ring = None
-        self.ring = self.xp.zeros((self.ring_size if self.xp is np else self.dev_ring_size, self.ld), self.dtype)
+        shape = (self.ring_size if self.xp is np else self.dev_ring_size, self.ld)
+        if getattr(self, "ring", None) is not None and self.ring.shape == shape:
+            self.ring.fill(0)       # in place: a reset (each gain solution) makes no allocation
+        else:
+            self.ring = None
+            self.ring = self.xp.zeros(shape, self.dtype)
         self.ntime = 0
         self._phase_at = -1
         self.scale = None           # float16: the values' scale (a power of two), set by the first push
@@ -394,7 +399,9 @@ class StreamingFDMT:
         for p0 in range(0, self.npix, pc):
             p1 = min(self.npix, p0 + pc)
             n = p1 - p0
-            W = xp.empty((self.nrow if xp is np else self.nwrow, B, -(-n // self.pad) * self.pad), self.dtype)
+            # the working rows: one array kept for every push (its lease rides in a HalfRows that still reads it)
+            W, lease = self._work.take(xp, (self.nrow if xp is np else self.nwrow, B, -(-n // self.pad) * self.pad),
+                                       self.dtype)
             if not half:
                 W[:plan.nchan] = x[:, :, p0:p1]
             elif xp is np:
@@ -416,7 +423,8 @@ class StreamingFDMT:
                 self._levels_gpu(W, p0, p1, B)
             if rows:                                      # one pass: the rows stay where they are
                 self.ntime += B
-                return HalfRows(W, top.start, plan.dmax + 1, self._ref_sum, factor / scale, factor, self.npix)
+                return HalfRows(W, top.start, plan.dmax + 1, self._ref_sum, factor / scale, factor, self.npix,
+                                lease=lease)
             if out is None:
                 out = xp.empty((plan.dmax + 1, B, self.npix), xp.float32)
             # a slice: copied (and scaled) once, not gathered first
@@ -535,14 +543,16 @@ class HalfRows:
     saves writing and reading them back as float32 (1.1 GB a whole-band gulp). ``shape`` is the
     float32 array's, (D, B - first, npix); :meth:`array` makes it."""
 
-    def __init__(self, W, top, D, ksum, a, b, npix, first=0):
+    def __init__(self, W, top, D, ksum, a, b, npix, first=0, lease=None):
         self.W, self.top, self.D, self.ksum, self.a, self.b = W, int(top), int(D), ksum, float(a), float(b)
         self.npix, self.first = int(npix), int(first)
+        self.lease = lease          # the tree's Workspace lease: W is not used again while this is alive
         self.shape = (self.D, int(W.shape[1]) - self.first, self.npix)
 
     def from_time(self, first):
         """The same rows from time ``first`` of the push on."""
-        return HalfRows(self.W, self.top, self.D, self.ksum, self.a, self.b, self.npix, self.first + int(first))
+        return HalfRows(self.W, self.top, self.D, self.ksum, self.a, self.b, self.npix, self.first + int(first),
+                        lease=self.lease)
 
     def array(self):
         """The float32 rows (D, B - first, npix), as :meth:`StreamingFDMT.push` returns them."""
