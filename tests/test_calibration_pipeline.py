@@ -81,6 +81,45 @@ def test_live_solutions_follow_their_schedule_and_undo_the_cables(runs):
     assert summary["solver"]["pngs"] >= 1 and summary["solver"]["pngs_in_helper"] == summary["solver"]["pngs"]
 
 
+def test_an_offset_schedule_sums_and_applies_later_by_the_offset(tmp_path):
+    """solve.offset_s (tunings on one GPU solve in turn): solution k sums [k C + offset, k C + offset + I)
+    and applies from the frame after; the gains still undo the cables."""
+    solve = ("calibration.solve={cadence_s: 0.5, integration_s: 0.25, offset_s: 0.25, apply_delay_s: 0, "
+             "pattern: none, smooth_channels: 4, diffuse: false}")
+    cfg = _cfg(tmp_path, "offset", "calibration.cable=false", solve)
+    summary = runner.run(cfg, show_progress=False)
+    assert summary["solver"]["solutions"] == 2 and summary["solver"]["failures"] == 0
+    t = read_solved_table(tmp_path / "offset" / "lwasv_sim_allsky_gains.npz")
+    tag0 = int(round(__import__("astropy.time", fromlist=["Time"]).Time(cfg["source"]["start"]).unix * FS_HZ))
+    tpf = int(round(FS_HZ / 25000))
+    assert t["valid_from"].tolist() == [tag0 + 2 * QUARTER * tpf, tag0 + 4 * QUARTER * tpf]
+    g, st = _cable_truth(cfg)
+    for k in range(2):
+        err, _ = gain_error(t["gains"][k], g, ~t["flags"][k])
+        assert err < 0.02, err
+
+
+def test_a_solve_out_of_memory_is_skipped_and_counted_not_the_run(tmp_path, monkeypatch):
+    """A live solve that finds too little memory (on a GPU, CuPy's OutOfMemoryError: a MemoryError) is a
+    counted, logged failure: the run goes on, the next solve is posted."""
+    from bf_epic_blocks.blocks.gain_solver import GainSolverBlock
+    real, calls = GainSolverBlock._solve, []
+
+    def solve(self, k, *args, **kw):
+        calls.append(k)
+        if len(calls) == 1:
+            raise MemoryError("Out of memory allocating 822,083,584 bytes")
+        return real(self, k, *args, **kw)
+    monkeypatch.setattr(GainSolverBlock, "_solve", solve)
+    solve_cfg = ("calibration.solve={cadence_s: 0.5, integration_s: 0.25, apply_delay_s: 0, pattern: none, "
+                 "smooth_channels: 4, diffuse: false}")
+    summary = runner.run(_cfg(tmp_path, "oom", "calibration.cable=false", solve_cfg), show_progress=False)
+    s = summary["solver"]
+    assert calls == [0, 1]
+    assert s["out_of_memory"] == 1 and s["failures"] == 1 and s["solutions"] == 1
+    assert "out of memory" in s["failure_reasons"][0]
+
+
 def test_images_after_a_solution_are_the_truth_and_before_it_are_not(runs):
     tmp, _, _ = runs
     live, truth, raw = (_images(tmp / n) for n in ("live", "truth", "raw"))
@@ -137,6 +176,8 @@ def test_solve_keys_are_checked():
         load_config(SIM, ["calibration.gains_table=pipelines/lwasv_sim_allsky.yaml", "calibration.solve={}"])
     with pytest.raises(ConfigError, match="must be <= cadence_s"):
         load_config(SIM, ["calibration.solve={cadence_s: 1, integration_s: 2}"])
+    with pytest.raises(ConfigError, match="offset_s: must be < cadence_s"):
+        load_config(SIM, ["calibration.solve={cadence_s: 1, integration_s: 0.5, offset_s: 1}"])
     with pytest.raises(ConfigError, match="unknown source 'Sun'"):
         load_config(SIM, ["source.sources=[Sun]"])          # the simulator has no Sun
     cfg = load_config(SIM, ["calibration.solve={sources: [Sun, CygA]}"])

@@ -668,6 +668,7 @@ def test_compile_runs_each_pipeline_long_enough_for_its_periodic_steps_twice():
     from bf_epic_blocks.pipeline.cli import compile_seconds
     from bf_epic_blocks.pipeline.config import load_config
     assert compile_seconds(load_config(str(PIPES / "lwasv_sim_allsky.yaml"))) == 3.0
-    # a solution every 10 s from 1 s of data, applied 1 s later: the second solution is made by 12 s
-    assert compile_seconds(load_config(str(PIPES / "lwasv_sim_station.yaml"))) == 13.0
+    # a solution every 10 s from 1 s of data, applied 1 s later, the high tuning's 5 s after the low's: its
+    # second solution is made by 17 s
+    assert compile_seconds(load_config(str(PIPES / "lwasv_sim_station.yaml"))) == 18.0
     assert compile_seconds(load_config(str(PIPES / "lwasv_sim_allsky.yaml"), ["output.integrate.seconds=4"])) == 9.0

@@ -184,6 +184,8 @@ class GainSolverBlock(bfp.SinkBlock):
     iring : the raw E-field ring (the source's; header as docs/concepts/headers.md).
     sources : the model's sources (names like 'CygA', 'Sun', or mappings: :func:`~..sky.resolve_source`).
     cadence_s, integration_s : a solution every ``cadence_s`` from the first ``integration_s`` of it.
+    offset_s : solution k sums from ``k cadence_s + offset_s`` (0 <= offset_s < cadence_s): tunings that
+        share a GPU solve in turn, each solve's memory and time then at its own moment.
     settings : :class:`~bf_epic_blocks.imaging.skycal.SolveSettings`.
     pattern : the antennas' voltage pattern for the model ('dipole' or None).
     cable : remove the header's cable terms before solving (as CalFoldBlock does before applying).
@@ -220,12 +222,17 @@ class GainSolverBlock(bfp.SinkBlock):
     def __init__(self, iring, sources, *, cadence_s=10.0, integration_s=1.0, settings=None, pattern=None,
                  cable=True, min_alt_deg=10.0, min_samples=1000, table=None, table_path=None, png=True,
                  reference_stand=None, apply_from="after", align_frames=1, diffuse=True, diffuse_refresh_s=300.0,
-                 saturated_above=0.1, apply_delay_s=0.0, solutions_per_file=None, png_process=True, **kwargs):
+                 saturated_above=0.1, apply_delay_s=0.0, solutions_per_file=None, png_process=True, offset_s=0.0,
+                 **kwargs):
         super().__init__(iring, **kwargs)
         if not (integration_s > 0 and cadence_s >= integration_s):
             raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="
                              f"{integration_s}, cadence_s={cadence_s}")
+        if not 0 <= offset_s < cadence_s:
+            raise ValueError(f"GainSolverBlock: need 0 <= offset_s < cadence_s, got offset_s={offset_s}, "
+                             f"cadence_s={cadence_s}")
         self.sources, self.cadence_s, self.integration_s = list(sources), float(cadence_s), float(integration_s)
+        self.offset_s = float(offset_s)
         self.settings = settings or SolveSettings()
         self.pattern = None if pattern in (None, "none", False) else pattern
         self.cable, self.min_alt_deg, self.min_samples = cable, float(min_alt_deg), int(min_samples)
@@ -247,7 +254,7 @@ class GainSolverBlock(bfp.SinkBlock):
         self.solutions_per_file = None if not solutions_per_file else int(solutions_per_file)
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
                              "samples": 0, "sum_s_each": [], "solve_s_each": [], "pngs": 0, "pngs_in_helper": 0,
-                             "pngs_skipped": 0}
+                             "pngs_skipped": 0, "out_of_memory": 0}
         self._drawing = DrawingHelper("GainSolverBlock", png_process)
         self._sum_this = 0.0
         from concurrent.futures import ThreadPoolExecutor
@@ -284,6 +291,7 @@ class GainSolverBlock(bfp.SinkBlock):
         self._E, self._E_at = None, None   # the diffuse model term and when (unix s) it was made
         self._cadence = max(1, int(round(self.cadence_s / lay["dt_s"])))
         self._integ = max(1, min(self._cadence, int(round(self.integration_s / lay["dt_s"]))))
+        self._offset = min(self._cadence - 1, int(round(self.offset_s / lay["dt_s"])))
         self._delay = int(round(self.apply_delay_s / lay["dt_s"]))
         self._tag0, self._tpf = int(lay["time_tag"]), int(lay["ticks_per_frame"])
         self._k = 0               # the solution being summed
@@ -302,7 +310,7 @@ class GainSolverBlock(bfp.SinkBlock):
         multiple of ``align_frames`` (the imager's integration, so that it takes effect at an integration's
         start whether it is applied to the voltages or folded into the operator)."""
         a = self.align_frames
-        return self._tag0 + (-(-(k * self._cadence + self._integ + self._delay) // a) * a) * self._tpf
+        return self._tag0 + (-(-(k * self._cadence + self._offset + self._integ + self._delay) // a) * a) * self._tpf
 
     def on_data(self, ispan):
         try:
@@ -323,7 +331,7 @@ class GainSolverBlock(bfp.SinkBlock):
         pos = 0
         while pos < n:
             f = first + pos
-            start = self._k * self._cadence
+            start = self._k * self._cadence + self._offset
             if f < start:                      # between integrations: skip to the next one
                 pos = min(n, pos + start - f)
                 continue
@@ -345,7 +353,7 @@ class GainSolverBlock(bfp.SinkBlock):
             pos += take
             if f + take >= end:
                 self._hand_over(self._k, self._due(self._k) if self.apply_from == "after"
-                                else self._tag0 + self._k * self._cadence * self._tpf)
+                                else self._tag0 + (self._k * self._cadence + self._offset) * self._tpf)
                 self._k += 1
                 self._sums.reset()
         self._frame = first + n
@@ -440,7 +448,7 @@ class GainSolverBlock(bfp.SinkBlock):
         try:
             if end is None:
                 self.solver_stats["sum_s"] += sum_s
-                self._solve(k, valid_from, raw, ntime, sum_s, (tag0, decided_through))
+                self._solve_or_skip(k, valid_from, raw, ntime, sum_s, (tag0, decided_through))
             else:
                 cp = self._xp
                 with self._worker_stream_in_use():
@@ -448,7 +456,7 @@ class GainSolverBlock(bfp.SinkBlock):
                     end.synchronize()
                     sum_s = cp.cuda.get_elapsed_time(start, end) / 1e3 if start is not None else sum_s
                     self.solver_stats["sum_s"] += sum_s
-                    self._solve(k, valid_from, raw, ntime, sum_s, (tag0, decided_through))
+                    self._solve_or_skip(k, valid_from, raw, ntime, sum_s, (tag0, decided_through))
                     self._worker_stream.synchronize()
         except BaseException as e:  # noqa: BLE001 - handed to the block's thread
             self._worker_error = e
@@ -457,6 +465,16 @@ class GainSolverBlock(bfp.SinkBlock):
         finally:
             if self.table is not None:
                 self.table.decided(tag0, decided_through)
+
+    def _solve_or_skip(self, k, *args):
+        """:meth:`_solve`; a solve that finds too little memory (CuPy's OutOfMemoryError is a MemoryError)
+        is skipped -- counted, logged, the last good gains left in force -- rather than ending the run: the
+        GPU's memory is the imager's first."""
+        try:
+            self._solve(k, *args)
+        except MemoryError as e:
+            self.solver_stats["out_of_memory"] += 1
+            self._fail(f"out of memory ({str(e)[:200]})", k)
 
     def _wait_jobs(self):
         """Wait for the worker's pending solves; re-raise a failure of its own in this thread."""
@@ -474,8 +492,8 @@ class GainSolverBlock(bfp.SinkBlock):
                 if self._sums.ntime >= self.min_samples:
                     log.warning("GainSolverBlock: the sequence ended %d samples into an integration of %d; "
                                 "solving from what there is", self._sums.ntime, self._integ)
-                    self._solve(self._k, self._tag0 + (self._frame if self.apply_from == "after"
-                                                       else self._k * self._cadence) * self._tpf)
+                    self._solve_or_skip(self._k, self._tag0 + (self._frame if self.apply_from == "after"
+                                                               else self._k * self._cadence + self._offset) * self._tpf)
                 else:
                     self._fail(f"data too short to solve: {self._sums.ntime} samples, need at least "
                                f"{self.min_samples} (calibration.solve.min_samples)")
@@ -488,7 +506,7 @@ class GainSolverBlock(bfp.SinkBlock):
 
     def _model_time(self, k, ntime):
         from astropy.time import Time
-        mid_frame = k * self._cadence + ntime / 2.0
+        mid_frame = k * self._cadence + self._offset + ntime / 2.0
         return Time(self._tag0 / FS_HZ + mid_frame * self._lay["dt_s"], format="unix", scale="utc")
 
     def _fail(self, why, k=None):

@@ -149,8 +149,8 @@ def compile_seconds(cfg):
             if out.get(part):
                 need = max(need, 2.0 * float(out[part]["seconds"]) + 1.0)
         if solve:
-            need = max(need, float(solve["cadence_s"]) + float(solve["integration_s"]) + float(solve["apply_delay_s"])
-                       + 1.0)
+            need = max(need, float(solve["cadence_s"]) + float(solve["offset_s"]) + float(solve["integration_s"])
+                       + float(solve["apply_delay_s"]) + 1.0)
     return need
 
 

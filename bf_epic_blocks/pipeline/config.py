@@ -494,6 +494,10 @@ def _calibration_post(out, given, path, ctx):
             and sv["integration_s"] > sv["cadence_s"]:
         ctx.error(join_path(join_path(path, "solve"), "integration_s"),
                   f"must be <= cadence_s ({sv['cadence_s']}), got {sv['integration_s']}")
+    if is_valid(sv) and sv and is_valid(sv.get("cadence_s")) and is_valid(sv.get("offset_s")) \
+            and sv["offset_s"] >= sv["cadence_s"]:
+        ctx.error(join_path(join_path(path, "solve"), "offset_s"),
+                  f"must be < cadence_s ({sv['cadence_s']}), got {sv['offset_s']}")
 
 
 def pixel_split_problems(cfg) -> list[str]:
@@ -635,6 +639,11 @@ CALIBRATION_SOLVE = Section({
     "integration_s": Key(Float(0.0, lo_open=True), 1.0,
                          doc="Seconds of data each solution sums its covariances over (the first of its cadence); "
                              "it applies from the first frame after them."),
+    "offset_s": Key(Float(0.0), 0.0,
+                    doc="Seconds of data before the first solution's integration (less than `cadence_s`): solution k "
+                        "sums from k x cadence_s + offset_s. Tunings on one GPU set different offsets so that they "
+                        "solve in turn (`pipelines/lwasv_sim_station.yaml`: half the cadence apart), each solve's "
+                        "memory then at its own moment."),
     "apply_delay_s": Key(Float(0.0), 6.0,
                          doc="A solution applies this long after the end of its data (on the first image "
                              "integration from then): the time its solve takes, so that the imager need not wait. "

@@ -553,6 +553,7 @@ def gain_solver_block(cfg, feed, table=None, table_path=None, apply_from="after"
     sv = cal.get("solve") or {}
     pattern = sv.get("pattern") or cal.get("pattern")
     return GainSolverBlock(feed, sv["sources"], cadence_s=sv["cadence_s"], integration_s=sv["integration_s"],
+                           offset_s=sv["offset_s"],
                            settings=solver_settings(sv), pattern=None if pattern in (None, "none") else pattern,
                            cable=bool(cal["cable"]), min_alt_deg=sv["min_alt_deg"], min_samples=sv["min_samples"],
                            table=table, table_path=table_path, png=sv["png"],
