@@ -136,3 +136,29 @@ def test_bench_scrunch_costs_and_snr_make_sense():
     assert 0.5 < narrow[0] < wide[0] <= 1.0 and narrow[1] <= narrow[0]
     one = bs.best_snr(np.array([1.0]), np.array([2.0]), 2, (1,)) / bs.best_snr(np.array([1.0]), np.array([2.0]), 1, (1,))
     assert one == pytest.approx(1 / np.sqrt(2))
+
+
+def test_profile_memory_samples_the_host_and_reports_a_failure_rather_than_raising(tmp_path, monkeypatch):
+    """tools/bench/profile_memory.py on the demo made small (CPU): the host's samples (resident set,
+    glibc's heap where glibc has mallinfo2) and their slopes in the JSON; a run that fails (what the tool
+    is for: out of memory) is reported with its error and exit 1, its samples kept."""
+    import json
+    import profile_memory as pm
+    small = ["--yaml", "pipelines/lwasv_sim_allsky.yaml", "--device", "cpu", "--seconds", "0.5", "--host-every", "0.05",
+             "--set", "source.channels.count=2", "--set", "imager.grid.size=16", "--set", "output.fits=false",
+             "--set", "output.png=false", "--set", f"output.dir={tmp_path / 'o'}"]
+    assert pm.main(small + ["--json", str(tmp_path / "m.json")]) == 0
+    d = json.loads((tmp_path / "m.json").read_text())
+    host = d["host"]["samples"]
+    assert d["error"] is None and d["gpu"] is None and len(host) >= 3
+    assert all(s["rss"] > 50 for s in host)
+    if pm._libc() is not None:
+        assert all(s["malloc_in_use"] > 1 for s in host) and "malloc_in_use" in d["host"]["slopes_mib_per_s"]
+    from bf_epic_blocks.pipeline import runner
+
+    def out_of_memory(cfg, **kw):
+        raise MemoryError("Out of memory allocating 822,083,584 bytes")
+    monkeypatch.setattr(runner, "run", out_of_memory)
+    assert pm.main(small + ["--json", str(tmp_path / "bad.json")]) == 1
+    bad = json.loads((tmp_path / "bad.json").read_text())
+    assert bad["error"].startswith("MemoryError: Out of memory") and len(bad["host"]["samples"]) >= 1

@@ -1,0 +1,215 @@
+"""Where a pipeline's memory goes while it runs: the host's and, on a GPU, CuPy's pool.
+
+Runs a pipeline YAML (default the whole station) in this process and samples, beside it:
+
+- the host, every ``--host-every`` s: the resident set (``/proc/self/status``: VmRSS, RssAnon, RssFile),
+  glibc's heap (``mallinfo2``: bytes in use, free in the heap, mmapped), threads, and CuPy's pinned pool's
+  free blocks; ``--trim S`` calls ``malloc_trim(0)`` every S s (does the heap's free space explain a
+  growth?); at two times (``--snap T0 T1``) the garbage collector's objects by type;
+- on a GPU, every ``--pool-every`` s: the pool's bytes in use and held (in use + the free blocks it keeps
+  for each stream: what ``gpu_memory_gb``'s limit counts), and every allocation of ``--log-mib`` or more
+  with the thread and the package's frames that asked for it (an allocator over the default pool).
+
+Prints the host's samples and slopes (MiB per second of wall time over the middle of the run), the pool's
+peaks and the allocation sites by total, and writes all of it as JSON. Glibc's figures need Linux with
+glibc 2.33 or later; elsewhere they are left out.
+
+    python tools/bench/profile_memory.py [--yaml PIPE] [--seconds 40] [--device gpu] [--set KEY=VALUE ...]
+                                         [--trim S] [--json PATH]
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import ctypes
+import gc
+import os
+import sys
+import threading
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from benchlib import REPO, machine, utc_now, write_json  # noqa: E402
+
+MIB = 2 ** 20
+
+
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks",
+                                               "uordblks", "fordblks", "keepcost")]
+
+
+def _libc():
+    """glibc with mallinfo2 and malloc_trim, or None."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallinfo2.restype = _MallInfo2
+        return libc
+    except (OSError, AttributeError):
+        return None
+
+
+def host_sample(libc, pinned=None):
+    """One sample of the host's memory (MiB): resident set and its parts, glibc's heap, threads, pinned pool."""
+    s = {}
+    try:
+        for line in open("/proc/self/status"):
+            k, _, v = line.partition(":")
+            if k in ("VmRSS", "RssAnon", "RssFile", "Threads"):
+                s[k] = int(v.split()[0])
+    except OSError:
+        pass
+    out = {"rss": s.get("VmRSS", 0) / 1024, "rss_anon": s.get("RssAnon", 0) / 1024,
+           "rss_file": s.get("RssFile", 0) / 1024, "threads": s.get("Threads", 0)}
+    if libc is not None:
+        m = libc.mallinfo2()
+        out.update(malloc_in_use=m.uordblks / MIB, malloc_free=m.fordblks / MIB, malloc_mmapped=m.hblkhd / MIB)
+    if pinned is not None:
+        out["pinned_free_blocks"] = pinned.n_free_blocks()
+    return out
+
+
+def slope(t, v, lo, hi):
+    """Least-squares MiB per second of v over lo <= t <= hi (None with fewer than 3 samples there)."""
+    t, v = np.asarray(t, float), np.asarray(v, float)
+    m = (t >= lo) & (t <= hi)
+    return None if m.sum() < 3 else float(np.polyfit(t[m], v[m], 1)[0])
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--yaml", default="pipelines/lwasv_sim_station.yaml")
+    ap.add_argument("--seconds", type=float, default=40.0, help="seconds of data (source.duration_s)")
+    ap.add_argument("--device", default="gpu")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--host-every", type=float, default=1.0)
+    ap.add_argument("--pool-every", type=float, default=0.005)
+    ap.add_argument("--log-mib", type=float, default=32.0)
+    ap.add_argument("--trim", type=float, default=0.0, help="malloc_trim(0) every this many s (0: never)")
+    ap.add_argument("--snap", type=float, nargs=2, default=None, metavar=("T0", "T1"),
+                    help="wall seconds at which the garbage collector's objects are counted by type (default: not)")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args(argv)
+
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    cfg = load_config(str(REPO / a.yaml) if not os.path.isabs(a.yaml) else a.yaml,
+                      [f"device={a.device}", f"source.duration_s={a.seconds}"] + a.set)
+    gpu = not str(a.device).startswith("cpu")
+    cp = pool = pinned = None
+    logs, pool_samples = [], []
+    t0 = time.perf_counter()
+    if gpu:
+        import cupy as cp
+        pool, pinned = cp.get_default_memory_pool(), cp.get_default_pinned_memory_pool()
+        least = int(a.log_mib * MIB)
+
+        def alloc(size):
+            p = pool.malloc(size)
+            if size >= least:
+                st = [f"{os.path.basename(f.filename)}:{f.lineno}:{f.name}" for f in traceback.extract_stack(limit=14)[:-1]
+                      if "bf_epic_blocks" in f.filename]
+                logs.append((round(time.perf_counter() - t0, 4), int(size), threading.current_thread().name, st[-4:]))
+            return p
+        cp.cuda.set_allocator(alloc)
+    libc = _libc()
+    host, snaps, stop = [], {}, threading.Event()
+
+    def counts():
+        gc.collect()
+        return collections.Counter(type(o).__name__ for o in gc.get_objects())
+
+    def sample_host():
+        last_trim = 0.0
+        while True:                               # one sample at least, however short the run
+            t = time.perf_counter() - t0
+            if a.trim and libc is not None and t - last_trim >= a.trim:
+                libc.malloc_trim(0)
+                last_trim = t
+            host.append({"t": round(t, 2), **host_sample(libc, pinned)})
+            if a.snap:
+                for i, ts in enumerate(a.snap):
+                    if t >= ts and i not in snaps:
+                        snaps[i] = (t, counts())
+            if stop.wait(a.host_every):
+                break
+
+    def sample_pool():
+        while not stop.is_set():
+            pool_samples.append((round(time.perf_counter() - t0, 4), pool.used_bytes(), pool.total_bytes()))
+            stop.wait(a.pool_every)
+
+    threads = [threading.Thread(target=sample_host, daemon=True)]
+    if gpu:
+        threads.append(threading.Thread(target=sample_pool, daemon=True))
+    for th in threads:
+        th.start()
+    err = None
+    try:
+        r = runner.run(cfg, show_progress=False)
+    except Exception as e:  # the failure is what is being profiled (e.g. out of memory): reported, not raised
+        err, r = f"{type(e).__name__}: {str(e)[:400]}", {}
+    stop.set()
+    for th in threads:
+        th.join()
+    wall = time.perf_counter() - t0
+
+    print(f"# profile_memory: {a.yaml} {' '.join(a.set)} on {machine(a.device)['hardware']}: {a.seconds:g} s of data "
+          f"in {wall:.1f} s{'; error: ' + err if err else ''}")
+    keys = [k for k in ("rss", "rss_anon", "malloc_in_use", "malloc_free", "malloc_mmapped") if host and k in host[0]]
+    print("t s     " + " ".join(f"{k:>14s}" for k in keys) + "  threads  pinned free blocks")
+    for s in host[:: max(1, len(host) // 16)] + host[-1:]:
+        print(f"{s['t']:6.1f}  " + " ".join(f"{s[k]:14.1f}" for k in keys)
+              + f"  {s['threads']:7d}  {s.get('pinned_free_blocks', '')}")
+    lo, hi = 0.25 * wall, 0.9 * wall
+    slopes = {k: slope([s["t"] for s in host], [s[k] for s in host], lo, hi) for k in keys}
+    print("MiB/s over the middle (" + f"{lo:.0f}-{hi:.0f} s): "
+          + ", ".join(f"{k} {v:+.2f}" for k, v in slopes.items() if v is not None))
+    growth = {}
+    if len(snaps) == 2:
+        growth = dict((snaps[1][1] - snaps[0][1]).most_common(12))
+        print(f"objects the collector tracks, growth {snaps[0][0]:.0f} -> {snaps[1][0]:.0f} s: "
+              + ", ".join(f"{k} +{n}" for k, n in growth.items()))
+    gpu_out = None
+    if gpu and pool_samples:
+        k = max(range(len(pool_samples)), key=lambda i: pool_samples[i][1])
+        kh = max(range(len(pool_samples)), key=lambda i: pool_samples[i][2])
+        sites = collections.defaultdict(lambda: [0, 0, 0])
+        for _, size, _, st in logs:
+            s = sites[st[-1] if st else "?"]
+            s[0] += 1; s[1] += size; s[2] = max(s[2], size)
+        top = sorted(sites.items(), key=lambda kv: -kv[1][1])[:20]
+        gpu_out = {"peak_in_use_gb": pool_samples[k][1] / 1e9, "peak_at_s": pool_samples[k][0],
+                   "held_peak_gb": pool_samples[kh][2] / 1e9, "in_use_at_held_peak_gb": pool_samples[kh][1] / 1e9,
+                   "per_second_max_gb": {str(s): round(v / 1e9, 2) for s, v in
+                                         sorted(_per_second(pool_samples).items())},
+                   "largest_allocations_by_site": [{"site": s, "count": v[0], "largest_mib": round(v[2] / MIB, 1),
+                                                    "total_gib": round(v[1] / 2**30, 1)} for s, v in top],
+                   "allocations_logged": len(logs)}
+        print(f"GPU pool: in use at most {gpu_out['peak_in_use_gb']:.2f} GB at {gpu_out['peak_at_s']:.1f} s; held at "
+              f"most {gpu_out['held_peak_gb']:.2f} GB ({gpu_out['in_use_at_held_peak_gb']:.2f} in use then); "
+              f"{len(logs)} allocations of {a.log_mib:g} MiB or more, by site:")
+        for x in gpu_out["largest_allocations_by_site"]:
+            print(f"  {x['count']:6d} {x['total_gib']:9.1f} GiB  largest {x['largest_mib']:8.1f} MiB  {x['site']}")
+    if a.json:
+        write_json(a.json, {"benchmark": "profile_memory", "date": utc_now(), "yaml": a.yaml,
+                            "sets": [f"device={a.device}", f"source.duration_s={a.seconds}"] + a.set,
+                            "machine": machine(a.device), "wall_s": wall, "error": err, "trim_s": a.trim,
+                            "host": {"samples": host, "slopes_mib_per_s": slopes, "object_growth": growth},
+                            "gpu": gpu_out, "summary_images": r.get("images") if isinstance(r, dict) else None})
+    return 1 if err else 0
+
+
+def _per_second(samples):
+    out = {}
+    for t, used, _ in samples:
+        out[int(t)] = max(out.get(int(t), 0), used)
+    return out
+
+
+if __name__ == "__main__":
+    sys.exit(main())
