@@ -57,7 +57,7 @@ def page(stem, title, measures, command, records, body, script=None):
 # ---------------------------------------------------------------- bench_dft
 def dft_body():
     parts = []
-    for f, label in (("bench_dft_gpu.json", "GPU"), ("bench_dft_cpu.json", "CPU")):
+    for f, label in (("bench_dft_gpu.json", H100), ("bench_dft_gpu_h200.json", H200), ("bench_dft_cpu.json", CPU2)):
         d = load(f); c = d["case"]
         parts.append(f"### {label}: {c['nant']} antennas ({c['layout']}), {c['nchan']} channel(s) x {c['npol']} pol(s), "
                      f"{c['ntime']} samples of a 4-bit sky, 64x64 all-sky grid (3,205 pixels)\n")
@@ -78,10 +78,13 @@ page("bench_dft", "The DFT imager: time against error for every route and precis
      "max |I − I_ref| / max |I_ref| against a float64 evaluation of the definition that shares no code with the "
      "package. `naive-cov` / `naive-dir` are plain CuPy or NumPy written naively, timed in the same run; "
      "`floor-f32` / `floor-f16` are cuBLAS' fp16 GEMM alone on the direct route's shapes (what the regime would "
-     "cost if |F|² were free). GPU rows replay CUDA graphs, as the pipeline does.",
+     "cost if |F|² were free); `floor-i8x2` is cuBLAS' int8 GEMM with the i8x2 mode's multiply-adds (pixels and "
+     "antennas padded to 64, int32 out). GPU rows replay CUDA graphs, as the pipeline does. Regime B of the "
+     "whole-station issue is the second table's i8x2 row: 16 channels, 64 images a gulp.",
      ["python tools/bench/bench_dft.py --device gpu --json bench_dft_gpu.json --table",
+      "python tools/bench/bench_dft.py --device gpu --grids 64 --json bench_dft_gpu_h200.json",
       "python tools/bench/bench_dft.py --device cpu --json bench_dft_cpu.json"],
-     [("bench_dft_gpu.json", H100), ("bench_dft_cpu.json", CPU2)], dft_body)
+     [("bench_dft_gpu.json", H100), ("bench_dft_gpu_h200.json", H200), ("bench_dft_cpu.json", CPU2)], dft_body)
 
 # ---------------------------------------------------------------- bench_e2e
 def e2e_body():
@@ -148,20 +151,24 @@ def wb_body():
     out.append(table(["seen by", "DM (truth 0.05)", "time off ms", "cells off", "S/N"], rows) + "\n")
     d = load("bench_wholeband_station_gpu1.json"); r = d["run"]
     al = load("memory_station_gpu1_allocs.json")
-    pb, pa = al["before"], al["after"]
+    pb, pa, pw = al["before"], al["after"], al["workspace"]
     mid = [v for k, v in pa["per_second_max_gb"].items() if 20 <= int(k) <= 100]
+    prev = load("bench_wholeband_station_gpu1_chunks.json"); rel = load("bench_wholeband_station_gpu1_release.json")
     out.append(f"### Case W2 whole, on {H200}\n")
     out.append(f"Both tunings at 784 channels, 64x64, live calibration, 10 watch targets (riding beside the grid), "
-               f"{r['data_s']:.0f} s of data (commit {d['commit']}, CuPy's pool limited to 75 GB by "
-               f"`CUPY_GPU_MEMORY_LIMIT={d['environment']['CUPY_GPU_MEMORY_LIMIT']}`, {r['kernels_compiled']} kernels "
-               f"compiled during the run): **{r['rt_flowing']:.3f}x** real time flowing ({r['rt_whole']:.3f}x the whole "
-               f"run, first images after {r['first_images_at_s']:.1f} s). Case W2 needs 1.0x on one H100: it is not "
-               f"there. The GPU's memory as `nvidia-smi` sees it (CUDA's context included) was "
-               f"{r['gpu_mib']['first']:.0f} MiB at the start, {r['gpu_mib']['peak']:.0f} MiB "
+               f"{r['data_s']:.0f} s of data (commit {d['commit']}, CuPy's pool limited to 75 GB by the YAML's "
+               f"`gpu_memory_gb`, {r['kernels_compiled']} kernels compiled during the run): **{r['rt_flowing']:.3f}x** "
+               f"real time flowing ({r['rt_whole']:.3f}x the whole run, first images after {r['first_images_at_s']:.1f} s). "
+               "Case W2 needs 1.0x on one H100: it is not there. The GPU's memory as `nvidia-smi` sees it (CUDA's "
+               f"context included) was {r['gpu_mib']['first']:.0f} MiB at the start, {r['gpu_mib']['peak']:.0f} MiB "
                f"({r['gpu_mib']['peak'] * 2**20 / 1e9:.1f} GB) at most and {r['gpu_mib']['growth']:+.0f} MiB at the end: "
-               "within the 76 GB asked, and flat. Without the limit the pool keeps what it frees, up to the whole card.\n")
+               "within the 76 GB asked, and flat. Without the limit the pool keeps what it frees, up to the whole card. "
+               f"Runs of this station vary by several per cent: the record before (commit {prev['commit']}) flowed at "
+               f"{prev['run']['rt_flowing']:.3f}x, and a variant of this commit, since reverted "
+               f"([bench_wholeband_station_gpu1_release.json](../bench/bench_wholeband_station_gpu1_release.json): the "
+               f"solver gave its streams' cached blocks back after each solve), at {rel['run']['rt_flowing']:.3f}x.\n")
     out.append(f"Where the peaks were ([memory_station_gpu1_allocs.json](../bench/memory_station_gpu1_allocs.json): "
-               "CuPy's pool in use every 5 ms and every allocation of 32 MiB or more, 14 s of data): at commit "
+               "CuPy's pool in use every 5 ms and every allocation of 32 MiB or more): at commit "
                f"{pb['commit']} the arrays in use reached {pb['peak_in_use_gb']:.1f} GB {pb['peak_at_s']:.1f} s after "
                "the start, the live solver's first diffuse model (float64 and complex128 copies of 64 channels' "
                "phases, up to ~10 GB) while both searches allocated their state; each solve added ~4 GB "
@@ -171,9 +178,34 @@ def wb_body():
                f"(commit {pa['commit']}, before the one-series read) the peak was {pa['peak_in_use_gb']:.1f} GB, "
                f"{min(mid):.1f}-{max(mid):.1f} GB through the run (per-second maxima); `bf-epic plan` counts 66.6 GiB "
                "(71.5 GB), both solvers at their most at once among them.\n")
+    lay = [x for x in pa["largest_allocations_by_site"] if "layout_voltages" in x["site"]]
+    push = [x for x in pa["largest_allocations_by_site"] if x["site"].startswith("tree.py") and x["site"].endswith(":push")]
+    out.append("The limit counts the pool's held bytes: those in use and the free blocks it keeps, each for the CUDA "
+               "stream that freed it. At that commit each gulp made and freed the imager's voltage layout "
+               f"({lay[0]['count']} allocations of {lay[0]['largest_mib']:.0f} MiB) and the tree's working rows "
+               f"({push[0]['count']}, up to {push[0]['largest_mib']:.0f} MiB); arrays made in between split their blocks, "
+               "and one run ran out of memory with 74.7 GB held when a layout found no block of its size. "
+               f"Commit {pw['commit']} keeps both from gulp to gulp and clears a search's history in place at a reset: "
+               f"{pw['data_s']} s of data with no error, the arrays in use at most {pw['peak_in_use_gb']:.1f} GB (while "
+               f"both tunings solved), the held bytes at most {pw['held_peak_gb']:.2f} GB ({pw['in_use_at_held_peak_gb']:.1f} "
+               "in use then: the pool let its cached blocks go at the limit, as it should). The largest allocations "
+               "left are the solves' chunks, the sums of an integration, and the imager forming its operator's "
+               "phases again when the watch directions step (every second of data): those re-form every pixel's "
+               "phases (19 chunks of ~254 MiB a tuning), where only the ten directions moved. The tunings now solve "
+               "in turn (`calibration.solve.offset_s`), which this run did not yet do.\n")
+    hm = load("memory_station_gpu1_host.json")
     out.append(f"The host's resident set grew {r['rss_mib']['growth']:.0f} MiB (the last quarter's peak over the "
-               f"first's; {r['rss_mib']['first']:.0f} to {r['rss_mib']['peak']:.0f} MiB), ~4 MiB/s through the middle "
-               "of the run: not flat, cause not found. The bursts (DM 0.4, 300 Jy):\n")
+               f"first's; {r['rss_mib']['first']:.0f} to {r['rss_mib']['peak']:.0f} MiB): not flat. In the process "
+               "([memory_station_gpu1_host.json](../bench/memory_station_gpu1_host.json), 40 s of data): glibc's bytes "
+               f"in use grew {hm['runs']['base']['malloc_in_use_slope_mib_per_s']:.1f} MiB/s of wall time, the "
+               f"resident set {hm['runs']['base']['rss_slope_mib_per_s']:.1f} MiB/s; `malloc_trim` every 5 s changed "
+               f"neither ({hm['runs']['trim']['malloc_in_use_slope_mib_per_s']:.1f} and "
+               f"{hm['runs']['trim']['rss_slope_mib_per_s']:.1f}); CuPy's pinned pool stayed at 54-68 free blocks; the "
+               "garbage collector's containers barely grew (4,768 lists and 150 dicts in 45 s). So it is memory in use, "
+               "not Python's containers and not the heap's free space. The watch writer's HDF5 file accounts for "
+               f"~{hm['cpu_writers']['watch_writer_mib_per_s_of_data']:.2f} MiB a second of data a tuning (measured "
+               "alone on a CPU; given back at close), the cube writer for none. What holds the rest is not yet "
+               "known. The bursts (DM 0.4, 300 Jy):\n")
     rows = [[b["tuning"], f"{b['dm_found']:.4f} ({b['dm_off_trials']:+.2f} trials)", f"{b['time_off_s'] * 1e3:+.1f}",
              f"{b['offset_cells']:.2f}", f"{b['snr']:.1f}"] for b in r["bursts"] if b.get("snr") is not None]
     for e in r["station_events"]["bursts"]:
@@ -213,10 +245,14 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       "{channels: {first: 1520}}}, {name: high, source: {channels: {first: 2960}}}]' "
       "--json bench_wholeband_station_cpu.json",
       "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --device gpu --seconds 60 "
-      "--json bench_wholeband_station_gpu1.json"],
+      "--json bench_wholeband_station_gpu1.json",
+      "python tools/bench/profile_memory.py --seconds 40 --snap 15 60 --json memory_station_gpu1_host.json   "
+      "# and --trim 5; on a GPU also the pool's profile"],
      [("bench_wholeband_gpu.json", H100), ("bench_wholeband_gpu_all.json", H200X2),
       ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200),
+      ("bench_wholeband_station_gpu1_chunks.json", H200), ("bench_wholeband_station_gpu1_release.json", H200),
       ("bench_wholeband_station_gpu1_before.json", H200), ("memory_station_gpu1.json", H200),
+      ("memory_station_gpu1_host.json", H200),
       ("memory_station_gpu1_limit82.json", H200)], wb_body)
 
 # ---------------------------------------------------------------- bench_search
@@ -988,8 +1024,9 @@ def date_of(f):
 
 SUMMARY = {  # benchmark -> (what it measures, latest result, machine), for the index
     'bench_dft': ('time and error of every route x precision, case P',
-                 '0.41 ms a gulp at 2e-5 (fp16, 6.0x naive CuPy); 64 images a gulp in 0.42 ms at 3e-6 (i8x2, 13.9x)',
-                 'one H100 80GB, 16 cores'),
+                 '0.41 ms a gulp at 2e-5 (fp16, 6.0x naive CuPy); 64 images a gulp in 0.42 ms at 3e-6 (i8x2, 13.9x); '
+                 'on an H200 0.43 ms, cuBLAS int8 alone 0.53 ms',
+                 'one H100 80GB / one H200, 16 cores'),
     'bench_e2e': ('`bf-epic run` of a TBF recording and of the demo, timed from outside',
                  '10-s 24-channel recording in 1.46 s: 6.8x real time whole run, 40x steady',
                  'one H100 80GB, 16 cores'),
