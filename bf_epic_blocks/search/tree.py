@@ -271,8 +271,8 @@ class StreamingFDMT:
     def reset(self):
         """Forget the past (its values count as 0, as :func:`fdmt`'s before its first time; float16: as
         the next push's first image)."""
-        # the old ring let go first, so that the new one takes its memory (CuPy's pool, or the pages the
-        # host gives back): never both at once
+        # the ring cleared where it is (a reset at each gain solution makes no allocation); one of another
+        # shape let go first, so that the new one takes its memory: never both at once
         shape = (self.ring_size if self.xp is np else self.dev_ring_size, self.ld)
         if getattr(self, "ring", None) is not None and self.ring.shape == shape:
             self.ring.fill(0)       # in place: a reset (each gain solution) makes no allocation
