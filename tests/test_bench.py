@@ -147,9 +147,11 @@ def test_profile_memory_samples_the_host_and_reports_a_failure_rather_than_raisi
     small = ["--yaml", "pipelines/lwasv_sim_allsky.yaml", "--device", "cpu", "--seconds", "0.5", "--host-every", "0.05",
              "--set", "source.channels.count=2", "--set", "imager.grid.size=16", "--set", "output.fits=false",
              "--set", "output.png=false", "--set", f"output.dir={tmp_path / 'o'}"]
-    assert pm.main(small + ["--json", str(tmp_path / "m.json")]) == 0
+    assert pm.main(small + ["--snap", "0.05", "0.1", "--json", str(tmp_path / "m.json")]) == 0
     d = json.loads((tmp_path / "m.json").read_text())
     host = d["host"]["samples"]
+    largest = d["host"]["largest_containers"]
+    assert len(largest) == 2 and all(len(v["containers"]) == 10 and " held as " in v["containers"][0] for v in largest)
     assert d["error"] is None and d["gpu"] is None and len(host) >= 3
     assert all(s["rss"] > 50 for s in host)
     if pm._libc() is not None:

@@ -120,8 +120,20 @@ def main(argv=None):
     host, snaps, stop = [], {}, threading.Event()
 
     def counts():
+        """The collector's objects by type, and its largest lists, dicts and deques with what holds them
+        (an attribute's or a key's name where a dict does): a container that grows without bound shows."""
         gc.collect()
-        return collections.Counter(type(o).__name__ for o in gc.get_objects())
+        objs = gc.get_objects()
+        big = sorted((o for o in objs if type(o) in (list, dict, collections.deque)), key=len, reverse=True)[:10]
+        held = []
+        for o in big:
+            names = []
+            for ref in gc.get_referrers(o):
+                if isinstance(ref, dict) and ref is not objs:
+                    names += [str(k)[:40] for k, v in ref.items() if v is o][:2]
+            first = next(iter(o), None)
+            held.append(f"{type(o).__name__} of {len(o)} ({type(first).__name__} ...) held as {names[:3]}")
+        return collections.Counter(type(o).__name__ for o in objs), held
 
     def sample_host():
         last_trim = 0.0
@@ -134,7 +146,7 @@ def main(argv=None):
             if a.snap:
                 for i, ts in enumerate(a.snap):
                     if t >= ts and i not in snaps:
-                        snaps[i] = (t, counts())
+                        snaps[i] = (t,) + counts()
             if stop.wait(a.host_every):
                 break
 
@@ -169,11 +181,16 @@ def main(argv=None):
     slopes = {k: slope([s["t"] for s in host], [s[k] for s in host], lo, hi) for k in keys}
     print("MiB/s over the middle (" + f"{lo:.0f}-{hi:.0f} s): "
           + ", ".join(f"{k} {v:+.2f}" for k, v in slopes.items() if v is not None))
-    growth = {}
+    growth, largest = {}, []
     if len(snaps) == 2:
         growth = dict((snaps[1][1] - snaps[0][1]).most_common(12))
         print(f"objects the collector tracks, growth {snaps[0][0]:.0f} -> {snaps[1][0]:.0f} s: "
               + ", ".join(f"{k} +{n}" for k, n in growth.items()))
+        for i in (0, 1):
+            largest.append({"t": round(snaps[i][0], 2), "containers": snaps[i][2]})
+            print(f"the largest containers at {snaps[i][0]:.1f} s:")
+            for line in snaps[i][2]:
+                print("  " + line)
     gpu_out = None
     if gpu and pool_samples:
         k = max(range(len(pool_samples)), key=lambda i: pool_samples[i][1])
@@ -199,7 +216,8 @@ def main(argv=None):
         write_json(a.json, {"benchmark": "profile_memory", "date": utc_now(), "yaml": a.yaml,
                             "sets": [f"device={a.device}", f"source.duration_s={a.seconds}"] + a.set,
                             "machine": machine(a.device), "wall_s": wall, "error": err, "trim_s": a.trim,
-                            "host": {"samples": host, "slopes_mib_per_s": slopes, "object_growth": growth},
+                            "host": {"samples": host, "slopes_mib_per_s": slopes, "object_growth": growth,
+                                     "largest_containers": largest},
                             "gpu": gpu_out, "summary_images": r.get("images") if isinstance(r, dict) else None})
     return 1 if err else 0
 
