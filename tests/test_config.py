@@ -503,6 +503,23 @@ def test_gpu_memory_gb_limits_the_pool_of_each_gpu_the_run_uses():
             load_config(f"source: {{kind: simulated}}\ngpu_memory_gb: {bad}")
 
 
+def test_a_station_s_tunings_on_one_device_solve_in_turn():
+    """calibration.solve.stagger (on by default): of the n tunings that solve on one device, tuning j's
+    schedule starts j cadence / n after its offset_s; tunings on GPUs of their own, a station that does not
+    solve (solve: null, which must stay null for every tuning) and stagger: false are left alone."""
+    def offsets(*sets):
+        cfg = load_config("pipelines/lwasv_sim_station.yaml", list(sets))
+        return [tc["calibration"]["solve"] and tc["calibration"]["solve"]["offset_s"] for tc in cfg["tunings"]]
+    assert offsets("device=gpu") == [0.0, 5.0] and offsets("device=cpu") == [0.0, 5.0]
+    assert offsets("device=gpu:all") == [0.0, 0.0]
+    assert offsets("calibration.solve=null") == [None, None]
+    assert offsets("calibration.solve.stagger=false") == [0.0, 0.0]
+    assert offsets("calibration.solve.offset_s=8") == [8.0, 3.0]                # modulo the cadence
+    assert offsets("calibration.solve.cadence_s=4", "calibration.solve.integration_s=0.5") == [0.0, 2.0]
+    one = load_config("pipelines/lwasv_sim_allsky.yaml", ["calibration.solve={}"])
+    assert one["calibration"]["solve"]["offset_s"] == 0.0                        # a single pipeline: as given
+
+
 def test_a_run_refuses_what_does_not_fit_gpu_memory_gb():
     """gpu_memory_gb bounds what a GPU configuration may need, before anything is allocated: one pipeline's
     plan, and a station's tunings on one GPU together (66.6 GiB for lwasv_sim_station: 75 GB holds them,

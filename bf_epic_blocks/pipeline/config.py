@@ -421,9 +421,25 @@ def _expand_tunings(cfg, raw, lines, base, source):
             if inherited:
                 for b in tc["source"]["transients"] or []:
                     b["start_s"] = float(b["start_s"]) + float(dispersion_delay_s(b.get("dm") or 0.0, f_hi(tc), top))
+    _stagger_solves([tc for tc, _ in out])
     for tc, _ in out:
         tc["tunings"] = None
     cfg["tunings"] = [tc for tc, _ in out]
+
+
+def _stagger_solves(tunings):
+    """``calibration.solve.stagger``: the n tunings that solve live on one device start their schedules in
+    turn, tuning j of them ``j cadence_s / n`` after its ``offset_s`` (modulo the cadence), so that their
+    solves' memory and time come at different moments. Written into each tuning's ``offset_s``."""
+    groups = {}
+    for tc in tunings:
+        sv = (tc.get("calibration") or {}).get("solve")
+        if sv and sv.get("stagger"):
+            groups.setdefault(str(tc["device"]), []).append(sv)
+    for group in groups.values():
+        for j, sv in enumerate(group):
+            cad = float(sv["cadence_s"])
+            sv["offset_s"] = (float(sv["offset_s"]) + j * cad / len(group)) % cad
 
 
 class OnOffAuto(Choice):
@@ -641,9 +657,12 @@ CALIBRATION_SOLVE = Section({
                              "it applies from the first frame after them."),
     "offset_s": Key(Float(0.0), 0.0,
                     doc="Seconds of data before the first solution's integration (less than `cadence_s`): solution k "
-                        "sums from k x cadence_s + offset_s. Tunings on one GPU set different offsets so that they "
-                        "solve in turn (`pipelines/lwasv_sim_station.yaml`: half the cadence apart), each solve's "
-                        "memory then at its own moment."),
+                        "sums from k x cadence_s + offset_s."),
+    "stagger": Key(Bool(), True,
+                   doc="A station's tunings that solve on one device (`tunings:` on one GPU, or the CPU) do so in "
+                       "turn: of n such tunings, tuning j's schedule starts j x cadence_s / n after its `offset_s`, "
+                       "so that their solves' memory (GBs at the whole band) and time come at different moments. "
+                       "No effect on a single pipeline or on tunings with GPUs of their own."),
     "apply_delay_s": Key(Float(0.0), 6.0,
                          doc="A solution applies this long after the end of its data (on the first image "
                              "integration from then): the time its solve takes, so that the imager need not wait. "

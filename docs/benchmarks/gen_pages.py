@@ -192,7 +192,7 @@ def wb_body():
                "left are the solves' chunks, the sums of an integration, and the imager forming its operator's "
                "phases again when the watch directions step (every second of data): those re-form every pixel's "
                "phases (19 chunks of ~254 MiB a tuning), where only the ten directions moved. The tunings now solve "
-               "in turn (`calibration.solve.offset_s`), which this run did not yet do.\n")
+               "in turn (`calibration.solve.stagger`), which this run did not yet do.\n")
     hm = load("memory_station_gpu1_host.json")
     out.append(f"The host's resident set grew {r['rss_mib']['growth']:.0f} MiB (the last quarter's peak over the "
                f"first's; {r['rss_mib']['first']:.0f} to {r['rss_mib']['peak']:.0f} MiB): not flat. In the process "
