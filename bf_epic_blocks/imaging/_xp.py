@@ -122,11 +122,10 @@ class Lease:
 class Workspace:
     """One working array, used again by every call that needs one of at most its size.
 
-    A GPU pipeline makes its largest temporaries once a gulp (the imager's voltage layout, 0.8 GB; the
-    tree's working rows, 2.9 GB). Made and freed each time, they churn CuPy's pool: the pool keeps each
-    stream's freed blocks for that stream, and arrays made in between split them, so under a pool limit
-    (``gpu_memory_gb``) a gulp can find no block of its size although the bytes in use are below the
-    limit. Kept, they take their memory once.
+    For a pipeline's largest per-gulp temporaries (the imager's voltage layout, the tree's working rows).
+    CuPy's pool keeps each stream's freed blocks for that stream, and arrays made in between split them,
+    so under a pool limit (``gpu_memory_gb``) an array made and freed each gulp can find no block of its
+    size although the bytes in use are below the limit. Kept, it takes its memory once.
 
     :meth:`take` returns a contiguous array of the asked shape and dtype, a view of the kept buffer
     (its contents are whatever the last use left), and a :class:`Lease`. The buffer is used again only

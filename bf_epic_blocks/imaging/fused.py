@@ -480,8 +480,8 @@ class FusedOperator:
         self.npix = op.npix
         self.flag = xp.zeros(1, xp.int32)
         self._pmaps = {}
-        # the voltages' layout, kept from gulp to gulp (a whole band's is 0.8 GB; made each gulp it churns
-        # the pool): the operator, like its range flag, is used on one stream
+        # the voltages' layout, kept from gulp to gulp (a whole band's is most of a gulp's temporaries): the
+        # operator, like its range flag, is used on one stream
         self._b_work = Workspace()
 
     def requantise(self, op, first=0):

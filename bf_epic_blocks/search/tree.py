@@ -202,7 +202,7 @@ class StreamingFDMT:
             raise ValueError(f"precision: the tree stores 'fp32' or 'fp16' values, got {precision!r}")
         self.plan, self.npix, self.xp, self.precision = plan, int(npix), xp, precision
         self.dtype = np.float16 if precision == "fp16" else np.float32
-        self._work = Workspace()     # a push's working rows, made once (a whole band's: ~2.9 GB)
+        self._work = Workspace()     # a push's working rows, kept from push to push (its largest array)
         # float16 rows are read HALF_VEC pixels at a time (one 16-byte load per thread): rows (and pixel
         # chunks) a whole number of those long
         self.pad = self.HALF_VEC if precision == "fp16" else 1
