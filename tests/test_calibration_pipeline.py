@@ -120,6 +120,36 @@ def test_a_solve_out_of_memory_is_skipped_and_counted_not_the_run(tmp_path, monk
     assert "out of memory" in s["failure_reasons"][0]
 
 
+def test_summing_out_of_memory_drops_that_integration_not_the_run(tmp_path, monkeypatch):
+    """An integration whose sums find too little memory (as the station's did on one GPU, under its pool's
+    limit) is a counted, logged failure: the run goes on with the images it was making, and the next
+    integration is summed afresh and solved -- its gains as good as an undisturbed run's."""
+    from bf_epic_blocks.imaging.skycal import CovarianceSums
+    real, calls = CovarianceSums.add, []
+
+    def add(self, x, *args, **kw):
+        calls.append(int(x.shape[0]))
+        if len(calls) == 2:                        # part-way through the first integration
+            raise MemoryError("Out of memory allocating 268,435,456 bytes")
+        return real(self, x, *args, **kw)
+    monkeypatch.setattr(CovarianceSums, "add", add)
+    solve_cfg = ("calibration.solve={cadence_s: 0.5, integration_s: 0.25, apply_delay_s: 0, pattern: none, "
+                 "smooth_channels: 4, diffuse: false}")
+    cfg = _cfg(tmp_path, "oom", "calibration.cable=false", solve_cfg)
+    summary = runner.run(cfg, show_progress=False)
+    s = summary["solver"]
+    assert s["out_of_memory"] == 1 and s["failures"] == 1 and s["solutions"] == 1, s
+    assert "out of memory while summing" in s["failure_reasons"][0]
+    assert summary["images"] == 4 and summary["frames_imaged"] == summary["frames_read"] == 4 * QUARTER   # none lost
+    t = read_solved_table(tmp_path / "oom" / "lwasv_sim_allsky_gains.npz")
+    tpf = int(round(FS_HZ / 25000))
+    tag0 = int(round(__import__("astropy.time", fromlist=["Time"]).Time(cfg["source"]["start"]).unix * FS_HZ))
+    assert t["valid_from"].tolist() == [tag0 + 3 * QUARTER * tpf]      # solution 1's alone
+    g, _ = _cable_truth(cfg)
+    err, _ = gain_error(t["gains"][0], g, ~t["flags"][0])
+    assert err < 0.02, err
+
+
 def test_images_after_a_solution_are_the_truth_and_before_it_are_not(runs):
     tmp, _, _ = runs
     live, truth, raw = (_images(tmp / n) for n in ("live", "truth", "raw"))

@@ -102,14 +102,14 @@ def test_the_working_rows_are_made_once_and_a_reset_clears_the_rings_in_place():
     got, bufs = [], set()
     for t in range(0, x.shape[1], 16):
         got.append(s.push(x[:, t:t + 16]))
-        bufs.add(id(s._work._buf))
-    assert len(bufs) == 1
+        bufs.add(id(s._work._slots[0][0]))
+    assert len(bufs) == 1 and len(s._work._slots) == 1       # on the host no push's rows are still read
     assert np.abs(np.concatenate(got, axis=1) - gathered_sums(x, effective_back(plan))).max() < 1e-4
     ring = s.ring
     s.reset()
     assert s.ring is ring and not ring.any()
     assert np.abs(s.push(x[:, :16]) - gathered_sums(x[:, :16], effective_back(plan))).max() < 1e-4
-    assert id(s._work._buf) in bufs
+    assert id(s._work._slots[0][0]) in bufs
 
 
 def test_the_stream_s_memory_is_fixed_by_the_band_not_the_run():

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from bf_epic_blocks import imaging
-from bf_epic_blocks.imaging import fused, plan
+from bf_epic_blocks.imaging import dft, fused, plan
 from bf_epic_blocks.imaging._xp import gpu_available
 from bf_epic_blocks.imaging.dft import DFTOperator
 from bf_epic_blocks.imaging.gemm import PrecisionUnavailable
@@ -373,7 +373,7 @@ def test_gpu_gulps_in_a_row_share_one_layout_and_each_equals_float64_truth():
         acc.images(cp.asarray(pack_ci4(Q[..., 0] + 1j * Q[..., 1].astype(np.float64))), 16, ci4=True,
                    place=place, out=out)
         outs.append(out)
-        ptrs.append(op.fused._b_work._buf.data.ptr)
+        ptrs.append(op.fused._b_work._slots[0][0].data.ptr)
     assert ptrs[0] == ptrs[1]
     on = grid.mask.ravel()
     for Q, out in zip((Q1, Q2), outs):
@@ -521,7 +521,18 @@ def test_gpu_a_fused_operator_holds_no_phases_and_its_pieces_equal_the_whole_ope
         ref = whole(w2)
         assert cp.array_equal(op.fused.Aq, ref[0]) and cp.array_equal(op.fused.osc, ref[1]) and op.G is None
         moved = rng.uniform(-0.3, 0.3, (10, 2))
-        op.repoint(moved, first=K - 10)
+        formed = []
+        form = dft._geometric_from_path
+
+        def spy(xp, path, f, precision):
+            formed.append(int(path.shape[0]))
+            return form(xp, path, f, precision)
+        dft._geometric_from_path = spy
+        try:
+            op.repoint(moved, first=K - 10)
+        finally:
+            dft._geometric_from_path = form
+        assert formed and set(formed) == {10}          # only the moved pixels' phases were formed
         ref = whole(w2)
         assert cp.array_equal(op.fused.Aq, ref[0]) and cp.array_equal(op.fused.osc, ref[1]) and op.G is None
         # the phases it forms are the moved pixels' (not those it formed before the move), bit for bit
@@ -530,3 +541,13 @@ def test_gpu_a_fused_operator_holds_no_phases_and_its_pieces_equal_the_whole_ope
                                                                       cp.asarray(lm2)))
     finally:
         fused._REFORM_BYTES_GPU = old
+
+
+def test_quantise_operator_refuses_moved_rows_alone_where_it_cannot_place_them():
+    """Phases of the moved pixels alone (``g_first``) are placed only into given arrays, on a GPU, from a
+    first pixel at or after them: elsewhere a clear error, not pieces written at the wrong rows."""
+    rng = np.random.default_rng(5)
+    G = np.exp(1j * rng.uniform(0, 6, (2, 6, 8))).astype(np.complex64)
+    w = np.ones((2, 8, 1), np.complex64)
+    with pytest.raises(ValueError, match="need a GPU, out and first >= g_first"):
+        fused.quantise_operator(G, w, np.arange(8), 8, 2, g_first=4, first=4)

@@ -687,6 +687,39 @@ def test_skipped_gulp_and_new_sequence_reset_the_window(tmp_path):
     assert len(blk.candidates) == 1
 
 
+def test_a_search_out_of_memory_loses_that_gulp_s_search_not_the_run(monkeypatch):
+    """A push that finds too little memory (on a GPU, CuPy's OutOfMemoryError: a MemoryError; the station's
+    search once ended its run so) is counted and logged, its images left unsearched and the window begun
+    again after them; a burst after the refill is still found, at its image."""
+    from bf_epic_blocks.search import TransientSearch
+    rng = np.random.default_rng(4)
+    grid = imaging.lm_grid(12)
+    freq = 74e6 + 25e3 * np.arange(4)
+    hdr = image_header(grid, freq, 16 * DT)
+    N, W = grid.size, 40
+    with bfp.Pipeline():
+        src = ArraySourceBlock(np.zeros((1, 4, 1, N, N), np.float32), hdr, gulp_nframe=8)
+        blk = TransientSearchBlock(src, SearchSettings(threshold=6.0, window_s=W * 16 * DT, dms=[0.0]))
+    real, calls = TransientSearch.push, []
+
+    def push(self, *args, **kw):
+        calls.append(1)
+        if len(calls) == 3:
+            raise MemoryError("Out of memory allocating 534,952,960 bytes")
+        return real(self, *args, **kw)
+    monkeypatch.setattr(TransientSearch, "push", push)
+    imgs = rng.normal(10.0, 1.0, (300, 4, 1, N, N)).astype(np.float32)
+    k = int(np.flatnonzero(grid.mask)[40])
+    imgs[250, :, 0].reshape(4, -1)[:, k] += 10.0
+    blk.on_sequence(SimpleNamespace(header=hdr))
+    for a in range(0, 300, 25):
+        blk.on_data(_fake(imgs[a:a + 25]))
+    blk.on_sequence_end(None)
+    st = blk.search_stats
+    assert st["out_of_memory"] == 1 and st["images_lost"] == 25 and st["resets"] == 1 and st["images"] == 275
+    assert list(blk.candidates["image"]) == [250]
+
+
 def _peak_rise(fn):
     """Bytes by which the traced peak rose above what was held when ``fn`` started (NumPy's arrays are
     traced by tracemalloc)."""

@@ -344,10 +344,15 @@ class GainSolverBlock(bfp.SinkBlock):
             part = x[pos:pos + take]
             ci4 = lay["dtype"] == "ci4" and part.dtype == np.uint8
             used, block = self._used(part) if self._flag_block else (None, 1)
-            if ci4:
-                self._sums.add(part, ci4=True, used=used, block=block)
-            else:
-                self._sums.add(unpack_complex(part, lay["dtype"]), used=used, block=block)
+            try:
+                if ci4:
+                    self._sums.add(part, ci4=True, used=used, block=block)
+                else:
+                    self._sums.add(unpack_complex(part, lay["dtype"]), used=used, block=block)
+            except MemoryError as e:            # CuPy's OutOfMemoryError too: the imager's memory comes first
+                self._drop_integration(f"out of memory while summing its data ({str(e)[:200]})")
+                pos += take
+                continue
             if self._xp is np:
                 self._sum_this += time.perf_counter() - t0
             pos += take
@@ -357,6 +362,17 @@ class GainSolverBlock(bfp.SinkBlock):
                 self._k += 1
                 self._sums.reset()
         self._frame = first + n
+
+    def _drop_integration(self, why):
+        """Integration k cannot be summed: counted and logged as a failed solution (the last good gains stay
+        in force), the live table told that nothing comes from it -- by the worker, after the solves queued
+        before it, whose solutions apply earlier -- and the sums begun again at the next."""
+        self.solver_stats["out_of_memory"] += 1
+        self._fail(why, self._k)
+        if self.table is not None:
+            self._jobs.append(self._pool.submit(self.table.decided, self._tag0, self._due(self._k + 1) - 1))
+        self._k += 1
+        self._sums.reset()
 
     def _used(self, part):
         """(used, block): after interference flagging (the header's ``flagging``), float (nj, nchan, nant), 1

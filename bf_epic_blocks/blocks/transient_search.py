@@ -93,7 +93,7 @@ class TransientSearchBlock(bfp.SinkBlock):
         self.search_stats = {"images": 0, "images_searched": 0, "crossings": 0, "candidates": 0, "resets": 0,
                              "images_lost": 0, "trials_per_width": [0] * len(self.widths), "sequences": 0,
                              "sky_wide": 0, "sidelobes_folded": 0, "crossings_dropped": 0, "gain_resets": 0,
-                             "images_straddling_gains": 0}
+                             "images_straddling_gains": 0, "out_of_memory": 0}
         self._sky = None
 
     # the settings SearchParts and the candidate code read, as the block uses them
@@ -292,7 +292,13 @@ class TransientSearchBlock(bfp.SinkBlock):
         # on a GPU the last batch's statistics wait for the next gulp (TransientSearch.push's defer): this
         # span is released before their host wait, so the imager's next gulp is queued meanwhile
         defer = self.xp is not np if self.DEFER_STATS is None else bool(self.DEFER_STATS)
-        cr = self.search.push(x, index, defer=defer)
+        try:
+            cr = self.search.push(x, index, defer=defer)
+        except MemoryError as e:            # CuPy's OutOfMemoryError too: the images go on, unsearched
+            self.search_stats["out_of_memory"] += 1
+            self.search.reset(self._j)      # the staged values dropped first: searching them may be what failed
+            self._lose(n, f"out of memory in the search: {str(e)[:200]}")
+            return
         self._j += n
         self.search_stats["images"] += n
         self._took(cr, n_before)

@@ -120,24 +120,30 @@ class Lease:
 
 
 class Workspace:
-    """One working array, used again by every call that needs one of at most its size.
+    """Working arrays, used again by every call that needs one of at most their size.
 
     For a pipeline's largest per-gulp temporaries (the imager's voltage layout, the tree's working rows).
     CuPy's pool keeps each stream's freed blocks for that stream, and arrays made in between split them,
     so under a pool limit (``gpu_memory_gb``) an array made and freed each gulp can find no block of its
     size although the bytes in use are below the limit. Kept, it takes its memory once.
 
-    :meth:`take` returns a contiguous array of the asked shape and dtype, a view of the kept buffer
-    (its contents are whatever the last use left), and a :class:`Lease`. The buffer is used again only
-    when the last lease is gone and the current CUDA stream (and device) is the one it was made on:
-    work queued on one stream runs in order, so the next use cannot overtake the last one's kernels.
-    Otherwise, or when the asked size is larger, a new buffer is made (and kept: the old one lives on
-    in its readers until they let it go). On the host the stream is always the same."""
+    :meth:`take` returns a contiguous array of the asked shape and dtype, a view of a kept buffer (its
+    contents are whatever the last use left), and a :class:`Lease`. A buffer is used again only when its
+    last lease is gone and the current CUDA stream (and device) is the one it was made on: work queued on
+    one stream runs in order, so the next use cannot overtake the last one's kernels. Up to ``depth``
+    buffers are kept: a reader that holds one call's array while the next call is made (a search that
+    searches a push's rows during the next push) takes ``depth=2``, and the two buffers then take turns.
+    Where none is free, of the stream and large enough, a new buffer is made and kept in place of a free
+    one, else of the oldest (which lives on in its readers until they let it go). On the host the stream
+    is always the same.
 
-    def __init__(self):
-        self._buf = None
-        self._key = None
-        self._lease = None
+    depth : buffers kept (>= 1)."""
+
+    def __init__(self, depth: int = 1):
+        if int(depth) < 1:
+            raise ValueError(f"Workspace: depth must be at least 1, got {depth}")
+        self.depth = int(depth)
+        self._slots = []             # [buffer, stream key, weak reference to its last lease or None], oldest first
 
     @staticmethod
     def _stream_key(xp):
@@ -145,26 +151,32 @@ class Workspace:
             return ("host",)
         return (xp.cuda.Device().id, xp.cuda.get_current_stream().ptr)
 
+    @staticmethod
+    def _free(slot):
+        return slot[2] is None or slot[2]() is None
+
     def take(self, xp, shape, dtype):
         """(array of ``shape``, ``dtype`` in ``xp``, its :class:`Lease`)."""
         dtype = np.dtype(dtype)
         nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
         key = self._stream_key(xp)
-        free = self._lease is None or self._lease() is None
-        if not (free and self._buf is not None and key == self._key and get_xp(self._buf) is xp
-                and self._buf.nbytes >= nbytes):
-            self._buf = None                         # let the old one go first (its readers keep it alive)
-            self._buf = xp.empty(max(nbytes, 1), np.uint8)
-            self._key = key
+        slot = next((s for s in self._slots if self._free(s) and s[1] == key and get_xp(s[0]) is xp
+                     and s[0].nbytes >= nbytes), None)
+        if slot is None:
+            if len(self._slots) >= self.depth:
+                # let one go before the new one is made (its readers, if any, keep it alive)
+                del self._slots[next((i for i, s in enumerate(self._slots) if self._free(s)), 0)]
+            slot = [xp.empty(max(nbytes, 1), np.uint8), key, None]
+            self._slots.append(slot)
         lease = Lease()
-        self._lease = weakref.ref(lease)
-        return self._buf[:nbytes].view(dtype).reshape(shape), lease
+        slot[2] = weakref.ref(lease)
+        return slot[0][:nbytes].view(dtype).reshape(shape), lease
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the kept buffer (0 before the first use)."""
-        return 0 if self._buf is None else int(self._buf.nbytes)
+        """Bytes of the kept buffers (0 before the first use)."""
+        return sum(int(s[0].nbytes) for s in self._slots)
 
     def release(self) -> None:
-        """Let the buffer go (the next use makes a new one)."""
-        self._buf = self._key = self._lease = None
+        """Let the buffers go (the next use makes a new one)."""
+        self._slots = []

@@ -410,7 +410,8 @@ class DFTOperator:
             self.G[rows] = G
         self._host_pixels[0][first:] = hlm
         self._host_pixels[1][first:] = hn
-        self._path = None
+        if self._path is not None:      # the moved pixels' rows only (each row is its pixel's alone)
+            self._path[first:] = self.xp.asarray(_path_m(self._host_geometry[0], hlm, hn))
         if bp is not None:
             self.pixel_pattern[:, first:] = bp
         self.pixels_lm[first:] = xp.asarray(hlm)
@@ -472,12 +473,13 @@ class DFTOperator:
         return self._host["w"] if chan is None else self._host["w"][chan]
 
     # ------------------------------------------------------------------ operator forms
-    def phases(self, cs=slice(None)):
+    def phases(self, cs=slice(None), first=0):
         """(c, npix, nant) complex: the geometric operator of the live channels ``cs`` (a slice), from the
         operator's phases where it holds them, else formed from its host geometry (bit-equal: the same
-        element-wise arithmetic). For one operator shared by the pols (``shared_geometry``)."""
+        element-wise arithmetic). For one operator shared by the pols (``shared_geometry``).
+        first : where the phases are formed, only pixels ``first`` .. npix - 1: (c, npix - first, nant)."""
         if self.G is not None:
-            return self.live_G(0)[cs]
+            return self.live_G(0)[cs, int(first):]
         hxyz, hf = self._host_geometry
         chan = self._host["chan"]
         f = (hf if chan is None else hf[chan])[cs]
@@ -486,7 +488,7 @@ class DFTOperator:
         # 256 stands), not once per chunk: a solution's pieces are made ~20 chunks at a time
         if self._path is None:
             self._path = self.xp.asarray(_path_m(hxyz, *self._host_pixels))
-        return _geometric_from_path(self.xp, self._path, f, precision)
+        return _geometric_from_path(self.xp, self._path[int(first):], f, precision)
 
     def _live_G(self, pol):
         if self.G is None:       # a route asks for the whole operator: formed now, and held from now on

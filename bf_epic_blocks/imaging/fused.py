@@ -143,7 +143,7 @@ def gpu_chunk_channels(K, nant_in, chunk=16):
 
 
 def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tiled=False, out=None, weights_host=None,
-                      first=0):
+                      first=0, g_first=0):
     """The operator as int8 pieces in the kernel's layout (module docstring).
 
     G : complex (C, K, A_kept) geometric operator (live channels);  weights : complex (C, A_kept, P)
@@ -159,9 +159,17 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     first : with ``out``, on a GPU, only pixels ``first`` .. K - 1 (and the padding) are made again: the
         others' directions did not move (a grid's pixels with a watchlist's beside them). On the CPU every
         pixel is (the same numbers for the others).
+    g_first : G holds only pixels ``g_first`` .. K - 1 (its shape (C, K - g_first, A_kept)): the phases of the
+        pixels that moved, formed alone. Needs a GPU, ``out`` and ``first >= g_first``.
     """
     xp = get_xp(G)
-    C, K, Ak = (int(s) for s in G.shape)
+    C, Kg, Ak = (int(s) for s in G.shape)
+    g_first = int(g_first)
+    K = g_first + Kg
+    if g_first:
+        if xp is np or out is None or first < g_first:
+            raise ValueError(f"quantise_operator: phases of pixels {g_first} on alone need a GPU, out and first >= "
+                             f"g_first (first {first})")
     w = xp.asarray(weights)
     # decided on the host (a few MB): on a GPU the whole-array test is a CUB reduction, whose
     # compilation costs seconds of a fresh process's first image
@@ -181,7 +189,8 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
         if Aq.shape != shape or osc.shape != (C, PA, Kpad):
             raise ValueError(f"quantise_operator: out shaped {Aq.shape}, {osc.shape}; expected {shape}, {(C, PA, Kpad)}")
     if xp is not np:
-        _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk, first if out is not None else 0)
+        _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk, first if out is not None else 0,
+                      g_first)
         return Aq, osc, b, xmax
     kidx = xp.asarray(keep_index)
     for c0 in range(0, C, chunk):
@@ -218,7 +227,7 @@ def quantise_operator(G, weights, keep_index, nant_in, pieces, *, chunk=16, tile
     return Aq, osc, b, xmax
 
 
-def _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk, first=0):
+def _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk, first=0, g_first=0):
     """:func:`quantise_operator` on a GPU: one kernel (``quantise.cu``) per launch of whole channels, the same
     arithmetic as the NumPy path (bit-equal pieces). A complex64 contiguous G is read as it is, every channel in
     one launch; another G is cast ``chunk`` channels (or :data:`_CHUNK_BYTES_GPU`) at a time.
@@ -226,9 +235,12 @@ def _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk, firs
     Why one kernel: the array expressions make ~40 launches a 16-channel chunk, ~2,000 at the whole band,
     and an imager folding in a new solution makes them from its own thread behind the images it has
     queued: past the stream's ~1,000 pending launches each one waits for the GPU, so the thread spends
-    seconds there and the GPU idles while the host makes the rest."""
+    seconds there and the GPU idles while the host makes the rest.
+
+    G holds pixels ``g_first`` .. K - 1 (:func:`quantise_operator`)."""
     import cupy as cp
-    C, K, Ak = (int(s) for s in G.shape)
+    C, Kg, Ak = (int(s) for s in G.shape)
+    K = g_first + Kg
     P, PA, Kpad = int(w.shape[-1]), int(osc.shape[1]), int(osc.shape[2])
     for name, a in (("A", Aq), ("oscale", osc)):
         if not a.flags.c_contiguous:
@@ -237,7 +249,7 @@ def _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk, firs
     inv[cp.asarray(keep_index)] = cp.arange(Ak, dtype=cp.int32)
     wc = cp.ascontiguousarray(w, dtype=cp.complex64)
     whole = G.dtype == cp.complex64 and G.flags.c_contiguous
-    step = C if whole else gpu_chunk_channels(K, Apad, chunk)
+    step = C if whole else gpu_chunk_channels(Kg, Apad, chunk)
     kernel = get_kernel("imaging/quantise.cu", "bf_quantise_operator")
     oscale = np.float64(127.0 * float(b) ** (pieces - 1))
     for c0 in range(0, C, step):
@@ -246,7 +258,7 @@ def _quantise_gpu(G, w, keep_index, Apad, pieces, b, tiled, Aq, osc, chunk, firs
         kernel((Kpad - first, c1 - c0, PA), (256,), (g, wc[c0:c1], inv, Aq[c0:c1], osc[c0:c1], np.int32(K),
                                                      np.int32(Ak), np.int32(P), np.int32(Apad), np.int32(pieces),
                                                      np.float32(b), oscale, np.int32(bool(tiled)), np.int32(first),
-                                                     np.int32(Kpad)))
+                                                     np.int32(Kpad), np.int32(g_first), np.int32(Kg)))
 
 
 def padded_ntime(T):
@@ -492,7 +504,9 @@ class FusedOperator:
 
     def _quantise(self, op, out=None, first=0):
         """:func:`quantise_operator` of ``op``'s phases with this operator's weights: from the phases it holds,
-        else formed and quantised :data:`_REFORM_BYTES_GPU` of phases at a time (the same pieces)."""
+        else formed and quantised :data:`_REFORM_BYTES_GPU` of phases at a time (the same pieces) -- only
+        pixels ``first`` onwards where only those moved (a watchlist's directions beside a grid: ~10 of
+        ~3,200 pixels' phases formed, not all of them)."""
         if op.G is not None:
             return quantise_operator(op.live_G(0), self._w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled,
                                      out=out, weights_host=self._w_host, first=first)
@@ -502,12 +516,12 @@ class FusedOperator:
             PA = pol_sets(wh)
             out = (xp.empty(operand_shape(C, PA, K, op.nant_in, self.pieces, self.tiled), xp.int8),
                    xp.empty((C, PA, _pad(K, 64)), xp.float32))
-        step = reform_channels(K, op.nant)
+        step = reform_channels(K - first, op.nant)
         for c0 in range(0, C, step):
             cs = slice(c0, min(C, c0 + step))
-            _, _, b, xmax = quantise_operator(op.phases(cs), self._w[cs], op.keep_index, op.nant_in, self.pieces,
-                                              tiled=self.tiled, out=(out[0][cs], out[1][cs]), weights_host=wh[cs],
-                                              first=first)
+            _, _, b, xmax = quantise_operator(op.phases(cs, first), self._w[cs], op.keep_index, op.nant_in,
+                                              self.pieces, tiled=self.tiled, out=(out[0][cs], out[1][cs]),
+                                              weights_host=wh[cs], first=first, g_first=first)
         return out[0], out[1], b, xmax
 
     def can_reweight(self, w):

@@ -1,7 +1,8 @@
 // The operator D = G w into the fused kernels' int8 pieces and row scales, in one pass. Launched by
 // imaging/fused.py (quantise_operator on a GPU); the NumPy path there is the same arithmetic.
 //
-// g : complex64 (Cl, K, Ak) geometric operator of the live channels, as interleaved float pairs;
+// g : complex64 (Cl, Kg, Ak) geometric operator of the live channels' pixels gk0 .. K - 1 (Kg = K - gk0:
+// all of them, or only those that moved), as interleaved float pairs;
 // w : complex64 (Cl, Ak, P) folded gains; inv : int32 (Apad,) the kept antenna at each input antenna,
 // or -1 (antennas dropped or beyond the input's).
 // Out: A int8 (Cl, PA, pieces, 2 Kpad, KD), or with `tiled` the Hopper kernel's tiles
@@ -14,9 +15,9 @@
 // Real row of pixel k: (q_re, -q_im) at columns 2a, 2a + 1; imaginary row: (q_im, q_re); the rows of
 // each 8 pixels are 16 consecutive rows, 8 real then 8 imaginary. osc = (s_k / (127 b^(pieces-1)))^2.
 //
-// Launch: grid (Kpad - k0, Cl, PA), 256 threads; dynamic shared memory none. Each block makes one pixel's
-// row pair (pixel k0 + blockIdx.x: only pixels from k0 on when the others did not move): a max over the
-// kept antennas, then the Apad columns.
+// Launch: grid (Kpad - k0, Cl, PA), 256 threads; dynamic shared memory none, k0 >= gk0. Each block makes
+// one pixel's row pair (pixel k0 + blockIdx.x: only pixels from k0 on when the others did not move): a max
+// over the kept antennas, then the Apad columns.
 
 __device__ __forceinline__ void d_of(const float2* __restrict__ g, const float2* __restrict__ w,
                                      long long grow, long long wrow, int a, int P, float& re, float& im)
@@ -42,11 +43,11 @@ extern "C" __global__ void bf_quantise_operator(const float2* __restrict__ g, co
                                                 float* __restrict__ osc, const int K, const int Ak,
                                                 const int P, const int Apad, const int pieces, const float b,
                                                 const double oscale, const int tiled, const int k0,
-                                                const int Kpad)
+                                                const int Kpad, const int gk0, const int Kg)
 {
     const int k = k0 + blockIdx.x, c = blockIdx.y, pa = blockIdx.z;
     const int PA = gridDim.z, M = 2 * Kpad, KD = 2 * Apad;
-    const long long grow = ((long long)c * K + k) * Ak;
+    const long long grow = ((long long)c * Kg + (k - gk0)) * Ak;      // read only where k < K
     const long long wrow = (long long)c * Ak * P + pa;
     __shared__ float red[32];
     float m = 0.0f;

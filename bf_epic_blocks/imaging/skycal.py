@@ -58,7 +58,7 @@ import numpy as np
 
 from ..conventions import SPEED_OF_LIGHT_M_S
 from ..cuda import get_kernel, register
-from ._xp import get_xp, to_numpy
+from ._xp import Workspace, get_xp, to_numpy
 
 register("imaging/skycal.cu")
 
@@ -559,6 +559,9 @@ class CovarianceSums:
         self._gram_n = 0
         self.ntime = 0
         self._count = None       # (nchan, nant, nant) samples each baseline kept, where some were flagged
+        # a GPU's int8 rows of a chunk, kept from gulp to gulp (made and freed each gulp they split the
+        # pool's blocks that the imager's own arrays need, under a pool limit)
+        self._rows = Workspace()
 
     def reset(self):
         self._sum[...] = 0
@@ -622,9 +625,11 @@ class CovarianceSums:
             c1 = min(C, c0 + self.chunk)
             if xp is not np:
                 first = c0 not in self._gram
-                G = self._gram.setdefault(c0, xp.empty((P, c1 - c0, 2 * A, 2 * A), xp.int32))
+                if first:
+                    self._gram[c0] = xp.empty((P, c1 - c0, 2 * A, 2 * A), xp.int32)
+                G = self._gram[c0]
                 Tp = -(-T // 16) * 16             # cuBLAS' integer GEMMs want time in multiples of 4
-                rows = xp.empty((c1 - c0, A, 2, Tp), xp.int8)
+                rows, _ = self._rows.take(xp, (c1 - c0, A, 2, Tp), xp.int8)   # one stream: reused in order
                 bc = xp.ascontiguousarray(b)
                 for p in range(P):
                     # (t, c, a) bytes -> rows (c, a, re/im, t) in one pass (skycal.cu)
@@ -635,7 +640,9 @@ class CovarianceSums:
                     int_gram(rows.reshape(c1 - c0, 2 * A, Tp), out=G[p], accumulate=not first)
                 continue
             pairs = _ci4_pairs(np.ascontiguousarray(b[:, c0:c1]))                           # (t, c, a, p, 2)
-            G = self._gram.setdefault(c0, np.zeros((P, c1 - c0, 2 * A, 2 * A)))
+            if c0 not in self._gram:
+                self._gram[c0] = np.zeros((P, c1 - c0, 2 * A, 2 * A))
+            G = self._gram[c0]
             step = (2**24 - 1) // 128          # float32 sums of 4-bit products stay exact below 2^24
             for t0 in range(0, T, step):
                 rows = gram_rows(pairs[t0:t0 + step], sel).reshape(c1 - c0, A, P, 2, -1)     # (c, a, p, ri, t)

@@ -197,7 +197,8 @@ def main(argv=None):
         kh = max(range(len(pool_samples)), key=lambda i: pool_samples[i][2])
         sites = collections.defaultdict(lambda: [0, 0, 0])
         for _, size, _, st in logs:
-            s = sites[st[-1] if st else "?"]
+            # a helper's allocation (a Workspace's take) is named with its caller's frame, which tells them apart
+            s = sites[" < ".join(st[-1:-3:-1]) if st and st[-1].startswith("_xp.py") else st[-1] if st else "?"]
             s[0] += 1; s[1] += size; s[2] = max(s[2], size)
         top = sorted(sites.items(), key=lambda kv: -kv[1][1])[:20]
         gpu_out = {"peak_in_use_gb": pool_samples[k][1] / 1e9, "peak_at_s": pool_samples[k][0],
