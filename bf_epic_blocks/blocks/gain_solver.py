@@ -343,24 +343,22 @@ class GainSolverBlock(bfp.SinkBlock):
                 self._ev_start.record()
             part = x[pos:pos + take]
             ci4 = lay["dtype"] == "ci4" and part.dtype == np.uint8
-            used, block = self._used(part) if self._flag_block else (None, 1)
+            pos += take
             try:
+                used, block = self._used(part) if self._flag_block else (None, 1)
                 if ci4:
                     self._sums.add(part, ci4=True, used=used, block=block)
                 else:
                     self._sums.add(unpack_complex(part, lay["dtype"]), used=used, block=block)
+                if self._xp is np:
+                    self._sum_this += time.perf_counter() - t0
+                if f + take >= end:
+                    self._hand_over(self._k, self._due(self._k) if self.apply_from == "after"
+                                    else self._tag0 + (self._k * self._cadence + self._offset) * self._tpf)
+                    self._k += 1
+                    self._sums.reset()
             except MemoryError as e:            # CuPy's OutOfMemoryError too: the imager's memory comes first
                 self._drop_integration(f"out of memory while summing its data ({str(e)[:200]})")
-                pos += take
-                continue
-            if self._xp is np:
-                self._sum_this += time.perf_counter() - t0
-            pos += take
-            if f + take >= end:
-                self._hand_over(self._k, self._due(self._k) if self.apply_from == "after"
-                                else self._tag0 + (self._k * self._cadence + self._offset) * self._tpf)
-                self._k += 1
-                self._sums.reset()
         self._frame = first + n
 
     def _drop_integration(self, why):

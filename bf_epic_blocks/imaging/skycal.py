@@ -629,7 +629,8 @@ class CovarianceSums:
                     self._gram[c0] = xp.empty((P, c1 - c0, 2 * A, 2 * A), xp.int32)
                 G = self._gram[c0]
                 Tp = -(-T // 16) * 16             # cuBLAS' integer GEMMs want time in multiples of 4
-                rows, _ = self._rows.take(xp, (c1 - c0, A, 2, Tp), xp.int8)   # one stream: reused in order
+                # the lease let go at once: kept, it would make the next chunk's take a new array
+                rows = self._rows.take(xp, (c1 - c0, A, 2, Tp), xp.int8)[0]      # one stream: reused in order
                 bc = xp.ascontiguousarray(b)
                 for p in range(P):
                     # (t, c, a) bytes -> rows (c, a, re/im, t) in one pass (skycal.cu)
