@@ -164,3 +164,12 @@ def test_profile_memory_samples_the_host_and_reports_a_failure_rather_than_raisi
     assert pm.main(small + ["--json", str(tmp_path / "bad.json")]) == 1
     bad = json.loads((tmp_path / "bad.json").read_text())
     assert bad["error"].startswith("MemoryError: Out of memory") and len(bad["host"]["samples"]) >= 1
+
+
+def test_profile_memory_refuses_a_bad_setting_with_its_message(capsys):
+    """A mistyped --set (or a YAML that is not there) is the config's message and exit 2, not a traceback."""
+    import profile_memory as pm
+    assert pm.main(["--device", "cpu", "--set", "imager.no_such_key=1"]) == 2
+    assert "no_such_key" in capsys.readouterr().err
+    assert pm.main(["--device", "cpu", "--yaml", "pipelines/no_such.yaml"]) == 2
+    assert "config file not found" in capsys.readouterr().err

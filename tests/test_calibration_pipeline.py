@@ -120,19 +120,21 @@ def test_a_solve_out_of_memory_is_skipped_and_counted_not_the_run(tmp_path, monk
     assert "out of memory" in s["failure_reasons"][0]
 
 
-def test_summing_out_of_memory_drops_that_integration_not_the_run(tmp_path, monkeypatch):
-    """An integration whose sums find too little memory (as the station's did on one GPU, under its pool's
-    limit) is a counted, logged failure: the run goes on with the images it was making, and the next
-    integration is summed afresh and solved -- its gains as good as an undisturbed run's."""
+@pytest.mark.parametrize("where", ["add", "mean"])
+def test_summing_out_of_memory_drops_that_integration_not_the_run(tmp_path, monkeypatch, where):
+    """An integration whose sums (part-way through) or whose hand-over (the sums' mean) find too little
+    memory, as the station's did on one GPU under its pool's limit, is a counted, logged failure: the run
+    goes on with the images it was making, and the next integration is summed afresh and solved -- its
+    gains as good as an undisturbed run's."""
     from bf_epic_blocks.imaging.skycal import CovarianceSums
-    real, calls = CovarianceSums.add, []
+    real, calls = getattr(CovarianceSums, where), []
 
-    def add(self, x, *args, **kw):
-        calls.append(int(x.shape[0]))
-        if len(calls) == 2:                        # part-way through the first integration
+    def failing(self, *args, **kw):
+        calls.append(1)
+        if len(calls) == (2 if where == "add" else 1):      # in the first integration
             raise MemoryError("Out of memory allocating 268,435,456 bytes")
-        return real(self, x, *args, **kw)
-    monkeypatch.setattr(CovarianceSums, "add", add)
+        return real(self, *args, **kw)
+    monkeypatch.setattr(CovarianceSums, where, failing)
     solve_cfg = ("calibration.solve={cadence_s: 0.5, integration_s: 0.25, apply_delay_s: 0, pattern: none, "
                  "smooth_channels: 4, diffuse: false}")
     cfg = _cfg(tmp_path, "oom", "calibration.cable=false", solve_cfg)

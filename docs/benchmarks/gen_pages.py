@@ -225,6 +225,36 @@ def wb_body():
                f"commit {old['commit']}, no limit): {old['run']['rt_flowing']:.3f}x flowing; `nvidia-smi` "
                f"{old['run']['gpu_mib']['first']:.0f}-{old['run']['gpu_mib']['peak']:.0f} MiB, mostly the pool's cache. "
                "Under a 75-GB limit the code before this record's changes (commit 5511414) ran out of memory.\n")
+    m = load("memory_station_gpu1_150s.json"); rr = m["runs"]
+    oo = load("bench_wholeband_station_gpu1_oomskips.json")
+
+    def fails(k):
+        return rr[k]["error"].split(": ")[1].split("'")[1] if rr[k]["error"] else "none"
+    out.append(f"### Case W2 over minutes, on {H200}\n")
+    out.append("The 60-s figures above do not hold for longer. Three runs of 150 s of data "
+               "([memory_station_gpu1_150s.json](../bench/memory_station_gpu1_150s.json), `profile_memory`) all ended "
+               "early, out of memory under the 75-GB limit, the held bytes at the limit while "
+               f"{min(v['in_use_at_held_peak_gb'] for v in rr.values()):.1f}-"
+               f"{max(v['in_use_at_held_peak_gb'] for v in rr.values()):.1f} GB "
+               "were in use: with the tree's working rows one kept buffer the search failed "
+               f"({fails('one_tree_buffer')}, {rr['one_tree_buffer']['wall_s']:.0f} s of wall time); with two, again "
+               f"the search ({fails('two_tree_buffers')}, {rr['two_tree_buffers']['wall_s']:.0f} s); with a search's "
+               f"shortage a counted skip ({rr['oom_skips']['search_out_of_memory_logged']} push of 64 images), the "
+               f"solver's hand-over ({fails('oom_skips')}, {rr['oom_skips']['wall_s']:.0f} s), which commit after "
+               f"{rr['oom_skips']['commit']} also makes a counted skip (not yet run on a GPU). In each run most solves "
+               f"found too little memory ({rr['one_tree_buffer']['solver_out_of_memory_logged']}, "
+               f"{rr['two_tree_buffers']['solver_out_of_memory_logged']} and "
+               f"{rr['oom_skips']['solver_out_of_memory_logged']} logged). Between solves the arrays in use are "
+               "~67.5 GB; a solve adds 5-6 GB for a few seconds (`bf-epic plan` counts 2.7 GiB), so the card has no "
+               "room for the pool's split blocks. The live solver's transient, not the imager or the search, is "
+               "what the station on one GPU must lose next. In the last run the host's resident set grew "
+               f"{rr['oom_skips']['host_slopes_mib_per_s']['rss']:+.1f} MiB/s of wall time (glibc in use "
+               f"{rr['oom_skips']['host_slopes_mib_per_s']['malloc_in_use']:+.1f}); the watch writer's share levels "
+               "off: measured alone (the record's `watch_writer_hdf5_cpu`), HDF5's bytes in use grow for ~800 s of "
+               "data, to ~175 MiB, then stay. A 60-s run of the station at commit "
+               f"{oo['commit']} ([bench_wholeband_station_gpu1_oomskips.json](../bench/bench_wholeband_station_gpu1_oomskips.json)) "
+               f"flowed at {oo['run']['rt_flowing']:.3f}x, its solves' shortages among its costs (each one frees the "
+               "pool's cached blocks, a wait for the GPU).\n")
     return "\n".join(out)
 page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and searched",
      "`bf-epic run pipelines/lwasv_sim_wholeband.yaml` (one LWA-SV tuning: 784 channels at 74.0–93.6 MHz, a "
@@ -247,13 +277,15 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --device gpu --seconds 60 "
       "--json bench_wholeband_station_gpu1.json",
       "python tools/bench/profile_memory.py --seconds 40 --snap 15 60 --json memory_station_gpu1_host.json   "
-      "# and --trim 5; on a GPU also the pool's profile"],
+      "# and --trim 5; on a GPU also the pool's profile",
+      "python tools/bench/profile_memory.py --seconds 150 --device gpu --json memory_station_gpu1_150s.json"],
      [("bench_wholeband_gpu.json", H100), ("bench_wholeband_gpu_all.json", H200X2),
       ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200),
       ("bench_wholeband_station_gpu1_chunks.json", H200), ("bench_wholeband_station_gpu1_release.json", H200),
       ("bench_wholeband_station_gpu1_before.json", H200), ("memory_station_gpu1.json", H200),
       ("memory_station_gpu1_host.json", H200),
-      ("memory_station_gpu1_limit82.json", H200)], wb_body)
+      ("memory_station_gpu1_limit82.json", H200), ("memory_station_gpu1_150s.json", H200),
+      ("bench_wholeband_station_gpu1_oomskips.json", H200)], wb_body)
 
 # ---------------------------------------------------------------- bench_search
 def search_body():

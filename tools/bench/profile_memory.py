@@ -96,9 +96,13 @@ def main(argv=None):
     a = ap.parse_args(argv)
 
     from bf_epic_blocks.pipeline import runner
-    from bf_epic_blocks.pipeline.config import load_config
-    cfg = load_config(str(REPO / a.yaml) if not os.path.isabs(a.yaml) else a.yaml,
-                      [f"device={a.device}", f"source.duration_s={a.seconds}"] + a.set)
+    from bf_epic_blocks.pipeline.config import ConfigError, load_config
+    try:
+        cfg = load_config(str(REPO / a.yaml) if not os.path.isabs(a.yaml) else a.yaml,
+                          [f"device={a.device}", f"source.duration_s={a.seconds}"] + a.set)
+    except (ConfigError, OSError) as e:                 # a bad --set or YAML: its message, not a traceback
+        print(f"profile_memory: {e}", file=sys.stderr)
+        return 2
     gpu = not str(a.device).startswith("cpu")
     cp = pool = pinned = None
     logs, pool_samples = [], []
