@@ -173,3 +173,18 @@ def test_profile_memory_refuses_a_bad_setting_with_its_message(capsys):
     assert "no_such_key" in capsys.readouterr().err
     assert pm.main(["--device", "cpu", "--yaml", "pipelines/no_such.yaml"]) == 2
     assert "config file not found" in capsys.readouterr().err
+
+
+def test_profile_memory_counts_what_was_alive_at_a_time_by_site():
+    """--lifetimes' summary: an allocation is alive from when it was made until it was freed (or the end);
+    a Workspace's allocations are named with their caller."""
+    import profile_memory as pm
+    logs = [[1.0, 2**30, "a", ["x.py:1:f"], 3.0],                     # freed before t = 4
+            [2.0, 2**29, "a", ["x.py:1:f"], None],                    # never freed
+            [3.5, 2**30, "b", ["tree.py:9:push", "_xp.py:169:take"], 4.5],
+            [4.0, 2**28, "b", ["y.py:2:g"], 4.0],                     # freed at t = 4: not alive then
+            [5.0, 2**30, "b", ["y.py:2:g"], None]]                    # made after t = 4
+    live = pm.live_by_site(logs, 4.0)
+    assert live == [{"site": "_xp.py:169:take < tree.py:9:push", "count": 1, "gib": 1.0},
+                    {"site": "x.py:1:f", "count": 1, "gib": 0.5}]
+    assert pm.live_by_site(logs, 0.5) == [] and pm.site_of([]) == "?"

@@ -8,14 +8,16 @@ Runs a pipeline YAML (default the whole station) in this process and samples, be
   growth?); at two times (``--snap T0 T1``) the garbage collector's objects by type;
 - on a GPU, every ``--pool-every`` s: the pool's bytes in use and held (in use + the free blocks it keeps
   for each stream: what ``gpu_memory_gb``'s limit counts), and every allocation of ``--log-mib`` or more
-  with the thread and the package's frames that asked for it (an allocator over the default pool).
+  with the thread and the package's frames that asked for it (an allocator over the default pool); with
+  ``--lifetimes`` also when each was freed (handed out through CuPy's ``UnownedMemory``, whose owner notes
+  the free), and so what was alive, by site, when the bytes in use peaked and when the held bytes did.
 
 Prints the host's samples and slopes (MiB per second of wall time over the middle of the run), the pool's
 peaks and the allocation sites by total, and writes all of it as JSON. Glibc's figures need Linux with
 glibc 2.33 or later; elsewhere they are left out.
 
     python tools/bench/profile_memory.py [--yaml PIPE] [--seconds 40] [--device gpu] [--set KEY=VALUE ...]
-                                         [--trim S] [--json PATH]
+                                         [--trim S] [--lifetimes] [--json PATH]
 """
 from __future__ import annotations
 
@@ -92,6 +94,8 @@ def main(argv=None):
     ap.add_argument("--trim", type=float, default=0.0, help="malloc_trim(0) every this many s (0: never)")
     ap.add_argument("--snap", type=float, nargs=2, default=None, metavar=("T0", "T1"),
                     help="wall seconds at which the garbage collector's objects are counted by type (default: not)")
+    ap.add_argument("--lifetimes", action="store_true",
+                    help="on a GPU, note when each logged allocation is freed: what was alive at the peaks, by site")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
 
@@ -117,7 +121,13 @@ def main(argv=None):
             if size >= least:
                 st = [f"{os.path.basename(f.filename)}:{f.lineno}:{f.name}" for f in traceback.extract_stack(limit=14)[:-1]
                       if "bf_epic_blocks" in f.filename]
-                logs.append((round(time.perf_counter() - t0, 4), int(size), threading.current_thread().name, st[-4:]))
+                entry = [round(time.perf_counter() - t0, 4), int(size), threading.current_thread().name, st[-4:], None]
+                logs.append(entry)
+                if a.lifetimes:
+                    # the array holds this memory, which holds its owner, which holds the pool's pointer: when
+                    # the array goes, the owner notes the time and the pointer returns to the pool
+                    mem = cp.cuda.UnownedMemory(p.ptr, size, _Freed(p, entry, t0), device_id=p.device_id)
+                    return cp.cuda.MemoryPointer(mem, 0)
             return p
         cp.cuda.set_allocator(alloc)
     libc = _libc()
@@ -200,10 +210,9 @@ def main(argv=None):
         k = max(range(len(pool_samples)), key=lambda i: pool_samples[i][1])
         kh = max(range(len(pool_samples)), key=lambda i: pool_samples[i][2])
         sites = collections.defaultdict(lambda: [0, 0, 0])
-        for _, size, _, st in logs:
-            # a helper's allocation (a Workspace's take) is named with its caller's frame, which tells them apart
-            s = sites[" < ".join(st[-1:-3:-1]) if st and st[-1].startswith("_xp.py") else st[-1] if st else "?"]
-            s[0] += 1; s[1] += size; s[2] = max(s[2], size)
+        for e in logs:
+            s = sites[site_of(e[3])]
+            s[0] += 1; s[1] += e[1]; s[2] = max(s[2], e[1])
         top = sorted(sites.items(), key=lambda kv: -kv[1][1])[:20]
         gpu_out = {"peak_in_use_gb": pool_samples[k][1] / 1e9, "peak_at_s": pool_samples[k][0],
                    "held_peak_gb": pool_samples[kh][2] / 1e9, "in_use_at_held_peak_gb": pool_samples[kh][1] / 1e9,
@@ -212,11 +221,20 @@ def main(argv=None):
                    "largest_allocations_by_site": [{"site": s, "count": v[0], "largest_mib": round(v[2] / MIB, 1),
                                                     "total_gib": round(v[1] / 2**30, 1)} for s, v in top],
                    "allocations_logged": len(logs)}
+        if a.lifetimes:
+            for key, i in (("live_at_in_use_peak", k), ("live_at_held_peak", kh)):
+                gpu_out[key] = {"t": pool_samples[i][0], "by_site": live_by_site(logs, pool_samples[i][0])}
         print(f"GPU pool: in use at most {gpu_out['peak_in_use_gb']:.2f} GB at {gpu_out['peak_at_s']:.1f} s; held at "
               f"most {gpu_out['held_peak_gb']:.2f} GB ({gpu_out['in_use_at_held_peak_gb']:.2f} in use then); "
               f"{len(logs)} allocations of {a.log_mib:g} MiB or more, by site:")
         for x in gpu_out["largest_allocations_by_site"]:
             print(f"  {x['count']:6d} {x['total_gib']:9.1f} GiB  largest {x['largest_mib']:8.1f} MiB  {x['site']}")
+        for key in ("live_at_in_use_peak", "live_at_held_peak") if a.lifetimes else ():
+            live = gpu_out[key]
+            print(f"alive at {live['t']:.2f} s ({key.replace('_', ' ')[8:]}), allocations of {a.log_mib:g} MiB or "
+                  "more, by site:")
+            for x in live["by_site"][:15]:
+                print(f"  {x['count']:6d} {x['gib']:9.2f} GiB  {x['site']}")
     if a.json:
         write_json(a.json, {"benchmark": "profile_memory", "date": utc_now(), "yaml": a.yaml,
                             "sets": [f"device={a.device}", f"source.duration_s={a.seconds}"] + a.set,
@@ -225,6 +243,40 @@ def main(argv=None):
                                      "largest_containers": largest},
                             "gpu": gpu_out, "summary_images": r.get("images") if isinstance(r, dict) else None})
     return 1 if err else 0
+
+
+class _Freed:
+    """The owner of one logged GPU allocation (``--lifetimes``): holds the pool's pointer, and notes in the
+    log entry (t, size, thread, frames, freed) the time it is let go."""
+
+    __slots__ = ("_p", "_entry", "_t0")
+
+    def __init__(self, p, entry, t0):
+        self._p, self._entry, self._t0 = p, entry, t0
+
+    def __del__(self):
+        self._entry[4] = round(time.perf_counter() - self._t0, 4)
+
+
+def site_of(frames):
+    """The site an allocation is counted under: its innermost package frame, with the caller's where that is
+    a helper's (a Workspace's take), which tells them apart."""
+    if not frames:
+        return "?"
+    return " < ".join(frames[-1:-3:-1]) if frames[-1].startswith("_xp.py") else frames[-1]
+
+
+def live_by_site(logs, t):
+    """The logged allocations alive at time ``t`` (made at or before it, not freed by then), by site, largest
+    first: [{site, count, gib}]. logs: [t_made, size, thread, frames, t_freed or None]."""
+    by = collections.defaultdict(lambda: [0, 0])
+    for made, size, _, frames, freed in logs:
+        if made <= t and (freed is None or freed > t):
+            b = by[site_of(frames)]
+            b[0] += 1
+            b[1] += size
+    return [{"site": s, "count": v[0], "gib": round(v[1] / 2**30, 3)}
+            for s, v in sorted(by.items(), key=lambda kv: -kv[1][1])]
 
 
 def _per_second(samples):
