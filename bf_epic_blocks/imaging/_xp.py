@@ -131,8 +131,8 @@ class Workspace:
     contents are whatever the last use left), and a :class:`Lease`. A buffer is used again only when its
     last lease is gone and the current CUDA stream (and device) is the one it was made on: work queued on
     one stream runs in order, so the next use cannot overtake the last one's kernels. Up to ``depth``
-    buffers are kept: a reader that holds one call's array while the next call is made (a search that
-    searches a push's rows during the next push) takes ``depth=2``, and the two buffers then take turns.
+    buffers are kept: where a reader holds one call's array while the next call is made (a search reads a
+    push's rows during the next push), ``depth=2`` lets the two buffers take turns.
     Where none is free, of the stream and large enough, a new buffer is made and kept in place of a free
     one, else of the oldest (which lives on in its readers until they let it go). On the host the stream
     is always the same.

@@ -505,8 +505,8 @@ class FusedOperator:
     def _quantise(self, op, out=None, first=0):
         """:func:`quantise_operator` of ``op``'s phases with this operator's weights: from the phases it holds,
         else formed and quantised :data:`_REFORM_BYTES_GPU` of phases at a time (the same pieces) -- only
-        pixels ``first`` onwards where only those moved (a watchlist's directions beside a grid: ~10 of
-        ~3,200 pixels' phases formed, not all of them)."""
+        pixels ``first`` onwards where only those moved (a watchlist's directions beside a grid: only
+        their phases are formed)."""
         if op.G is not None:
             return quantise_operator(op.live_G(0), self._w, op.keep_index, op.nant_in, self.pieces, tiled=self.tiled,
                                      out=out, weights_host=self._w_host, first=first)

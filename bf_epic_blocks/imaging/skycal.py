@@ -559,8 +559,8 @@ class CovarianceSums:
         self._gram_n = 0
         self.ntime = 0
         self._count = None       # (nchan, nant, nant) samples each baseline kept, where some were flagged
-        # a GPU's int8 rows of a chunk, kept from gulp to gulp (made and freed each gulp they split the
-        # pool's blocks that the imager's own arrays need, under a pool limit)
+        # a GPU's int8 rows of a chunk: one array for every gulp, since arrays made and freed each gulp split
+        # the pool's blocks that the imager's own arrays need under a pool limit
         self._rows = Workspace()
 
     def reset(self):
@@ -629,8 +629,9 @@ class CovarianceSums:
                     self._gram[c0] = xp.empty((P, c1 - c0, 2 * A, 2 * A), xp.int32)
                 G = self._gram[c0]
                 Tp = -(-T // 16) * 16             # cuBLAS' integer GEMMs want time in multiples of 4
-                # the lease let go at once: kept, it would make the next chunk's take a new array
-                rows = self._rows.take(xp, (c1 - c0, A, 2, Tp), xp.int8)[0]      # one stream: reused in order
+                # the lease is let go at once, so that the next chunk's take uses this array again (one
+                # stream: the uses run in order)
+                rows = self._rows.take(xp, (c1 - c0, A, 2, Tp), xp.int8)[0]
                 bc = xp.ascontiguousarray(b)
                 for p in range(P):
                     # (t, c, a) bytes -> rows (c, a, re/im, t) in one pass (skycal.cu)

@@ -202,8 +202,8 @@ class StreamingFDMT:
             raise ValueError(f"precision: the tree stores 'fp32' or 'fp16' values, got {precision!r}")
         self.plan, self.npix, self.xp, self.precision = plan, int(npix), xp, precision
         self.dtype = np.float16 if precision == "fp16" else np.float32
-        # a push's working rows (its largest array), kept from push to push: two, taking turns, since a
-        # search reads a push's rows (staged, ``defer``) while the next push makes its own
+        # a push's working rows (its largest array): two buffers that take turns, since a search reads a
+        # push's rows (staged, ``defer``) while the next push makes its own
         self._work = Workspace(depth=2)
         # float16 rows are read HALF_VEC pixels at a time (one 16-byte load per thread): rows (and pixel
         # chunks) a whole number of those long
