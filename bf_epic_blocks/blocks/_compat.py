@@ -75,6 +75,16 @@ def space_of(obj):
                     "span, sequence or block")
 
 
+def import_now(*names):
+    """Import the modules ``names`` on the calling thread: a block's constructor, which runs on the thread
+    that builds the pipeline before any block thread starts. SciPy's subpackages import one another, and two
+    block threads importing them for the first time at once can deadlock: Python's import then raises
+    ``_DeadlockError`` in one thread and hands the other a partly made module (an ImportError)."""
+    import importlib
+    for name in names:
+        importlib.import_module(name)
+
+
 def input_xp(block):
     """The array module (CuPy or NumPy) of a block's first input ring: CuPy where it lives on a GPU
     ('cuda'), else NumPy (also for a block driven outside a pipeline, without rings)."""

@@ -225,6 +225,8 @@ class GainSolverBlock(bfp.SinkBlock):
                  saturated_above=0.1, apply_delay_s=0.0, solutions_per_file=None, png_process=True, offset_s=0.0,
                  **kwargs):
         super().__init__(iring, **kwargs)
+        # the worker's sky model and solver import these (see import_now)
+        _compat.import_now("scipy.linalg", "scipy.special")
         if not (integration_s > 0 and cadence_s >= integration_s):
             raise ValueError(f"GainSolverBlock: need 0 < integration_s <= cadence_s, got integration_s="
                              f"{integration_s}, cadence_s={cadence_s}")

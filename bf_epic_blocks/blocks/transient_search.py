@@ -79,6 +79,8 @@ class TransientSearchBlock(bfp.SinkBlock):
         if not isinstance(settings, SearchSettings):
             raise TypeError(f"TransientSearchBlock: settings must be a SearchSettings, got {type(settings).__name__}")
         super().__init__(iring, *args, **kwargs)
+        # the search's clustering, sidelobe folding and false rates import these on its thread (see import_now)
+        _compat.import_now("scipy.sparse.csgraph", "scipy.spatial", "scipy.stats")
         self.settings, self.writer, self.location = settings, writer, location
         self.flag_weights = flag_weights
         self.gains = gains

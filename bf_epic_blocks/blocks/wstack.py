@@ -21,6 +21,7 @@ import numpy as np
 from ..imaging import plan as planner
 from ..imaging.pixels import LMGrid
 from ..imaging.wstack import gridded_accumulator
+from . import _compat
 from .dft_imager import DFTImagerBlock
 from .engines import GriddedEngine
 
@@ -56,6 +57,8 @@ class WStackBlock(DFTImagerBlock):
         super().__init__(iring, grid, accumulate, products=products, remove_autocorr=remove_autocorr,
                          method=route if given is None else "auto", pattern=None, tolerance=tolerance, *args,
                          **kwargs)
+        # the gridder's CPU path imports these on the block's thread (see _compat.import_now)
+        _compat.import_now("scipy.fft", "scipy.sparse")
 
     def _build(self, lm):
         """This sequence's engine: the gridded accumulator of the route, fed complex voltages
