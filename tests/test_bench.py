@@ -188,3 +188,35 @@ def test_profile_memory_counts_what_was_alive_at_a_time_by_site():
     assert live == [{"site": "_xp.py:169:take < tree.py:9:push", "count": 1, "gib": 1.0},
                     {"site": "x.py:1:f", "count": 1, "gib": 0.5}]
     assert pm.live_by_site(logs, 0.5) == [] and pm.site_of([]) == "?"
+
+
+def _grow(store, n):
+    store.extend(bytearray(2**16) for _ in range(n))     # n blocks of 64 KiB from one line
+
+
+def test_profile_memory_names_the_python_allocations_that_grew():
+    """--tracemalloc's summary: the traceback whose bytes grew most between two snapshots is the line that
+    allocated them, with its size and block count; a line that allocated and let go does not show."""
+    import tracemalloc
+
+    import profile_memory as pm
+    keep = []
+    tracemalloc.start(12)
+    try:
+        s0 = tracemalloc.take_snapshot()
+        _grow(keep, 64)                  # 4 MiB kept
+        _grow([], 64)                    # 4 MiB made and dropped
+        s1 = tracemalloc.take_snapshot()
+    finally:
+        tracemalloc.stop()
+    top = pm.traced_growth_by_site(s0, s1)[0]
+    assert top["frames"][0].startswith("test_bench.py:") and len(top["frames"]) <= 4
+    assert 4.0 <= top["mib"] < 4.2 and top["blocks"] >= 64
+    assert sum(x["mib"] for x in pm.traced_growth_by_site(s0, s1)) < 4.5
+
+
+def test_profile_memory_tracemalloc_needs_two_snapshot_times():
+    import profile_memory as pm
+    with pytest.raises(SystemExit) as e:
+        pm.main(["--device", "cpu", "--tracemalloc"])
+    assert e.value.code == 2

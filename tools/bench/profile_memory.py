@@ -10,14 +10,17 @@ Runs a pipeline YAML (default the whole station) in this process and samples, be
   for each stream: what ``gpu_memory_gb``'s limit counts), and every allocation of ``--log-mib`` or more
   with the thread and the package's frames that asked for it (an allocator over the default pool); with
   ``--lifetimes`` also when each was freed (handed out through CuPy's ``UnownedMemory``, whose owner notes
-  the free), and so what was alive, by site, when the bytes in use peaked and when the held bytes did.
+  the free), and so what was alive, by site, when the bytes in use peaked and when the held bytes did;
+- with ``--tracemalloc`` (and ``--snap``), Python's own allocations (NumPy's arrays included): their total in
+  each host sample, and the tracebacks whose bytes grew most between the two snapshot times. A host growth
+  that glibc shows and these do not is native: a C library's, the CUDA driver's, CuPy's C side.
 
 Prints the host's samples and slopes (MiB per second of wall time over the middle of the run), the pool's
 peaks and the allocation sites by total, and writes all of it as JSON. Glibc's figures need Linux with
 glibc 2.33 or later; elsewhere they are left out.
 
     python tools/bench/profile_memory.py [--yaml PIPE] [--seconds 40] [--device gpu] [--set KEY=VALUE ...]
-                                         [--trim S] [--lifetimes] [--json PATH]
+                                         [--trim S] [--lifetimes] [--snap T0 T1 [--tracemalloc]] [--json PATH]
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ import sys
 import threading
 import time
 import traceback
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -96,8 +100,12 @@ def main(argv=None):
                     help="wall seconds at which the garbage collector's objects are counted by type (default: not)")
     ap.add_argument("--lifetimes", action="store_true",
                     help="on a GPU, note when each logged allocation is freed: what was alive at the peaks, by site")
+    ap.add_argument("--tracemalloc", action="store_true",
+                    help="trace Python's allocations: their total per sample, and what grew between the --snap times")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
+    if a.tracemalloc and not a.snap:
+        ap.error("--tracemalloc compares two snapshots: give --snap T0 T1")
 
     from bf_epic_blocks.pipeline import runner
     from bf_epic_blocks.pipeline.config import ConfigError, load_config
@@ -132,6 +140,9 @@ def main(argv=None):
         cp.cuda.set_allocator(alloc)
     libc = _libc()
     host, snaps, stop = [], {}, threading.Event()
+    traced = {}
+    if a.tracemalloc:
+        tracemalloc.start(12)
 
     def counts():
         """The collector's objects by type, and its largest lists, dicts and deques with what holds them
@@ -156,11 +167,16 @@ def main(argv=None):
             if a.trim and libc is not None and t - last_trim >= a.trim:
                 libc.malloc_trim(0)
                 last_trim = t
-            host.append({"t": round(t, 2), **host_sample(libc, pinned)})
+            sample = {"t": round(t, 2), **host_sample(libc, pinned)}
+            if a.tracemalloc:
+                sample["traced"] = tracemalloc.get_traced_memory()[0] / MIB
+            host.append(sample)
             if a.snap:
                 for i, ts in enumerate(a.snap):
                     if t >= ts and i not in snaps:
                         snaps[i] = (t,) + counts()
+                        if a.tracemalloc:
+                            traced[i] = tracemalloc.take_snapshot()
             if stop.wait(a.host_every):
                 break
 
@@ -183,10 +199,13 @@ def main(argv=None):
     for th in threads:
         th.join()
     wall = time.perf_counter() - t0
+    if a.tracemalloc:
+        tracemalloc.stop()
 
     print(f"# profile_memory: {a.yaml} {' '.join(a.set)} on {machine(a.device)['hardware']}: {a.seconds:g} s of data "
           f"in {wall:.1f} s{'; error: ' + err if err else ''}")
-    keys = [k for k in ("rss", "rss_anon", "malloc_in_use", "malloc_free", "malloc_mmapped") if host and k in host[0]]
+    keys = [k for k in ("rss", "rss_anon", "malloc_in_use", "malloc_free", "malloc_mmapped", "traced")
+            if host and k in host[0]]
     print("t s     " + " ".join(f"{k:>14s}" for k in keys) + "  threads  pinned free blocks")
     for s in host[:: max(1, len(host) // 16)] + host[-1:]:
         print(f"{s['t']:6.1f}  " + " ".join(f"{s[k]:14.1f}" for k in keys)
@@ -205,6 +224,11 @@ def main(argv=None):
             print(f"the largest containers at {snaps[i][0]:.1f} s:")
             for line in snaps[i][2]:
                 print("  " + line)
+    traced_growth = traced_growth_by_site(traced[0], traced[1]) if len(traced) == 2 else []
+    if traced_growth:
+        print(f"Python's allocations that grew most, {snaps[0][0]:.0f} -> {snaps[1][0]:.0f} s (MiB, blocks):")
+        for x in traced_growth:
+            print(f"  {x['mib']:+9.2f} {x['blocks']:+8d}  {' < '.join(x['frames'])}")
     gpu_out = None
     if gpu and pool_samples:
         k = max(range(len(pool_samples)), key=lambda i: pool_samples[i][1])
@@ -240,9 +264,21 @@ def main(argv=None):
                             "sets": [f"device={a.device}", f"source.duration_s={a.seconds}"] + a.set,
                             "machine": machine(a.device), "wall_s": wall, "error": err, "trim_s": a.trim,
                             "host": {"samples": host, "slopes_mib_per_s": slopes, "object_growth": growth,
-                                     "largest_containers": largest},
+                                     "largest_containers": largest, "traced_growth": traced_growth},
                             "gpu": gpu_out, "summary_images": r.get("images") if isinstance(r, dict) else None})
     return 1 if err else 0
+
+
+def traced_growth_by_site(snap0, snap1, top=15):
+    """The ``top`` tracebacks whose traced bytes grew most from ``snap0`` to ``snap1`` (tracemalloc
+    snapshots): [{"mib", "blocks", "frames"}], frames innermost first, as file:line (four at most; the
+    import machinery's own frames left out, so that an import shows as the line that made it)."""
+    out = []
+    for d in snap1.compare_to(snap0, "traceback")[:top]:
+        frames = [f"{os.path.basename(f.filename)}:{f.lineno}" for f in reversed(d.traceback)
+                  if not f.filename.startswith("<frozen")][:4]
+        out.append({"mib": round(d.size_diff / MIB, 3), "blocks": int(d.count_diff), "frames": frames})
+    return out
 
 
 class _Freed:
