@@ -105,6 +105,7 @@ def test_bench_wholeband_runs_the_cli_and_finds_the_burst(tmp_path):
     assert not faint["found"] and faint.get("snr") is None
     assert r["kernels_compiled"] is None or r["kernels_compiled"] >= 0
     assert r["rss_mib"]["peak"] > 100
+    assert r["solver"] is None                     # the whole-band YAML solves no gains
     assert json.loads((tmp_path / "bw.json").read_text())["run"]["bursts"][0]["found"]
 
 

@@ -243,6 +243,7 @@ def run(args):
     if "tunings" in info:          # a station: every tuning's blocks, named <tuning>/<block>
         blocks = {f"{t}/{n}": b for t, s in info["tunings"].items() for n, b in s["blocks"].items()}
         info["search"] = {t: s.get("search") for t, s in info["tunings"].items()}
+        info["solver"] = {t: s.get("solver") for t, s in info["tunings"].items()}
     # the searches (one per GPU of a pixel split, one per tuning of a station), else the imagers: from
     # the first's first images to the last's last
     kind = (lambda n: n.rsplit("/", 1)[-1])
@@ -279,7 +280,7 @@ def run(args):
            "gpu_mib": dict(zip(("first", "peak", "growth"), gpu)),
            "rss_mib": dict(zip(("first", "peak", "growth"), rss)),
            "kernels_compiled": compiled, "kernels_from_store": from_store,
-           "images": info.get("images"), "search": info.get("search"), "bursts": bursts,
+           "images": info.get("images"), "search": info.get("search"), "solver": info.get("solver"), "bursts": bursts,
            "other_candidates": others, "candidates": listed, "station_events": events, "blocks": blocks}
     out = {"benchmark": "bench_wholeband", "date": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime()),
            "yaml": str(args.yaml), "sets": sets, "machine": machine("gpu" if args.device.startswith("gpu") else "cpu"), "run": row,
