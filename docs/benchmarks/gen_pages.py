@@ -255,6 +255,47 @@ def wb_body():
                f"{oo['commit']} ([bench_wholeband_station_gpu1_oomskips.json](../bench/bench_wholeband_station_gpu1_oomskips.json)) "
                f"flowed at {oo['run']['rt_flowing']:.3f}x, its solves' shortages among its costs (each one frees the "
                "pool's cached blocks, a wait for the GPU).\n")
+    lt = rr["lifetimes"]
+    mid = [v for k, v in lt["per_second_max_gb"].items() if 20 <= int(k) <= 230]
+    live = {x["site"]: x for x in lt["live_at_in_use_peak"]["by_site"]}
+
+    def gib(*sites):
+        return sum(live[x]["gib"] for x in sites if x in live)
+    solver = gib(*[x for x in live if x.startswith(("skycal.py", "model.py")) or "skycal.py" in x])
+    out.append(f"With the solver's int8 rows one kept array and its hand-over's shortage a counted skip (commit "
+               f"{lt['commit']}), 150 s of data ran to the end ({lt['wall_s']:.0f} s of wall time) with no shortage "
+               f"logged: no solve skipped, no search push lost. The arrays in use (per-second maxima) stayed between "
+               f"{min(mid):.1f} and {max(mid):.1f} GB: ~68.2 GB between solves, each solve adding ~3 GB for a few "
+               "seconds, which is what `bf-epic plan` counts for it (2.7 GiB). The 5-6 GB of the runs above did not "
+               "come again; what made them is not established (their solves ran among shortages, each freeing the "
+               "pool's cache, and their solver's rows were made again at every chunk). The pool's held bytes reached the 75-GB limit after "
+               f"{float(lt['live_at_held_peak']['t']):.0f} s and the run went on. What was alive when the bytes in use "
+               f"peaked ({lt['peak_in_use_gb']:.2f} GB at {lt['live_at_in_use_peak']['t']:.1f} s, allocations of 32 MiB "
+               f"or more, `profile_memory --lifetimes`): both tunings' fused operators {gib('fused.py:517:_quantise'):.1f} "
+               f"GiB, the searches' statistics {gib('statistics.py:215:_zeros'):.1f} GiB and trees "
+               f"{gib('tree.py:283:reset'):.1f} GiB with their working rows {gib('_xp.py:169:take < tree.py:405:push'):.1f} "
+               f"GiB, the rings {gib('ring.py:221:_alloc'):.1f} GiB, the imagers' voltage layouts "
+               f"{gib('_xp.py:169:take < fused.py:362:_b_array'):.1f} GiB, and the two solvers {solver:.1f} GiB (the "
+               "sums, diffuse models and weights both hold, one tuning's integer sums of an integration, the other's "
+               "solve): 67.2 GiB in all against the plan's 66.6 GiB. The host's resident set still grew "
+               f"{lt['host_slopes_mib_per_s']['rss']:+.1f} MiB/s of wall time (glibc in use "
+               f"{lt['host_slopes_mib_per_s']['malloc_in_use']:+.1f}).\n")
+    w150, nc = load("bench_wholeband_station_gpu1_150s.json"), load("bench_wholeband_station_gpu1_nochurn.json")
+    r1, r0 = w150["run"], nc["run"]
+    lo = r1["search"]["low"]
+    out.append(f"`bench_wholeband` at the same commit (`bf-epic run` as a subprocess, no profiler): 60 s of data "
+               f"([bench_wholeband_station_gpu1_nochurn.json](../bench/bench_wholeband_station_gpu1_nochurn.json)) flowed "
+               f"at **{r0['rt_flowing']:.3f}x** ({r0['rt_whole']:.3f}x whole), `nvidia-smi` {r0['gpu_mib']['first']:.0f}-"
+               f"{r0['gpu_mib']['peak']:.0f} MiB; 150 s of data "
+               f"([bench_wholeband_station_gpu1_150s.json](../bench/bench_wholeband_station_gpu1_150s.json)) flowed at "
+               f"**{r1['rt_flowing']:.3f}x** ({r1['rt_whole']:.3f}x whole, {r1['wall_s']:.0f} s), `nvidia-smi` "
+               f"{r1['gpu_mib']['first']:.0f} MiB at the start, {r1['gpu_mib']['peak']:.0f} MiB "
+               f"({r1['gpu_mib']['peak'] * 2**20 / 1e9:.1f} GB) at most, {r1['gpu_mib']['growth']:+.0f} MiB from the "
+               f"first quarter to the last: flat, and within 76 GB. The low tuning's search skipped one push for want "
+               f"of memory ({lo['images_lost']} of {lo['images']:,} images unsearched); that version of the benchmark "
+               "did not record the solvers' figures (it does now: `run.solver`). Both tunings found the burst at its "
+               "DM and place, as above. The host's resident set grew "
+               f"{r1['rss_mib']['growth']:+.0f} MiB (first quarter's peak to the last's).\n")
     return "\n".join(out)
 page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and searched",
      "`bf-epic run pipelines/lwasv_sim_wholeband.yaml` (one LWA-SV tuning: 784 channels at 74.0–93.6 MHz, a "
@@ -278,14 +319,18 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       "--json bench_wholeband_station_gpu1.json",
       "python tools/bench/profile_memory.py --seconds 40 --snap 15 60 --json memory_station_gpu1_host.json   "
       "# and --trim 5; on a GPU also the pool's profile",
-      "python tools/bench/profile_memory.py --seconds 150 --device gpu --json memory_station_gpu1_150s.json"],
+      "python tools/bench/profile_memory.py --seconds 150 --device gpu --json memory_station_gpu1_150s.json   "
+      "# and --lifetimes",
+      "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --device gpu --seconds 150 "
+      "--json bench_wholeband_station_gpu1_150s.json"],
      [("bench_wholeband_gpu.json", H100), ("bench_wholeband_gpu_all.json", H200X2),
       ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200),
       ("bench_wholeband_station_gpu1_chunks.json", H200), ("bench_wholeband_station_gpu1_release.json", H200),
       ("bench_wholeband_station_gpu1_before.json", H200), ("memory_station_gpu1.json", H200),
       ("memory_station_gpu1_host.json", H200),
       ("memory_station_gpu1_limit82.json", H200), ("memory_station_gpu1_150s.json", H200),
-      ("bench_wholeband_station_gpu1_oomskips.json", H200)], wb_body)
+      ("bench_wholeband_station_gpu1_oomskips.json", H200), ("bench_wholeband_station_gpu1_nochurn.json", H200),
+      ("bench_wholeband_station_gpu1_150s.json", H200)], wb_body)
 
 # ---------------------------------------------------------------- bench_search
 def search_body():
@@ -584,6 +629,14 @@ def gc_body():
             f"its values are searched (its history shortened) and the grid's placement made its forms once (at "
             f"{h.get('commit')}; the GPU tests run apart: 264 passed, 4 skipped; a UDP stream test failed once on its pinned pool's free blocks and passed when run again): {'ALL OK' if h['ok'] else 'FAILED'}.\n\n"
             + gc_rows(h) + "\n")
+    im, st = load("gpu_check_imports.json"), load("gpu_check_station_imports.json")
+    out += (f"\nThe whole check at {im['commit']} (the GPU tests run apart: {im['tests_apart']['summary']}): "
+            f"{'ALL OK' if im['ok'] else 'FAILED'}. The station's CPU run failed within 4 s: two of its block threads "
+            "imported SciPy's linear algebra for the first time at once (the gain solver's warm-up and an image "
+            "writer), and Python's import raised `_DeadlockError` in one. The blocks whose threads use SciPy now "
+            "import it in their constructors, on the thread that builds the pipeline (tests/test_thread_imports.py); "
+            f"the station, run twice after that (at {st['commit']}): {'ALL OK' if st['ok'] else 'FAILED'}.\n\n"
+            + gc_rows(im) + "\n\n" + gc_rows(st) + "\n")
     return out
 page("gpu_check", "The GPU check (`make gpu-check`)",
      "The GPU tests, then every shipped pipeline run by `bf-epic run` on the GPU and on the CPU with their "
@@ -597,9 +650,12 @@ page("gpu_check", "The GPU check (`make gpu-check`)",
       "--json gpu_check_watch.json",
       "python tools/gpu_check.py --skip-tests --only lwasv_sim_wholeband --json gpu_check_wholeband.json",
       "python tools/gpu_check.py --skip-tests --only lwasv_sim_station lwasv_sim_wholeband lwasv_sim_transient "
-      "lwasv_sim_allsky --json gpu_check_history.json"],
+      "lwasv_sim_allsky --json gpu_check_history.json",
+      "python -m pytest -q -m gpu tests/ && python tools/gpu_check.py --skip-tests --json gpu_check_imports.json",
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_station --json gpu_check_station_imports.json   # twice"],
      [("gpu_check.json", H200), ("gpu_check_flagging.json", H200), ("gpu_check_watch.json", H200),
-      ("gpu_check_wholeband.json", H200), ("gpu_check_history.json", H200)], gc_body, script="tools/gpu_check.py")
+      ("gpu_check_wholeband.json", H200), ("gpu_check_history.json", H200), ("gpu_check_imports.json", H200),
+      ("gpu_check_station_imports.json", H200)], gc_body, script="tools/gpu_check.py")
 
 # ---------------------------------------------------------------- moff_widefield
 def mw_body():
