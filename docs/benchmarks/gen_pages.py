@@ -296,6 +296,30 @@ def wb_body():
                "did not record the solvers' figures (it does now: `run.solver`). Both tunings found the burst at its "
                "DM and place, as above. The host's resident set grew "
                f"{r1['rss_mib']['growth']:+.0f} MiB (first quarter's peak to the last's).\n")
+    # what 1.0x needs: regime B's fused imaging call (16 channels, 64 images) from the H200's bench_dft record
+    bd = load("bench_dft_gpu_h200.json")
+    ib = [x for x in bd["rows"] if x["regime"] == "x64" and x["precision"] == "i8x2" and x.get("graphs")][0]
+    calls = (784 / bd["case"]["nchan"]) * (1 / (16 * 40e-6)) / 64          # regime-B calls per second of data
+    imaging = 2 * calls * ib["gulp_s"]                                       # both tunings, s per s of data
+    total = 1 / r0["rt_flowing"]
+    peak = 1979e12                                                           # H100/H200 dense int8 ops/s
+    eff = 2 * ib["cmacs"] * 8 / ib["gulp_s"] / peak        # 2 pieces x 4 real products, 2 ops a multiply-add
+    budget = 1.0 - (total - imaging)
+    per_call = budget / (2 * calls)
+    out.append("What 1.0x needs (a prediction from the records, not a measurement). Regime B's fused call (16 "
+               f"channels, 64 images, i8x2) takes {ib['gulp_s'] * 1e3:.3f} ms on the H200 "
+               f"([bench_dft_gpu_h200.json](../bench/bench_dft_gpu_h200.json)): {calls:.0f} calls per second of data a "
+               f"tuning, {imaging:.2f} s per second of data for both tunings' imaging alone. At {r0['rt_flowing']:.3f}x "
+               f"the station spends {total:.2f} s per second of data, so everything else (searches, solvers, "
+               f"integrators, watch, copies) takes ~{total - imaging:.2f} s. For 1.0x with the rest unchanged the "
+               f"imaging must fit in {budget:.2f} s: {per_call * 1e3:.3f} ms a call. Today's kernel does "
+               f"{eff * 100:.0f}% of the card's dense int8 peak (1,979 Tops, counting {ib['cmacs']:.3g} complex MACs a "
+               f"call at 8 int8 multiply-adds each, 2 ops a multiply-add); four real products a complex MAC would need "
+               f"{eff * ib['gulp_s'] / per_call * 100:.0f}% of the peak, three (Gauss's form: Re = sum Re D (Re x + Im x) - "
+               f"sum Im x (Re D + Im D), Im = sum Re D (Re x + Im x) + sum Re x (Im D - Re D)) {0.75 * eff * ib['gulp_s'] / per_call * 100:.0f}%. So case W2 at 1.0x on one card "
+               "needs the three-product integer kernel near that efficiency, or less of everything else (the tree's "
+               "levels fused, the search statistics), or both; regime B's 0.30 ms alone would give "
+               f"~{1 / (total - imaging + 2 * calls * 0.30e-3):.2f}x.\n")
     return "\n".join(out)
 page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and searched",
      "`bf-epic run pipelines/lwasv_sim_wholeband.yaml` (one LWA-SV tuning: 784 channels at 74.0–93.6 MHz, a "
