@@ -221,3 +221,26 @@ def test_profile_memory_tracemalloc_needs_two_snapshot_times():
     with pytest.raises(SystemExit) as e:
         pm.main(["--device", "cpu", "--tracemalloc"])
     assert e.value.code == 2
+
+
+def test_predict_gauss_reproduces_the_package_and_bounds_the_three_product_forms():
+    """tools/bench/predict_gauss.py: its four-product arithmetic gives the package's fused-mode images (the
+    package's quantisation and int64 emulation of the kernel) to float32's rounding of the epilogue; the
+    three-product forms' errors against the float64 definition are of the four-product mode's order (a
+    wrong combination of the three products would be off by the image itself)."""
+    import predict_gauss as pg
+    from cases import lwasv_like_layout, quantise4, reference_image, sky_efield
+    from bf_epic_blocks import imaging
+    xyz, _ = lwasv_like_layout(64)
+    freq = 74e6 + 25e3 * np.arange(2)
+    Q = quantise4(sky_efield(xyz, freq, 64, npol=2, dtype=np.complex128))
+    lm = imaging.lm_grid(16).lm
+    ref = reference_image(Q, xyz, freq, lm, ((0, 0), (1, 1)), accumulate=16)
+    D = pg.operator(xyz, freq, lm)
+    scale = np.abs(ref).max()
+    for pieces in (2, 3):
+        pkg = pg.package_images(xyz, freq, lm, Q, pieces)
+        err_pkg = np.abs(pkg - ref).max() / scale                     # 5.9e-6 (i8x2), 2.9e-7 (i8x3) here
+        assert np.abs(pg.images(D, Q, pieces, "four") - pkg).max() / scale < 3e-7    # float32's epilogue
+        for form in ("shared", "own"):
+            assert np.abs(pg.images(D, Q, pieces, form) - ref).max() / scale < 3 * err_pkg

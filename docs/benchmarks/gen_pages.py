@@ -317,7 +317,8 @@ def wb_body():
                f"call at 8 int8 multiply-adds each, 2 ops a multiply-add); four real products a complex MAC would need "
                f"{eff * ib['gulp_s'] / per_call * 100:.0f}% of the peak, three (Gauss's form: Re = sum Re D (Re x + Im x) - "
                f"sum Im x (Re D + Im D), Im = sum Re D (Re x + Im x) + sum Re x (Im D - Re D)) {0.75 * eff * ib['gulp_s'] / per_call * 100:.0f}%. So case W2 at 1.0x on one card "
-               "needs the three-product integer kernel near that efficiency, or less of everything else (the tree's "
+               "needs the three-product integer kernel near that efficiency (its error, predicted: "
+               "[predict_gauss](predict_gauss.md)), or less of everything else (the tree's "
                "levels fused, the search statistics), or both; regime B's 0.30 ms alone would give "
                f"~{1 / (total - imaging + 2 * calls * 0.30e-3):.2f}x.\n")
     return "\n".join(out)
@@ -466,6 +467,42 @@ page("bench_regime_b", "High cadence in pieces",
      "with fp32 or fp16 output, the power-and-sum kernel, both for a whole gulp and channel by channel.",
      ["python tools/bench/bench_regime_b.py --json bench_regime_b.json"],
      [("bench_regime_b.json", H100)], rb_body)
+
+# ---------------------------------------------------------------- predict_gauss
+def pg_body():
+    d = load("predict_gauss_cpu.json")
+    label = {"package": "four (the package's quantisation and kernel emulation)", "four": "four (this script)",
+             "shared": "three, one scale a pixel", "own": "three, a scale a product"}
+    rows = [[r["mode"], label[r["form"]], r["int8_macs_per_cmac"], e(r["rel_err"])] for r in d["rows"]]
+    err = {(r["mode"], r["form"]): r["rel_err"] for r in d["rows"]}
+    bd = load("bench_dft_gpu_h200.json")
+    ib = [x for x in bd["rows"] if x["regime"] == "x64" and x["precision"] == "i8x2" and x.get("graphs")][0]
+    return (table(["mode", "real products a complex multiply-add", "int8 multiply-adds a complex one", "error"], rows)
+            + "\n\nAgainst four products with the same float32 epilogue (this script's; the package's emulation "
+            "squares in float64, which i8x3's error shows), three change the error by "
+            f"{err[('i8x2', 'shared')] / err[('i8x2', 'four')]:.2f}x (one scale a pixel) and "
+            f"{err[('i8x2', 'own')] / err[('i8x2', 'four')]:.2f}x (a scale a product) in i8x2, "
+            f"{err[('i8x3', 'shared')] / err[('i8x3', 'four')]:.2f}x and {err[('i8x3', 'own')] / err[('i8x3', 'four')]:.2f}x "
+            "in i8x3: each of Re F and Im F sums two products' rounding as before, but the rows Re D + Im D and Im D - "
+            "Re D reach sqrt 2 of the four-product scale, and the first row's rounding meets the voltages' sums, of "
+            "twice the voltages' variance. i8x2 stays within "
+            f"regime B's 1e-5 ({e(max(err[('i8x2', 'shared')], err[('i8x2', 'own')]))}). "
+            "The time is a prediction, not a measurement: a kernel with "
+            "three products at today's efficiency (regime B's i8x2 call "
+            f"{ib['gulp_s'] * 1e3:.3f} ms on one NVIDIA H200, [bench_dft_gpu_h200.json](../bench/bench_dft_gpu_h200.json)) "
+            f"would take {0.75 * ib['gulp_s'] * 1e3:.3f} ms, a quarter of the int8 products fewer; the three operands "
+            "of the epilogue (t1, t2, t3 a pixel and sample) need 1.5x the accumulator registers of today's "
+            "(Re, Im) pair.\n")
+page("predict_gauss", "Three integer products a complex multiply-add instead of four: the predicted error",
+     "The fused integer modes form F = D X with four real int8 products a complex multiply-add; Gauss's form "
+     "needs three (t1 = Σ Re D (Re x + Im x), t2 = Σ Im x (Re D + Im D), t3 = Σ Re x (Im D − Re D); Re F = t1 − "
+     "t2, Im F = t1 + t3). Before a kernel is written, this script images case P (256 LWA-SV stands, the 64x64 "
+     "grid's 3,205 pixels, 1,024 samples of a 4-bit sky, 16 channels x 2 pols, one image per 16 samples) both "
+     "ways with the integer products evaluated exactly on the CPU, and gives the error against a float64 "
+     "evaluation of the definition over every pixel. The package's own fused-mode emulation is imaged beside "
+     "the script's four-product arithmetic, to check that the two quantise alike.",
+     ["python tools/bench/predict_gauss.py --nchan 16 --json predict_gauss_cpu.json"],
+     [("predict_gauss_cpu.json", CPU2)], pg_body)
 
 # ---------------------------------------------------------------- bench_tbx_reader
 def tbx_body():
@@ -1171,6 +1208,9 @@ SUMMARY = {  # benchmark -> (what it measures, latest result, machine), for the 
     'bench_regime_b': ('high cadence taken apart: GEMM, power-and-sum',
                       'fp16 GEMM alone 0.375 ms a gulp',
                       'one H100 80GB, 16 cores'),
+    'predict_gauss': ('three integer products a complex multiply-add instead of four: the error, predicted',
+                      'i8x2 at case P: 3.6e-6 (one scale a pixel) against four products\' 2.8e-6; a quarter of the int8 products fewer',
+                      '2 CPU cores'),
     'bench_tbx_reader': ('TBX file: LSL against the NumPy reader',
                         "0.31 s against LSL's 0.76 s (0.038 s packed)",
                         '2 CPU cores'),
