@@ -463,6 +463,23 @@ def test_the_plan_counts_the_operator_the_imager_holds(pols_differ):
     assert 0.24 * 2**30 < band["building"] <= 2**28
 
 
+def test_the_plan_counts_the_voltage_layout_the_fused_imager_keeps():
+    """cost.voltage_bytes against the array layout_voltages makes (plain and tiled: the same bytes), for a
+    gulp not a multiple of 128 samples and antennas not of 64; the whole LWA-SV band's (784 channels, 1,024
+    samples, 256 stands, two pols) is 784 MiB, what CuPy's pool held for it on an H200; nothing for the other
+    modes or on the CPU."""
+    from bf_epic_blocks.imaging.cost import voltage_bytes
+    rng = np.random.default_rng(2)
+    T, C, A = 200, 3, 70
+    Q = rng.integers(-8, 8, (T, C, A, 2, 2)).astype(np.int8)
+    KD = 2 * (-(-A // 64) * 64)
+    for tiled in (False, True):
+        B = fused.layout_voltages(Q, None, [0, 1], KD, 8, tiled=tiled)
+        assert voltage_bytes(C, T, A, "i8x2", gpu=True) == B.nbytes
+    assert voltage_bytes(784, 1024, 256, "i8x3", gpu=True) == 784 * 2**20
+    assert voltage_bytes(784, 1024, 256, "fp16", gpu=True) == 0 == voltage_bytes(784, 1024, 256, "i8x2", gpu=False)
+
+
 def test_phases_formed_again_by_chunks_quantise_into_the_same_pieces():
     """Where an operator does not hold its phases (the fused modes on a GPU), :meth:`DFTOperator.phases`
     forms them from the host geometry a chunk of channels at a time: bit-equal to the held ones, and

@@ -88,6 +88,17 @@ def operator_bytes(nchan: int, npix: int, nant: int, precision: str, *, gpu: boo
     return parts
 
 
+def voltage_bytes(nchan: int, ntime: int, nant_in: int, precision: str, *, gpu: bool, npol: int = 2) -> int:
+    """Bytes of the fused integer modes' voltage layout on a GPU (:func:`.fused.layout_voltages`: int8
+    (nchan, npol x Tp, 2 Apad), Tp = ``ntime`` rounded up to 128, Apad = ``nant_in`` rounded up to 64), which
+    the imager keeps from gulp to gulp; 0 for the other modes and on the CPU (the field's GEMM reads the
+    voltages as they come)."""
+    from .fused import PIECES, padded_ntime
+    if not (gpu and precision in PIECES):
+        return 0
+    return int(nchan) * int(npol) * padded_ntime(int(ntime)) * 2 * (-(-int(nant_in) // 64) * 64)
+
+
 #: the sky solver's own peak (:func:`~.skycal.solve_gains`) beyond the model with its fitted diffuse term
 #: (one whole covariance where there is one), in covariances of one chunk of channels
 #: (:func:`~.skycal.solve_chunks`): measured with tracemalloc at 16 channels and 64 antennas in one chunk,

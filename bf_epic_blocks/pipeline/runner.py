@@ -1490,6 +1490,9 @@ def plan(cfg):
                                  nant_in=station.nstand, pols_differ=pols_differ)
         d["operator_bytes"] = ob
         mem["imager operator"] = sum(ob.values())
+        vb = cost.voltage_bytes(per_gpu[0], gulp, station.nstand, precision, gpu=dev in ("gpu", "gpus"))
+        if vb:
+            mem["imager voltages"] = vb
     _memory_check(cfg, dev, mem)
     if im.get("search"):
         d["search"], text = _plan_search(im["search"], freq, acc * dt, npix, dev,

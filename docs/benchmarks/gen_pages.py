@@ -277,7 +277,9 @@ def wb_body():
                f"GiB, the rings {gib('ring.py:221:_alloc'):.1f} GiB, the imagers' voltage layouts "
                f"{gib('_xp.py:169:take < fused.py:362:_b_array'):.1f} GiB, and the two solvers {solver:.1f} GiB (the "
                "sums, diffuse models and weights both hold, one tuning's integer sums of an integration, the other's "
-               "solve): 67.2 GiB in all against the plan's 66.6 GiB. The host's resident set still grew "
+               "solve): 67.2 GiB in all against the plan's 66.6 GiB at that commit (68.2 GiB since the plan counts the "
+               "imagers' voltage layouts; its rings are still ~1.4 GiB short of these, its solvers ~1 GiB over). "
+               "The host's resident set still grew "
                f"{lt['host_slopes_mib_per_s']['rss']:+.1f} MiB/s of wall time (glibc in use "
                f"{lt['host_slopes_mib_per_s']['malloc_in_use']:+.1f}).\n")
     w150, nc = load("bench_wholeband_station_gpu1_150s.json"), load("bench_wholeband_station_gpu1_nochurn.json")
