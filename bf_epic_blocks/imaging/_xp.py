@@ -102,8 +102,8 @@ def to_numpy(a):
 
     The stream is synchronised before the copy, not by it: a copy into pageable memory that has to
     wait for queued kernels waits inside the CUDA driver, and there it holds up every other thread's
-    CUDA calls: a pipeline's sink copying its images that way slows the imager's thread by about
-    a tenth; synchronising first, by about a hundredth.
+    CUDA calls (a pipeline's sink would hold up the imager's thread); a synchronisation waits without
+    holding them.
     """
     if is_device_array(a):
         with a.device:

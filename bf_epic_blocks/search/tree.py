@@ -21,10 +21,10 @@ A single channel has d = 0 only. Two ranges L = a..m-1 and U = m..b merge as
     o   = rint(d * (f_a^-2 - f_m^-2)     / (f_a^-2 - f_b^-2)),   d_U = d - o,
 
 so every trial's highest channel sits exactly d images back and the others within a rounding or two
-of the dispersion curve, whose delay ~f^-2: measured, at most 1 image off ``rint(d (f_a^-2 -
-f_c^-2) / (f_a^-2 - f_b^-2))`` for 40 channels and at most 2 (mean 0.35) for 784 channels and
-sweeps to 1,875 (:func:`effective_back` gives each channel's read offset exactly). Ranges are split in halves; the plan (which d each
-range must provide) is made top-down from the trials asked for.
+of the dispersion curve, whose delay ~f^-2: the levels' roundings add up to at most 1 image off
+``rint(d (f_a^-2 - f_c^-2) / (f_a^-2 - f_b^-2))`` for 40 channels and 2 for 784 channels and sweeps to
+1,875 (tests/test_fdmt.py); :func:`effective_back` gives each channel's read offset exactly. Ranges are
+split in halves; the plan (which d each range must provide) is made top-down from the trials asked for.
 
 Cost and memory: one shifted add per (range, d) of its level, ``sum_levels sum_R (dmax_R + 1)``
 rows of ``T x npix`` (~ntrial x log2(nchan) rows); the largest array is the last level's
@@ -239,9 +239,10 @@ class StreamingFDMT:
         # On a GPU the merged rows that keep a ring live only in it, with room for a block's values
         # too (``ring_len + block`` slots, time tau at slot tau mod that): the level that makes such a row
         # writes it there and the levels that read it read it there, so no pass copies a block's newest
-        # values into the rings afterwards (0.5 GB read and written a whole-band gulp). The working array loses those rows, so at a push of ``block`` images in one pass the
-        # memory is the same. The channels' own rows (the leaves) stay in the working array, their few
-        # ring values copied after the levels. Pushes longer than ``block`` are made ``block`` at a time.
+        # values into the rings afterwards (a whole band's would be ~0.5 GB read and written a gulp). The
+        # working array loses those rows, so at a push of ``block`` images in one pass the memory is the
+        # same. The channels' own rows (the leaves) stay in the working array, their few ring values copied
+        # after the levels. Pushes longer than ``block`` are made ``block`` at a time.
         self.block = int(block)
         if self.block < 1:
             raise ValueError(f"block: expected the most images a push holds (>= 1), got {block!r}")
