@@ -16,6 +16,8 @@ and is done once per operator, not per image.
 """
 from __future__ import annotations
 
+import math
+
 
 def route_cmacs(ntime: int, nant: int, npix: int, npol: int = 1, nblk: int | None = None) -> dict:
     """CMAC counts per channel for one image of ``ntime`` samples: {'direct': n, 'covariance': n}."""
@@ -93,10 +95,10 @@ def voltage_bytes(nchan: int, ntime: int, nant_in: int, precision: str, *, gpu: 
     (nchan, npol x Tp, 2 Apad), Tp = ``ntime`` rounded up to 128, Apad = ``nant_in`` rounded up to 64), which
     the imager keeps from gulp to gulp; 0 for the other modes and on the CPU (the field's GEMM reads the
     voltages as they come)."""
-    from .fused import PIECES, padded_ntime
+    from .fused import PIECES, _b_shape, _pad, padded_ntime
     if not (gpu and precision in PIECES):
         return 0
-    return int(nchan) * int(npol) * padded_ntime(int(ntime)) * 2 * (-(-int(nant_in) // 64) * 64)
+    return math.prod(_b_shape(int(nchan), int(npol) * padded_ntime(int(ntime)), 2 * _pad(int(nant_in), 64), False))
 
 
 #: the sky solver's own peak (:func:`~.skycal.solve_gains`) beyond the model with its fitted diffuse term
