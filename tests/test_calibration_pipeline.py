@@ -259,6 +259,50 @@ def test_a_live_table_holds_a_bounded_history_with_absolute_indices():
     assert np.all(sol == n)
 
 
+def _solution(rng, nchan=4, nant=5, npol=2):
+    from bf_epic_blocks.imaging.skycal import Solution
+    corr = rng.normal(size=(nchan, nant, npol)) + 1j * rng.normal(size=(nchan, nant, npol))
+    flags = rng.random((nant, npol)) < 0.3
+    reasons = np.where(flags, "dead", "")
+    q = {k: rng.random((nant, npol)) for k in ("gain_amp", "residual", "power", "power_per_gain", "delay_s")}
+    q["converged"] = rng.random((nchan, npol)) < 0.9
+    return Solution(gains=1 / corr, corrections=corr, flags=flags, reasons=reasons, quality=q)
+
+
+def test_a_table_part_holds_its_solutions_in_arrays_made_once(tmp_path):
+    """TablePart: a file's entries (complex64 corrections, flags, reasons, quality) in arrays made at the
+    part's first solution for the whole part and filled in place, so a solver's memory does not grow while a
+    part fills; the solver's own complex128 gains are not kept. The file equals one written from the list."""
+    from bf_epic_blocks.io.gaintable import TablePart, write_gain_table
+    rng = np.random.default_rng(0)
+    sols = [_solution(rng) for _ in range(20)]
+    part = TablePart(3)
+    part.add(sols[0])
+    made = {k: (a.ctypes.data, a.nbytes) for k, a in part._a.items()}
+    part.add(sols[1])
+    part.add(sols[2])
+    assert {k: (a.ctypes.data, a.nbytes) for k, a in part._a.items()} == made
+    assert not any(a.dtype == np.complex128 for a in part._a.values())
+    with pytest.raises(ValueError, match="holds 3"):
+        part.add(sols[3])
+    a = part.arrays()
+    assert a["gains"].dtype == np.complex64 and a["gains"].shape == (3, 4, 5, 2)
+    assert np.array_equal(a["gains"], np.stack([s.corrections for s in sols[:3]]).astype(np.complex64))
+    assert np.array_equal(part.entry(-1)["flag_reason"], sols[2].reasons)
+    grown = TablePart()                                          # no limit: the arrays double, nothing lost
+    for s in sols:
+        grown.add(s)
+    assert len(grown) == 20 and np.array_equal(grown.arrays()["flags"], np.stack([s.flags for s in sols]))
+    kw = dict(freq_hz=np.arange(4.0), stand_ids=np.arange(5), time_unix=np.arange(20.0), provenance={})
+    t1 = read_solved_table(write_gain_table(tmp_path / "a.npz", np.arange(20), grown, **kw))
+    t2 = read_solved_table(write_gain_table(tmp_path / "b.npz", np.arange(20), sols, **kw))
+    assert t1.keys() == t2.keys()
+    for k in t1:
+        if k != "provenance":
+            assert np.array_equal(t1[k], t2[k]), k
+    assert np.array_equal(t1["delay_s"], np.stack([s.quality["delay_s"] for s in sols]))
+
+
 def test_live_tables_are_written_in_parts(tmp_path):
     """calibration.solve.solutions_per_file: a run of weeks keeps one part in memory and on each write."""
     cfg = _cfg(tmp_path, "parts", "calibration.cable=false", "source.duration_s=0.6", "source.channels.count=2",

@@ -38,6 +38,7 @@ from ..imaging.calibration import GainTable, cable_weights
 from ..imaging._xp import to_numpy
 from ..imaging.skycal import (CovarianceSums, SolveSettings, baseline_weights, clip_fraction, model_covariance,
                               solve_gains)
+from ..io.gaintable import TablePart
 from . import _compat
 from ._compat import bfp, span_array, unpack_complex
 from ._drawing import DrawingHelper
@@ -211,9 +212,10 @@ class GainSolverBlock(bfp.SinkBlock):
     apply_from : 'after' (live: a solution applies from the first frame after its data) or 'start'
         (offline: from the first frame of its cadence, so a table applied to the same data calibrates
         them from their start; the table's ``valid_from`` says which).
-    ``solutions`` lists the current file part's :class:`~bf_epic_blocks.imaging.skycal.Solution` objects
-    (``last_solution`` the newest); ``solver_stats``
-    counts solutions, failures (with reasons) and the seconds spent summing and solving.
+    ``part`` holds the current file part's solutions as its table holds them (:class:`~..io.gaintable.TablePart`:
+    arrays made for the part's ``solutions_per_file`` at its first, so memory stays flat while it fills);
+    ``last_solution`` is the newest :class:`~bf_epic_blocks.imaging.skycal.Solution` (the next solve's warm
+    start); ``solver_stats`` counts solutions, failures (with reasons) and the seconds spent summing and solving.
     """
 
     #: the sums and the solves go ahead of the imager's kernels, which wait for their solutions
@@ -251,9 +253,10 @@ class GainSolverBlock(bfp.SinkBlock):
         if not apply_delay_s >= 0:
             raise ValueError(f"GainSolverBlock: apply_delay_s must be >= 0, got {apply_delay_s!r}")
         self.apply_delay_s = float(apply_delay_s)
-        self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []   # this file part's
-        self.last_solution, self._part = None, 0
         self.solutions_per_file = None if not solutions_per_file else int(solutions_per_file)
+        self.part = TablePart(self.solutions_per_file)                              # this file part's
+        self.valid_from, self.time_unix, self.models = [], [], []
+        self.last_solution, self._part = None, 0
         self.solver_stats = {"solutions": 0, "failures": 0, "failure_reasons": [], "sum_s": 0.0, "solve_s": 0.0,
                              "samples": 0, "sum_s_each": [], "solve_s_each": [], "pngs": 0, "pngs_in_helper": 0,
                              "pngs_skipped": 0, "out_of_memory": 0}
@@ -513,7 +516,7 @@ class GainSolverBlock(bfp.SinkBlock):
                 else:
                     self._fail(f"data too short to solve: {self._sums.ntime} samples, need at least "
                                f"{self.min_samples} (calibration.solve.min_samples)")
-            if self.table_path and self.solutions:
+            if self.table_path and len(self.part):
                 self.write(self.part_path(self._part), final=True)   # the last solution's PNG, if not drawn
         finally:
             self.close()
@@ -602,11 +605,12 @@ class GainSolverBlock(bfp.SinkBlock):
             self.solver_stats["solve_s"] += time.perf_counter() - t0
             self.solver_stats["solve_s_each"].append(round(time.perf_counter() - t0, 4))
             self.solver_stats["sum_s_each"].append(round(sum_s or 0.0, 4))
-        if self.solutions_per_file and len(self.solutions) == self.solutions_per_file:
+        if self.solutions_per_file and len(self.part) == self.solutions_per_file:
             # the part is full: the next solutions go to a new file, and memory holds one part
-            self.solutions, self.valid_from, self.time_unix, self.models = [], [], [], []
+            self.part = TablePart(self.solutions_per_file)
+            self.valid_from, self.time_unix, self.models = [], [], []
             self._part += 1
-        self.solutions.append(sol)
+        self.part.add(sol)
         self.last_solution = sol
         self.valid_from.append(int(valid_from))
         self.time_unix.append(float(when.unix))
@@ -656,23 +660,23 @@ class GainSolverBlock(bfp.SinkBlock):
         """Write the solutions so far to ``path`` (.npz) and, with ``png``, the last solution's PNG beside it
         (at a part's first solution, then about every minute of data, and when ``final``)."""
         from ..io.gaintable import write_gain_table
-        if not self.solutions:
+        if not len(self.part):
             return None
         n = self.solver_stats["solutions"]
         p = path
         if self._written_of != (path, n):
-            p = write_gain_table(path, self.valid_from, self.solutions, freq_hz=self._lay["freq_hz"],
+            p = write_gain_table(path, self.valid_from, self.part, freq_hz=self._lay["freq_hz"],
                                  stand_ids=self._stand_ids, time_unix=self.time_unix, provenance=self.provenance())
             self._written_of = (path, n)
-        due = len(self.solutions) == 1 or (n - 1) % self._png_every == 0 or final
+        due = len(self.part) == 1 or (n - 1) % self._png_every == 0 or final
         if self.png and due and self._png_of != n:
             self._png_of = n
             # the last solution's PNG, drawn from memory, about once a minute of data
-            last = self.solutions[-1]
+            last = self.part.entry(-1)
             self._draw_png((str(p)[:-4] + ".png", {
-                "gains": last.corrections[None], "flags": last.flags[None], "flag_reason": last.reasons[None],
+                "gains": last["gains"][None], "flags": last["flags"][None], "flag_reason": last["flag_reason"][None],
                 "freq_hz": self._lay["freq_hz"], "valid_from": self.valid_from, "provenance": self.provenance()},
-                f"gain solution {n - 1} ({len(self.solutions)} in this table): {self._station_name}, "
+                f"gain solution {n - 1} ({len(self.part)} in this table): {self._station_name}, "
                 f"model {', '.join(self.models[-1].get('sources', []))}"), wait=final)
         return p
 

@@ -23,31 +23,90 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["write_gain_table", "gain_table_png", "read_solved_table"]
+__all__ = ["TablePart", "write_gain_table", "gain_table_png", "read_solved_table"]
 
 _QUALITY = ("gain_amp", "residual", "power", "power_per_gain", "delay_s")
 
 
+class TablePart:
+    """The solutions of one table file as the file holds them (complex64 corrections, flags, reasons,
+    quality), in arrays made once for ``capacity`` solutions at the first and filled in place: a solver
+    that runs for weeks holds one part, and its memory does not grow while the part fills (the arrays'
+    pages are written when made). ``capacity`` None: no limit (the arrays double when full).
+
+    At the whole band (784 channels, 256 stands, 2 pols) a solution is 3.1 MB of corrections (the
+    solver's own complex128 gains and corrections, 12 MB, are not kept)."""
+
+    def __init__(self, capacity=None):
+        self.capacity = None if capacity is None else int(capacity)
+        self.n = 0
+        self._a = None
+
+    def __len__(self):
+        return self.n
+
+    def _make(self, sol, cap):
+        nchan, nant, npol = sol.corrections.shape
+        shapes = {"gains": ((nchan, nant, npol), np.complex64), "flags": ((nant, npol), bool),
+                  "flag_reason": ((nant, npol), "U16"), "converged": ((nchan, npol), bool)}
+        for k in _QUALITY:
+            shapes[k] = ((nant, npol), np.float64 if k == "delay_s" else np.float32)
+        a = {}
+        for k, (shp, dt) in shapes.items():
+            a[k] = np.empty((cap,) + shp, dt)
+            a[k].fill(0 if a[k].dtype.kind != "U" else "")          # the pages now, not as the part fills
+            if self._a is not None:
+                a[k][:self.n] = self._a[k][:self.n]
+        self._a = a
+
+    def add(self, sol):
+        """Append a :class:`~bf_epic_blocks.imaging.skycal.Solution`'s table entries (a full part refuses)."""
+        if self.capacity is not None and self.n >= self.capacity:
+            raise ValueError(f"TablePart: the part holds {self.capacity} solutions already")
+        if self._a is None:
+            self._make(sol, self.capacity or 16)
+        elif self.n == len(self._a["gains"]):
+            self._make(sol, 2 * self.n)
+        i, a = self.n, self._a
+        a["gains"][i] = sol.corrections
+        a["flags"][i] = sol.flags
+        a["flag_reason"][i] = sol.reasons
+        a["converged"][i] = sol.quality["converged"]
+        for k in _QUALITY:
+            a[k][i] = sol.quality[k]
+        self.n += 1
+
+    def arrays(self) -> dict:
+        """The filled entries: {name: (n, ...) array} (views, not copies)."""
+        return {} if self._a is None else {k: v[:self.n] for k, v in self._a.items()}
+
+    def entry(self, i=-1) -> dict:
+        """Solution ``i``'s corrections, flags and reasons: {'gains': (nchan, nstand, npol), ...}."""
+        i = range(self.n)[i]
+        return {k: self._a[k][i] for k in ("gains", "flags", "flag_reason")}
+
+
 def write_gain_table(path, valid_from, solutions, *, freq_hz, stand_ids, time_unix, provenance):
-    """Write the solutions (a list of :class:`~bf_epic_blocks.imaging.skycal.Solution`) to ``path``
-    (.npz), atomically (a temporary file renamed over the old one, so a reader never sees half a table)."""
+    """Write the solutions (a list of :class:`~bf_epic_blocks.imaging.skycal.Solution`, or a
+    :class:`TablePart`) to ``path`` (.npz), atomically (a temporary file renamed over the old one, so a
+    reader never sees half a table)."""
     from .. import __version__
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if not isinstance(solutions, TablePart):
+        part = TablePart(len(solutions))
+        for s in solutions:
+            part.add(s)
+        solutions = part
     arrays = {
         "valid_from": np.asarray(valid_from, np.int64),
         # complex64: a solution is good to ~1e-3, and a live table is rewritten at every solution
-        "gains": np.stack([s.corrections for s in solutions]).astype(np.complex64),
-        "flags": np.stack([s.flags for s in solutions]),
-        "flag_reason": np.stack([s.reasons for s in solutions]).astype("U16"),
-        "converged": np.stack([s.quality["converged"] for s in solutions]),
+        **solutions.arrays(),
         "freq_hz": np.asarray(freq_hz, np.float64),
         "stand_ids": np.asarray(stand_ids, np.int64),
         "time_unix": np.asarray(time_unix, np.float64),
         "provenance": np.array(json.dumps({**provenance, "software": f"bf_epic_blocks {__version__}"})),
     }
-    for k in _QUALITY:
-        arrays[k] = np.stack([s.quality[k] for s in solutions]).astype(np.float64 if k == "delay_s" else np.float32)
     tmp = path.with_name(path.name + ".tmp.npz")
     # uncompressed: gains are noise-like to zlib, and compressing a part of 60 whole-band solutions costs
     # seconds of a CPU the pipeline needs
