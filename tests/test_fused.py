@@ -162,7 +162,7 @@ def test_gpu_quantising_kernel_equals_the_numpy_pieces(case, tiled, monkeypatch)
 
 @GPU
 @pytest.mark.gpu
-@pytest.mark.parametrize("kernel", ["device", "portable", "portable-staged", "hopper"])
+@pytest.mark.parametrize("kernel", ["device", "portable", "portable-staged", "hopper", "hopper-st6"])
 @pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
 def test_gpu_kernel_equals_its_int64_emulation(precision, kernel):
     """The device's kernel, the portable mma.sync one (B whole in shared memory, and B staged with A, the
@@ -180,9 +180,10 @@ def test_gpu_kernel_equals_its_int64_emulation(precision, kernel):
     assert np.array_equal(Bv.get(), fused.layout_voltages(Q, None, [0, 1], int(Aq.shape[-1]), xmax))
     npix = len(lm)
     cc = cp.cuda.Device().compute_capability
-    if kernel == "hopper" and cc != "90":
+    if kernel.startswith("hopper") and cc != "90":
         pytest.skip("the warpgroup kernel needs compute capability 9.0")
-    config = {"device": None, "portable": {}, "portable-staged": {"BFULL": 0}, "hopper": dict(fused.HOPPER_CONFIG)}[kernel]
+    config = {"device": None, "portable": {}, "portable-staged": {"BFULL": 0}, "hopper": dict(fused.HOPPER_CONFIG),
+              "hopper-st6": dict(fused.HOPPER_CONFIG, ST=6)}[kernel]
     got = fused.fused_power(Aq, osc, Bv, 256, 2, flag, npix, config).get()   # (16, C, P, K)
     got = got.transpose(1, 2, 0, 3)
     ref = fused.reference_power(Aq.get(), osc.get(), Bv.get(), 256, base=b)[..., :npix]

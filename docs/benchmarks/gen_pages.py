@@ -506,6 +506,52 @@ page("predict_gauss", "Three integer products a complex multiply-add instead of 
      ["python tools/bench/predict_gauss.py --nchan 16 --json predict_gauss_cpu.json"],
      [("predict_gauss_cpu.json", CPU2)], pg_body)
 
+# ---------------------------------------------------------------- bench_gauss
+def bg_body():
+    d = load("bench_gauss_gpu_h200.json")
+    sh = load("bench_gauss_shapes_gpu_h200.json")
+
+    def rows_of(rec, keep=None):
+        out = []
+        for r in rec["rows"]:
+            if keep and not keep(r):
+                continue
+            eq = r.get("equal_to_default")
+            out.append([r["row"], ms(r["gulp_s"]), e(r["rel_err"]), f2(r.get("speedup_vs_naive")),
+                        "" if not r.get("int8_macs") else f"{r['int8_macs']:.3g}",
+                        "" if eq is None else ("yes" if eq else "NO")])
+        return out
+    t = {r["row"]: r["gulp_s"] for r in d["rows"]}
+    head = ["row", "ms per gulp", "error", "vs naive", "int8 MACs", "bit-equal to the default shape"]
+    return ("### The kernels side by side\n\n" + table(head, rows_of(d)) + "\n\n"
+            f"Gauss's kernel (six operator stages in shared memory) takes {t['gauss2 kernel'] / t['i8x2 kernel']:.2f}x "
+            f"the four-product kernel's time (four stages) with {1.68e11 / 2.19e11:.2f}x its int8 MACs (two pieces; "
+            f"{t['gauss3 kernel'] / t['i8x3 kernel']:.2f}x with three), where 0.75x was predicted at the same efficiency; "
+            "the four-product kernel given the same six stages (`ST=6`) takes "
+            f"{t['i8x2 ST=6 MT=4'] / t['i8x2 kernel']:.2f}x, the same as Gauss's, with the same images bit for bit. So "
+            "neither kernel is bound by its MACs, and what Gauss's gained came from its stages. `ST=6` is not the "
+            "four-product kernel's default until the GPU tests and the GPU check have run with it. Rows `CLUSTER=2`: two "
+            "CTAs of neighbouring column blocks shared each operator stage (a bulk copy multicast to both, each "
+            "stage freed by both CTAs' MMA warps): the same images, twice the time; that shape was removed.\n\n"
+            "### Gauss's kernel in other shapes (an earlier run)\n\n" + table(head, rows_of(sh)) + "\n\n"
+            "`LEAD=n`: the second MMA warpgroup started n stages behind the first, so that one's epilogue "
+            "would run beside the other's MMAs; `OVERLAP=1`: each tile's epilogue spread over the next tile's "
+            "first product (as the four-product kernel does), which spills registers (three accumulator sets "
+            "and the epilogue's values exceed a thread's 232) and doubles the time. Neither changed the "
+            "time otherwise; both were removed. The run-to-run spread of one kernel's time on this machine is "
+            "about 10% (the four-product kernel: 0.342-0.382 ms over three runs), so only rows of one run are "
+            "compared.\n")
+page("bench_gauss", "Three integer products a complex multiply-add: the kernel, measured",
+     "Case P (256 LWA-SV-like antennas, the 64x64 grid's 3,205 pixels, 1,024 samples of a 4-bit sky, 16 channels "
+     "x 2 pols), one image per 16 samples, on the GPU. Gauss's form of the fused integer kernel "
+     "(`imaging.gauss`, `fused_gauss.cu`: three int8 products a complex multiply-add) against the four-product "
+     "kernel the pipelines use, each alone on its own operands, beside the naive CuPy row, cuBLAS' int8 GEMMs "
+     "with each form's MACs (`floor-i8x2`, `floor-i8x3m`), and the package's whole regime-B call "
+     "(`i8x2 image`). Errors: max |I − I_ref| / max |I_ref| over all 64 images on ~220 pixels against a "
+     "float64 evaluation of the definition.",
+     ["python tools/bench/bench_gauss.py --json bench_gauss_gpu_h200.json"],
+     [("bench_gauss_gpu_h200.json", H200), ("bench_gauss_shapes_gpu_h200.json", H200)], bg_body)
+
 # ---------------------------------------------------------------- bench_tbx_reader
 def tbx_body():
     d = load("bench_tbx_reader.json")
@@ -1210,6 +1256,9 @@ SUMMARY = {  # benchmark -> (what it measures, latest result, machine), for the 
     'bench_regime_b': ('high cadence taken apart: GEMM, power-and-sum',
                       'fp16 GEMM alone 0.375 ms a gulp',
                       'one H100 80GB, 16 cores'),
+    'bench_gauss': ('three integer products a complex multiply-add: the kernel, measured',
+                    'regime B: Gauss kernel 0.344 ms at 3.6e-6 against the four-product 0.382 ms (ST=6: 0.342) at 3.1e-6: not MAC-bound',
+                    'one H200, 16 cores'),
     'predict_gauss': ('three integer products a complex multiply-add instead of four: the error, predicted',
                       'i8x2 at case P: 3.6e-6 (one scale a pixel) against four products\' 2.8e-6; a quarter of the int8 products fewer',
                       '2 CPU cores'),
