@@ -1,6 +1,7 @@
 """The benchmark scripts' own helpers (tools/bench/, on the path through setup.cfg's pytest
 ``pythonpath``): what they measure must mean what their tables say. Timing itself is never asserted."""
 import os
+import time
 
 import numpy as np
 import pytest
@@ -165,6 +166,17 @@ def test_profile_memory_samples_the_host_and_reports_a_failure_rather_than_raisi
     assert pm.main(small + ["--json", str(tmp_path / "bad.json")]) == 1
     bad = json.loads((tmp_path / "bad.json").read_text())
     assert bad["error"].startswith("MemoryError: Out of memory") and len(bad["host"]["samples"]) >= 1
+
+    def stopped(cfg, **kw):               # a time limit's SIGTERM: the runner drains, then raises this
+        time.sleep(0.2)
+        raise KeyboardInterrupt
+    monkeypatch.setattr(runner, "run", stopped)
+    assert pm.main(small + ["--snap", "0.05", "0.1", "--tracemalloc", "--trace-from", "0.1",
+                            "--json", str(tmp_path / "stop.json")]) == 1
+    stop = json.loads((tmp_path / "stop.json").read_text())
+    assert stop["error"].startswith("KeyboardInterrupt") and len(stop["host"]["samples"]) >= 3
+    s = stop["host"]["samples"]
+    assert "traced" not in s[0] and "traced" in s[-1]             # traced from --trace-from on
 
 
 def test_profile_memory_refuses_a_bad_setting_with_its_message(capsys):

@@ -12,15 +12,21 @@ Runs a pipeline YAML (default the whole station) in this process and samples, be
   ``--lifetimes`` also when each was freed (handed out through CuPy's ``UnownedMemory``, whose owner notes
   the free), and so what was alive, by site, when the bytes in use peaked and when the held bytes did;
 - with ``--tracemalloc`` (and ``--snap``), Python's own allocations (NumPy's arrays included): their total in
-  each host sample, and the tracebacks whose bytes grew most between the two snapshot times. A host growth
-  that glibc shows and these do not is native: a C library's, the CUDA driver's, CuPy's C side.
+  each host sample from ``--trace-from`` (default 0.8 T0: tracing a pipeline's start slows it many times
+  over) with ``--trace-frames`` frames, and the tracebacks whose bytes grew most between the two snapshot
+  times. A host growth that glibc shows and these do not is native: a C library's, the CUDA driver's,
+  CuPy's C side.
+
+A run that fails or is stopped (a time limit's SIGTERM, which the runner turns into ``KeyboardInterrupt`` once
+it has drained) is reported with its error and what was sampled, and exits 1.
 
 Prints the host's samples and slopes (MiB per second of wall time over the middle of the run), the pool's
 peaks and the allocation sites by total, and writes all of it as JSON. Glibc's figures need Linux with
 glibc 2.33 or later; elsewhere they are left out.
 
     python tools/bench/profile_memory.py [--yaml PIPE] [--seconds 40] [--device gpu] [--set KEY=VALUE ...]
-                                         [--trim S] [--lifetimes] [--snap T0 T1 [--tracemalloc]] [--json PATH]
+                                         [--trim S] [--lifetimes] [--snap T0 T1 [--tracemalloc [--trace-from S]]]
+                                         [--json PATH]
 """
 from __future__ import annotations
 
@@ -102,6 +108,9 @@ def main(argv=None):
                     help="on a GPU, note when each logged allocation is freed: what was alive at the peaks, by site")
     ap.add_argument("--tracemalloc", action="store_true",
                     help="trace Python's allocations: their total per sample, and what grew between the --snap times")
+    ap.add_argument("--trace-from", type=float, default=None,
+                    help="with --tracemalloc: start tracing this many s into the run (default 0.8 x T0)")
+    ap.add_argument("--trace-frames", type=int, default=6, help="with --tracemalloc: frames kept a traceback")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     if a.tracemalloc and not a.snap:
@@ -141,8 +150,7 @@ def main(argv=None):
     libc = _libc()
     host, snaps, stop = [], {}, threading.Event()
     traced = {}
-    if a.tracemalloc:
-        tracemalloc.start(12)
+    trace_from = None if not a.tracemalloc else (0.8 * a.snap[0] if a.trace_from is None else a.trace_from)
 
     def counts():
         """The collector's objects by type, and its largest lists, dicts and deques with what holds them
@@ -167,15 +175,19 @@ def main(argv=None):
             if a.trim and libc is not None and t - last_trim >= a.trim:
                 libc.malloc_trim(0)
                 last_trim = t
+            if trace_from is not None and t >= trace_from and not tracemalloc.is_tracing():
+                # from here on: tracing the start (catalogues, kernels, operators) slows it many times over,
+                # and what grows later is what is asked
+                tracemalloc.start(a.trace_frames)
             sample = {"t": round(t, 2), **host_sample(libc, pinned)}
-            if a.tracemalloc:
+            if tracemalloc.is_tracing():
                 sample["traced"] = tracemalloc.get_traced_memory()[0] / MIB
             host.append(sample)
             if a.snap:
                 for i, ts in enumerate(a.snap):
                     if t >= ts and i not in snaps:
                         snaps[i] = (t,) + counts()
-                        if a.tracemalloc:
+                        if tracemalloc.is_tracing():
                             traced[i] = tracemalloc.take_snapshot()
             if stop.wait(a.host_every):
                 break
@@ -193,25 +205,27 @@ def main(argv=None):
     err = None
     try:
         r = runner.run(cfg, show_progress=False)
-    except Exception as e:  # the failure is what is being profiled (e.g. out of memory): reported, not raised
+    except (Exception, KeyboardInterrupt) as e:
+        # the failure is what is being profiled (out of memory), or the run was stopped (a time limit's
+        # SIGTERM reaches the runner, which drains and raises KeyboardInterrupt): reported with the samples
         err, r = f"{type(e).__name__}: {str(e)[:400]}", {}
     stop.set()
     for th in threads:
         th.join()
     wall = time.perf_counter() - t0
-    if a.tracemalloc:
+    if tracemalloc.is_tracing():
         tracemalloc.stop()
 
     print(f"# profile_memory: {a.yaml} {' '.join(a.set)} on {machine(a.device)['hardware']}: {a.seconds:g} s of data "
           f"in {wall:.1f} s{'; error: ' + err if err else ''}")
     keys = [k for k in ("rss", "rss_anon", "malloc_in_use", "malloc_free", "malloc_mmapped", "traced")
-            if host and k in host[0]]
+            if any(k in s for s in host)]                  # (traced: from the time tracing starts)
     print("t s     " + " ".join(f"{k:>14s}" for k in keys) + "  threads  pinned free blocks")
     for s in host[:: max(1, len(host) // 16)] + host[-1:]:
-        print(f"{s['t']:6.1f}  " + " ".join(f"{s[k]:14.1f}" for k in keys)
+        print(f"{s['t']:6.1f}  " + " ".join(f"{s[k]:14.1f}" if k in s else f"{'':14s}" for k in keys)
               + f"  {s['threads']:7d}  {s.get('pinned_free_blocks', '')}")
     lo, hi = 0.25 * wall, 0.9 * wall
-    slopes = {k: slope([s["t"] for s in host], [s[k] for s in host], lo, hi) for k in keys}
+    slopes = {k: slope([s["t"] for s in host if k in s], [s[k] for s in host if k in s], lo, hi) for k in keys}
     print("MiB/s over the middle (" + f"{lo:.0f}-{hi:.0f} s): "
           + ", ".join(f"{k} {v:+.2f}" for k, v in slopes.items() if v is not None))
     growth, largest = {}, []
