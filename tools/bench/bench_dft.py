@@ -92,21 +92,28 @@ def gemm_floor(xp, nchan, npix, nant, ncol, run, repeat):
         t, _ = run(lambda: G._gemm_ex(a, b, c, G._CUDA_R_16F, ot, G._COMPUTE["fp32"], np.float32, 0), repeat)
         out.append((name, "fp16", t))
         del c
-    # int8: row-major (nchan, m, k) . (nchan, n, k)^T -> (nchan, n, m) int32, as cuBLAS' column-major
-    # C (m x n) = A^T B with both operands K-contiguous (the layout its int8 kernels take); pixels and
-    # antennas padded to 64 as the fused kernel pads them (cuBLAS' int8 kernels want m a multiple of 16:
-    # 2 x 3,205 rows take a slower one, 3.1x the time on an H200)
+    # pixels and antennas padded to 64 as the fused kernel pads them (cuBLAS' int8 kernels want m a multiple
+    # of 16: 2 x 3,205 rows take a slower one, 3.1x the time on an H200)
     m, k = 2 * (-(-npix // 64) * 64), 4 * (-(-nant // 64) * 64)
-    a8 = rng.integers(-127, 128, (nchan, m, k), dtype=xp.int8)
-    b8 = rng.integers(-8, 8, (nchan, ncol, k), dtype=xp.int8)
-    c8 = xp.empty((nchan, ncol, m), xp.int32)
+    out.append(("floor-i8x2", "i8", int8_floor(xp, nchan, m, k, ncol, run, repeat)))
+    return out
+
+
+def int8_floor(xp, batch, m, k, ncol, run, repeat):
+    """Seconds of cuBLAS' batched int8 GEMM, row-major (batch, m, k) . (batch, ncol, k)^T -> int32 (batch, ncol,
+    m), as cuBLAS' column-major C (m x n) = A^T B with both operands K-contiguous (the layout its int8 kernels
+    take); operands like the real ones (an operator in -127..127, 4-bit samples)."""
+    from bf_epic_blocks.imaging import gemm as G
+    rng = xp.random.default_rng(0)
+    a8 = rng.integers(-127, 128, (batch, m, k), dtype=xp.int8)
+    b8 = rng.integers(-8, 8, (batch, ncol, k), dtype=xp.int8)
+    c8 = xp.empty((batch, ncol, m), xp.int32)
     one, zero = np.array(1, np.int32), np.array(0, np.int32)
     args = (G._OP_T, G._OP_N, m, ncol, k, one.ctypes.data, a8.data.ptr, G._CUDA_R_8I, k, m * k, b8.data.ptr,
-            G._CUDA_R_8I, k, ncol * k, zero.ctypes.data, c8.data.ptr, G._CUDA_R_32I, m, m * ncol, nchan,
+            G._CUDA_R_8I, k, ncol * k, zero.ctypes.data, c8.data.ptr, G._CUDA_R_32I, m, m * ncol, batch,
             G._COMPUTE_32I, G._GEMM_DEFAULT)
     t, _ = run(lambda: G._call_gemm(args), repeat)
-    out.append(("floor-i8x2", "i8", t))
-    return out
+    return t
 
 
 def hard_scenes():

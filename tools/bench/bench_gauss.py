@@ -35,22 +35,6 @@ from benchlib import machine, timer, utc_now, write_json  # noqa: E402
 from cases import lwasv_like_layout, pairs_to_complex, quantise4, reference_image, sky_efield  # noqa: E402
 
 
-def int8_floor(cp, batch, m, k, ncol, run, repeat):
-    """Seconds of cuBLAS' batched int8 GEMM (batch, m, k) . (batch, ncol, k)^T -> int32 (batch, ncol, m),
-    operands like the real ones (operator in -127..127, 4-bit samples)."""
-    from bf_epic_blocks.imaging import gemm as G
-    rng = cp.random.default_rng(0)
-    a8 = rng.integers(-127, 128, (batch, m, k), dtype=cp.int8)
-    b8 = rng.integers(-8, 8, (batch, ncol, k), dtype=cp.int8)
-    c8 = cp.empty((batch, ncol, m), cp.int32)
-    one, zero = np.array(1, np.int32), np.array(0, np.int32)
-    args = (G._OP_T, G._OP_N, m, ncol, k, one.ctypes.data, a8.data.ptr, G._CUDA_R_8I, k, m * k, b8.data.ptr,
-            G._CUDA_R_8I, k, ncol * k, zero.ctypes.data, c8.data.ptr, G._CUDA_R_32I, m, m * ncol, batch,
-            G._COMPUTE_32I, G._GEMM_DEFAULT)
-    t, _ = run(lambda: G._call_gemm(args), repeat)
-    return t
-
-
 def profile(cp, a, xyzd, fd, lmd, Qd, nant, npix):
     """One call of each kernel (i8x2's four-product, Gauss's with two pieces), warmed up, between
     cudaProfilerStart and Stop: run under Nsight Compute with ``--profile-from-start off``."""
@@ -136,7 +120,7 @@ def main(argv=None):
     # the naive CuPy baseline
     G = imaging.geometric_operator(xyzd, fd, lmd, "fp32") / nant
     X = cp.asarray(pairs_to_complex(Q))
-    from bench_dft import naive_direct
+    from bench_dft import int8_floor, naive_direct
     t_naive, img = run(lambda: naive_direct(cp, G, X, n), a.repeat)
     row("naive-dir", t_naive, rel(img[..., sub].get()))
     G = X = img = None
