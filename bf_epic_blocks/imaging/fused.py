@@ -83,18 +83,25 @@ _INT32_MAX = 2 ** 31 - 1
 def bases(pieces: int, kd: int) -> tuple[int, int]:
     """(b, xmax) for ``pieces`` int8 pieces and KD = 2 Apad: the base, and the largest |sample| whose
     sums cannot overflow int32 (at least 8, so 4-bit voltages are always exact; at most 128)."""
+    return int_bases(pieces, kd, 128, f"{kd // 2} antennas")
+
+
+def int_bases(pieces, terms, cap, what):
+    """(b, xmax): the largest base b (from :data:`_BASE0`) for which a sum of ``terms`` products of an operator
+    of ``pieces`` int8 pieces (|q| <= 127) and samples |x| <= xmax fits int32 with xmax >= 8, and that xmax (at
+    most ``cap``); ``what`` names the array in the error raised where no base fits."""
     if pieces not in _BASE0:
         raise ValueError(f"pieces must be one of {tuple(_BASE0)}, got {pieces!r}")
     b = _BASE0[pieces]
     while True:
         cmax = 127 * sum(b ** i for i in range(pieces))
-        xmax = _INT32_MAX // (cmax * kd)
+        xmax = _INT32_MAX // (cmax * terms)
         if xmax >= 8 or b <= 2:
             break
         b -= 1
     if xmax < 8:
-        raise ValueError(f"{kd // 2} antennas are too many for int32 sums of {pieces} int8 pieces")
-    return b, min(int(xmax), 128)
+        raise ValueError(f"{what} are too many for int32 sums of {pieces} int8 pieces")
+    return b, min(int(xmax), cap)
 
 
 def _pad(n, m):

@@ -40,7 +40,7 @@ import numpy as np
 
 from ..cuda import get_kernel, register
 from ._xp import get_xp
-from .fused import _BASE0, _INT32_MAX, BN, TILE, _pad, _tile_rows, tile_voltages
+from .fused import _INT32_MAX, BN, TILE, _pad, _tile_rows, int_bases, tile_voltages
 
 __all__ = ["PRODUCTS", "GAUSS_CONFIG", "gauss_bases", "gauss_rows", "quantise_gauss", "layout_gauss",
            "tile_gauss", "reference_gauss", "gauss_power", "gauss_smem", "gauss_fits"]
@@ -55,18 +55,8 @@ _SMEM_MAX = 227 * 1024
 def gauss_bases(pieces: int, ka: int) -> tuple[int, int]:
     """(b, xmax) for ``pieces`` int8 pieces and KA antenna bytes a product row: the base and the largest
     |sample| whose Re F, Im F fit int32 (at least 8; at most 63, so that Re x + Im x is an int8)."""
-    if pieces not in _BASE0:
-        raise ValueError(f"pieces must be one of {tuple(_BASE0)}, got {pieces!r}")
-    b = _BASE0[pieces]
-    while True:
-        cmax = 127 * sum(b ** i for i in range(pieces))
-        xmax = _INT32_MAX // (cmax * 3 * ka)
-        if xmax >= 8 or b <= 2:
-            break
-        b -= 1
-    if xmax < 8:
-        raise ValueError(f"{ka} antennas are too many for int32 sums of {pieces} int8 pieces in Gauss's form")
-    return b, min(int(xmax), 63)
+    # |Re F| <= |T| + |U|: sums of |Re x + Im x| <= 2 xmax and |Im x| <= xmax over KA antennas, 3 KA terms of xmax
+    return int_bases(pieces, 3 * ka, 63, f"{ka} antennas in Gauss's form")
 
 
 def gauss_smem(ka, cfg=None):
