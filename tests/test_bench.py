@@ -168,10 +168,10 @@ def test_profile_memory_samples_the_host_and_reports_a_failure_rather_than_raisi
     assert bad["error"].startswith("MemoryError: Out of memory") and len(bad["host"]["samples"]) >= 1
 
     def stopped(cfg, **kw):               # a time limit's SIGTERM: the runner drains, then raises this
-        time.sleep(0.2)
+        time.sleep(0.6)                   # (the sampler's last sample, after this, is past --trace-from)
         raise KeyboardInterrupt
     monkeypatch.setattr(runner, "run", stopped)
-    assert pm.main(small + ["--snap", "0.05", "0.1", "--tracemalloc", "--trace-from", "0.1",
+    assert pm.main(small + ["--snap", "0.05", "0.1", "--tracemalloc", "--trace-from", "0.3",
                             "--json", str(tmp_path / "stop.json")]) == 1
     stop = json.loads((tmp_path / "stop.json").read_text())
     assert stop["error"].startswith("KeyboardInterrupt") and len(stop["host"]["samples"]) >= 3
