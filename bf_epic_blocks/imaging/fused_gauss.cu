@@ -19,7 +19,7 @@
 // by product: T's pieces, then X's (U), then Y's (V); X += T once X's MMAs are done (Y's run meanwhile) and
 // Y += T at the tile's end; then the tile's epilogue (from X and Y: Re F and Im F). The epilogue runs after
 // the tile's MMAs, not beside the next tile's as fused_hopper.cu's does: three sets of accumulators and the
-// epilogue's values together need more registers than a thread has (232), and the spills cost twice the time.
+// epilogue's values together need more registers than a thread has (232), and the spills outweigh the overlap.
 // Shared memory (dynamic): ST + 3 KA / 128 tiles of 16384 bytes, then 2 ST + 1 mbarriers of 8 bytes.
 //
 // bf_fused_gauss

@@ -25,13 +25,13 @@ int32, and at most 63, so that Re x + Im x is an int8 -- 63 at 256 antennas with
 four-product kernel takes 128 (all of 8-bit).
 
 **Error.** One scale for the three rows is up to sqrt(2) coarser than the four-product form's
-max(|Re D|, |Im D|): case P's images (one per 16 samples) measure 3.6e-6 against 3.1e-6
-(tools/bench/bench_gauss.py; predicted exactly by tools/bench/predict_gauss.py) -- within regime B's 1e-5.
+max(|Re D|, |Im D|), so the images' error grows a little, staying within regime B's 1e-5 at case P
+(tools/bench/predict_gauss.py predicts it exactly; tools/bench/bench_gauss.py measures it).
 
-**Speed.** Six int8 MACs a complex one instead of eight (two pieces), but the kernel takes the four-product
-kernel's time (docs/benchmarks/bench_gauss.md): neither is bound by its MACs, so the pipelines keep the
-four-product kernel (:mod:`.fused`) and nothing here is on their path. The kernel, its operands and its
-emulation stay, tested, for the day the fused kernels are bound by their MACs.
+**Speed.** Six int8 MACs a complex one instead of eight (two pieces); but the fused kernels are not bound
+by their MACs, and this one runs in the four-product kernel's time (docs/benchmarks/bench_gauss.md), so
+the pipelines keep the four-product kernel (:mod:`.fused`) and nothing here is on their path. The kernel,
+its operands and its emulation stay, tested, for when the fused kernels are bound by their MACs.
 """
 from __future__ import annotations
 
