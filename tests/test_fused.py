@@ -162,7 +162,7 @@ def test_gpu_quantising_kernel_equals_the_numpy_pieces(case, tiled, monkeypatch)
 
 @GPU
 @pytest.mark.gpu
-@pytest.mark.parametrize("kernel", ["device", "portable", "portable-staged", "hopper", "hopper-st6"])
+@pytest.mark.parametrize("kernel", ["device", "portable", "portable-staged", "hopper", "hopper-st4"])
 @pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
 def test_gpu_kernel_equals_its_int64_emulation(precision, kernel):
     """The device's kernel, the portable mma.sync one (B whole in shared memory, and B staged with A, the
@@ -183,7 +183,7 @@ def test_gpu_kernel_equals_its_int64_emulation(precision, kernel):
     if kernel.startswith("hopper") and cc != "90":
         pytest.skip("the warpgroup kernel needs compute capability 9.0")
     config = {"device": None, "portable": {}, "portable-staged": {"BFULL": 0}, "hopper": dict(fused.HOPPER_CONFIG),
-              "hopper-st6": dict(fused.HOPPER_CONFIG, ST=6)}[kernel]
+              "hopper-st4": dict(fused.HOPPER_CONFIG, ST=4)}[kernel]
     got = fused.fused_power(Aq, osc, Bv, 256, 2, flag, npix, config).get()   # (16, C, P, K)
     got = got.transpose(1, 2, 0, 3)
     ref = fused.reference_power(Aq.get(), osc.get(), Bv.get(), 256, base=b)[..., :npix]
@@ -291,6 +291,10 @@ def test_kernel_shape_falls_back_where_the_hopper_kernel_or_shared_memory_does_n
     assert fused.kernel_config(512, "90")["kernel"] == "wgmma"       # Hopper, 256 antennas: warpgroup kernel
     assert fused.kernel_config(512, "80")["kernel"] == "mma.sync"    # compute capability 8.0: the portable kernel
     assert fused.kernel_config(512, "80")["BFULL"] == 1
+    assert fused.kernel_config(512, "90")["ST"] == fused.HOPPER_CONFIG["ST"]
+    for kd, st in ((1152, 5), (1280, 4)):                            # 576 and 640 antennas: fewer stages fit beside B
+        few = fused.kernel_config(kd, "90")
+        assert few["kernel"] == "wgmma" and few["ST"] == st and fused._smem(few, kd) <= fused._SMEM_MAX
     mid = fused.kernel_config(1408, "90")                            # 704 antennas: B too large for the Hopper kernel
     assert mid["kernel"] == "mma.sync" and mid["BFULL"] == 1
     big = fused.kernel_config(4096, "90")                            # 2048 antennas: B no longer fits whole

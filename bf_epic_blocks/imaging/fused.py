@@ -597,17 +597,23 @@ class FusedOperator:
 #: for arrays whose B does not fit).
 PORTABLE_CONFIG = dict(kernel="mma.sync", WMW=2, WN=64, BK=64, ST=4, BFULL=1)
 #: The Hopper kernel's shape (``fused_hopper.cu``, compute capability 9.0): 128-byte K stages of A in
-#: shared memory, and row tiles a block (B is loaded once for all of them).
-HOPPER_CONFIG = dict(kernel="wgmma", ST=4, MT=4)
+#: shared memory, and row tiles a block (B is loaded once for all of them). Six stages rather than four
+#: hide more of A's latency from L2; where B leaves too little shared memory for six, fewer are taken
+#: (:func:`kernel_config`, down to :data:`HOPPER_MIN_ST`).
+HOPPER_CONFIG = dict(kernel="wgmma", ST=6, MT=4)
+HOPPER_MIN_ST = 4
 _SMEM_MAX = 227 * 1024
 
 
 def kernel_config(kd, device_cc):
     """The kernel and its shape for KD = 2 Apad on a device of compute capability ``device_cc`` ('90',
-    '80'): the Hopper kernel on compute capability 9.0 while its shared memory holds B whole, else
-    the portable one (B whole while it fits, else staged)."""
-    if str(device_cc) == "90" and _smem(HOPPER_CONFIG, kd) <= _SMEM_MAX:
-        return dict(HOPPER_CONFIG)
+    '80'): the Hopper kernel on compute capability 9.0 while its shared memory holds B whole and
+    at least :data:`HOPPER_MIN_ST` stages of A (as many as fit, up to :data:`HOPPER_CONFIG`'s), else the
+    portable one (B whole while it fits, else staged)."""
+    if str(device_cc) == "90":
+        for st in range(HOPPER_CONFIG["ST"], HOPPER_MIN_ST - 1, -1):
+            if _smem(dict(HOPPER_CONFIG, ST=st), kd) <= _SMEM_MAX:
+                return dict(HOPPER_CONFIG, ST=st)
     if _smem(PORTABLE_CONFIG, kd) <= _SMEM_MAX:
         return dict(PORTABLE_CONFIG)
     return dict(PORTABLE_CONFIG, BFULL=0)
