@@ -471,16 +471,21 @@ def _steer(xyz, f, l, m):
     return np.exp(2j * np.pi * f[:, None] / C * (xyz @ np.array([l, m, n]))[None, :])
 
 
-@pytest.mark.parametrize("diffuse", [True, False])
-def test_the_plan_s_solver_memory_bounds_what_the_solver_allocates(diffuse):
+@pytest.mark.parametrize("diffuse,one_channel_chunks", [(True, False), (False, False), (True, True)])
+def test_the_plan_s_solver_memory_bounds_what_the_solver_allocates(diffuse, one_channel_chunks, monkeypatch):
     """`bf-epic plan` counts a live solver's arrays (:func:`~bf_epic_blocks.imaging.cost.solver_bytes`):
     what it holds (the covariance sums, the baseline weights, the diffuse model) and the most it adds while
     summing an integration of 4-bit voltages (the integer Gram sums) or forming a solution (the sums' mean,
     the model, the solver's own peak). On the CPU (complex128, float64 Gram sums), numpy's allocations as
-    tracemalloc sees them: each within 10% of the count, none above it."""
+    tracemalloc sees them: each within 12% of the count (its chunk factor is the GPU's, 2.9 covariances of a
+    chunk, where the CPU's complex128 takes 2.66), none above it. With chunks of one channel (a whole
+    band's case: 784 channels in chunks of 64) the model with its diffuse term is a chunk's, not a whole
+    covariance more."""
     import tracemalloc
 
     from bf_epic_blocks.imaging.cost import solver_bytes
+    if one_channel_chunks:
+        monkeypatch.setattr(skycal, "SOLVE_CHUNK_BYTES", 2 * 64 * 64 * 16)
     from bf_epic_blocks.runtime.dtypes import pack_ci4
     rng = np.random.default_rng(4)
     nchan, nant, T = 16, 64, 64
@@ -511,4 +516,7 @@ def test_the_plan_s_solver_memory_bounds_what_the_solver_allocates(diffuse):
     finally:
         tracemalloc.stop()
     assert 0.9 * want["held"] <= held <= want["held"] * 1.001, (held, want)
-    assert 0.9 * want["working"] <= max(summing, solving) <= want["working"], (summing, solving, want)
+    if one_channel_chunks:
+        assert 0.88 * want["solving"] <= solving <= want["solving"], (solving, want)
+    else:
+        assert 0.88 * want["working"] <= max(summing, solving) <= want["working"], (summing, solving, want)

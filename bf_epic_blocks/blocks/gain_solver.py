@@ -435,7 +435,8 @@ class GainSolverBlock(bfp.SinkBlock):
                     return
                 model = sky_model(self.sources, when, self._location, lay["freq_hz"], pattern=self.pattern,
                                   npol=lay["npol"], min_alt_deg=self.min_alt_deg)
-                self._W = baseline_weights(lay["xyz_m"], lay["freq_hz"], self.settings.min_baseline_lambda, xp=xp)
+                self._W = baseline_weights(lay["xyz_m"], lay["freq_hz"], self.settings.min_baseline_lambda, xp=xp,
+                                           dtype=self._real_dtype)
                 t_model = time.perf_counter()
                 cdt = np.complex128 if xp is np else xp.complex64
                 if self.diffuse:
@@ -484,6 +485,11 @@ class GainSolverBlock(bfp.SinkBlock):
         finally:
             if self.table is not None:
                 self.table.decided(tag0, decided_through)
+
+    @property
+    def _real_dtype(self):
+        """The solve's real dtype: float32 on a GPU (its covariances are complex64), float64 on the CPU."""
+        return np.float64 if self._xp is np else np.float32
 
     def _solve_or_skip(self, k, *args):
         """:meth:`_solve`; a solve that finds too little memory (CuPy's OutOfMemoryError is a MemoryError)
@@ -587,7 +593,8 @@ class GainSolverBlock(bfp.SinkBlock):
                 from dataclasses import replace
                 settings = replace(settings, reference=int(idx[0]))
         if self._W is None:
-            self._W = baseline_weights(lay["xyz_m"], lay["freq_hz"], settings.min_baseline_lambda, xp=xp)
+            self._W = baseline_weights(lay["xyz_m"], lay["freq_hz"], settings.min_baseline_lambda, xp=xp,
+                                       dtype=self._real_dtype)
         try:
             last = self.last_solution
             g0 = None if last is None else last.gains.transpose(0, 2, 1)          # (c, p, a): a warm start

@@ -114,20 +114,23 @@ def solver_bytes(nchan: int, nant: int, npol: int = 2, *, gpu: bool, diffuse: bo
     ``nchan`` channels, ``nant`` stands and ``npol`` pols; one covariance array is nchan x npol x nant^2
     complex (complex64 on a GPU, complex128 on the CPU):
 
-    * ``held``: the covariance sums (one array), the baseline weights (nchan, nant, nant) float64, and the
-      diffuse model (one array) where it is fitted;
+    * ``held``: the covariance sums (one array), the baseline weights (nchan, nant, nant) in the solve's
+      real dtype (float32 on a GPU, float64 on the CPU), and the diffuse model (one array) where it is
+      fitted;
     * ``working``: the most it adds, the larger of what summing adds (the integer Gram sums (npol, nchan,
       2 nant, 2 nant), int32 on a GPU, float64 on the CPU, while an integration is summed) and what forming
-      a solution adds (the sums' mean and the model, one array each, the model with its fitted diffuse
-      term where there is one, and the per-chunk steps' peak, ``SOLVE_CHUNK_ARRAYS`` covariances of one
-      chunk of channels).
+      a solution adds (the sums' mean and the model, one array each, and the per-chunk steps' peak,
+      ``SOLVE_CHUNK_ARRAYS`` covariances of one chunk of channels, one more where the diffuse term's model
+      chunk is formed, :func:`~.skycal.model_chunk`, and the per-input figures: up to eight (nchan, npol,
+      nant) arrays of 16 bytes an element, the gains and the health figures); ``summing`` and ``solving``
+      are the two.
     """
     from .skycal import SOLVE_CHUNK_BYTES
     cplx = 8 if gpu else 16
     per_chan = npol * nant * nant * cplx
     cov = nchan * per_chan
     chunk = min(nchan, max(1, SOLVE_CHUNK_BYTES // per_chan)) * per_chan
-    held = cov + nchan * nant * nant * 8 + (cov if diffuse else 0)
+    held = cov + nchan * nant * nant * (4 if gpu else 8) + (cov if diffuse else 0)
     gram = npol * nchan * (2 * nant) ** 2 * (4 if gpu else 8)
-    solving = (3 if diffuse else 2) * cov + SOLVE_CHUNK_ARRAYS * chunk
-    return {"held": int(held), "working": int(max(gram, solving))}
+    solving = 2 * cov + (SOLVE_CHUNK_ARRAYS + (1 if diffuse else 0)) * chunk + 8 * nchan * npol * nant * 16
+    return {"held": int(held), "working": int(max(gram, solving)), "summing": int(gram), "solving": int(solving)}

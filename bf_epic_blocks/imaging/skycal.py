@@ -184,15 +184,16 @@ def model_covariance(xyz_m, freq_hz, lmn, flux_pol, xp=np, dtype=None):
     return out
 
 
-def baseline_weights(xyz_m, freq_hz, min_baseline_lambda, xp=np):
-    """float (nchan, nant, nant): 1 for baselines of at least ``min_baseline_lambda`` wavelengths, else 0
-    (the diagonal always 0). The length is the 3-D one."""
+def baseline_weights(xyz_m, freq_hz, min_baseline_lambda, xp=np, dtype=np.float64):
+    """``dtype`` (nchan, nant, nant): 1 for baselines of at least ``min_baseline_lambda`` wavelengths, else 0
+    (the diagonal always 0). The length is the 3-D one (float64). A solver of complex64 covariances keeps
+    them in float32 (the values are exact in either): half the bytes, and no copy a solve."""
     xyz = np.asarray(xyz_m, np.float64)
     d = np.sqrt(((xyz[:, None, :] - xyz[None, :, :]) ** 2).sum(-1))                         # (a, a) m
     lam = SPEED_OF_LIGHT_M_S / np.asarray(freq_hz, np.float64)
-    w = (d[None] >= min_baseline_lambda * lam[:, None, None]).astype(np.float64)
+    w = (d[None] >= min_baseline_lambda * lam[:, None, None]).astype(dtype)
     idx = np.arange(xyz.shape[0])
-    w[:, idx, idx] = 0.0
+    w[:, idx, idx] = 0
     return xp.asarray(w)
 
 
@@ -201,6 +202,16 @@ def baseline_weights(xyz_m, freq_hz, min_baseline_lambda, xp=np):
 #: that a whole band's solve adds ~1 GB on a GPU rather than a few whole covariances (0.8 GB each at 784
 #: channels in complex64)
 SOLVE_CHUNK_BYTES = 128 * 2**20
+
+
+def model_chunk(M, extra, scale, cs):
+    """The model of the channels ``cs`` (a slice): M[cs], or with a fitted term M[cs] + scale[cs] E[cs]
+    (M, E complex (nchan, npol, nant, nant); scale (nchan, npol)). A chunk at a time, so that the model
+    with its term is never a whole array beside M and E (0.8 GB at 784 channels and 256 antennas in
+    complex64)."""
+    if extra is None:
+        return M[cs]
+    return M[cs] + scale[cs, :, None, None] * extra[cs]
 
 
 def solve_chunks(R):
@@ -323,13 +334,15 @@ def _abs2(z):
     return z.real ** 2 + z.imag ** 2
 
 
-def input_health(R, M, W, g, live):
+def input_health(R, M, W, g, live, extra=None, scale=None):
     """Per-input figures, (nant, npol) float64 each, from the median over channels.
 
     R, M : complex (nchan, npol, nant, nant); W : (nchan, nant, nant) or broadcastable; g : (nchan, npol,
-    nant); live : bool (npol, nant) inputs in the solve. Returns a dict: ``gain_amp`` |g|, ``power`` the
-    autocorrelation, ``power_per_gain`` power / |g|^2, ``residual`` sum_q W |R - g g* M|^2 / sum_q W |g g* M|^2
-    over the live inputs q, ``baselines`` the number of live baselines of weight > 0.
+    nant); live : bool (npol, nant) inputs in the solve; extra, scale : None, or a model term E (R's shape)
+    and its scale (nchan, npol): the model is then M + scale E, formed a chunk of channels at a time
+    (:func:`model_chunk`). Returns a dict: ``gain_amp`` |g|, ``power`` the autocorrelation,
+    ``power_per_gain`` power / |g|^2, ``residual`` sum_q W |R - g g* M|^2 / sum_q W |g g* M|^2 over the
+    live inputs q, ``baselines`` the number of live baselines of weight > 0.
     """
     xp = get_xp(R)
     nant = R.shape[-1]
@@ -342,7 +355,7 @@ def input_health(R, M, W, g, live):
     for cs in solve_chunks(R):                       # a few (nant, nant) temporaries a chunk of channels
         Wl = (W4 if W4.shape[0] == 1 else W4[cs]) * lv[None, :, :, None] * lv[None, :, None, :]
         fit = g[cs, ..., :, None] * xp.conj(g[cs, ..., None, :])
-        fit *= M[cs]
+        fit *= model_chunk(M, extra, scale, cs)
         ref[cs] = xp.sum(Wl * _abs2(fit), axis=-1)
         fit -= R[cs]                                                                        # -(the residual)
         res[cs] = xp.sum(Wl * _abs2(fit), axis=-1)
@@ -448,14 +461,11 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
     g = xp.ones((nchan, npol, nant), R.dtype) if g0 is None else xp.array(g0, dtype=R.dtype)
     iters = 0
     conv = np.zeros((nchan, npol), bool)
-    Mp, scale = M, None
+    scale = None
     chunks = solve_chunks(R)
     if extra is not None:
         scale = xp.ones((nchan, npol), R.real.dtype) if extra_scale0 is None else \
             xp.asarray(extra_scale0).astype(R.real.dtype)
-        M = xp.empty_like(Mp)                    # the model with the fitted term, formed a chunk at a time
-        for cs in chunks:
-            M[cs] = Mp[cs] + scale[cs, :, None, None] * extra[cs]
     for _ in range(rounds):
         good = reasons == ""
         live = xp.asarray(good.T)                                                           # (p, a)
@@ -465,17 +475,18 @@ def solve_gains(R, M, xyz_m, freq_hz, station_flags=None, settings: SolveSetting
         for cs in chunks:
             Wl = (W if W.shape[0] == 1 else W[cs])[:, None] * live[None, :, :, None] * live[None, :, None, :]
             n = 0
+            Mc = model_chunk(M, extra, scale, cs)
             for _ in range(fits if extra is not None else 1):
-                gc, it, conv[cs] = stefcal(R[cs], M[cs], Wl, g[cs], max_iter=s.max_iter, tol=s.tol)
+                gc, it, conv[cs] = stefcal(R[cs], Mc, Wl, g[cs], max_iter=s.max_iter, tol=s.tol)
                 g[cs] = gc * live[None]
                 n += it
                 if extra is not None:
-                    scale[cs] = fit_scale(R[cs], Mp[cs], extra[cs], g[cs], Wl)
-                    M[cs] = Mp[cs] + scale[cs, :, None, None] * extra[cs]
+                    scale[cs] = fit_scale(R[cs], M[cs], extra[cs], g[cs], Wl)
+                    Mc = model_chunk(M, extra, scale, cs)
             most = max(most, n)
-            del Wl
+            del Wl, Mc
         iters += most
-        h = input_health(R, M, W, g, good.T)
+        h = input_health(R, M, W, g, good.T, extra, scale)
         new = np.zeros_like(good)
         amp_med = _robust_median(h["gain_amp"], good)
         ppg_med = _robust_median(h["power_per_gain"], good)
