@@ -106,3 +106,25 @@ def test_fits_export_carries_the_sky_and_time_wcs(tmp_path):
     assert np.hypot((ra - ra0[0]) * np.cos(np.radians(dec)), dec - dec0[0]) < 0.05 * np.degrees(grid.cell)
     assert f == pytest.approx(freq[2]) and s == 1.0
     assert t == pytest.approx((5 + 3) * dt_img)                     # seconds after the first image
+
+
+def test_float16_overflow_is_counted_and_logged_once_not_warned_each_gulp(tmp_path, caplog):
+    """Values beyond float16's range are stored as inf, counted (``overflow``) and logged once; numpy's
+    cast warning, which would repeat every gulp of a week's run, is not raised."""
+    import logging
+    import warnings
+
+    from bf_epic_blocks.io.cube import ImageCubeWriter
+    lm = np.zeros((3, 2))
+    with ImageCubeWriter(tmp_path / "c.h5", [74e6], ["I"], lm, 0, 1, dtype="float16") as w:
+        x = np.ones((4, 1, 1, 3), np.float32)
+        x[1, 0, 0, 2] = 1e6
+        with warnings.catch_warnings(), caplog.at_level(logging.WARNING):
+            warnings.simplefilter("error")
+            w.append(x)
+            w.append(x)
+        assert w.overflow == 2
+    assert sum("beyond the float16 range" in r.getMessage() for r in caplog.records) == 1
+    c = read_image_cube(tmp_path / "c.h5")
+    assert np.isinf(c["images"][1, 0, 0, 2]) and np.isinf(c["images"][5, 0, 0, 2])
+    assert np.count_nonzero(np.isinf(c["images"])) == 2

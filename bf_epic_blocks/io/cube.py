@@ -178,7 +178,8 @@ class ImageCubeWriter:
                 if nbig and not self.overflow:
                     log.warning("%s: %d image values beyond the float16 range (+-65504) stored as inf", self.path, nbig)
                 self.overflow += nbig
-        x = np.ascontiguousarray(x, dtype=self.dtype)
+        with np.errstate(over="ignore"):         # counted and logged above: no warning a gulp
+            x = np.ascontiguousarray(x, dtype=self.dtype)
         pos, n = 0, x.shape[0]
         while pos < n:
             if self._nbuf == 0 and n - pos >= self.k and self.nwritten % self.k == 0:
