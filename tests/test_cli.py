@@ -672,3 +672,18 @@ def test_compile_runs_each_pipeline_long_enough_for_its_periodic_steps_twice():
     # second solution is made by 17 s
     assert compile_seconds(load_config(str(PIPES / "lwasv_sim_station.yaml"))) == 18.0
     assert compile_seconds(load_config(str(PIPES / "lwasv_sim_allsky.yaml"), ["output.integrate.seconds=4"])) == 9.0
+
+
+def test_plan_counts_the_live_solver_once_and_the_station_fits_its_gpu_pool():
+    """The station's plan on one GPU: each tuning's live solver counted as what it holds plus the most it
+    adds (not every figure solver_bytes reports), and both tunings within the pool limit its YAML sets
+    (gpu_memory_gb), which `run` enforces before anything is allocated."""
+    from bf_epic_blocks.imaging import cost
+    from bf_epic_blocks.pipeline import config, runner
+    cfg = config.load_config(PIPES / "lwasv_sim_station.yaml", ["device=gpu"])
+    d, text = runner.plan(cfg)
+    sb = cost.solver_bytes(784, 256, 2, gpu=True, diffuse=True)
+    for t in ("low", "high"):
+        assert d["tunings"][t]["memory_bytes"]["live gain solver"] == sb["held"] + sb["working"]
+    (dev, need), = d["memory_bytes_per_device"].items()
+    assert need <= cfg["gpu_memory_gb"] * 1e9 and "ABOVE IT" not in text, (dev, need)

@@ -1505,7 +1505,7 @@ def plan(cfg):
         diffuse = bool(solve.get("diffuse", True))
         sb = cost.solver_bytes(nchan, station.nstand, 2, gpu=dev in ("gpu", "gpus"), diffuse=diffuse)
         d["solver_bytes"] = sb
-        mem["live gain solver"] = sum(sb.values())
+        mem["live gain solver"] = sb["held"] + sb["working"]
         lines.append(f"  live gain solver: holds {_gib(sb['held'])} (the covariance sums, the baseline weights"
                      f"{', the diffuse model' if diffuse else ''}), up to {_gib(sb['working'])} "
                      "more while it sums an integration or forms a solution")
