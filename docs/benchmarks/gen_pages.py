@@ -298,6 +298,39 @@ def wb_body():
                "did not record the solvers' figures (it does now: `run.solver`). Both tunings found the burst at its "
                "DM and place, as above. The host's resident set grew "
                f"{r1['rss_mib']['growth']:+.0f} MiB (first quarter's peak to the last's).\n")
+    st6, cold = load("bench_wholeband_station_gpu1_st6.json"), load("bench_wholeband_station_gpu1_st6_coldcache.json")
+    r6, rc = st6["run"], cold["run"]
+
+    def solves(r):
+        return "; ".join(f"{t} {v['solutions']} solved, {v['out_of_memory']} out of memory"
+                         for t, v in r["solver"].items())
+    out.append(f"With the four-product kernel at six stages (`HOPPER_CONFIG` ST=6, {st6['commit']}) 60 s of data "
+               f"([bench_wholeband_station_gpu1_st6.json](../bench/bench_wholeband_station_gpu1_st6.json), the kernel "
+               f"store filled by `bf-epic compile` first) flowed at **{r6['rt_flowing']:.3f}x** "
+               f"({r6['rt_whole']:.3f}x whole), within the 0.61-0.70x spread of the runs above: the kernel's ~10% "
+               f"(bench_gauss) is a few per cent of the station's time, below that spread. `nvidia-smi` at most "
+               f"{r6['gpu_mib']['peak']:.0f} MiB; the solvers: {solves(r6)}; the host's resident set grew "
+               f"{r6['rss_mib']['growth']:+.0f} MiB. On a machine with an empty kernel cache and no store "
+               f"([bench_wholeband_station_gpu1_st6_coldcache.json](../bench/bench_wholeband_station_gpu1_st6_coldcache.json)) "
+               f"the same run compiled {rc['kernels_compiled']} kernels while it ran, its search's first images came "
+               f"{rc['first_images_at_s']:.1f} s after the start (against {r6['first_images_at_s']:.1f} s with the store), "
+               f"it flowed at {rc['rt_flowing']:.3f}x, and the solvers: {solves(rc)}. The solves that ran out "
+               "asked for one whole covariance (0.82 GB) or a 128-MiB chunk with the pool at its limit; the solver "
+               "now forms the model with its diffuse term a chunk at a time and keeps its baseline weights in "
+               "float32 (`bf-epic plan`: 2.1 GiB a solve, was 2.7), which is not yet measured on the station.\n")
+    pg, pc = load("memory_station_gpu1_tablepart.json"), load("memory_station_cpu_small.json")
+    sg, sc = pg["host"]["slopes_mib_per_s"], pc["host"]["slopes_mib_per_s"]
+    out.append("The host's memory with the solver's table part made once "
+               "([memory_station_gpu1_tablepart.json](../bench/memory_station_gpu1_tablepart.json): `profile_memory "
+               "--tracemalloc` on the GPU, an empty kernel cache, 60 s of data stopped by its limit after "
+               f"{pg['wall_s']:.0f} s): the resident set grew {sg['rss']:+.2f} MiB/s of wall time and Python's own "
+               f"allocations {sg['traced']:+.2f}, in two steps of ~200-300 MiB where each tuning's first solution "
+               "made its table part (60 solutions' arrays, 184 MB, written when made, by design) and "
+               "~0.6 MiB/s between them. The same station on this workplace's 2-core CPU at 32 channels, "
+               "solving every 2 s ([memory_station_cpu_small.json](../bench/memory_station_cpu_small.json), "
+               f"{pc['wall_s']:.0f} s of wall time): {sc['rss']:+.2f} MiB/s, flat. So what still grows on the GPU "
+               "is on the GPU's host paths or in buffers that fill once (the watch quicklooks' bins); a run of "
+               "several minutes on the GPU, its table parts made, is the measurement still owed.\n")
     # what 1.0x needs: regime B's fused imaging call (16 channels, 64 images) from the H200's bench_dft record
     bd = load("bench_dft_gpu_h200.json")
     ib = [x for x in bd["rows"] if x["regime"] == "x64" and x["precision"] == "i8x2" and x.get("graphs")][0]
@@ -349,7 +382,15 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       "python tools/bench/profile_memory.py --seconds 150 --device gpu --json memory_station_gpu1_150s.json   "
       "# and --lifetimes",
       "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --device gpu --seconds 150 "
-      "--json bench_wholeband_station_gpu1_150s.json"],
+      "--json bench_wholeband_station_gpu1_150s.json",
+      "bf-epic compile pipelines/lwasv_sim_station.yaml; python tools/bench/bench_wholeband.py --yaml "
+      "pipelines/lwasv_sim_station.yaml --device gpu --seconds 60 --json bench_wholeband_station_gpu1_st6.json",
+      "python tools/bench/profile_memory.py --seconds 60 --device gpu --snap 40 55 --tracemalloc "
+      "--json memory_station_gpu1_tablepart.json",
+      "python tools/bench/profile_memory.py --device cpu --seconds 24 --set source.channels.count=32 "
+      "--set calibration.solve.cadence_s=2 --set calibration.solve.integration_s=0.5 "
+      "--set calibration.solve.apply_delay_s=0.2 --set imager.grid.size=32 --snap 30 90 --tracemalloc "
+      "--trace-from 20 --json memory_station_cpu_small.json"],
      [("bench_wholeband_gpu.json", H100), ("bench_wholeband_gpu_all.json", H200X2),
       ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200),
       ("bench_wholeband_station_gpu1_chunks.json", H200), ("bench_wholeband_station_gpu1_release.json", H200),
@@ -357,7 +398,9 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       ("memory_station_gpu1_host.json", H200),
       ("memory_station_gpu1_limit82.json", H200), ("memory_station_gpu1_150s.json", H200),
       ("bench_wholeband_station_gpu1_oomskips.json", H200), ("bench_wholeband_station_gpu1_nochurn.json", H200),
-      ("bench_wholeband_station_gpu1_150s.json", H200)], wb_body)
+      ("bench_wholeband_station_gpu1_150s.json", H200), ("bench_wholeband_station_gpu1_st6.json", H200),
+      ("bench_wholeband_station_gpu1_st6_coldcache.json", H200), ("memory_station_gpu1_tablepart.json", H200),
+      ("memory_station_cpu_small.json", CPU2)], wb_body)
 
 # ---------------------------------------------------------------- bench_search
 def search_body():
@@ -529,8 +572,8 @@ def bg_body():
             f"{t['gauss3 kernel'] / t['i8x3 kernel']:.2f}x with three), where 0.75x was predicted at the same efficiency; "
             "the four-product kernel given the same six stages (`ST=6`) takes "
             f"{t['i8x2 ST=6 MT=4'] / t['i8x2 kernel']:.2f}x, the same as Gauss's, with the same images bit for bit. So "
-            "neither kernel is bound by its MACs, and what Gauss's gained came from its stages. `ST=6` is not the "
-            "four-product kernel's default until the GPU tests and the GPU check have run with it. Rows `CLUSTER=2`: two "
+            "what Gauss's gained came from its stages. `ST=6` is now the four-product kernel's default "
+            "(`fused.HOPPER_CONFIG`; its GPU tests and the GPU check passed with it). Rows `CLUSTER=2`: two "
             "CTAs of neighbouring column blocks shared each operator stage (a bulk copy multicast to both, each "
             "stage freed by both CTAs' MMA warps): the same images, twice the time; that shape was removed.\n\n"
             "### Gauss's kernel in other shapes (an earlier run)\n\n" + table(head, rows_of(sh)) + "\n\n"
@@ -540,7 +583,42 @@ def bg_body():
             "and the epilogue's values exceed a thread's 232) and doubles the time. Neither changed the "
             "time otherwise; both were removed. The run-to-run spread of one kernel's time on this machine is "
             "about 10% (the four-product kernel: 0.342-0.382 ms over three runs), so only rows of one run are "
-            "compared.\n")
+            "compared.\n\n" + ncu_section())
+
+
+def ncu_section():
+    n = load("ncu_fused_gpu_h200.json")["kernels"]
+    f, g = n["bf_fused_power"], n["bf_fused_gauss"]
+    keys = [("Duration (us)", "duration us (SM clock held at 1.35 GHz)"), ("Elapsed Cycles (cycle)", "cycles"),
+            ("Tensor pipe (% of elapsed cycles)", "tensor pipe, % of cycles"),
+            ("Compute (SM) Throughput (%)", "SM throughput %"), ("L2 Cache Throughput (%)", "L2 throughput %"),
+            ("L2 Hit Rate (%)", "L2 hit rate %"), ("DRAM Throughput (%)", "DRAM throughput %"),
+            ("Issued Warp Per Scheduler", "instructions issued a scheduler-cycle"),
+            ("No Eligible (%)", "cycles with no warp eligible %"),
+            ("Achieved Occupancy (%)", "achieved occupancy %"), ("Registers Per Thread (register/thread)", "registers"),
+            ("Dynamic Shared Memory Per Block (Kbyte/block)", "shared memory KB a block")]
+    rows = [[label, f"{f[k]:,.4g}", f"{g[k]:,.4g}"] for k, label in keys]
+    return ("### Where the four-product kernel's time goes (Nsight Compute)\n\n"
+            "One call of each kernel at case P under `ncu --set full` "
+            "([ncu_fused_gpu_h200.json](../bench/ncu_fused_gpu_h200.json), the report's details page: "
+            "[ncu_fused_gpu_h200_details.txt](../bench/ncu_fused_gpu_h200_details.txt)); the four-product kernel "
+            "at `ST=6`.\n\n" + table(["", "i8x2 (four products)", "Gauss (two pieces)"], rows) + "\n\n"
+            f"The two kernels take the same cycles ({g['Elapsed Cycles (cycle)'] / f['Elapsed Cycles (cycle)']:.2f}x) "
+            f"although Gauss's does 0.77x the int8 MACs, and its tensor pipe is busy "
+            f"{g['Tensor pipe (% of elapsed cycles)']:.0f}% of them against {f['Tensor pipe (% of elapsed cycles)']:.0f}%, "
+            "in proportion to the MACs. Were the tensor pipe's rate the limit, Gauss's fewer MACs would take fewer "
+            "cycles; so it is not, for either kernel. Nor is memory: L2 at "
+            f"{f['L2 Cache Throughput (%)']:.0f}% of its throughput, DRAM at {f['DRAM Throughput (%)']:.0f}% (the "
+            "earlier reading, that A's stream from L2 limits the kernel, is not borne out). What is common to both is "
+            f"one block an SM (168 registers x 384 threads, {f['Dynamic Shared Memory Per Block (Kbyte/block)']:.0f} KB "
+            f"of shared memory): {f['No Eligible (%)']:.0f}% of the schedulers' cycles have no warp ready, so the "
+            "kernel waits on its MMAs' and stages' latencies, with too few warps to cover them. Nsight also marks "
+            "the epilogue's global stores: 17 of each 32-byte sector used, 43% of the sectors in excess. The next "
+            "shapes to try follow: a tile's epilogue that writes whole sectors, and the MMAs of one tile kept in "
+            "flight while the previous tile's epilogue runs on a third warpgroup rather than the same threads' "
+            "registers (the OVERLAP shape above spilled).\n")
+
+
 page("bench_gauss", "Three integer products a complex multiply-add: the kernel, measured",
      "Case P (256 LWA-SV-like antennas, the 64x64 grid's 3,205 pixels, 1,024 samples of a 4-bit sky, 16 channels "
      "x 2 pols), one image per 16 samples, on the GPU. Gauss's form of the fused integer kernel "
@@ -549,8 +627,11 @@ page("bench_gauss", "Three integer products a complex multiply-add: the kernel, 
      "with each form's MACs (`floor-i8x2`, `floor-i8x3m`), and the package's whole regime-B call "
      "(`i8x2 image`). Errors: max |I − I_ref| / max |I_ref| over all 64 images on ~220 pixels against a "
      "float64 evaluation of the definition.",
-     ["python tools/bench/bench_gauss.py --json bench_gauss_gpu_h200.json"],
-     [("bench_gauss_gpu_h200.json", H200), ("bench_gauss_shapes_gpu_h200.json", H200)], bg_body)
+     ["python tools/bench/bench_gauss.py --json bench_gauss_gpu_h200.json",
+      "ncu --profile-from-start off --set full --import-source no -o fused_prof python tools/bench/bench_gauss.py "
+      "--profile --nref 20; ncu --import fused_prof.ncu-rep --page details"],
+     [("bench_gauss_gpu_h200.json", H200), ("bench_gauss_shapes_gpu_h200.json", H200),
+      ("ncu_fused_gpu_h200.json", H200)], bg_body)
 
 # ---------------------------------------------------------------- bench_tbx_reader
 def tbx_body():
