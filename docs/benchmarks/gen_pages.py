@@ -328,9 +328,21 @@ def wb_body():
                "made its table part (60 solutions' arrays, 184 MB, written when made, by design) and "
                "~0.6 MiB/s between them. The same station on this workplace's 2-core CPU at 32 channels, "
                "solving every 2 s ([memory_station_cpu_small.json](../bench/memory_station_cpu_small.json), "
-               f"{pc['wall_s']:.0f} s of wall time): {sc['rss']:+.2f} MiB/s, flat. So what still grows on the GPU "
-               "is on the GPU's host paths or in buffers that fill once (the watch quicklooks' bins); a run of "
-               "several minutes on the GPU, its table parts made, is the measurement still owed.\n")
+               f"{pc['wall_s']:.0f} s of wall time): {sc['rss']:+.2f} MiB/s, flat.\n")
+    wa, wb = load("profile_writers_cpu.json"), load("profile_writers_cpu_before.json")
+
+    def grow(rec, writer, nchan=None):
+        r = [x for x in rec["rows"] if x["writer"] == writer and (nchan is None or x.get("nchan") == nchan)][0]
+        return f"{r['growth_mib']:+.1f} MiB over {r['seconds']:.0f} s of data"
+    out.append("One cause of the rest, found on the CPU: the watch writer's HDF5 file, open for the whole run, held "
+               "more of the library's memory with every chunk appended under HDF5's default chunk cache. Alone, at one "
+               "tuning's rate ([profile_writers_cpu_before.json](../bench/profile_writers_cpu_before.json), "
+               f"`tools/bench/profile_writers.py`): {grow(wb, 'watch', 784)} at 784 channels (most of it in the "
+               f"first 20 s, then ~0.13 MiB a second of data) and {grow(wb, 'watch', 8)} at 8 (the same chunks a "
+               "second), levelling off only after ~11 minutes of data. The writer only appends, so its file now has no chunk cache "
+               f"([profile_writers_cpu.json](../bench/profile_writers_cpu.json)): {grow(wa, 'watch', 784)} and "
+               f"{grow(wa, 'watch', 8)}, at the same speed. The cube writer grows {grow(wa, 'cube')} and then "
+               "levels off. The station's host memory over minutes on a GPU, with this, is the measurement still owed.\n")
     # what 1.0x needs: regime B's fused imaging call (16 channels, 64 images) from the H200's bench_dft record
     bd = load("bench_dft_gpu_h200.json")
     ib = [x for x in bd["rows"] if x["regime"] == "x64" and x["precision"] == "i8x2" and x.get("graphs")][0]
@@ -390,7 +402,9 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       "python tools/bench/profile_memory.py --device cpu --seconds 24 --set source.channels.count=32 "
       "--set calibration.solve.cadence_s=2 --set calibration.solve.integration_s=0.5 "
       "--set calibration.solve.apply_delay_s=0.2 --set imager.grid.size=32 --snap 30 90 --tracemalloc "
-      "--trace-from 20 --json memory_station_cpu_small.json"],
+      "--trace-from 20 --json memory_station_cpu_small.json",
+      "python tools/bench/profile_writers.py --json profile_writers_cpu.json   # and at 53f7393: "
+      "profile_writers_cpu_before.json"],
      [("bench_wholeband_gpu.json", H100), ("bench_wholeband_gpu_all.json", H200X2),
       ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200),
       ("bench_wholeband_station_gpu1_chunks.json", H200), ("bench_wholeband_station_gpu1_release.json", H200),
@@ -400,7 +414,8 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       ("bench_wholeband_station_gpu1_oomskips.json", H200), ("bench_wholeband_station_gpu1_nochurn.json", H200),
       ("bench_wholeband_station_gpu1_150s.json", H200), ("bench_wholeband_station_gpu1_st6.json", H200),
       ("bench_wholeband_station_gpu1_st6_coldcache.json", H200), ("memory_station_gpu1_tablepart.json", H200),
-      ("memory_station_cpu_small.json", CPU2)], wb_body)
+      ("memory_station_cpu_small.json", CPU2), ("profile_writers_cpu.json", CPU2),
+      ("profile_writers_cpu_before.json", CPU2)], wb_body)
 
 # ---------------------------------------------------------------- bench_search
 def search_body():
