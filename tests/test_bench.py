@@ -256,3 +256,25 @@ def test_predict_gauss_reproduces_the_package_and_bounds_the_three_product_forms
         assert np.abs(pg.images(D, Q, pieces, "four") - pkg).max() / scale < 3e-7    # float32's epilogue
         for form in ("shared", "own"):
             assert np.abs(pg.images(D, Q, pieces, form) - ref).max() / scale < 3 * err_pkg
+
+
+def test_profile_writers_prints_and_writes_each_writer_s_samples(tmp_path, capsys):
+    """tools/bench/profile_writers.py at tiny sizes: a row a writer (the watch writer at each channel count,
+    the cube writer), samples of glibc's bytes in use every --every s of data, the growth and wall time,
+    written as JSON."""
+    import json
+
+    import profile_writers as pw
+    try:
+        pw.in_use_mib()
+    except (OSError, AttributeError):
+        pytest.skip("needs glibc's mallinfo2")
+    out = tmp_path / "w.json"
+    assert pw.main(["--seconds", "6", "--every", "2", "--watch-channels", "4", "--npix", "50",
+                    "--json", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert [r["writer"] for r in rec["rows"]] == ["watch", "cube"]
+    for r in rec["rows"]:
+        assert [s[0] for s in r["samples"]][:3] == [0.0, 2.0, 4.0] and r["wall_s"] > 0
+        assert r["growth_mib"] == round(r["samples"][-1][1] - r["samples"][0][1], 2)
+    assert "watch" in capsys.readouterr().out
