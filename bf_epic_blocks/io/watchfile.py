@@ -21,8 +21,8 @@ the writer adds no groups or attributes later, only rows. A writer given ``flush
 up to that many seconds of data (and at most ``max_pending_bytes``) and writes them together: each
 HDF5 write and resize costs the same for 64 rows as for 1,000, so a pipeline's writer makes one a
 second, not one a gulp. The file has no chunk cache (``rdcc_nbytes=0``): the writer only appends, so a
-cache saves nothing, and with HDF5's default cache (1 MiB a dataset) the library's memory in use grew
-with every chunk appended for the first ~10 minutes of data of a file that stays open for a whole run.
+cache saves nothing, and under HDF5's default cache (1 MiB a dataset) the library's memory in use grows
+with every chunk appended, for ~10 minutes of data, in a file that stays open for a whole run.
 """
 from __future__ import annotations
 
