@@ -682,7 +682,7 @@ def test_plan_counts_the_live_solver_once_and_the_station_fits_its_gpu_pool():
     from bf_epic_blocks.pipeline import config, runner
     cfg = config.load_config(PIPES / "lwasv_sim_station.yaml", ["device=gpu"])
     d, text = runner.plan(cfg)
-    sb = cost.solver_bytes(784, 256, 2, gpu=True, diffuse=True)
+    sb = cost.solver_bytes(784, 256, 2, gpu=True, diffuse=cfg["calibration"]["solve"]["diffuse"])
     for t in ("low", "high"):
         assert d["tunings"][t]["memory_bytes"]["live gain solver"] == sb["held"] + sb["working"]
     (dev, need), = d["memory_bytes_per_device"].items()

@@ -522,13 +522,13 @@ def test_a_station_s_tunings_on_one_device_solve_in_turn():
 
 def test_a_run_refuses_what_does_not_fit_gpu_memory_gb():
     """gpu_memory_gb bounds what a GPU configuration may need, before anything is allocated: one pipeline's
-    plan, and a station's tunings on one GPU together (66.6 GiB for lwasv_sim_station: 75 GB holds them,
+    plan, and a station's tunings on one GPU together (64.8 GiB for lwasv_sim_station: 75 GB holds them,
     60 GB does not), each refused with a clear error naming the limit."""
     from bf_epic_blocks.pipeline import runner
     cfg = load_config("pipelines/lwasv_sim_station.yaml", ["device=gpu"])
     assert cfg["gpu_memory_gb"] == 75.0
-    runner.check_station_fits(cfg)                                   # 71.5 GB <= 75 GB
-    with pytest.raises(ValueError, match=r"gpu:0 need about 66.6 GiB together.*gpu_memory_gb: 60"):
+    runner.check_station_fits(cfg)                                   # 69.6 GB <= 75 GB
+    with pytest.raises(ValueError, match=r"gpu:0 need about 64.8 GiB together.*gpu_memory_gb: 60"):
         runner.check_station_fits(load_config("pipelines/lwasv_sim_station.yaml", ["device=gpu", "gpu_memory_gb=60"]))
     runner.check_station_fits(load_config("pipelines/lwasv_sim_station.yaml", ["device=gpu:all", "gpu_memory_gb=60"]))
     one = load_config("pipelines/lwasv_sim_wholeband.yaml", ["device=gpu", "gpu_memory_gb=10"])

@@ -242,17 +242,17 @@ def test_the_station_yaml_made_small_reports_its_burst_once(tmp_path):
 
 
 def test_plan_prints_each_tuning_and_what_each_device_holds(capsys):
-    """The two tunings on one GPU need ~67 GiB (each: its search ~15 GiB, its operator's int8 pieces 10.0
-    GiB and voltage layout 0.8 GiB, its live solver 3.8 GiB while it solves, its rings): plan says so per
+    """The two tunings on one GPU need ~65 GiB (each: its search ~15 GiB, its operator's int8 pieces 10.0
+    GiB and voltage layout 0.8 GiB, its live solver 2.9 GiB while it solves, its rings): plan says so per
     device (one NVIDIA H200 measured 67.2 GiB in use at the station's peak)."""
     from bf_epic_blocks.pipeline import cli
     assert cli.main(["plan", str(STATION), "--set", "device=gpu", "-q"]) == 0
     out = capsys.readouterr().out
     assert "tuning low (lwasv_sim_station_low)" in out and "tuning high (lwasv_sim_station_high)" in out
-    assert "memory on gpu:0: about 66.6 GiB" in out
+    assert "memory on gpu:0: about 64.8 GiB" in out
     assert cli.main(["plan", str(STATION), "--set", "device=gpu:all", "-q"]) == 0
     out = capsys.readouterr().out
-    assert "memory on gpu:0: about 32.9 GiB" in out and "memory on gpu:1: about 33.7 GiB" in out
+    assert "memory on gpu:0: about 32.0 GiB" in out and "memory on gpu:1: about 32.8 GiB" in out
 
 
 def test_calibrate_and_batch_ask_for_one_tuning(capsys, tmp_path):
