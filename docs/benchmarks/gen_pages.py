@@ -321,6 +321,21 @@ def wb_body():
                "These runs' solvers also fitted a diffuse term to a simulated sky that has none, which pulls the "
                "low tuning's Y gains astray (docs/guide/station.md); the station's YAML now solves without it "
                "(2.0 GiB a solve, and 0.8 GiB less held a tuning), not yet run on a GPU.\n")
+    cl = {r["run"]: r for r in load("calibration_low_diffuse_cpu.json")["rows"]}
+
+    def spread(r, p):
+        lo, hi = r[f"pol{p}"]["gain_amp_p5_p95_over_median"]
+        return f"{lo:.2f}-{hi:.2f}"
+    out.append("The low tuning's gains with and without that term, on this workplace's CPU (32 channels at "
+               "38.0-38.8 MHz, one solution from 0.5 s of data, no simulated corruption, so every input's true "
+               "gain is the same; [calibration_low_diffuse_cpu.json](../bench/calibration_low_diffuse_cpu.json)): "
+               f"fitted to a sky without Galactic emission, X's gains spread {spread(cl['nopat'], 0)} (5-95%, over "
+               f"their median) but Y's {spread(cl['nopat'], 1)}, Y's median "
+               f"{cl['nopat']['pol1']['gain_amp_median'] / cl['nopat']['pol0']['gain_amp_median']:.2f}x X's, "
+               f"{cl['nopat']['pol1']['noisy']} Y inputs flagged noisy; without the term "
+               f"{spread(cl['nodiff'], 0)} and {spread(cl['nodiff'], 1)}, none flagged; a sky with its Galactic "
+               f"emission, fitted with the term: {spread(cl['realsky'], 0)} and {spread(cl['realsky'], 1)}, none "
+               "flagged noisy.\n")
     pg, pc = load("memory_station_gpu1_tablepart.json"), load("memory_station_cpu_small.json")
     sg, sc = pg["host"]["slopes_mib_per_s"], pc["host"]["slopes_mib_per_s"]
     out.append("The host's memory with the solver's table part made once "
@@ -407,7 +422,8 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       "--set calibration.solve.apply_delay_s=0.2 --set imager.grid.size=32 --snap 30 90 --tracemalloc "
       "--trace-from 20 --json memory_station_cpu_small.json",
       "python tools/bench/profile_writers.py --json profile_writers_cpu.json   # and at 53f7393: "
-      "profile_writers_cpu_before.json"],
+      "profile_writers_cpu_before.json",
+      "the runs of calibration_low_diffuse_cpu.json: each row's command, then its gain table's first solution"],
      [("bench_wholeband_gpu.json", H100), ("bench_wholeband_gpu_all.json", H200X2),
       ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200),
       ("bench_wholeband_station_gpu1_chunks.json", H200), ("bench_wholeband_station_gpu1_release.json", H200),
@@ -418,7 +434,7 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       ("bench_wholeband_station_gpu1_150s.json", H200), ("bench_wholeband_station_gpu1_st6.json", H200),
       ("bench_wholeband_station_gpu1_st6_coldcache.json", H200), ("memory_station_gpu1_tablepart.json", H200),
       ("memory_station_cpu_small.json", CPU2), ("profile_writers_cpu.json", CPU2),
-      ("profile_writers_cpu_before.json", CPU2)], wb_body)
+      ("profile_writers_cpu_before.json", CPU2), ("calibration_low_diffuse_cpu.json", CPU2)], wb_body)
 
 # ---------------------------------------------------------------- bench_search
 def search_body():
