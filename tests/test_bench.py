@@ -265,9 +265,7 @@ def test_profile_writers_prints_and_writes_each_writer_s_samples(tmp_path, capsy
     import json
 
     import profile_writers as pw
-    try:
-        pw.in_use_mib()
-    except (OSError, AttributeError):
+    if pw.in_use_mib() is None:
         pytest.skip("needs glibc's mallinfo2")
     out = tmp_path / "w.json"
     assert pw.main(["--seconds", "6", "--every", "2", "--watch-channels", "4", "--npix", "50",

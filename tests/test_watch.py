@@ -219,29 +219,13 @@ def test_a_writer_that_holds_rows_writes_them_once_they_span_flush_s(tmp_path):
     np.testing.assert_array_equal(read_watch(tmp_path / "small.h5")["B1"]["offset_data"], data[:n, 2:3])
 
 
-def _malloc_in_use_mib():
-    """glibc's bytes in use (mallinfo2: the small blocks plus the mmapped ones), MiB; None without it."""
-    import ctypes
-
-    class MallInfo2(ctypes.Structure):
-        _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
-                                                   "fsmblks", "uordblks", "fordblks", "keepcost")]
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallinfo2.restype = MallInfo2
-    except (OSError, AttributeError):
-        return None
-    m = libc.mallinfo2()
-    return (m.uordblks + m.hblkhd) / 2**20
-
-
 def test_a_writer_open_for_a_whole_run_holds_no_more_memory_as_its_file_grows(tmp_path):
     """A pipeline's watch file stays open for the whole run. Appending ten targets' rows, a second of
     0.64-ms images a write (8 channels, so that it runs in seconds), the native memory in use (glibc's
     figure: HDF5's allocations are not Python's) is the same after 600 s of data as after 100 s: within 2
     MiB, where HDF5's default chunk cache added ~100 MiB over those 500 s."""
-    before = _malloc_in_use_mib()
-    if before is None:
+    from profile_memory import malloc_in_use_mib as _malloc_in_use_mib   # tools/bench (setup.cfg's pythonpath)
+    if _malloc_in_use_mib() is None:
         pytest.skip("needs glibc's mallinfo2 (Linux, glibc >= 2.33)")
     targets = [{"name": f"T{i}", "ra_deg": 10.0 * i, "dec_deg": 20.0} for i in range(10)]
     rows, nchan = 1562, 8

@@ -65,6 +65,16 @@ def _libc():
         return None
 
 
+def malloc_in_use_mib(libc=None):
+    """glibc's bytes in use, MiB: its heap's small blocks and the blocks it mmapped (what a C library such as
+    HDF5 holds, which tracemalloc does not see); None without mallinfo2."""
+    libc = libc or _libc()
+    if libc is None:
+        return None
+    m = libc.mallinfo2()
+    return (m.uordblks + m.hblkhd) / MIB
+
+
 def host_sample(libc, pinned=None):
     """One sample of the host's memory (MiB): resident set and its parts, glibc's heap, threads, pinned pool."""
     s = {}

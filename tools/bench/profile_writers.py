@@ -18,7 +18,6 @@ whatever the count, so a narrow run appends as many chunks a second as the whole
 from __future__ import annotations
 
 import argparse
-import ctypes
 import sys
 import tempfile
 import time
@@ -28,22 +27,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from benchlib import machine, utc_now, write_json  # noqa: E402
+from profile_memory import malloc_in_use_mib as in_use_mib  # noqa: E402
 
 RATE = 1562          # 0.64-ms images a second of data
 GULP = 64
-
-
-class _MallInfo2(ctypes.Structure):
-    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks",
-                                               "uordblks", "fordblks", "keepcost")]
-
-
-def in_use_mib():
-    """glibc's bytes in use (small blocks and mmapped ones), MiB."""
-    libc = ctypes.CDLL("libc.so.6")
-    libc.mallinfo2.restype = _MallInfo2
-    m = libc.mallinfo2()
-    return (m.uordblks + m.hblkhd) / 2**20
 
 
 def feed(append, seconds, every):
@@ -89,9 +76,7 @@ def main(argv=None):
     ap.add_argument("--npix", type=int, default=3205, help="the cube's pixels (the 64x64 grid's 3,205)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
-    try:
-        in_use_mib()
-    except (OSError, AttributeError):
+    if in_use_mib() is None:
         print("profile_writers: needs glibc's mallinfo2 (Linux, glibc >= 2.33)", file=sys.stderr)
         return 2
     rows = []
