@@ -165,8 +165,8 @@ class StreamingFDMT:
     the first image after a reset (``ref``; added back, summed over the channels, in float32 as the
     rows are copied out), so float16's 11 bits carry the fluctuations, not the sky's mean: a sum's
     error after its ~log2(nchan) roundings is ~3e-4 of the fluctuations' size rms, far below their
-    noise (rounding whole values instead would err by ~3e-4 of the value: 0.16 sigma of the whole
-    band's noise at a S/N-369 burst's peak, enough to move the burst's best trial by two sweeps). The
+    noise (rounding whole values instead would err by ~3e-4 of the value: at a bright burst's peak a
+    sizeable fraction of a sigma of the whole band's noise, enough to move its best trial). The
     reference holds until a reset, so a sky that drifts by D since then is rounded at ~3e-4 D: below
     the noise while D is under ~1,000 noise sigmas of a value -- for 0.64-ms images (sigma ~18% of the
     sky) any drift; for 1-s integrations (~0.5%) a pixel's whole brightness. The past
