@@ -553,8 +553,8 @@ def diffuse_mismatch(cfg):
     src, sv = cfg["source"], (cfg["calibration"].get("solve") or {})
     if src.get("kind") == "simulated" and sv.get("diffuse") and not src.get("diffuse"):
         return ("calibration.solve.diffuse is true but the simulated sky (source.diffuse) has no Galactic "
-                "emission: the fitted term has nothing to fit and can pull the gains astray (at 38 MHz "
-                "one polarisation's came out a third of the other's, inputs flagged noisy); set "
+                "emission: the fitted term has nothing to fit and can pull the gains astray (at low "
+                "frequencies one polarisation's, with good inputs flagged noisy); set "
                 "calibration.solve.diffuse: false, or give the source a diffuse sky")
     return None
 
