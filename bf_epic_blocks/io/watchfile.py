@@ -22,7 +22,7 @@ up to that many seconds of data (and at most ``max_pending_bytes``) and writes t
 HDF5 write and resize costs the same for 64 rows as for 1,000, so a pipeline's writer makes one a
 second, not one a gulp. The file has no chunk cache (``rdcc_nbytes=0``): the writer only appends, so a
 cache saves nothing, and under HDF5's default cache (1 MiB a dataset) the library's memory in use grows
-with every chunk appended, for ~10 minutes of data, in a file that stays open for a whole run.
+with every chunk appended, for minutes of data, in a file that stays open for a whole run.
 """
 from __future__ import annotations
 
