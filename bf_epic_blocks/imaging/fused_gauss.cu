@@ -154,25 +154,13 @@ bf_fused_gauss(const signed char* __restrict__ A, const signed char* __restrict_
     const int n0 = blockIdx.y * BN, c = blockIdx.z;
     const int pa = PA > 1 ? n0 / T : 0;
     const int NALL = ntile * NIT;
-    if (tid == 0) {
-        for (int s = 0; s < ST; s++) { mbar_init(fullb + 8 * s, 1); mbar_init(emptyb + 8 * s, 8); }
-        mbar_init(bbar, 1);
-        asm volatile("fence.mbarrier_init.release.cluster;\n" ::: "memory");
-    }
-    __syncthreads();
+    init_stage_barriers(fullb, emptyb, bbar, tid);
     if (warp >= 8) {                                // the producer warpgroup: one thread issues every copy
         asm volatile("setmaxnreg.dec.sync.aligned.u32 40;\n" ::: "memory");
-        if (warp == 8 && lane == 0) {
-            const signed char* Ab = A + ((long long)(c * PA + pa) * MTILES + mt0) * NIT * TILE;
-            mbar_expect(bbar, KBB * TILE);
-            bulk_load(smem_u32(sB), B + ((long long)c * (NCOL / BN) + blockIdx.y) * KBB * TILE, KBB * TILE, bbar);
-            for (int g = 0; g < MT * NIT; g++) {   // MT tiles, the last one repeated past the end
-                const int s = g % ST;
-                if (g >= ST) mbar_wait(emptyb + 8 * s, ((g / ST) - 1) & 1);
-                mbar_expect(fullb + 8 * s, TILE);
-                bulk_load(smem_u32(sA + s * TILE), Ab + (long long)min(g, NALL - 1) * TILE, TILE, fullb + 8 * s);
-            }
-        }
+        if (warp == 8 && lane == 0)                 // MT tiles, the last one repeated past the end
+            produce(sA, sB, A + ((long long)(c * PA + pa) * MTILES + mt0) * NIT * TILE,
+                    B + ((long long)c * (NCOL / BN) + blockIdx.y) * KBB * TILE, KBB, MT * NIT, NALL,
+                    fullb, emptyb, bbar);
         return;
     }
     // three sets of 64 accumulators a thread (more than 65536 / 384 = 170 registers: allotted per warpgroup)

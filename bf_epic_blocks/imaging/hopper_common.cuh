@@ -47,3 +47,30 @@ __device__ __forceinline__ void mbar_arrive_lane0(unsigned a, int lane) {
                  :: "r"(a), "r"(lane) : "memory");
 }
 
+// The block's mbarriers (thread 0, then the whole block waits): full[ST] (one arrival, the producer's
+// bulk copy with its bytes), empty[ST] (the 8 MMA warps' arrivals), and B's.
+__device__ __forceinline__ void init_stage_barriers(unsigned fullb, unsigned emptyb, unsigned bbar, int tid) {
+    if (tid == 0) {
+        for (int s = 0; s < ST; s++) { mbar_init(fullb + 8 * s, 1); mbar_init(emptyb + 8 * s, 8); }
+        mbar_init(bbar, 1);
+        asm volatile("fence.mbarrier_init.release.cluster;\n" ::: "memory");
+    }
+    __syncthreads();
+}
+
+// The producer's one thread: the block's whole B (nbt stages of 16384 bytes from Bsrc into sB) first,
+// then `total` stages of A from Asrc through sA's ST stages, each stage's next copy waiting for its last
+// use to be freed; stages from `nall` on repeat the last one (a block past the last row tile).
+__device__ __forceinline__ void produce(unsigned char* sA, unsigned char* sB, const signed char* Asrc,
+                                       const signed char* Bsrc, int nbt, int total, int nall,
+                                       unsigned fullb, unsigned emptyb, unsigned bbar) {
+    constexpr int TB = 16384;                      // a stage: 128 rows x 128 bytes (the kernels' TILE)
+    mbar_expect(bbar, nbt * TB);
+    bulk_load(smem_u32(sB), Bsrc, nbt * TB, bbar);
+    for (int g = 0; g < total; g++) {
+        const int s = g % ST;
+        if (g >= ST) mbar_wait(emptyb + 8 * s, ((g / ST) - 1) & 1);   // its last use is done
+        mbar_expect(fullb + 8 * s, TB);
+        bulk_load(smem_u32(sA + s * TB), Asrc + (long long)min(g, nall - 1) * TB, TB, fullb + 8 * s);
+    }
+}
