@@ -276,3 +276,28 @@ def test_profile_writers_prints_and_writes_each_writer_s_samples(tmp_path, capsy
         assert [s[0] for s in r["samples"]][:3] == [0.0, 2.0, 4.0] and r["wall_s"] > 0
         assert r["growth_mib"] == round(r["samples"][-1][1] - r["samples"][0][1], 2)
     assert "watch" in capsys.readouterr().out
+
+
+def test_bench_dft_table_replaces_only_the_precisions_it_timed(tmp_path, monkeypatch):
+    """`bench_dft.py --precisions i8x1 --table` writes i8x1's row and keeps every other precision's, the
+    GPU's fp16 among them; a run of every precision replaces them all."""
+    import json
+    import bench_dft
+    from bf_epic_blocks.imaging import plan
+    path = tmp_path / "measured.json"
+    old = [{"device": "gpu", "method": "direct", "precision": p, "bound": 1e-3, "rate_cmac_s": 1e13} for p in
+           ("fp16", "i8x1")] + [{"device": "cpu", "method": "direct", "precision": "fp32", "bound": 1e-6,
+                                 "rate_cmac_s": 1e10}]
+    path.write_text(json.dumps({"rows": old}))
+    monkeypatch.setattr(plan, "TABLE_PATH", path)
+    row = {"grid": 64, "regime": "gulp", "route": "direct", "precision": "i8x1", "gulp_s": 1e-3, "cmacs": 1e11,
+           "rel_err": 2e-3}
+    result = {"precisions": ["i8x1"], "rows": [row], "hard_scenes": [{"route": "direct", "precision": "i8x1",
+                                                                      "rel_err": 3.05e-3}],
+              "machine": {"gpu": "a GPU", "cpu": "a CPU"}, "date": "2026-12-02T00:00:00"}
+    bench_dft.write_table(result, "gpu")
+    rows = {(r["device"], r["precision"]): r for r in json.loads(path.read_text())["rows"]}
+    assert set(rows) == {("gpu", "fp16"), ("gpu", "i8x1"), ("cpu", "fp32")}
+    assert rows[("gpu", "fp16")] == old[0]
+    assert rows[("gpu", "i8x1")]["bound"] == 1e-2 and rows[("gpu", "i8x1")]["rate_cmac_s"] == 1e14
+    assert rows[("gpu", "i8x1")]["input"] == "ci4"

@@ -197,6 +197,21 @@ def test_plan_for_a_gpu_picks_from_the_gpu_rows(tol, capsys):
         assert fp32 <= float(tol)   # fp32 also met it: the tensor-core mode was picked for speed
 
 
+def test_plan_says_when_no_rate_was_measured_for_its_mode(monkeypatch, capsys):
+    """A mode the measured table has no row for (an expert's precision) is predicted from the route's generic
+    rate, and the plan says so rather than naming measured rates."""
+    from bf_epic_blocks.imaging import plan
+    rows = [r for r in plan.load_table()["rows"] if r["precision"] != "fp16"]
+    monkeypatch.setattr(plan, "load_table", lambda *a, **k: {"rows": rows})
+    argv = ["plan", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", "device=gpu", "--set", "imager.precision=fp16"]
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "no rate measured for" in out and "x fp16" in out and "rates measured for" not in out, out
+    monkeypatch.undo()
+    assert cli.main(argv) == 0
+    assert "rates measured for" in capsys.readouterr().out
+
+
 def test_gpu_request_without_gpu_is_clear(tmp_path, capsys):
     from bf_epic_blocks.imaging._xp import gpu_available
     if gpu_available():

@@ -1,4 +1,4 @@
-"""The fused integer modes (i8x2, i8x3): the operator in int8 pieces, the GEMM exact in int32, |F|^2
+"""The fused integer modes (i8x1, i8x2, i8x3): the operator in int8 pieces, the GEMM exact in int32, |F|^2
 summed in the kernel's epilogue. Truth: a float64 sum over antennas by the definition (truth.py),
 written without the package; the GPU kernel is also held to an int64 emulation of itself."""
 import numpy as np
@@ -12,9 +12,9 @@ from bf_epic_blocks.imaging.gemm import PrecisionUnavailable
 from truth import brute_fields
 
 GPU = pytest.mark.skipif(not gpu_available(), reason="needs CuPy and a CUDA device")
-#: per-mode error limits on the small scenes below (measured 1.1e-5 and 7.4e-7 with 40 antennas, where
-#: fewer antennas average the operator's rounding less than case P's 256)
-LIMIT = {"i8x2": 4e-5, "i8x3": 3e-6}
+#: per-mode error limits on the small scenes below (measured 3.4e-3, 1.5e-5 and 8.7e-7 with 37 antennas, where
+#: fewer antennas average the operator's rounding less than case P's 256); i8x1's is its measured bound
+LIMIT = {"i8x1": 1e-2, "i8x2": 4e-5, "i8x3": 3e-6}
 
 
 def scene(nant=40, T=128, nchan=2, npix_grid=16, seed=0):
@@ -39,16 +39,17 @@ def truth_powers(Q, xyz, freq, lm, weights, n):
 
 
 def test_bases_keep_int32_sums_exact():
-    for pieces in (2, 3):
+    for pieces in (1, 2, 3):
         for kd in (64, 512, 1024, 2048):
             b, xmax = fused.bases(pieces, kd)
             cmax = 127 * sum(b ** i for i in range(pieces))
             assert cmax * kd * xmax < 2 ** 31 and xmax >= 8, (pieces, kd, b, xmax)
     assert fused.bases(2, 512) == (254, 128)      # any int8 sample is exact with two pieces, 256 antennas
     assert fused.bases(3, 512) == (63, 8)         # three pieces: 4-bit samples
+    assert fused.bases(1, 512) == (1, 128)        # one piece: no base
 
 
-@pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
+@pytest.mark.parametrize("precision", ["i8x1", "i8x2", "i8x3"])
 def test_integer_pieces_image_within_limit_of_float64_truth(precision):
     """The quantised operator and the int64 emulation of the kernel against a float64 sum, with complex
     gains that differ by pol, flagged antennas, antennas not a multiple of 32, pixels not of 64."""
@@ -163,7 +164,7 @@ def test_gpu_quantising_kernel_equals_the_numpy_pieces(case, tiled, monkeypatch)
 @GPU
 @pytest.mark.gpu
 @pytest.mark.parametrize("kernel", ["device", "portable", "portable-staged", "hopper", "hopper-st4"])
-@pytest.mark.parametrize("precision", ["i8x2", "i8x3"])
+@pytest.mark.parametrize("precision", ["i8x1", "i8x2", "i8x3"])
 def test_gpu_kernel_equals_its_int64_emulation(precision, kernel):
     """The device's kernel, the portable mma.sync one (B whole in shared memory, and B staged with A, the
     form for arrays too large) and (on Hopper) the warpgroup one, each against the int64 emulation: the
@@ -193,7 +194,8 @@ def test_gpu_kernel_equals_its_int64_emulation(precision, kernel):
 
 @GPU
 @pytest.mark.gpu
-@pytest.mark.parametrize("precision,n,T", [("i8x2", 16, 256), ("i8x3", 16, 256), ("i8x2", 64, 256), ("i8x2", 16, 208)])
+@pytest.mark.parametrize("precision,n,T", [("i8x2", 16, 256), ("i8x3", 16, 256), ("i8x1", 16, 256), ("i8x2", 64, 256),
+                                             ("i8x2", 16, 208)])
 def test_gpu_operator_images_within_limit_of_float64_truth(precision, n, T):
     """DFTOperator in a fused mode, through image(accumulate=n), with a dead channel and flags: the
     images (1/N_A^2 and 1/n applied) against the float64 definition; NaN where a channel is dead.

@@ -262,8 +262,8 @@ class DFTOperator:
     graphs : bool                on the GPU, replay repeated :meth:`image` calls as CUDA graphs
                                  (:mod:`.graphs`; which calls: see :meth:`image`); default True.
     precision : str              GEMM precision, one of :data:`.gemm.PRECISIONS` (fp64, fp32,
-                                 tf32x3, fp16x3, tf32, fp16, bf16, i8x2, i8x3; all but fp64 and fp32
-                                 need a GPU, and i8x2/i8x3 4-bit integer voltages; to choose one by
+                                 tf32x3, fp16x3, tf32, fp16, bf16, i8x1, i8x2, i8x3; all but fp64 and
+                                 fp32 need a GPU, and i8x1/i8x2/i8x3 4-bit integer voltages; to choose one by
                                  accuracy, see :func:`.plan.resolve`). Phases are
                                  always formed in float64; the operator is stored as complex64
                                  (complex128 for fp64) and rounded by the GEMM as the mode says.
@@ -737,7 +737,7 @@ def dirty_image(efield, xyz_m, freq_hz, pixels_lm, *, remove_autocorr=False, met
              (Re diag(D R D^H)), or "auto" (the resolver's pick).
     precision : expert override of the GEMM precision, one of
              :data:`bf_epic_blocks.imaging.gemm.PRECISIONS` ("fp64", "fp32", and on a GPU "tf32x3",
-             "fp16x3", "tf32", "fp16", "bf16", and for 4-bit integer voltages "i8x2", "i8x3"; phases
+             "fp16x3", "tf32", "fp16", "bf16", and for 4-bit integer voltages "i8x1", "i8x2", "i8x3"; phases
              are always formed in float64). With a tolerance, method and precision restrict the choice
              and are an error if nothing they allow meets it.
     products : None (npol=1: XX; npol=2: XX, YY), "stokes" (I, Q, U, V), "linear", "full", or

@@ -2,7 +2,7 @@
 // mma.sync m16n8k32 s32.s8.s8, ldmatrix fragment loads, cp.async K stages. Launched by
 // imaging/fused.py (fused_power), which documents the operands and the quantisation.
 //
-// Compile-time constants (-D): NP int8 pieces (2, 3); KD = 2 Apad bytes of a row (a multiple of 128);
+// Compile-time constants (-D): NP int8 pieces (1, 2, 3); KD = 2 Apad bytes of a row (a multiple of 128);
 // WMW warps along M (BM = 64 WMW rows a block); WN columns a warp (BN = 128 a block, BN / WN warps
 // along N); BK bytes of K a stage; ST stages (ST - 1 loaded ahead); BFULL 1: B kept whole in shared
 // memory across the pieces (read from global memory once), 0: B staged with A (KD too large for that).

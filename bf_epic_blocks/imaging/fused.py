@@ -13,7 +13,7 @@ one row per pixel) is scaled per pixel row by s_k = max_a max(|Re D_ka|, |Im D_k
 so that  D X * 127 b^(pieces-1) / s_k = b^(pieces-1) Q1 X + ... + Q_pieces X  is an *integer*,
 summed exactly in int32 by the integer tensor cores (s8 x s8 -> s32): the kernel runs the
 K loop once per piece and multiplies its int32 accumulators by b between pieces, so one set of
-accumulators serves every piece. b is the largest (<= 254 for two pieces, <= 63 for three) with
+accumulators serves every piece. b is the largest (<= 254 for two pieces, <= 63 for three; one piece has none) with
 no int32 overflow for 4-bit voltages: |acc| <= sum_k |x_k| * 127 (b^(p-1) + ... + 1) < 2^31.
 Larger samples (8-bit data) are checked on the device as they are laid out: any |x| above what the
 accumulators can hold (:func:`bases`) turns that call's images to NaN -- never a silently wrong image.
@@ -21,9 +21,14 @@ accumulators can hold (:func:`bases`) turns that call's images to NaN -- never a
 =========  ==================================  ================================  ==================
 mode       operator resolution (of s_k)        int8 MMAs per complex MAC          image error, case P
 =========  ==================================  ================================  ==================
+``i8x1``   1 / 127 = 7.9e-3                    4 (one piece of the 4 real ones)   3.5e-4
 ``i8x2``   1 / (127 * 254) = 3.1e-5            8 (two pieces of the 4 real ones)  3.1e-6
 ``i8x3``   1 / (127 * 63^2) = 2.0e-6           12                                 3.5e-7
 =========  ==================================  ================================  ==================
+
+i8x1 is for searches: its rounding makes each pixel's beam a slightly different one (each element off
+by ~2e-3 rms of the row's largest), so a pixel's time series keeps its noise statistics and a burst its
+place, while the images' error reaches ~3e-3 of the peak beside a 60-dB source (its bound, measured.json).
 
 (fp16 operands, for comparison: 2^-11 = 4.9e-4 relative.) After the integer GEMM, F is converted
 to float32 (6e-8 relative) and squared, and each 16 columns (16 samples of one pol) are summed in the
@@ -73,9 +78,9 @@ __all__ = ["FUSED", "PIECES", "bases", "quantise_operator", "padded_ntime", "lay
            "reference_power", "kernel_config", "FusedOperator"]
 
 #: the fused modes and their number of int8 pieces
-PIECES = {"i8x2": 2, "i8x3": 3}
+PIECES = {"i8x1": 1, "i8x2": 2, "i8x3": 3}
 FUSED = tuple(PIECES)
-_BASE0 = {2: 254, 3: 63}
+_BASE0 = {1: 1, 2: 254, 3: 63}      # one piece has no base: b^0 = 1 scales the only piece
 BM, BN = 128, 128   # default block tile (rows, columns): Kpad is a multiple of BM / 2
 _INT32_MAX = 2 ** 31 - 1
 

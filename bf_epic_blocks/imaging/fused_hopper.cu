@@ -4,7 +4,7 @@
 // columns) spread over the next tile's K stages. Launched by imaging/fused.py (fused_power), which
 // documents the operands and the quantisation.
 //
-// Compile-time constants (-D): NP int8 pieces (2, 3); KD = 2 Apad bytes of a row (a multiple of 128);
+// Compile-time constants (-D): NP int8 pieces (1, 2, 3); KD = 2 Apad bytes of a row (a multiple of 128);
 // ST K stages of A in shared memory; MT row tiles a block (<= 8; B is loaded once for all of them);
 // GRID 0: per-pol sums (out as the portable kernel's), 1: images placed straight onto a grid.
 //

@@ -25,6 +25,8 @@ name         what the GEMM does                                                 
              pieces (resolution 1/(127*254) of each pixel row's largest element),   tensor cores)
              the GEMM exact in int32 and |F|^2 summed in its epilogue (:mod:`.fused`)
 ``i8x3``     as i8x2 with three pieces (resolution 1/(127*63^2))                     GPU (integer TC)
+``i8x1``     as i8x2 with one piece (resolution 1/127): half i8x2's integer MMAs,     GPU (integer TC)
+             for searches, whose images are noise-dominated
 ===========  =====================================================================  ===============
 
 The tensor-core modes are real GEMMs on the stacked form of the complex product
@@ -72,6 +74,7 @@ PRECISIONS = {
     "tf32": (np.float32, np.complex64, True),
     "fp16": (np.float32, np.complex64, True),
     "bf16": (np.float32, np.complex64, True),
+    "i8x1": (np.float32, np.complex64, True),
     "i8x2": (np.float32, np.complex64, True),
     "i8x3": (np.float32, np.complex64, True),
 }

@@ -314,9 +314,10 @@ def resolve(tolerance=None, *, device, problem: Problem, input_kind="complex", p
     problem : a :class:`Problem`.
     input_kind : what the operator is handed (a key of :data:`INPUT_KINDS`, or a ring dtype name):
              'ci4' when 4-bit integers reach one GPU's DFT operator as they are, which makes the fused
-             integer modes (i8x2, i8x3) candidates.
+             integer modes (i8x1, i8x2, i8x3) candidates.
     precision, method : expert overrides (module docstring); precision one of
-             :data:`.gemm.PRECISIONS` (fp64, fp32, tf32x3, fp16x3, tf32, fp16, bf16, i8x2, i8x3).
+             :data:`.gemm.PRECISIONS` (fp64, fp32, tf32x3, fp16x3, tf32, fp16, bf16, i8x1, i8x2,
+             i8x3).
     imager : 'dft' | 'wstack' | 'moff'.
     table : a measured table in :func:`load_table`'s form (default: measured.json).
     Raises ValueError for a bad tolerance, override or input kind (naming what is allowed), and

@@ -943,7 +943,7 @@ SCHEMA = Section({
                           "`tolerance` it restricts the resolver's choice."),
         "precision": Key(Choice(*PRECISION_NAMES), "fp32",
                          doc="Expert override of the dft imager's arithmetic. fp32 and fp64 run anywhere; the "
-                             "others are tensor-core modes that need a GPU, and i8x2 / i8x3 4-bit voltages on "
+                             "others are tensor-core modes that need a GPU, and i8x1 / i8x2 / i8x3 4-bit voltages on "
                              "one GPU's direct route (`bf_epic_blocks.imaging.gemm`). Beside a `tolerance` it "
                              "restricts the resolver's choice; `--set imager.tolerance=...` replaces the "
                              "file's precision."),
@@ -1232,7 +1232,7 @@ def load_config(path_or_text, overrides: Iterable[str] = (), *, base_dir=None) -
 
 
 def _check_fused(cfg, src, im, ctx):
-    """imager.precision i8x2 / i8x3 (the direct route's fused integer modes) images what it can: 4-bit
+    """imager.precision i8x1 / i8x2 / i8x3 (the direct route's fused integer modes) images what it can: 4-bit
     voltages reaching one GPU's DFT imager (no gains table, whose CalFoldBlock makes them complex; a
     quantised simulated sky), the pols' own powers (XX, YY, I, Q), whole 16-sample units per image."""
     if not (is_valid(im) and is_valid(im["precision"]) and im["precision"] in _FUSED):

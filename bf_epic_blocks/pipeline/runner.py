@@ -1452,6 +1452,9 @@ def plan(cfg):
                 if (r["device"], r["method"], r["precision"]) == (dev, chosen, precision)]
         t_gulp = (per_gulp[chosen] / rows[0]["rate_cmac_s"] if rows
                   else cost.predict_seconds(per_gulp[chosen], dev, chosen))
+        rate_src = (f"rates measured for {chosen} x {precision}, bf_epic_blocks/imaging/measured.json" if rows else
+                    f"no rate measured for {chosen} x {precision}: the {chosen} route's generic {dev} rate, "
+                    "bf_epic_blocks/imaging/cost.py")
     rt = gulp * dt / t_gulp if t_gulp == t_gulp else float("nan")
     d = {"station": station.name, "stands": station.nstand, "stands_used": nstand_any, "antenna_pols_used": nant_pol,
          "flagged_antenna_pols": int(flags.sum()), "pixels": npix, "pixels_text": pix_txt, "nchan": nchan,
@@ -1485,8 +1488,7 @@ def plan(cfg):
         d["tolerance_pick"] = {"method": pick.method, "precision": pick.precision, "bound": pick.bound}
     if im["kind"] == "dft":
         lines.append(f"  predicted on {dev}: {t_gulp * 1e3:.2f} ms per gulp of {gulp * dt * 1e3:.2f} ms of data "
-                     f"-> real-time factor {rt:.2f} for the imaging (rates measured for {chosen} x {precision}, "
-                     "bf_epic_blocks/imaging/measured.json)")
+                     f"-> real-time factor {rt:.2f} for the imaging ({rate_src})")
     else:
         lines.append("  (run time of the w-stacking/MOFF imagers: see tools/bench/bench_wstack.py)")
     # refused before anything large is planned or allocated: the rings, the imager's working set and

@@ -313,6 +313,7 @@ def main(argv=None):
                 print(f"#   {route:<10} {precision:<8} {max(es):.1e}")
 
     out = {"benchmark": "bench_dft", "date": utc_now(), "machine": machine(a.device), "device": a.device,
+           "precisions": precisions,
            "case": {"nant": len(xyz), "layout": layout, "ntime": a.ntime, "nchan": nchan, "npol": npol,
                     "grids": grids, "data": "sky + noise, 4-bit"}, "rows": rows, "hard_scenes": hard}
     if a.json:
@@ -331,11 +332,13 @@ def _round_up(x):
 
 
 def write_table(result, device):
-    """Replace ``device``'s rows of the package's measured.json with this run's bounds and rates."""
+    """Replace ``device``'s rows of the package's measured.json with this run's bounds and rates: the rows of
+    the precisions it timed (``--precisions``; all of them by default), the others kept as they are."""
     table = json.loads(plan.TABLE_PATH.read_text())
-    keep = [r for r in table["rows"] if r["device"] != device]
+    timed = result.get("precisions", PRECISIONS)
+    keep = [r for r in table["rows"] if r["device"] != device or r["precision"] not in timed]
     new = []
-    for precision in PRECISIONS:
+    for precision in timed:
         for route in ("direct", "covariance"):
             case = [r for r in result["rows"] if r["route"] == route and r["precision"] == precision
                     and r["grid"] == 64 and r["regime"] == "gulp"]
