@@ -645,7 +645,21 @@ def test_compile_refuses_what_it_cannot_run(tmp_path, capsys):
     if not HAVE_GPU:
         assert cli.main(["compile", str(PIPES / "lwasv_sim_allsky.yaml"), "--store", str(tmp_path / "s")]) == 2
         assert "compile needs CuPy and a CUDA GPU" in capsys.readouterr().err
+        # a CPU YAML given a GPU-only mode is read as the GPU pipeline it compiles, not refused as a CPU one
+        assert cli.main(["compile", str(PIPES / "lwasv_sim_station.yaml"), "--store", str(tmp_path / "s"),
+                         "--set", "imager.tolerance=null", "--set", "imager.precision=i8x1"]) == 2
+        assert "compile needs CuPy and a CUDA GPU" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
+
+
+def test_compile_reads_a_pipeline_as_it_runs_on_a_gpu(tmp_path):
+    from bf_epic_blocks.pipeline.cli import _names_gpu
+    cpu, gpu = tmp_path / "cpu.yaml", tmp_path / "gpu.yaml"
+    cpu.write_text("device: cpu\n")
+    gpu.write_text("device: 'gpu:all'\n")
+    assert not _names_gpu(cpu, []) and not _names_gpu(tmp_path / "none.yaml", [])
+    assert _names_gpu(gpu, []) and _names_gpu(cpu, ["device=gpu:1"]) and not _names_gpu(gpu, ["device=cpu"])
+    assert _names_gpu(cpu, ["device=cpu", "device=gpu"])     # the last --set wins, as load_config reads them
 
 
 @pytest.mark.gpu

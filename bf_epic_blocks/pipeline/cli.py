@@ -154,6 +154,21 @@ def compile_seconds(cfg):
     return need
 
 
+def _names_gpu(path, overrides):
+    """Whether the pipeline ``path`` with ``--set`` ``overrides`` runs on a GPU: the last ``device=`` override,
+    else the file's top-level ``device`` (read as YAML alone: a file that the CPU's checks refuse is still
+    read). False where the file cannot be read (load_config then names the problem)."""
+    import yaml
+    dev = [kv.split("=", 1)[1] for kv in overrides if kv.split("=", 1)[0].strip() == "device"]
+    if not dev:
+        try:
+            raw = yaml.safe_load(Path(path).read_text())
+        except (OSError, yaml.YAMLError):
+            return False
+        dev = [raw.get("device", "cpu")] if isinstance(raw, dict) else ["cpu"]
+    return str(dev[-1]).strip().startswith("gpu")
+
+
 def _compile(args):
     """``bf-epic compile``: 0 when every pipeline ran, 1 when one failed, 2 for bad arguments."""
     import os
@@ -167,14 +182,17 @@ def _compile(args):
     cfgs, runs = [], []
     for f in args.files:
         try:
-            cfg = load_config(f, args.overrides)
+            # the pipeline is compiled on a GPU: read as it will run there (a YAML made for the CPU with a
+            # GPU-only precision set is a GPU pipeline here), unless the file or --set names a GPU already
+            overrides = [*args.overrides, *([] if _names_gpu(f, args.overrides) else ["device=gpu"])]
+            cfg = load_config(f, overrides)
             kinds = {tc["source"]["kind"] for tc in cfg.get("tunings") or [cfg]}
             if kinds != {"simulated"}:
                 print(f"bf-epic: compile: {f} reads a {'/'.join(sorted(kinds - {'simulated'}))} source; compile "
                       f"runs simulated pipelines only: name the simulated one with its shapes (stands, channels, "
                       f"grid)", file=sys.stderr)
                 return 2
-            sets = [f"source.duration_s={args.seconds or compile_seconds(cfg)}", *args.overrides]
+            sets = [f"source.duration_s={args.seconds or compile_seconds(cfg)}", *overrides]
             cfgs.append(load_config(f, sets))
             runs.append(sets)
         except (ConfigError, OSError, ValueError) as e:
@@ -193,11 +211,10 @@ def _compile(args):
     env = dict(os.environ, CUPY_CACHE_DIR=str(store))
     failed = 0
     for f, cfg, sets in zip(args.files, cfgs, runs):
-        dev = [] if str(cfg["device"]).startswith("gpu") else ["--set", "device=gpu"]
         n0, t0 = len(os.listdir(store)), time.perf_counter()
         with tempfile.TemporaryDirectory(prefix="bf-epic-compile-") as tmp:
             cmd = [sys.executable, "-m", "bf_epic_blocks.pipeline.cli", "run", f, "--no-progress", "-q",
-                   *[a for kv in sets for a in ("--set", kv)], "--set", f"output.dir={tmp}", *dev]
+                   *[a for kv in sets for a in ("--set", kv)], "--set", f"output.dir={tmp}"]
             rc = subprocess.run(cmd, env=env).returncode
         n1 = len(os.listdir(store))
         if rc:
