@@ -11,7 +11,9 @@ the 64 x 64 all-sky grid's 3,205 pixels), one image per 16 samples (64 a gulp). 
     k = 2 Apad) -- the floor Gauss's form moves to (3/4 of the MACs);
   * ``i8x2 image``: the package's regime-B call (``DFTOperator.image(ci4, accumulate=16)``: layout, kernel,
     products), what bench_dft's regime-B row times;
-  * ``i8x2 kernel`` / ``i8x3 kernel``: the four-product fused kernel alone on the operator's own operands;
+  * ``floor-i8x1``: the same with one piece's MACs (k = 2 Apad), the floor of the one-piece mode;
+  * ``i8x1 kernel`` / ``i8x2 kernel`` / ``i8x3 kernel``: the four-product fused kernel alone on the operator's
+    own operands (``i8x1 image``: the one-piece mode's regime-B call);
   * ``gauss2 kernel`` / ``gauss3 kernel``: the three-product kernel alone (two and three pieces);
   * ``gauss2 image (pred.)``: the image call's time with its kernel's replaced by Gauss's (a prediction:
     the layout and products are the same work).
@@ -73,11 +75,14 @@ def main(argv=None):
                     help="JSON list of kernel shapes (gauss.GAUSS_CONFIG keys) timed beside the default, two pieces")
     ap.add_argument("--hopper-configs", default='[{"ST": 6}, {"ST": 7}]',
                     help="JSON list of the four-product Hopper kernel's shapes (fused.HOPPER_CONFIG keys) timed beside it")
+    ap.add_argument("--hopper-configs-1", default='[{"MT": 8}, {"MT": 2}, {"ST": 4}]',
+                    help="the same for the one-piece mode (i8x1)")
     ap.add_argument("--profile", action="store_true",
                     help="only one call of each kernel between cudaProfilerStart/Stop (for Nsight Compute)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     a.configs, a.hopper_configs = json.loads(a.configs), json.loads(a.hopper_configs)
+    a.hopper_configs_1 = json.loads(a.hopper_configs_1)
     import cupy as cp
     from bf_epic_blocks import imaging
     from bf_epic_blocks.imaging import fused, gauss
@@ -130,6 +135,7 @@ def main(argv=None):
     ncol = npol * a.ntime
     m4 = a.nchan * 2 * Kp64 * 4 * Ap64 * ncol
     row("floor-i8x2", int8_floor(cp, a.nchan, 2 * Kp64, 4 * Ap64, ncol, run, a.repeat), base=t_naive, macs=m4)
+    row("floor-i8x1", int8_floor(cp, a.nchan, 2 * Kp64, 2 * Ap64, ncol, run, a.repeat), base=t_naive, macs=m4 // 2)
     m3 = 3 * a.nchan * Kp64 * 2 * Ap64 * ncol
     row("floor-i8x3m", int8_floor(cp, 3 * a.nchan, Kp64, 2 * Ap64, ncol, run, a.repeat), base=t_naive, macs=m3)
     cp.get_default_memory_pool().free_all_blocks()
@@ -139,7 +145,7 @@ def main(argv=None):
         return (sums[..., sub] / (n * nant ** 2)).get()
 
     out = {}
-    for precision in ("i8x2", "i8x3"):
+    for precision in ("i8x1", "i8x2", "i8x3"):
         pieces = fused.PIECES[precision]
         op = imaging.DFTOperator(xyzd, fd, lmd, npol=npol, precision=precision)
         t_img, img = run(lambda: op.image(Qd, method="direct", accumulate=n), a.repeat)
@@ -149,7 +155,7 @@ def main(argv=None):
         Bv = fo._layout(Qd, [0, 1], False)
         t_k, sums = run(lambda: fused.fused_power(fo.Aq, fo.osc, Bv, T, npol, fo.flag, fo.npix, fo.config), a.repeat)
         row(f"{precision} kernel", t_k, rel(images_of(sums)), base=t_naive, macs=a.nchan * 4 * pieces * Kp64 * Ap64 * ncol)
-        for cfg in (a.hopper_configs if pieces == 2 else []):   # the four-product kernel's shapes
+        for cfg in {1: a.hopper_configs_1, 2: a.hopper_configs}.get(pieces, []):   # the four-product kernel's shapes
             cfg = dict(fused.HOPPER_CONFIG, **cfg)
             t_c, got = run(lambda: fused.fused_power(fo.Aq, fo.osc, Bv, T, npol, fo.flag, fo.npix, cfg), a.repeat)
             name = f"{precision} " + " ".join(f"{k}={v}" for k, v in cfg.items() if k != "kernel")
@@ -157,6 +163,8 @@ def main(argv=None):
             got = None
         op = fo = Bv = sums = img = None
         cp.get_default_memory_pool().free_all_blocks()
+        if pieces == 1:                  # Gauss's kernel takes two or three pieces
+            continue
         # the same operator in Gauss's form (its quantisation here in array code: the kernel is what is timed)
         Gd = imaging.geometric_operator(xyzd, fd, lmd, "fp64")
         w = cp.ones((a.nchan, nant, npol), cp.complex128)
