@@ -57,7 +57,9 @@ def page(stem, title, measures, command, records, body, script=None):
 # ---------------------------------------------------------------- bench_dft
 def dft_body():
     parts = []
-    for f, label in (("bench_dft_gpu.json", H100), ("bench_dft_gpu_h200.json", H200), ("bench_dft_cpu.json", CPU2)):
+    for f, label in (("bench_dft_gpu.json", H100), ("bench_dft_gpu_h200.json", H200),
+                     ("bench_dft_i8x1_gpu_h200.json", H200 + ", the one-piece mode beside i8x2"),
+                     ("bench_dft_cpu.json", CPU2)):
         d = load(f); c = d["case"]
         parts.append(f"### {label}: {c['nant']} antennas ({c['layout']}), {c['nchan']} channel(s) x {c['npol']} pol(s), "
                      f"{c['ntime']} samples of a 4-bit sky, 64x64 all-sky grid (3,205 pixels)\n")
@@ -72,7 +74,7 @@ def dft_body():
 page("bench_dft", "The DFT imager: time against error for every route and precision",
      "Case P (the paper's table): 256 LWA-SV antennas, a 64x64 all-sky grid (3,205 pixels above the horizon), "
      "1,024 samples of a simulated sky with noise quantised to 4 bits. Every route (covariance, direct) x precision "
-     "(fp64 ... bf16, and the fused integer modes i8x2/i8x3) x input (4-bit `ci4`, complex `cf32`), in two regimes: "
+     "(fp64 ... bf16, and the fused integer modes i8x1/i8x2/i8x3) x input (4-bit `ci4`, complex `cf32`), in two regimes: "
      "one image per gulp, and one image per 16 samples (the paper's high time resolution). Each row is the median "
      "time per gulp with the operator built (the pipeline's steady state) and the error "
      "max |I − I_ref| / max |I_ref| against a float64 evaluation of the definition that shares no code with the "
@@ -83,8 +85,10 @@ page("bench_dft", "The DFT imager: time against error for every route and precis
      "whole-station issue is the second table's i8x2 row: 16 channels, 64 images a gulp.",
      ["python tools/bench/bench_dft.py --device gpu --json bench_dft_gpu.json --table",
       "python tools/bench/bench_dft.py --device gpu --grids 64 --json bench_dft_gpu_h200.json",
+      "python tools/bench/bench_dft.py --device gpu --grids 64 --precisions i8x1 i8x2 --json bench_dft_i8x1_gpu_h200.json",
       "python tools/bench/bench_dft.py --device cpu --json bench_dft_cpu.json"],
-     [("bench_dft_gpu.json", H100), ("bench_dft_gpu_h200.json", H200), ("bench_dft_cpu.json", CPU2)], dft_body)
+     [("bench_dft_gpu.json", H100), ("bench_dft_gpu_h200.json", H200), ("bench_dft_i8x1_gpu_h200.json", H200),
+      ("bench_dft_cpu.json", CPU2)], dft_body)
 
 # ---------------------------------------------------------------- bench_e2e
 def e2e_body():
