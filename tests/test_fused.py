@@ -575,3 +575,13 @@ def test_quantise_operator_refuses_moved_rows_alone_where_it_cannot_place_them()
     w = np.ones((2, 8, 1), np.complex64)
     with pytest.raises(ValueError, match="need a GPU, out and first >= g_first"):
         fused.quantise_operator(G, w, np.arange(8), 8, 2, g_first=4, first=4)
+
+
+def test_the_shipped_table_offers_one_piece_at_a_search_s_tolerance_and_two_below_it():
+    """measured.json's integer rows: i8x1 (bound 1e-2) for 4-bit voltages at a tolerance of 1e-2, i8x2 at 1e-4,
+    neither for complex voltages; the one-piece mode's bound is looser and its rate faster than i8x2's."""
+    rows = {r["precision"]: r for r in plan.candidates("gpu") if r["precision"] in fused.FUSED}
+    assert rows["i8x1"]["bound"] > rows["i8x2"]["bound"] and rows["i8x1"]["rate_cmac_s"] > rows["i8x2"]["rate_cmac_s"]
+    assert plan.choose(1e-2, "gpu", sample_bits=4).precision == "i8x1"
+    assert plan.choose(1e-4, "gpu", sample_bits=4).precision == "i8x2"
+    assert plan.choose(1e-2, "gpu").precision not in fused.FUSED

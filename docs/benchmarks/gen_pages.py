@@ -325,6 +325,29 @@ def wb_body():
                "These runs' solvers also fitted a diffuse term to a simulated sky that has none, which pulls the "
                "low tuning's Y gains astray (docs/guide/station.md); the station's YAML now solves without it "
                "(2.0 GiB a solve, and 0.8 GiB less held a tuning), not yet run on a GPU.\n")
+    one, base = load("bench_wholeband_station_gpu1_i8x1.json"), load("bench_wholeband_station_gpu1_i8x1_base.json")
+    r1, rb = one["run"], base["run"]
+
+    def found(r):
+        return all(b.get("found") and abs(b["dm_off_trials"]) <= 1 and b["offset_cells"] <= 1.5 for b in r["bursts"])
+    out.append(f"The solver's chunked model and the YAML without the diffuse term (both above) on a GPU, beside the "
+               f"one-piece integer mode, in one device call ({one['commit']}, the kernel store "
+               "filled by `bf-epic compile` first for each mode). The shipped YAML (tolerance 1e-4: `i8x2`; "
+               f"[bench_wholeband_station_gpu1_i8x1_base.json](../bench/bench_wholeband_station_gpu1_i8x1_base.json)) "
+               f"flowed at **{rb['rt_flowing']:.3f}x** ({rb['rt_whole']:.3f}x whole); with "
+               "`--set imager.tolerance=null --set imager.precision=i8x1`, the mode a tolerance of 1e-2 picks "
+               f"([bench_wholeband_station_gpu1_i8x1.json](../bench/bench_wholeband_station_gpu1_i8x1.json)), at "
+               f"**{r1['rt_flowing']:.3f}x** ({r1['rt_whole']:.3f}x whole): {r1['rt_flowing'] / rb['rt_flowing']:.2f} "
+               "times the rate, not yet real time. In both runs every solve of both tunings solved "
+               f"({solves(rb)} / {solves(r1)}), no search push was skipped, "
+               + ("both tunings found the burst within +-1 trial and 1.5 cells" if found(rb) and found(r1)
+                  else "NOT every burst was found within +-1 trial and 1.5 cells")
+               + f", and the other candidates were "
+               f"{rb['other_candidates']} and {r1['other_candidates']} (30 in the low tuning alone with the diffuse "
+               f"term fitted). `nvidia-smi` at most {rb['gpu_mib']['peak']:.0f} and {r1['gpu_mib']['peak']:.0f} MiB "
+               "(the one-piece operator is half the size: the pool fills the room it leaves up to its 75-GB limit); "
+               f"the host's resident set grew {rb['rss_mib']['growth']:+.0f} and {r1['rss_mib']['growth']:+.0f} MiB, "
+               "still not flat.\n")
     cl = {r["run"]: r for r in load("calibration_low_diffuse_cpu.json")["rows"]}
 
     def spread(r, p):
@@ -427,7 +450,12 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       "--trace-from 20 --json memory_station_cpu_small.json",
       "python tools/bench/profile_writers.py --json profile_writers_cpu.json   # and at 53f7393: "
       "profile_writers_cpu_before.json",
-      "the runs of calibration_low_diffuse_cpu.json: each row's command, then its gain table's first solution"],
+      "the runs of calibration_low_diffuse_cpu.json: each row's command, then its gain table's first solution",
+      "S='--set imager.tolerance=null --set imager.precision=i8x1'; bf-epic compile pipelines/lwasv_sim_station.yaml $S; "
+      "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --device gpu --seconds 60 $S "
+      "--json bench_wholeband_station_gpu1_i8x1.json; bf-epic compile pipelines/lwasv_sim_station.yaml; "
+      "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --device gpu --seconds 60 "
+      "--json bench_wholeband_station_gpu1_i8x1_base.json"],
      [("bench_wholeband_gpu.json", H100), ("bench_wholeband_gpu_all.json", H200X2),
       ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200),
       ("bench_wholeband_station_gpu1_chunks.json", H200), ("bench_wholeband_station_gpu1_release.json", H200),
@@ -437,6 +465,7 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       ("bench_wholeband_station_gpu1_oomskips.json", H200), ("bench_wholeband_station_gpu1_nochurn.json", H200),
       ("bench_wholeband_station_gpu1_150s.json", H200), ("bench_wholeband_station_gpu1_st6.json", H200),
       ("bench_wholeband_station_gpu1_st6_coldcache.json", H200), ("memory_station_gpu1_tablepart.json", H200),
+      ("bench_wholeband_station_gpu1_i8x1.json", H200), ("bench_wholeband_station_gpu1_i8x1_base.json", H200),
       ("memory_station_cpu_small.json", CPU2), ("profile_writers_cpu.json", CPU2),
       ("profile_writers_cpu_before.json", CPU2), ("calibration_low_diffuse_cpu.json", CPU2)], wb_body)
 
@@ -621,7 +650,28 @@ def bg_body():
             "and the epilogue's values exceed a thread's 232) and doubles the time. Neither changed the "
             "time otherwise; both were removed. The run-to-run spread of one kernel's time on this machine is "
             "about 10% (the four-product kernel: 0.342-0.382 ms over three runs), so only rows of one run are "
-            "compared.\n\n" + ncu_section())
+            "compared.\n\n" + one_piece_section(rows_of, head) + ncu_section())
+
+
+def one_piece_section(rows_of, head):
+    d = load("bench_gauss_i8x1_gpu_h200.json")
+    t = {r["row"]: r["gulp_s"] for r in d["rows"]}
+    return ("### The one-piece mode (i8x1)\n\n"
+            f"One run ([bench_gauss_i8x1_gpu_h200.json](../bench/bench_gauss_i8x1_gpu_h200.json), {d['commit']}): "
+            "the four-product kernel with one int8 piece of the operator instead of two, and its shapes.\n\n"
+            + table(head, rows_of(d, lambda r: r["row"].startswith(("naive", "floor-i8x1", "floor-i8x2", "i8x1",
+                                                                     "i8x2")))) + "\n\n"
+            f"Half the int8 MACs take {t['i8x1 kernel'] / t['i8x2 kernel']:.2f}x the kernel time: each tile's "
+            "epilogue (int32 to float32, squares, sums, stores) and each block's start (B whole into shared memory) "
+            "and end (the last tile's epilogue, with no MMAs beside it) are the same work for one piece as for two. "
+            f"Eight row tiles a block (`MT=8`) amortise the block's start and end over twice the tiles, and take "
+            f"{t['i8x1 ST=6 MT=8'] / t['i8x1 kernel']:.2f}x the time of four: not where the time goes. That leaves "
+            "the tiles' epilogues, which this run does not separate from the MMAs (no profile of this kernel yet). "
+            "The kernel "
+            f"is {t['floor-i8x1'] / t['i8x1 kernel']:.2f}x faster than cuBLAS' int8 GEMM with its MACs, which writes "
+            f"the int32 field; the regime-B call ({t['i8x1 image'] * 1e3:.3f} ms) spends "
+            f"{(t['i8x1 image'] - t['i8x1 kernel']) * 1e3:.3f} ms outside the kernel (the voltages' layout and the "
+            "products).\n\n")
 
 
 def ncu_section():
@@ -666,10 +716,11 @@ page("bench_gauss", "Three integer products a complex multiply-add: the kernel, 
      "(`i8x2 image`). Errors: max |I − I_ref| / max |I_ref| over all 64 images on ~220 pixels against a "
      "float64 evaluation of the definition.",
      ["python tools/bench/bench_gauss.py --json bench_gauss_gpu_h200.json",
+      "python tools/bench/bench_gauss.py --configs '[]' --hopper-configs '[]' --json bench_gauss_i8x1_gpu_h200.json",
       "ncu --profile-from-start off --set full --import-source no -o fused_prof python tools/bench/bench_gauss.py "
       "--profile --nref 20; ncu --import fused_prof.ncu-rep --page details"],
      [("bench_gauss_gpu_h200.json", H200), ("bench_gauss_shapes_gpu_h200.json", H200),
-      ("ncu_fused_gpu_h200.json", H200)], bg_body)
+      ("bench_gauss_i8x1_gpu_h200.json", H200), ("ncu_fused_gpu_h200.json", H200)], bg_body)
 
 # ---------------------------------------------------------------- bench_tbx_reader
 def tbx_body():
