@@ -916,6 +916,11 @@ def gc_body():
             "import it in their constructors, on the thread that builds the pipeline (tests/test_thread_imports.py); "
             f"the station, run twice after that (at {st['commit']}): {'ALL OK' if st['ok'] else 'FAILED'}.\n\n"
             + gc_rows(im) + "\n\n" + gc_rows(st) + "\n")
+    s6, op = load("gpu_check_st6.json"), load("gpu_check_onepiece.json")
+    out += (f"\nWith the four-product kernel at six stages, and the live solver's chunked model ({s6['date']}, "
+            f"`--skip-tests`; {s6['note']}): {'ALL OK' if s6['ok'] else 'FAILED'}.\n\n" + gc_rows(s6) + "\n\n"
+            f"After the Hopper kernels' shared prologue and the one-piece mode (at {op['commit']}; {op['note']}): "
+            f"{'ALL OK' if op['ok'] else 'FAILED'}.\n\n" + gc_rows(op) + "\n")
     return out
 page("gpu_check", "The GPU check (`make gpu-check`)",
      "The GPU tests, then every shipped pipeline run by `bf-epic run` on the GPU and on the CPU with their "
@@ -931,10 +936,13 @@ page("gpu_check", "The GPU check (`make gpu-check`)",
       "python tools/gpu_check.py --skip-tests --only lwasv_sim_station lwasv_sim_wholeband lwasv_sim_transient "
       "lwasv_sim_allsky --json gpu_check_history.json",
       "python -m pytest -q -m gpu tests/ && python tools/gpu_check.py --skip-tests --json gpu_check_imports.json",
-      "python tools/gpu_check.py --skip-tests --only lwasv_sim_station --json gpu_check_station_imports.json   # twice"],
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_station --json gpu_check_station_imports.json   # twice",
+      "python tools/gpu_check.py --skip-tests --json gpu_check_st6.json",
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_wholeband lwasv_sim_station --json gpu_check_onepiece.json"],
      [("gpu_check.json", H200), ("gpu_check_flagging.json", H200), ("gpu_check_watch.json", H200),
       ("gpu_check_wholeband.json", H200), ("gpu_check_history.json", H200), ("gpu_check_imports.json", H200),
-      ("gpu_check_station_imports.json", H200)], gc_body, script="tools/gpu_check.py")
+      ("gpu_check_station_imports.json", H200), ("gpu_check_st6.json", H200), ("gpu_check_onepiece.json", H200)],
+     gc_body, script="tools/gpu_check.py")
 
 # ---------------------------------------------------------------- moff_widefield
 def mw_body():
