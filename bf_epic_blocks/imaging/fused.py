@@ -26,9 +26,9 @@ mode       operator resolution (of s_k)        int8 MMAs per complex MAC        
 ``i8x3``   1 / (127 * 63^2) = 2.0e-6           12                                 3.5e-7
 =========  ==================================  ================================  ==================
 
-i8x1 is for searches: its rounding makes each pixel's beam a slightly different one (each element off
-by ~2e-3 rms of the row's largest), so a pixel's time series keeps its noise statistics and a burst its
-place, while the images' error reaches ~3e-3 of the peak beside a 60-dB source (its bound, measured.json).
+i8x1 is for searches: its rounding (1/sqrt(12) of a step, rms) makes each pixel's beam a slightly
+different beam, so a pixel's time series keeps its noise statistics and a burst its place, while the
+images' error beside a bright source is the largest of the integer modes (its bound: measured.json).
 
 (fp16 operands, for comparison: 2^-11 = 4.9e-4 relative.) After the integer GEMM, F is converted
 to float32 (6e-8 relative) and squared, and each 16 columns (16 samples of one pol) are summed in the
