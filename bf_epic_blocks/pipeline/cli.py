@@ -155,18 +155,21 @@ def compile_seconds(cfg):
 
 
 def _names_gpu(path, overrides):
-    """Whether the pipeline ``path`` with ``--set`` ``overrides`` runs on a GPU: the last ``device=`` override,
-    else the file's top-level ``device`` (read as YAML alone: a file that the CPU's checks refuse is still
-    read). False where the file cannot be read (load_config then names the problem)."""
+    """Whether the pipeline ``path`` with ``--set`` ``overrides`` runs on a GPU: its top-level ``device``
+    after the overrides (:func:`~.config.apply_overrides` on the file read as YAML alone, so that a file the
+    CPU's checks refuse is still read). False where the file cannot be read (load_config then names the
+    problem)."""
     import yaml
-    dev = [kv.split("=", 1)[1] for kv in overrides if kv.split("=", 1)[0].strip() == "device"]
-    if not dev:
-        try:
-            raw = yaml.safe_load(Path(path).read_text())
-        except (OSError, yaml.YAMLError):
-            return False
-        dev = [raw.get("device", "cpu")] if isinstance(raw, dict) else ["cpu"]
-    return str(dev[-1]).strip().startswith("gpu")
+
+    from .config import apply_overrides
+    try:
+        raw = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    if not isinstance(raw, dict):
+        return False
+    apply_overrides(raw, overrides)
+    return str(raw.get("device", "cpu")).strip().lower().startswith("gpu")
 
 
 def _compile(args):
