@@ -53,9 +53,9 @@ def device_kind(device) -> str:
 def host_all(a) -> bool:
     """``all(a)`` of a small array (flags, positions, weights), decided on the host.
 
-    On a GPU a whole-array reduction goes to CUB, whose kernels NVRTC takes ~2 s each to compile
-    on a machine with an empty kernel cache, seconds of a cold first image. Copying a few kB to the
-    host costs microseconds."""
+    On a GPU a whole-array reduction goes to CUB, whose kernels NVRTC compiles on first use where the
+    kernel cache is empty, each compile delaying a cold first image; copying a few kB to the host does
+    not."""
     return bool(np.all(to_numpy(a)))
 
 

@@ -199,16 +199,14 @@ def baseline_weights(xyz_m, freq_hz, min_baseline_lambda, xp=np, dtype=np.float6
 
 #: bytes of covariances (channels x pols x nant^2) the solver's per-channel steps (StEFCal, the diffuse
 #: term's scale, the health figures) take at a time: their temporaries are a few arrays of that size, so
-#: that a whole band's solve adds ~1 GB on a GPU rather than a few whole covariances (0.8 GB each at 784
-#: channels in complex64)
+#: that a solve adds a few chunks to what it holds rather than a few whole covariances
 SOLVE_CHUNK_BYTES = 128 * 2**20
 
 
 def model_chunk(M, extra, scale, cs):
     """The model of the channels ``cs`` (a slice): M[cs], or with a fitted term M[cs] + scale[cs] E[cs]
     (M, E complex (nchan, npol, nant, nant); scale (nchan, npol)). A chunk at a time, so that the model
-    with its term is never a whole array beside M and E (0.8 GB at 784 channels and 256 antennas in
-    complex64)."""
+    with its term is never a whole covariance-sized array beside M and E."""
     if extra is None:
         return M[cs]
     return M[cs] + scale[cs, :, None, None] * extra[cs]

@@ -168,8 +168,8 @@ class StreamingFDMT:
     noise (rounding whole values instead would err by ~3e-4 of the value: at a bright burst's peak a
     sizeable fraction of a sigma of the whole band's noise, enough to move its best trial). The
     reference holds until a reset, so a sky that drifts by D since then is rounded at ~3e-4 D: below
-    the noise while D is under ~1,000 noise sigmas of a value -- for 0.64-ms images (sigma ~18% of the
-    sky) any drift; for 1-s integrations (~0.5%) a pixel's whole brightness. The past
+    the noise while D is under ~1,000 noise sigmas of a value -- for images of a few samples, whose sigma
+    is a sizeable fraction of the sky, any drift; for long integrations a pixel's whole brightness. The past
     before the first push counts as equal to ``ref`` (float32: as 0), so the first ``dmax`` images'
     values, which lack part of the band's past, differ accordingly (a search does not use them).
     Values are scaled by a power of two so that a whole-band sum of the largest fluctuation pushed
@@ -179,15 +179,14 @@ class StreamingFDMT:
 
     State: in each merge the upper half's rows are read up to ``o`` images back, so every row any
     merge reads that way keeps its last ``max o`` values in a ring (float32 ``(sum max o, npix)``:
-    for 784 channels of LWA-SV and DM 0-3 at 0.64 ms, 444,050 row-times, 5.7 GB at 3,205 pixels --
-    fixed, whatever the run's length; on a GPU the merged rows live in their rings, with ``block`` more
+    fixed by the plan, whatever the run's length; on a GPU the merged rows live in their rings, with ``block`` more
     slots each, see the constructor). Rows are numbered leaves first (the channels in frequency
     order), then each merge's output rows, level by level; a level is one gather-add over all its
     rows (one CUDA kernel on the GPU; the same array code on the CPU).
     """
 
-    #: working memory of one pass when ``pixel_chunk`` is not given (bytes): the whole band's 3,205 pixels
-    #: in one pass of a 64-image push (5.2 GB), so that the search reads the tree's rows where they are
+    #: working memory of one pass when ``pixel_chunk`` is not given (bytes): room for a whole band's
+    #: all-sky grid in one pass of a 64-image push, so that the search reads the tree's rows where they are
     #: (:class:`HalfRows`); fewer, larger passes also run the tree a little faster
     WORK_BYTES = 6 << 30
     #: float16 storage: a whole-band sum of the largest value is scaled to about this ...
@@ -239,7 +238,7 @@ class StreamingFDMT:
         # On a GPU the merged rows that keep a ring live only in it, with room for a block's values
         # too (``ring_len + block`` slots, time tau at slot tau mod that): the level that makes such a row
         # writes it there and the levels that read it read it there, so no pass copies a block's newest
-        # values into the rings afterwards (a whole band's would be ~0.5 GB read and written a gulp). The
+        # values into the rings afterwards (every merged row's block read and written again a gulp). The
         # working array loses those rows, so at a push of ``block`` images in one pass the memory is the
         # same. The channels' own rows (the leaves) stay in the working array, their few ring values copied
         # after the levels. Pushes longer than ``block`` are made ``block`` at a time.
@@ -543,7 +542,7 @@ class HalfRows:
     """The whole band's rows of a float16 tree push, where the tree left them (GPU): row d, time t,
     pixel p is ``W[top + d, t, p] * a + ksum[p] * b`` in float32 (rounded as :func:`_out_half_gpu`),
     for times ``first ..`` of the push. A consumer that reads them so (the search's statistics kernel)
-    saves writing and reading them back as float32 (1.1 GB a whole-band gulp). ``shape`` is the
+    saves writing and reading them back as float32 (twice the float16 rows' bytes). ``shape`` is the
     float32 array's, (D, B - first, npix); :meth:`array` makes it."""
 
     def __init__(self, W, top, D, ksum, a, b, npix, first=0, lease=None):
