@@ -301,3 +301,68 @@ def test_bench_dft_table_replaces_only_the_precisions_it_timed(tmp_path, monkeyp
     assert rows[("gpu", "fp16")] == old[0]
     assert rows[("gpu", "i8x1")]["bound"] == 1e-2 and rows[("gpu", "i8x1")]["rate_cmac_s"] == 1e14
     assert rows[("gpu", "i8x1")]["input"] == "ci4"
+
+
+def test_profile_station_busy_fraction_idle_gaps_and_the_threads_that_waited():
+    """profile_station.summarise on a trace written here: two kernels overlapping on two streams and a copy,
+    a gap in which one thread sat in cudaStreamSynchronize; the union, the gap, the stages and the
+    per-thread figures are the arithmetic of those intervals."""
+    import profile_station as ps
+    us = 1e-6
+    ev = [{"ph": "X", "cat": "kernel", "name": "bf_fused_power", "ts": 0, "dur": 500, "args": {"stream": 7}},
+          {"ph": "X", "cat": "kernel", "name": "bf_fdmt_level", "ts": 400, "dur": 300, "args": {"stream": 8}},
+          {"ph": "X", "cat": "gpu_memcpy", "name": "Memcpy DtoH", "ts": 900, "dur": 100, "args": {"stream": 7}},
+          {"ph": "X", "cat": "cuda_runtime", "name": "cudaStreamSynchronize", "ts": 650, "dur": 300, "tid": 11},
+          {"ph": "X", "cat": "cuda_driver", "name": "cuLaunchKernel", "ts": 10, "dur": 5, "tid": 12},
+          {"ph": "X", "cat": "cpu_op", "name": "not GPU work", "ts": 0, "dur": 2000, "tid": 12}]
+    r = ps.summarise({"traceEvents": ev}, 1.0, cpu={11: 0.25, 12: 0.5}, names={11: "search", 12: "imager"})
+    assert r["traced_span_s"] == pytest.approx(1000 * us)
+    assert r["busy"] == pytest.approx(0.8)                     # 0-700 and 900-1000 of 0-1000
+    assert r["kernel_s_per_s"] == pytest.approx(0.9)           # each counted in full
+    assert r["stages"]["imaging: fused integer kernel"] == pytest.approx(0.5)
+    assert r["stages"]["search: tree"] == pytest.approx(0.3) and r["stages"]["copies"] == pytest.approx(0.1)
+    assert r["idle"]["gaps"] == 1 and r["idle"]["s_per_s"] == pytest.approx(0.2)
+    assert r["idle"]["threads_waiting_s_per_s"] == {"search": pytest.approx(0.2)}   # 700-900 of its 650-950
+    t = {x["thread"]: x for x in r["threads"]}
+    assert t["search"]["wait_s_per_s"] == pytest.approx(0.3) and t["imager"]["wait_s_per_s"] == 0
+    assert t["imager"]["cuda_calls"] == 1 and t["imager"]["cpu_s_per_s"] == 0.5
+    assert r["streams"] == {"7": pytest.approx(0.6), "8": pytest.approx(0.3)}
+    assert ps.union_seconds([(0, 2), (1, 3), (5, 6)]) == 4
+    assert ps.stage_of("sim_gulp_few") == "other" and ps.stage_of("bf_layout_ci4_p2").startswith("imaging")
+    with pytest.raises(SystemExit, match="no GPU activity"):
+        ps.summarise({"traceEvents": ev[3:]}, 1.0)
+
+
+def test_profile_station_gil_probe_sees_a_thread_that_holds_the_interpreter():
+    """The probe's 0.5-ms sleeps wake about a switch interval late while another thread runs Python, and
+    about on time when none does."""
+    import sys
+    import threading
+    import profile_station as ps
+
+    def probe(seconds):
+        stop, out = threading.Event(), {}
+        th = threading.Thread(target=ps.gil_probe, args=(stop, out))
+        th.start()
+        time.sleep(seconds)
+        stop.set()
+        th.join()
+        return out["gil_wait_ms"]
+
+    quiet = probe(0.3)
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(0.02)
+    busy = threading.Event()
+
+    def spin():
+        while not busy.is_set():
+            sum(range(200))
+    th = threading.Thread(target=spin)
+    th.start()
+    try:
+        loaded = probe(0.6)
+    finally:
+        busy.set()
+        th.join()
+        sys.setswitchinterval(old)
+    assert loaded["median"] > 10.0 > quiet["median"]

@@ -122,6 +122,64 @@ def test_no_option_path_is_the_simulator_as_before():
         assert sim.truth()["deaf"].sum() == 0 and np.array_equal(sim.true_gains(0.05), np.ones((4, st.nstand, 2)))
 
 
+def test_refreshes_take_their_directions_from_one_batched_call(monkeypatch):
+    """The sources' and a burst's directions at every refresh come from one astropy call each for the run
+    (source_directions_at), and the bytes are those of the generator driven refresh by refresh with
+    source_directions at each refresh's own time (the truth), the burst's window from its DM."""
+    from astropy.time import TimeDelta
+
+    from bf_epic_blocks.sky import catalogue, source_directions
+    from bf_epic_blocks.sky.efield import cable_factor
+    calls = []
+    real = catalogue.source_directions_at
+    monkeypatch.setattr(catalogue, "source_directions_at", lambda *a, **k: calls.append(1) or real(*a, **k))
+    st = small_station()
+    freq = 74e6 + 25e3 * np.arange(4)
+    srcs = ["CygA", "CasA", {"name": "A", "flux_jy": 3000.0, "l": 0.3, "m": -0.2}]
+    burst = {"name": "B", "ra_deg": 310.0, "dec_deg": 20.0, "flux_jy": 5000.0, "start_s": 0.02, "duration_s": 0.01,
+             "dm": 0.3}
+    gulp = 512
+    sim, got = run_block(st, freq, 4 * gulp * 40e-6, srcs, gulp=gulp, quantize=True, seed=4, refresh_s=gulp * 40e-6,
+                         transients=[burst])
+    assert [p for p, _ in sim.truth()["refreshes"]] == [0, 512, 1024, 1536]
+    assert len(calls) == 2                          # the sources, the burst: once each for the run
+    cab = cable_factor(np.moveaxis(st.cable_delay_s(freq), -1, 0), np.moveaxis(st.cable_gain(freq), -1, 0), freq,
+                       freq.size, st.nstand, 2)
+    want = np.empty((sim.nframe, freq.size, st.nstand, 2), np.uint8)
+    scale = None
+    for p in (0, 512, 1024, 1536):
+        t = sim.start + TimeDelta(p * sim.dt_s, format="sec")
+        d = source_directions(srcs, t, st.location)
+        b = source_directions([{k: burst[k] for k in ("name", "ra_deg", "dec_deg", "flux_jy")}], t, st.location)
+        flux = np.stack([s.flux_at(freq) for s in d.sources + b.sources], 1)
+        w = fastsim.sky_weights(st.xyz_m, freq, np.r_[d.l, b.l], np.r_[d.m, b.m], np.r_[d.n, b.n], flux, cab)
+        on0, on1 = fastsim.burst_windows(len(d.sources), [burst], freq, sim.dt_s)
+        if scale is None:
+            scale = 2.0 / fastsim.expected_rms(w[:, :len(d.sources)], 1000.0)
+        fastsim.make_gulp(want[p:p + gulp], p, w, on0, on1, fastsim.stream_keys(4), 1000.0, scale)
+    assert np.array_equal(np.ascontiguousarray(got).view(np.uint8).reshape(want.shape), want)
+
+
+def test_source_directions_at_is_source_directions_at_each_time():
+    """Bit for bit, for ICRS sources, a body, alt-az and (l, m) sources, and sources that set in between."""
+    from astropy.time import Time, TimeDelta
+
+    from bf_epic_blocks.sky.catalogue import SUN, source_directions, source_directions_at
+    st = small_station()
+    srcs = ["CygA", "TauA", "VirA", SUN, {"name": "Z", "flux_jy": 1.0, "az_deg": 10.0, "alt_deg": 30.0},
+            {"name": "L", "flux_jy": 1.0, "l": 0.1, "m": 0.2}]
+    times = Time(START, scale="utc") + TimeDelta(np.arange(0, 12 * 3600, 1800.0), format="sec")
+    many = source_directions_at(srcs, times, st.location)
+    dropped = set()
+    for t, got in zip(times, many):
+        want = source_directions(srcs, t, st.location)
+        assert got.names == want.names and got.dropped == want.dropped
+        for a, b in zip((*got, got.az, got.n), (*want, want.az, want.n)):
+            assert np.array_equal(a, b)
+        dropped |= set(got.dropped)
+    assert {"TauA", "VirA", "Sun"} & dropped        # some set or rise within the twelve hours
+
+
 def dipole(l, m):
     """(nsrc, 2) the short dipole's voltage pattern: X (N-S) sqrt(1 - m^2), Y (E-W) sqrt(1 - l^2)."""
     return np.stack([np.sqrt(1 - m ** 2), np.sqrt(1 - l ** 2)], axis=-1)

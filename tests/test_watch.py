@@ -60,6 +60,34 @@ def test_moon_is_topocentric():
     assert abs(geo_aa.alt.deg - d.alt_deg[k, 0]) > 0.2
 
 
+def test_watch_pixels_give_each_step_its_middle_and_compute_a_batch_at_once(monkeypatch):
+    """WatchPixels (the imager's tracking pixels): each step's directions are the Sun's and CygA's at the
+    step's middle (get_body and icrs_to_lm, per time), below-horizon ones at the zenith; a run's steps
+    cost one astropy call per BATCH_STEPS, not one per step (the imager's thread makes that call)."""
+    from bf_epic_blocks.blocks import watch as watch_block
+    from bf_epic_blocks.conventions import FS_HZ
+    calls = []
+    real = watch_block.target_lm
+    monkeypatch.setattr(watch_block, "target_lm", lambda *a, **k: calls.append(1) or real(*a, **k))
+    px = watch_block.WatchPixels(["CygA", {"name": "Sun", "body": "sun"}], LWASV, step_s=1.0)
+    n = px.BATCH_STEPS
+    t0 = float(np.ceil(T0.unix))
+    steps = [0, 1, n - 1, n, n + 1, 2 * n + 3]
+    for k in steps:
+        lm = px(int(round((t0 + k + 0.25) * FS_HZ)))
+        t = Time(t0 + k + 0.5, format="unix", scale="utc")
+        sun = _lm_truth(get_body("sun", t, LWASV).transform_to(AltAz(obstime=t, location=LWASV)))
+        cyg, alt = icrs_to_lm(KNOWN_SOURCES["CygA"].ra_deg, KNOWN_SOURCES["CygA"].dec_deg, t, LWASV)
+        np.testing.assert_allclose(lm[1], np.nan_to_num(sun, nan=0.0), atol=1e-9)
+        np.testing.assert_allclose(lm[0], cyg[0] if alt[0] > 0 else [0.0, 0.0], atol=1e-12)
+    assert len(calls) == 3          # steps 0 .. n-1, n .. 2n-1, 2n+3 ..
+    # a gulp crossing into a new batch asks for its last step first, then earlier ones: the batch before is
+    # kept, so no new call
+    px(int(round((t0 + 2 * n + 5 + 0.25) * FS_HZ)))
+    px(int(round((t0 + n + 3 + 0.25) * FS_HZ)))
+    assert len(calls) == 3
+
+
 def test_icrs_target_and_offsets():
     ra, dec = 150.0, 30.0
     d = target_lm([{"name": "X", "ra_deg": ra, "dec_deg": dec, "offsets_deg": [[2.0, 0.0], [0.0, -3.0]]}],

@@ -377,6 +377,7 @@ class SimSkySourceBlock(bfp.SourceBlock):
         self._keys = fastsim.stream_keys(self.seed)
         self._xp = self._gen_namespace()
         self._w_at = None
+        self._dir_cache = {}
         self._refreshes = []
         self._diffuse_w, self._diffuse_at, self.diffuse_fraction = None, None, None
         usable = ~np.asarray(st.flags, bool)
@@ -462,6 +463,28 @@ class SimSkySourceBlock(bfp.SourceBlock):
                 return cupy_or_none()
         return np
 
+    #: weights' refreshes whose source directions one astropy call computes: this one and those after it
+    #: (a call's cost is mostly its fixed part, and it holds the interpreter the other blocks need)
+    DIRECTION_BATCH = 64
+
+    def _directions(self, pos):
+        """(the sources' SourceDirections, [each burst's]) at sample ``pos``, as ``source_directions`` gives
+        them: from a batch for this refresh and the next ones (every gulp-rounded ``refresh_frames``)."""
+        hit = self._dir_cache.get(pos)
+        if hit is None:
+            from astropy.time import TimeDelta
+
+            from ..sky.catalogue import source_directions_at
+            g = int(self.gulp_nframe)
+            ps = pos + (-(-self.refresh_frames // g) * g) * np.arange(self.DIRECTION_BATCH)
+            t = self.start + TimeDelta(ps * self.dt_s, format="sec")
+            loc = self.station.location
+            steady = source_directions_at(self.sources, t, loc)
+            bursts = [source_directions_at([src], t, loc) for _, _, src in self._bursts]
+            self._dir_cache = {int(p): (steady[k], [b[k] for b in bursts]) for k, p in enumerate(ps)}
+            hit = self._dir_cache[pos]
+        return hit
+
     def _weights(self, pos):
         """The sky's weights and burst windows for the data from sample ``pos`` (recomputed each
         ``refresh_frames``)."""
@@ -469,15 +492,14 @@ class SimSkySourceBlock(bfp.SourceBlock):
             return
         from astropy.time import TimeDelta
 
-        from ..sky import fastsim, source_directions
+        from ..sky import fastsim
         t = self.start + TimeDelta(pos * self.dt_s, format="sec")
         loc, f = self.station.location, self.freq_hz
-        d = source_directions(self.sources, t, loc)
+        d, burst_dirs = self._directions(pos)
         flux = [s.flux_at(f) for s in d.sources]
         l, m, n = list(d.l), list(d.m), list(d.n)
         bursts = []
-        for i, (dm, dur, src) in enumerate(self._bursts):
-            b = source_directions([src], t, loc)
+        for i, ((dm, dur, src), b) in enumerate(zip(self._bursts, burst_dirs)):
             if not len(b.sources):
                 if self._w_at is None:
                     log.warning("transient %s is below the horizon: not simulated", src["name"])

@@ -33,15 +33,20 @@ class WatchPixels:
     """The watch directions' (l, m) at a time tag, for a tracking DFTImagerBlock: ``pixels(time_tag) ->
     (ndir, 2)``.
 
-    Directions are computed for steps of ``step_s`` seconds (at each step's middle) and held within a
-    step, so that the imager rebuilds its small operator once a step, not once an image: the sky turns
-    0.004 deg in a second, a thousandth of the station's beam at 90 MHz. A direction below the horizon or
+    Directions are computed for steps of ``step_s`` seconds (at each step's middle, :data:`BATCH_STEPS`
+    steps at a time) and held within a step, so that the imager rebuilds its small operator once a step,
+    not once an image: the sky turns 0.004 deg in a second, a thousandth of the station's beam at 90 MHz. A direction below the horizon or
     outside its target's window is imaged at the zenith (the operator keeps its size) and marked
     inactive (:meth:`state`), so that its rows are written as NaN.
 
     targets : :class:`~bf_epic_blocks.sky.watch.WatchTarget` list (or entries); location : astropy
     EarthLocation or (lon_deg, lat_deg, height_m).
     """
+
+    #: steps whose directions one astropy call computes, the first asked for and those after it: a call's
+    #: cost is mostly its fixed part, so a minute of steps costs little more than one, and the imager asks
+    #: from its own thread, where interpreter time delays its next kernels
+    BATCH_STEPS = 60
 
     def __init__(self, targets, location, step_s=1.0):
         self.targets = parse_targets(targets)
@@ -60,17 +65,22 @@ class WatchPixels:
         k = self._step(time_tag)
         hit = self._cache.get(k)
         if hit is None:
-            from astropy.time import Time
-            t = Time((k + 0.5) * self.step_s, format="unix", scale="utc")
-            d = target_lm(self.targets, t, self.location)
-            active = d.active[0]
-            lm = np.where(active[:, None], d.lm[0], 0.0)
-            ra_dec = np.stack([d.ra_deg[0, self.first], d.dec_deg[0, self.first]], axis=-1)
-            hit = (lm, active, ra_dec)
-            if len(self._cache) > 8:
-                self._cache.clear()
-            self._cache[k] = hit
+            self._fill(k)
+            hit = self._cache[k]
         return hit
+
+    def _fill(self, k):
+        """Steps k .. k + BATCH_STEPS - 1 into the cache, which keeps the batch before them (a gulp that
+        crosses into a new batch asks for its last step first, then for earlier ones) and drops older."""
+        from astropy.time import Time
+        ks = np.arange(k, k + self.BATCH_STEPS)
+        d = target_lm(self.targets, Time((ks + 0.5) * self.step_s, format="unix", scale="utc"), self.location)
+        self._cache = {j: v for j, v in self._cache.items() if k - self.BATCH_STEPS <= j < k}
+        for i, j in enumerate(ks):
+            active = d.active[i]
+            lm = np.where(active[:, None], d.lm[i], 0.0)
+            ra_dec = np.stack([d.ra_deg[i, self.first], d.dec_deg[i, self.first]], axis=-1)
+            self._cache[int(j)] = (lm, active, ra_dec)
 
     def __call__(self, time_tag):
         return self.state(time_tag)[0]

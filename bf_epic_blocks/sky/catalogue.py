@@ -188,6 +188,41 @@ def source_directions(sources, time=None, location=None) -> SourceDirections:
             for i in bodies:   # astropy's built-in ephemeris: nothing downloaded
                 aa = get_body(srcs[i].body, t, location).transform_to(frame)
                 alt[i], az[i] = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)
+    return _directions(srcs, alt, az)
+
+
+def source_directions_at(sources, times, location) -> list[SourceDirections]:
+    """:func:`source_directions` at each of ``times`` (astropy Time, 1-D, or ISO strings): one astropy
+    transform for every time (a transform's cost is mostly its fixed part), each time's directions the
+    same as :func:`source_directions` gives for it alone. Returns a list, one per time."""
+    srcs = resolve_sources(sources)
+    from astropy import units as u
+    from astropy.coordinates import AltAz, SkyCoord, get_body
+    from astropy.time import Time
+    t = times if isinstance(times, Time) else Time(times, scale="utc")
+    t = t.reshape(-1) if not t.isscalar else t.reshape(1)
+    alt = np.zeros((t.shape[0], len(srcs)))
+    az = np.zeros_like(alt)
+    icrs = [i for i, s in enumerate(srcs) if s.frame == "icrs"]
+    bodies = [i for i, s in enumerate(srcs) if s.frame == "body"]
+    if (icrs or bodies) and location is None:
+        raise ValueError(f"sources {[srcs[i].name for i in icrs + bodies]} have ICRS positions or are "
+                         "solar-system bodies: source_directions_at needs a location (EarthLocation)")
+    with _iers_offline():
+        if icrs:
+            c = SkyCoord(ra=np.array([[srcs[i].ra_deg for i in icrs]]) * u.deg,
+                         dec=np.array([[srcs[i].dec_deg for i in icrs]]) * u.deg, frame="icrs")
+            aa = c.transform_to(AltAz(obstime=t[:, None], location=location))
+            alt[:, icrs], az[:, icrs] = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)
+        for i in bodies:
+            aa = get_body(srcs[i].body, t, location).transform_to(AltAz(obstime=t, location=location))
+            alt[:, i], az[:, i] = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)
+    return [_directions(srcs, alt[k].copy(), az[k].copy()) for k in range(t.shape[0])]
+
+
+def _directions(srcs, alt, az):
+    """The SourceDirections of ``srcs`` from their ICRS and body (alt, az) (radians, (nsrc,), filled in
+    by the caller; the other frames' entries are set here)."""
     for i, s in enumerate(srcs):
         if s.frame == "altaz":
             alt[i], az[i] = math.radians(s.alt_deg), math.radians(s.az_deg)

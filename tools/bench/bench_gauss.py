@@ -38,7 +38,7 @@ from cases import lwasv_like_layout, pairs_to_complex, quantise4, reference_imag
 
 
 def profile(cp, a, xyzd, fd, lmd, Qd, nant, npix):
-    """One call of each kernel (i8x2's four-product, Gauss's with two pieces), warmed up, between
+    """One call of each kernel (i8x2's four-product, Gauss's with two pieces, i8x1's), warmed up, between
     cudaProfilerStart and Stop: run under Nsight Compute with ``--profile-from-start off``."""
     from bf_epic_blocks import imaging
     from bf_epic_blocks.imaging import fused, gauss
@@ -52,8 +52,11 @@ def profile(cp, a, xyzd, fd, lmd, Qd, nant, npix):
     Bg = gauss.layout_gauss(fused.layout_voltages(Qd, None, cp.asarray([0, 1], dtype=cp.int32),
                                                   2 * fused._pad(nant, 64), 8), fused._pad(nant, 128), tiled=True)
     flag = cp.zeros(1, cp.int32)
+    f1 = imaging.DFTOperator(xyzd, fd, lmd, npol=2, precision="i8x1").fused
     calls = [lambda: fused.fused_power(fo.Aq, fo.osc, Bv, T, 2, fo.flag, fo.npix, fo.config),
-             lambda: gauss.gauss_power(Aq, osc, Bg, T, 2, flag, npix)]
+             lambda: gauss.gauss_power(Aq, osc, Bg, T, 2, flag, npix),
+             lambda: fused.fused_power(f1.Aq, f1.osc, f1._layout(Qd, [0, 1], False), T, 2, f1.flag, f1.npix,
+                                       f1.config)]
     for f in calls:
         f()
     cp.cuda.Device().synchronize()
@@ -62,7 +65,7 @@ def profile(cp, a, xyzd, fd, lmd, Qd, nant, npix):
         f()
     cp.cuda.Device().synchronize()
     cp.cuda.runtime.profilerStop()
-    print("# profiled one call each of bf_fused_power (i8x2) and bf_fused_gauss (two pieces)")
+    print("# profiled one call each of bf_fused_power (i8x2), bf_fused_gauss (two pieces), bf_fused_power (i8x1)")
 
 
 def main(argv=None):
