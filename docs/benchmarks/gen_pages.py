@@ -666,8 +666,9 @@ def one_piece_section(rows_of, head):
             "and end (the last tile's epilogue, with no MMAs beside it) are the same work for one piece as for two. "
             f"Eight row tiles a block (`MT=8`) amortise the block's start and end over twice the tiles, and take "
             f"{t['i8x1 ST=6 MT=8'] / t['i8x1 kernel']:.2f}x the time of four: not where the time goes. That leaves "
-            "the tiles' epilogues, which this run does not separate from the MMAs (no profile of this kernel yet). "
-            "The kernel "
+            "the tiles' epilogues, which this run does not separate from the MMAs; Nsight Compute finds the tensor "
+            "pipe busy 58% of the one-piece kernel's cycles against 75% of the two-piece's "
+            "([profile_station](profile_station.md)). The kernel "
             f"is {t['floor-i8x1'] / t['i8x1 kernel']:.2f}x faster than cuBLAS' int8 GEMM with its MACs, which writes "
             f"the int32 field; the regime-B call ({t['i8x1 image'] * 1e3:.3f} ms) spends "
             f"{(t['i8x1 image'] - t['i8x1 kernel']) * 1e3:.3f} ms outside the kernel (the voltages' layout and the "
@@ -1392,6 +1393,123 @@ DATES = {  # records whose JSON has no date: the day the record was committed
 }
 
 
+# ---------------------------------------------------------------- profile_station
+def ps_body():
+    k1, k2 = load("profile_station_gpu_h200_i8x1.json"), load("profile_station_gpu_h200_i8x2.json")
+    py = load("profile_station_python_gpu_h200_i8x1.json")
+    out = ["## Where the GPU's time goes (case W2 flowing, 3 s traced)", "",
+           "GPU seconds per second of the traced window, by stage (kernel names matched to the pipeline's stages; "
+           "`sim_gulp_few`, the simulated source, and `bf_clear_rows`, the grid's clearing, are under other). "
+           "Busy is the union of every kernel and copy over the window; the rest the GPU sat idle.", ""]
+    stages = list(dict.fromkeys(list(k1["stages"]) + list(k2["stages"])))
+    rows = [[st, f2(k1["stages"].get(st, 0.0), 4), f2(k2["stages"].get(st, 0.0), 4)] for st in stages]
+    rows.append(["**all kernels and copies**", f2(k1["kernel_s_per_s"], 3), f2(k2["kernel_s_per_s"], 3)])
+    rows.append(["**GPU busy**", f"{100 * k1['busy']:.1f}%", f"{100 * k2['busy']:.1f}%"])
+    out.append(table(["stage", "i8x1 (tolerance 1e-2)", "i8x2 (the YAML's 1e-4)"], rows))
+    fp1 = next(r for r in k1["kernels"] if r["name"] == "bf_fused_power")
+    fp2 = next(r for r in k2["kernels"] if r["name"] == "bf_fused_power")
+    idle = k1["idle"]
+    out += ["", f"One fused call images one tuning's gulp (784 channels, 64 images): {fp1['mean_us'] / 1e3:.2f} ms at i8x1, "
+            f"{fp2['mean_us'] / 1e3:.2f} ms at i8x2. In the i8x1 window the GPU was idle {100 * idle['s_per_s']:.1f}% of "
+            f"the time, in {idle['gaps']} gaps, {100 * idle['over_1ms_s_per_s']:.1f}% in gaps over 1 ms (the longest "
+            f"{idle['longest_ms'][0]:.1f} ms). During the gaps no thread was inside a CUDA call that waits "
+            f"(at most {max(idle['threads_waiting_s_per_s'].values()):.3f} s per s): the host had nothing queued. "
+            "The two imagers' streams were each busy about a quarter of the time.", "",
+            "## The host's threads", "",
+            "CPU seconds per second of each thread, from `/proc`, with the trace running:", ""]
+    named = [t for t in k1["threads"] if t["cpu_s_per_s"] is not None and t["cpu_s_per_s"] >= 0.02]
+    out.append(table(["thread", "CPU s per s"], [[t["thread"], f2(t["cpu_s_per_s"], 3)] for t in named]))
+    # CUPTI names threads by POSIX ids: these are joined to the blocks by the kernels each id launched in the trace
+    roles = {1124062912: "search (low)", 1627363008: "search (high)", 1140848320: "integrator", 1107277504: "integrator",
+             964667072: "watch writer", 998237888: "watch writer"}
+    waits = {t["tid"]: t["wait_s_per_s"] for t in k1["threads"]}
+    out += ["", "Part of those CPU seconds are waits for the GPU: `cudaStreamSynchronize` spins. By the kernels each "
+            "CUPTI thread id launched: " + ", ".join(f"{r} {waits.get(tid, 0):.2f}" for tid, r in roles.items()) +
+            " s per s. Both searches' kernels and copies ran on one stream, CUDA's default (7 in the trace), where "
+            "every other block ran on a stream of its own; why is not established yet."]
+    g = py["gil_wait_ms"]
+    out += ["", f"All threads together used {k1['cpu_s_per_s']:.2f} CPU s per s. Python runs one thread at a time; a "
+            f"probe thread's 0.5-ms sleeps woke late by a median {g['median']:.2f} ms (mean {g['mean']:.2f}, 90th "
+            f"percentile {g['p90']:.2f}, 99th {g['p99']:.2f}) while the pipeline ran: the interpreter lock was "
+            "nearly always held (the run's switch interval is 1 ms).", "",
+            "## Python, thread by thread (yappi)", "",
+            f"Each thread's CPU seconds per second under yappi's CPU clock ({py['cpu_s_per_s']:.2f} in all) and its "
+            "largest calls below the block's own. yappi slows every Python call, so call-heavy code "
+            "(astropy's coordinate transforms) weighs more here than in a plain run.", ""]
+    rows = []
+    for t in py["threads"]:
+        if t["cpu_s_per_s"] < 0.03:
+            continue
+        wrappers = ("_on_data", "on_data", "image_gulp", "_push_batches", "_push", "push", "run", "main",
+                    "_thread_main", "_bootstrap_inner", "_bootstrap")
+        top = [f for f in t["inclusive"] if f["function"].split()[-1].split(".")[-1] not in wrappers][:2]
+        rows.append([t["thread"], f2(t["cpu_s_per_s"], 3)] +
+                    ["; ".join(f"`{f['function']}` {f['s_per_s']:.3f}" for f in top)])
+    out.append(table(["thread", "CPU s per s", "the largest calls under on_data (s per s, with callees)"], rows))
+    b, a, a2 = (load(f)["run"] for f in ("bench_wholeband_station_gpu1_dirs_before.json",
+                                         "bench_wholeband_station_gpu1_dirs.json",
+                                         "bench_wholeband_station_gpu1_dirs_i8x2.json"))
+    g1, g2 = (load(f)["run"] for f in ("bench_wholeband_station_gpu1_gulp1024_30s.json",
+                                       "bench_wholeband_station_gpu1_gulp2048_30s.json"))
+
+    def wrow(name, r):
+        ok = all(x["found"] and abs(x["dm_off_trials"]) <= 1 and x["offset_cells"] <= 1.5 for x in r["bursts"])
+        return [name, f2(r["rt_flowing"], 3), f2(r["rt_whole"], 3), f2(r["imagers_first_images_at_s"], 2),
+                f2(r["first_images_at_s"], 2), f"{r['gpu_mib']['peak'] / 1024:.1f}", "yes" if ok else "no"]
+    out += ["", "## What it led to", "",
+            "The watchlist's directions (the Sun, the Moon and Jupiter through astropy) were computed on the imagers' "
+            "own threads, one astropy call a second of data, and the simulated sky's source directions one call a "
+            "refresh. Both now compute a batch of steps in one call (`WatchPixels.BATCH_STEPS`, "
+            "`SimSkySourceBlock.DIRECTION_BATCH`; the directions equal those computed one step at a time, bit for "
+            "bit). Case W2, 60 s, one run each in one device call, the previous commit first:", "",
+            table(["run", "flowing x", "whole run x", "imagers' first images (s)", "search's first images (s)",
+                   "GPU peak (GiB)", "bursts within bounds"],
+                  [wrow("i8x1, before (a1e7aee)", b), wrow("i8x1, directions batched", a),
+                   wrow("i8x2 (as shipped), directions batched", a2)]), "",
+            f"The flowing rate moved {a['rt_flowing'] / b['rt_flowing']:.2f}x, within what one run differs from the "
+            "next (the same i8x1 command gave 0.877x in "
+            "[bench_wholeband_station_gpu1_i8x1.json](../bench/bench_wholeband_station_gpu1_i8x1.json)); the host's lock is held by "
+            "more than the directions. The earlier start of the second run is not the change's: the first run of a "
+            "device call copies the kernel store into an empty CuPy cache (its runner starts "
+            f"{b['runner_started_at_s']:.1f} s after the process, the second's {a['runner_started_at_s']:.1f} s).", "",
+            "Larger gulps halve every block's calls per second of data. 30 s of data at i8x1, one run each:", "",
+            table(["run", "flowing x", "whole run x", "imagers' first images (s)", "search's first images (s)",
+                   "GPU peak (GiB)", "bursts within bounds"],
+                  [wrow("1,024 samples a gulp (as shipped)", g1), wrow("2,048 samples a gulp", g2)]), "",
+            "## The one-piece kernel under Nsight Compute", ""]
+    n = load("ncu_fused_i8x1_gpu_h200.json")["kernels"]
+    k_1, k_2 = n["bf_fused_power (i8x1)"], n["bf_fused_power (i8x2)"]
+    out.append(f"Regime B, one call each (SM clock held near 1.34 GHz): i8x2 {k_2['Duration (us)']:.0f} us with the "
+               f"tensor pipe {k_2['Shared pipe (% of elapsed cycles)']:.1f}% busy; i8x1 {k_1['Duration (us)']:.0f} us "
+               f"({k_1['Duration (us)'] / k_2['Duration (us)']:.2f}x) with it {k_1['Tensor pipe (% of elapsed cycles)']:.1f}% "
+               f"busy. Half the MMAs leave the same per-tile work (the int32 sums to float, squares, stores): "
+               f"{100 - k_1['Tensor pipe (% of elapsed cycles)']:.0f}% of the one-piece kernel's cycles have no MMA "
+               f"running. Both write {k_1['excessive sectors (%)']}% of their store sectors in excess (rows of 3,205 "
+               "float32 pixels start off a 32-byte boundary).")
+    return "\n".join(out)
+page("profile_station", "Where a running station's time goes: the GPU's kernels and the host's threads",
+     "`tools/bench/profile_station.py` runs a pipeline (case W2, `pipelines/lwasv_sim_station.yaml` on the GPU) in "
+     "its own process and records a window of it once it flows: every CUDA kernel and copy (PyTorch's profiler, "
+     "CUPTI underneath, for machines without Nsight Systems), the GPU's idle gaps and which threads waited in CUDA "
+     "during them, each thread's CPU time; or, with `--python`, each thread's Python (yappi) and how long a thread "
+     "waits for the interpreter lock. Its records here led to this release's change to the watchlist's and the "
+     "simulated sky's directions, measured with `bench_wholeband.py` in the same device call.",
+     ["S='--set imager.tolerance=null --set imager.precision=i8x1'; bf-epic compile pipelines/lwasv_sim_station.yaml $S",
+      "python tools/bench/profile_station.py $S --seconds 40 --start-s 22 --window-s 3 --trace trace.json.gz "
+      "--json profile_station_gpu_h200_i8x1.json",
+      "python tools/bench/profile_station.py $S --python --seconds 40 --start-s 22 --window-s 4 "
+      "--json profile_station_python_gpu_h200_i8x1.json   # pip install yappi",
+      "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --seconds 60 $S "
+      "--json bench_wholeband_station_gpu1_dirs.json   # and the previous commit's package first: _dirs_before",
+      "ncu --profile-from-start off --set full --import-source no -o fused_prof python3 tools/bench/bench_gauss.py "
+      "--profile --nref 20"],
+     [("profile_station_gpu_h200_i8x1.json", H200), ("profile_station_gpu_h200_i8x2.json", H200),
+      ("profile_station_python_gpu_h200_i8x1.json", H200), ("bench_wholeband_station_gpu1_dirs_before.json", H200),
+      ("bench_wholeband_station_gpu1_dirs.json", H200), ("bench_wholeband_station_gpu1_dirs_i8x2.json", H200),
+      ("bench_wholeband_station_gpu1_gulp1024_30s.json", H200), ("bench_wholeband_station_gpu1_gulp2048_30s.json", H200),
+      ("ncu_fused_i8x1_gpu_h200.json", H200)], ps_body)
+
+
 def date_of(f):
     d = load(f)
     return DATES.get(f) or str(d.get("date"))[:10]
@@ -1434,6 +1552,10 @@ SUMMARY = {  # benchmark -> (what it measures, latest result, machine), for the 
     'bench_regime_b': ('high cadence taken apart: GEMM, power-and-sum',
                       'fp16 GEMM alone 0.375 ms a gulp',
                       'one H100 80GB, 16 cores'),
+    'profile_station': ("a running station's GPU kernels and host threads",
+                        'case W2 at i8x1, traced: GPU busy 76% (fused imaging 0.47 s per s, tree 0.14); in the idle '
+                        "gaps nothing was queued: the interpreter lock held, a 0.5-ms sleep woken ~1 ms late",
+                        'one H200'),
     'bench_gauss': ('three integer products a complex multiply-add: the kernel, measured',
                     'regime B: Gauss kernel 0.344 ms at 3.6e-6 against the four-product 0.382 ms (ST=6: 0.342) at 3.1e-6: not MAC-bound',
                     'one H200, 16 cores'),
