@@ -309,11 +309,13 @@ def test_profile_station_busy_fraction_idle_gaps_and_the_threads_that_waited():
     per-thread figures are the arithmetic of those intervals."""
     import profile_station as ps
     us = 1e-6
-    ev = [{"ph": "X", "cat": "kernel", "name": "bf_fused_power", "ts": 0, "dur": 500, "args": {"stream": 7}},
+    ev = [{"ph": "X", "cat": "kernel", "name": "bf_fused_power", "ts": 0, "dur": 500,
+           "args": {"stream": 7, "correlation": 5}},
           {"ph": "X", "cat": "kernel", "name": "bf_fdmt_level", "ts": 400, "dur": 300, "args": {"stream": 8}},
           {"ph": "X", "cat": "gpu_memcpy", "name": "Memcpy DtoH", "ts": 900, "dur": 100, "args": {"stream": 7}},
           {"ph": "X", "cat": "cuda_runtime", "name": "cudaStreamSynchronize", "ts": 650, "dur": 300, "tid": 11},
-          {"ph": "X", "cat": "cuda_driver", "name": "cuLaunchKernel", "ts": 10, "dur": 5, "tid": 12},
+          {"ph": "X", "cat": "cuda_driver", "name": "cuLaunchKernel", "ts": 10, "dur": 5, "tid": 12,
+           "args": {"correlation": 5}},
           {"ph": "X", "cat": "cpu_op", "name": "not GPU work", "ts": 0, "dur": 2000, "tid": 12}]
     r = ps.summarise({"traceEvents": ev}, 1.0, cpu={11: 0.25, 12: 0.5}, names={11: "search", 12: "imager"})
     assert r["traced_span_s"] == pytest.approx(1000 * us)
@@ -326,11 +328,15 @@ def test_profile_station_busy_fraction_idle_gaps_and_the_threads_that_waited():
     t = {x["thread"]: x for x in r["threads"]}
     assert t["search"]["wait_s_per_s"] == pytest.approx(0.3) and t["imager"]["wait_s_per_s"] == 0
     assert t["imager"]["cuda_calls"] == 1 and t["imager"]["cpu_s_per_s"] == 0.5
+    assert t["imager"]["streams"] == {"7": 1} and t["search"]["streams"] == {}   # joined by correlation id
     assert r["streams"] == {"7": pytest.approx(0.6), "8": pytest.approx(0.3)}
     assert ps.union_seconds([(0, 2), (1, 3), (5, 6)]) == 4
     assert ps.stage_of("sim_gulp_few") == "other" and ps.stage_of("bf_layout_ci4_p2").startswith("imaging")
     with pytest.raises(SystemExit, match="no GPU activity"):
         ps.summarise({"traceEvents": ev[3:]}, 1.0)
+    names = ps.thread_names()       # CUPTI's thread ids (pthread_t's low 32 bits) name Python's threads too
+    import threading
+    assert names[threading.get_ident() & 0xFFFFFFFF] == threading.current_thread().name
 
 
 def test_profile_station_gil_probe_sees_a_thread_that_holds_the_interpreter():

@@ -15,7 +15,8 @@ Nsight Systems would do the same from outside; this script is for machines that 
   (a synchronize, a blocking copy) during them;
 * each host thread (the pipeline's threads are named by their blocks): the CPU seconds it used per
   second of window (from ``/proc``; a thread that waits for Python's interpreter lock or for the GPU
-  without spinning uses none), its CUDA calls and the seconds per second it spent inside them.
+  without spinning uses none), its CUDA calls, the seconds per second it spent inside them, and the
+  streams its kernels and copies ran on (a block's thread has a stream of its own).
 
 ``--python`` instead profiles the host's Python in the window with yappi (CPU clock, every thread):
 each thread's CPU seconds per second of window and the functions that used them (own time, and
@@ -123,6 +124,12 @@ def summarise(trace, window_s, cpu=None, names=None):
     names = names or {}
     host = collections.defaultdict(lambda: {"calls": 0, "api_s": 0.0, "wait_s": 0.0, "waits": collections.Counter()})
     waiting = []
+    by_corr = {e["args"]["correlation"]: int(e.get("tid", 0)) for e in calls if "correlation" in e.get("args", {})}
+    launched = collections.defaultdict(collections.Counter)     # thread -> {stream: kernels and copies}
+    for e in gpu:
+        tid = by_corr.get(e.get("args", {}).get("correlation"))
+        if tid is not None:
+            launched[tid][str(e["args"].get("stream"))] += 1
     for e in calls:
         h = host[int(e.get("tid", 0))]
         d = e.get("dur", 0) * 1e-6
@@ -147,7 +154,8 @@ def summarise(trace, window_s, cpu=None, names=None):
         threads.append({"thread": names.get(tid, str(tid)), "tid": tid,
                         "cpu_s_per_s": None if cpu is None or tid not in cpu else cpu[tid] / window_s,
                         "cuda_calls": h["calls"], "cuda_s_per_s": h["api_s"] / span, "wait_s_per_s": h["wait_s"] / span,
-                        "waits": {k: round(v / span, 4) for k, v in h["waits"].most_common(3)}})
+                        "waits": {k: round(v / span, 4) for k, v in h["waits"].most_common(3)},
+                        "streams": dict(launched[tid].most_common(4))})
     threads.sort(key=lambda r: -((r["cpu_s_per_s"] or 0) + r["wait_s_per_s"]))
     return {"window_s": window_s, "traced_span_s": span, "busy": union_seconds(spans) / span,
             "idle": {"gaps": len(gaps), "s_per_s": idle_total / span,
@@ -221,6 +229,10 @@ def thread_names():
     for th in threading.enumerate():
         if th.native_id is not None:
             names[th.native_id] = th.name
+        if th.ident is not None:
+            # CUPTI names a CUDA call's thread by its pthread_t, which Python's ident is; the trace keeps its
+            # low 32 bits
+            names.setdefault(th.ident & 0xFFFFFFFF, th.name)
     return names
 
 
@@ -312,12 +324,12 @@ def show(res):
           ", ".join(f"{k} {v:.3f}" for k, v in idle["threads_waiting_s_per_s"].items()) or "none")
     cpu = res.get("cpu_s_per_s")
     print(f"\nhost threads (CPU s per s in all: {'-' if cpu is None else f'{cpu:.2f}'})")
-    print("| thread | CPU s per s | CUDA calls | in CUDA calls s per s | waiting s per s | longest waits |\n"
-          "|---|---|---|---|---|---|")
+    print("| thread | CPU s per s | CUDA calls | in CUDA calls s per s | waiting s per s | longest waits | "
+          "streams launched on |\n|---|---|---|---|---|---|---|")
     for r in res["threads"][:30]:
         c = "-" if r["cpu_s_per_s"] is None else f"{r['cpu_s_per_s']:.3f}"
         print(f"| {r['thread']} | {c} | {r['cuda_calls']} | {r['cuda_s_per_s']:.3f} | {r['wait_s_per_s']:.3f} | "
-              f"{r['waits']} |")
+              f"{r['waits']} | {r['streams']} |")
 
 
 def main(argv=None):
