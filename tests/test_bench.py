@@ -372,3 +372,27 @@ def test_profile_station_gil_probe_sees_a_thread_that_holds_the_interpreter():
         th.join()
         sys.setswitchinterval(old)
     assert loaded["median"] > 10.0 > quiet["median"]
+
+
+def test_bench_wholeband_passes_the_switch_interval_to_the_run(monkeypatch):
+    """--switch-interval-s reaches the bf-epic run it times as BF_EPIC_SWITCH_INTERVAL_S; without it the run
+    inherits the environment's (here: none)."""
+    import argparse
+    import bench_wholeband as bw
+    seen = []
+
+    class Run:
+        pid = os.getpid()
+
+        def __init__(self, cmd, env=None, **kw):
+            seen.append(env)
+
+        def wait(self):
+            return 3
+    monkeypatch.setattr(bw.subprocess, "Popen", Run)
+    monkeypatch.delenv("BF_EPIC_SWITCH_INTERVAL_S", raising=False)
+    base = dict(yaml=bw.REPO / "pipelines" / "lwasv_sim_allsky.yaml", device="cpu", seconds=1.0, set=[], sample_s=0.01)
+    for si in (0.0005, None):
+        with pytest.raises(SystemExit, match=r"bf-epic run failed \(3\)"):
+            bw.run(argparse.Namespace(switch_interval_s=si, **base))
+    assert seen[0]["BF_EPIC_SWITCH_INTERVAL_S"] == "0.0005" and "BF_EPIC_SWITCH_INTERVAL_S" not in seen[1]

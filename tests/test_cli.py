@@ -716,3 +716,25 @@ def test_plan_counts_the_live_solver_once_and_the_station_fits_its_gpu_pool():
         assert d["tunings"][t]["memory_bytes"]["live gain solver"] == sb["held"] + sb["working"]
     (dev, need), = d["memory_bytes_per_device"].items()
     assert need <= cfg["gpu_memory_gb"] * 1e9 and "ABOVE IT" not in text, (dev, need)
+
+
+def test_the_switch_interval_comes_from_the_environment_and_a_bad_one_is_a_clear_error(tmp_path, monkeypatch,
+                                                                                         capsys):
+    """BF_EPIC_SWITCH_INTERVAL_S sets the interpreter's switch interval for the run (the default where unset);
+    a value that is not seconds in (0, 0.1] stops `bf-epic run` with one line naming the variable."""
+    import sys
+    seen = []
+    monkeypatch.setattr(sys, "setswitchinterval", seen.append)
+    monkeypatch.delenv(cli.SWITCH_INTERVAL_ENV, raising=False)
+    assert cli.switch_interval() == cli.SWITCH_INTERVAL_S == 0.001
+    monkeypatch.setenv(cli.SWITCH_INTERVAL_ENV, "0.00025")
+    assert cli.switch_interval() == 0.00025
+    for bad in ("fast", "0", "-1e-3", "0.5", "nan"):
+        monkeypatch.setenv(cli.SWITCH_INTERVAL_ENV, bad)
+        with pytest.raises(ValueError, match=r"BF_EPIC_SWITCH_INTERVAL_S must be seconds in \(0, 0.1\]"):
+            cli.switch_interval()
+    assert cli.main(["run", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", f"output.dir={tmp_path}", *FAST]) == 1
+    assert "BF_EPIC_SWITCH_INTERVAL_S must be seconds" in capsys.readouterr().err and seen == []
+    monkeypatch.setenv(cli.SWITCH_INTERVAL_ENV, "0.0005")
+    assert cli.main(["run", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", f"output.dir={tmp_path}", *FAST]) == 0
+    assert seen == [0.0005]

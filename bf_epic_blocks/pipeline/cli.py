@@ -254,8 +254,25 @@ def _replay(args):
     return 0
 
 
-#: the interpreter's thread switch interval during ``bf-epic run`` (see :func:`main`)
+#: the interpreter's thread switch interval during ``bf-epic run`` (see :func:`main`), unless the environment
+#: sets :data:`SWITCH_INTERVAL_ENV`
 SWITCH_INTERVAL_S = 0.001
+SWITCH_INTERVAL_ENV = "BF_EPIC_SWITCH_INTERVAL_S"
+
+
+def switch_interval():
+    """Seconds: ``$BF_EPIC_SWITCH_INTERVAL_S`` where set (a number in (0, 0.1]), else :data:`SWITCH_INTERVAL_S`;
+    another value is a ValueError that names the variable."""
+    raw = os.environ.get(SWITCH_INTERVAL_ENV, "").strip()
+    if not raw:
+        return SWITCH_INTERVAL_S
+    try:
+        v = float(raw)
+    except ValueError:
+        v = float("nan")
+    if not 0 < v <= 0.1:
+        raise ValueError(f"{SWITCH_INTERVAL_ENV} must be seconds in (0, 0.1], e.g. 0.0005; got {raw!r}")
+    return v
 
 
 def _setup_logging(args):
@@ -338,8 +355,8 @@ def main(argv=None):
         # The block threads share one interpreter lock and give it up at every CUDA call and file read;
         # a thread taking it back waits up to the switch interval while another runs Python. 1 ms (not
         # Python's 5 ms) shortens those waits, which raises the steady real-time factor of a GPU pipeline
-        # reading a capture file.
-        sys.setswitchinterval(SWITCH_INTERVAL_S)
+        # reading a capture file. A host whose blocks wait on each other more (or less) sets its own.
+        sys.setswitchinterval(switch_interval())
         if cfg.get("service") or cfg["source"]["kind"] == "udp":
             # a service, a live stream: runs for weeks, a sequence per F-engine reset; large arrays go back
             from ..service.heap import fix_mmap_threshold

@@ -27,7 +27,7 @@ outside, as an operator runs it (``--set`` overrides pass through; the default i
   station's highest channel).
 
 usage: python tools/bench/bench_wholeband.py [--device gpu] [--seconds 60] [--set KEY=VALUE ...]
-                                       [--sample-s 2] [--json PATH]
+                                       [--sample-s 2] [--switch-interval-s S] [--json PATH]
 """
 from __future__ import annotations
 
@@ -216,7 +216,10 @@ def run(args):
     cache0, store = kernel_cache_names(), kernel_store_names()
     t0, t0_unix = time.perf_counter(), time.time()
     with tempfile.TemporaryFile("w+") as err:
-        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=child_env())
+        env = child_env()
+        if args.switch_interval_s is not None:
+            env["BF_EPIC_SWITCH_INTERVAL_S"] = repr(float(args.switch_interval_s))
+        p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=env)
 
         def sample():
             while not stop.is_set():
@@ -283,7 +286,8 @@ def run(args):
            "images": info.get("images"), "search": info.get("search"), "solver": info.get("solver"), "bursts": bursts,
            "other_candidates": others, "candidates": listed, "station_events": events, "blocks": blocks}
     out = {"benchmark": "bench_wholeband", "date": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime()),
-           "yaml": str(args.yaml), "sets": sets, "machine": machine("gpu" if args.device.startswith("gpu") else "cpu"), "run": row,
+           "yaml": str(args.yaml), "sets": sets, "switch_interval_s": args.switch_interval_s,
+           "machine": machine("gpu" if args.device.startswith("gpu") else "cpu"), "run": row,
            "samples": {"gpu_mib": samples_gpu, "rss_mib": samples_rss}}
     shutil.rmtree(outdir, ignore_errors=True)
     return out
@@ -336,6 +340,8 @@ def main(argv=None):
     ap.add_argument("--seconds", type=float, default=None, help="source.duration_s (default: the YAML's)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="more overrides")
     ap.add_argument("--sample-s", type=float, default=2.0, help="seconds between memory samples")
+    ap.add_argument("--switch-interval-s", type=float, default=None,
+                    help="the run's interpreter switch interval (BF_EPIC_SWITCH_INTERVAL_S; default: bf-epic's)")
     ap.add_argument("--json", help="write the result here")
     args = ap.parse_args(argv)
     out = run(args)
