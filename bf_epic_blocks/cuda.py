@@ -23,8 +23,8 @@ reuse a stale binary). System headers (``<cuda_fp16.h>``) are left to NVRTC.
 makes for array expressions) in ~20 s the first time, which a service must not wait for at every fresh
 start. ``bf-epic compile`` compiles them once, at install: it runs the pipelines named for a moment
 with CuPy's kernel cache pointed at the store (:func:`kernel_store`), a folder of CuPy's own cache files.
-A GPU run first copies the store's files that CuPy's cache lacks into it (:func:`seed_cupy_cache`), so a
-machine whose CuPy cache is empty (a fresh account, a wiped home) starts with every kernel compiled. A
+A GPU run first puts the store's files that CuPy's cache lacks into it (:func:`seed_cupy_cache`: hard links
+where it can, copies where not), so a machine whose CuPy cache is empty (a fresh account, a wiped home) starts with every kernel compiled. A
 file is named by the hash of everything that made it (source, options, architecture, NVRTC and CuPy
 versions), so one from another GPU or CuPy version is never used, only copied.
 
@@ -162,14 +162,17 @@ def cupy_cache_dir() -> Path:
 
 
 def seed_cupy_cache(store: Path | None = None, cache: Path | None = None) -> dict:
-    """Copy the store's compiled kernels that CuPy's cache lacks into it (whole files: each is written
-    beside its name and renamed). Returns ``{"store", "cache", "copied", "present", "failed"}``: ``present``
-    the store's files the cache already had, ``failed`` those that could not be copied (a read-only or
-    full cache: those kernels compile when first used, as without a store). No store: nothing copied."""
+    """Put the store's compiled kernels that CuPy's cache lacks into it: a hard link where the two share a
+    file system (no bytes move; CuPy replaces a cache file by renaming a new one over its name, so the
+    store's file is never written through the link), else a whole copy (written beside its name and
+    renamed). Returns ``{"store", "cache", "copied", "linked", "present", "failed"}``: ``copied`` the files
+    put in, ``linked`` those of them linked, ``present`` the store's files the cache already had,
+    ``failed`` those that could not be put in (a read-only or full cache: those kernels compile when
+    first used, as without a store). No store: nothing put in."""
     import shutil
     store = kernel_store() if store is None else Path(store)
     cache = cupy_cache_dir() if cache is None else Path(cache)
-    out = {"store": str(store), "cache": str(cache), "copied": 0, "present": 0, "failed": 0}
+    out = {"store": str(store), "cache": str(cache), "copied": 0, "linked": 0, "present": 0, "failed": 0}
     try:
         names = [e.name for e in os.scandir(store) if e.is_file() and not e.name.startswith(".")]
     except OSError:
@@ -187,9 +190,16 @@ def seed_cupy_cache(store: Path | None = None, cache: Path | None = None) -> dic
             continue
         try:
             cache.mkdir(parents=True, exist_ok=True)
-            tmp = cache / f".{name}.{os.getpid()}.tmp"
-            shutil.copyfile(store / name, tmp)
-            os.replace(tmp, cache / name)
+            try:
+                os.link(store / name, cache / name)
+                out["linked"] += 1
+            except FileExistsError:         # another process put it in meanwhile
+                out["present"] += 1
+                continue
+            except OSError:                 # another file system, or links refused: copy
+                tmp = cache / f".{name}.{os.getpid()}.tmp"
+                shutil.copyfile(store / name, tmp)
+                os.replace(tmp, cache / name)
             out["copied"] += 1
         except OSError:
             out["failed"] += 1

@@ -633,7 +633,35 @@ def test_the_kernel_store_fills_cupy_s_cache_with_what_it_lacks(tmp_path, monkey
     blocked.write_text("")
     assert seed_cupy_cache(store, blocked)["failed"] == 3
     assert seed_cupy_cache(tmp_path / "no-store", cache) == {"store": str(tmp_path / "no-store"), "cache": str(cache),
-                                                              "copied": 0, "present": 0, "failed": 0}
+                                                              "copied": 0, "linked": 0, "present": 0, "failed": 0}
+
+
+def test_the_kernel_store_links_its_files_where_it_can_and_copies_where_not(tmp_path, monkeypatch):
+    """On one file system the cache's file is the store's (one inode, no bytes copied); where a link is refused
+    (another file system) it is a copy; and CuPy's way of writing a cache file (a new file renamed over the
+    name) leaves the store's file as it was."""
+    import os
+    from bf_epic_blocks import cuda
+    store, cache, other = tmp_path / "store", tmp_path / "cache", tmp_path / "other"
+    store.mkdir()
+    for k in range(2):
+        (store / f"k{k}_2.cubin").write_bytes(bytes([k + 1]) * 4096)
+    got = cuda.seed_cupy_cache(store, cache)
+    assert (got["copied"], got["linked"], got["present"], got["failed"]) == (2, 2, 0, 0)
+    assert os.stat(cache / "k0_2.cubin").st_ino == os.stat(store / "k0_2.cubin").st_ino
+    new = cache / "tmpXYZ"
+    new.write_bytes(b"recompiled")
+    os.replace(new, cache / "k0_2.cubin")                     # as CuPy's compiler rewrites a cache file
+    assert (store / "k0_2.cubin").read_bytes() == bytes([1]) * 4096
+
+    def refuse(src, dst):
+        raise OSError(18, "Invalid cross-device link")
+    monkeypatch.setattr(cuda.os, "link", refuse)
+    got = cuda.seed_cupy_cache(store, other)
+    assert (got["copied"], got["linked"], got["failed"]) == (2, 0, 0)
+    assert os.stat(other / "k1_2.cubin").st_ino != os.stat(store / "k1_2.cubin").st_ino
+    assert (other / "k1_2.cubin").read_bytes() == (store / "k1_2.cubin").read_bytes()
+    assert sorted(p.name for p in other.iterdir()) == ["k0_2.cubin", "k1_2.cubin"]     # no temporaries left
 
 
 def test_compile_refuses_what_it_cannot_run(tmp_path, capsys):

@@ -999,8 +999,8 @@ def seed_kernels(cfg):
     from ..cuda import seed_cupy_cache
     got = seed_cupy_cache()
     if got["copied"]:
-        log.info("kernel store %s: %d compiled kernels copied into CuPy's cache %s (%d there already)",
-                 got["store"], got["copied"], got["cache"], got["present"])
+        log.info("kernel store %s: %d compiled kernels put into CuPy's cache %s (%d of them as hard links; %d there "
+                 "already)", got["store"], got["copied"], got["cache"], got["linked"], got["present"])
     if got["failed"]:
         log.warning("kernel store %s: %d compiled kernels could not be copied into CuPy's cache %s; they "
                     "compile when first used", got["store"], got["failed"], got["cache"])
