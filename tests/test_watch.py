@@ -391,6 +391,25 @@ def test_a_window_before_the_data_is_a_warning_and_nan_rows(tmp_path, caplog):
     assert summary["watch"]["inactive_rows"] == 2
 
 
+def test_a_window_that_opens_inside_a_gulp_starts_its_rows_at_the_step(tmp_path):
+    """A target whose window opens 1 s into the data is recorded from the image that starts in that step on:
+    images of 0.1 s, gulps of 7 of them (the step's boundary inside the second gulp), the first 10 rows NaN
+    and counted, the rest finite, like CygA's all through."""
+    from bf_epic_blocks.pipeline import runner
+    from bf_epic_blocks.pipeline.config import load_config
+    cfg = load_config("pipelines/lwasv_sim_allsky.yaml", [
+        "source.duration_s=2.2", "imager.accumulate_frames=2500", "source.gulp_nframe=17500",
+        "source.channels.count=2", "source.diffuse=null", "imager.grid.size=16", "output.png=false",
+        "output.fits=false", f"output.dir={tmp_path}",
+        "watch={targets: [{name: Win, ra_deg: 300.0, dec_deg: 35.0, start: '2024-06-01T10:00:01'}, CygA]}"])
+    summary = runner.run(cfg, show_progress=False)
+    w = read_watch(tmp_path / "lwasv_sim_allsky_watch.h5")
+    rows = w["Win"]["data"].reshape(len(w["Win"]["data"]), -1)
+    assert len(rows) == 22
+    assert np.all(np.isnan(rows[:10])) and np.all(np.isfinite(rows[10:]))
+    assert np.all(np.isfinite(w["CygA"]["data"])) and summary["watch"]["inactive_rows"] == 10
+
+
 def test_a_target_between_grid_cells_gets_its_whole_flux(tmp_path):
     """A 1,000 Jy point source at a chosen position (noise-free, unquantised, isotropic antennas): the
     watch direction placed on it records 1,000 Jy (to the sampling scatter of 5,000 samples, 1.4%), where

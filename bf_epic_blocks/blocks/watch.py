@@ -188,14 +188,17 @@ class WatchWriterBlock(bfp.SinkBlock):
         tu = self._t0 + (idx + 0.5) * self._dt                          # image centres, Unix s
         data = np.moveaxis(xd.astype(np.float32, copy=False), 0, 1)     # (n, ndir, nchan, nprod), a view
         ra_dec = np.empty((n, len(self.pixels.targets), 2))
-        for i, k in enumerate(idx):
-            _, active, rd = self.pixels.state(self._tag0 + k * self._tag_per_image)
-            ra_dec[i] = rd
+        # the images of one step share its directions (WatchPixels holds them a step): one look-up a run
+        tags = self._tag0 + idx * self._tag_per_image
+        starts = np.r_[0, np.flatnonzero(np.diff(np.floor(tags / FS_HZ / self.pixels.step_s))) + 1, n]
+        for a, b in zip(starts[:-1], starts[1:]):
+            _, active, rd = self.pixels.state(tags[a])
+            ra_dec[a:b] = rd
             if self._was is None or not np.array_equal(active, self._was):
-                self._log_changes(active, tu[i])
+                self._log_changes(active, tu[a])
             if not active.all():
-                data[i, ~active] = np.nan
-                self.inactive += int((~active).sum())
+                data[a:b, ~active] = np.nan
+                self.inactive += int((~active).sum()) * int(b - a)
         self._writer.append(tu, data, ra_dec)
         own = self.pixels.first
         # each target's own direction, first product: (n, ntarget, nchan), a view where no target has offsets
