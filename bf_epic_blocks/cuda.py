@@ -23,10 +23,11 @@ reuse a stale binary). System headers (``<cuda_fp16.h>``) are left to NVRTC.
 makes for array expressions) in ~20 s the first time, which a service must not wait for at every fresh
 start. ``bf-epic compile`` compiles them once, at install: it runs the pipelines named for a moment
 with CuPy's kernel cache pointed at the store (:func:`kernel_store`), a folder of CuPy's own cache files.
-A GPU run first puts the store's files that CuPy's cache lacks into it (:func:`seed_cupy_cache`: hard links
-where it can, copies where not), so a machine whose CuPy cache is empty (a fresh account, a wiped home) starts with every kernel compiled. A
-file is named by the hash of everything that made it (source, options, architecture, NVRTC and CuPy
-versions), so one from another GPU or CuPy version is never used, only copied.
+A GPU run first puts the store's files that CuPy's cache lacks into it (:func:`seed_cupy_cache`: hard
+links where it can, copies where not), so a machine whose CuPy cache is empty (a fresh account, a wiped
+home) starts with every kernel compiled. A file is named by the hash of everything that made it (source,
+options, architecture, NVRTC and CuPy versions), so one from another GPU or CuPy version is never used,
+only put there.
 
 Every ``.cu`` file lists the configurations a shipped path compiles in :data:`COMPILE_CHECKS`, through
 :func:`register` at the import of the module that launches it (the GPU tests compile each one with

@@ -35,9 +35,9 @@ class WatchPixels:
 
     Directions are computed for steps of ``step_s`` seconds (at each step's middle, :data:`BATCH_STEPS`
     steps at a time) and held within a step, so that the imager rebuilds its small operator once a step,
-    not once an image: the sky turns 0.004 deg in a second, a thousandth of the station's beam at 90 MHz. A direction below the horizon or
-    outside its target's window is imaged at the zenith (the operator keeps its size) and marked
-    inactive (:meth:`state`), so that its rows are written as NaN.
+    not once an image: the sky turns 0.004 deg in a second, a thousandth of the station's beam at 90 MHz.
+    A direction below the horizon or outside its target's window is imaged at the zenith (the operator
+    keeps its size) and marked inactive (:meth:`state`), so that its rows are written as NaN.
 
     targets : :class:`~bf_epic_blocks.sky.watch.WatchTarget` list (or entries); location : astropy
     EarthLocation or (lon_deg, lat_deg, height_m).
