@@ -350,7 +350,7 @@ class SimSkySourceBlock(bfp.SourceBlock):
         return _Reader(pos=0)
 
     def on_sequence(self, reader, sourcename):
-        from ..sky import fastsim, source_directions
+        from ..sky import fastsim
         st = self.station
         self.time_tag0 = int(round(self.start.unix * FS_HZ))
         hdr = efield_header("simulated-sky", self.time_tag0, self.freq_hz, self.dt_s, st.to_header(self.freq_hz),
@@ -364,7 +364,8 @@ class SimSkySourceBlock(bfp.SourceBlock):
                                         "diffuse": None if self.diffuse is None else
                                         {**self.diffuse, "refresh_s": self.diffuse_refresh_s},
                                         "corrupt": None if self.corrupt is None else self.corrupt.to_dict()})
-        d = source_directions(self.sources, self.start, st.location)
+        self._dir_cache = {}
+        d = self._directions(0)[0]          # the first refresh's, at the start
         log.info("simulated sky at %s UTC: %s above the horizon%s", self.start.isot[:19],
                  ", ".join(f"{n} (alt {np.degrees(a):.1f} deg)" for n, a in zip(d.names, d.alt)) or "no source",
                  f"; below: {', '.join(d.dropped)}" if d.dropped else "")
@@ -377,7 +378,6 @@ class SimSkySourceBlock(bfp.SourceBlock):
         self._keys = fastsim.stream_keys(self.seed)
         self._xp = self._gen_namespace()
         self._w_at = None
-        self._dir_cache = {}
         self._refreshes = []
         self._diffuse_w, self._diffuse_at, self.diffuse_fraction = None, None, None
         usable = ~np.asarray(st.flags, bool)

@@ -162,33 +162,17 @@ def source_directions(sources, time=None, location=None) -> SourceDirections:
     ``time``/``location`` are needed only for ICRS sources and solar-system bodies (the Sun).
     """
     srcs = resolve_sources(sources)
-    nsrc = len(srcs)
-    alt = np.zeros(nsrc)
-    az = np.zeros(nsrc)
-    icrs = [i for i, s in enumerate(srcs) if s.frame == "icrs"]
-    bodies = [i for i, s in enumerate(srcs) if s.frame == "body"]
-    if icrs or bodies:
-        if time is None or location is None:
-            raise ValueError(f"sources {[srcs[i].name for i in icrs + bodies]} have ICRS positions or are "
-                             "solar-system bodies: source_directions needs time (astropy Time or ISO string) and "
-                             "location (EarthLocation)")
-        from astropy import units as u
-        from astropy.coordinates import AltAz, SkyCoord, get_body
-        from astropy.time import Time
-        t = time if isinstance(time, Time) else Time(time, scale="utc")
-        if not t.isscalar:
-            raise ValueError("source_directions: time must be a single instant (the sky is frozen)")
-        frame = AltAz(obstime=t, location=location)
-        with _iers_offline():
-            if icrs:
-                c = SkyCoord(ra=[srcs[i].ra_deg for i in icrs] * u.deg, dec=[srcs[i].dec_deg for i in icrs] * u.deg,
-                             frame="icrs")
-                aa = c.transform_to(frame)
-                alt[icrs], az[icrs] = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)
-            for i in bodies:   # astropy's built-in ephemeris: nothing downloaded
-                aa = get_body(srcs[i].body, t, location).transform_to(frame)
-                alt[i], az[i] = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)
-    return _directions(srcs, alt, az)
+    moving = [s.name for s in srcs if s.frame in ("icrs", "body")]
+    if not moving:
+        return _directions(srcs, np.zeros(len(srcs)), np.zeros(len(srcs)))
+    if time is None or location is None:
+        raise ValueError(f"sources {moving} have ICRS positions or are solar-system bodies: source_directions "
+                         "needs time (astropy Time or ISO string) and location (EarthLocation)")
+    from astropy.time import Time
+    t = time if isinstance(time, Time) else Time(time, scale="utc")
+    if not t.isscalar:
+        raise ValueError("source_directions: time must be a single instant (the sky is frozen)")
+    return source_directions_at(srcs, t.reshape(1), location)[0]
 
 
 def source_directions_at(sources, times, location) -> list[SourceDirections]:
@@ -214,7 +198,7 @@ def source_directions_at(sources, times, location) -> list[SourceDirections]:
                          dec=np.array([[srcs[i].dec_deg for i in icrs]]) * u.deg, frame="icrs")
             aa = c.transform_to(AltAz(obstime=t[:, None], location=location))
             alt[:, icrs], az[:, icrs] = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)
-        for i in bodies:
+        for i in bodies:   # astropy's built-in ephemeris: nothing downloaded
             aa = get_body(srcs[i].body, t, location).transform_to(AltAz(obstime=t, location=location))
             alt[:, i], az[:, i] = aa.alt.to_value(u.rad), aa.az.to_value(u.rad)
     return [_directions(srcs, alt[k].copy(), az[k].copy()) for k in range(t.shape[0])]
