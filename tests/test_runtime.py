@@ -1009,6 +1009,54 @@ def test_capacity_growth_while_a_write_span_is_open():
             np.testing.assert_array_equal(np.concatenate(got), x)
 
 
+@pytest.mark.parametrize('space', ['system', pytest.param('cuda', marks=[
+    pytest.mark.gpu, pytest.mark.skipif(not HAS_GPU, reason='needs CuPy and a CUDA device')])])
+@pytest.mark.parametrize('ringlets', [(), (2,)])
+def test_growth_moves_wrapped_frames_into_the_new_storage(space, ringlets):
+    """A reader asks for more room once the stored frames have wrapped round the end of the storage: they
+    move to their slots in the new storage (in two runs here, one from each end) and read back exactly."""
+    import importlib
+    xp = importlib.import_module('cupy') if space == 'cuda' else np
+    r = len(ringlets)
+    x = np.random.default_rng(3).normal(size=(40,) + ringlets + (3,))
+
+    def put(span, i):
+        span.data[...] = xp.asarray(np.moveaxis(x[i:i + 4], 0, r))
+
+    def get(span):
+        d = span.data.get() if space == 'cuda' else np.array(span.data)
+        return np.moveaxis(d, r, 0)
+
+    ring, got = Ring(space=space), {}
+    with ring.begin_writing() as w:
+        with w.begin_sequence(hdr('g', dtype='f64', shape=list(ringlets) + [-1, 3]), 4, 8) as s:
+            rseq = next(ring.open_reader(guarantee=True).sequences())
+            rseq.resize(4, buf_nframe=8)
+            for i in (0, 4):
+                with s.reserve(4) as span:
+                    put(span, i)
+            with rseq.acquire(0, 4) as span:
+                got[0] = get(span)
+            held = rseq.acquire(4, 4)               # frames 4-7 stay held in slots 4-7
+            with s.reserve(4) as span:              # frames 8-11 wrap round into slots 0-3
+                put(span, 8)
+            assert ring.capacity == 8
+            rseq.resize(4, buf_nframe=20)           # frames 4-11 move to slots 4-11
+            assert ring.capacity == 20
+            with held:
+                got[4] = get(held)
+            for i in range(12, 40, 4):
+                with s.reserve(4) as span:
+                    put(span, i)
+                with rseq.acquire(i - 4, 4) as span:
+                    got[i - 4] = get(span)
+            with rseq.acquire(36, 4) as span:
+                got[36] = get(span)
+    assert sorted(got) == list(range(0, 40, 4))
+    for i, d in got.items():
+        np.testing.assert_array_equal(d, x[i:i + 4])
+
+
 # --------------------------------------------------------------------------------------------
 # 'cuda' rings: ordering by events, pinned asynchronous host->device copies (GPU machine only)
 # --------------------------------------------------------------------------------------------
@@ -1152,6 +1200,42 @@ def test_priority_streams_are_ordered():
     assert lo.priority == 0 and hi.priority < lo.priority
     with pytest.raises(ValueError, match="high' or 'low"):
         priority_stream(cupy, "urgent")
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAS_GPU, reason='needs CuPy and a CUDA device')
+def test_block_keeps_its_own_stream_after_a_with_stream_in_its_hooks():
+    """A block's kernels stay on its own stream whatever its hooks do: CuPy's get() of a non-contiguous
+    array runs a `with stream:` of the current stream, whose end restores the entry below it on CuPy's
+    per-thread stack -- the CUDA default stream, had the block's stream only been made current with
+    use(). Two searches then shared the default stream in a whole-station run."""
+    import cupy as cp
+    seen = []
+
+    class GetsStrided(bfp.SinkBlock):
+        def define_valid_input_spaces(self):
+            return ('cuda',)
+
+        def on_sequence(self, iseq):
+            seen.append(("sequence", cp.cuda.get_current_stream().ptr, self.stream.ptr))
+
+        def on_data(self, ispan):
+            before = cp.cuda.get_current_stream().ptr
+            ispan.data[:, ::2].get()                     # not contiguous: CuPy's `with stream:` inside
+            with cp.cuda.Stream(non_blocking=True):      # and a hook's own
+                pass
+            seen.append((before, cp.cuda.get_current_stream().ptr, self.stream.ptr))
+
+    x = np.arange(40 * 4, dtype=np.float32).reshape(40, 4)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(x, hdr(shape=(-1, 4)), gulp_nframe=8, space='cuda')
+        GetsStrided(src)
+        run_with_timeout(p, 60)
+    assert len(seen) == 1 + 5
+    own = seen[0][2]
+    assert own != cp.cuda.Stream.null.ptr and seen[0][1] == own
+    for before, after, stream in seen[1:]:
+        assert (before, after, stream) == (own, own, own)
 
 
 def test_sequence_after_sequence_keeps_memory_flat():

@@ -408,13 +408,18 @@ class Block(BlockScope):
             cupy.cuda.Device(self.gpu).use()
         # The thread's own non-blocking stream (CuPy's current stream is per thread): the
         # blocks' kernels and copies queue there and overlap; rings order them with events.
+        # _thread_main enters it as a context rather than calling use(): CuPy's current stream is
+        # the top of a per-thread stack, and a `with s:` anywhere in the thread (CuPy's own get()
+        # of a non-contiguous array has one) ends by restoring the entry below it -- the CUDA
+        # default stream, where use() leaves the block's stream off the stack.
         self.stream = priority_stream(cupy, self.stream_priority)
-        self.stream.use()
 
     def _thread_main(self):
         try:
             self._bind()
             with ExitStack() as stack:
+                if self.stream is not None:
+                    stack.enter_context(self.stream)
                 writers = [stack.enter_context(r.begin_writing()) for r in self.orings]
                 self.main(writers)
         except PipelineShutdown:

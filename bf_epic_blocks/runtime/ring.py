@@ -88,6 +88,20 @@ def _check_nframe(n, what):
     return int(n)
 
 
+def _memcpy_frames(dst, d0, src, s0, n, nr, stream):
+    """dst's frames [d0, d0 + n) = src's frames [s0, s0 + n) for C-contiguous CuPy arrays of one dtype whose
+    frame axis is ``nr`` (the ringlet axes before it, the frame's after): one 2-D memcpy on ``stream``, a row
+    per ringlet (the frames' bytes are contiguous within it)."""
+    import cupy as cp
+    if not (dst.flags.c_contiguous and src.flags.c_contiguous and dst.dtype == src.dtype):
+        raise ValueError("ring storage must be C-contiguous and of one dtype to be moved")
+    frame = dst.itemsize * int(np.prod(dst.shape[nr + 1:], dtype=np.int64))
+    rows = int(np.prod(dst.shape[:nr], dtype=np.int64))
+    cp.cuda.runtime.memcpy2DAsync(dst.data.ptr + d0 * frame, dst.shape[nr] * frame,
+                                  src.data.ptr + s0 * frame, src.shape[nr] * frame,
+                                  n * frame, rows, cp.cuda.runtime.memcpyDeviceToDevice, stream.ptr)
+
+
 class _Seq:
     """Ring-internal state of one sequence."""
 
@@ -295,14 +309,29 @@ class Ring:
                 if not moved:
                     self._await_ready()
                     moved = True
-                idx = self.xp.arange(lo, seq.nframe)
-                ax = (slice(None),) * seq.nr
-                seq.buf[ax + (idx % new,)] = obuf[ax + (idx % ocap,)]
+                self._move_frames(seq, obuf, ocap, lo)
         if moved and self.on_device:
             self._publish()
             # the old buffers are freed when the last view goes: finish copying out of them
             self._stream().synchronize()
         self._cond.notify_all()
+
+    def _move_frames(self, seq, obuf, ocap, lo):
+        """Copy local frames [lo, seq.nframe) of ``seq`` from its old storage ``obuf`` (``ocap`` slots)
+        into its new one, in the runs of frames contiguous in both (three at most). On a GPU each run is
+        one 2-D memcpy on the current stream: a copy by index arrays would be CuPy indexing kernels,
+        specialised on the ring's dtype and rank and compiled at the first growth -- which comes when a
+        late reader asks for room while data flow, at a moment no kernel store can foresee."""
+        new = seq.buf_cap
+        i = lo
+        while i < seq.nframe:
+            a, b = i % ocap, i % new
+            n = min(seq.nframe - i, ocap - a, new - b)
+            if self.on_device:
+                _memcpy_frames(seq.buf, b, obuf, a, n, seq.nr, self._stream())
+            else:
+                seq.buf[seq.at(b, b + n)] = obuf[seq.at(a, a + n)]
+            i += n
 
     def _request(self, buf_nframe=None, write_gulp=None, read_gulp=None):
         with self._cond:
