@@ -862,6 +862,28 @@ def cs_body():
     out.append("Without the store the same start compiled ~185 kernels and the imagers' first images came 22-25 s "
                "after the start (an in-process probe on the same GPU, with planning still importing LSL's station module). A service that restarts finds CuPy's cache "
                "warm and starts as fast as with the store.\n")
+    rc = load("runtime_compiles_station_gpu_h200.json")
+    out.append("### What a run compiles that the store does not hold\n")
+    out.append(f"{rc['how']} ([runtime_compiles_station_gpu_h200.json](../bench/runtime_compiles_station_gpu_h200.json), "
+               f"{rc['machine']['hardware']}): {rc['case']}. Every kernel compiled while it ran came from one place, "
+               "a ring growing while data flowed (a reader asking for more room after the writer had begun), whose "
+               "copy of the stored frames by index arrays took CuPy indexing kernels specialised on the ring's dtype "
+               "and rank; the compile run had grown other rings, or none, at that moment:\n")
+    out.append(table(["s after start", "compile s", "thread", "kernel", "its first argument", "from"],
+                     [[f2(c["at_s"], 1), f2(c["compile_s"]), c["thread"], f"`{c['kernel']}`",
+                       f"`{c['signature_start'].rstrip(', ')}`", f"`{c['called_from'][0]}`"]
+                      for c in rc["compiled_while_running"]]) + "\n")
+    cold, warm = load("bench_wholeband_station_gpu1_ringmove_coldcache.json")["run"], \
+        load("bench_wholeband_station_gpu1_si500.json")["run"]
+    out.append("A ring now moves its frames in the runs contiguous in both storages, one 2-D memcpy each on a GPU: no "
+               "kernel at all. The first run after `bf-epic compile` with CuPy's cache emptied "
+               "([bench_wholeband_station_gpu1_ringmove_coldcache.json](../bench/bench_wholeband_station_gpu1_ringmove_coldcache.json), "
+               f"60 s of data at i8x1) still compiled {cold['kernels_compiled']} kernels while it ran (not yet named), "
+               f"its runner started {cold['runner_started_at_s']:.2f} s after the process and every imager's first images "
+               f"came at {cold['imagers_first_images_at_s']:.2f} s; a run with CuPy's cache warm "
+               "([bench_wholeband_station_gpu1_si500.json](../bench/bench_wholeband_station_gpu1_si500.json)): "
+               f"{warm['runner_started_at_s']:.2f} s and {warm['imagers_first_images_at_s']:.2f} s. Most of the difference "
+               "is before the runner starts, before any kernel is needed; what it is is not yet known.\n")
     return "\n".join(out)
 page("cold_start", "Cold start: a GPU run on an empty kernel cache",
      "`bf-epic run YAML --set device=gpu` with CuPy's kernel cache pointed at an empty folder: each kernel "
@@ -871,8 +893,12 @@ page("cold_start", "Cold start: a GPU run on an empty kernel cache",
       "python tools/bench/cold_start.py pipelines/lwasv_tbf_allsky.yaml --json cold_start_tbf.json",
       "BF_EPIC_KERNELS=/tmp/store bf-epic compile pipelines/lwasv_sim_station.yaml",
       "BF_EPIC_KERNELS=/tmp/store CUPY_CACHE_DIR=$(mktemp -d) python tools/bench/bench_wholeband.py "
-      "--yaml pipelines/lwasv_sim_station.yaml --seconds 20 --json cold_start_station_gpu1.json"],
-     [("cold_start_sim.json", H100), ("cold_start_tbf.json", H100), ("cold_start_station_gpu1.json", H200)], cs_body)
+      "--yaml pipelines/lwasv_sim_station.yaml --seconds 20 --json cold_start_station_gpu1.json",
+      "CUPY_CACHE_DIR=$(mktemp -d) python WRAPPER run pipelines/lwasv_sim_station.yaml --set device=gpu "
+      "--set source.duration_s=20   # WRAPPER: cupy.cuda.compiler's compile functions wrapped to print the stack"],
+     [("cold_start_sim.json", H100), ("cold_start_tbf.json", H100), ("cold_start_station_gpu1.json", H200),
+      ("runtime_compiles_station_gpu_h200.json", H200), ("bench_wholeband_station_gpu1_ringmove_coldcache.json", H200)],
+     cs_body)
 
 # ---------------------------------------------------------------- gpu_check
 def gc_rows(d):
@@ -922,6 +948,11 @@ def gc_body():
             f"`--skip-tests`; {s6['note']}): {'ALL OK' if s6['ok'] else 'FAILED'}.\n\n" + gc_rows(s6) + "\n\n"
             f"After the Hopper kernels' shared prologue and the one-piece mode (at {op['commit']}; {op['note']}): "
             f"{'ALL OK' if op['ok'] else 'FAILED'}.\n\n" + gc_rows(op) + "\n")
+    sm, rm = load("gpu_check_streams.json"), load("gpu_check_ringmove.json")
+    out += (f"\nAfter each block's thread entered its stream as a context ({sm['commit']}; {sm['note']}): "
+            f"{'ALL OK' if sm['ok'] else 'FAILED'}.\n\n" + gc_rows(sm) + "\n\n"
+            f"And with a ring's growth moving its frames by memcpy (at {rm['commit']}; {rm['note']}): "
+            f"{'ALL OK' if rm['ok'] else 'FAILED'}.\n\n" + gc_rows(rm) + "\n")
     return out
 page("gpu_check", "The GPU check (`make gpu-check`)",
      "The GPU tests, then every shipped pipeline run by `bf-epic run` on the GPU and on the CPU with their "
@@ -939,10 +970,13 @@ page("gpu_check", "The GPU check (`make gpu-check`)",
       "python -m pytest -q -m gpu tests/ && python tools/gpu_check.py --skip-tests --json gpu_check_imports.json",
       "python tools/gpu_check.py --skip-tests --only lwasv_sim_station --json gpu_check_station_imports.json   # twice",
       "python tools/gpu_check.py --skip-tests --json gpu_check_st6.json",
-      "python tools/gpu_check.py --skip-tests --only lwasv_sim_wholeband lwasv_sim_station --json gpu_check_onepiece.json"],
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_wholeband lwasv_sim_station --json gpu_check_onepiece.json",
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_transient lwasv_sim_wholeband --json gpu_check_streams.json",
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_station --json gpu_check_ringmove.json"],
      [("gpu_check.json", H200), ("gpu_check_flagging.json", H200), ("gpu_check_watch.json", H200),
       ("gpu_check_wholeband.json", H200), ("gpu_check_history.json", H200), ("gpu_check_imports.json", H200),
-      ("gpu_check_station_imports.json", H200), ("gpu_check_st6.json", H200), ("gpu_check_onepiece.json", H200)],
+      ("gpu_check_station_imports.json", H200), ("gpu_check_st6.json", H200), ("gpu_check_onepiece.json", H200),
+      ("gpu_check_streams.json", H200), ("gpu_check_ringmove.json", H200)],
      gc_body, script="tools/gpu_check.py")
 
 # ---------------------------------------------------------------- moff_widefield
@@ -1426,7 +1460,9 @@ def ps_body():
     out += ["", "Part of those CPU seconds are waits for the GPU: `cudaStreamSynchronize` spins. By the kernels each "
             "CUPTI thread id launched: " + ", ".join(f"{r} {waits.get(tid, 0):.2f}" for tid, r in roles.items()) +
             " s per s. Both searches' kernels and copies ran on one stream, CUDA's default (7 in the trace), where "
-            "every other block ran on a stream of its own; why is not established yet."]
+            "every other block ran on a stream of its own. The cause (found later, below): a block's stream was made "
+            "current with CuPy's `use()`, and the search's `get()` of a strided array runs a `with stream:` whose "
+            "end restores the entry below it on CuPy's per-thread stack, the default stream."]
     g = py["gil_wait_ms"]
     out += ["", f"All threads together used {k1['cpu_s_per_s']:.2f} CPU s per s. Python runs one thread at a time; a "
             f"probe thread's 0.5-ms sleeps woke late by a median {g['median']:.2f} ms (mean {g['mean']:.2f}, 90th "
@@ -1476,6 +1512,31 @@ def ps_body():
             table(["run", "flowing x", "whole run x", "imagers' first images (s)", "search's first images (s)",
                    "GPU peak (GiB)", "bursts within bounds"],
                   [wrow("1,024 samples a gulp (as shipped)", g1), wrow("2,048 samples a gulp", g2)]), "",
+            "## The searches' stream, and the switch interval", "",
+            "A probe printed each block's stream and the thread's current stream at the search's hooks: the current "
+            "stream was the block's through the search's warm-up and CUDA's default stream (0x0) from its first "
+            "`on_data` on. CuPy keeps the current stream as the top of a per-thread stack; `use()` replaces the "
+            "current stream without pushing it, and the end of any `with stream:` (CuPy's `get()` of a "
+            "non-contiguous array has one) restores the entry below, the default stream. Each block's thread now "
+            "enters its stream as a context (tests/test_runtime.py: a hook that runs a `with stream:` keeps its "
+            "block's stream; that test fails on the previous commit on the GPU). Case W2, 60 s:", "",
+            table(["run", "flowing x", "whole run x", "imagers' first images (s)", "search's first images (s)",
+                   "GPU peak (GiB)", "bursts within bounds"],
+                  [wrow(name, load(f)["run"]) for name, f in (
+                      ("i8x1 at 01fa023 (first run of its call)", "bench_wholeband_station_gpu1_stream_before.json"),
+                      ("i8x1 at 01fa023, switch interval 0.5 ms", "bench_wholeband_station_gpu1_si500.json"),
+                      ("i8x1 at 01fa023, switch interval 0.25 ms", "bench_wholeband_station_gpu1_si250.json"),
+                      ("i8x1, the stream entered (another call)", "bench_wholeband_station_gpu1_stream.json"),
+                      ("i8x1, and the ring's move (a3314f9, a third call, first run)",
+                       "bench_wholeband_station_gpu1_ringmove_coldcache.json"),
+                      ("i8x2 (as shipped), the stream entered", "bench_wholeband_station_gpu1_stream_i8x2.json"),
+                      ("i8x2 (as shipped), a3314f9", "bench_wholeband_station_gpu1_ringmove_i8x2.json"))]), "",
+            "The shorter switch intervals changed nothing beyond one run's spread. With each search on its own "
+            "stream the one-piece mode ran at 1.07x and 1.05x in two device calls, against 0.99-1.01x in three "
+            "runs before it in one call; the shipped mode at 0.78x twice, against 0.75x in the last record "
+            "([bench_wholeband_station_gpu1_dirs_i8x2.json](../bench/bench_wholeband_station_gpu1_dirs_i8x2.json)). "
+            "These runs were not interleaved with runs of the previous commit, so the gain is within reach of the "
+            "spread between device calls; the profile has not been taken again.", "",
             "## The one-piece kernel under Nsight Compute", ""]
     n = load("ncu_fused_i8x1_gpu_h200.json")["kernels"]
     k_1, k_2 = n["bf_fused_power (i8x1)"], n["bf_fused_power (i8x2)"]
@@ -1507,7 +1568,11 @@ page("profile_station", "Where a running station's time goes: the GPU's kernels 
       ("profile_station_python_gpu_h200_i8x1.json", H200), ("bench_wholeband_station_gpu1_dirs_before.json", H200),
       ("bench_wholeband_station_gpu1_dirs.json", H200), ("bench_wholeband_station_gpu1_dirs_i8x2.json", H200),
       ("bench_wholeband_station_gpu1_gulp1024_30s.json", H200), ("bench_wholeband_station_gpu1_gulp2048_30s.json", H200),
-      ("ncu_fused_i8x1_gpu_h200.json", H200)], ps_body)
+      ("ncu_fused_i8x1_gpu_h200.json", H200), ("bench_wholeband_station_gpu1_stream_before.json", H200),
+      ("bench_wholeband_station_gpu1_si500.json", H200), ("bench_wholeband_station_gpu1_si250.json", H200),
+      ("bench_wholeband_station_gpu1_stream.json", H200), ("bench_wholeband_station_gpu1_stream_i8x2.json", H200),
+      ("bench_wholeband_station_gpu1_ringmove_coldcache.json", H200),
+      ("bench_wholeband_station_gpu1_ringmove_i8x2.json", H200)], ps_body)
 
 
 def date_of(f):
