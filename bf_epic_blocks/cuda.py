@@ -41,7 +41,7 @@ import sys
 from pathlib import Path
 
 __all__ = ["get_kernel", "get_module", "register", "source", "cu_files", "COMPILE_CHECKS", "kernel_store",
-           "cupy_cache_dir", "seed_cupy_cache", "KERNEL_STORE_ENV"]
+           "cupy_cache_dir", "seed_cupy_cache", "KERNEL_STORE_ENV", "record_compiles", "COMPILED", "COMPILE_LOG_ENV"]
 
 #: environment variable naming the kernel store's folder (default: ``<sys.prefix>/share/bf_epic_blocks/kernels``)
 KERNEL_STORE_ENV = "BF_EPIC_KERNELS"
@@ -205,3 +205,63 @@ def seed_cupy_cache(store: Path | None = None, cache: Path | None = None) -> dic
         except OSError:
             out["failed"] += 1
     return out
+
+
+#: environment variable: set (to anything but "" or "0"), a GPU run logs every kernel CuPy compiles while it runs
+COMPILE_LOG_ENV = "BF_EPIC_LOG_COMPILES"
+
+#: kernels compiled in this process since :func:`record_compiles` first ran (dicts; see there)
+COMPILED: list = []
+_GLOBAL_KERNEL = re.compile(r"__global__\s+void\s+(\w+)")
+# CuPy's compiler functions that run only on a cache miss: CuPy 14's, an older CuPy's, and NVCC's
+_COMPILER_ENTRIES = ("_compile_using_nvrtc_no_warning", "compile_using_nvrtc", "compile_using_nvcc")
+
+
+def record_compiles(log=None) -> list | None:
+    """From now on, record every kernel CuPy compiles in this process (a cache miss: not found in CuPy's disk
+    cache, so not in the kernel store either) in :data:`COMPILED` -- ``{"at_unix_s", "seconds", "thread",
+    "kernel", "caller"}``, ``caller`` the package's own frame that asked (``file.py:line:function``) -- and
+    log each to ``log`` (a :class:`logging.Logger`). Idempotent. Wraps functions of ``cupy.cuda.compiler``
+    that are not CuPy's public interface: returns None, recording nothing, where this CuPy has none of them.
+    What a run compiles that ``bf-epic compile`` did not is what to look at when a start is slow."""
+    try:
+        from cupy.cuda import compiler
+    except ImportError:
+        return None
+    if getattr(compiler, "_bf_epic_recorded", False):
+        return COMPILED
+    entry = next((n for n in _COMPILER_ENTRIES[:2] if callable(getattr(compiler, n, None))), None)
+    names = ([entry] if entry else []) + [n for n in _COMPILER_ENTRIES[2:] if callable(getattr(compiler, n, None))]
+    if not names:
+        return None
+    import threading
+    import time
+    import traceback
+
+    def wrap(fn):
+        def compile_recorded(source, *args, **kwargs):
+            t0 = time.time()
+            out = fn(source, *args, **kwargs)
+            if not isinstance(source, str) or not source.strip():
+                return out          # CuPy's compile of an empty file: its compiler's version, not a kernel
+            m = _GLOBAL_KERNEL.search(source)
+            caller = ""
+            for fr in reversed(traceback.extract_stack()[:-1]):
+                path = Path(fr.filename)
+                if PACKAGE_DIR in path.parents and path.name != "cuda.py":
+                    caller = f"{path.relative_to(PACKAGE_DIR).as_posix()}:{fr.lineno}:{fr.name}"
+                    break
+            row = {"at_unix_s": t0, "seconds": round(time.time() - t0, 3),
+                   "thread": threading.current_thread().name, "kernel": m.group(1) if m else "?", "caller": caller}
+            COMPILED.append(row)
+            if log is not None:
+                log.info("kernel %s compiled while running (%.2f s, thread %s, asked by %s): the kernel store "
+                         "does not hold it", row["kernel"], row["seconds"], row["thread"], caller or "CuPy")
+            return out
+        compile_recorded.__wrapped__ = fn
+        return compile_recorded
+
+    for n in names:
+        setattr(compiler, n, wrap(getattr(compiler, n)))
+    compiler._bf_epic_recorded = True
+    return COMPILED

@@ -391,8 +391,33 @@ def test_bench_wholeband_passes_the_switch_interval_to_the_run(monkeypatch):
             return 3
     monkeypatch.setattr(bw.subprocess, "Popen", Run)
     monkeypatch.delenv("BF_EPIC_SWITCH_INTERVAL_S", raising=False)
-    base = dict(yaml=bw.REPO / "pipelines" / "lwasv_sim_allsky.yaml", device="cpu", seconds=1.0, set=[], sample_s=0.01)
+    base = dict(yaml=bw.REPO / "pipelines" / "lwasv_sim_allsky.yaml", device="cpu", seconds=1.0, set=[], sample_s=0.01,
+                warm_bytecode=False)
     for si in (0.0005, None):
         with pytest.raises(SystemExit, match=r"bf-epic run failed \(3\)"):
             bw.run(argparse.Namespace(switch_interval_s=si, **base))
     assert seen[0]["BF_EPIC_SWITCH_INTERVAL_S"] == "0.0005" and "BF_EPIC_SWITCH_INTERVAL_S" not in seen[1]
+    assert bw.COMPILE_LOG_ENV not in seen[0]
+    # on a GPU the run lists the kernels it compiles, and what it imports is compiled to bytecode first
+    warmed = []
+    monkeypatch.setattr(bw, "warm_bytecode", lambda device: warmed.append(device) or {"prefix": None, "seconds": 0.0})
+    with pytest.raises(SystemExit, match=r"bf-epic run failed \(3\)"):
+        bw.run(argparse.Namespace(switch_interval_s=None, **dict(base, device="gpu", warm_bytecode=True)))
+    assert seen[2][bw.COMPILE_LOG_ENV] == "1" and warmed == ["gpu"]
+
+
+def test_warm_bytecode_compiles_what_a_run_imports_where_it_may_not_be_written_beside_the_sources(
+        tmp_path, monkeypatch):
+    """Where the environment forbids bytecode beside the sources, the timed runs keep it in a folder of their own,
+    which warm_bytecode fills first (as an installation's pip does); elsewhere it does nothing."""
+    import benchlib
+    monkeypatch.setattr(benchlib, "_PYCACHE", tmp_path / "pyc")
+    monkeypatch.setattr(benchlib, "RUN_IMPORTS", ("yaml", "no_such_module_here"))
+    monkeypatch.delenv("PYTHONPYCACHEPREFIX", raising=False)
+    monkeypatch.delenv("PYTHONDONTWRITEBYTECODE", raising=False)
+    assert benchlib.warm_bytecode("cpu") == {"prefix": None, "seconds": 0.0}
+    assert not (tmp_path / "pyc").exists()
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    got = benchlib.warm_bytecode("cpu")
+    assert got["prefix"] == str(tmp_path / "pyc") and got["seconds"] > 0
+    assert any("yaml" in str(p) for p in (tmp_path / "pyc").rglob("*.pyc"))

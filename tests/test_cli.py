@@ -766,3 +766,54 @@ def test_the_switch_interval_comes_from_the_environment_and_a_bad_one_is_a_clear
     monkeypatch.setenv(cli.SWITCH_INTERVAL_ENV, "0.0005")
     assert cli.main(["run", str(PIPES / "lwasv_sim_allsky.yaml"), "--set", f"output.dir={tmp_path}", *FAST]) == 0
     assert seen == [0.0005]
+
+
+def test_a_run_asked_to_lists_the_kernels_cupy_compiles_while_it_runs(monkeypatch, caplog):
+    """With $BF_EPIC_LOG_COMPILES a GPU run wraps CuPy's compiler (its cache misses) and lists each kernel compiled,
+    the thread and the package's frame that asked, in its summary and the log; unset, or on the CPU, nothing is
+    wrapped. A CuPy is faked here: what is checked is the recording, not CuPy."""
+    import logging
+    import sys
+    import types
+
+    from bf_epic_blocks import cuda
+    from bf_epic_blocks.pipeline import runner
+
+    calls = []
+
+    def nvrtc(source, options=(), *args, **kwargs):
+        calls.append(source)
+        return b"cubin"
+    compiler = types.SimpleNamespace(_compile_using_nvrtc_no_warning=nvrtc)
+    fake = types.ModuleType("cupy")
+    fake.cuda = types.SimpleNamespace(compiler=compiler)
+    monkeypatch.setitem(sys.modules, "cupy", fake)
+    monkeypatch.setitem(sys.modules, "cupy.cuda", fake.cuda)
+    monkeypatch.setitem(sys.modules, "cupy.cuda.compiler", compiler)
+
+    monkeypatch.delenv(cuda.COMPILE_LOG_ENV, raising=False)
+    assert runner.watch_compiles({"device": "gpu"}) is None and compiler._compile_using_nvrtc_no_warning is nvrtc
+    monkeypatch.setenv(cuda.COMPILE_LOG_ENV, "1")
+    assert runner.watch_compiles({"device": "cpu"}) is None
+    watched = runner.watch_compiles({"tunings": [{"device": "gpu"}, {"device": "gpu"}]})
+    assert watched is not None and compiler._compile_using_nvrtc_no_warning is not nvrtc
+    assert runner.watch_compiles({"device": "gpu"})[0] is watched[0]       # wrapped once
+
+    src = 'extern "C" __global__ void bf_probe(const float* x) { }'
+    # asked from a frame of the package (a file name under it), and from outside it
+    code = compile("def ask(c, s):\n    return c._compile_using_nvrtc_no_warning(s, ('-DX=1',))\n",
+                   str(cuda.PACKAGE_DIR / "imaging" / "asker.py"), "exec")
+    space = {}
+    exec(code, space)
+    with caplog.at_level(logging.INFO, logger=runner.log.name):
+        assert space["ask"](compiler, src) == b"cubin"
+        assert compiler._compile_using_nvrtc_no_warning("", ()) == b"cubin"      # CuPy's empty-file probe
+        compiler._compile_using_nvrtc_no_warning('__global__ void other() {}', ())
+        summary = runner._with_compiles({"name": "t"}, watched)
+    assert calls == [src, "", "__global__ void other() {}"]
+    got = summary["kernels_compiled_while_running"]
+    assert [(r["kernel"], r["caller"]) for r in got] == [("bf_probe", "imaging/asker.py:2:ask"), ("other", "")]
+    assert all(r["seconds"] >= 0 and r["thread"] for r in got)
+    assert "kernel bf_probe compiled while running" in caplog.text
+    assert "2 kernels compiled while running (not in the kernel store): bf_probe, other" in caplog.text
+    assert runner._with_compiles({"name": "t"}, None) == {"name": "t"}

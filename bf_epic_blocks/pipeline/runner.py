@@ -1048,11 +1048,13 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
     ``parts``: see :func:`build_graph`. With ``service:``, the HTTP service runs beside it
     (:mod:`bf_epic_blocks.service`; ``service_ready(service)`` is called once it listens). A station of
     several tunings (``tunings:``) runs them together (:func:`run_station`)."""
+    compiled = None
     if parts is None:
         seed_kernels(cfg)
         limit_gpu_pools(cfg)
+        compiled = watch_compiles(cfg)
     if cfg.get("tunings") and parts is None:
-        return run_station(cfg, show_progress=show_progress, service_ready=service_ready)
+        return _with_compiles(run_station(cfg, show_progress=show_progress, service_ready=service_ready), compiled)
     if cfg.get("service"):
         from ..service.server import check_listen, parse_listen
         check_listen(parse_listen(cfg["service"]["listen"])[0], cfg["service"]["allow_remote"])
@@ -1095,6 +1097,35 @@ def run(cfg, show_progress=None, parts=None, service_ready=None):
     if service is not None:
         summary["service"] = summary_service
     summary["started_unix_s"] = t0_unix      # the blocks' times are seconds after this (time.time())
+    return _with_compiles(summary, compiled)
+
+
+def watch_compiles(cfg):
+    """On a GPU with ``$BF_EPIC_LOG_COMPILES`` set: every kernel CuPy compiles from now on is logged and listed in
+    the run's summary (:func:`~bf_epic_blocks.cuda.record_compiles`). Returns ``(the list, its length now)``, or
+    None (not asked for, a CPU run, or a CuPy whose compiler cannot be watched: logged)."""
+    import os
+    from ..cuda import COMPILE_LOG_ENV, record_compiles
+    if os.environ.get(COMPILE_LOG_ENV, "") in ("", "0"):
+        return None
+    if {str(tc["device"]) for tc in cfg.get("tunings") or [cfg]} == {"cpu"}:
+        return None
+    rows = record_compiles(log)
+    if rows is None:
+        log.warning("%s: this CuPy's compiler cannot be watched; kernels compiled while running are not listed",
+                    COMPILE_LOG_ENV)
+        return None
+    return rows, len(rows)
+
+
+def _with_compiles(summary, compiled):
+    """The summary with ``kernels_compiled_while_running`` (this run's part of the list) where it was asked for."""
+    if compiled is not None and isinstance(summary, dict):
+        rows, start = compiled
+        summary["kernels_compiled_while_running"] = [dict(r) for r in rows[start:]]
+        if len(rows) > start:
+            log.info("%d kernels compiled while running (not in the kernel store): %s", len(rows) - start,
+                     ", ".join(sorted({r["kernel"] for r in rows[start:]})))
     return summary
 
 

@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchlib import REPO, array_module, bf_epic_command, child_env, machine, synchronize, write_json
+from benchlib import REPO, array_module, bf_epic_command, child_env, machine, synchronize, warm_bytecode, write_json
 
 DT = 40e-6
 
@@ -102,15 +102,6 @@ def evict(path):
         return True
     except (OSError, AttributeError):
         return False
-
-
-def warm_bytecode(device):
-    """Compile what a run imports once, as an installation does, before any run is timed."""
-    mods = ["numpy", "yaml", "astropy.coordinates", "astropy.io.fits", "astropy.wcs", "matplotlib.figure",
-            "bf_epic_blocks.pipeline.runner", "bf_epic_blocks.blocks", "bf_epic_blocks.io.fits",
-            "bf_epic_blocks.io.quicklook"] + (["cupy", "cupyx"] if device == "gpu" else [])
-    subprocess.run([sys.executable, "-c", "import " + ", ".join(mods)], env=child_env(), check=False,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
 def run_cli(yml, data_s, outdir, env_extra=None, sets=()):

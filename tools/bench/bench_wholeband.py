@@ -18,7 +18,10 @@ outside, as an operator runs it (``--set`` overrides pass through; the default i
 * the CuPy kernels compiled during the run (files added to CuPy's kernel cache, less those copied from
   the kernel store that ``bf-epic compile`` fills at install; 0 when every kernel was cached or stored):
   on an empty cache and no store the first images wait for compilation, so releases are compared on
-  equal caches (a run first on a fresh machine pays it, the next finds its kernels cached).
+  equal caches (a run first on a fresh machine pays it, the next finds its kernels cached). On a GPU the
+  run lists each of them (``$BF_EPIC_LOG_COMPILES``): when, how long, on which thread, asked by what.
+* what the run imports is compiled to bytecode first, untimed, as an installation has it
+  (``--no-warm-bytecode`` leaves that to the run, where the environment forbids writing it beside the sources).
 * each injected burst (``source.transients``): the brightest candidate within ``--match-s`` of its
   arrival, its DM off the burst's in trials (the tree's one-image sweep step), its place off the
   burst's in grid cells (the truth's own RA/Dec against the candidate's), and whether that is within
@@ -27,7 +30,8 @@ outside, as an operator runs it (``--set`` overrides pass through; the default i
   station's highest channel).
 
 usage: python tools/bench/bench_wholeband.py [--device gpu] [--seconds 60] [--set KEY=VALUE ...]
-                                       [--sample-s 2] [--switch-interval-s S] [--json PATH]
+                                       [--sample-s 2] [--switch-interval-s S] [--no-warm-bytecode]
+                                       [--json PATH]
 """
 from __future__ import annotations
 
@@ -43,7 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchlib import REPO, bf_epic_command, child_env, machine, write_json
+from benchlib import REPO, bf_epic_command, child_env, machine, warm_bytecode, write_json
+from bf_epic_blocks.cuda import COMPILE_LOG_ENV
 
 
 #: seconds between a burst's arrival and a candidate that may be it
@@ -213,10 +218,14 @@ def run(args):
         cmd += ["--set", s]
     samples_gpu, samples_rss = [], []
     stop = threading.Event()
+    bytecode = warm_bytecode(args.device) if args.warm_bytecode else {"prefix": child_env().get("PYTHONPYCACHEPREFIX"),
+                                                                       "seconds": None}
     cache0, store = kernel_cache_names(), kernel_store_names()
     t0, t0_unix = time.perf_counter(), time.time()
     with tempfile.TemporaryFile("w+") as err:
         env = child_env()
+        if args.device.startswith("gpu"):
+            env[COMPILE_LOG_ENV] = "1"      # the run lists what it compiles (a cache miss, a kernel not stored)
         if args.switch_interval_s is not None:
             env["BF_EPIC_SWITCH_INTERVAL_S"] = repr(float(args.switch_interval_s))
         p = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, text=True, env=env)
@@ -283,6 +292,9 @@ def run(args):
            "gpu_mib": dict(zip(("first", "peak", "growth"), gpu)),
            "rss_mib": dict(zip(("first", "peak", "growth"), rss)),
            "kernels_compiled": compiled, "kernels_from_store": from_store,
+           "compiled_while_running": [dict(c, at_s=round(c["at_unix_s"] - t0_unix, 2))
+                                      for c in info.get("kernels_compiled_while_running") or []],
+           "bytecode": bytecode,
            "images": info.get("images"), "search": info.get("search"), "solver": info.get("solver"), "bursts": bursts,
            "other_candidates": others, "candidates": listed, "station_events": events, "blocks": blocks}
     out = {"benchmark": "bench_wholeband", "date": time.strftime("%Y-%m-%dT%H:%M:%S+00:00", time.gmtime()),
@@ -331,6 +343,9 @@ def show(out):
     if r.get("kernels_compiled"):
         print(f"CuPy kernels compiled during the run: {r['kernels_compiled']} (the kernel cache was not warm: "
               "the first images, and anything first used later, waited for them)")
+    for c in r.get("compiled_while_running") or []:
+        print(f"  {c['kernel']} at {c['at_s']:.1f} s ({c['seconds']:.2f} s, thread {c['thread']}, asked by "
+              f"{c['caller'] or 'CuPy'})")
 
 
 def main(argv=None):
@@ -342,6 +357,9 @@ def main(argv=None):
     ap.add_argument("--sample-s", type=float, default=2.0, help="seconds between memory samples")
     ap.add_argument("--switch-interval-s", type=float, default=None,
                     help="the run's interpreter switch interval (BF_EPIC_SWITCH_INTERVAL_S; default: bf-epic's)")
+    ap.add_argument("--no-warm-bytecode", dest="warm_bytecode", action="store_false",
+                    help="time the run without first compiling what it imports (where the environment forbids "
+                         "writing bytecode beside the sources, the first run then compiles it)")
     ap.add_argument("--json", help="write the result here")
     args = ap.parse_args(argv)
     out = run(args)

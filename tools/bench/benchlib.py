@@ -160,6 +160,32 @@ def bf_epic_command():
 _PYCACHE = Path(tempfile.gettempdir()) / "bf_e2e_pycache"
 
 
+#: what a GPU pipeline run imports, compiled by :func:`warm_bytecode` (a module not installed is left out)
+RUN_IMPORTS = ("numpy", "yaml", "astropy.coordinates", "astropy.io.fits", "astropy.wcs", "astropy.time",
+               "astropy.table", "matplotlib.figure", "scipy.linalg", "scipy.spatial", "scipy.optimize", "h5py",
+               "lsl.common.stations", "bf_epic_blocks.pipeline.runner", "bf_epic_blocks.pipeline.station",
+               "bf_epic_blocks.blocks", "bf_epic_blocks.io.fits", "bf_epic_blocks.io.quicklook",
+               "bf_epic_blocks.search", "bf_epic_blocks.imaging", "bf_epic_blocks.sky")
+
+
+def warm_bytecode(device):
+    """Compile what a run imports once, as an installation does (pip compiles on install), before any run is
+    timed: where the environment forbids writing bytecode, :func:`child_env`'s folder for it starts empty and
+    the first timed run would compile NumPy, CuPy, astropy, SciPy and this package. Returns
+    ``{"prefix", "seconds"}`` (prefix None: bytecode is written beside the sources, nothing was done)."""
+    env = child_env()
+    prefix = env.get("PYTHONPYCACHEPREFIX")
+    if prefix is None:
+        return {"prefix": None, "seconds": 0.0}
+    mods = list(RUN_IMPORTS) + (["cupy", "cupyx", "cupyx.scipy.special"] if str(device).startswith("gpu") else [])
+    code = ("import importlib\nfor m in %r:\n    try:\n        importlib.import_module(m)\n"
+            "    except Exception:\n        pass\n" % (mods,))
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-c", code], env=env, check=False, stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL)
+    return {"prefix": prefix, "seconds": round(time.perf_counter() - t0, 2)}
+
+
 def child_env():
     """The environment of each timed ``bf-epic`` run: this one, with Python's bytecode caches on.
 
