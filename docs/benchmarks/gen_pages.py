@@ -883,7 +883,7 @@ def cs_body():
                f"came at {cold['imagers_first_images_at_s']:.2f} s; a run with CuPy's cache warm "
                "([bench_wholeband_station_gpu1_si500.json](../bench/bench_wholeband_station_gpu1_si500.json)): "
                f"{warm['runner_started_at_s']:.2f} s and {warm['imagers_first_images_at_s']:.2f} s. Most of the difference "
-               "is before the runner starts, before any kernel is needed. In each of this session's three device calls the "
+               "is before the runner starts, before any kernel is needed. In each of three device calls (2026-12-02) the "
                "first bench run started its runner 1.9-3.0 s later than the runs after it, whatever CuPy's cache "
                "held; that fits Python compiling the imports' bytecode, which the lent machine forbids writing "
                "beside the sources (`bench_wholeband.py` now compiles it before timing, as an installation has "
