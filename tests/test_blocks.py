@@ -8,6 +8,7 @@ from bf_epic_blocks.blocks import (ArraySinkBlock, ArraySourceBlock, CalFoldBloc
 from bf_epic_blocks.imaging.calibration import FS_HZ, GainTable, apply_direction_independent, cable_weights
 from bf_epic_blocks.blocks import _compat
 from bf_epic_blocks.runtime.dtypes import pack_ci4
+from conftest import HAVE_GPU
 from truth import brute_image, point_source_efield
 
 C_LIGHT = 299792458.0
@@ -282,6 +283,46 @@ def test_watch_directions_ride_beside_the_grid_on_a_second_ring(xp, scene, preci
     np.testing.assert_allclose(half.result(0), 2 * sink.result(0), rtol=1e-6)
     with pytest.raises(ValueError, match="ride beside a grid"):
         DFTImagerBlock(ArraySourceBlock(pack_ci4(X), hdr, gulp_nframe=64), s["lm"], 16, watch=dirs)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not HAVE_GPU, reason="needs CuPy and a CUDA device")
+def test_a_lone_integration_of_a_longer_gulp_is_imaged_by_the_batched_call(scene, monkeypatch):
+    """Watch directions that step every 48 frames, gulps of 64, images of 16: the integrations at frames 48
+    and 128 are each alone between a step and a gulp's edge. They go through the same batched call as
+    their neighbours, not the operator's graph-replayed image() (whose eager first call decodes the bytes
+    and places the images with kernels nothing else uses, compiled while a station's data flow); every
+    image is the float64 definition's at its own directions."""
+    from bf_epic_blocks.imaging.dft import DFTOperator
+    s = scene
+    grid = imaging.lm_grid(12)
+
+    def dirs(tag):
+        k = (tag // TPF) // 48
+        return [[0.31 - 0.05 * k, -0.22], [-0.4, 0.1 + 0.02 * k]]
+
+    X = s["ints"][:192]
+    hdr = efield_header("lone", 0, s["freq"], DT, station(s, with_cable=False), dtype="ci4")
+    calls = []
+    image = DFTOperator.image
+
+    def spy(self, *a, **kw):
+        calls.append(kw.get("decode"))
+        return image(self, *a, **kw)
+    monkeypatch.setattr(DFTOperator, "image", spy)
+    with bfp.Pipeline() as p:
+        src = ArraySourceBlock(pack_ci4(X), hdr, gulp_nframe=64, space="cuda")
+        img = DFTImagerBlock(src, grid, 16, products=("I",), precision="i8x2", method="direct", watch=dirs)
+        wsink = ArraySinkBlock(img.watch_ring)
+        p.run()
+    assert img.img_stats["operator_moves"] == 3 and calls == []
+    got = wsink.result(0)
+    assert got.shape == (12, 3, 1, 2)
+    w = np.where(s["flags"], 0.0, 1.0)[None]
+    for i in range(12):
+        truth = brute_image(X[16 * i:16 * (i + 1)], s["xyz"], s["freq"], np.array(dirs(16 * i * TPF)), ("I",),
+                            weights=w)
+        assert np.abs(got[i] - truth).max() < 4e-5 * np.abs(truth).max(), i
 
 
 def test_tracking_rebuilds_log_the_plan_once(scene, caplog):

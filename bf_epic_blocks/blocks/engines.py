@@ -270,9 +270,12 @@ class DFTEngine(Engine):
 
     def _whole(self, pos, g, out, nout):
         A, x, idata, decode = self.accumulate, self._x, self._raw, self._decode
-        if g == 1 and self.op.graphs is not None:
-            # one whole integration: the operator's image(), replayed as a CUDA graph; its
-            # output is used at once on this stream (placed into the span), so not copied
+        if g == 1 and self.op.graphs is not None and idata.shape[0] < 2 * A:
+            # a gulp of one whole integration: the operator's image(), replayed as a CUDA graph; its
+            # output is used at once on this stream (placed into the span), so not copied. A lone
+            # integration of a longer gulp (cut off by a gain solution or a tracking step) goes the
+            # batched way below like its neighbours: the graph's eager first call would decode and place
+            # with kernels the run has not used, compiled while the data flow
             sl = slice(pos, pos + A)
             imgs = self.op.image(idata[sl] if x is None else x[sl], self.asked_products,
                                  remove_autocorr=self.remove_autocorr, method=self.acc.method,
