@@ -388,6 +388,35 @@ def wb_body():
                f"([profile_writers_cpu.json](../bench/profile_writers_cpu.json)): {grow(wa, 'watch', 784)} and "
                f"{grow(wa, 'watch', 8)}, at the same speed. The cube writer grows {grow(wa, 'cube')} and then "
                "levels off. The station's host memory over minutes on a GPU, with this, is the measurement still owed.\n")
+    fl, ar = load("bench_wholeband_station_gpu1_180s_flat.json"), load("bench_wholeband_station_gpu1_arena2.json")
+    fr = fl["run"]
+    rss, gpu = fl["samples"]["rss_mib"], fl["samples"]["gpu_mib"]
+    wall = fr["wall_s"]
+
+    def rss_near(t):
+        return min(rss, key=lambda x: abs(x[0] - t))
+
+    end = fr["first_images_at_s"] + fr["flowing_s"] - 4      # before the last images' writes at the end
+    a, b = rss_near(0.4 * wall), rss_near(end)
+    c = rss_near(end - 0.35 * wall)
+    ramp = rss_near(12)
+    gflow = [v for t, v in gpu if t > 10]
+    out.append(f"Case W2 over three minutes ([bench_wholeband_station_gpu1_180s_flat.json](../bench/bench_wholeband_station_gpu1_180s_flat.json), "
+               f"the shipped YAML, {fr['data_s']:.0f} s of data at {fl['commit']}): {fr['rt_flowing']:.3f}x flowing, "
+               f"{fr['kernels_compiled']} kernels compiled while it ran, no solve or search push short of memory "
+               f"(`out_of_memory` {fr['solver']['low']['out_of_memory'] + fr['solver']['high']['out_of_memory']} and "
+               f"{fr['search']['low']['out_of_memory'] + fr['search']['high']['out_of_memory']}), the burst found in "
+               f"both tunings. `nvidia-smi` read {min(gflow):,.0f}-{max(gflow):,.0f} MiB from 10 s on "
+               f"({max(gflow) * 1.048576e-3:.1f} GB at most), up and down as the pool lets go at its limit, with no trend. "
+               f"The resident set rose from {ramp[1]:,.0f} MiB at {ramp[0]:.0f} s to {a[1]:,.0f} MiB at {a[0]:.0f} s of wall "
+               "time (what the ramp holds is not separated here; the records above name the solvers' table parts and "
+               f"the writers' bounded windows), then {b[1] - a[1]:+.0f} MiB over the next {b[0] - a[0]:.0f} s, "
+               f"{b[1] - c[1]:+.0f} MiB of it in the last {b[0] - c[0]:.0f} s before the end's writes, to {b[1]:,.0f} MiB: "
+               "flat once the ramp is over, which a run of hours would confirm. glibc's arenas are not the "
+               f"ramp: `MALLOC_ARENA_MAX=2` ([bench_wholeband_station_gpu1_arena2.json](../bench/bench_wholeband_station_gpu1_arena2.json), "
+               f"i8x1, 60 s of data) grew {ar['run']['rss_mib']['growth']:+.0f} MiB against "
+               f"{load('bench_wholeband_station_gpu1_bytecode_coldcache.json')['run']['rss_mib']['growth']:+.0f} MiB "
+               "in the run before it without.\n")
     # what 1.0x needs: regime B's fused imaging call (16 channels, 64 images) from the H200's bench_dft record
     bd = load("bench_dft_gpu_h200.json")
     ib = [x for x in bd["rows"] if x["regime"] == "x64" and x["precision"] == "i8x2" and x.get("graphs")][0]
@@ -455,7 +484,11 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --device gpu --seconds 60 $S "
       "--json bench_wholeband_station_gpu1_i8x1.json; bf-epic compile pipelines/lwasv_sim_station.yaml; "
       "python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --device gpu --seconds 60 "
-      "--json bench_wholeband_station_gpu1_i8x1_base.json"],
+      "--json bench_wholeband_station_gpu1_i8x1_base.json",
+      "bf-epic compile pipelines/lwasv_sim_station.yaml; python tools/bench/bench_wholeband.py --yaml "
+      "pipelines/lwasv_sim_station.yaml --seconds 180 --json bench_wholeband_station_gpu1_180s_flat.json",
+      "MALLOC_ARENA_MAX=2 python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml --seconds 60 $S "
+      "--json bench_wholeband_station_gpu1_arena2.json"],
      [("bench_wholeband_gpu.json", H100), ("bench_wholeband_gpu_all.json", H200X2),
       ("bench_wholeband_station_cpu.json", CPU2), ("bench_wholeband_station_gpu1.json", H200),
       ("bench_wholeband_station_gpu1_chunks.json", H200), ("bench_wholeband_station_gpu1_release.json", H200),
@@ -467,7 +500,9 @@ page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and s
       ("bench_wholeband_station_gpu1_st6_coldcache.json", H200), ("memory_station_gpu1_tablepart.json", H200),
       ("bench_wholeband_station_gpu1_i8x1.json", H200), ("bench_wholeband_station_gpu1_i8x1_base.json", H200),
       ("memory_station_cpu_small.json", CPU2), ("profile_writers_cpu.json", CPU2),
-      ("profile_writers_cpu_before.json", CPU2), ("calibration_low_diffuse_cpu.json", CPU2)], wb_body)
+      ("profile_writers_cpu_before.json", CPU2), ("calibration_low_diffuse_cpu.json", CPU2),
+      ("bench_wholeband_station_gpu1_180s_flat.json", H200), ("bench_wholeband_station_gpu1_arena2.json", H200)],
+     wb_body)
 
 # ---------------------------------------------------------------- bench_search
 def search_body():
@@ -888,6 +923,40 @@ def cs_body():
                "held; that fits Python compiling the imports' bytecode, which the lent machine forbids writing "
                "beside the sources (`bench_wholeband.py` now compiles it before timing, as an installation has "
                "it; not yet measured).\n")
+    bc, lo = load("bench_wholeband_station_gpu1_bytecode_coldcache.json"), \
+        load("bench_wholeband_station_gpu1_lone_coldcache.json")
+    out.append("### The bytecode warmed, and the last kernels named\n")
+    out.append("`bench_wholeband.py` now compiles what a run imports to bytecode before it times the run, as an "
+               "installation has it, and runs `bf-epic run` with `BF_EPIC_LOG_COMPILES=1`. Each run below is the first "
+               "of a fresh device call, after `bf-epic compile` with the same settings and with CuPy's cache emptied:\n")
+
+    def cold_row(name, d):
+        r = d["run"]
+        return [name, d["commit"], f2(r["runner_started_at_s"]), f2(r["imagers_first_images_at_s"]),
+                f2(r["first_images_at_s"]), r["kernels_from_store"], r["kernels_compiled"], f"{r['rt_flowing']:.3f}"]
+    out.append(table(["run", "commit", "runner started s", "every imager's first images s", "the searches' s",
+                      "kernels from the store", "compiled while running", "flowing x"],
+                     [cold_row("i8x1, 60 s of data", bc), cold_row("i8x2 (as shipped), 60 s of data", lo)]) + "\n")
+    out.append("With the bytecode in place the runner starts ~1.4 s after the process, as the later runs of a call "
+               "did before: the first run's late start was Python compiling its imports. The three kernels the first "
+               "run still compiled, named by the log "
+               "([bench_wholeband_station_gpu1_bytecode_coldcache.json](../bench/bench_wholeband_station_gpu1_bytecode_coldcache.json)):\n")
+    out.append(table(["s after start", "compile s", "thread", "kernel", "from"],
+                     [[f2(c["at_s"], 1), f2(c["seconds"]), c["thread"], f"`{c['kernel']}`", f"`{c['caller']}`"]
+                      for c in bc["run"]["compiled_while_running"]]) + "\n")
+    out.append("All three at one moment on one imager: the ci4 decode, a fused kernel without the grid destination "
+               "(the log takes its name from the first word of its source) and the placement on the grid, which is "
+               "the operator's graph-replayed `image()` in its eager first call. The engine took it for any lone "
+               "integration, and a gain solution or a watch direction's step that falls one image before a gulp's "
+               "end leaves one; whether the compile run met one is chance. A lone integration of a longer gulp now "
+               "goes through the batched call like its neighbours (the graph stays for gulps of one integration; "
+               "tests/test_blocks.py, which failed on the previous commit on the H200). The shipped YAML then "
+               "compiled nothing while it ran "
+               "([bench_wholeband_station_gpu1_lone_coldcache.json](../bench/bench_wholeband_station_gpu1_lone_coldcache.json)), "
+               "nor over 180 s of data "
+               "([bench_wholeband_station_gpu1_180s_flat.json](../bench/bench_wholeband_station_gpu1_180s_flat.json)), "
+               "and every imager had its first whole-band images "
+               f"{lo['run']['imagers_first_images_at_s']:.2f} s after the process started, with CuPy's cache empty.\n")
     return "\n".join(out)
 page("cold_start", "Cold start: a GPU run on an empty kernel cache",
      "`bf-epic run YAML --set device=gpu` with CuPy's kernel cache pointed at an empty folder: each kernel "
@@ -899,9 +968,14 @@ page("cold_start", "Cold start: a GPU run on an empty kernel cache",
       "BF_EPIC_KERNELS=/tmp/store CUPY_CACHE_DIR=$(mktemp -d) python tools/bench/bench_wholeband.py "
       "--yaml pipelines/lwasv_sim_station.yaml --seconds 20 --json cold_start_station_gpu1.json",
       "CUPY_CACHE_DIR=$(mktemp -d) python WRAPPER run pipelines/lwasv_sim_station.yaml --set device=gpu "
-      "--set source.duration_s=20   # WRAPPER: cupy.cuda.compiler's compile functions wrapped to print the stack"],
+      "--set source.duration_s=20   # WRAPPER: cupy.cuda.compiler's compile functions wrapped to print the stack",
+      "BF_EPIC_KERNELS=/tmp/store bf-epic compile pipelines/lwasv_sim_station.yaml; rm -rf ~/.cupy/kernel_cache; "
+      "BF_EPIC_KERNELS=/tmp/store python tools/bench/bench_wholeband.py --yaml pipelines/lwasv_sim_station.yaml "
+      "--seconds 60 --json bench_wholeband_station_gpu1_lone_coldcache.json   # _bytecode_coldcache: with $S of profile_station"],
      [("cold_start_sim.json", H100), ("cold_start_tbf.json", H100), ("cold_start_station_gpu1.json", H200),
-      ("runtime_compiles_station_gpu_h200.json", H200), ("bench_wholeband_station_gpu1_ringmove_coldcache.json", H200)],
+      ("runtime_compiles_station_gpu_h200.json", H200), ("bench_wholeband_station_gpu1_ringmove_coldcache.json", H200),
+      ("bench_wholeband_station_gpu1_bytecode_coldcache.json", H200),
+      ("bench_wholeband_station_gpu1_lone_coldcache.json", H200)],
      cs_body)
 
 # ---------------------------------------------------------------- gpu_check
@@ -957,6 +1031,9 @@ def gc_body():
             f"{'ALL OK' if sm['ok'] else 'FAILED'}.\n\n" + gc_rows(sm) + "\n\n"
             f"And with a ring's growth moving its frames by memcpy (at {rm['commit']}; {rm['note']}): "
             f"{'ALL OK' if rm['ok'] else 'FAILED'}.\n\n" + gc_rows(rm) + "\n")
+    lo = load("gpu_check_lone.json")
+    out += (f"\nWith a lone integration of a longer gulp imaged by the batched call (at {lo['commit']}; "
+            f"{lo['note']}): {'ALL OK' if lo['ok'] else 'FAILED'}.\n\n" + gc_rows(lo) + "\n")
     return out
 page("gpu_check", "The GPU check (`make gpu-check`)",
      "The GPU tests, then every shipped pipeline run by `bf-epic run` on the GPU and on the CPU with their "
@@ -976,11 +1053,13 @@ page("gpu_check", "The GPU check (`make gpu-check`)",
       "python tools/gpu_check.py --skip-tests --json gpu_check_st6.json",
       "python tools/gpu_check.py --skip-tests --only lwasv_sim_wholeband lwasv_sim_station --json gpu_check_onepiece.json",
       "python tools/gpu_check.py --skip-tests --only lwasv_sim_transient lwasv_sim_wholeband --json gpu_check_streams.json",
-      "python tools/gpu_check.py --skip-tests --only lwasv_sim_station --json gpu_check_ringmove.json"],
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_station --json gpu_check_ringmove.json",
+      "python tools/gpu_check.py --skip-tests --only lwasv_sim_station lwasv_sim_wholeband lwasv_sim_transient "
+      "--json gpu_check_lone.json"],
      [("gpu_check.json", H200), ("gpu_check_flagging.json", H200), ("gpu_check_watch.json", H200),
       ("gpu_check_wholeband.json", H200), ("gpu_check_history.json", H200), ("gpu_check_imports.json", H200),
       ("gpu_check_station_imports.json", H200), ("gpu_check_st6.json", H200), ("gpu_check_onepiece.json", H200),
-      ("gpu_check_streams.json", H200), ("gpu_check_ringmove.json", H200)],
+      ("gpu_check_streams.json", H200), ("gpu_check_ringmove.json", H200), ("gpu_check_lone.json", H200)],
      gc_body, script="tools/gpu_check.py")
 
 # ---------------------------------------------------------------- moff_widefield
