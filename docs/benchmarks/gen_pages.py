@@ -1619,7 +1619,28 @@ def ps_body():
             "runs before it in one call; the shipped mode at 0.78x twice, against 0.75x in the last record "
             "([bench_wholeband_station_gpu1_dirs_i8x2.json](../bench/bench_wholeband_station_gpu1_dirs_i8x2.json)). "
             "These runs were not interleaved with runs of the previous commit, so the gain is within reach of the "
-            "spread between device calls; the profile has not been taken again.", "",
+            "spread between device calls; the profile has not been taken again.", ""]
+    nb, one = load("profile_station_gpu_h200_i8x2_busy.json"), load("bench_wholeband_station_gpu1_one_tuning.json")
+    stages = list(dict.fromkeys(list(k2["stages"]) + list(nb["stages"])))
+    out += ["## The shipped mode once every block keeps its stream", "",
+            f"The same trace of the shipped YAML (i8x2) at {nb['commit']}, against the record above (before the "
+            "streams were fixed), GPU seconds per second of the traced window:", "",
+            table(["stage", f"i8x2 at {k2.get('commit') or 'the record above'}", f"i8x2 at {nb['commit']}"],
+                  [[st, f2(k2["stages"].get(st, 0.0), 4), f2(nb["stages"].get(st, 0.0), 4)] for st in stages]
+                  + [["**all kernels and copies**", f2(k2["kernel_s_per_s"], 3), f2(nb["kernel_s_per_s"], 3)],
+                     ["**GPU busy**", f"{100 * k2['busy']:.1f}%", f"{100 * nb['busy']:.1f}%"]]), "",
+            f"The GPU is now busy {100 * nb['busy']:.1f}% of the window: the shipped mode waits on the GPU's work "
+            "alone, not on the host. The stages overlap on their streams (their sum exceeds 1 s per s), and each "
+            "runs slower beside the others: one fused call took "
+            f"{next(r for r in nb['kernels'] if r['name'] == 'bf_fused_power')['mean_us'] / 1e3:.2f} ms against "
+            f"{next(r for r in k2['kernels'] if r['name'] == 'bf_fused_power')['mean_us'] / 1e3:.2f} ms. At the "
+            "0.79-0.81x of the latest runs ([bench_wholeband](bench_wholeband.md)) 1.0x needs about a fifth less GPU "
+            "work: the fused kernel holds about two thirds of the busy time and the tree about a sixth. One tuning "
+            f"alone (the YAML with `tunings=null`: the high tuning, its solver and watchlist; "
+            f"[bench_wholeband_station_gpu1_one_tuning.json](../bench/bench_wholeband_station_gpu1_one_tuning.json)) "
+            f"flowed at {one['run']['rt_flowing']:.3f}x (the goal is 2.2x), its burst found "
+            + "; ".join(f"{b['dm_off_trials']:+.2f} trials and {b['offset_cells']:.2f} cells off"
+                        for b in one['run']['bursts'] if b['found']) + ".", "",
             "## The one-piece kernel under Nsight Compute", ""]
     n = load("ncu_fused_i8x1_gpu_h200.json")["kernels"]
     k_1, k_2 = n["bf_fused_power (i8x1)"], n["bf_fused_power (i8x2)"]
@@ -1648,6 +1669,7 @@ page("profile_station", "Where a running station's time goes: the GPU's kernels 
       "ncu --profile-from-start off --set full --import-source no -o fused_prof python3 tools/bench/bench_gauss.py "
       "--profile --nref 20"],
      [("profile_station_gpu_h200_i8x1.json", H200), ("profile_station_gpu_h200_i8x2.json", H200),
+      ("profile_station_gpu_h200_i8x2_busy.json", H200), ("bench_wholeband_station_gpu1_one_tuning.json", H200),
       ("profile_station_python_gpu_h200_i8x1.json", H200), ("bench_wholeband_station_gpu1_dirs_before.json", H200),
       ("bench_wholeband_station_gpu1_dirs.json", H200), ("bench_wholeband_station_gpu1_dirs_i8x2.json", H200),
       ("bench_wholeband_station_gpu1_gulp1024_30s.json", H200), ("bench_wholeband_station_gpu1_gulp2048_30s.json", H200),
