@@ -228,6 +228,24 @@ def test_tracking_pixels_move_the_operator(scene):
     assert got[3, 0, 0, 0] < 0.9                                  # the pixel left the source
 
 
+def stepping_dirs(step):
+    """Two watch directions that move every ``step`` frames: tag -> [[l, m], [l, m]]."""
+    def dirs(tag):
+        k = (tag // TPF) // step
+        return [[0.31 - 0.05 * k, -0.22], [-0.4, 0.1 + 0.02 * k]]
+    return dirs
+
+
+def assert_watch_images(got, s, X, dirs, bound):
+    """Each 16-frame Stokes I watch image (n, nchan, 1, 2) against the float64 definition at that image's
+    directions, to ``bound`` of its peak (the scene's flagged inputs left out)."""
+    w = np.where(s["flags"], 0.0, 1.0)[None]
+    for i in range(len(got)):
+        truth = brute_image(X[16 * i:16 * (i + 1)], s["xyz"], s["freq"], np.array(dirs(16 * i * TPF)), ("I",),
+                            weights=w)
+        assert np.abs(got[i] - truth).max() < bound * np.abs(truth).max(), i
+
+
 @pytest.mark.parametrize("precision", ["fp32", "i8x2"])
 def test_watch_directions_ride_beside_the_grid_on_a_second_ring(xp, scene, precision):
     """DFTImagerBlock(watch=): two directions imaged with a grid's pixels by one operator, moved each 32
@@ -240,11 +258,7 @@ def test_watch_directions_ride_beside_the_grid_on_a_second_ring(xp, scene, preci
         pytest.skip("the fused integer modes run on a GPU")
     gpu = xp.__name__ == "cupy"
     grid = imaging.lm_grid(12)
-
-    def dirs(tag):
-        k = (tag // TPF) // 32
-        return [[0.31 - 0.05 * k, -0.22], [-0.4, 0.1 + 0.02 * k]]
-
+    dirs = stepping_dirs(32)
     X = s["ints"][:128]
     hdr = efield_header("w", 0, s["freq"], DT, station(s, with_cable=False), dtype="ci4")
 
@@ -267,12 +281,7 @@ def test_watch_directions_ride_beside_the_grid_on_a_second_ring(xp, scene, preci
     got = wsink.result(0)
     assert got.shape == (8, 3, 1, 2)
     assert img.img_stats["operator_builds"] == 1 and img.img_stats["operator_moves"] == 3
-    w = np.where(s["flags"], 0.0, 1.0)[None]
-    bound = {"fp32": 1e-5, "i8x2": 4e-5}[precision]
-    for i in range(8):
-        truth = brute_image(X[16 * i:16 * (i + 1)], s["xyz"], s["freq"], np.array(dirs(16 * i * TPF)), ("I",),
-                            weights=w)
-        assert np.abs(got[i] - truth).max() < bound * np.abs(truth).max(), i
+    assert_watch_images(got, s, X, dirs, {"fp32": 1e-5, "i8x2": 4e-5}[precision])
     whdr = wsink.headers[0]
     assert whdr["_tensor"]["labels"] == ["time", "freq", "pol", "pixel"] and whdr["pixels"]["kind"] == "track"
     assert whdr["_tensor"]["scales"][0] == sink.headers[0]["_tensor"]["scales"][0]
@@ -296,11 +305,7 @@ def test_a_lone_integration_of_a_longer_gulp_is_imaged_by_the_batched_call(scene
     from bf_epic_blocks.imaging.dft import DFTOperator
     s = scene
     grid = imaging.lm_grid(12)
-
-    def dirs(tag):
-        k = (tag // TPF) // 48
-        return [[0.31 - 0.05 * k, -0.22], [-0.4, 0.1 + 0.02 * k]]
-
+    dirs = stepping_dirs(48)
     X = s["ints"][:192]
     hdr = efield_header("lone", 0, s["freq"], DT, station(s, with_cable=False), dtype="ci4")
     calls = []
@@ -318,11 +323,7 @@ def test_a_lone_integration_of_a_longer_gulp_is_imaged_by_the_batched_call(scene
     assert img.img_stats["operator_moves"] == 3 and calls == []
     got = wsink.result(0)
     assert got.shape == (12, 3, 1, 2)
-    w = np.where(s["flags"], 0.0, 1.0)[None]
-    for i in range(12):
-        truth = brute_image(X[16 * i:16 * (i + 1)], s["xyz"], s["freq"], np.array(dirs(16 * i * TPF)), ("I",),
-                            weights=w)
-        assert np.abs(got[i] - truth).max() < 4e-5 * np.abs(truth).max(), i
+    assert_watch_images(got, s, X, dirs, 4e-5)
 
 
 def test_tracking_rebuilds_log_the_plan_once(scene, caplog):
