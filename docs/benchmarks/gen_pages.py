@@ -417,31 +417,22 @@ def wb_body():
                f"i8x1, 60 s of data) grew {ar['run']['rss_mib']['growth']:+.0f} MiB against "
                f"{load('bench_wholeband_station_gpu1_bytecode_coldcache.json')['run']['rss_mib']['growth']:+.0f} MiB "
                "in the run before it without.\n")
-    # what 1.0x needs: regime B's fused imaging call (16 channels, 64 images) from the H200's bench_dft record
-    bd = load("bench_dft_gpu_h200.json")
-    ib = [x for x in bd["rows"] if x["regime"] == "x64" and x["precision"] == "i8x2" and x.get("graphs")][0]
-    calls = (784 / bd["case"]["nchan"]) * (1 / (16 * 40e-6)) / 64          # regime-B calls per second of data
-    imaging = 2 * calls * ib["gulp_s"]                                       # both tunings, s per s of data
-    total = 1 / r0["rt_flowing"]
-    peak = 1979e12                                                           # H100/H200 dense int8 ops/s
-    eff = 2 * ib["cmacs"] * 8 / ib["gulp_s"] / peak        # 2 pieces x 4 real products, 2 ops a multiply-add
-    budget = 1.0 - (total - imaging)
-    per_call = budget / (2 * calls)
-    out.append("What 1.0x needs (a prediction from the records, not a measurement). Regime B's fused call (16 "
-               f"channels, 64 images, i8x2) takes {ib['gulp_s'] * 1e3:.3f} ms on the H200 "
-               f"([bench_dft_gpu_h200.json](../bench/bench_dft_gpu_h200.json)): {calls:.0f} calls per second of data a "
-               f"tuning, {imaging:.2f} s per second of data for both tunings' imaging alone. At {r0['rt_flowing']:.3f}x "
-               f"the station spends {total:.2f} s per second of data, so everything else (searches, solvers, "
-               f"integrators, watch, copies) takes ~{total - imaging:.2f} s. For 1.0x with the rest unchanged the "
-               f"imaging must fit in {budget:.2f} s: {per_call * 1e3:.3f} ms a call. Today's kernel does "
-               f"{eff * 100:.0f}% of the card's dense int8 peak (1,979 Tops, counting {ib['cmacs']:.3g} complex MACs a "
-               f"call at 8 int8 multiply-adds each, 2 ops a multiply-add); four real products a complex MAC would need "
-               f"{eff * ib['gulp_s'] / per_call * 100:.0f}% of the peak, three (Gauss's form: Re = sum Re D (Re x + Im x) - "
-               f"sum Im x (Re D + Im D), Im = sum Re D (Re x + Im x) + sum Re x (Im D - Re D)) {0.75 * eff * ib['gulp_s'] / per_call * 100:.0f}%. So case W2 at 1.0x on one card "
-               "needs the three-product integer kernel near that efficiency (its error, predicted: "
-               "[predict_gauss](predict_gauss.md)), or less of everything else (the tree's "
-               "levels fused, the search statistics), or both; regime B's 0.30 ms alone would give "
-               f"~{1 / (total - imaging + 2 * calls * 0.30e-3):.2f}x.\n")
+    # what 1.0x needs: the shipped mode is GPU-bound (profile_station's trace at the current code), so the GPU's
+    # work per second of data must fall to 1 s; the fused kernel's share of it gives how fast that kernel must get
+    pb = load("profile_station_gpu_h200_i8x2_busy.json")
+    work = 1 / fr["rt_flowing"]                                  # GPU s per s of data, the GPU always busy
+    share = pb["stages"]["imaging: fused integer kernel"] / pb["kernel_s_per_s"]
+    need = 1 - (work - 1) / (share * work)                       # the fused kernel's time, as a fraction of today's
+    eff = 0.65                                                    # its share of the dense int8 rate (bench_gauss)
+    out.append("What 1.0x needs (from the records, not a measurement). The shipped mode keeps the GPU busy "
+               f"{100 * pb['busy']:.1f}% of a traced window ([profile_station](profile_station.md)), so at "
+               f"{fr['rt_flowing']:.3f}x the GPU works {work:.2f} s per second of data, and the fused integer kernel is "
+               f"{100 * share:.0f}% of that work. 1.0x with the rest unchanged needs that kernel at {need:.2f}x its "
+               f"time: with four real products a complex multiply-add, {100 * eff / need:.0f}% of the card's dense "
+               f"int8 rate (it does ~{100 * eff:.0f}%, [bench_gauss](bench_gauss.md)); with three (Gauss's form, "
+               f"0.77x the MMAs) {100 * eff * 0.77 / need:.0f}%, where Gauss's kernel today takes the four-product "
+               "kernel's time. Or less of everything else: the tree is a sixth of the work "
+               "(design/fused-kernels.md and design/search-tree.md list the shapes not yet tried).\n")
     return "\n".join(out)
 page("bench_wholeband", "The whole band: 784 channels imaged every 0.64 ms and searched",
      "`bf-epic run pipelines/lwasv_sim_wholeband.yaml` (one LWA-SV tuning: 784 channels at 74.0–93.6 MHz, a "
