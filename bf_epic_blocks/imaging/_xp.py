@@ -38,7 +38,7 @@ def device_kind(device) -> str:
     real array namespace (the ``numpy`` or ``cupy`` module). Needs no CuPy and no GPU, so a plan can be
     made for a GPU on a machine without one. Anything else is an error naming what was given: a
     stand-in object cannot pass for a namespace (a class's ``__name__`` is always its own class name,
-    which once made every GPU plan a CPU plan).
+    so a stand-in would make every GPU plan a CPU plan).
     """
     if isinstance(device, str):
         kind = device.strip().lower().split(":", 1)[0]

@@ -187,7 +187,7 @@ class StreamingFDMT:
 
     #: working memory of one pass when ``pixel_chunk`` is not given (bytes): room for a whole band's
     #: all-sky grid in one pass of a 64-image push, so that the search reads the tree's rows where they are
-    #: (:class:`HalfRows`); fewer, larger passes also run the tree a little faster
+    #: (:class:`HalfRows`); fewer, larger passes also launch fewer kernels
     WORK_BYTES = 6 << 30
     #: float16 storage: a whole-band sum of the largest value is scaled to about this ...
     FP16_HEAD = 2.0 ** 8
@@ -331,7 +331,7 @@ class StreamingFDMT:
 
     def _chunk(self, B, gpu=None):
         """Pixels per pass for a block of ``B`` images: ``pixel_chunk``, or as many as ``WORK_BYTES``
-        holds, evened out over the passes and rounded up to a warp's 32 (a 321-pixel chunk ran its
+        holds, evened out over the passes and rounded up to a warp's 32 (a 321-pixel chunk would run its
         second 256-thread block a quarter full). gpu: the GPU's layout (default: where the tree is)."""
         if self.pixel_chunk:                        # (float16: a whole number of HALF_VEC pixels)
             return min(self.npix, -(-self.pixel_chunk // self.pad) * self.pad)
