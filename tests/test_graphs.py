@@ -199,3 +199,29 @@ def test_packed_input_decoded_inside_the_graph_and_static_output():
     assert outs[1] is outs[2] is outs[3]            # the static output: one array, reused
     with pytest.raises(TypeError, match="decode must give"):
         g_op.image(packed, ("I",), decode=lambda b: b)
+
+
+def test_copy_rows_copies_rows_at_a_pitch_and_declines_the_rest():
+    """_xp.copy_rows: a channel slice of a gulp (rows of contiguous bytes at a pitch) into a contiguous array
+    and back into a strided destination, each one 2-D memcpy equal to NumPy's copy; a view whose rows are
+    not contiguous, or another shape or dtype, is declined with nothing written."""
+    import cupy as cp
+    from bf_epic_blocks.imaging._xp import copy_rows
+    rng = np.random.default_rng(7)
+    g = cp.asarray(rng.integers(-8, 8, size=(6, 5, 4, 2), dtype=np.int8))
+    stream = cp.cuda.get_current_stream()
+    dst = cp.zeros((6, 2, 4, 2), cp.int8)
+    assert copy_rows(dst, g[:, 1:3], stream)
+    back = cp.zeros_like(g)
+    assert copy_rows(back[:, 3:5], dst, stream)
+    stream.synchronize()
+    assert np.array_equal(dst.get(), g[:, 1:3].get())
+    assert np.array_equal(back.get()[:, 3:5], g[:, 1:3].get()) and not back.get()[:, :3].any()
+    one = cp.zeros((1, 2, 4, 2), cp.int8)
+    assert copy_rows(one, g[2:3, 1:3], stream)
+    assert np.array_equal(one.get(), g[2:3, 1:3].get())
+    keep = cp.full((6, 2, 2, 4), 9, cp.int8)
+    assert not copy_rows(keep, g[:, 1:3].transpose(0, 1, 3, 2), stream)            # rows not contiguous
+    assert not copy_rows(dst, g[:, 1:3].astype(cp.int16), stream)                   # another dtype
+    assert not copy_rows(dst[:, :1], g[:, 1:3], stream)                             # another shape
+    assert (keep == 9).all()

@@ -112,6 +112,37 @@ def to_numpy(a):
     return np.asarray(a)
 
 
+def _rows_packed(a) -> bool:
+    """Whether each row (index along the first axis) of ``a`` is one run of contiguous bytes."""
+    expected = a.itemsize
+    for d in range(a.ndim - 1, 0, -1):
+        if a.shape[d] > 1 and a.strides[d] != expected:
+            return False
+        expected *= a.shape[d]
+    return True
+
+
+def copy_rows(dst, src, stream) -> bool:
+    """``dst[...] = src`` as one 2-D memcpy on ``stream`` where both are CuPy arrays of one shape, dtype and
+    device whose rows (first axis) are each contiguous bytes at a fixed pitch: a whole gulp, a channel slice
+    of one, a ring's frames within each ringlet. CuPy's copy of such a view is an indexing kernel, several
+    times slower, and compiled for the view's rank and dtype at its first use. Returns False, having copied
+    nothing, for any other pair (the caller copies another way)."""
+    if (src.ndim < 2 or src.shape != dst.shape or src.dtype != dst.dtype or src.device.id != dst.device.id
+            or src.shape[0] == 0):
+        return False
+    row = src.itemsize * int(np.prod(src.shape[1:], dtype=np.int64))
+    if row == 0 or not (_rows_packed(src) and _rows_packed(dst)):
+        return False
+    # a single row's pitch is any stride (CuPy's stride of a length-1 axis need not be the row's length)
+    spitch, dpitch = (row, row) if src.shape[0] == 1 else (src.strides[0], dst.strides[0])
+    if spitch < row or dpitch < row:
+        return False
+    _cupy.cuda.runtime.memcpy2DAsync(dst.data.ptr, dpitch, src.data.ptr, spitch, row, src.shape[0],
+                                     _cupy.cuda.runtime.memcpyDeviceToDevice, stream.ptr)
+    return True
+
+
 class Lease:
     """Held by whatever still reads a :class:`Workspace`'s array: while one is alive, the next
     :meth:`Workspace.take` makes a new array rather than overwrite it."""

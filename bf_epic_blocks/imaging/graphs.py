@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import logging
 
+from ._xp import copy_rows
+
 log = logging.getLogger(__name__)
 
 __all__ = ["GraphCache"]
@@ -65,22 +67,9 @@ class _Captured:
 
 
 def _copy_in(dst, x, stream):
-    """dst[...] = x on ``stream``; one 2-D memcpy when x is rows of contiguous bytes at a fixed pitch
-    (a whole gulp, or a channel slice of one as several GPUs take it) -- CuPy's copy of a strided
-    int8 view is an indexing kernel several times slower."""
-    import cupy as cp
-    row = x[0].nbytes if x.ndim >= 2 and x.shape[0] > 0 else 0
-    expected, inner = x.itemsize, True
-    for d in range(x.ndim - 1, 0, -1):
-        if x.shape[d] > 1 and x.strides[d] != expected:
-            inner = False
-            break
-        expected *= x.shape[d]
-    if (inner and row and x.strides[0] >= row and x.dtype == dst.dtype and x.shape == dst.shape
-            and x.device.id == dst.device.id):
-        cp.cuda.runtime.memcpy2DAsync(dst.data.ptr, row, x.data.ptr, x.strides[0], row, x.shape[0],
-                                      cp.cuda.runtime.memcpyDeviceToDevice, stream.ptr)
-    else:
+    """dst[...] = x on ``stream``: one 2-D memcpy where x is rows of contiguous bytes at a fixed pitch (a
+    whole gulp, or a channel slice of one as several GPUs take it; :func:`._xp.copy_rows`), else CuPy's copy."""
+    if not copy_rows(dst, x, stream):
         dst[...] = x
 
 

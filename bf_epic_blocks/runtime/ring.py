@@ -48,7 +48,7 @@ from numbers import Integral
 
 import numpy as np
 
-from ..imaging._xp import pinned_empty
+from ..imaging._xp import copy_rows, pinned_empty
 from .dtypes import SPACES, storage_dtype, itemsize_bytes
 from .header import plain_copy, validate_header, split_shape
 
@@ -88,18 +88,12 @@ def _check_nframe(n, what):
     return int(n)
 
 
-def _memcpy_frames(dst, d0, src, s0, n, nr, stream):
-    """dst's frames [d0, d0 + n) = src's frames [s0, s0 + n) for C-contiguous CuPy arrays of one dtype whose
-    frame axis is ``nr`` (the ringlet axes before it, the frame's after): one 2-D memcpy on ``stream``, a row
-    per ringlet (the frames' bytes are contiguous within it)."""
-    import cupy as cp
-    if not (dst.flags.c_contiguous and src.flags.c_contiguous and dst.dtype == src.dtype):
-        raise ValueError("ring storage must be C-contiguous and of one dtype to be moved")
-    frame = dst.itemsize * int(np.prod(dst.shape[nr + 1:], dtype=np.int64))
-    rows = int(np.prod(dst.shape[:nr], dtype=np.int64))
-    cp.cuda.runtime.memcpy2DAsync(dst.data.ptr + d0 * frame, dst.shape[nr] * frame,
-                                  src.data.ptr + s0 * frame, src.shape[nr] * frame,
-                                  n * frame, rows, cp.cuda.runtime.memcpyDeviceToDevice, stream.ptr)
+def _frame_rows(buf, nr, first, n):
+    """Frames [first, first + n) of C-contiguous storage ``buf`` whose frame axis is ``nr``: a 2-D view,
+    one row per ringlet (the ringlet axes before the frame axis), each row those frames' bytes."""
+    rows = int(np.prod(buf.shape[:nr], dtype=np.int64))
+    per = int(np.prod(buf.shape[nr + 1:], dtype=np.int64))
+    return buf.reshape(rows, -1)[:, first * per:(first + n) * per]
 
 
 class _Seq:
@@ -328,7 +322,10 @@ class Ring:
             a, b = i % ocap, i % new
             n = min(seq.nframe - i, ocap - a, new - b)
             if self.on_device:
-                _memcpy_frames(seq.buf, b, obuf, a, n, seq.nr, self._stream())
+                if not (seq.buf.flags.c_contiguous and obuf.flags.c_contiguous and
+                        copy_rows(_frame_rows(seq.buf, seq.nr, b, n), _frame_rows(obuf, seq.nr, a, n),
+                                  self._stream())):
+                    raise ValueError("ring storage must be C-contiguous and of one dtype to be moved")
             else:
                 seq.buf[seq.at(b, b + n)] = obuf[seq.at(a, a + n)]
             i += n
