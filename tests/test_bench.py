@@ -421,3 +421,20 @@ def test_warm_bytecode_compiles_what_a_run_imports_where_it_may_not_be_written_b
     got = benchlib.warm_bytecode("cpu")
     assert got["prefix"] == str(tmp_path / "pyc") and got["seconds"] > 0
     assert any("yaml" in str(p) for p in (tmp_path / "pyc").rglob("*.pyc"))
+
+
+def test_clock_fused_reads_the_samples_taken_while_a_mode_ran_and_names_the_reasons():
+    """tools/bench/clock_fused.py: only nvidia-smi's samples inside a mode's span count, malformed lines
+    (a driver message, a missing field) are passed over, and the reason bits decode to their names."""
+    import clock_fused as cf
+    lines = ["2026/12/02 20:15:30.151, 1980, 1980, 89.86, 700.00, 0x0000000000000000",
+             "2026/12/02 20:15:32.724, 1755, 1980, 704.40, 700.00, 0x0000000000000004",
+             "Failed to initialize NVML: Unknown Error",
+             "2026/12/02 20:15:33.479, 1680, 1980, [N/A], 700.00, 0x0000000000000004",
+             "2026/12/02 20:15:33.731, 1770, 1980, 693.65, 700.00, 0x0000000000000005",
+             "2026/12/02 20:15:40.540, 1980, 1980, 197.26, 700.00, 0x0000000000000000"]
+    t = lambda s: time.mktime(time.strptime(s, "%Y/%m/%d %H:%M:%S"))   # noqa: E731
+    got = cf.parse(lines, t("2026/12/02 20:15:32"), t("2026/12/02 20:15:34"))
+    assert [v[0] for v in got] == [1755.0, 1770.0] and got[0][2] == 704.4 and got[1][4] == 5
+    bits = got[0][4] | got[1][4]
+    assert [n for b, n in cf.REASONS.items() if bits & b] == ["idle", "power cap (software)"]

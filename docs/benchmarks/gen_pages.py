@@ -676,7 +676,7 @@ def bg_body():
             "and the epilogue's values exceed a thread's 232) and doubles the time. Neither changed the "
             "time otherwise; both were removed. The run-to-run spread of one kernel's time on this machine is "
             "about 10% (the four-product kernel: 0.342-0.382 ms over three runs), so only rows of one run are "
-            "compared.\n\n" + one_piece_section(rows_of, head) + ncu_section())
+            "compared.\n\n" + one_piece_section(rows_of, head) + ncu_section() + tried_section(rows_of, head))
 
 
 def one_piece_section(rows_of, head):
@@ -734,6 +734,52 @@ def ncu_section():
             "registers (the OVERLAP shape above spilled).\n")
 
 
+def tried_section(rows_of, head):
+    pt = load("bench_gauss_persistent_gpu_h200.json")
+    nd = load("bench_gauss_nodrain_gpu_h200.json")
+    lf = load("bench_gauss_lowfirst_gpu_h200.json")
+    n = load("ncu_fused_persistent_gpu_h200.json")["kernels"]
+    f, q = n["i8x2 shipped"], n["i8x2 persistent (PT=1, CH=4)"]
+    t = {r["row"]: r["gulp_s"] for r in pt["rows"]}
+    u = {r["row"]: r["gulp_s"] for r in nd["rows"]}
+    v = {r["row"]: r["gulp_s"] for r in lf["rows"]}
+    cyc = lambda k: f"{k['Elapsed Cycles (cycle)']:,.0f}"           # noqa: E731
+    ins = lambda k: f"{k['Executed Instructions (inst)'] / 1e6:.1f}M"  # noqa: E731
+    keep = lambda r: r["row"].startswith(("naive", "floor-i8x", "i8x1", "i8x2"))   # noqa: E731
+    return ("\n### Three shapes tried for the two-piece kernel, and what they show\n\n"
+            "Each built on the shipped kernel, timed beside it in one run, and not kept.\n\n"
+            "**A persistent kernel** ([bench_gauss_persistent_gpu_h200.json](../bench/bench_gauss_persistent_gpu_h200.json)): "
+            "one block a multiprocessor, each taking units of `CH` row tiles (one channel, one column block) in "
+            "turn, B in two buffers brought in while the last unit runs, the two accumulator sets alternating over "
+            "all the block's tiles, so that no block pays a start (B into shared memory) or an unaccompanied last "
+            "epilogue more than once. Its images are the shipped kernel's bit for bit.\n\n"
+            + table(head, rows_of(pt, keep)) + "\n\n"
+            f"It is slower at every unit size ({t['i8x2 ST=6 MT=4 PT=1 CH=4'] / t['i8x2 kernel']:.2f}x at `CH=4`). "
+            "Under Nsight Compute its first build executed "
+            f"{ins(q)} instructions against {ins(f)} and took {cyc(q)} cycles against {cyc(f)} "
+            "([ncu_fused_persistent_gpu_h200.json](../bench/ncu_fused_persistent_gpu_h200.json)): with tiles in a "
+            "run-time loop, each stage's slot, phase and shared-memory descriptors are computed as it runs, where "
+            "the unrolled kernel has them as constants, and ptxas serialises every `wgmma` of a loop that carries "
+            "an MMA in flight round it, so the loop drains every two tiles. Computing the descriptors by "
+            "additions to their low words brought it from 0.475 to the times above, still short of the "
+            "shipped kernel. So a block's start and end are not where the time goes.\n\n"
+            "**No wait between the pieces** ([bench_gauss_nodrain_gpu_h200.json](../bench/bench_gauss_nodrain_gpu_h200.json)): "
+            "the two-piece kernel waits for all its first piece's MMAs before multiplying the sums by the base. "
+            "Removing the wait (and the multiplication, so the images are wrong: error 1.0) times what it costs: "
+            f"{u['i8x2 ST=6 MT=4 NODRAIN=1'] * 1e3:.3f} against {u['i8x2 kernel'] * 1e3:.3f} ms, "
+            f"{1 - u['i8x2 ST=6 MT=4 NODRAIN=1'] / u['i8x2 kernel']:.0%} of the kernel.\n\n"
+            "**The lowest piece first** ([bench_gauss_lowfirst_gpu_h200.json](../bench/bench_gauss_lowfirst_gpu_h200.json)): "
+            "a third accumulator set takes the lowest piece, the other pieces go to a shared set, and each tile's "
+            "sums are made once the next tile's first stage is issued, so that no piece waits on the one before. "
+            "Its images equal the int64 emulation, but three sets of 64 accumulators exceed the 168 registers a "
+            "thread that 384 threads a block leave; ptxas spills and serialises the MMAs: "
+            f"{v['i8x2 kernel'] * 1e3:.3f} ms for i8x2 ({v['i8x2 kernel'] / u['i8x2 kernel']:.1f}x). The wait it "
+            "removes is worth the few percent above in any case.\n\n"
+            "**The clock the kernel runs at** ([clock_fused](clock_fused.md)): called back to back, the kernel "
+            "holds the card at its 700 W power limit and the SM clock at about 1.75 GHz of 1.98, so the peak "
+            "int8 rate a floor is computed from is about 11% above what this card reaches on this load.\n")
+
+
 page("bench_gauss", "Three integer products a complex multiply-add: the kernel, measured",
      "Case P (256 LWA-SV-like antennas, the 64x64 grid's 3,205 pixels, 1,024 samples of a 4-bit sky, 16 channels "
      "x 2 pols), one image per 16 samples, on the GPU. Gauss's form of the fused integer kernel "
@@ -747,7 +793,41 @@ page("bench_gauss", "Three integer products a complex multiply-add: the kernel, 
       "ncu --profile-from-start off --set full --import-source no -o fused_prof python tools/bench/bench_gauss.py "
       "--profile --nref 20; ncu --import fused_prof.ncu-rep --page details"],
      [("bench_gauss_gpu_h200.json", H200), ("bench_gauss_shapes_gpu_h200.json", H200),
-      ("bench_gauss_i8x1_gpu_h200.json", H200), ("ncu_fused_gpu_h200.json", H200)], bg_body)
+      ("bench_gauss_i8x1_gpu_h200.json", H200), ("ncu_fused_gpu_h200.json", H200),
+      ("bench_gauss_persistent_gpu_h200.json", H200), ("ncu_fused_persistent_gpu_h200.json", H200),
+      ("bench_gauss_nodrain_gpu_h200.json", H200), ("bench_gauss_lowfirst_gpu_h200.json", H200)], bg_body)
+
+
+# ---------------------------------------------------------------- clock_fused
+def clock_body():
+    d = load("clock_fused_gpu_h200.json")
+    rows = [[r["mode"], ms(r["ms"] * 1e-3), f"{r['int8_macs']:.3g}", f2(r["of_peak_at_max_clock"]),
+             f2(r["of_peak_at_median_clock"]),
+             f"{r['sm_mhz_median']:.0f} ({r['sm_mhz_min']:.0f}–{r['sm_mhz_max']:.0f}) of {r['sm_mhz_limit']:.0f}",
+             f"{r['power_w_median']:.0f} (max {r['power_w_max']:.0f}) of {r['power_limit_w']:.0f}",
+             ", ".join(r["reasons"])] for r in d["rows"]]
+    r2 = {r["mode"]: r for r in d["rows"]}["i8x2"]
+    nc = load("ncu_fused_persistent_gpu_h200.json")["kernels"]["i8x2 shipped"]
+    return (table(["mode", "ms a call", "int8 MACs", "of peak at the max clock", "of peak at the clock it ran at",
+                   "SM clock MHz, median (range)", "power W", "clock held down by"], rows) + "\n\n"
+            f"Both modes run at the card's power limit. The two-piece kernel holds the SM clock at "
+            f"{r2['sm_mhz_median']:.0f} MHz, {r2['sm_mhz_median'] / r2['sm_mhz_limit']:.0%} of the maximum, so the "
+            f"int8 peak it can approach is {r2['sm_mhz_median'] / r2['sm_mhz_limit']:.0%} of the datasheet's, and it "
+            f"does {r2['of_peak_at_median_clock']:.0%} of that. Under Nsight Compute, with the clock held at "
+            f"{nc['SM Frequency (Ghz)']:.2f} GHz, the same kernel takes {nc['Elapsed Cycles (cycle)']:,.0f} cycles with "
+            f"the tensor pipe busy {nc['Tensor pipe (% of elapsed cycles)']:.0f}% of them "
+            "([ncu_fused_persistent_gpu_h200.json](../bench/ncu_fused_persistent_gpu_h200.json)); here, at "
+            f"{r2['sm_mhz_median']:.0f} MHz, a call takes {r2['ms'] * 1e-3 * r2['sm_mhz_median'] * 1e6:,.0f} cycles. "
+            "The same work costs more cycles at the higher clock, which points at latencies that do not scale with "
+            "the SM clock (L2 and the bulk copies), not at the MMAs' issue.\n")
+page("clock_fused", "The fused kernel's clock and power",
+     "The shipped fused integer kernel (`fused.fused_power`, case P, regime B: 16 channels x 2 pols, 1,024 samples, "
+     "64x64 grid) of each mode called back to back for 8 s, with `nvidia-smi` sampling the SM clock, the power "
+     "drawn and the reasons the clock is held down every 250 ms (the first second of each mode left out). The "
+     "fraction of peak is the int8 MACs a second over 4,096 MACs a multiprocessor-cycle at the maximum clock, "
+     "and at the median clock sampled while the mode ran.",
+     ["python tools/bench/clock_fused.py --seconds 8 --json clock_fused_gpu_h200.json"],
+     [("clock_fused_gpu_h200.json", H200), ("ncu_fused_persistent_gpu_h200.json", H200)], clock_body)
 
 # ---------------------------------------------------------------- bench_tbx_reader
 def tbx_body():
@@ -1677,6 +1757,10 @@ def date_of(f):
 
 
 SUMMARY = {  # benchmark -> (what it measures, latest result, machine), for the index
+    'clock_fused': ('the fused kernel back to back: SM clock, power, fraction of the int8 peak',
+                    'i8x2 at the 700 W limit, SM clock 1,755 of 1,980 MHz: 0.57 of the peak at the maximum clock, '
+                    '0.65 at its own',
+                    'one H200, 16 cores'),
     'bench_dft': ('time and error of every route x precision, case P',
                  '0.41 ms a gulp at 2e-5 (fp16, 6.0x naive CuPy); 64 images a gulp in 0.42 ms at 3e-6 (i8x2, 13.9x); '
                  'on an H200 0.43 ms, cuBLAS int8 alone 0.53 ms',

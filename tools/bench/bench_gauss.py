@@ -57,6 +57,8 @@ def profile(cp, a, xyzd, fd, lmd, Qd, nant, npix):
              lambda: gauss.gauss_power(Aq, osc, Bg, T, 2, flag, npix),
              lambda: fused.fused_power(f1.Aq, f1.osc, f1._layout(Qd, [0, 1], False), T, 2, f1.flag, f1.npix,
                                        f1.config)]
+    calls += [lambda cfg=dict(fused.HOPPER_CONFIG, **c): fused.fused_power(fo.Aq, fo.osc, Bv, T, 2, fo.flag, fo.npix, cfg)
+              for c in a.hopper_configs]               # the four-product kernel's other shapes (i8x2), if asked
     for f in calls:
         f()
     cp.cuda.Device().synchronize()
@@ -65,7 +67,8 @@ def profile(cp, a, xyzd, fd, lmd, Qd, nant, npix):
         f()
     cp.cuda.Device().synchronize()
     cp.cuda.runtime.profilerStop()
-    print("# profiled one call each of bf_fused_power (i8x2), bf_fused_gauss (two pieces), bf_fused_power (i8x1)")
+    print("# profiled one call each of bf_fused_power (i8x2), bf_fused_gauss (two pieces), bf_fused_power (i8x1)"
+          + "".join(f", bf_fused_power (i8x2, {c})" for c in a.hopper_configs))
 
 
 def main(argv=None):
