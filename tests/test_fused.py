@@ -194,6 +194,44 @@ def test_gpu_kernel_equals_its_int64_emulation(precision, kernel):
 
 @GPU
 @pytest.mark.gpu
+@pytest.mark.parametrize("precision,T", [("i8x1", 256), ("i8x2", 256), ("i8x2", 384)])
+def test_gpu_the_kernel_places_the_int64_emulation_s_images_on_the_grid(precision, T):
+    """The Hopper kernel onto a grid, per-pol gains (PA = 2), against the int64 emulation: each pol's
+    16-sample sum times its own factor, added to the pixel's cell (three pixels beside the grid, in
+    xout; cells no pixel has left at zero; 13 of the gulp's T / 16 images written)."""
+    import cupy as cp
+    if cp.cuda.Device().compute_capability != "90":
+        pytest.skip("the grid's images need the warpgroup kernel (compute capability 9.0)")
+    C, nant = 3, 70
+    xyz, freq, lm, Q = scene(nant=nant, T=T, nchan=C, npix_grid=24, seed=5)
+    rng = np.random.default_rng(6)
+    w = np.exp(2j * np.pi * rng.random((C, nant, 2)))                       # the pols' own gains: PA = 2
+    G = imaging.geometric_operator(xyz, freq, lm, "fp32")
+    Aq, osc, b, xmax = fused.quantise_operator(cp.asarray(G), cp.asarray(w), np.arange(nant), nant,
+                                               fused.PIECES[precision])
+    assert int(osc.shape[1]) == 2
+    flag = cp.zeros(1, cp.int32)
+    Bv = fused.layout_voltages(cp.asarray(Q), None, cp.asarray([0, 1], dtype=cp.int32), int(Aq.shape[-1]), xmax, flag)
+    npix, kpad, g_out, nx = len(lm), int(osc.shape[-1]), 13, 3
+    ncell = npix + 5
+    cell = np.empty(npix, np.int32)
+    cell[:-nx] = rng.permutation(ncell)[:npix - nx]
+    cell[-nx:] = ncell + np.arange(nx)                                      # directions beside the grid
+    fac = rng.uniform(0.5, 2.0, (C, 2, kpad)).astype(np.float32)
+    sums = fused.reference_power(Aq.get(), np.ones((C, 2, kpad)), Bv.get(), T, base=b)   # (C, P, T / 16, Kpad)
+    per = (fac[:, :, None, :] * sums).sum(axis=1)[:, :g_out, :npix]          # (C, g, npix)
+    want = np.zeros((g_out, C, ncell + nx))
+    want[:, :, cell] = per.transpose(1, 0, 2)
+    out, xout = cp.zeros((g_out, C, ncell), cp.float32), cp.zeros((g_out, C, nx), cp.float32)
+    fused.fused_power(Aq, osc, Bv, T, 2, flag, npix, dict(fused.HOPPER_CONFIG),
+                      grid=(out, cp.asarray(fac), cp.asarray(cell), xout))
+    got = np.concatenate([out.get(), xout.get()], axis=-1)
+    assert np.abs(got - want).max() <= 1e-6 * np.abs(want).max()
+    assert (got[..., np.setdiff1d(np.arange(ncell), cell)] == 0).all()
+
+
+@GPU
+@pytest.mark.gpu
 @pytest.mark.parametrize("precision,n,T", [("i8x2", 16, 256), ("i8x3", 16, 256), ("i8x1", 16, 256), ("i8x2", 64, 256),
                                              ("i8x2", 16, 208)])
 def test_gpu_operator_images_within_limit_of_float64_truth(precision, n, T):
