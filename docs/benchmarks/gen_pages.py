@@ -788,7 +788,48 @@ def tried_section(rows_of, head):
             "cover the operator's copies from L2; four to six had saved 10%.\n\n"
             "**The clock the kernel runs at** ([clock_fused](clock_fused.md)): called back to back, the kernel "
             "holds the card at its 700 W power limit and the SM clock at about 1.75 GHz of 1.98, so the peak "
-            "int8 rate a floor is computed from is about 11% above what this card reaches on this load.\n")
+            "int8 rate a floor is computed from is about 11% above what this card reaches on this load.\n"
+            + wide_section(rows_of, head))
+
+
+def wide_section(rows_of, head):
+    d = load("bench_gauss_wide_gpu_h200.json")
+    n = load("ncu_fused_wide_gpu_h200.json")["kernels"]
+    f, w1, w2 = n["i8x2 shipped"], n["i8x1 wide (WN=256, turns)"], n["i8x2 wide (WN=256, turns)"]
+    t = {r["row"]: r["gulp_s"] for r in d["rows"]}
+    e1, e2 = ({r["row"]: r["gulp_s"] for r in x["rows"]} for x in d["earlier_runs"])
+    keep = lambda r: r["row"].startswith(("naive", "floor-i8x", "i8x1", "i8x2"))   # noqa: E731
+    pct = lambda k, m: f"{k[m]:.0f}%"                                      # noqa: E731
+    return ("\n**256 columns a block, two warpgroups in turn** "
+            "([bench_gauss_wide_gpu_h200.json](../bench/bench_gauss_wide_gpu_h200.json), "
+            "[ncu_fused_wide_gpu_h200.json](../bench/ncu_fused_wide_gpu_h200.json)). An m64n128k32 MMA reads 6 KB "
+            "of shared memory for 64 cycles of the SM's int8 rate, and the bulk copies write A into the same "
+            "memory: at the full rate, shared memory's 128 bytes a cycle would be busy all the time. So this "
+            "shape takes 256 columns a block: each warpgroup runs `wgmma m64n256k32` (10 KB for 128 cycles) on one "
+            "64-row half of each 128-row tile into one set of 128 accumulators, the two warpgroups take the "
+            "tensor cores in turn (one piece of one half each turn, so that each squares, sums and scales by the "
+            "base while the other's MMAs run), B's 256 columns stay whole in shared memory, and A comes in 8-KB "
+            "stages, each serving twice the columns it did. Its sums were the shipped kernel's bit for bit in "
+            "every run. In the run below the package chose it for one piece (`i8x1 kernel`; `i8x1 ST=6 MT=4` is "
+            "the shipped kernel), and for two pieces it is the `WN=256` row:\n\n"
+            + table(head, rows_of(d, keep)) + "\n\n"
+            f"With two pieces it is slower in every run: {t['i8x2 ST=12 MT=4 WN=256'] * 1e3:.3f} against "
+            f"{t['i8x2 kernel'] * 1e3:.3f} ms here, {e2['i8x2 kernel'] * 1e3:.3f} against "
+            f"{e2['i8x2 ST=6 MT=4'] * 1e3:.3f} in the run before (letting both warpgroups issue whenever they can, "
+            f"`TURN=0`: {e2['i8x2 ST=12 MT=4 WN=256 TURN=0'] * 1e3:.3f}). With one piece it was "
+            f"{e2['i8x1 kernel'] * 1e3:.3f} against {e2['i8x1 ST=6 MT=4'] * 1e3:.3f} ms in that run and "
+            f"{t['i8x1 kernel'] * 1e3:.3f} against {t['i8x1 ST=6 MT=4'] * 1e3:.3f} in this one: no gain beyond the "
+            "runs' spread. (Its first build branched on the warpgroup before the wait for its turn; ptxas then "
+            "serialised every MMA of the two-piece kernel (C7520) and it took "
+            f"{e1['i8x2 ST=12 MT=4 WN=256'] * 1e3:.3f} ms.) Under Nsight Compute the shape did what it was built "
+            f"for, L1/shared-memory throughput {pct(w2, 'L1/TEX Cache Throughput (%)')} against "
+            f"{pct(f, 'L1/TEX Cache Throughput (%)')} and L2's {pct(w2, 'L2 Cache Throughput (%)')} against "
+            f"{pct(f, 'L2 Cache Throughput (%)')}, yet the tensor pipe was busy "
+            f"{pct(w2, 'Tensor pipe (% of elapsed cycles)')} of {w2['Elapsed Cycles (cycle)']:,.0f} cycles against "
+            f"{pct(f, 'Tensor pipe (% of elapsed cycles)')} of {f['Elapsed Cycles (cycle)']:,.0f} (one piece: "
+            f"{pct(w1, 'Tensor pipe (% of elapsed cycles)')} of {w1['Elapsed Cycles (cycle)']:,.0f}). Shared memory's "
+            "bandwidth is therefore not what holds the kernel to three quarters of the tensor pipe, and neither "
+            "is L2's. The shape was not kept.\n")
 
 
 page("bench_gauss", "Three integer products a complex multiply-add: the kernel, measured",
@@ -807,7 +848,8 @@ page("bench_gauss", "Three integer products a complex multiply-add: the kernel, 
       ("bench_gauss_i8x1_gpu_h200.json", H200), ("ncu_fused_gpu_h200.json", H200),
       ("bench_gauss_persistent_gpu_h200.json", H200), ("ncu_fused_persistent_gpu_h200.json", H200),
       ("bench_gauss_nodrain_gpu_h200.json", H200), ("bench_gauss_lowfirst_gpu_h200.json", H200),
-      ("bench_gauss_stages_gpu_h200.json", H200)], bg_body)
+      ("bench_gauss_stages_gpu_h200.json", H200), ("bench_gauss_wide_gpu_h200.json", H200),
+      ("ncu_fused_wide_gpu_h200.json", H200)], bg_body)
 
 
 # ---------------------------------------------------------------- clock_fused
@@ -840,6 +882,38 @@ page("clock_fused", "The fused kernel's clock and power",
      "and at the median clock sampled while the mode ran.",
      ["python tools/bench/clock_fused.py --seconds 8 --json clock_fused_gpu_h200.json"],
      [("clock_fused_gpu_h200.json", H200), ("ncu_fused_persistent_gpu_h200.json", H200)], clock_body)
+
+# ---------------------------------------------------------------- bench_band_error
+def band_error_body():
+    d = load("bench_band_error_gpu_h200.json")
+    c = d["case"]
+    rows = []
+    for r in d["rows"]:
+        for n, v in r["errors"].items():
+            rows.append([r["mode"], n, e(v["channel"]), e(v["cube"]), e(v["integration"])])
+    err = {r["mode"]: r["errors"] for r in d["rows"]}
+    i1, i2 = err["i8x1"], err["i8x2"]
+    full = str(c["nchan"])
+    return (f"{c['nant']} antennas, {c['npix']} pixels, {c['ntime']} samples, {c['nchan']} channels, "
+            f"{c['pixels_compared']} pixels compared. Per-gulp times: "
+            + ", ".join(f"{r['mode']} {ms(r['gulp_s'])} ms" for r in d["rows"]) + ".\n\n"
+            + table(["mode", "channels averaged", "worst channel", "cube (16-sample images)", "integration"], rows)
+            + "\n\n"
+            f"Averaging channels takes the one-piece mode's error from {e(i1['1']['cube'])} to "
+            f"{e(i1['16']['cube'])} over 16 channels, and then hardly further: {e(i1['256']['cube'])} over 256 and "
+            f"{e(i1[full]['cube'])} over all {full} (integration {e(i1[full]['integration'])}). What is left is common "
+            "to the channels. So the one-piece mode does not bring the whole-band pipelines' band-averaged products "
+            f"within their tolerance of 1e-4, and the station keeps two pieces (band-averaged {e(i2[full]['cube'])}).\n")
+page("bench_band_error", "Band-averaged images: each mode's error against float64",
+     "The whole-band pipelines write band-averaged products (the cube, every 16-sample image averaged over the "
+     "band; the integrations, a second of images averaged over the band). One gulp of 4-bit voltages of a sky of "
+     "four bright sources over noise, imaged by each mode (`DFTOperator.image`, one image per 16 samples) over "
+     "784 contiguous channels of 25 kHz from 74 MHz; for the first C channels, the worst channel's images, the "
+     "images averaged over the C channels, and those averaged over time too, each as max |I − I_ref| / "
+     "max |I_ref| (I = XX + YY) against a float64 evaluation of the definition on random pixels plus the "
+     "brightest.",
+     ["python tools/bench/bench_band_error.py --json bench_band_error_gpu_h200.json"],
+     [("bench_band_error_gpu_h200.json", H200)], band_error_body)
 
 # ---------------------------------------------------------------- bench_tbx_reader
 def tbx_body():
@@ -1769,6 +1843,9 @@ def date_of(f):
 
 
 SUMMARY = {  # benchmark -> (what it measures, latest result, machine), for the index
+    'bench_band_error': ("each mode's band-averaged images against float64 truth, by channels averaged",
+                         'i8x1: 9.0e-04 one channel, 1.6e-04 over 784 (the station asks 1e-4); i8x2: 7.9e-07',
+                         'one H200, 16 cores'),
     'clock_fused': ('the fused kernel back to back: SM clock, power, fraction of the int8 peak',
                     'i8x2 at the 700 W limit, SM clock 1,755 of 1,980 MHz: 0.57 of the peak at the maximum clock, '
                     '0.65 at its own',
