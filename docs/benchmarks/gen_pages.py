@@ -829,7 +829,19 @@ def wide_section(rows_of, head):
             f"{pct(f, 'Tensor pipe (% of elapsed cycles)')} of {f['Elapsed Cycles (cycle)']:,.0f} (one piece: "
             f"{pct(w1, 'Tensor pipe (% of elapsed cycles)')} of {w1['Elapsed Cycles (cycle)']:,.0f}). Shared memory's "
             "bandwidth is therefore not what holds the kernel to three quarters of the tensor pipe, and neither "
-            "is L2's. The shape was not kept.\n")
+            "is L2's. The shape was not kept.\n\n"
+            + waitn_text())
+
+
+def waitn_text():
+    t = {r["row"]: r["gulp_s"] for r in load("bench_gauss_waitn_gpu_h200.json")["rows"]}
+    return ("**Two MMA groups in flight** ([bench_gauss_waitn_gpu_h200.json](../bench/bench_gauss_waitn_gpu_h200.json)): "
+            "the shipped kernel waits, after each stage's MMAs, until one group is left in flight; leaving two gives "
+            "the warps a stage more of slack between the groups they issue. With two pieces ptxas serialises the MMAs "
+            "for want of registers (two accumulator sets of 64 at 168 a thread) and the kernel took "
+            f"{t['i8x2 ST=6 MT=4 WAITN=2'] * 1e3:.3f} ms against {t['i8x2 ST=6 MT=4'] * 1e3:.3f}; with one piece "
+            f"{t['i8x1 ST=6 MT=4 WAITN=2'] * 1e3:.3f} against {t['i8x1 ST=6 MT=4'] * 1e3:.3f}. The gaps between a "
+            "warp's MMA groups are not where the time goes either.\n")
 
 
 page("bench_gauss", "Three integer products a complex multiply-add: the kernel, measured",
@@ -849,7 +861,7 @@ page("bench_gauss", "Three integer products a complex multiply-add: the kernel, 
       ("bench_gauss_persistent_gpu_h200.json", H200), ("ncu_fused_persistent_gpu_h200.json", H200),
       ("bench_gauss_nodrain_gpu_h200.json", H200), ("bench_gauss_lowfirst_gpu_h200.json", H200),
       ("bench_gauss_stages_gpu_h200.json", H200), ("bench_gauss_wide_gpu_h200.json", H200),
-      ("ncu_fused_wide_gpu_h200.json", H200)], bg_body)
+      ("ncu_fused_wide_gpu_h200.json", H200), ("bench_gauss_waitn_gpu_h200.json", H200)], bg_body)
 
 
 # ---------------------------------------------------------------- clock_fused
